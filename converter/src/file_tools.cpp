@@ -1,0 +1,295 @@
+#include <lsnif/converter/file_tools.hpp>
+#include <lsnif/converter/json_schema.hpp>
+#include <lsnif/lsnif.h>
+
+#include <cinttypes>
+#include <cstdio>
+#include <fstream>
+#include <memory>
+#include <sstream>
+
+namespace lsnif::converter {
+
+using nlohmann::json;
+
+namespace {
+
+struct ModelCloser {
+    void operator()(lsnif_model* m) const { lsnif_close(m); }
+};
+using ModelPtr = std::unique_ptr<lsnif_model, ModelCloser>;
+
+Problem problem_from(const lsnif_error& e) {
+    return {lsnif_status_string(e.status), e.offset, e.message};
+}
+
+const char* distance_encoding_name(std::uint32_t e) {
+    return e == LSNIF_DISTANCE_SEGMENT ? "segment" : "first_entry_diagonal";
+}
+
+json info_json(const lsnif_info& info) {
+    json levels = json::array();
+    for (std::uint32_t l = 0; l < info.level_count; ++l)
+        levels.push_back({{"resolution", info.level_resolution[l]},
+                          {"entries", info.level_entries[l]},
+                          {"indexing", info.level_dense[l] ? "dense" : "hashed"}});
+    json hidden = json::array();
+    for (std::uint32_t k = 0; k < info.hidden_layer_count; ++k) hidden.push_back(info.hidden_width[k]);
+    return {{"grid_resolution", info.grid_resolution},
+            {"occupied_voxels", info.occupied_voxels},
+            {"occupied_fraction", double(info.occupied_voxels) /
+                                      (double(info.grid_resolution) * info.grid_resolution * info.grid_resolution)},
+            {"max_points", info.max_points},
+            {"features_per_level", info.features_per_level},
+            {"log2_table_size", info.log2_table_size},
+            {"levels", levels},
+            {"hash_primes", {info.hash_primes[0], info.hash_primes[1], info.hash_primes[2]}},
+            {"input_width", info.input_width},
+            {"hidden_widths", hidden},
+            {"output_count", info.output_count},
+            {"material_count", info.material_count},
+            {"activation", "relu"},
+            {"distance_encoding", distance_encoding_name(info.distance_encoding)},
+            {"box_min", {info.box_min[0], info.box_min[1], info.box_min[2]}},
+            {"box_max", {info.box_max[0], info.box_max[1], info.box_max[2]}},
+            {"parameter_count", info.parameter_count},
+            {"decoded_bytes", info.decoded_bytes}};
+}
+
+std::string fmt_bytes(std::uint64_t n) {
+    char buf[64];
+    if (n < 10 * 1024) std::snprintf(buf, sizeof buf, "%" PRIu64 " B", n);
+    else if (n < 10 * 1024 * 1024) std::snprintf(buf, sizeof buf, "%.1f KiB", double(n) / 1024);
+    else std::snprintf(buf, sizeof buf, "%.1f MiB", double(n) / (1024 * 1024));
+    return buf;
+}
+
+}  // namespace
+
+std::vector<std::string> metadata_consistency(const json& meta, const lsnif_info& info) {
+    std::vector<std::string> out;
+    if (!meta.is_object()) return out;
+    auto check = [&](const std::string& name, const json& got, const json& want) {
+        if (got != want)
+            out.push_back("metadata " + name + " is " + got.dump() + " but the model descriptor says " +
+                          want.dump());
+    };
+    if (auto m = meta.find("model"); m != meta.end() && m->is_object()) {
+        json levels = json::array(), hidden = json::array();
+        for (std::uint32_t l = 0; l < info.level_count; ++l) levels.push_back(info.level_resolution[l]);
+        for (std::uint32_t k = 0; k < info.hidden_layer_count; ++k) hidden.push_back(info.hidden_width[k]);
+        const std::pair<const char*, json> fields[] = {
+            {"grid_resolution", info.grid_resolution},
+            {"max_points", info.max_points},
+            {"level_resolutions", levels},
+            {"features_per_level", info.features_per_level},
+            {"log2_table_size", info.log2_table_size},
+            {"hidden_widths", hidden},
+            {"output_count", info.output_count},
+            {"material_count", info.material_count},
+            {"activation", "relu"},
+            {"distance_encoding", distance_encoding_name(info.distance_encoding)},
+            {"parameter_count", info.parameter_count}};
+        for (const auto& [key, want] : fields)
+            if (m->contains(key)) check(std::string("model.") + key, (*m)[key], want);
+    }
+    if (auto o = meta.find("object"); o != meta.end() && o->is_object()) {
+        for (const char* key : {"box_min", "box_max"}) {
+            if (!o->contains(key) || !(*o)[key].is_array() || (*o)[key].size() != 3) continue;
+            const float* want = key[4] == 'm' && key[5] == 'i' ? info.box_min : info.box_max;
+            for (int i = 0; i < 3; ++i) {
+                const json& v = (*o)[key][i];
+                // The descriptor stores f32; the JSON must round-trip to the same float.
+                if (!v.is_number() || float(v.get<double>()) != want[i]) {
+                    check(std::string("object.") + key,
+                          (*o)[key], json{want[0], want[1], want[2]});
+                    break;
+                }
+            }
+        }
+    }
+    return out;
+}
+
+ValidationReport validate_bytes(std::span<const std::uint8_t> bytes, const std::string& name) {
+    ValidationReport r{name, {}};
+    lsnif_error err{};
+    lsnif_header_info header{};
+    std::vector<lsnif_section_info> sections(64);
+    std::uint32_t count = 0;
+    const lsnif_status scan_status = lsnif_scan_memory(bytes.data(), bytes.size(), &header, sections.data(),
+                                                       std::uint32_t(sections.size()), &count, &err);
+    if (scan_status != LSNIF_OK) {
+        if (scan_status == LSNIF_ERR_CHECKSUM || scan_status == LSNIF_ERR_DECOMPRESS) {
+            // The table parsed: report every damaged section, one line each.
+            for (std::uint32_t i = 0; i < count && i < sections.size(); ++i)
+                if (!sections[i].checksum_ok)
+                    r.problems.push_back(
+                        {lsnif_status_string(lsnif_status(sections[i].payload_status)), sections[i].offset,
+                         std::string("section '") + sections[i].tag + "' payload is damaged (" +
+                             (sections[i].payload_status == LSNIF_ERR_DECOMPRESS
+                                  ? "zstd data does not decode"
+                                  : sections[i].decoded ? "uncompressed checksum mismatch"
+                                                        : "stored-bytes checksum mismatch") +
+                             ")"});
+            if (r.problems.empty()) r.problems.push_back(problem_from(err));
+        } else {
+            r.problems.push_back(problem_from(err));
+        }
+        return r;
+    }
+    lsnif_model* raw = nullptr;
+    if (lsnif_open_memory(bytes.data(), bytes.size(), &raw, &err) != LSNIF_OK) {
+        r.problems.push_back(problem_from(err));
+        return r;
+    }
+    ModelPtr model(raw);
+    lsnif_info info{};
+    lsnif_get_info(model.get(), &info);
+    std::size_t len = 0;
+    const char* text = lsnif_metadata(model.get(), &len);
+    json meta;
+    try {
+        meta = json::parse(text, text + len);
+    } catch (const json::parse_error& e) {
+        r.problems.push_back({"metadata", UINT64_MAX, std::string("metadata is not valid JSON: ") + e.what()});
+        return r;
+    }
+    for (const SchemaViolation& v : metadata_schema().validate(meta))
+        r.problems.push_back({"metadata", UINT64_MAX,
+                              "metadata " + (v.pointer.empty() ? std::string("(root)") : v.pointer) + " " +
+                                  v.message});
+    for (const std::string& m : metadata_consistency(meta, info))
+        r.problems.push_back({"metadata", UINT64_MAX, m});
+    return r;
+}
+
+ValidationReport validate_file(const std::string& path) {
+    std::ifstream f(path, std::ios::binary);
+    if (!f) return {path, {{lsnif_status_string(LSNIF_ERR_IO), UINT64_MAX, "cannot open the file"}}};
+    std::vector<std::uint8_t> bytes((std::istreambuf_iterator<char>(f)), std::istreambuf_iterator<char>());
+    if (f.bad()) return {path, {{lsnif_status_string(LSNIF_ERR_IO), UINT64_MAX, "read error"}}};
+    return validate_bytes(bytes, path);
+}
+
+json ValidationReport::to_json() const {
+    json probs = json::array();
+    for (const Problem& p : problems) {
+        json j = {{"status", p.status}, {"message", p.message}};
+        if (p.offset != UINT64_MAX) j["offset"] = p.offset;
+        probs.push_back(j);
+    }
+    return {{"path", path}, {"valid", valid()}, {"problems", probs}};
+}
+
+std::string ValidationReport::to_text() const {
+    if (valid()) return path + ": ok\n";
+    std::string out;
+    for (const Problem& p : problems) {
+        out += path + ": error: " + p.message;
+        if (p.offset != UINT64_MAX) out += " (at byte " + std::to_string(p.offset) + ")";
+        out += "\n";
+    }
+    return out;
+}
+
+json inspect_bytes(std::span<const std::uint8_t> bytes, const std::string& name) {
+    json report = {{"path", name}, {"file_size", bytes.size()}};
+    lsnif_error err{};
+    lsnif_header_info header{};
+    std::vector<lsnif_section_info> sections(64);
+    std::uint32_t count = 0;
+    const lsnif_status st = lsnif_scan_memory(bytes.data(), bytes.size(), &header, sections.data(),
+                                              std::uint32_t(sections.size()), &count, &err);
+    if (count > 0 || st == LSNIF_OK) {
+        report["header"] = {{"version", std::to_string(header.version_major) + "." +
+                                            std::to_string(header.version_minor)},
+                            {"file_size", header.file_size},
+                            {"table_offset", header.table_offset},
+                            {"section_count", header.section_count}};
+        json secs = json::array();
+        for (std::uint32_t i = 0; i < count && i < sections.size(); ++i) {
+            const auto& s = sections[i];
+            secs.push_back({{"tag", s.tag},
+                            {"known", bool(s.known)},
+                            {"required", bool(s.flags & LSNIF_SECTION_REQUIRED)},
+                            {"compression", s.compression == LSNIF_COMPRESSION_ZSTD ? "zstd" : "none"},
+                            {"offset", s.offset},
+                            {"stored_size", s.stored_size},
+                            {"raw_size", s.raw_size},
+                            {"compression_ratio", s.stored_size ? double(s.raw_size) / double(s.stored_size) : 1.0},
+                            {"stored_crc32c", s.stored_crc32c},
+                            {"raw_crc32c", s.raw_crc32c},
+                            {"checksum", s.checksum_ok ? "ok" : "mismatch"}});
+        }
+        report["sections"] = secs;
+    }
+    if (st != LSNIF_OK) {
+        report["error"] = {{"status", lsnif_status_string(err.status)}, {"message", err.message}};
+        return report;
+    }
+    lsnif_model* raw = nullptr;
+    if (lsnif_open_memory(bytes.data(), bytes.size(), &raw, &err) != LSNIF_OK) {
+        report["error"] = {{"status", lsnif_status_string(err.status)}, {"message", err.message}};
+        return report;
+    }
+    ModelPtr model(raw);
+    lsnif_info info{};
+    lsnif_get_info(model.get(), &info);
+    report["model"] = info_json(info);
+    std::size_t len = 0;
+    const char* text = lsnif_metadata(model.get(), &len);
+    try {
+        report["metadata"] = json::parse(text, text + len);
+    } catch (const json::parse_error&) {
+        report["metadata_text"] = std::string(text, len);
+    }
+    return report;
+}
+
+std::string inspect_text(const json& r) {
+    std::ostringstream o;
+    o << r["path"].get<std::string>() << "\n";
+    if (r.contains("header")) {
+        const json& h = r["header"];
+        o << "  format version " << h["version"].get<std::string>() << ", " << fmt_bytes(h["file_size"])
+          << ", " << h["section_count"] << " sections (table at byte " << h["table_offset"] << ")\n";
+        o << "  tag   req  codec  offset      stored       raw  ratio  checksum\n";
+        for (const json& s : r["sections"]) {
+            char line[256];
+            std::snprintf(line, sizeof line, "  %-4s  %-3s  %-5s  %6" PRIu64 "  %10s  %10s  %5.2f  %s%s\n",
+                          s["tag"].get<std::string>().c_str(), s["required"].get<bool>() ? "yes" : "no",
+                          s["compression"].get<std::string>().c_str(), s["offset"].get<std::uint64_t>(),
+                          fmt_bytes(s["stored_size"]).c_str(), fmt_bytes(s["raw_size"]).c_str(),
+                          s["compression_ratio"].get<double>(), s["checksum"].get<std::string>().c_str(),
+                          s["known"].get<bool>() ? "" : "  (unknown, skipped)");
+            o << line;
+        }
+    }
+    if (r.contains("error"))
+        o << "  error: " << r["error"]["message"].get<std::string>() << "\n";
+    if (r.contains("model")) {
+        const json& m = r["model"];
+        o << "  model: V=" << m["grid_resolution"] << " (" << m["occupied_voxels"] << " occupied, "
+          << std::fixed;
+        o.precision(1);
+        o << 100.0 * m["occupied_fraction"].get<double>() << "%), H=" << m["max_points"] << ", F="
+          << m["features_per_level"] << ", T=2^" << m["log2_table_size"] << ", levels";
+        for (const json& l : m["levels"])
+            o << " " << l["resolution"] << "(" << l["indexing"].get<std::string>() << ")";
+        o << "\n  mlp: " << m["input_width"];
+        for (const json& w : m["hidden_widths"]) o << " -> " << w;
+        o << " -> " << m["output_count"] << " (ReLU), distance " << m["distance_encoding"].get<std::string>()
+          << "\n";
+        o.precision(6);
+        o << std::defaultfloat << "  box: " << m["box_min"].dump() << " .. " << m["box_max"].dump() << "\n";
+        o << "  parameters: " << m["parameter_count"] << " (" << fmt_bytes(m["decoded_bytes"])
+          << " decoded)\n";
+    }
+    if (r.contains("metadata")) o << "  metadata: " << r["metadata"].dump(2) << "\n";
+    else if (r.contains("metadata_text"))
+        o << "  metadata (not JSON): " << r["metadata_text"].get<std::string>() << "\n";
+    return o.str();
+}
+
+}  // namespace lsnif::converter

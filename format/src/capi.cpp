@@ -1,0 +1,222 @@
+// The C API of <lsnif/lsnif.h>: thin wrappers over the C++ reader. Nothing may throw
+// out of these functions, so each body runs inside a catch-all.
+#include <lsnif/format/container.hpp>
+
+#include "model_impl.hpp"
+
+#include <algorithm>
+#include <cstring>
+#include <new>
+
+using lsnif::format::Error;
+
+namespace {
+
+void fill_error(lsnif_error* out, const Error& e) {
+    if (!out) return;
+    out->status = e.status;
+    out->reserved = 0;
+    out->offset = e.offset;
+    const std::size_t n = std::min(e.message.size(), sizeof out->message - 1);
+    std::memcpy(out->message, e.message.data(), n);
+    out->message[n] = '\0';
+}
+
+lsnif_status fail(lsnif_error* out, lsnif_status status, const char* message) {
+    fill_error(out, Error{status, UINT64_MAX, message});
+    return status;
+}
+
+template <class F>
+lsnif_status guarded(lsnif_error* err, F&& f) {
+    try {
+        return f();
+    } catch (const std::bad_alloc&) {
+        return fail(err, LSNIF_ERR_OUT_OF_MEMORY, "out of memory");
+    } catch (...) {
+        return fail(err, LSNIF_ERR_INTERNAL, "internal error");
+    }
+}
+
+lsnif_status open_bytes(std::span<const std::uint8_t> bytes, lsnif_model** out, lsnif_error* error) {
+    auto m = lsnif::format::read_model(bytes);
+    if (!m) {
+        fill_error(error, m.error());
+        return m.error().status;
+    }
+    auto* model = new (std::nothrow) lsnif_model{};
+    if (!model) return fail(error, LSNIF_ERR_OUT_OF_MEMORY, "out of memory");
+    model->data = std::move(m.value());
+    model->file_size = bytes.size();
+    *out = model;
+    fill_error(error, Error{});
+    return LSNIF_OK;
+}
+
+}  // namespace
+
+extern "C" {
+
+const char* lsnif_status_string(lsnif_status status) {
+    switch (status) {
+    case LSNIF_OK: return "ok";
+    case LSNIF_ERR_INVALID_ARGUMENT: return "invalid argument";
+    case LSNIF_ERR_IO: return "i/o error";
+    case LSNIF_ERR_NOT_LSNIF: return "not an lsnif file";
+    case LSNIF_ERR_TRANSFER_DAMAGE: return "damaged in transfer";
+    case LSNIF_ERR_TRUNCATED: return "truncated";
+    case LSNIF_ERR_VERSION_NEWER: return "written by a newer lsnif; upgrade";
+    case LSNIF_ERR_VERSION_OLDER: return "written by an older lsnif; re-convert";
+    case LSNIF_ERR_CHECKSUM: return "checksum mismatch";
+    case LSNIF_ERR_RESERVED: return "reserved field not zero";
+    case LSNIF_ERR_LIMIT: return "size limit exceeded";
+    case LSNIF_ERR_LAYOUT: return "invalid layout";
+    case LSNIF_ERR_MISSING_SECTION: return "missing required section";
+    case LSNIF_ERR_UNKNOWN_REQUIRED: return "unknown required section";
+    case LSNIF_ERR_DECOMPRESS: return "decompression failed";
+    case LSNIF_ERR_MODEL: return "invalid model";
+    case LSNIF_ERR_NONFINITE: return "non-finite value";
+    case LSNIF_ERR_OUT_OF_MEMORY: return "out of memory";
+    case LSNIF_ERR_INTERNAL: return "internal error";
+    }
+    return "unknown status";
+}
+
+lsnif_status lsnif_scan_memory(const void* data, size_t size, lsnif_header_info* header,
+                               lsnif_section_info* sections, uint32_t capacity, uint32_t* count,
+                               lsnif_error* error) {
+    if ((!data && size) || (!sections && capacity))
+        return fail(error, LSNIF_ERR_INVALID_ARGUMENT, "null data or sections pointer");
+    return guarded(error, [&] {
+        auto r = lsnif::format::scan({static_cast<const std::uint8_t*>(data), size});
+        if (!r) {
+            if (count) *count = 0;
+            fill_error(error, r.error());
+            return r.error().status;
+        }
+        if (header) *header = r->header;
+        if (count) *count = std::uint32_t(r->sections.size());
+        std::copy_n(r->sections.begin(), std::min<std::size_t>(capacity, r->sections.size()),
+                    sections);
+        fill_error(error, r->first_payload_error);
+        return r->first_payload_error.status;
+    });
+}
+
+lsnif_status lsnif_open_memory(const void* data, size_t size, lsnif_model** out, lsnif_error* error) {
+    if (!out || (!data && size)) return fail(error, LSNIF_ERR_INVALID_ARGUMENT, "null argument");
+    *out = nullptr;
+    return guarded(error, [&] {
+        return open_bytes({static_cast<const std::uint8_t*>(data), size}, out, error);
+    });
+}
+
+lsnif_status lsnif_open_file(const char* path, lsnif_model** out, lsnif_error* error) {
+    if (!out || !path) return fail(error, LSNIF_ERR_INVALID_ARGUMENT, "null argument");
+    *out = nullptr;
+    return guarded(error, [&] {
+        auto bytes = lsnif::format::read_file_bytes(path);
+        if (!bytes) {
+            fill_error(error, bytes.error());
+            return bytes.error().status;
+        }
+        return open_bytes(bytes.value(), out, error);
+    });
+}
+
+void lsnif_close(lsnif_model* model) { delete model; }
+
+lsnif_status lsnif_get_info(const lsnif_model* model, lsnif_info* out) {
+    if (!model || !out) return LSNIF_ERR_INVALID_ARGUMENT;
+    const auto& d = model->data.desc;
+    lsnif_info info{};
+    info.version_major = model->data.version_major;
+    info.version_minor = model->data.version_minor;
+    info.grid_resolution = d.grid_resolution;
+    info.max_points = d.max_points;
+    info.level_count = d.level_count();
+    info.features_per_level = d.features_per_level;
+    info.log2_table_size = d.log2_table_size;
+    for (std::uint32_t l = 0; l < d.level_count(); ++l) {
+        info.level_resolution[l] = d.level_resolution[l];
+        info.level_entries[l] = d.level_entries(l);
+        info.level_dense[l] = d.level_dense(l);
+    }
+    std::copy(d.hash_primes.begin(), d.hash_primes.end(), info.hash_primes);
+    info.input_width = d.input_width();
+    info.hidden_layer_count = std::uint32_t(d.hidden_width.size());
+    std::copy(d.hidden_width.begin(), d.hidden_width.end(), info.hidden_width);
+    info.output_count = d.output_count();
+    info.material_count = d.material_count;
+    info.activation = d.activation;
+    info.distance_encoding = d.distance_encoding;
+    std::copy(d.box_min.begin(), d.box_min.end(), info.box_min);
+    std::copy(d.box_max.begin(), d.box_max.end(), info.box_max);
+    info.parameter_count = d.parameter_count();
+    std::uint64_t occupied = 0;
+    for (std::uint8_t byte : model->data.occupancy) occupied += std::uint64_t(__builtin_popcount(byte));
+    info.occupied_voxels = occupied;
+    info.file_size = model->file_size;
+    info.decoded_bytes = model->data.occupancy.size() + d.parameter_count() * 2 +
+                         model->data.metadata_json.size();
+    *out = info;
+    return LSNIF_OK;
+}
+
+const char* lsnif_metadata(const lsnif_model* model, size_t* length) {
+    if (!model) {
+        if (length) *length = 0;
+        return nullptr;
+    }
+    if (length) *length = model->data.metadata_json.size();
+    return model->data.metadata_json.c_str();
+}
+
+uint32_t lsnif_layer_count(const lsnif_model* model) {
+    return model ? model->data.desc.layer_count() : 0;
+}
+
+lsnif_status lsnif_get_array(const lsnif_model* model, lsnif_array_kind kind, uint32_t index,
+                             lsnif_array* out) {
+    if (!model || !out) return LSNIF_ERR_INVALID_ARGUMENT;
+    const auto& m = model->data;
+    const auto& d = m.desc;
+    lsnif_array a{};
+    switch (kind) {
+    case LSNIF_ARRAY_OCCUPANCY:
+        if (index != 0) return LSNIF_ERR_INVALID_ARGUMENT;
+        a.data = m.occupancy.data();
+        a.bytes = m.occupancy.size();
+        a.dtype = LSNIF_DTYPE_BITS;
+        a.rank = 3;
+        a.dims[0] = a.dims[1] = a.dims[2] = d.grid_resolution;
+        break;
+    case LSNIF_ARRAY_GRID_LEVEL:
+        if (index >= d.level_count()) return LSNIF_ERR_INVALID_ARGUMENT;
+        a.data = m.grid[index].data();
+        a.bytes = m.grid[index].size() * 2;
+        a.dtype = LSNIF_DTYPE_FLOAT16;
+        a.rank = 2;
+        a.dims[0] = d.level_entries(index);
+        a.dims[1] = d.features_per_level;
+        break;
+    case LSNIF_ARRAY_LAYER_WEIGHTS:
+    case LSNIF_ARRAY_LAYER_BIAS: {
+        if (index >= d.layer_count()) return LSNIF_ERR_INVALID_ARGUMENT;
+        const auto [o, i] = d.layer_shape(index);
+        const auto& v = kind == LSNIF_ARRAY_LAYER_WEIGHTS ? m.weights[index] : m.biases[index];
+        a.data = v.data();
+        a.bytes = v.size() * 2;
+        a.dtype = LSNIF_DTYPE_FLOAT16;
+        a.rank = kind == LSNIF_ARRAY_LAYER_WEIGHTS ? 2 : 1;
+        a.dims[0] = o;
+        a.dims[1] = kind == LSNIF_ARRAY_LAYER_WEIGHTS ? i : 0;
+        break;
+    }
+    default: return LSNIF_ERR_INVALID_ARGUMENT;
+    }
+    *out = a;
+    return LSNIF_OK;
+}
+
+}  // extern "C"

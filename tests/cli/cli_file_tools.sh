@@ -1,0 +1,53 @@
+#!/usr/bin/env bash
+# End-to-end checks of `lsnif inspect` and `lsnif validate` as processes: exit codes,
+# one `error:` line per problem, and no signal on damaged input.
+# usage: cli_file_tools.sh LSNIF_BINARY DATA_DIR WORK_DIR
+set -u
+lsnif=$1 data=$2 work=$3
+fail=0
+bad() { echo "FAIL: $*"; fail=1; }
+mkdir -p "$work"
+
+# Valid files: exit 0, "ok" per file, JSON says valid.
+out=$("$lsnif" validate "$data"/valid/*.lsnif) || bad "validate of valid files exited $?"
+[[ $(grep -c ': ok$' <<<"$out") == $(ls "$data"/valid/*.lsnif | wc -l) ]] || bad "not one ok line per valid file: $out"
+"$lsnif" validate --json "$data/valid/tiny.lsnif" | grep -q '"valid": true' || bad "validate --json"
+
+# Invalid files: exit exactly 1 (not a signal), each prints an error line naming the file.
+for f in "$data"/invalid/*.lsnif; do
+  err=$("$lsnif" validate "$f" 2>&1 >/dev/null); rc=$?
+  [[ $rc == 1 ]] || bad "$f: exit $rc"
+  grep -q "^$f: error: " <<<"$err" || bad "$f: no error line: $err"
+done
+# Mixed list: still exit 1, and the good file is reported ok.
+out=$("$lsnif" validate "$data/valid/tiny.lsnif" "$data/invalid/payload_checksum.lsnif" 2>&1); rc=$?
+[[ $rc == 1 ]] || bad "mixed validate exit $rc"
+grep -q 'tiny.lsnif: ok' <<<"$out" || bad "mixed validate lost the ok line"
+"$lsnif" validate /nonexistent.lsnif 2>/dev/null; [[ $? == 1 ]] || bad "missing file exit code"
+
+# inspect: text and JSON on a valid file; clean failure on a damaged one.
+out=$("$lsnif" inspect "$data/valid/v1_default.lsnif") || bad "inspect exit $?"
+for want in "format version 1.0" "GRID" "MLPW" "108 -> 128 -> 128 -> 5" "lsnif-metadata/1"; do
+  grep -qF -- "$want" <<<"$out" || bad "inspect output lacks '$want'"
+done
+"$lsnif" inspect --json "$data/valid/v1_default.lsnif" | grep -q '"input_width": 108' || bad "inspect --json"
+"$lsnif" inspect "$data/invalid/table_checksum.lsnif" >/dev/null 2>&1; [[ $? == 1 ]] || bad "inspect of damaged file"
+
+# Every truncation and every header/table bit flip of a valid file, as processes.
+src="$data/valid/tiny.lsnif"
+size=$(stat -c %s "$src")
+for ((n = 0; n < size; n += 1)); do
+  head -c "$n" "$src" >"$work/t.lsnif"
+  "$lsnif" validate "$work/t.lsnif" >/dev/null 2>&1; rc=$?
+  [[ $rc == 1 ]] || { bad "truncation to $n bytes: exit $rc"; break; }
+done
+for ((byte = 0; byte < 384; byte += 1)); do
+  for bit in 0 3 7; do
+    cp "$src" "$work/f.lsnif"
+    orig=$(od -An -tu1 -j "$byte" -N1 "$src" | tr -d ' ')
+    printf "$(printf '\\%03o' $((orig ^ (1 << bit))))" | dd of="$work/f.lsnif" bs=1 seek="$byte" conv=notrunc status=none
+    "$lsnif" validate "$work/f.lsnif" >/dev/null 2>&1; rc=$?
+    [[ $rc == 1 ]] || { bad "flip byte $byte bit $bit: exit $rc"; break 2; }
+  done
+done
+exit $fail

@@ -1,0 +1,151 @@
+// `lsnif validate` / `lsnif inspect` logic and the JSON Schema validator.
+#include <doctest/doctest.h>
+
+#include <lsnif/converter/file_tools.hpp>
+#include <lsnif/converter/json_schema.hpp>
+
+#include <filesystem>
+#include <fstream>
+
+using namespace lsnif::converter;
+using nlohmann::json;
+namespace fs = std::filesystem;
+
+namespace {
+std::vector<std::uint8_t> load(const fs::path& p) {
+    std::ifstream f(p, std::ios::binary);
+    REQUIRE_MESSAGE(f.good(), "cannot open " << p);
+    return {std::istreambuf_iterator<char>(f), std::istreambuf_iterator<char>()};
+}
+std::string load_text(const fs::path& p) {
+    auto b = load(p);
+    return {b.begin(), b.end()};
+}
+fs::path data_dir() { return fs::path(LSNIF_TEST_DATA_DIR); }
+}  // namespace
+
+TEST_CASE("json schema: types, required, additionalProperties, ranges, patterns, refs") {
+    JsonSchema s(R"({
+      "type": "object", "required": ["a"], "additionalProperties": false,
+      "properties": {
+        "a": {"type": "integer", "minimum": 1, "maximum": 3},
+        "b": {"type": "array", "items": {"$ref": "#/$defs/name"}, "maxItems": 2},
+        "c": {"enum": ["x", "y"]},
+        "d": {"type": ["number", "null"], "exclusiveMinimum": 0}
+      },
+      "$defs": {"name": {"type": "string", "pattern": "^[a-z]+$", "maxLength": 3}}
+    })");
+    REQUIRE(s.valid());
+    CHECK(s.validate(json::parse(R"({"a": 2, "b": ["ab"], "c": "x", "d": null})")).empty());
+    CHECK(s.validate(json::parse(R"({"a": 2.0})")).empty());  // integral number is an integer
+    auto v = s.validate(json::parse(R"({"b": ["AB", "abcd", "x"], "c": "z", "d": 0, "e": 1})"));
+    std::vector<std::string> ptrs;
+    for (auto& x : v) ptrs.push_back(x.pointer + " " + x.message);
+    REQUIRE(v.size() == 7);
+    CHECK(ptrs[0] == " is missing the required property 'a'");
+    CHECK(ptrs[1] == "/b must have at most 2 items");
+    CHECK(ptrs[2] == "/b/0 must match the pattern \"^[a-z]+$\"");
+    CHECK(ptrs[3] == "/b/1 must have at most 3 characters");
+    CHECK(ptrs[4] == "/c must be one of [\"x\",\"y\"]");
+    CHECK(ptrs[5] == "/d must be > 0");
+    CHECK(ptrs[6] == "/e is not a known property");
+    CHECK(s.validate(json::parse(R"({"a": 1.5})")).size() == 1);
+    CHECK(s.validate(json::parse(R"([1])")).size() == 1);
+}
+
+TEST_CASE("json schema: unsupported keywords and bad refs are schema errors, not silent passes") {
+    CHECK_FALSE(JsonSchema(R"({"type": "object", "dependentRequired": {}})").valid());
+    CHECK_FALSE(JsonSchema(R"({"$ref": "other.json#/x"})").valid());
+    CHECK_FALSE(JsonSchema(R"({"pattern": "("})").valid());
+    CHECK_FALSE(JsonSchema("{not json").valid());
+}
+
+TEST_CASE("the metadata schema loads and accepts the golden metadata") {
+    REQUIRE_MESSAGE(metadata_schema().valid(), metadata_schema().error());
+}
+
+TEST_CASE("golden valid files validate with no problem") {
+    int n = 0;
+    for (const auto& e : fs::directory_iterator(data_dir() / "valid")) {
+        const auto r = validate_file(e.path().string());
+        CHECK_MESSAGE(r.valid(), r.to_text());
+        ++n;
+    }
+    CHECK(n >= 4);
+}
+
+TEST_CASE("each golden invalid file fails with exactly its expected error") {
+    int n = 0;
+    for (const auto& e : fs::directory_iterator(data_dir() / "invalid")) {
+        if (e.path().extension() != ".lsnif") continue;
+        ++n;
+        const fs::path expected = fs::path(e.path()).replace_extension(".expected");
+        REQUIRE_MESSAGE(fs::exists(expected), "missing " << expected);
+        const auto r = validate_bytes(load(e.path()), e.path().filename().string());
+        REQUIRE_MESSAGE(!r.valid(), e.path());
+        std::string got;
+        for (const auto& p : r.problems)
+            got += p.status + ": " + p.message +
+                   (p.offset != UINT64_MAX ? " @" + std::to_string(p.offset) : "") + "\n";
+        CHECK_MESSAGE(got == load_text(expected), e.path().filename().string() << "\n--- got:\n" << got);
+    }
+    CHECK(n >= 30);
+}
+
+TEST_CASE("validate rejects every truncation, reports one line per problem") {
+    const auto bytes = load(data_dir() / "valid" / "dense_uncompressed.lsnif");
+    for (std::size_t n = 0; n < bytes.size(); ++n) {
+        const auto r = validate_bytes({bytes.data(), n}, "t");
+        REQUIRE_MESSAGE(!r.valid(), "truncation to " << n << " accepted");
+        CHECK(r.to_text().find("t: error: ") == 0);
+    }
+}
+
+TEST_CASE("metadata must agree with the binary descriptor") {
+    lsnif_info info{};
+    info.grid_resolution = 32;
+    info.max_points = 18;
+    info.level_count = 2;
+    info.level_resolution[0] = 64;
+    info.level_resolution[1] = 128;
+    info.features_per_level = 3;
+    info.log2_table_size = 17;
+    info.hidden_layer_count = 1;
+    info.hidden_width[0] = 64;
+    info.output_count = 5;
+    info.distance_encoding = 1;
+    info.box_min[0] = -1.5f;
+    info.box_max[0] = 0.1f;
+    json meta = {{"model", {{"grid_resolution", 32}, {"level_resolutions", {64, 128}}, {"hidden_widths", {64}},
+                            {"distance_encoding", "first_entry_diagonal"}}},
+                 {"object", {{"box_min", {-1.5, 0, 0}}, {"box_max", {0.1, 0, 0}}}}};
+    CHECK(metadata_consistency(meta, info).empty());
+    meta["model"]["hidden_widths"] = {128};
+    meta["object"]["box_max"][0] = 0.2;
+    const auto problems = metadata_consistency(meta, info);
+    REQUIRE(problems.size() == 2);
+    CHECK(problems[0].find("model.hidden_widths") != std::string::npos);
+    CHECK(problems[1].find("object.box_max") != std::string::npos);
+}
+
+TEST_CASE("inspect reports sections, model and metadata; keeps the table of a damaged file") {
+    auto bytes = load(data_dir() / "valid" / "unknown_optional_section.lsnif");
+    json r = inspect_bytes(bytes, "x");
+    REQUIRE(r.contains("model"));
+    CHECK(r["sections"].size() == 6);
+    CHECK(r["sections"][5]["tag"] == "XTRA");
+    CHECK(r["sections"][5]["known"] == false);
+    CHECK(r["model"]["input_width"] == 2 * 1 * 2);
+    CHECK(r["metadata"]["format"] == "lsnif-metadata/1");
+    CHECK_FALSE(r.contains("error"));
+    const std::string text = inspect_text(r);
+    CHECK(text.find("XTRA") != std::string::npos);
+    CHECK(text.find("unknown, skipped") != std::string::npos);
+
+    bytes[r["sections"][3]["offset"].get<std::size_t>()] ^= 4;
+    r = inspect_bytes(bytes, "x");
+    CHECK(r.contains("error"));
+    CHECK(r["sections"][3]["checksum"] == "mismatch");
+    CHECK(r["sections"][2]["checksum"] == "ok");
+    CHECK_FALSE(r.contains("model"));
+}
