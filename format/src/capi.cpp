@@ -5,6 +5,8 @@
 #include "model_impl.hpp"
 
 #include <algorithm>
+#include <cmath>
+#include <cstddef>
 #include <cstring>
 #include <new>
 
@@ -48,6 +50,7 @@ lsnif_status open_bytes(std::span<const std::uint8_t> bytes, lsnif_model** out, 
     if (!model) return fail(error, LSNIF_ERR_OUT_OF_MEMORY, "out of memory");
     model->data = std::move(m.value());
     model->file_size = bytes.size();
+    model->runtime = lsnif::format::make_runtime(model->data);
     *out = model;
     fill_error(error, Error{});
     return LSNIF_OK;
@@ -157,8 +160,12 @@ lsnif_status lsnif_get_info(const lsnif_model* model, lsnif_info* out) {
     for (std::uint8_t byte : model->data.occupancy) occupied += std::uint64_t(__builtin_popcount(byte));
     info.occupied_voxels = occupied;
     info.file_size = model->file_size;
-    info.decoded_bytes = model->data.occupancy.size() + d.parameter_count() * 2 +
-                         model->data.metadata_json.size();
+    // fp16 arrays as stored plus the fp32 copies the CPU forward pass runs on.
+    std::uint64_t runtime_bytes = 0;
+    for (const auto& g : model->runtime.grid) runtime_bytes += g.size() * 4;
+    for (const auto& w : model->runtime.net.wt) runtime_bytes += w.size() * 4;
+    info.decoded_bytes = model->data.occupancy.size() * 2 + d.parameter_count() * 2 +
+                         model->data.metadata_json.size() + runtime_bytes;
     *out = info;
     return LSNIF_OK;
 }
@@ -219,4 +226,74 @@ lsnif_status lsnif_get_array(const lsnif_model* model, lsnif_array_kind kind, ui
     return LSNIF_OK;
 }
 
+lsnif_status lsnif_intersect(const lsnif_model* model, const lsnif_ray* rays, size_t count, lsnif_hit* hits) {
+    if (!model || (count && (!rays || !hits))) return LSNIF_ERR_INVALID_ARGUMENT;
+    return guarded(nullptr, [&] {
+        lsnif::format::intersect(model->runtime, {reinterpret_cast<const lsnif::format::Ray*>(rays), count},
+                                 {reinterpret_cast<lsnif::format::Hit*>(hits), count});
+        return LSNIF_OK;
+    });
+}
+
+lsnif_status lsnif_intersect_instance(const lsnif_model* model, const float m[12], const lsnif_ray* rays,
+                                      size_t count, lsnif_hit* hits) {
+    if (!model || !m || (count && (!rays || !hits))) return LSNIF_ERR_INVALID_ARGUMENT;
+    // Inverse of the linear part A (row-major rows 0..2, columns 0..2; translation m[3], m[7], m[11]).
+    double a[3][3], inv[3][3];
+    for (int r = 0; r < 3; ++r)
+        for (int c = 0; c < 3; ++c) a[r][c] = m[4 * r + c];
+    for (int i = 0; i < 12; ++i)
+        if (!std::isfinite(m[i])) return LSNIF_ERR_INVALID_ARGUMENT;
+    const double det = a[0][0] * (a[1][1] * a[2][2] - a[1][2] * a[2][1]) -
+                       a[0][1] * (a[1][0] * a[2][2] - a[1][2] * a[2][0]) +
+                       a[0][2] * (a[1][0] * a[2][1] - a[1][1] * a[2][0]);
+    double scale = 0;
+    for (auto& row : a)
+        for (double v : row) scale = std::max(scale, std::fabs(v));
+    if (!(std::fabs(det) > 1e-12 * scale * scale * scale)) return LSNIF_ERR_INVALID_ARGUMENT;
+    for (int r = 0; r < 3; ++r)
+        for (int c = 0; c < 3; ++c) {
+            const int r1 = (c + 1) % 3, r2 = (c + 2) % 3, c1 = (r + 1) % 3, c2 = (r + 2) % 3;
+            inv[r][c] = (a[r1][c1] * a[r2][c2] - a[r1][c2] * a[r2][c1]) / det;  // adjugate / det
+        }
+    return guarded(nullptr, [&] {
+        constexpr std::size_t kChunk = 1024;
+        lsnif_ray local[kChunk];
+        for (std::size_t base = 0; base < count; base += kChunk) {
+            const std::size_t n = std::min(kChunk, count - base);
+            for (std::size_t i = 0; i < n; ++i) {
+                const lsnif_ray& w = rays[base + i];
+                lsnif_ray& o = local[i];
+                const double p[3] = {double(w.org[0]) - m[3], double(w.org[1]) - m[7], double(w.org[2]) - m[11]};
+                for (int r = 0; r < 3; ++r) {
+                    o.org[r] = float(inv[r][0] * p[0] + inv[r][1] * p[1] + inv[r][2] * p[2]);
+                    o.dir[r] = float(inv[r][0] * w.dir[0] + inv[r][1] * w.dir[1] + inv[r][2] * w.dir[2]);
+                }
+                o.tmin = w.tmin;
+                o.tmax = w.tmax;
+            }
+            lsnif::format::intersect(model->runtime, {reinterpret_cast<const lsnif::format::Ray*>(local), n},
+                                     {reinterpret_cast<lsnif::format::Hit*>(hits + base), n});
+            for (std::size_t i = 0; i < n; ++i) {
+                lsnif_hit& h = hits[base + i];
+                if (!h.hit) continue;
+                // Normals transform with the inverse transpose: n_w = A^-T n_o.
+                double nw[3], len = 0;
+                for (int c = 0; c < 3; ++c) {
+                    nw[c] = inv[0][c] * h.normal[0] + inv[1][c] * h.normal[1] + inv[2][c] * h.normal[2];
+                    len += nw[c] * nw[c];
+                }
+                len = std::sqrt(len);
+                for (int c = 0; c < 3; ++c) h.normal[c] = len > 0 ? float(nw[c] / len) : 0.0f;
+            }
+        }
+        return LSNIF_OK;
+    });
+}
+
 }  // extern "C"
+
+static_assert(sizeof(lsnif_ray) == sizeof(lsnif::format::Ray) && offsetof(lsnif_ray, dir) == offsetof(lsnif::format::Ray, dir) &&
+              offsetof(lsnif_ray, tmax) == offsetof(lsnif::format::Ray, tmax));
+static_assert(sizeof(lsnif_hit) == sizeof(lsnif::format::Hit) && offsetof(lsnif_hit, hit) == offsetof(lsnif::format::Hit, hit) &&
+              offsetof(lsnif_hit, material) == offsetof(lsnif::format::Hit, material));

@@ -197,6 +197,38 @@ LSNIF_API uint32_t lsnif_layer_count(const lsnif_model* model);
 LSNIF_API lsnif_status lsnif_get_array(const lsnif_model* model, lsnif_array_kind kind,
                                        uint32_t index, lsnif_array* out);
 
+/* ---- Intersection (FORMAT.md §8) ------------------------------------------------ */
+
+/* A ray: points org + t*dir for t in [tmin, tmax]; tmax may be +INFINITY. dir need not
+ * be normalized; t is the ray parameter, so hit distance = t * |dir|. */
+typedef struct lsnif_ray {
+    float org[3];
+    float tmin;
+    float dir[3];
+    float tmax;
+} lsnif_ray;
+
+typedef struct lsnif_hit {
+    float t;          /* ray parameter of the hit; +INFINITY on a miss */
+    float normal[3];  /* unit shading normal (object or world space, as the query) */
+    uint32_t hit;     /* 1 hit, 0 miss (also for invalid rays: zero or non-finite dir) */
+    uint32_t material;/* index of the most likely material; 0 without materials */
+} lsnif_hit;
+
+/* Intersects `count` object-space rays. Rays that cross no occupied voxel are misses
+ * without inference. Runs on the calling thread; concurrent calls on the same model
+ * are safe (renderers parallelize across batches). Batches of >= 256 rays amortize
+ * the network evaluation best. */
+LSNIF_API lsnif_status lsnif_intersect(const lsnif_model* model, const lsnif_ray* rays, size_t count,
+                                       lsnif_hit* hits);
+
+/* Same for world-space rays against an instance placed by `object_to_world`, a 3x4
+ * row-major affine matrix [A | b] (x_world = A x_object + b). Returned t is the world
+ * ray's parameter (affine maps preserve it) and the normal is transformed by A^-T.
+ * Returns LSNIF_ERR_INVALID_ARGUMENT for a singular or non-finite matrix. */
+LSNIF_API lsnif_status lsnif_intersect_instance(const lsnif_model* model, const float object_to_world[12],
+                                                const lsnif_ray* rays, size_t count, lsnif_hit* hits);
+
 #ifdef __cplusplus
 }
 #endif

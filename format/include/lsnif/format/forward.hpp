@@ -1,0 +1,171 @@
+// The LSNIF forward pass (DESIGN.md §3, FORMAT.md §8): ray clipping, voxel DDA over the
+// occupancy grid, multi-level hash-grid encoding of the voxel entry points, MLP, decode.
+//
+// This is THE implementation: the C reader API, the trainer and every benchmark call these
+// functions, so what is measured is what a renderer gets. Everything is parametric in the
+// descriptor (V, H, levels, T, F, widths); nothing assumes the v1 defaults.
+//
+// Units: rays are in object space; t is the ray parameter (distance = t * |dir|). Grid
+// coordinates g map the box to [0, V]^3: g = (x - box_min) / cell.
+#pragma once
+
+#include <lsnif/format/container.hpp>
+
+#include <array>
+#include <cstddef>
+#include <cstdint>
+#include <span>
+#include <vector>
+
+namespace lsnif::format {
+
+// Same layout as lsnif_ray / lsnif_hit of the C API (checked by static_assert).
+struct Ray {
+    float org[3];
+    float tmin;
+    float dir[3];
+    float tmax;
+};
+
+struct Hit {
+    float t;          // ray parameter of the hit (object space t == world t under affine maps)
+    float normal[3];  // unit shading normal, object space (world space for instance queries)
+    std::uint32_t hit;       // 1 hit, 0 miss
+    std::uint32_t material;  // argmax of material logits; 0 when the model has none
+};
+
+struct LevelInfo {
+    std::uint32_t res;
+    bool dense;
+    std::uint32_t stride;   // res + 1 (dense indexing)
+    std::uint32_t mask;     // T - 1 (hashed indexing; T is a power of two)
+    float scale;            // res / V: grid coordinate -> level lattice coordinate
+    bool aligned;           // res is a multiple of V: voxel faces lie on lattice planes
+};
+
+// Everything the forward pass derives from a descriptor, computed once per model.
+struct Geometry {
+    std::uint32_t V, H, L, F;
+    float box_min[3], box_max[3];
+    float cell[3];       // box extent / V per axis
+    float inv_cell[3];
+    float diagonal;      // |box_max - box_min|
+    std::array<std::uint32_t, 3> primes;
+    std::vector<LevelInfo> levels;
+    std::uint32_t distance_encoding;
+    std::uint32_t input_width, output_count, material_count;
+};
+Geometry make_geometry(const ModelDesc& desc);
+
+// ---- ray -> voxel entry points ------------------------------------------------------
+
+// Points where a ray enters the first H occupied voxels it crosses, in order.
+// Definition (exact, what the brute-force test checks): along the clipped segment
+// [t_near, t_far] every t lies in exactly one voxel, using cells that are half-open in
+// the ray's direction on each axis (closed at the far box face); a voxel is crossed iff
+// that set of t is non-empty, and its entry is the smallest such t. Because occupancy is
+// conservative with closed voxels, any surface point on the segment lies in an occupied
+// crossed voxel, so no true hit is culled.
+struct RayPoints {
+    std::uint32_t count = 0;  // occupied voxels found (<= H)
+    float t_near = 0, t_far = 0;
+    float t[kMaxPoints];       // entry parameter per slot
+    // Entry point in grid coordinates [0, V]. Coordinates on the voxel face the ray
+    // enters through are snapped to that plane exactly (an integer), which is what makes
+    // aligned levels touch 4 corners instead of 8.
+    float g[kMaxPoints][3];
+    std::uint32_t voxel[kMaxPoints];  // linear voxel index x + V*(y + V*z)
+};
+
+enum class TraceStatus { ok, miss, invalid };
+
+// Plane parameter helper shared by the DDA and its reference test, so both compare
+// bit-identical values: t at which the ray reaches grid plane `k` on `axis`.
+struct RayGrid {
+    double go[3];      // origin in grid coordinates
+    double gd[3];      // direction in grid units per t
+    double inv_gd[3];  // 1 / gd (inf when gd == 0)
+    float plane_t(int axis, double k) const { return float((k - go[axis]) * inv_gd[axis]); }
+};
+// Returns invalid for a zero/non-finite direction or non-finite origin, or tmin > tmax,
+// or NaN bounds; miss when the ray does not meet the box within [tmin, tmax].
+TraceStatus make_ray_grid(const Geometry& geo, const Ray& ray, RayGrid& rg, float& t_near, float& t_far);
+
+// Fills `out` with up to geo.H occupied entry points. `occupancy` is the OCCU bit array.
+TraceStatus trace_points(const Geometry& geo, const std::uint8_t* occupancy, const Ray& ray, RayPoints& out);
+
+// Every voxel crossed (occupied or not), in order, with entry t: for tests and tools.
+TraceStatus trace_all_voxels(const Geometry& geo, const Ray& ray, std::vector<std::uint32_t>& voxels,
+                             std::vector<float>& entry_t);
+
+// ---- encoding -------------------------------------------------------------------------
+
+// Lattice corners with non-zero trilinear weight around a point of level `lv`. A point on
+// a voxel face of an aligned level has one coordinate on a lattice plane, so only 4
+// corners carry weight ("sparse" grid, DESIGN.md §3); the zero-weight ones are dropped.
+struct Corners {
+    std::uint32_t n;
+    std::uint32_t index[8];  // row in the level's table
+    float weight[8];
+};
+void level_corners(const Geometry& geo, const LevelInfo& lv, const float g[3], Corners& out);
+
+// Encodes the points of one ray into `row` (input_width floats: slot-major, then level,
+// then feature). Empty slots are zero. `grid[l]` points to level l's fp32 table.
+void encode_points(const Geometry& geo, const float* const* grid, const RayPoints& pts, float* row);
+
+// ---- MLP --------------------------------------------------------------------------------
+
+// fp32 network in the kernel's layout: per layer W^T [in][out_padded] and bias
+// [out_padded], out_padded a multiple of 16 (padding columns are zero).
+struct Network {
+    std::vector<std::uint32_t> in, out, out_padded;
+    std::vector<std::vector<float>> wt;
+    std::vector<std::vector<float>> bias;
+    std::size_t max_width_padded = 0;
+};
+// From fp16 arrays of a model (weights [out][in] row-major).
+Network make_network(const ModelData& model);
+// From fp32 arrays in file layout (trainer master weights).
+Network make_network(const ModelDesc& desc, const std::vector<std::vector<float>>& weights,
+                     const std::vector<std::vector<float>>& biases);
+
+// C[n][0..out_padded) = act(A[n][0..in) · Wt + bias). A has row stride `lda`, C has row
+// stride out_padded. ReLU when `relu`. Vectorized for AVX-512/AVX2 with runtime dispatch.
+void dense_layer(const float* A, std::size_t n, std::size_t in, std::size_t lda, const float* wt,
+                 const float* bias, std::size_t out_padded, bool relu, float* C);
+
+// Runs all layers. `scratch` grows as needed; the result is n rows of
+// net.out_padded.back() floats, returned as a pointer into scratch.
+const float* mlp_forward(const Network& net, const float* input, std::size_t n,
+                         std::vector<float>& scratch);
+
+// ---- decode -------------------------------------------------------------------------------
+
+// Turns one output row into a hit (FORMAT.md §8): hit iff logit > 0; t from the distance
+// encoding, clamped to the clipped segment; normal normalized (−dir if degenerate).
+Hit decode_output(const Geometry& geo, const RayPoints& pts, const Ray& ray, const float* out_row);
+
+// ---- the whole pass ------------------------------------------------------------------------
+
+// Decoded, inference-ready model: fp32 tables and network. Immutable once built, so any
+// number of threads may call intersect() on it concurrently.
+struct Runtime {
+    Geometry geo;
+    std::vector<std::uint8_t> occupancy;
+    std::vector<std::vector<float>> grid;  // per level, entries * F
+    Network net;
+    std::vector<const float*> grid_ptrs() const;
+};
+Runtime make_runtime(const ModelData& model);
+
+// Statistics of one batch, for benchmarks and evaluation.
+struct IntersectStats {
+    std::size_t rays = 0, invalid = 0, culled = 0, inferred = 0, hits = 0;
+};
+
+// Object-space batch. Single-threaded: callers parallelize across batches (renderers
+// bring their own thread pools). Invalid rays (zero direction...) report a miss.
+IntersectStats intersect(const Runtime& rt, std::span<const Ray> rays, std::span<Hit> hits);
+
+}  // namespace lsnif::format

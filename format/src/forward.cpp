@@ -1,0 +1,456 @@
+// Forward pass; see forward.hpp for the contracts. References: 3D-DDA after Amanatides &
+// Woo, "A Fast Voxel Traversal Algorithm for Ray Tracing" (1987); multiresolution hash
+// encoding after Müller et al., "Instant Neural Graphics Primitives" (2022); LSNIF after
+// Fujieda et al. (I3D 2025).
+#include <lsnif/format/forward.hpp>
+#include <lsnif/format/half.hpp>
+
+#include <algorithm>
+#include <cmath>
+#include <cstring>
+#include <limits>
+
+namespace lsnif::format {
+
+namespace {
+constexpr float kInf = std::numeric_limits<float>::infinity();
+}
+
+Geometry make_geometry(const ModelDesc& d) {
+    Geometry g{};
+    g.V = d.grid_resolution;
+    g.H = d.max_points;
+    g.L = d.level_count();
+    g.F = d.features_per_level;
+    double diag2 = 0;
+    for (int a = 0; a < 3; ++a) {
+        g.box_min[a] = d.box_min[a];
+        g.box_max[a] = d.box_max[a];
+        g.cell[a] = float((double(d.box_max[a]) - d.box_min[a]) / g.V);
+        g.inv_cell[a] = float(g.V / (double(d.box_max[a]) - d.box_min[a]));
+        diag2 += (double(d.box_max[a]) - d.box_min[a]) * (double(d.box_max[a]) - d.box_min[a]);
+    }
+    g.diagonal = float(std::sqrt(diag2));
+    g.primes = d.hash_primes;
+    for (std::uint32_t l = 0; l < g.L; ++l) {
+        LevelInfo lv;
+        lv.res = d.level_resolution[l];
+        lv.dense = d.level_dense(l);
+        lv.stride = lv.res + 1;
+        lv.mask = std::uint32_t(d.table_size() - 1);
+        lv.scale = float(double(lv.res) / g.V);
+        lv.aligned = lv.res % g.V == 0;
+        g.levels.push_back(lv);
+    }
+    g.distance_encoding = d.distance_encoding;
+    g.input_width = d.input_width();
+    g.output_count = d.output_count();
+    g.material_count = d.material_count;
+    return g;
+}
+
+// ---- ray -> voxel entry points ----------------------------------------------------------
+
+TraceStatus make_ray_grid(const Geometry& geo, const Ray& ray, RayGrid& rg, float& t_near, float& t_far) {
+    bool nonzero = false;
+    for (int a = 0; a < 3; ++a) {
+        if (!std::isfinite(ray.org[a]) || !std::isfinite(ray.dir[a])) return TraceStatus::invalid;
+        nonzero = nonzero || ray.dir[a] != 0.0f;
+    }
+    if (!nonzero || std::isnan(ray.tmin) || std::isnan(ray.tmax)) return TraceStatus::invalid;
+    t_near = ray.tmin;
+    t_far = ray.tmax;
+    const double V = geo.V;
+    for (int a = 0; a < 3; ++a) {
+        const double cell = (double(geo.box_max[a]) - geo.box_min[a]) / V;
+        rg.go[a] = (double(ray.org[a]) - geo.box_min[a]) / cell;
+        rg.gd[a] = double(ray.dir[a]) / cell;
+        if (rg.gd[a] == 0.0) {
+            rg.inv_gd[a] = kInf;
+            if (rg.go[a] < 0.0 || rg.go[a] > V) return TraceStatus::miss;
+            continue;
+        }
+        rg.inv_gd[a] = 1.0 / rg.gd[a];
+        float t0 = rg.plane_t(a, 0.0), t1 = rg.plane_t(a, V);
+        if (t0 > t1) std::swap(t0, t1);
+        t_near = std::max(t_near, t0);
+        t_far = std::min(t_far, t1);
+    }
+    if (!(t_near <= t_far)) return TraceStatus::miss;
+    return TraceStatus::ok;
+}
+
+namespace {
+
+// Walks the crossed voxels in order, calling visit(voxel_index, entry_t, g_entry) for each;
+// visit returns false to stop early. Implements exactly the definition in forward.hpp.
+template <class Visit>
+TraceStatus walk(const Geometry& geo, const Ray& ray, Visit&& visit) {
+    RayGrid rg;
+    float t_near, t_far;
+    const TraceStatus st = make_ray_grid(geo, ray, rg, t_near, t_far);
+    if (st != TraceStatus::ok) return st;
+    const int V = int(geo.V);
+    int cell[3], step[3];
+    for (int a = 0; a < 3; ++a) {
+        const double gpos = rg.go[a] + double(t_near) * rg.gd[a];
+        if (rg.gd[a] > 0) {
+            step[a] = 1;
+            int x = std::clamp(int(std::floor(gpos)), 0, V - 1);
+            while (x > 0 && rg.plane_t(a, x) > t_near) --x;
+            while (x < V - 1 && rg.plane_t(a, x + 1) <= t_near) ++x;
+            cell[a] = x;
+        } else if (rg.gd[a] < 0) {
+            step[a] = -1;
+            int x = std::clamp(int(std::ceil(gpos)) - 1, 0, V - 1);
+            while (x < V - 1 && rg.plane_t(a, x + 1) > t_near) ++x;
+            while (x > 0 && rg.plane_t(a, x) <= t_near) --x;
+            cell[a] = x;
+        } else {
+            step[a] = 0;
+            cell[a] = std::clamp(int(std::floor(rg.go[a])), 0, V - 1);
+        }
+    }
+    while (true) {
+        // Per-axis entry/exit of the current cell, from the shared plane_t.
+        float enter = -kInf, exit = kInf;
+        float enter_a[3];
+        for (int a = 0; a < 3; ++a) {
+            if (step[a] == 0) {
+                enter_a[a] = -kInf;
+                continue;
+            }
+            const int lo = step[a] > 0 ? cell[a] : cell[a] + 1;
+            const int hi = step[a] > 0 ? cell[a] + 1 : cell[a];
+            enter_a[a] = rg.plane_t(a, lo);
+            enter = std::max(enter, enter_a[a]);
+            exit = std::min(exit, rg.plane_t(a, hi));
+        }
+        const float lo = std::max(t_near, enter);
+        if (lo <= t_far && lo < exit) {
+            float g[3];
+            for (int a = 0; a < 3; ++a) {
+                if (step[a] != 0 && enter_a[a] == lo)  // entered through this face: exact plane
+                    g[a] = float(step[a] > 0 ? cell[a] : cell[a] + 1);
+                else
+                    g[a] = float(std::clamp(rg.go[a] + double(lo) * rg.gd[a], double(cell[a]),
+                                            double(cell[a] + 1)));
+            }
+            const std::uint32_t idx =
+                std::uint32_t(cell[0]) + geo.V * (std::uint32_t(cell[1]) + geo.V * std::uint32_t(cell[2]));
+            if (!visit(idx, lo, g)) return TraceStatus::ok;
+        }
+        if (exit > t_far) return TraceStatus::ok;
+        // Step every axis whose boundary is reached at `exit` (edges and corners at once).
+        for (int a = 0; a < 3; ++a) {
+            if (step[a] == 0) continue;
+            const int hi = step[a] > 0 ? cell[a] + 1 : cell[a];
+            if (rg.plane_t(a, hi) == exit) {
+                cell[a] += step[a];
+                if (cell[a] < 0 || cell[a] >= V) return TraceStatus::ok;
+            }
+        }
+    }
+}
+
+}  // namespace
+
+TraceStatus trace_points(const Geometry& geo, const std::uint8_t* occupancy, const Ray& ray, RayPoints& out) {
+    out.count = 0;
+    RayGrid rg;
+    const TraceStatus st = make_ray_grid(geo, ray, rg, out.t_near, out.t_far);
+    if (st != TraceStatus::ok) return st;
+    walk(geo, ray, [&](std::uint32_t idx, float t, const float g[3]) {
+        if (!((occupancy[idx >> 3] >> (idx & 7)) & 1u)) return true;
+        const std::uint32_t k = out.count++;
+        out.t[k] = t;
+        out.g[k][0] = g[0];
+        out.g[k][1] = g[1];
+        out.g[k][2] = g[2];
+        out.voxel[k] = idx;
+        return out.count < geo.H;
+    });
+    return out.count ? TraceStatus::ok : TraceStatus::miss;
+}
+
+TraceStatus trace_all_voxels(const Geometry& geo, const Ray& ray, std::vector<std::uint32_t>& voxels,
+                             std::vector<float>& entry_t) {
+    voxels.clear();
+    entry_t.clear();
+    return walk(geo, ray, [&](std::uint32_t idx, float t, const float*) {
+        voxels.push_back(idx);
+        entry_t.push_back(t);
+        return true;
+    });
+}
+
+// ---- encoding -------------------------------------------------------------------------
+
+void level_corners(const Geometry& geo, const LevelInfo& lv, const float g[3], Corners& out) {
+    std::uint32_t ci[3][2];
+    float cw[3][2];
+    int cn[3];
+    for (int a = 0; a < 3; ++a) {
+        const float s = g[a] * lv.scale;
+        float fl = std::floor(s);
+        if (fl >= float(lv.res)) fl = float(lv.res - 1);  // s == res: last cell, weight on top corner
+        if (fl < 0) fl = 0;
+        const float f = std::clamp(s - fl, 0.0f, 1.0f);
+        const std::uint32_t i0 = std::uint32_t(fl);
+        if (f == 0.0f) {
+            cn[a] = 1, ci[a][0] = i0, cw[a][0] = 1.0f;
+        } else if (f == 1.0f) {
+            cn[a] = 1, ci[a][0] = i0 + 1, cw[a][0] = 1.0f;
+        } else {
+            cn[a] = 2, ci[a][0] = i0, ci[a][1] = i0 + 1, cw[a][0] = 1.0f - f, cw[a][1] = f;
+        }
+    }
+    out.n = 0;
+    for (int z = 0; z < cn[2]; ++z)
+        for (int y = 0; y < cn[1]; ++y)
+            for (int x = 0; x < cn[0]; ++x) {
+                const std::uint32_t X = ci[0][x], Y = ci[1][y], Z = ci[2][z];
+                const std::uint32_t idx = lv.dense ? X + lv.stride * (Y + lv.stride * Z)
+                                                   : ((X * geo.primes[0]) ^ (Y * geo.primes[1]) ^
+                                                      (Z * geo.primes[2])) & lv.mask;
+                out.index[out.n] = idx;
+                out.weight[out.n] = cw[0][x] * cw[1][y] * cw[2][z];
+                ++out.n;
+            }
+}
+
+void encode_points(const Geometry& geo, const float* const* grid, const RayPoints& pts, float* row) {
+    const std::uint32_t F = geo.F, L = geo.L;
+    for (std::uint32_t h = 0; h < pts.count; ++h)
+        for (std::uint32_t l = 0; l < L; ++l) {
+            Corners c;
+            level_corners(geo, geo.levels[l], pts.g[h], c);
+            float* dst = row + (std::size_t(h) * L + l) * F;
+            for (std::uint32_t f = 0; f < F; ++f) dst[f] = 0.0f;
+            const float* table = grid[l];
+            for (std::uint32_t k = 0; k < c.n; ++k) {
+                const float* src = table + std::size_t(c.index[k]) * F;
+                for (std::uint32_t f = 0; f < F; ++f) dst[f] += c.weight[k] * src[f];
+            }
+        }
+    std::memset(row + std::size_t(pts.count) * L * F, 0,
+                sizeof(float) * (std::size_t(geo.H) - pts.count) * L * F);
+}
+
+// ---- MLP --------------------------------------------------------------------------------
+
+namespace {
+
+std::uint32_t pad16(std::uint32_t n) { return (n + 15u) & ~15u; }
+
+void add_layer(Network& net, std::uint32_t in, std::uint32_t out, const float* w_row_major, const float* b) {
+    const std::uint32_t op = pad16(out);
+    std::vector<float> wt(std::size_t(in) * op, 0.0f), bias(op, 0.0f);
+    for (std::uint32_t o = 0; o < out; ++o) {
+        for (std::uint32_t i = 0; i < in; ++i) wt[std::size_t(i) * op + o] = w_row_major[std::size_t(o) * in + i];
+        bias[o] = b[o];
+    }
+    net.in.push_back(in);
+    net.out.push_back(out);
+    net.out_padded.push_back(op);
+    net.wt.push_back(std::move(wt));
+    net.bias.push_back(std::move(bias));
+    net.max_width_padded = std::max<std::size_t>(net.max_width_padded, op);
+}
+
+// Register-blocked kernel: MB rows x (NV vectors of W floats) accumulators, the weight
+// vectors of one input index reused across MB rows, inputs broadcast. The same source is
+// compiled for several ISAs; vector width W is the native SIMD width of each.
+#define LSNIF_DENSE_KERNEL(NAME, TARGET, W)                                                            \
+    TARGET void NAME(const float* A, std::size_t n, std::size_t in, std::size_t lda, const float* wt, \
+                     const float* bias, std::size_t outp, bool relu, float* C) {                       \
+        typedef float vec __attribute__((vector_size(W * 4), aligned(4)));                             \
+        constexpr std::size_t MB = 6;                                                                  \
+        constexpr std::size_t NV = 4;                                                                  \
+        std::size_t o = 0;                                                                             \
+        for (; o < outp; o += NV * W) {                                                                \
+            const std::size_t nv = std::min<std::size_t>(NV, (outp - o) / W);                          \
+            std::size_t r = 0;                                                                         \
+            for (; r < n; r += MB) {                                                                   \
+                const std::size_t mb = std::min(MB, n - r);                                            \
+                vec acc[MB][NV];                                                                       \
+                for (std::size_t v = 0; v < nv; ++v) {                                                 \
+                    vec b0 = *reinterpret_cast<const vec*>(bias + o + v * W);                          \
+                    for (std::size_t m = 0; m < MB; ++m) acc[m][v] = b0;                               \
+                }                                                                                      \
+                if (mb == MB && nv == NV) {                                                            \
+                    for (std::size_t i = 0; i < in; ++i) {                                             \
+                        const float* wrow = wt + i * outp + o;                                         \
+                        const vec w0 = *reinterpret_cast<const vec*>(wrow);                            \
+                        const vec w1 = *reinterpret_cast<const vec*>(wrow + W);                        \
+                        const vec w2 = *reinterpret_cast<const vec*>(wrow + 2 * W);                    \
+                        const vec w3 = *reinterpret_cast<const vec*>(wrow + 3 * W);                    \
+                        for (std::size_t m = 0; m < MB; ++m) {                                         \
+                            const float a = A[(r + m) * lda + i];                                      \
+                            acc[m][0] += a * w0;                                                       \
+                            acc[m][1] += a * w1;                                                       \
+                            acc[m][2] += a * w2;                                                       \
+                            acc[m][3] += a * w3;                                                       \
+                        }                                                                              \
+                    }                                                                                  \
+                } else {                                                                               \
+                    for (std::size_t i = 0; i < in; ++i) {                                             \
+                        const float* wrow = wt + i * outp + o;                                         \
+                        for (std::size_t v = 0; v < nv; ++v) {                                         \
+                            const vec w = *reinterpret_cast<const vec*>(wrow + v * W);                 \
+                            for (std::size_t m = 0; m < mb; ++m) acc[m][v] += A[(r + m) * lda + i] * w; \
+                        }                                                                              \
+                    }                                                                                  \
+                }                                                                                      \
+                for (std::size_t m = 0; m < mb; ++m)                                                   \
+                    for (std::size_t v = 0; v < nv; ++v) {                                             \
+                        vec x = acc[m][v];                                                             \
+                        if (relu) x = x > 0.0f ? x : 0.0f;                                             \
+                        *reinterpret_cast<vec*>(C + (r + m) * outp + o + v * W) = x;                   \
+                    }                                                                                  \
+            }                                                                                          \
+        }                                                                                              \
+    }
+
+LSNIF_DENSE_KERNEL(dense_avx512, __attribute__((target("avx512f,avx512vl,avx2,fma"))), 16)
+LSNIF_DENSE_KERNEL(dense_avx2, __attribute__((target("avx2,fma"))), 8)
+LSNIF_DENSE_KERNEL(dense_generic, , 4)
+#undef LSNIF_DENSE_KERNEL
+
+using DenseFn = void (*)(const float*, std::size_t, std::size_t, std::size_t, const float*, const float*,
+                         std::size_t, bool, float*);
+
+DenseFn pick_dense() {
+    __builtin_cpu_init();
+    if (__builtin_cpu_supports("avx512f")) return dense_avx512;
+    if (__builtin_cpu_supports("avx2") && __builtin_cpu_supports("fma")) return dense_avx2;
+    return dense_generic;
+}
+
+}  // namespace
+
+void dense_layer(const float* A, std::size_t n, std::size_t in, std::size_t lda, const float* wt,
+                 const float* bias, std::size_t out_padded, bool relu, float* C) {
+    static const DenseFn fn = pick_dense();
+    fn(A, n, in, lda, wt, bias, out_padded, relu, C);
+}
+
+Network make_network(const ModelData& m) {
+    std::vector<std::vector<float>> w, b;
+    for (std::uint32_t k = 0; k < m.desc.layer_count(); ++k) {
+        w.emplace_back(m.weights[k].size());
+        for (std::size_t i = 0; i < w.back().size(); ++i) w.back()[i] = half_to_float(m.weights[k][i]);
+        b.emplace_back(m.biases[k].size());
+        for (std::size_t i = 0; i < b.back().size(); ++i) b.back()[i] = half_to_float(m.biases[k][i]);
+    }
+    return make_network(m.desc, w, b);
+}
+
+Network make_network(const ModelDesc& desc, const std::vector<std::vector<float>>& weights,
+                     const std::vector<std::vector<float>>& biases) {
+    Network net;
+    for (std::uint32_t k = 0; k < desc.layer_count(); ++k) {
+        const auto [o, i] = desc.layer_shape(k);
+        add_layer(net, i, o, weights[k].data(), biases[k].data());
+    }
+    return net;
+}
+
+const float* mlp_forward(const Network& net, const float* input, std::size_t n, std::vector<float>& scratch) {
+    const std::size_t w = net.max_width_padded;
+    if (scratch.size() < 2 * n * w) scratch.resize(2 * n * w);
+    const float* src = input;
+    std::size_t lda = net.in[0];
+    const std::size_t layers = net.wt.size();
+    for (std::size_t k = 0; k < layers; ++k) {
+        float* dst = scratch.data() + (k % 2) * n * w;
+        dense_layer(src, n, net.in[k], lda, net.wt[k].data(), net.bias[k].data(), net.out_padded[k],
+                    k + 1 < layers, dst);
+        src = dst;
+        lda = net.out_padded[k];
+    }
+    return src;
+}
+
+// ---- decode -------------------------------------------------------------------------------
+
+Hit decode_output(const Geometry& geo, const RayPoints& pts, const Ray& ray, const float* o) {
+    Hit h{};
+    h.hit = (pts.count > 0 && o[0] > 0.0f) ? 1u : 0u;
+    const float dlen = std::sqrt(ray.dir[0] * ray.dir[0] + ray.dir[1] * ray.dir[1] + ray.dir[2] * ray.dir[2]);
+    float t;
+    if (geo.distance_encoding == LSNIF_DISTANCE_SEGMENT)
+        t = pts.t_near + o[1] * (pts.t_far - pts.t_near);
+    else
+        t = pts.t[0] + o[1] * geo.diagonal / dlen;
+    h.t = h.hit ? std::clamp(t, pts.t_near, pts.t_far) : kInf;
+    const float nl = std::sqrt(o[2] * o[2] + o[3] * o[3] + o[4] * o[4]);
+    for (int a = 0; a < 3; ++a) h.normal[a] = nl > 0 ? o[2 + a] / nl : -ray.dir[a] / dlen;
+    h.material = 0;
+    for (std::uint32_t m = 1; m < geo.material_count; ++m)
+        if (o[5 + m] > o[5 + h.material]) h.material = m;
+    return h;
+}
+
+// ---- the whole pass ------------------------------------------------------------------------
+
+Runtime make_runtime(const ModelData& m) {
+    Runtime rt;
+    rt.geo = make_geometry(m.desc);
+    rt.occupancy = m.occupancy;
+    for (const auto& level : m.grid) {
+        rt.grid.emplace_back(level.size());
+        for (std::size_t i = 0; i < level.size(); ++i) rt.grid.back()[i] = half_to_float(level[i]);
+    }
+    rt.net = make_network(m);
+    return rt;
+}
+
+std::vector<const float*> Runtime::grid_ptrs() const {
+    std::vector<const float*> p;
+    for (const auto& g : grid) p.push_back(g.data());
+    return p;
+}
+
+IntersectStats intersect(const Runtime& rt, std::span<const Ray> rays, std::span<Hit> hits) {
+    constexpr std::size_t kChunk = 256;
+    thread_local std::vector<RayPoints> pts;
+    thread_local std::vector<float> input, scratch;
+    thread_local std::vector<std::uint32_t> which;
+    const Geometry& geo = rt.geo;
+    pts.resize(kChunk);
+    input.resize(kChunk * geo.input_width);
+    which.resize(kChunk);
+    const auto grid = rt.grid_ptrs();
+    const std::size_t outp = rt.net.out_padded.back();
+    IntersectStats st;
+    st.rays = rays.size();
+    for (std::size_t base = 0; base < rays.size(); base += kChunk) {
+        const std::size_t n = std::min(kChunk, rays.size() - base);
+        std::size_t k = 0;
+        for (std::size_t i = 0; i < n; ++i) {
+            const Ray& r = rays[base + i];
+            Hit& h = hits[base + i];
+            const TraceStatus ts = trace_points(geo, rt.occupancy.data(), r, pts[k]);
+            if (ts != TraceStatus::ok) {
+                h = Hit{kInf, {0, 0, 0}, 0, 0};
+                if (ts == TraceStatus::invalid) ++st.invalid;
+                else ++st.culled;
+                continue;
+            }
+            encode_points(geo, grid.data(), pts[k], input.data() + k * geo.input_width);
+            which[k++] = std::uint32_t(i);
+        }
+        if (!k) continue;
+        st.inferred += k;
+        const float* out = mlp_forward(rt.net, input.data(), k, scratch);
+        for (std::size_t j = 0; j < k; ++j) {
+            const std::size_t i = base + which[j];
+            hits[i] = decode_output(geo, pts[j], rays[i], out + j * outp);
+            st.hits += hits[i].hit;
+        }
+    }
+    return st;
+}
+
+}  // namespace lsnif::format

@@ -1,0 +1,330 @@
+// Forward pass: DDA against a brute-force reference, encoding, the MLP kernel, decode,
+// and the C intersect API with instance transforms.
+#include <doctest/doctest.h>
+
+#include <lsnif/format/container.hpp>
+#include <lsnif/format/forward.hpp>
+#include <lsnif/format/half.hpp>
+#include <lsnif/lsnif.h>
+
+#include <algorithm>
+#include <cmath>
+#include <random>
+#include <tuple>
+
+using namespace lsnif::format;
+
+namespace {
+
+ModelDesc desc_with(std::uint32_t V, std::array<float, 3> lo, std::array<float, 3> hi) {
+    ModelDesc d;
+    d.grid_resolution = V;
+    d.box_min = lo;
+    d.box_max = hi;
+    return d;
+}
+
+// Reference: every voxel tested on its own with the slab rule of forward.hpp, using the
+// same plane_t values; then sorted by entry.
+std::vector<std::pair<float, std::uint32_t>> brute_force(const Geometry& geo, const Ray& ray) {
+    std::vector<std::pair<float, std::uint32_t>> out;
+    RayGrid rg;
+    float t_near, t_far;
+    if (make_ray_grid(geo, ray, rg, t_near, t_far) != TraceStatus::ok) return out;
+    const int V = int(geo.V);
+    for (int z = 0; z < V; ++z)
+        for (int y = 0; y < V; ++y)
+            for (int x = 0; x < V; ++x) {
+                const int c[3] = {x, y, z};
+                float enter = -INFINITY, exit = INFINITY;
+                bool inside = true;
+                for (int a = 0; a < 3; ++a) {
+                    if (rg.gd[a] == 0) {
+                        // Half-open [c, c+1), the last cell closed at V.
+                        const double g = rg.go[a];
+                        const bool in = (g >= c[a] && g < c[a] + 1) || (c[a] == V - 1 && g == V);
+                        inside = inside && in;
+                        continue;
+                    }
+                    const float t0 = rg.plane_t(a, rg.gd[a] > 0 ? c[a] : c[a] + 1);
+                    const float t1 = rg.plane_t(a, rg.gd[a] > 0 ? c[a] + 1 : c[a]);
+                    enter = std::max(enter, t0);
+                    exit = std::min(exit, t1);
+                }
+                if (!inside) continue;
+                const float lo = std::max(t_near, enter);
+                if (lo <= t_far && lo < exit)
+                    out.push_back({lo, std::uint32_t(x + V * (y + V * z))});
+            }
+    std::stable_sort(out.begin(), out.end(), [](auto& a, auto& b) { return a.first < b.first; });
+    return out;
+}
+
+void check_against_brute_force(const Geometry& geo, const Ray& ray, const char* what) {
+    std::vector<std::uint32_t> vox;
+    std::vector<float> ts;
+    trace_all_voxels(geo, ray, vox, ts);
+    const auto ref = brute_force(geo, ray);
+    INFO(what << " org " << ray.org[0] << "," << ray.org[1] << "," << ray.org[2] << " dir " << ray.dir[0] << ","
+              << ray.dir[1] << "," << ray.dir[2] << " t [" << ray.tmin << "," << ray.tmax << "]");
+    REQUIRE(vox.size() == ref.size());
+    for (std::size_t i = 0; i < ref.size(); ++i) {
+        REQUIRE(vox[i] == ref[i].second);
+        REQUIRE(ts[i] == ref[i].first);
+        if (i) REQUIRE(ts[i] > ts[i - 1]);  // strictly ordered: no voxel entered twice at once
+    }
+}
+
+}  // namespace
+
+TEST_CASE("DDA visits exactly the brute-force voxel sequence on random rays") {
+    std::mt19937 rng(7);
+    std::uniform_real_distribution<float> u(-1.f, 1.f);
+    for (std::uint32_t V : {1u, 5u, 8u, 32u}) {
+        const Geometry geo = make_geometry(desc_with(V, {-1.f, -0.5f, 0.25f}, {2.f, 0.75f, 0.5f}));
+        const int n = V == 32 ? 300 : 1500;
+        for (int i = 0; i < n; ++i) {
+            Ray r{};
+            for (int a = 0; a < 3; ++a) {
+                const float c = 0.5f * (geo.box_min[a] + geo.box_max[a]);
+                const float e = geo.box_max[a] - geo.box_min[a];
+                r.org[a] = c + u(rng) * e * (i % 2 ? 0.45f : 1.5f);  // inside, or mostly outside
+                r.dir[a] = u(rng);
+            }
+            r.tmin = i % 3 == 0 ? u(rng) : 0.0f;
+            r.tmax = i % 5 == 0 ? std::abs(u(rng)) * 2.0f : INFINITY;
+            check_against_brute_force(geo, r, "random");
+        }
+    }
+}
+
+TEST_CASE("DDA hard cases: axis-parallel, on boundaries, edges and corners, tmax inside") {
+    const std::uint32_t V = 8;
+    const Geometry geo = make_geometry(desc_with(V, {0.f, 0.f, 0.f}, {8.f, 8.f, 8.f}));  // cell = 1
+    std::mt19937 rng(11);
+    std::uniform_int_distribution<int> k(0, int(V));
+    std::uniform_int_distribution<int> s(-1, 1);
+    int checked = 0;
+    for (int i = 0; i < 4000; ++i) {
+        Ray r{};
+        // Origins on lattice points, planes or cell centers; directions with zero and
+        // unit components, so rays run along faces and through edges and corners.
+        for (int a = 0; a < 3; ++a) {
+            const int mode = (i / 3 + a) % 3;
+            r.org[a] = mode == 0 ? float(k(rng)) : mode == 1 ? float(k(rng)) + 0.5f : float(k(rng)) - 3.0f;
+            r.dir[a] = float(s(rng));
+        }
+        if (r.dir[0] == 0 && r.dir[1] == 0 && r.dir[2] == 0) r.dir[i % 3] = 1;
+        if (i % 4 == 1) r.dir[i % 3] *= 2.0f;  // 1:1:2 diagonals also hit lattice points exactly
+        r.tmin = 0.0f;
+        r.tmax = i % 7 == 0 ? float(k(rng)) * 0.5f : INFINITY;  // shadow-like, often ending on a plane
+        check_against_brute_force(geo, r, "lattice");
+        ++checked;
+    }
+    CHECK(checked == 4000);
+
+    // Axis-parallel ray along the face plane x = 3 between voxels 2 and 3: takes cell 3.
+    Ray along{{3.f, 0.5f, -1.f}, 0.f, {0.f, 0.f, 1.f}, INFINITY};
+    std::vector<std::uint32_t> vox;
+    std::vector<float> ts;
+    REQUIRE(trace_all_voxels(geo, along, vox, ts) == TraceStatus::ok);
+    REQUIRE(vox.size() == V);
+    CHECK(vox[0] % V == 3);
+    CHECK(ts[0] == 1.0f);
+    // Through the exact corner (4,4,4) on the main diagonal: 8 cells, no side steps.
+    Ray diag{{-1.f, -1.f, -1.f}, 0.f, {1.f, 1.f, 1.f}, INFINITY};
+    trace_all_voxels(geo, diag, vox, ts);
+    CHECK(vox.size() == V);
+    for (std::uint32_t i = 0; i < V; ++i) CHECK(vox[i] == i + V * (i + V * i));
+    // Starting inside a voxel, ending inside another.
+    Ray inside{{0.5f, 0.5f, 0.5f}, 0.f, {1.f, 0.f, 0.f}, 2.25f};
+    trace_all_voxels(geo, inside, vox, ts);
+    REQUIRE(vox.size() == 3);
+    CHECK(ts[0] == 0.0f);
+    CHECK(ts[2] == 1.5f);
+    // Grazing the box along its edge x = 0, y = 0.
+    Ray edge{{0.f, 0.f, -5.f}, 0.f, {0.f, 0.f, 1.f}, INFINITY};
+    trace_all_voxels(geo, edge, vox, ts);
+    CHECK(vox.size() == V);
+    // Degenerate rays are rejected, not traced.
+    Ray zero{{1.f, 1.f, 1.f}, 0.f, {0.f, 0.f, 0.f}, INFINITY};
+    CHECK(trace_all_voxels(geo, zero, vox, ts) == TraceStatus::invalid);
+    Ray nan{{NAN, 1.f, 1.f}, 0.f, {1.f, 0.f, 0.f}, INFINITY};
+    CHECK(trace_all_voxels(geo, nan, vox, ts) == TraceStatus::invalid);
+    Ray missing{{-1.f, 9.f, 1.f}, 0.f, {1.f, 0.f, 0.f}, INFINITY};
+    CHECK(trace_all_voxels(geo, missing, vox, ts) == TraceStatus::miss);
+    Ray behind{{-1.f, 1.f, 1.f}, 0.f, {-1.f, 0.f, 0.f}, INFINITY};
+    CHECK(trace_all_voxels(geo, behind, vox, ts) == TraceStatus::miss);
+}
+
+TEST_CASE("trace_points keeps the first H occupied voxels with face-snapped entry points") {
+    ModelDesc d = desc_with(8, {0.f, 0.f, 0.f}, {8.f, 8.f, 8.f});
+    d.max_points = 3;
+    auto m = make_empty_model(d).value();
+    // Occupy x = 1, 3, 4, 6 along the row y = 2, z = 5.
+    for (std::uint32_t x : {1u, 3u, 4u, 6u}) {
+        const std::uint32_t i = x + 8 * (2 + 8 * 5);
+        m.occupancy[i >> 3] |= std::uint8_t(1u << (i & 7));
+    }
+    const Geometry geo = make_geometry(d);
+    RayPoints pts;
+    Ray r{{-2.f, 2.25f, 5.5f}, 0.f, {2.f, 0.f, 0.f}, INFINITY};  // |dir| = 2: t is half the distance
+    REQUIRE(trace_points(geo, m.occupancy.data(), r, pts) == TraceStatus::ok);
+    REQUIRE(pts.count == 3);
+    CHECK(pts.t[0] == 1.5f);
+    CHECK(pts.t[1] == 2.5f);
+    CHECK(pts.t[2] == 3.0f);
+    CHECK(pts.g[0][0] == 1.0f);  // exactly on the entry face
+    CHECK(pts.g[1][0] == 3.0f);
+    CHECK(pts.g[0][1] == 2.25f);
+    CHECK(pts.voxel[2] == 4 + 8 * (2 + 8 * 5));
+    // A shadow ray ending before the second voxel sees only one.
+    r.tmax = 2.0f;
+    REQUIRE(trace_points(geo, m.occupancy.data(), r, pts) == TraceStatus::ok);
+    CHECK(pts.count == 1);
+    // A ray through no occupied voxel is culled.
+    Ray empty{{-2.f, 6.5f, 5.5f}, 0.f, {1.f, 0.f, 0.f}, INFINITY};
+    CHECK(trace_points(geo, m.occupancy.data(), empty, pts) == TraceStatus::miss);
+}
+
+TEST_CASE("encoding: aligned levels touch 4 corners on faces; trilinear weights are exact") {
+    ModelDesc d = desc_with(32, {0.f, 0.f, 0.f}, {1.f, 1.f, 1.f});
+    d.level_resolution = {64, 128, 40};  // 40 is not a multiple of 32: faces fall inside cells
+    d.log2_table_size = 17;
+    const Geometry geo = make_geometry(d);
+    std::mt19937 rng(3);
+    std::uniform_real_distribution<float> u(0.f, 32.f);
+    std::uniform_int_distribution<int> plane(0, 32);
+    for (int i = 0; i < 2000; ++i) {
+        float g[3] = {u(rng), u(rng), u(rng)};
+        const int axis = i % 4;  // 3 = no face
+        if (axis < 3) g[axis] = float(plane(rng));
+        for (std::uint32_t l = 0; l < 3; ++l) {
+            Corners c;
+            level_corners(geo, geo.levels[l], g, c);
+            float sum = 0;
+            for (std::uint32_t k = 0; k < c.n; ++k) {
+                sum += c.weight[k];
+                CHECK(c.weight[k] > 0.0f);
+                CHECK(c.index[k] < d.level_entries(l));
+            }
+            CHECK(sum == doctest::Approx(1.0f).epsilon(1e-6));
+            if (axis < 3 && geo.levels[l].aligned) CHECK(c.n <= 4);
+        }
+    }
+    // Dense level: index and weights against a direct computation.
+    ModelDesc dd = desc_with(4, {0.f, 0.f, 0.f}, {1.f, 1.f, 1.f});
+    dd.level_resolution = {8};
+    dd.log2_table_size = 10;  // 9^3 = 729 <= 1024: dense
+    const Geometry gd = make_geometry(dd);
+    REQUIRE(gd.levels[0].dense);
+    const float p[3] = {1.25f, 2.0f, 3.875f};  // lattice coords 2.5, 4, 7.75
+    Corners c;
+    level_corners(gd, gd.levels[0], p, c);
+    REQUIRE(c.n == 4);
+    CHECK(c.index[0] == 2 + 9 * (4 + 9 * 7));
+    CHECK(c.weight[0] == doctest::Approx(0.5f * 0.25f));
+    CHECK(c.index[3] == 3 + 9 * (4 + 9 * 8));
+    CHECK(c.weight[3] == doctest::Approx(0.5f * 0.75f));
+    // Hashed index: (x*1 ^ y*2654435761 ^ z*805459861) mod T.
+    const float q[3] = {2.0f, 3.0f, 5.0f};
+    level_corners(geo, geo.levels[0], q, c);  // level res 64, scale 2: lattice (4, 6, 10)
+    REQUIRE(c.n == 1);
+    CHECK(c.index[0] == ((4u * 1u) ^ (6u * 2654435761u) ^ (10u * 805459861u)) % (1u << 17));
+}
+
+TEST_CASE("dense_layer matches a naive reference, including ragged sizes") {
+    std::mt19937 rng(5);
+    std::uniform_real_distribution<float> u(-1.f, 1.f);
+    const int shapes[][3] = {{1, 3, 5}, {7, 108, 128}, {13, 17, 40}, {64, 128, 128}};
+    for (const auto& shape : shapes) {
+        const int n = shape[0], in = shape[1], out = shape[2];
+        const std::size_t op = (out + 15) / 16 * 16;
+        std::vector<float> A(n * in), wt(in * op, 0.f), bias(op, 0.f), C(n * op);
+        for (auto& x : A) x = u(rng);
+        for (int i = 0; i < in; ++i)
+            for (int o = 0; o < out; ++o) wt[i * op + o] = u(rng);
+        for (int o = 0; o < out; ++o) bias[o] = u(rng);
+        for (bool relu : {false, true}) {
+            dense_layer(A.data(), n, in, in, wt.data(), bias.data(), op, relu, C.data());
+            for (int r = 0; r < n; ++r)
+                for (int o = 0; o < out; ++o) {
+                    double ref = bias[o];
+                    for (int i = 0; i < in; ++i) ref += double(A[r * in + i]) * wt[i * op + o];
+                    if (relu) ref = std::max(ref, 0.0);
+                    REQUIRE(C[r * op + o] == doctest::Approx(ref).epsilon(1e-4).scale(1.0));
+                }
+        }
+    }
+}
+
+namespace {
+
+// A model whose MLP ignores its input: weights zero, biases fixed, so every ray that
+// reaches the network gets the same outputs and decode can be checked exactly.
+std::vector<std::uint8_t> constant_model_bytes(float logit, float y, std::array<float, 3> n) {
+    ModelDesc d = desc_with(8, {-1.f, -1.f, -1.f}, {1.f, 1.f, 1.f});
+    d.max_points = 4;
+    d.level_resolution = {16};
+    d.log2_table_size = 10;
+    d.hidden_width = {16};
+    auto m = make_empty_model(d).value();
+    m.metadata_json = "{}";
+    // Occupy the central 4x4x4 block.
+    for (std::uint32_t z = 2; z < 6; ++z)
+        for (std::uint32_t y2 = 2; y2 < 6; ++y2)
+            for (std::uint32_t x = 2; x < 6; ++x) {
+                const std::uint32_t i = x + 8 * (y2 + 8 * z);
+                m.occupancy[i >> 3] |= std::uint8_t(1u << (i & 7));
+            }
+    m.biases[1][0] = float_to_half(logit);
+    m.biases[1][1] = float_to_half(y);
+    for (int a = 0; a < 3; ++a) m.biases[1][2 + a] = float_to_half(n[a]);
+    return serialize(m).value();
+}
+
+}  // namespace
+
+TEST_CASE("C API intersect: occupancy early-out, decode, and instance transforms") {
+    const auto bytes = constant_model_bytes(2.0f, 0.25f, {0.f, 0.f, 2.f});
+    lsnif_model* model = nullptr;
+    REQUIRE(lsnif_open_memory(bytes.data(), bytes.size(), &model, nullptr) == LSNIF_OK);
+    const float diag = 2.0f * std::sqrt(3.0f);
+    lsnif_ray rays[4] = {
+        {{-3.f, 0.1f, 0.1f}, 0.f, {1.f, 0.f, 0.f}, INFINITY},   // crosses the block: enters at x = -0.5
+        {{-3.f, 0.9f, 0.1f}, 0.f, {1.f, 0.f, 0.f}, INFINITY},   // only empty voxels: culled
+        {{-3.f, 0.1f, 0.1f}, 0.f, {0.f, 0.f, 0.f}, INFINITY},   // invalid
+        {{-3.f, 0.1f, 0.1f}, 0.f, {2.f, 0.f, 0.f}, 1.0f},       // ends before the block
+    };
+    lsnif_hit hits[4];
+    REQUIRE(lsnif_intersect(model, rays, 4, hits) == LSNIF_OK);
+    CHECK(hits[0].hit == 1);
+    CHECK(hits[0].t == doctest::Approx(2.5f + 0.25f * diag));
+    CHECK(hits[0].normal[2] == 1.0f);
+    CHECK(hits[1].hit == 0);
+    CHECK(std::isinf(hits[1].t));
+    CHECK(hits[2].hit == 0);
+    CHECK(hits[3].hit == 0);
+
+    // Instance: rotate 90° about z, scale 3, translate; world rays are object rays mapped.
+    const float M[12] = {0.f, -3.f, 0.f, 10.f,  //
+                         3.f, 0.f, 0.f, -2.f,   //
+                         0.f, 0.f, 3.f, 5.f};
+    lsnif_ray world[1];
+    for (int r = 0; r < 3; ++r) {
+        world[0].org[r] = M[4 * r] * rays[0].org[0] + M[4 * r + 1] * rays[0].org[1] + M[4 * r + 2] * rays[0].org[2] +
+                          M[4 * r + 3];
+        world[0].dir[r] = M[4 * r] * rays[0].dir[0] + M[4 * r + 1] * rays[0].dir[1] + M[4 * r + 2] * rays[0].dir[2];
+    }
+    world[0].tmin = 0.f;
+    world[0].tmax = INFINITY;
+    lsnif_hit wh[1];
+    REQUIRE(lsnif_intersect_instance(model, M, world, 1, wh) == LSNIF_OK);
+    CHECK(wh[0].hit == 1);
+    CHECK(wh[0].t == doctest::Approx(hits[0].t).epsilon(1e-5));  // same parameter in both spaces
+    CHECK(wh[0].normal[2] == doctest::Approx(1.0f));  // z-axis normal stays z under this map
+    const float singular[12] = {1, 0, 0, 0, 0, 0, 0, 0, 0, 0, 1, 0};
+    CHECK(lsnif_intersect_instance(model, singular, world, 1, wh) == LSNIF_ERR_INVALID_ARGUMENT);
+    CHECK(lsnif_intersect(nullptr, rays, 1, hits) == LSNIF_ERR_INVALID_ARGUMENT);
+    lsnif_close(model);
+}
