@@ -1,5 +1,6 @@
 // The `lsnif` command. Only this file prints "error: ..." and chooses exit codes;
 // everything it calls reports through return values.
+#include <lsnif/converter/bench.hpp>
 #include <lsnif/converter/file_tools.hpp>
 #include <lsnif/format/container.hpp>
 
@@ -60,6 +61,21 @@ int main(int argc, char** argv) {
     validate->add_option("FILE", validate_paths, ".lsnif files")->required();
     validate->add_flag("--json", validate_json, "Machine-readable output");
 
+    lsnif::converter::BenchOptions bench_opts;
+    bool bench_json = false;
+    auto* bench = app.add_subcommand("bench", "Throughput benchmarks (see BENCHMARKS.md)");
+    bench->require_subcommand(1);
+    bench->add_flag("--json", bench_json, "Machine-readable output");
+    bench->add_option("--threads", bench_opts.threads, "Worker threads")->check(CLI::Range(1, 256));
+    bench->add_option("--seconds", bench_opts.min_seconds, "Minimum seconds per measurement")->check(CLI::Range(0.01, 600.0));
+    auto* bench_train = bench->add_subcommand("train", "Training samples/s (forward+backward+Adam) for batch 2^14..2^16, vs sgemm");
+    auto* bench_infer = bench->add_subcommand("infer", "Inference rays/s through the network and with occupancy early-outs");
+    for (auto* sub : {bench_train, bench_infer}) {
+        sub->add_flag("--json", bench_json, "Machine-readable output");
+        sub->add_option("--threads", bench_opts.threads, "Worker threads")->check(CLI::Range(1, 256));
+        sub->add_option("--seconds", bench_opts.min_seconds, "Minimum seconds per measurement")->check(CLI::Range(0.01, 600.0));
+    }
+
     try {
         app.parse(argc, argv);
     } catch (const CLI::ParseError& e) {
@@ -68,6 +84,12 @@ int main(int argc, char** argv) {
     try {
         if (*inspect) return run_inspect(inspect_path, inspect_json);
         if (*validate) return run_validate(validate_paths, validate_json);
+        if (*bench) {
+            const auto report = *bench_train ? lsnif::converter::bench_train(bench_opts)
+                                             : lsnif::converter::bench_infer(bench_opts);
+            std::cout << (bench_json ? report.dump(2) + "\n" : lsnif::converter::bench_text(report));
+            return 0;
+        }
     } catch (const std::exception& e) {
         std::fprintf(stderr, "error: %s\n", e.what());
         return 1;

@@ -111,21 +111,22 @@ TraceStatus walk(const Geometry& geo, const Ray& ray, Visit&& visit) {
             cell[a] = std::clamp(int(std::floor(rg.go[a])), 0, V - 1);
         }
     }
-    while (true) {
-        // Per-axis entry/exit of the current cell, from the shared plane_t.
-        float enter = -kInf, exit = kInf;
-        float enter_a[3];
-        for (int a = 0; a < 3; ++a) {
-            if (step[a] == 0) {
-                enter_a[a] = -kInf;
-                continue;
-            }
-            const int lo = step[a] > 0 ? cell[a] : cell[a] + 1;
-            const int hi = step[a] > 0 ? cell[a] + 1 : cell[a];
-            enter_a[a] = rg.plane_t(a, lo);
-            enter = std::max(enter, enter_a[a]);
-            exit = std::min(exit, rg.plane_t(a, hi));
+    // Per-axis entry/exit parameters of the current cell, from the shared plane_t. When an
+    // axis steps, its new entry plane is its old exit plane (same value); only the new
+    // exit is computed.
+    float enter_a[3], exit_a[3];
+    for (int a = 0; a < 3; ++a) {
+        if (step[a] == 0) {
+            enter_a[a] = -kInf;
+            exit_a[a] = kInf;
+        } else {
+            enter_a[a] = rg.plane_t(a, step[a] > 0 ? cell[a] : cell[a] + 1);
+            exit_a[a] = rg.plane_t(a, step[a] > 0 ? cell[a] + 1 : cell[a]);
         }
+    }
+    while (true) {
+        const float enter = std::max(enter_a[0], std::max(enter_a[1], enter_a[2]));
+        const float exit = std::min(exit_a[0], std::min(exit_a[1], exit_a[2]));
         const float lo = std::max(t_near, enter);
         if (lo <= t_far && lo < exit) {
             float g[3];
@@ -143,12 +144,11 @@ TraceStatus walk(const Geometry& geo, const Ray& ray, Visit&& visit) {
         if (exit > t_far) return TraceStatus::ok;
         // Step every axis whose boundary is reached at `exit` (edges and corners at once).
         for (int a = 0; a < 3; ++a) {
-            if (step[a] == 0) continue;
-            const int hi = step[a] > 0 ? cell[a] + 1 : cell[a];
-            if (rg.plane_t(a, hi) == exit) {
-                cell[a] += step[a];
-                if (cell[a] < 0 || cell[a] >= V) return TraceStatus::ok;
-            }
+            if (exit_a[a] != exit) continue;
+            cell[a] += step[a];
+            if (cell[a] < 0 || cell[a] >= V) return TraceStatus::ok;
+            enter_a[a] = exit_a[a];
+            exit_a[a] = rg.plane_t(a, step[a] > 0 ? cell[a] + 1 : cell[a]);
         }
     }
 }

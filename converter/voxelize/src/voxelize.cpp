@@ -55,7 +55,6 @@
 #include <new>
 #include <optional>
 #include <string>
-#include <system_error>
 #include <thread>
 #include <vector>
 
@@ -70,12 +69,14 @@ constexpr double kTinyAxis = 0x1p-900;        // |a|_1 below this: the axis is s
 constexpr double kHintWiden = 0x1p-30;        // row-interval hint widening, relative to S
 constexpr std::size_t kChunk = 8192;          // triangles per scheduling unit
 constexpr unsigned kMaxThreads = 256;
+constexpr std::size_t kPrefetch = 16;         // triangles ahead whose vertices are prefetched
 
 // Object space -> grid coordinates (item 1 above).
 struct GridMap {
     double origin[3];
     double scale[3];
-    double vd;  // V as double
+    double vd;          // V as double
+    double tau_inside;  // tau_T of any triangle inside the grid: 2^-40 (V + 1)
     std::uint32_t v;
 };
 
@@ -167,18 +168,11 @@ struct Axis {
     }
 }
 
-// Marks every voxel triangle g (grid coordinates) may overlap; see the file comment.
-inline void mark_triangle(const double (&g)[3][3], const GridMap& map, std::uint64_t* words) {
+// Marks every voxel triangle g may overlap, given its extent [lo, hi] per axis (grid
+// coordinates), S and tau (file comment).
+[[gnu::noinline]] void mark_general(const double (&g)[3][3], const double (&lo)[3], const double (&hi)[3],
+                                    double s, double tau, const GridMap& map, std::uint64_t* words) {
     const double vd = map.vd;
-    double lo[3], hi[3];
-    double mag = vd;
-    for (int a = 0; a < 3; ++a) {
-        lo[a] = std::min(std::min(g[0][a], g[1][a]), g[2][a]);
-        hi[a] = std::max(std::max(g[0][a], g[1][a]), g[2][a]);
-        mag = std::max(mag, std::max(-lo[a], hi[a]));
-    }
-    const double s = mag + 1.0;
-    const double tau = kSlackFactor * s;
     // Voxel x touches [lo - tau, hi + tau] iff ceil(lo - tau) - 1 <= x <= floor(hi + tau).
     double first[3], last[3];
     int multi = 0;
@@ -194,9 +188,9 @@ inline void mark_triangle(const double (&g)[3][3], const GridMap& map, std::uint
         l[a] = int(std::min(last[a], vd - 1.0));
     }
     if (multi <= 1) {
-        // Fast path. The (grown) triangle lies inside one voxel slab along two axes; being
-        // connected, its projection on the third axis covers [lo, hi], so it meets every
-        // voxel of the range: no SAT needed. The common case for small triangles.
+        // The (grown) triangle lies inside one voxel slab along two axes; being connected,
+        // its projection on the third axis covers [lo, hi], so it meets every voxel of the
+        // range: no SAT needed.
         for (int z = f[2]; z <= l[2]; ++z)
             for (int y = f[1]; y <= l[1]; ++y)
                 for (int x = f[0]; x <= l[0]; ++x) set_bit(words, voxel_index(map.v, x, y, z));
@@ -205,11 +199,53 @@ inline void mark_triangle(const double (&g)[3][3], const GridMap& map, std::uint
     mark_by_sat(g, tau, s, f, l, map.v, words);
 }
 
+// Marks every voxel triangle g (grid coordinates) may overlap; see the file comment.
+inline void mark_triangle(const double (&g)[3][3], const GridMap& map, std::uint64_t* words) {
+    const double vd = map.vd;
+    double lo[3], hi[3];
+    for (int a = 0; a < 3; ++a) {
+        lo[a] = std::min(std::min(g[0][a], g[1][a]), g[2][a]);
+        hi[a] = std::max(std::max(g[0][a], g[1][a]), g[2][a]);
+    }
+    // Fast path, the common case for triangles small against a voxel: on every axis the
+    // range [lo - tau, hi + tau] lies inside the grid, its lower end is not an integer, and
+    // it spans one voxel, or two along at most one axis. Then the touched voxels are k0 and
+    // k1 (k = floor of the range ends), exactly what mark_general would mark, but without
+    // floor/ceil and with a single, well-predicted branch. Inside the grid M_T <= V, so
+    // tau = 2^-40 (V + 1) (map.tau_inside); the checks below establish that premise.
+    const double tau = map.tau_inside;
+    int k0[3], k1[3];
+    bool simple = true;
+    int spans = 0;
+    for (int a = 0; a < 3; ++a) {
+        const double a0 = lo[a] - tau, a1 = hi[a] + tau;
+        // Clamped first, so that the conversions below are always defined.
+        k0[a] = int(std::min(std::max(a0, 0.0), vd));
+        k1[a] = int(std::min(std::max(a1, 0.0), vd));
+        simple &= (double(k0[a]) < a0) & (a1 < vd);  // 0 < a0 (not an integer), a1 < V
+        spans += k1[a] - k0[a];
+    }
+    if (simple & (spans <= 1)) {
+        set_bit(words, voxel_index(map.v, k0[0], k0[1], k0[2]));
+        set_bit(words, voxel_index(map.v, k1[0], k1[1], k1[2]));
+        return;
+    }
+    double mag = vd;
+    for (int a = 0; a < 3; ++a) mag = std::max(mag, std::max(-lo[a], hi[a]));
+    const double s = mag + 1.0;
+    mark_general(g, lo, hi, s, kSlackFactor * s, map, words);
+}
+
 void mark_range(const MeshView& mesh, const GridMap& map, std::size_t begin, std::size_t end,
                 std::uint64_t* words) {
     const float* pos = mesh.positions.data();
     const std::uint32_t* idx = mesh.indices.data();
     for (std::size_t t = begin; t < end; ++t) {
+        // The vertex fetches are the main memory cost on large meshes: request those of a
+        // triangle kPrefetch ahead (indices are read sequentially and need no help).
+        if (t + kPrefetch < end) {
+            for (int i = 0; i < 3; ++i) __builtin_prefetch(pos + 3 * std::size_t(idx[3 * (t + kPrefetch) + i]));
+        }
         double g[3][3];
         for (int i = 0; i < 3; ++i) {
             const float* p = pos + 3 * std::size_t(idx[3 * t + i]);
@@ -279,6 +315,7 @@ Result<Occupancy> voxelize_impl(const MeshView& mesh, const Box& box, std::uint3
     GridMap map{};
     map.v = v;
     map.vd = double(v);
+    map.tau_inside = kSlackFactor * (map.vd + 1.0);
     for (int a = 0; a < 3; ++a) {
         map.origin[a] = box.min[a];
         map.scale[a] = map.vd / (double(box.max[a]) - double(box.min[a]));
@@ -308,7 +345,7 @@ Result<Occupancy> voxelize_impl(const MeshView& mesh, const Box& box, std::uint3
     for (unsigned id = 1; id < threads; ++id) {
         try {
             pool.emplace_back(work, id);
-        } catch (const std::system_error&) {
+        } catch (...) {  // std::system_error, std::bad_alloc: never unwind past running threads
             break;  // fewer threads: the others (and this one) take the remaining chunks
         }
     }

@@ -1,0 +1,217 @@
+// `lsnif bench train` and `lsnif bench infer`: throughput of the trainer and of the
+// reader's forward pass on the v1 default model, with the machine's sgemm rate (OpenBLAS)
+// measured in the same run as the yardstick. Absolute times on shared machines are noisy;
+// the ratios in one run are what BENCHMARKS.md records.
+#include <lsnif/converter/bench.hpp>
+#include <lsnif/format/forward.hpp>
+#include <lsnif/trainer/analytic.hpp>
+#include <lsnif/trainer/trainer.hpp>
+
+#include <cblas.h>
+
+#include <algorithm>
+#include <chrono>
+#include <cstdio>
+#include <fstream>
+#include <thread>
+
+namespace lsnif::converter {
+
+using nlohmann::json;
+using Clock = std::chrono::steady_clock;
+
+namespace {
+
+double seconds_since(Clock::time_point t0) { return std::chrono::duration<double>(Clock::now() - t0).count(); }
+
+std::string cpu_model() {
+    std::ifstream f("/proc/cpuinfo");
+    std::string line;
+    while (std::getline(f, line))
+        if (line.rfind("model name", 0) == 0) return line.substr(line.find(':') + 2);
+    return "unknown";
+}
+
+// A scene of many small spheres: occupancy comparable to a detailed object.
+trainer::SpheresSource bench_scene(const format::ModelDesc& d) {
+    std::vector<trainer::Sphere> s;
+    std::uint64_t x = 42;
+    auto u = [&]() {
+        x = x * 6364136223846793005ull + 1442695040888963407ull;
+        return float(x >> 40) / float(1 << 24);
+    };
+    for (int i = 0; i < 24; ++i) s.push_back({{u() * 1.4f - 0.7f, u() * 1.4f - 0.7f, u() * 1.4f - 0.7f}, 0.05f + 0.2f * u()});
+    return trainer::SpheresSource(std::move(s), d.box_min, d.box_max);
+}
+
+format::ModelDesc v1_desc() {
+    format::ModelDesc d;  // DESIGN.md §3 defaults: V=32, H=18, 64/128, T=2^17, F=3, 2x128
+    d.box_min = {-1.f, -1.f, -1.f};
+    d.box_max = {1.f, 1.f, 1.f};
+    return d;
+}
+
+// OpenBLAS sgemm rate on large square matrices with `threads` threads: the machine's
+// practical fp32 matrix-multiply peak for this run.
+double sgemm_gflops(int n, int threads, double min_seconds) {
+    openblas_set_num_threads(threads);
+    std::vector<float> a(std::size_t(n) * n, 0.5f), b(std::size_t(n) * n, 0.25f), c(std::size_t(n) * n);
+    cblas_sgemm(CblasRowMajor, CblasNoTrans, CblasNoTrans, n, n, n, 1.f, a.data(), n, b.data(), n, 0.f, c.data(), n);
+    int reps = 0;
+    const auto t0 = Clock::now();
+    do {
+        cblas_sgemm(CblasRowMajor, CblasNoTrans, CblasNoTrans, n, n, n, 1.f, a.data(), n, b.data(), n, 0.f, c.data(), n);
+        ++reps;
+    } while (seconds_since(t0) < min_seconds);
+    return 2.0 * double(n) * n * n * reps / seconds_since(t0) / 1e9;
+}
+
+// The training-shaped product (rows x 108 -> 128) single-threaded: ours vs OpenBLAS.
+json kernel_comparison(double min_seconds) {
+    const int rows = 4096, in = 108, out = 128;
+    std::vector<float> A(std::size_t(rows) * in, 0.3f), W(std::size_t(in) * out, 0.01f), bias(out, 0.f),
+        C(std::size_t(rows) * out);
+    auto rate = [&](auto&& fn) {
+        fn();
+        int reps = 0;
+        const auto t0 = Clock::now();
+        do {
+            fn();
+            ++reps;
+        } while (seconds_since(t0) < min_seconds);
+        return 2.0 * rows * in * out * reps / seconds_since(t0) / 1e9;
+    };
+    openblas_set_num_threads(1);
+    const double ours = rate([&] { format::dense_layer(A.data(), rows, in, in, W.data(), bias.data(), out, true, C.data()); });
+    const double blas = rate([&] {
+        cblas_sgemm(CblasRowMajor, CblasNoTrans, CblasNoTrans, rows, out, in, 1.f, A.data(), in, W.data(), out, 0.f,
+                    C.data(), out);
+    });
+    return {{"shape", "4096x108 * 108x128, 1 thread"}, {"lsnif_gflops", ours}, {"openblas_gflops", blas}};
+}
+
+}  // namespace
+
+json bench_train(const BenchOptions& o) {
+    const format::ModelDesc d = v1_desc();
+    trainer::SpheresSource src = bench_scene(d);
+    std::vector<trainer::Sample> raw;
+    src.generate(1, 1u << 18, raw);
+    json runs = json::array();
+    const double peak = sgemm_gflops(2048, int(o.threads), o.min_seconds);
+    for (std::uint32_t b : {1u << 14, 1u << 15, 1u << 16}) {
+        trainer::TrainConfig cfg;
+        cfg.batch_size = b;
+        cfg.threads = o.threads;
+        cfg.steps = 1000000;
+        trainer::Trainer tr(d, src.occupancy(d), cfg);
+        const auto tp = Clock::now();
+        const trainer::PreparedSet set = tr.prepare(raw);
+        const double prep_rays_per_second = double(raw.size()) / seconds_since(tp);
+        std::vector<std::uint32_t> batch(b);
+        for (std::size_t i = 0; i < b; ++i) batch[i] = std::uint32_t((i * 7919) % set.size());
+        tr.step(set, batch);  // warm-up: first-touch of all buffers
+        int steps = 0;
+        const auto t0 = Clock::now();
+        do {
+            tr.step(set, batch);
+            ++steps;
+        } while (seconds_since(t0) < o.min_seconds || steps < 3);
+        const double secs = seconds_since(t0);
+        const double sps = double(steps) * b / secs;
+        const double mlp_gflops = sps * tr.mlp_flops_per_sample() / 1e9;
+        runs.push_back({{"batch_size", b},
+                        {"steps", steps},
+                        {"samples_per_second", sps},
+                        {"mlp_gflops", mlp_gflops},
+                        {"mlp_fraction_of_sgemm", mlp_gflops / peak},
+                        {"prepare_rays_per_second", prep_rays_per_second}});
+    }
+    return {{"benchmark", "train"},
+            {"model", "V=32 H=18 levels 64,128 T=2^17 F=3 hidden 128x128 (v1 default)"},
+            {"cpu", cpu_model()},
+            {"threads", o.threads},
+            {"sgemm_gflops_openblas_2048", peak},
+            {"dense_kernel", kernel_comparison(o.min_seconds)},
+            {"runs", runs}};
+}
+
+json bench_infer(const BenchOptions& o) {
+    const format::ModelDesc d = v1_desc();
+    trainer::SpheresSource src = bench_scene(d);
+    trainer::TrainConfig cfg;
+    cfg.threads = o.threads;
+    trainer::Trainer tr(d, src.occupancy(d), cfg);  // initialized weights: cost does not depend on values
+    const format::Runtime rt = format::make_runtime(tr.export_model("{}"));
+    std::vector<trainer::Sample> raw;
+    src.generate(2, 1u << 18, raw);
+    std::vector<format::Ray> mix(raw.size());
+    for (std::size_t i = 0; i < raw.size(); ++i) mix[i] = raw[i].ray;
+    std::vector<format::Ray> reach;
+    for (const auto& s : tr.reachable(raw)) reach.push_back(s.ray);
+
+    auto run = [&](const std::vector<format::Ray>& rays) {
+        std::vector<format::Hit> hits(rays.size());
+        const std::uint32_t T = o.threads;
+        const std::size_t per = (rays.size() + T - 1) / T;
+        std::uint64_t total = 0;
+        format::IntersectStats st;
+        const auto t0 = Clock::now();
+        do {
+            std::vector<std::thread> pool;
+            std::vector<format::IntersectStats> part(T);
+            for (std::uint32_t t = 0; t < T; ++t)
+                pool.emplace_back([&, t] {
+                    const std::size_t b = std::min(rays.size(), t * per), e = std::min(rays.size(), b + per);
+                    part[t] = format::intersect(rt, std::span(rays).subspan(b, e - b), std::span(hits).subspan(b, e - b));
+                });
+            for (auto& th : pool) th.join();
+            st = {};
+            for (auto& p : part) st.inferred += p.inferred, st.culled += p.culled;
+            total += rays.size();
+        } while (seconds_since(t0) < o.min_seconds);
+        const double secs = seconds_since(t0);
+        return json{{"rays", rays.size()},
+                    {"rays_per_second", double(total) / secs},
+                    {"network_fraction", double(st.inferred) / double(rays.size())},
+                    {"culled_fraction", double(st.culled) / double(rays.size())}};
+    };
+    return {{"benchmark", "infer"},
+            {"model", "V=32 H=18 levels 64,128 T=2^17 F=3 hidden 128x128 (v1 default)"},
+            {"cpu", cpu_model()},
+            {"threads", o.threads},
+            {"through_network", run(reach)},
+            {"mixed_with_early_out", run(mix)}};
+}
+
+std::string bench_text(const json& r) {
+    char buf[512];
+    std::string s = "cpu: " + r["cpu"].get<std::string>() + ", threads " + std::to_string(r["threads"].get<int>()) +
+                    "\nmodel: " + r["model"].get<std::string>() + "\n";
+    if (r["benchmark"] == "train") {
+        std::snprintf(buf, sizeof buf, "OpenBLAS sgemm 2048^3: %.1f GFLOP/s\n", r["sgemm_gflops_openblas_2048"].get<double>());
+        s += buf;
+        const json& k = r["dense_kernel"];
+        std::snprintf(buf, sizeof buf, "dense kernel %s: lsnif %.1f GFLOP/s, OpenBLAS %.1f GFLOP/s\n",
+                      k["shape"].get<std::string>().c_str(), k["lsnif_gflops"].get<double>(),
+                      k["openblas_gflops"].get<double>());
+        s += buf;
+        for (const json& x : r["runs"]) {
+            std::snprintf(buf, sizeof buf,
+                          "batch %6d: %10.0f samples/s, MLP %.1f GFLOP/s (%.0f%% of sgemm); ray preparation %.0f rays/s\n",
+                          x["batch_size"].get<int>(), x["samples_per_second"].get<double>(), x["mlp_gflops"].get<double>(),
+                          100 * x["mlp_fraction_of_sgemm"].get<double>(), x["prepare_rays_per_second"].get<double>());
+            s += buf;
+        }
+    } else {
+        for (const char* key : {"through_network", "mixed_with_early_out"}) {
+            const json& x = r[key];
+            std::snprintf(buf, sizeof buf, "%-22s %10.0f rays/s (%.0f%% reach the network)\n", key,
+                          x["rays_per_second"].get<double>(), 100 * x["network_fraction"].get<double>());
+            s += buf;
+        }
+    }
+    return s;
+}
+
+}  // namespace lsnif::converter

@@ -1,0 +1,39 @@
+// Hand-written Adam (Kingma & Ba 2015, Algorithm 1, with the bias correction folded into
+// the step size as in §2 of the paper):
+//   m <- b1 m + (1-b1) g ;  v <- b2 v + (1-b2) g^2
+//   p <- p - lr * sqrt(1-b2^t)/(1-b1^t) * m / (sqrt(v) + eps)
+// Hash-table rows are updated sparsely, only in steps where they received gradient, each
+// with its own step counter t (as tiny-cuda-nn / instant-ngp do), so a rarely touched row
+// gets correctly bias-corrected steps instead of being shrunk by a global t.
+#pragma once
+
+#include <cmath>
+#include <cstddef>
+#include <cstdint>
+
+namespace lsnif::trainer {
+
+struct AdamConfig {
+    float lr;
+    float beta1;
+    float beta2;
+    float eps;
+    float l2;  // decoupled-from-nothing L2 penalty: g += l2 * p before the moments
+};
+
+// Updates n parameters that share step counter `t` (t >= 1). `lr` already includes any
+// schedule; `grad_scale` multiplies g first (gradient clipping).
+inline void adam_update(float* p, float* m, float* v, const float* g, std::size_t n, std::uint32_t t,
+                        float lr, float grad_scale, const AdamConfig& c) {
+    const double bc1 = 1.0 - std::pow(double(c.beta1), double(t));
+    const double bc2 = 1.0 - std::pow(double(c.beta2), double(t));
+    const float step = float(double(lr) * std::sqrt(bc2) / bc1);
+    for (std::size_t i = 0; i < n; ++i) {
+        const float gi = g[i] * grad_scale + c.l2 * p[i];
+        m[i] = c.beta1 * m[i] + (1.0f - c.beta1) * gi;
+        v[i] = c.beta2 * v[i] + (1.0f - c.beta2) * gi * gi;
+        p[i] -= step * m[i] / (std::sqrt(v[i]) + c.eps);
+    }
+}
+
+}  // namespace lsnif::trainer

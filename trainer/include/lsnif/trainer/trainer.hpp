@@ -1,0 +1,219 @@
+// Training of one LSNIF (DESIGN.md §3): losses, backward pass through the MLP and the
+// sparse hash-grid encoding, hand-written Adam, learning-rate schedule, gradient clipping
+// and a divergence guard. Multi-threaded with std::thread; for a fixed seed and thread
+// count every step is bit-for-bit deterministic (fixed work partition, fixed reduction
+// order).
+//
+// The forward computation is format/'s (trace_points, encode_points, dense_layer), so a
+// model trained here evaluates identically in a renderer once exported to fp16.
+#pragma once
+
+#include <lsnif/format/container.hpp>
+#include <lsnif/format/forward.hpp>
+#include <lsnif/trainer/adam.hpp>
+
+#include <cstdint>
+#include <functional>
+#include <span>
+#include <string>
+#include <vector>
+
+namespace lsnif::trainer {
+
+// Ray families of DESIGN.md §3.
+enum class Family : std::uint8_t { outside = 0, surface = 1, interior = 2 };
+inline constexpr int kFamilyCount = 3;
+const char* family_name(Family f);
+
+// One ground-truth ray. t/normal/material are meaningful only when hit != 0.
+struct Sample {
+    format::Ray ray;
+    float t;
+    float normal[3];  // unit shading normal at the hit (orientation as in the mesh)
+    std::uint32_t material;
+    std::uint8_t hit;
+    Family family;
+};
+
+// Where rays come from: Embree on a mesh in the converter, analytic shapes in tests.
+// generate() must be deterministic for a given seed (independent of threads).
+class SampleSource {
+public:
+    virtual ~SampleSource() = default;
+    virtual void generate(std::uint64_t seed, std::size_t count, std::vector<Sample>& out) = 0;
+};
+
+struct LossWeights {
+    float visibility = 1.0f;
+    float distance = 1.0f;
+    float normal = 0.5f;
+    float material = 0.1f;
+};
+
+struct TrainConfig {
+    std::uint32_t steps = 2000;
+    std::uint32_t batch_size = 1u << 14;
+    std::uint32_t threads = 0;  // 0 = all hardware threads
+    std::uint64_t seed = 1;
+    AdamConfig grid_adam{1e-2f, 0.9f, 0.99f, 1e-10f, 0.0f};
+    AdamConfig mlp_adam{5e-3f, 0.9f, 0.99f, 1e-10f, 1e-6f};
+    // Schedule: constant, then exponential decay from decay_start (fraction of steps)
+    // down to final_lr_fraction of the initial rate at the last step.
+    float decay_start = 0.4f;
+    float final_lr_fraction = 0.05f;
+    float huber_delta = 0.01f;     // distance loss: quadratic below this error (diagonal units)
+    float grad_clip_norm = 10.0f;  // global L2 norm of all gradients; <= 0 disables
+    LossWeights loss;
+    // Divergence guard: a step whose loss is non-finite, or above divergence_factor x the
+    // running mean after warm-up, is undone: parameters roll back to the last snapshot
+    // and the learning rate is halved. Gives up after max_rollbacks.
+    float divergence_factor = 8.0f;
+    std::uint32_t snapshot_interval = 50;
+    std::uint32_t max_rollbacks = 8;
+};
+
+struct Progress {
+    std::uint32_t step, steps;
+    float loss;
+    float lr_scale;
+    double seconds;
+};
+// Return false to stop training early (the model so far is kept).
+using ProgressFn = std::function<bool(const Progress&)>;
+
+struct TrainResult {
+    std::uint32_t steps = 0;
+    double seconds = 0;
+    std::uint64_t samples = 0;
+    float final_loss = 0;  // mean loss over the last 5% of steps
+    std::uint32_t rollbacks = 0;
+    bool diverged = false;  // gave up after max_rollbacks; the last good snapshot is kept
+    std::string message;
+};
+
+// Loss terms of one evaluation (means as used for the gradient).
+struct LossParts {
+    double total = 0, visibility = 0, distance = 0, normal = 0, material = 0;
+};
+
+// Gradients of every parameter, in the layouts of Trainer's accessors.
+struct Gradients {
+    std::vector<std::vector<float>> grid;     // per level, entries * F
+    std::vector<std::vector<float>> weights;  // per layer [out][in]
+    std::vector<std::vector<float>> biases;   // per layer [out]
+};
+
+// Training samples with their ray features (voxel entry points) computed once: the
+// points depend only on the ray and the occupancy, both fixed during training, so the
+// DDA runs once per sample instead of once per epoch. Only reachable samples are kept.
+struct PreparedSet {
+    std::vector<Sample> samples;
+    std::vector<std::uint16_t> count;  // occupied entry points per sample (1..H)
+    std::vector<float> t_near, t_far, t_first;
+    std::vector<float> g;  // samples x H x 3 grid coordinates (slots past count unused)
+    std::uint32_t H = 0;
+    std::size_t size() const { return samples.size(); }
+};
+
+class Trainer {
+public:
+    // `occupancy` is the OCCU bit array for desc.grid_resolution. Parameters are
+    // initialized from cfg.seed: grid U(-1e-4, 1e-4), hidden layers He-uniform, output
+    // layer Xavier-uniform, biases zero.
+    Trainer(const format::ModelDesc& desc, std::vector<std::uint8_t> occupancy, const TrainConfig& cfg);
+    ~Trainer();
+    Trainer(const Trainer&) = delete;
+    Trainer& operator=(const Trainer&) = delete;
+
+    const format::ModelDesc& desc() const { return desc_; }
+    const format::Geometry& geometry() const { return geo_; }
+    const std::vector<std::uint8_t>& occupancy() const { return occupancy_; }
+
+    // Keeps only the samples whose ray reaches the network (crosses an occupied voxel).
+    std::vector<Sample> reachable(std::span<const Sample> samples) const;
+
+    // Traces every sample once (multi-threaded); drops those that do not reach the network.
+    PreparedSet prepare(std::span<const Sample> samples) const;
+
+    // Trains cfg.steps steps on random batches (with replacement) from `samples`.
+    // Deterministic for (seed, threads, samples).
+    TrainResult train(std::span<const Sample> samples, const ProgressFn& progress = {});
+    TrainResult train(const PreparedSet& set, const ProgressFn& progress = {});
+
+    // One optimizer step on the samples `batch` indexes. Returns the batch loss before
+    // the update; NaN when the step was rejected by the divergence guard.
+    float step(const PreparedSet& set, std::span<const std::uint32_t> batch);
+    float step(std::span<const Sample> batch);  // prepares `batch` first (tests)
+
+    // Loss and exact gradients without updating (for gradient checks).
+    LossParts loss_and_gradients(const PreparedSet& set, std::span<const std::uint32_t> batch, Gradients* grads);
+    LossParts loss_and_gradients(std::span<const Sample> batch, Gradients* grads);
+
+    // fp16 export (the .lsnif content). Rounds every master weight to nearest-even.
+    format::ModelData export_model(const std::string& metadata_json) const;
+    // Replaces the master weights by their fp16-rounded values (so training-side and
+    // reader-side evaluation see the same numbers).
+    void round_to_fp16();
+
+    // Raw outputs (output_count floats per sample, unpadded) of the training-side forward.
+    std::vector<float> predict_raw(std::span<const Sample> batch);
+
+    // Master parameters (fp32), file layouts: grid[level][entry*F + f],
+    // weights[layer][out*in + i], biases[layer][out].
+    std::vector<std::vector<float>>& grid() { return grid_; }
+    std::vector<std::vector<float>>& weights() { return w_; }
+    std::vector<std::vector<float>>& biases() { return b_; }
+    std::uint32_t threads() const { return threads_; }
+    std::uint64_t step_count() const { return step_; }
+    float lr_scale() const { return lr_scale_; }
+    // Multiplies both learning rates (the guard halves it; tests force absurd rates).
+    void set_lr_scale(float s) { lr_scale_ = s; }
+    std::uint32_t rollbacks() const { return rollbacks_; }
+
+    // FLOPs of the MLP part of one training sample (forward + backward), for benchmarks.
+    double mlp_flops_per_sample() const;
+
+private:
+    struct Impl;
+    Impl* impl_;
+    format::ModelDesc desc_;
+    format::Geometry geo_;
+    std::vector<std::uint8_t> occupancy_;
+    TrainConfig cfg_;
+    std::uint32_t threads_;
+    std::vector<std::vector<float>> grid_, w_, b_;
+    std::uint64_t step_ = 0;
+    float lr_scale_ = 1.0f;
+    std::uint32_t rollbacks_ = 0;
+    float schedule(std::uint64_t step) const;
+    void snapshot();
+    void rollback();
+    friend struct Impl;
+};
+
+// ---- held-out evaluation (DESIGN.md §5) -------------------------------------------------
+
+struct FamilyMetrics {
+    std::uint64_t rays = 0;           // rays that reached the network
+    std::uint64_t culled = 0;         // rays culled by occupancy (certain misses)
+    double visibility_accuracy = 0;
+    double false_hit_rate = 0;        // predicted hit among true misses
+    double false_miss_rate = 0;       // predicted miss among true hits
+    double distance_median_pct = 0;   // |Δt| in % of the box diagonal, on true & predicted hits
+    double distance_p95_pct = 0;
+    double normal_median_deg = 0;     // against the shading normal
+    double normal_p95_deg = 0;
+    double culled_fraction = 0;       // culled / (culled + rays)
+    std::uint64_t culled_true_hits = 0;  // must be 0: a culled ray that truly hits
+};
+
+struct Metrics {
+    FamilyMetrics family[kFamilyCount];
+    FamilyMetrics pooled;  // the three families in equal shares
+};
+
+// Runs the reader-side forward pass (format::intersect) on `samples` with `threads`
+// threads and compares against their ground truth.
+Metrics evaluate(const format::Runtime& rt, std::span<const Sample> samples, std::uint32_t threads = 0);
+
+}  // namespace lsnif::trainer

@@ -1,0 +1,735 @@
+// Training loop; see trainer.hpp for the contracts.
+#include <lsnif/format/half.hpp>
+#include <lsnif/trainer/trainer.hpp>
+
+#include "kernels.hpp"
+
+#include <algorithm>
+#include <chrono>
+#include <cmath>
+#include <cstring>
+#include <thread>
+
+namespace lsnif::trainer {
+
+using format::Geometry;
+using format::RayPoints;
+using format::TraceStatus;
+
+const char* family_name(Family f) {
+    switch (f) {
+    case Family::outside: return "outside";
+    case Family::surface: return "surface";
+    case Family::interior: return "interior";
+    }
+    return "?";
+}
+
+namespace {
+
+constexpr std::size_t kSub = 128;  // rows per sub-chunk: keeps activations in L2
+constexpr float kMaxParam = 1e4f;  // larger magnitudes are treated as divergence (fp16 max 65504)
+
+std::uint32_t pad16(std::uint32_t n) { return (n + 15u) & ~15u; }
+
+// splitmix64 (Steele et al. 2014): deterministic, platform-independent.
+struct Rng {
+    std::uint64_t s;
+    std::uint64_t next() {
+        std::uint64_t z = (s += 0x9E3779B97F4A7C15ull);
+        z = (z ^ (z >> 30)) * 0xBF58476D1CE4E5B9ull;
+        z = (z ^ (z >> 27)) * 0x94D049BB133111EBull;
+        return z ^ (z >> 31);
+    }
+    float uniform(float lo, float hi) { return lo + (hi - lo) * float(next() >> 40) * (1.0f / 16777216.0f); }
+};
+
+// Runs fn(t) for t in [0, T) on T threads (the caller is thread 0).
+template <class F>
+void parallel(std::uint32_t T, F&& fn) {
+    if (T <= 1) {
+        fn(0u);
+        return;
+    }
+    std::vector<std::thread> pool;
+    pool.reserve(T - 1);
+    for (std::uint32_t t = 1; t < T; ++t) pool.emplace_back([&fn, t] { fn(t); });
+    fn(0u);
+    for (auto& th : pool) th.join();
+}
+
+float sigmoid(float z) { return z >= 0 ? 1.0f / (1.0f + std::exp(-z)) : std::exp(z) / (1.0f + std::exp(z)); }
+
+// Per-thread buffers.
+struct Work {
+    std::vector<RayPoints> pts;
+    std::vector<float> x;                     // kSub x in0
+    std::vector<std::vector<float>> act;      // per layer output, kSub x outp
+    std::vector<float> d0, d1;                // gradient ping-pong, kSub x max padded width
+    std::vector<std::vector<float>> dwt;      // per layer, in x outp (transposed layout)
+    std::vector<std::vector<float>> db;       // per layer, outp
+    std::vector<std::vector<float>> gg;       // grid gradient per level, entries * F
+    std::vector<std::vector<std::uint8_t>> touched;  // per level, entries
+    LossParts loss;
+};
+
+}  // namespace
+
+struct Trainer::Impl {
+    std::vector<Work> work;
+    format::Network net;                      // forward layout of the current master weights
+    std::vector<std::vector<float>> wpad;     // per layer [out][pad16(in)] for dX = G W
+    std::vector<float> zeros;                 // bias for the backward products
+    // Adam state.
+    std::vector<std::vector<float>> gm, gv, wm, wv, bm, bv;
+    std::vector<std::vector<std::uint32_t>> row_step;
+    std::vector<std::vector<float>> gsum;     // reduced grid gradient of the step
+    std::vector<std::vector<std::uint8_t>> active;
+    std::vector<std::vector<float>> wgrad, bgrad;  // reduced MLP gradient, file layout
+    double ema = 0;
+    struct Snapshot {
+        std::vector<std::vector<float>> grid, w, b, gm, gv, wm, wv, bm, bv;
+        std::vector<std::vector<std::uint32_t>> row_step;
+        std::uint64_t step = 0;
+        double ema = 0;
+        bool valid = false;
+    } snap;
+};
+
+Trainer::Trainer(const format::ModelDesc& desc, std::vector<std::uint8_t> occupancy, const TrainConfig& cfg)
+    : impl_(new Impl), desc_(desc), geo_(format::make_geometry(desc)), occupancy_(std::move(occupancy)), cfg_(cfg) {
+    threads_ = cfg.threads ? cfg.threads : std::max(1u, std::thread::hardware_concurrency());
+    Rng rng{cfg.seed * 0x2545F4914F6CDD1Dull + 1};
+    for (std::uint32_t l = 0; l < desc.level_count(); ++l) {
+        grid_.emplace_back(desc.level_entries(l) * desc.features_per_level);
+        for (float& x : grid_.back()) x = rng.uniform(-1e-4f, 1e-4f);
+    }
+    for (std::uint32_t k = 0; k < desc.layer_count(); ++k) {
+        const auto [o, i] = desc.layer_shape(k);
+        const bool last = k + 1 == desc.layer_count();
+        // He-uniform for ReLU layers, Xavier-uniform for the linear output layer.
+        const float a = last ? std::sqrt(6.0f / float(i + o)) : std::sqrt(6.0f / float(i));
+        w_.emplace_back(std::size_t(o) * i);
+        for (float& x : w_.back()) x = rng.uniform(-a, a);
+        b_.emplace_back(o, 0.0f);
+    }
+    Impl& im = *impl_;
+    for (auto& g : grid_) {
+        im.gm.emplace_back(g.size(), 0.0f);
+        im.gv.emplace_back(g.size(), 0.0f);
+        im.gsum.emplace_back(g.size(), 0.0f);
+    }
+    for (std::uint32_t l = 0; l < desc.level_count(); ++l) {
+        im.row_step.emplace_back(desc.level_entries(l), 0u);
+        im.active.emplace_back(desc.level_entries(l), 0u);
+    }
+    for (std::uint32_t k = 0; k < desc.layer_count(); ++k) {
+        im.wm.emplace_back(w_[k].size(), 0.0f);
+        im.wv.emplace_back(w_[k].size(), 0.0f);
+        im.bm.emplace_back(b_[k].size(), 0.0f);
+        im.bv.emplace_back(b_[k].size(), 0.0f);
+        im.wgrad.emplace_back(w_[k].size(), 0.0f);
+        im.bgrad.emplace_back(b_[k].size(), 0.0f);
+    }
+    std::uint32_t maxw = pad16(desc.input_width());
+    for (std::uint32_t k = 0; k < desc.layer_count(); ++k) maxw = std::max(maxw, pad16(desc.layer_shape(k).first));
+    im.zeros.assign(maxw, 0.0f);
+    im.work.resize(threads_);
+    for (Work& w : im.work) {
+        w.pts.resize(kSub);
+        w.x.resize(kSub * desc.input_width());
+        for (std::uint32_t k = 0; k < desc.layer_count(); ++k) {
+            const auto [o, i] = desc.layer_shape(k);
+            w.act.emplace_back(kSub * pad16(o));
+            w.dwt.emplace_back(std::size_t(i) * pad16(o), 0.0f);
+            w.db.emplace_back(pad16(o), 0.0f);
+        }
+        w.d0.resize(kSub * maxw);
+        w.d1.resize(kSub * maxw);
+        for (std::uint32_t l = 0; l < desc.level_count(); ++l) {
+            w.gg.emplace_back(grid_[l].size(), 0.0f);
+            w.touched.emplace_back(desc.level_entries(l), 0u);
+        }
+    }
+}
+
+Trainer::~Trainer() { delete impl_; }
+
+double Trainer::mlp_flops_per_sample() const {
+    double f = 0;
+    for (std::uint32_t k = 0; k < desc_.layer_count(); ++k) {
+        const auto [o, i] = desc_.layer_shape(k);
+        // forward, weight gradient, input gradient (not for the first layer's input
+        // would be skippable, but the encoding needs it): 3 GEMMs of 2*o*i FLOPs.
+        f += 3.0 * 2.0 * double(o) * double(i);
+    }
+    return f;
+}
+
+float Trainer::schedule(std::uint64_t step) const {
+    const double s = double(step) / std::max(1u, cfg_.steps);
+    if (s <= cfg_.decay_start) return 1.0f;
+    const double u = std::min(1.0, (s - cfg_.decay_start) / std::max(1e-9, 1.0 - cfg_.decay_start));
+    return float(std::pow(double(cfg_.final_lr_fraction), u));
+}
+
+std::vector<Sample> Trainer::reachable(std::span<const Sample> samples) const {
+    std::vector<Sample> out;
+    RayPoints pts;
+    for (const Sample& s : samples)
+        if (format::trace_points(geo_, occupancy_.data(), s.ray, pts) == TraceStatus::ok) out.push_back(s);
+    return out;
+}
+
+namespace {
+
+// Forward of one sub-chunk: trace + encode into w.x, layers into w.act. Rows whose ray
+// does not reach the network get count = 0 (all-zero input).
+// Encoding and layers for rows whose w.pts are filled.
+void forward_layers(const Geometry& geo, const std::vector<const float*>& grid, const format::Network& net,
+                    std::size_t n, Work& w) {
+    for (std::size_t r = 0; r < n; ++r) format::encode_points(geo, grid.data(), w.pts[r], w.x.data() + r * geo.input_width);
+    const float* src = w.x.data();
+    std::size_t lda = geo.input_width;
+    for (std::size_t k = 0; k < net.wt.size(); ++k) {
+        format::dense_layer(src, n, net.in[k], lda, net.wt[k].data(), net.bias[k].data(), net.out_padded[k],
+                            k + 1 < net.wt.size(), w.act[k].data());
+        src = w.act[k].data();
+        lda = net.out_padded[k];
+    }
+}
+
+void forward_chunk(const Geometry& geo, const std::uint8_t* occ, const std::vector<const float*>& grid,
+                   const format::Network& net, std::span<const Sample> rows, Work& w) {
+    for (std::size_t r = 0; r < rows.size(); ++r)
+        if (format::trace_points(geo, occ, rows[r].ray, w.pts[r]) != TraceStatus::ok) w.pts[r].count = 0;
+    forward_layers(geo, grid, net, rows.size(), w);
+}
+
+}  // namespace
+
+std::vector<float> Trainer::predict_raw(std::span<const Sample> batch) {
+    Impl& im = *impl_;
+    im.net = format::make_network(desc_, w_, b_);
+    std::vector<const float*> gp;
+    for (auto& g : grid_) gp.push_back(g.data());
+    const std::uint32_t outs = desc_.output_count();
+    std::vector<float> out(batch.size() * outs);
+    Work& w = im.work[0];
+    for (std::size_t base = 0; base < batch.size(); base += kSub) {
+        const std::size_t n = std::min(kSub, batch.size() - base);
+        forward_chunk(geo_, occupancy_.data(), gp, im.net, batch.subspan(base, n), w);
+        const std::size_t outp = im.net.out_padded.back();
+        for (std::size_t r = 0; r < n; ++r)
+            std::memcpy(out.data() + (base + r) * outs, w.act.back().data() + r * outp, outs * sizeof(float));
+    }
+    return out;
+}
+
+PreparedSet Trainer::prepare(std::span<const Sample> samples) const {
+    const std::uint32_t H = geo_.H;
+    std::vector<std::uint8_t> ok(samples.size());
+    std::vector<RayPoints> tmp(threads_);
+    std::vector<std::uint16_t> count(samples.size());
+    std::vector<float> tn(samples.size()), tf(samples.size()), t0(samples.size()), g(samples.size() * H * 3);
+    const std::size_t per = (samples.size() + threads_ - 1) / threads_;
+    parallel(threads_, [&](std::uint32_t t) {
+        RayPoints& p = tmp[t];
+        const std::size_t b = std::min(samples.size(), t * per), e = std::min(samples.size(), b + per);
+        for (std::size_t i = b; i < e; ++i) {
+            ok[i] = format::trace_points(geo_, occupancy_.data(), samples[i].ray, p) == TraceStatus::ok;
+            if (!ok[i]) continue;
+            count[i] = std::uint16_t(p.count);
+            tn[i] = p.t_near;
+            tf[i] = p.t_far;
+            t0[i] = p.t[0];
+            std::memcpy(&g[i * H * 3], p.g, sizeof(float) * 3 * p.count);
+        }
+    });
+    PreparedSet set;
+    set.H = H;
+    for (std::size_t i = 0; i < samples.size(); ++i) {
+        if (!ok[i]) continue;
+        set.samples.push_back(samples[i]);
+        set.count.push_back(count[i]);
+        set.t_near.push_back(tn[i]);
+        set.t_far.push_back(tf[i]);
+        set.t_first.push_back(t0[i]);
+        set.g.insert(set.g.end(), g.begin() + std::ptrdiff_t(i * H * 3), g.begin() + std::ptrdiff_t((i + 1) * H * 3));
+    }
+    return set;
+}
+
+LossParts Trainer::loss_and_gradients(std::span<const Sample> batch, Gradients* grads) {
+    const PreparedSet set = prepare(batch);
+    std::vector<std::uint32_t> idx(set.size());
+    for (std::size_t i = 0; i < idx.size(); ++i) idx[i] = std::uint32_t(i);
+    return loss_and_gradients(set, idx, grads);
+}
+
+float Trainer::step(std::span<const Sample> batch) {
+    const PreparedSet set = prepare(batch);
+    std::vector<std::uint32_t> idx(set.size());
+    for (std::size_t i = 0; i < idx.size(); ++i) idx[i] = std::uint32_t(i);
+    return step(set, idx);
+}
+
+TrainResult Trainer::train(std::span<const Sample> samples, const ProgressFn& progress) {
+    return train(prepare(samples), progress);
+}
+
+LossParts Trainer::loss_and_gradients(const PreparedSet& set, std::span<const std::uint32_t> batch, Gradients* grads) {
+    Impl& im = *impl_;
+    im.net = format::make_network(desc_, w_, b_);
+    const std::uint32_t layers = desc_.layer_count();
+    im.wpad.resize(layers);
+    for (std::uint32_t k = 0; k < layers; ++k) {
+        const auto [o, i] = desc_.layer_shape(k);
+        const std::uint32_t ip = pad16(i);
+        im.wpad[k].assign(std::size_t(o) * ip, 0.0f);
+        for (std::uint32_t r = 0; r < o; ++r)
+            std::memcpy(im.wpad[k].data() + std::size_t(r) * ip, w_[k].data() + std::size_t(r) * i, i * sizeof(float));
+    }
+    std::vector<const float*> gp;
+    for (auto& g : grid_) gp.push_back(g.data());
+
+    const std::size_t B = batch.size();
+    std::size_t hits = 0;
+    for (std::uint32_t i : batch) hits += set.samples[i].hit != 0;
+    const float inv_b = 1.0f / float(std::max<std::size_t>(1, B));
+    const float inv_h = 1.0f / float(std::max<std::size_t>(1, hits));
+    const LossWeights lw = cfg_.loss;
+    const float delta = cfg_.huber_delta;
+    const std::uint32_t M = desc_.material_count;
+    const std::uint32_t L = geo_.L, F = geo_.F;
+    const std::size_t per = (B + threads_ - 1) / threads_;
+
+    parallel(threads_, [&](std::uint32_t t) {
+        Work& w = im.work[t];
+        w.loss = LossParts{};
+        const std::size_t begin = std::min(B, t * per), end = std::min(B, begin + per);
+        for (std::size_t base = begin; base < end; base += kSub) {
+            const std::size_t n = std::min(kSub, end - base);
+            const auto rows = batch.subspan(base, n);
+            for (std::size_t r = 0; r < n; ++r) {  // prepared entry points, no DDA
+                const std::uint32_t i = rows[r];
+                RayPoints& p = w.pts[r];
+                p.count = set.count[i];
+                p.t_near = set.t_near[i];
+                p.t_far = set.t_far[i];
+                p.t[0] = set.t_first[i];
+                std::memcpy(p.g, &set.g[std::size_t(i) * set.H * 3], sizeof(float) * 3 * p.count);
+            }
+            forward_layers(geo_, gp, im.net, n, w);
+            // ---- losses and dL/d(outputs) ----
+            const std::size_t outp = im.net.out_padded.back();
+            float* dO = w.d0.data();
+            std::memset(dO, 0, n * outp * sizeof(float));
+            for (std::size_t r = 0; r < n; ++r) {
+                const Sample& s = set.samples[rows[r]];
+                const float* o = w.act.back().data() + r * outp;
+                float* g = dO + r * outp;
+                const float y = s.hit ? 1.0f : 0.0f, z = o[0];
+                // BCE with logits: softplus(z) - y z, stable form.
+                w.loss.visibility += double(std::max(z, 0.0f) - z * y + std::log1p(std::exp(-std::fabs(z)))) * inv_b;
+                g[0] = lw.visibility * (sigmoid(z) - y) * inv_b;
+                const RayPoints& p = w.pts[r];
+                if (!s.hit || p.count == 0) continue;
+                // Distance target in the model's encoding (forward.hpp decode_output inverse).
+                const float dlen = std::sqrt(s.ray.dir[0] * s.ray.dir[0] + s.ray.dir[1] * s.ray.dir[1] +
+                                             s.ray.dir[2] * s.ray.dir[2]);
+                const float target = geo_.distance_encoding == LSNIF_DISTANCE_SEGMENT
+                                         ? (s.t - p.t_near) / std::max(p.t_far - p.t_near, 1e-30f)
+                                         : (s.t - p.t[0]) * dlen / geo_.diagonal;
+                const float e = o[1] - target;
+                const float ae = std::fabs(e);
+                w.loss.distance += double(ae < delta ? 0.5f * e * e / delta : ae - 0.5f * delta) * inv_h;
+                g[1] = lw.distance * std::clamp(e / delta, -1.0f, 1.0f) * inv_h;
+                // Normal: 1 - cos(angle) between the raw output and the unit target.
+                const float len = std::sqrt(o[2] * o[2] + o[3] * o[3] + o[4] * o[4]) + 1e-12f;
+                const float c = (o[2] * s.normal[0] + o[3] * s.normal[1] + o[4] * s.normal[2]) / len;
+                w.loss.normal += double(1.0f - c) * inv_h;
+                for (int a = 0; a < 3; ++a)
+                    g[2 + a] = -lw.normal * inv_h * (s.normal[a] / len - c * o[2 + a] / (len * len));
+                if (M > 0) {  // softmax cross-entropy over material logits
+                    float mx = o[5];
+                    for (std::uint32_t m = 1; m < M; ++m) mx = std::max(mx, o[5 + m]);
+                    double sum = 0;
+                    for (std::uint32_t m = 0; m < M; ++m) sum += std::exp(double(o[5 + m] - mx));
+                    const std::uint32_t target_m = std::min(s.material, M - 1);
+                    w.loss.material += (std::log(sum) - double(o[5 + target_m] - mx)) * inv_h;
+                    for (std::uint32_t m = 0; m < M; ++m)
+                        g[5 + m] = lw.material * inv_h *
+                                   (float(std::exp(double(o[5 + m] - mx)) / sum) - (m == target_m ? 1.0f : 0.0f));
+                }
+            }
+            // ---- backward through the MLP ----
+            float* G = w.d0.data();
+            float* other = w.d1.data();
+            for (int k = int(layers) - 1; k >= 0; --k) {
+                const std::size_t outp_k = im.net.out_padded[k];
+                const std::size_t in_k = im.net.in[k];
+                const float* X = k == 0 ? w.x.data() : w.act[k - 1].data();
+                const std::size_t ldx = k == 0 ? geo_.input_width : im.net.out_padded[k - 1];
+                detail::outer_accumulate(X, n, in_k, ldx, G, outp_k, w.dwt[k].data());
+                for (std::size_t r = 0; r < n; ++r)
+                    for (std::size_t o = 0; o < outp_k; ++o) w.db[k][o] += G[r * outp_k + o];
+                // dX = G W (contract over the real outputs; padded columns of G are zero).
+                const std::size_t ip = pad16(std::uint32_t(in_k));
+                format::dense_layer(G, n, im.net.out[k], outp_k, im.wpad[k].data(), im.zeros.data(), ip, false, other);
+                if (k > 0) {  // ReLU derivative of the previous layer's output
+                    const float* H = w.act[k - 1].data();
+                    for (std::size_t q = 0; q < n * ip; ++q)
+                        if (!(H[q] > 0.0f)) other[q] = 0.0f;
+                }
+                std::swap(G, other);
+            }
+            // ---- scatter into the hash tables (only the corners that carry weight) ----
+            const std::size_t ip0 = pad16(geo_.input_width);
+            for (std::size_t r = 0; r < n; ++r) {
+                const RayPoints& p = w.pts[r];
+                const float* dx = G + r * ip0;
+                for (std::uint32_t h = 0; h < p.count; ++h)
+                    for (std::uint32_t l = 0; l < L; ++l) {
+                        format::Corners c;
+                        format::level_corners(geo_, geo_.levels[l], p.g[h], c);
+                        const float* src = dx + (std::size_t(h) * L + l) * F;
+                        float* table = w.gg[l].data();
+                        for (std::uint32_t q = 0; q < c.n; ++q) {
+                            float* dst = table + std::size_t(c.index[q]) * F;
+                            for (std::uint32_t f = 0; f < F; ++f) dst[f] += c.weight[q] * src[f];
+                            w.touched[l][c.index[q]] = 1;
+                        }
+                    }
+            }
+        }
+    });
+
+    // ---- reduce in thread order (deterministic) ----
+    LossParts total;
+    for (const Work& w : im.work) {
+        total.visibility += w.loss.visibility;
+        total.distance += w.loss.distance;
+        total.normal += w.loss.normal;
+        total.material += w.loss.material;
+    }
+    total.total = lw.visibility * total.visibility + lw.distance * total.distance + lw.normal * total.normal +
+                  lw.material * total.material;
+    for (std::uint32_t k = 0; k < layers; ++k) {
+        const auto [o, i] = desc_.layer_shape(k);
+        const std::size_t op = im.net.out_padded[k];
+        std::fill(im.wgrad[k].begin(), im.wgrad[k].end(), 0.0f);
+        std::fill(im.bgrad[k].begin(), im.bgrad[k].end(), 0.0f);
+        for (Work& w : im.work) {
+            for (std::uint32_t ii = 0; ii < i; ++ii)
+                for (std::uint32_t oo = 0; oo < o; ++oo) im.wgrad[k][std::size_t(oo) * i + ii] += w.dwt[k][ii * op + oo];
+            for (std::uint32_t oo = 0; oo < o; ++oo) im.bgrad[k][oo] += w.db[k][oo];
+            std::fill(w.dwt[k].begin(), w.dwt[k].end(), 0.0f);
+            std::fill(w.db[k].begin(), w.db[k].end(), 0.0f);
+        }
+    }
+    parallel(threads_, [&](std::uint32_t t) {
+        for (std::uint32_t l = 0; l < L; ++l) {
+            const std::size_t rows = im.active[l].size();
+            const std::size_t per_rows = (rows + threads_ - 1) / threads_;
+            const std::size_t rb = std::min(rows, t * per_rows), re = std::min(rows, rb + per_rows);
+            for (std::size_t row = rb; row < re; ++row) {
+                bool any = false;
+                for (const Work& w : im.work) any = any || w.touched[l][row];
+                if (!any) continue;
+                float* dst = im.gsum[l].data() + row * F;
+                for (std::uint32_t f = 0; f < F; ++f) dst[f] = 0.0f;
+                for (Work& w : im.work) {
+                    if (!w.touched[l][row]) continue;
+                    float* src = w.gg[l].data() + row * F;
+                    for (std::uint32_t f = 0; f < F; ++f) dst[f] += src[f], src[f] = 0.0f;
+                    w.touched[l][row] = 0;
+                }
+                im.active[l][row] = 1;
+            }
+        }
+    });
+    if (grads) {
+        grads->grid.assign(L, {});
+        for (std::uint32_t l = 0; l < L; ++l) {
+            grads->grid[l].assign(grid_[l].size(), 0.0f);
+            for (std::size_t row = 0; row < im.active[l].size(); ++row)
+                if (im.active[l][row])
+                    for (std::uint32_t f = 0; f < F; ++f) grads->grid[l][row * F + f] = im.gsum[l][row * F + f];
+        }
+        grads->weights = im.wgrad;
+        grads->biases = im.bgrad;
+        for (auto& a : im.active) std::fill(a.begin(), a.end(), 0u);
+    }
+    return total;
+}
+
+void Trainer::snapshot() {
+    Impl& im = *impl_;
+    im.snap = {grid_, w_, b_, im.gm, im.gv, im.wm, im.wv, im.bm, im.bv, im.row_step, step_, im.ema, true};
+}
+
+void Trainer::rollback() {
+    Impl& im = *impl_;
+    if (!im.snap.valid) return;
+    grid_ = im.snap.grid;
+    w_ = im.snap.w;
+    b_ = im.snap.b;
+    im.gm = im.snap.gm;
+    im.gv = im.snap.gv;
+    im.wm = im.snap.wm;
+    im.wv = im.snap.wv;
+    im.bm = im.snap.bm;
+    im.bv = im.snap.bv;
+    im.row_step = im.snap.row_step;
+    step_ = im.snap.step;
+    im.ema = im.snap.ema;
+}
+
+float Trainer::step(const PreparedSet& set, std::span<const std::uint32_t> batch) {
+    Impl& im = *impl_;
+    if (!im.snap.valid) snapshot();
+    const LossParts lp = loss_and_gradients(set, batch, nullptr);
+    const std::uint32_t L = geo_.L, F = geo_.F;
+    // Global gradient norm (fixed summation order).
+    double norm2 = 0;
+    for (const auto& g : im.wgrad)
+        for (float x : g) norm2 += double(x) * x;
+    for (const auto& g : im.bgrad)
+        for (float x : g) norm2 += double(x) * x;
+    for (std::uint32_t l = 0; l < L; ++l)
+        for (std::size_t row = 0; row < im.active[l].size(); ++row)
+            if (im.active[l][row])
+                for (std::uint32_t f = 0; f < F; ++f) norm2 += double(im.gsum[l][row * F + f]) * im.gsum[l][row * F + f];
+    const float loss = float(lp.total);
+    const bool warm = step_ >= 20;
+    const bool bad = !std::isfinite(loss) || !std::isfinite(norm2) ||
+                     (warm && im.ema > 0 && loss > cfg_.divergence_factor * im.ema);
+    if (bad) {
+        for (auto& a : im.active) std::fill(a.begin(), a.end(), 0u);
+        rollback();
+        lr_scale_ *= 0.5f;
+        ++rollbacks_;
+        return NAN;
+    }
+    im.ema = step_ == 0 ? loss : 0.95 * im.ema + 0.05 * loss;
+    // These parameters just produced a healthy loss: that is the state worth keeping.
+    if (cfg_.snapshot_interval && step_ % cfg_.snapshot_interval == 0) snapshot();
+    const double norm = std::sqrt(norm2);
+    const float scale = (cfg_.grad_clip_norm > 0 && norm > cfg_.grad_clip_norm) ? float(cfg_.grad_clip_norm / norm) : 1.0f;
+    const float lr_factor = schedule(step_) * lr_scale_;
+    ++step_;
+    for (std::uint32_t k = 0; k < desc_.layer_count(); ++k) {
+        adam_update(w_[k].data(), im.wm[k].data(), im.wv[k].data(), im.wgrad[k].data(), w_[k].size(),
+                    std::uint32_t(step_), cfg_.mlp_adam.lr * lr_factor, scale, cfg_.mlp_adam);
+        AdamConfig nol2 = cfg_.mlp_adam;
+        nol2.l2 = 0.0f;  // biases are not regularized
+        adam_update(b_[k].data(), im.bm[k].data(), im.bv[k].data(), im.bgrad[k].data(), b_[k].size(),
+                    std::uint32_t(step_), cfg_.mlp_adam.lr * lr_factor, scale, nol2);
+    }
+    const float grid_lr = cfg_.grid_adam.lr * lr_factor;
+    std::vector<float> grid_max(threads_, 0.0f);
+    parallel(threads_, [&](std::uint32_t t) {
+        for (std::uint32_t l = 0; l < L; ++l) {
+            const std::size_t rows = im.active[l].size();
+            const std::size_t per_rows = (rows + threads_ - 1) / threads_;
+            const std::size_t rb = std::min(rows, t * per_rows), re = std::min(rows, rb + per_rows);
+            for (std::size_t row = rb; row < re; ++row) {
+                if (!im.active[l][row]) continue;
+                im.active[l][row] = 0;
+                const std::uint32_t rs = ++im.row_step[l][row];
+                adam_update(grid_[l].data() + row * F, im.gm[l].data() + row * F, im.gv[l].data() + row * F,
+                            im.gsum[l].data() + row * F, F, rs, grid_lr, scale, cfg_.grid_adam);
+                for (std::uint32_t f = 0; f < F; ++f)
+                    grid_max[t] = std::max(grid_max[t], std::fabs(grid_[l][row * F + f]));
+            }
+        }
+    });
+    // fp16 export needs |p| <= 65504; anything near that is divergence, not learning.
+    float maxabs = 0;
+    for (const auto& w : w_)
+        for (float x : w) maxabs = std::max(maxabs, std::fabs(x));
+    for (const auto& b : b_)
+        for (float x : b) maxabs = std::max(maxabs, std::fabs(x));
+    for (const float x : grid_max) maxabs = std::max(maxabs, x);
+    if (!(maxabs < kMaxParam)) {
+        rollback();
+        lr_scale_ *= 0.5f;
+        ++rollbacks_;
+        return NAN;
+    }
+    return loss;
+}
+
+TrainResult Trainer::train(const PreparedSet& samples, const ProgressFn& progress) {
+    TrainResult res;
+    if (samples.size() == 0) {
+        res.message = "no training samples reach the network";
+        return res;
+    }
+    const auto t0 = std::chrono::steady_clock::now();
+    std::vector<std::uint32_t> batch(cfg_.batch_size);
+    Rng rng{cfg_.seed ^ 0xA0761D6478BD642Full};
+    std::vector<float> losses;
+    while (step_ < cfg_.steps) {
+        for (auto& s : batch) s = std::uint32_t(rng.next() % samples.size());
+        const float loss = step(samples, batch);
+        res.samples += batch.size();
+        if (std::isnan(loss)) {
+            if (rollbacks_ > cfg_.max_rollbacks) {
+                res.diverged = true;
+                res.message = "training diverged: " + std::to_string(rollbacks_) +
+                              " rollbacks; kept the last good parameters";
+                break;
+            }
+            continue;
+        }
+        losses.push_back(loss);
+        if (progress) {
+            const double secs = std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
+            if (!progress({std::uint32_t(step_), cfg_.steps, loss, lr_scale_ * schedule(step_), secs})) break;
+        }
+    }
+    res.steps = std::uint32_t(step_);
+    res.rollbacks = rollbacks_;
+    res.seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
+    const std::size_t tail = std::max<std::size_t>(1, losses.size() / 20);
+    double sum = 0;
+    for (std::size_t i = losses.size() - std::min(tail, losses.size()); i < losses.size(); ++i) sum += losses[i];
+    res.final_loss = losses.empty() ? NAN : float(sum / double(std::min(tail, losses.size())));
+    return res;
+}
+
+format::ModelData Trainer::export_model(const std::string& metadata_json) const {
+    format::ModelData m = format::make_empty_model(desc_).value();
+    m.metadata_json = metadata_json;
+    m.occupancy = occupancy_;
+    for (std::size_t l = 0; l < grid_.size(); ++l)
+        for (std::size_t i = 0; i < grid_[l].size(); ++i) m.grid[l][i] = format::float_to_half(grid_[l][i]);
+    for (std::size_t k = 0; k < w_.size(); ++k) {
+        for (std::size_t i = 0; i < w_[k].size(); ++i) m.weights[k][i] = format::float_to_half(w_[k][i]);
+        for (std::size_t i = 0; i < b_[k].size(); ++i) m.biases[k][i] = format::float_to_half(b_[k][i]);
+    }
+    return m;
+}
+
+void Trainer::round_to_fp16() {
+    auto r = [](std::vector<std::vector<float>>& a) {
+        for (auto& v : a)
+            for (float& x : v) x = format::half_to_float(format::float_to_half(x));
+    };
+    r(grid_);
+    r(w_);
+    r(b_);
+}
+
+// ---- evaluation -------------------------------------------------------------------------
+
+namespace {
+
+double percentile(std::vector<double>& v, double q) {
+    if (v.empty()) return 0.0;
+    const std::size_t k = std::min(v.size() - 1, std::size_t(q * double(v.size() - 1) + 0.5));
+    std::nth_element(v.begin(), v.begin() + k, v.end());
+    return v[k];
+}
+
+}  // namespace
+
+Metrics evaluate(const format::Runtime& rt, std::span<const Sample> samples, std::uint32_t threads) {
+    const std::uint32_t T = threads ? threads : std::max(1u, std::thread::hardware_concurrency());
+    std::vector<format::Ray> rays(samples.size());
+    for (std::size_t i = 0; i < samples.size(); ++i) rays[i] = samples[i].ray;
+    std::vector<format::Hit> hits(samples.size());
+    std::vector<std::uint8_t> culled(samples.size());
+    const std::size_t per = (samples.size() + T - 1) / T;
+    parallel(T, [&](std::uint32_t t) {
+        const std::size_t b = std::min(samples.size(), t * per), e = std::min(samples.size(), b + per);
+        if (b >= e) return;
+        format::intersect(rt, std::span(rays).subspan(b, e - b), std::span(hits).subspan(b, e - b));
+        RayPoints p;
+        for (std::size_t i = b; i < e; ++i)
+            culled[i] = format::trace_points(rt.geo, rt.occupancy.data(), rays[i], p) != TraceStatus::ok;
+    });
+    struct Acc {
+        std::uint64_t rays = 0, culled = 0, correct = 0, true_miss = 0, false_hit = 0, true_hit = 0, false_miss = 0,
+                      culled_true_hits = 0;
+        std::vector<double> dist, ang;
+    } acc[kFamilyCount];
+    for (std::size_t i = 0; i < samples.size(); ++i) {
+        const Sample& s = samples[i];
+        Acc& a = acc[int(s.family) % kFamilyCount];
+        if (culled[i]) {
+            ++a.culled;
+            a.culled_true_hits += s.hit != 0;
+            continue;
+        }
+        ++a.rays;
+        const bool pred = hits[i].hit != 0;
+        a.correct += pred == (s.hit != 0);
+        if (s.hit) {
+            ++a.true_hit;
+            a.false_miss += !pred;
+            if (pred) {
+                const float dlen = std::sqrt(s.ray.dir[0] * s.ray.dir[0] + s.ray.dir[1] * s.ray.dir[1] +
+                                             s.ray.dir[2] * s.ray.dir[2]);
+                a.dist.push_back(100.0 * std::fabs(double(hits[i].t) - s.t) * dlen / rt.geo.diagonal);
+                const double c = hits[i].normal[0] * s.normal[0] + hits[i].normal[1] * s.normal[1] +
+                                 hits[i].normal[2] * s.normal[2];
+                a.ang.push_back(std::acos(std::clamp(c, -1.0, 1.0)) * 180.0 / M_PI);
+            }
+        } else {
+            ++a.true_miss;
+            a.false_hit += pred;
+        }
+    }
+    Metrics m;
+    std::vector<double> pooled_dist, pooled_ang;
+    std::size_t min_d = SIZE_MAX, min_a = SIZE_MAX;
+    int present = 0;
+    for (int f = 0; f < kFamilyCount; ++f)
+        if (acc[f].rays) {
+            min_d = std::min(min_d, acc[f].dist.size());
+            min_a = std::min(min_a, acc[f].ang.size());
+        }
+    for (int f = 0; f < kFamilyCount; ++f) {
+        Acc& a = acc[f];
+        FamilyMetrics& fm = m.family[f];
+        fm.rays = a.rays;
+        fm.culled = a.culled;
+        fm.culled_true_hits = a.culled_true_hits;
+        fm.culled_fraction = (a.rays + a.culled) ? double(a.culled) / double(a.rays + a.culled) : 0.0;
+        if (!a.rays) continue;
+        ++present;
+        fm.visibility_accuracy = double(a.correct) / double(a.rays);
+        fm.false_hit_rate = a.true_miss ? double(a.false_hit) / double(a.true_miss) : 0.0;
+        fm.false_miss_rate = a.true_hit ? double(a.false_miss) / double(a.true_hit) : 0.0;
+        // Equal shares for the pooled distributions: the first min_d of each family.
+        pooled_dist.insert(pooled_dist.end(), a.dist.begin(), a.dist.begin() + std::ptrdiff_t(min_d));
+        pooled_ang.insert(pooled_ang.end(), a.ang.begin(), a.ang.begin() + std::ptrdiff_t(min_a));
+        fm.distance_median_pct = percentile(a.dist, 0.5);
+        fm.distance_p95_pct = percentile(a.dist, 0.95);
+        fm.normal_median_deg = percentile(a.ang, 0.5);
+        fm.normal_p95_deg = percentile(a.ang, 0.95);
+        m.pooled.rays += a.rays;
+        m.pooled.culled += a.culled;
+        m.pooled.culled_true_hits += a.culled_true_hits;
+        m.pooled.visibility_accuracy += fm.visibility_accuracy;
+        m.pooled.false_hit_rate += fm.false_hit_rate;
+        m.pooled.false_miss_rate += fm.false_miss_rate;
+        m.pooled.culled_fraction += fm.culled_fraction;
+    }
+    if (present) {
+        m.pooled.visibility_accuracy /= present;
+        m.pooled.false_hit_rate /= present;
+        m.pooled.false_miss_rate /= present;
+        m.pooled.culled_fraction /= present;
+    }
+    m.pooled.distance_median_pct = percentile(pooled_dist, 0.5);
+    m.pooled.distance_p95_pct = percentile(pooled_dist, 0.95);
+    m.pooled.normal_median_deg = percentile(pooled_ang, 0.5);
+    m.pooled.normal_p95_deg = percentile(pooled_ang, 0.95);
+    return m;
+}
+
+}  // namespace lsnif::trainer
