@@ -162,7 +162,7 @@ lsnif_status lsnif_get_info(const lsnif_model* model, lsnif_info* out) {
     info.file_size = model->file_size;
     // fp16 arrays as stored plus the fp32 copies the CPU forward pass runs on.
     std::uint64_t runtime_bytes = 0;
-    for (const auto& g : model->runtime.grid) runtime_bytes += g.size() * 4;
+    for (const auto& g : model->runtime.grid) runtime_bytes += g.size() * 2;
     for (const auto& w : model->runtime.net.wt) runtime_bytes += w.size() * 4;
     info.decoded_bytes = model->data.occupancy.size() * 2 + d.parameter_count() * 2 +
                          model->data.metadata_json.size() + runtime_bytes;

@@ -10,6 +10,10 @@
 #include <cstring>
 #include <limits>
 
+#if defined(__F16C__)
+#include <immintrin.h>
+#endif
+
 namespace lsnif::format {
 
 namespace {
@@ -219,19 +223,54 @@ void level_corners(const Geometry& geo, const LevelInfo& lv, const float g[3], C
             }
 }
 
-void encode_points(const Geometry& geo, const float* const* grid, const RayPoints& pts, float* row) {
+namespace {
+
+inline float load_feature(const float* p) { return *p; }
+inline float load_feature(const std::uint16_t* p) {
+#if defined(__F16C__)
+    return _cvtsh_ss(*p);
+#else
+    return half_to_float(*p);
+#endif
+}
+
+template <class T>
+void encode_level(const Geometry& geo, const LevelInfo& lv, const T* table, std::uint32_t stride, const float g[3],
+                  float* dst) {
+    Corners c;
+    level_corners(geo, lv, g, c);
+    const std::uint32_t F = geo.F;
+    if (F == 3) {  // the v1 layout, unrolled
+        float a0 = 0, a1 = 0, a2 = 0;
+        for (std::uint32_t k = 0; k < c.n; ++k) {
+            const T* src = table + std::size_t(c.index[k]) * stride;
+            a0 += c.weight[k] * load_feature(src);
+            a1 += c.weight[k] * load_feature(src + 1);
+            a2 += c.weight[k] * load_feature(src + 2);
+        }
+        dst[0] = a0, dst[1] = a1, dst[2] = a2;
+        return;
+    }
+    for (std::uint32_t f = 0; f < F; ++f) dst[f] = 0.0f;
+    for (std::uint32_t k = 0; k < c.n; ++k) {
+        const T* src = table + std::size_t(c.index[k]) * stride;
+        for (std::uint32_t f = 0; f < F; ++f) dst[f] += c.weight[k] * load_feature(src + f);
+    }
+}
+
+}  // namespace
+
+void encode_points(const Geometry& geo, const GridView* grid, const RayPoints& pts, float* row) {
     const std::uint32_t F = geo.F, L = geo.L;
     for (std::uint32_t h = 0; h < pts.count; ++h)
         for (std::uint32_t l = 0; l < L; ++l) {
-            Corners c;
-            level_corners(geo, geo.levels[l], pts.g[h], c);
             float* dst = row + (std::size_t(h) * L + l) * F;
-            for (std::uint32_t f = 0; f < F; ++f) dst[f] = 0.0f;
-            const float* table = grid[l];
-            for (std::uint32_t k = 0; k < c.n; ++k) {
-                const float* src = table + std::size_t(c.index[k]) * F;
-                for (std::uint32_t f = 0; f < F; ++f) dst[f] += c.weight[k] * src[f];
-            }
+            if (grid[l].half)
+                encode_level(geo, geo.levels[l], static_cast<const std::uint16_t*>(grid[l].data), grid[l].stride,
+                             pts.g[h], dst);
+            else
+                encode_level(geo, geo.levels[l], static_cast<const float*>(grid[l].data), grid[l].stride, pts.g[h],
+                             dst);
         }
     std::memset(row + std::size_t(pts.count) * L * F, 0,
                 sizeof(float) * (std::size_t(geo.H) - pts.count) * L * F);
@@ -398,18 +437,22 @@ Runtime make_runtime(const ModelData& m) {
     Runtime rt;
     rt.geo = make_geometry(m.desc);
     rt.occupancy = m.occupancy;
+    const std::uint32_t F = m.desc.features_per_level;
+    rt.grid_stride = (F + 3u) & ~3u;
     for (const auto& level : m.grid) {
-        rt.grid.emplace_back(level.size());
-        for (std::size_t i = 0; i < level.size(); ++i) rt.grid.back()[i] = half_to_float(level[i]);
+        const std::size_t entries = level.size() / F;
+        rt.grid.emplace_back(entries * rt.grid_stride, 0);
+        for (std::size_t e = 0; e < entries; ++e)
+            for (std::uint32_t f = 0; f < F; ++f) rt.grid.back()[e * rt.grid_stride + f] = level[e * F + f];
     }
     rt.net = make_network(m);
     return rt;
 }
 
-std::vector<const float*> Runtime::grid_ptrs() const {
-    std::vector<const float*> p;
-    for (const auto& g : grid) p.push_back(g.data());
-    return p;
+std::vector<GridView> Runtime::grid_views() const {
+    std::vector<GridView> v;
+    for (const auto& g : grid) v.push_back({g.data(), grid_stride, true});
+    return v;
 }
 
 IntersectStats intersect(const Runtime& rt, std::span<const Ray> rays, std::span<Hit> hits) {
@@ -421,7 +464,7 @@ IntersectStats intersect(const Runtime& rt, std::span<const Ray> rays, std::span
     pts.resize(kChunk);
     input.resize(kChunk * geo.input_width);
     which.resize(kChunk);
-    const auto grid = rt.grid_ptrs();
+    const auto grid = rt.grid_views();
     const std::size_t outp = rt.net.out_padded.back();
     IntersectStats st;
     st.rays = rays.size();

@@ -150,7 +150,7 @@ TEST_CASE("training forward equals the reader's forward bit for bit on exported 
     const format::Runtime rt = format::make_runtime(model);
     const auto mine = tr.predict_raw(train);
     // Reader side: same encode + MLP from format/, on the decoded fp16 file contents.
-    const auto grid = rt.grid_ptrs();
+    const auto grid = rt.grid_views();
     std::vector<float> row(rt.geo.input_width), scratch;
     format::RayPoints pts;
     const std::uint32_t outs = d.output_count();
@@ -213,7 +213,7 @@ TEST_CASE("learns two spheres end to end: held-out accuracy per family") {
     SpheresSource src({{{-0.35f, 0.1f, 0.0f}, 0.4f}, {{0.4f, -0.2f, 0.1f}, 0.3f}, {{0.1f, 0.55f, -0.3f}, 0.2f}},
                       d.box_min, d.box_max);
     TrainConfig cfg;
-    cfg.steps = 600;
+    cfg.steps = 1200;
     cfg.batch_size = 4096;
     cfg.threads = 2;
     Trainer tr(d, src.occupancy(d), cfg);
@@ -227,7 +227,7 @@ TEST_CASE("learns two spheres end to end: held-out accuracy per family") {
     const Metrics m = evaluate(rt, held, 2);
     for (int f = 0; f < kFamilyCount; ++f) {
         const FamilyMetrics& fm = m.family[f];
-        MESSAGE(family_name(Family(f)) << ": rays " << fm.rays << " vis " << fm.visibility_accuracy << " dist med "
+        MESSAGE(std::string(family_name(Family(f))) << ": rays " << fm.rays << " vis " << fm.visibility_accuracy << " dist med "
                                        << fm.distance_median_pct << "% p95 " << fm.distance_p95_pct << "% normal med "
                                        << fm.normal_median_deg << " deg, culled " << fm.culled_fraction);
         CHECK(fm.culled_true_hits == 0);  // conservative occupancy never culls a true hit
@@ -235,7 +235,9 @@ TEST_CASE("learns two spheres end to end: held-out accuracy per family") {
     }
     MESSAGE("pooled: vis " << m.pooled.visibility_accuracy << " dist med " << m.pooled.distance_median_pct
                            << "% normal med " << m.pooled.normal_median_deg << " deg, train " << r.seconds << " s");
-    CHECK(m.pooled.visibility_accuracy >= 0.95);
-    CHECK(m.pooled.distance_median_pct <= 1.5);
-    CHECK(m.pooled.normal_median_deg <= 12.0);
+    // Measured at this budget: 99.87%, 0.65%, 11.4 deg (BENCHMARKS.md); asserted with margin.
+    CHECK(m.pooled.visibility_accuracy >= 0.99);
+    CHECK(m.pooled.distance_median_pct <= 1.0);
+    CHECK(m.pooled.normal_median_deg <= 14.0);
+    for (int f = 0; f < kFamilyCount; ++f) CHECK(m.family[f].visibility_accuracy >= 0.98);
 }

@@ -186,7 +186,7 @@ namespace {
 // Forward of one sub-chunk: trace + encode into w.x, layers into w.act. Rows whose ray
 // does not reach the network get count = 0 (all-zero input).
 // Encoding and layers for rows whose w.pts are filled.
-void forward_layers(const Geometry& geo, const std::vector<const float*>& grid, const format::Network& net,
+void forward_layers(const Geometry& geo, const std::vector<format::GridView>& grid, const format::Network& net,
                     std::size_t n, Work& w) {
     for (std::size_t r = 0; r < n; ++r) format::encode_points(geo, grid.data(), w.pts[r], w.x.data() + r * geo.input_width);
     const float* src = w.x.data();
@@ -199,7 +199,7 @@ void forward_layers(const Geometry& geo, const std::vector<const float*>& grid, 
     }
 }
 
-void forward_chunk(const Geometry& geo, const std::uint8_t* occ, const std::vector<const float*>& grid,
+void forward_chunk(const Geometry& geo, const std::uint8_t* occ, const std::vector<format::GridView>& grid,
                    const format::Network& net, std::span<const Sample> rows, Work& w) {
     for (std::size_t r = 0; r < rows.size(); ++r)
         if (format::trace_points(geo, occ, rows[r].ray, w.pts[r]) != TraceStatus::ok) w.pts[r].count = 0;
@@ -211,8 +211,8 @@ void forward_chunk(const Geometry& geo, const std::uint8_t* occ, const std::vect
 std::vector<float> Trainer::predict_raw(std::span<const Sample> batch) {
     Impl& im = *impl_;
     im.net = format::make_network(desc_, w_, b_);
-    std::vector<const float*> gp;
-    for (auto& g : grid_) gp.push_back(g.data());
+    std::vector<format::GridView> gp;
+    for (auto& g : grid_) gp.push_back({g.data(), geo_.F, false});
     const std::uint32_t outs = desc_.output_count();
     std::vector<float> out(batch.size() * outs);
     Work& w = im.work[0];
@@ -290,8 +290,8 @@ LossParts Trainer::loss_and_gradients(const PreparedSet& set, std::span<const st
         for (std::uint32_t r = 0; r < o; ++r)
             std::memcpy(im.wpad[k].data() + std::size_t(r) * ip, w_[k].data() + std::size_t(r) * i, i * sizeof(float));
     }
-    std::vector<const float*> gp;
-    for (auto& g : grid_) gp.push_back(g.data());
+    std::vector<format::GridView> gp;
+    for (auto& g : grid_) gp.push_back({g.data(), geo_.F, false});
 
     const std::size_t B = batch.size();
     std::size_t hits = 0;

@@ -110,9 +110,19 @@ struct Corners {
 };
 void level_corners(const Geometry& geo, const LevelInfo& lv, const float g[3], Corners& out);
 
+// One level's feature table as the encoder reads it: entry e's F features start at
+// element e * stride. fp16 tables (the reader's runtime: half the memory, so both v1
+// levels stay in L2) and fp32 tables (the trainer's master copy) give identical results
+// for identical values, since fp16 -> fp32 is exact and the arithmetic is fp32 either way.
+struct GridView {
+    const void* data;
+    std::uint32_t stride;  // elements per entry (>= F)
+    bool half;             // elements are IEEE binary16 bit patterns, else float
+};
+
 // Encodes the points of one ray into `row` (input_width floats: slot-major, then level,
-// then feature). Empty slots are zero. `grid[l]` points to level l's fp32 table.
-void encode_points(const Geometry& geo, const float* const* grid, const RayPoints& pts, float* row);
+// then feature). Empty slots are zero.
+void encode_points(const Geometry& geo, const GridView* grid, const RayPoints& pts, float* row);
 
 // ---- MLP --------------------------------------------------------------------------------
 
@@ -153,9 +163,10 @@ Hit decode_output(const Geometry& geo, const RayPoints& pts, const Ray& ray, con
 struct Runtime {
     Geometry geo;
     std::vector<std::uint8_t> occupancy;
-    std::vector<std::vector<float>> grid;  // per level, entries * F
+    std::vector<std::vector<std::uint16_t>> grid;  // per level, fp16, entries * grid_stride
+    std::uint32_t grid_stride = 0;                 // F rounded up to 4: one aligned load per entry
     Network net;
-    std::vector<const float*> grid_ptrs() const;
+    std::vector<GridView> grid_views() const;
 };
 Runtime make_runtime(const ModelData& model);
 
