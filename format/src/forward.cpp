@@ -64,18 +64,19 @@ TraceStatus make_ray_grid(const Geometry& geo, const Ray& ray, RayGrid& rg, floa
     if (!nonzero || std::isnan(ray.tmin) || std::isnan(ray.tmax)) return TraceStatus::invalid;
     t_near = ray.tmin;
     t_far = ray.tmax;
-    const double V = geo.V;
+    const float V = float(geo.V);
     for (int a = 0; a < 3; ++a) {
-        const double cell = (double(geo.box_max[a]) - geo.box_min[a]) / V;
-        rg.go[a] = (double(ray.org[a]) - geo.box_min[a]) / cell;
-        rg.gd[a] = double(ray.dir[a]) / cell;
-        if (rg.gd[a] == 0.0) {
+        // Grid-space origin/direction computed in double, stored rounded once.
+        const double cell = (double(geo.box_max[a]) - geo.box_min[a]) / geo.V;
+        rg.go[a] = float((double(ray.org[a]) - geo.box_min[a]) / cell);
+        rg.gd[a] = float(double(ray.dir[a]) / cell);
+        if (rg.gd[a] == 0.0f) {
             rg.inv_gd[a] = kInf;
-            if (rg.go[a] < 0.0 || rg.go[a] > V) return TraceStatus::miss;
+            if (rg.go[a] < 0.0f || rg.go[a] > V) return TraceStatus::miss;
             continue;
         }
-        rg.inv_gd[a] = 1.0 / rg.gd[a];
-        float t0 = rg.plane_t(a, 0.0), t1 = rg.plane_t(a, V);
+        rg.inv_gd[a] = 1.0f / rg.gd[a];
+        float t0 = rg.plane_t(a, 0.0f), t1 = rg.plane_t(a, V);
         if (t0 > t1) std::swap(t0, t1);
         t_near = std::max(t_near, t0);
         t_far = std::min(t_far, t1);
@@ -86,10 +87,14 @@ TraceStatus make_ray_grid(const Geometry& geo, const Ray& ray, RayGrid& rg, floa
 
 namespace {
 
-// Walks the crossed voxels in order, calling visit(voxel_index, entry_t, g_entry) for each;
-// visit returns false to stop early. Implements exactly the definition in forward.hpp.
-template <class Visit>
-TraceStatus walk(const Geometry& geo, const Ray& ray, Visit&& visit) {
+// Walks the crossed voxels in order, calling visit(voxel_index, entry_t, g_entry) for
+// each voxel that `want(voxel_index)` accepts; visit returns false to stop early.
+// Implements exactly the definition in forward.hpp. With `blocks` (OccupancyGrid), whole
+// empty blocks are skipped: the walk jumps to the block's exit parameter and resumes in
+// the cell the plain walk would be in at that parameter, so every accepted (occupied)
+// voxel is still reported with the same entry.
+template <class Want, class Visit>
+TraceStatus walk(const Geometry& geo, const Ray& ray, const OccupancyGrid* blocks, Want&& want, Visit&& visit) {
     RayGrid rg;
     float t_near, t_far;
     const TraceStatus st = make_ray_grid(geo, ray, rg, t_near, t_far);
@@ -97,7 +102,7 @@ TraceStatus walk(const Geometry& geo, const Ray& ray, Visit&& visit) {
     const int V = int(geo.V);
     int cell[3], step[3];
     for (int a = 0; a < 3; ++a) {
-        const double gpos = rg.go[a] + double(t_near) * rg.gd[a];
+        const float gpos = rg.go[a] + t_near * rg.gd[a];
         if (rg.gd[a] > 0) {
             step[a] = 1;
             int x = std::clamp(int(std::floor(gpos)), 0, V - 1);
@@ -128,21 +133,44 @@ TraceStatus walk(const Geometry& geo, const Ray& ray, Visit&& visit) {
             exit_a[a] = rg.plane_t(a, step[a] > 0 ? cell[a] + 1 : cell[a]);
         }
     }
+    const int B = int(OccupancyGrid::kBlock);
     while (true) {
+        if (blocks && !blocks->block_occupied(std::uint32_t(cell[0]) / B, std::uint32_t(cell[1]) / B,
+                                              std::uint32_t(cell[2]) / B)) {
+            // Leave the empty block: its exit is the first of its boundary planes reached.
+            float block_exit = kInf;
+            for (int a = 0; a < 3; ++a) {
+                if (step[a] == 0) continue;
+                const int b0 = cell[a] / B * B;
+                const int plane = step[a] > 0 ? std::min(b0 + B, V) : b0;
+                block_exit = std::min(block_exit, rg.plane_t(a, plane));
+            }
+            if (block_exit > t_far) return TraceStatus::ok;
+            // Advance each axis past every plane reached by block_exit (ties step together).
+            for (int a = 0; a < 3; ++a) {
+                if (step[a] == 0) continue;
+                while (exit_a[a] <= block_exit) {
+                    cell[a] += step[a];
+                    if (cell[a] < 0 || cell[a] >= V) return TraceStatus::ok;
+                    enter_a[a] = exit_a[a];
+                    exit_a[a] = rg.plane_t(a, step[a] > 0 ? cell[a] + 1 : cell[a]);
+                }
+            }
+            continue;
+        }
         const float enter = std::max(enter_a[0], std::max(enter_a[1], enter_a[2]));
         const float exit = std::min(exit_a[0], std::min(exit_a[1], exit_a[2]));
         const float lo = std::max(t_near, enter);
-        if (lo <= t_far && lo < exit) {
+        const std::uint32_t idx =
+            std::uint32_t(cell[0]) + geo.V * (std::uint32_t(cell[1]) + geo.V * std::uint32_t(cell[2]));
+        if (lo <= t_far && lo < exit && want(idx)) {
             float g[3];
             for (int a = 0; a < 3; ++a) {
                 if (step[a] != 0 && enter_a[a] == lo)  // entered through this face: exact plane
                     g[a] = float(step[a] > 0 ? cell[a] : cell[a] + 1);
                 else
-                    g[a] = float(std::clamp(rg.go[a] + double(lo) * rg.gd[a], double(cell[a]),
-                                            double(cell[a] + 1)));
+                    g[a] = std::clamp(rg.go[a] + lo * rg.gd[a], float(cell[a]), float(cell[a] + 1));
             }
-            const std::uint32_t idx =
-                std::uint32_t(cell[0]) + geo.V * (std::uint32_t(cell[1]) + geo.V * std::uint32_t(cell[2]));
             if (!visit(idx, lo, g)) return TraceStatus::ok;
         }
         if (exit > t_far) return TraceStatus::ok;
@@ -152,40 +180,68 @@ TraceStatus walk(const Geometry& geo, const Ray& ray, Visit&& visit) {
             cell[a] += step[a];
             if (cell[a] < 0 || cell[a] >= V) return TraceStatus::ok;
             enter_a[a] = exit_a[a];
-            exit_a[a] = rg.plane_t(a, step[a] > 0 ? cell[a] + 1 : cell[a]);
+            exit_a[a] = rg.plane_t(a, float(step[a] > 0 ? cell[a] + 1 : cell[a]));
         }
     }
 }
 
 }  // namespace
 
-TraceStatus trace_points(const Geometry& geo, const std::uint8_t* occupancy, const Ray& ray, RayPoints& out) {
+namespace {
+
+TraceStatus trace_points_impl(const Geometry& geo, const std::uint8_t* occupancy, const OccupancyGrid* blocks,
+                              const Ray& ray, RayPoints& out) {
     out.count = 0;
     RayGrid rg;
     const TraceStatus st = make_ray_grid(geo, ray, rg, out.t_near, out.t_far);
     if (st != TraceStatus::ok) return st;
-    walk(geo, ray, [&](std::uint32_t idx, float t, const float g[3]) {
-        if (!((occupancy[idx >> 3] >> (idx & 7)) & 1u)) return true;
-        const std::uint32_t k = out.count++;
-        out.t[k] = t;
-        out.g[k][0] = g[0];
-        out.g[k][1] = g[1];
-        out.g[k][2] = g[2];
-        out.voxel[k] = idx;
-        return out.count < geo.H;
-    });
+    walk(
+        geo, ray, blocks, [&](std::uint32_t idx) { return ((occupancy[idx >> 3] >> (idx & 7)) & 1u) != 0; },
+        [&](std::uint32_t idx, float t, const float g[3]) {
+            const std::uint32_t k = out.count++;
+            out.t[k] = t;
+            out.g[k][0] = g[0];
+            out.g[k][1] = g[1];
+            out.g[k][2] = g[2];
+            out.voxel[k] = idx;
+            return out.count < geo.H;
+        });
     return out.count ? TraceStatus::ok : TraceStatus::miss;
+}
+
+}  // namespace
+
+TraceStatus trace_points(const Geometry& geo, const std::uint8_t* occupancy, const Ray& ray, RayPoints& out) {
+    return trace_points_impl(geo, occupancy, nullptr, ray, out);
+}
+
+TraceStatus trace_points(const Geometry& geo, const OccupancyGrid& occ, const Ray& ray, RayPoints& out) {
+    return trace_points_impl(geo, occ.bits.data(), &occ, ray, out);
+}
+
+OccupancyGrid::OccupancyGrid(std::uint32_t V, std::vector<std::uint8_t> voxel_bits) : V(V), bits(std::move(voxel_bits)) {
+    nb = (V + kBlock - 1) / kBlock;
+    blocks.assign(std::size_t(nb) * nb * nb, 0);
+    for (std::uint32_t z = 0; z < V; ++z)
+        for (std::uint32_t y = 0; y < V; ++y)
+            for (std::uint32_t x = 0; x < V; ++x) {
+                const std::uint64_t i = x + std::uint64_t(V) * (y + std::uint64_t(V) * z);
+                if ((bits[i >> 3] >> (i & 7)) & 1u)
+                    blocks[x / kBlock + nb * (y / kBlock + std::size_t(nb) * (z / kBlock))] = 1;
+            }
 }
 
 TraceStatus trace_all_voxels(const Geometry& geo, const Ray& ray, std::vector<std::uint32_t>& voxels,
                              std::vector<float>& entry_t) {
     voxels.clear();
     entry_t.clear();
-    return walk(geo, ray, [&](std::uint32_t idx, float t, const float*) {
-        voxels.push_back(idx);
-        entry_t.push_back(t);
-        return true;
-    });
+    return walk(
+        geo, ray, nullptr, [](std::uint32_t) { return true; },
+        [&](std::uint32_t idx, float t, const float*) {
+            voxels.push_back(idx);
+            entry_t.push_back(t);
+            return true;
+        });
 }
 
 // ---- encoding -------------------------------------------------------------------------
@@ -234,12 +290,9 @@ inline float load_feature(const std::uint16_t* p) {
 #endif
 }
 
+// Interpolates one level from precomputed corners.
 template <class T>
-void encode_level(const Geometry& geo, const LevelInfo& lv, const T* table, std::uint32_t stride, const float g[3],
-                  float* dst) {
-    Corners c;
-    level_corners(geo, lv, g, c);
-    const std::uint32_t F = geo.F;
+void accumulate_level(const Corners& c, const T* table, std::uint32_t stride, std::uint32_t F, float* dst) {
     if (F == 3) {  // the v1 layout, unrolled
         float a0 = 0, a1 = 0, a2 = 0;
         for (std::uint32_t k = 0; k < c.n; ++k) {
@@ -262,15 +315,28 @@ void encode_level(const Geometry& geo, const LevelInfo& lv, const T* table, std:
 
 void encode_points(const Geometry& geo, const GridView* grid, const RayPoints& pts, float* row) {
     const std::uint32_t F = geo.F, L = geo.L;
+    // Two passes: all corner indices first (prefetching their table rows), then the
+    // interpolation. The tables are larger than L1/L2, so the reads are latency-bound;
+    // issuing them all up front lets them overlap instead of stalling point by point.
+    thread_local std::vector<Corners> corners;
+    corners.resize(std::size_t(geo.H) * L);
     for (std::uint32_t h = 0; h < pts.count; ++h)
         for (std::uint32_t l = 0; l < L; ++l) {
+            Corners& c = corners[std::size_t(h) * L + l];
+            level_corners(geo, geo.levels[l], pts.g[h], c);
+            const std::size_t elem = grid[l].half ? 2 : 4;
+            const char* base = static_cast<const char*>(grid[l].data);
+            for (std::uint32_t k = 0; k < c.n; ++k)
+                __builtin_prefetch(base + std::size_t(c.index[k]) * grid[l].stride * elem);
+        }
+    for (std::uint32_t h = 0; h < pts.count; ++h)
+        for (std::uint32_t l = 0; l < L; ++l) {
+            const Corners& c = corners[std::size_t(h) * L + l];
             float* dst = row + (std::size_t(h) * L + l) * F;
             if (grid[l].half)
-                encode_level(geo, geo.levels[l], static_cast<const std::uint16_t*>(grid[l].data), grid[l].stride,
-                             pts.g[h], dst);
+                accumulate_level(c, static_cast<const std::uint16_t*>(grid[l].data), grid[l].stride, F, dst);
             else
-                encode_level(geo, geo.levels[l], static_cast<const float*>(grid[l].data), grid[l].stride, pts.g[h],
-                             dst);
+                accumulate_level(c, static_cast<const float*>(grid[l].data), grid[l].stride, F, dst);
         }
     std::memset(row + std::size_t(pts.count) * L * F, 0,
                 sizeof(float) * (std::size_t(geo.H) - pts.count) * L * F);
@@ -436,7 +502,7 @@ Hit decode_output(const Geometry& geo, const RayPoints& pts, const Ray& ray, con
 Runtime make_runtime(const ModelData& m) {
     Runtime rt;
     rt.geo = make_geometry(m.desc);
-    rt.occupancy = m.occupancy;
+    rt.occupancy = OccupancyGrid(m.desc.grid_resolution, m.occupancy);
     const std::uint32_t F = m.desc.features_per_level;
     rt.grid_stride = (F + 3u) & ~3u;
     for (const auto& level : m.grid) {
@@ -474,7 +540,7 @@ IntersectStats intersect(const Runtime& rt, std::span<const Ray> rays, std::span
         for (std::size_t i = 0; i < n; ++i) {
             const Ray& r = rays[base + i];
             Hit& h = hits[base + i];
-            const TraceStatus ts = trace_points(geo, rt.occupancy.data(), r, pts[k]);
+            const TraceStatus ts = trace_points(geo, rt.occupancy, r, pts[k]);
             if (ts != TraceStatus::ok) {
                 h = Hit{kInf, {0, 0, 0}, 0, 0};
                 if (ts == TraceStatus::invalid) ++st.invalid;

@@ -8,6 +8,7 @@
 #include <lsnif/lsnif.h>
 
 #include <algorithm>
+#include <cstring>
 #include <cmath>
 #include <random>
 #include <tuple>
@@ -41,7 +42,7 @@ std::vector<std::pair<float, std::uint32_t>> brute_force(const Geometry& geo, co
                 for (int a = 0; a < 3; ++a) {
                     if (rg.gd[a] == 0) {
                         // Half-open [c, c+1), the last cell closed at V.
-                        const double g = rg.go[a];
+                        const float g = rg.go[a];
                         const bool in = (g >= c[a] && g < c[a] + 1) || (c[a] == V - 1 && g == V);
                         inside = inside && in;
                         continue;
@@ -185,6 +186,44 @@ TEST_CASE("trace_points keeps the first H occupied voxels with face-snapped entr
     // A ray through no occupied voxel is culled.
     Ray empty{{-2.f, 6.5f, 5.5f}, 0.f, {1.f, 0.f, 0.f}, INFINITY};
     CHECK(trace_points(geo, m.occupancy.data(), empty, pts) == TraceStatus::miss);
+}
+
+TEST_CASE("empty-block skipping returns exactly the points of the plain walk") {
+    std::mt19937 rng(21);
+    std::uniform_real_distribution<float> u(-1.f, 1.f);
+    for (std::uint32_t V : {7u, 32u}) {
+        ModelDesc d = desc_with(V, {-1.f, -1.f, -1.f}, {1.f, 1.f, 1.f});
+        d.max_points = 18;
+        auto m = make_empty_model(d).value();
+        // Sparse random voxels plus a shell: empty blocks next to occupied ones.
+        for (std::uint64_t i = 0; i < d.voxel_count(); ++i) {
+            const std::uint32_t x = i % V, y = (i / V) % V, z = i / (V * V);
+            const float c = (V - 1) * 0.5f, r = std::sqrt((x - c) * (x - c) + (y - c) * (y - c) + (z - c) * (z - c));
+            if (rng() % 97 == 0 || std::fabs(r - 0.3f * V) < 0.7f) m.occupancy[i >> 3] |= std::uint8_t(1u << (i & 7));
+        }
+        const Geometry geo = make_geometry(d);
+        const OccupancyGrid grid(V, m.occupancy);
+        RayPoints a, b;
+        for (int i = 0; i < 20000; ++i) {
+            Ray r{};
+            for (int k = 0; k < 3; ++k) {
+                r.org[k] = u(rng) * (i % 2 ? 0.9f : 2.0f);
+                r.dir[k] = i % 5 == 0 ? float(int(u(rng) * 2.0f)) : u(rng);  // some axis-aligned
+                if (i % 7 == 0) r.org[k] = std::round(r.org[k] * V * 0.5f) / (V * 0.5f);  // on planes
+            }
+            if (r.dir[0] == 0 && r.dir[1] == 0 && r.dir[2] == 0) r.dir[0] = 1;
+            r.tmax = i % 3 == 0 ? std::fabs(u(rng)) * 3.0f : INFINITY;
+            const auto sa = trace_points(geo, m.occupancy.data(), r, a);
+            const auto sb = trace_points(geo, grid, r, b);
+            REQUIRE(sa == sb);
+            REQUIRE(a.count == b.count);
+            for (std::uint32_t k = 0; k < a.count; ++k) {
+                REQUIRE(a.t[k] == b.t[k]);
+                REQUIRE(a.voxel[k] == b.voxel[k]);
+                REQUIRE(std::memcmp(a.g[k], b.g[k], sizeof a.g[k]) == 0);
+            }
+        }
+    }
 }
 
 TEST_CASE("encoding: aligned levels touch 4 corners on faces; trilinear weights are exact") {

@@ -155,7 +155,7 @@ TEST_CASE("training forward equals the reader's forward bit for bit on exported 
     format::RayPoints pts;
     const std::uint32_t outs = d.output_count();
     for (std::size_t i = 0; i < train.size(); ++i) {
-        REQUIRE(format::trace_points(rt.geo, rt.occupancy.data(), train[i].ray, pts) == format::TraceStatus::ok);
+        REQUIRE(format::trace_points(rt.geo, rt.occupancy, train[i].ray, pts) == format::TraceStatus::ok);
         format::encode_points(rt.geo, grid.data(), pts, row.data());
         const float* out = format::mlp_forward(rt.net, row.data(), 1, scratch);
         REQUIRE(std::memcmp(out, mine.data() + i * outs, outs * sizeof(float)) == 0);

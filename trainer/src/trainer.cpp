@@ -228,6 +228,7 @@ std::vector<float> Trainer::predict_raw(std::span<const Sample> batch) {
 
 PreparedSet Trainer::prepare(std::span<const Sample> samples) const {
     const std::uint32_t H = geo_.H;
+    const format::OccupancyGrid occ_grid(geo_.V, occupancy_);  // block skipping; same points
     std::vector<std::uint8_t> ok(samples.size());
     std::vector<RayPoints> tmp(threads_);
     std::vector<std::uint16_t> count(samples.size());
@@ -237,7 +238,7 @@ PreparedSet Trainer::prepare(std::span<const Sample> samples) const {
         RayPoints& p = tmp[t];
         const std::size_t b = std::min(samples.size(), t * per), e = std::min(samples.size(), b + per);
         for (std::size_t i = b; i < e; ++i) {
-            ok[i] = format::trace_points(geo_, occupancy_.data(), samples[i].ray, p) == TraceStatus::ok;
+            ok[i] = format::trace_points(geo_, occ_grid, samples[i].ray, p) == TraceStatus::ok;
             if (!ok[i]) continue;
             count[i] = std::uint16_t(p.count);
             tn[i] = p.t_near;
@@ -649,7 +650,7 @@ Metrics evaluate(const format::Runtime& rt, std::span<const Sample> samples, std
         format::intersect(rt, std::span(rays).subspan(b, e - b), std::span(hits).subspan(b, e - b));
         RayPoints p;
         for (std::size_t i = b; i < e; ++i)
-            culled[i] = format::trace_points(rt.geo, rt.occupancy.data(), rays[i], p) != TraceStatus::ok;
+            culled[i] = format::trace_points(rt.geo, rt.occupancy, rays[i], p) != TraceStatus::ok;
     });
     struct Acc {
         std::uint64_t rays = 0, culled = 0, correct = 0, true_miss = 0, false_hit = 0, true_hit = 0, false_miss = 0,

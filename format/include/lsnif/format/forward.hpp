@@ -82,17 +82,33 @@ enum class TraceStatus { ok, miss, invalid };
 // Plane parameter helper shared by the DDA and its reference test, so both compare
 // bit-identical values: t at which the ray reaches grid plane `k` on `axis`.
 struct RayGrid {
-    double go[3];      // origin in grid coordinates
-    double gd[3];      // direction in grid units per t
-    double inv_gd[3];  // 1 / gd (inf when gd == 0)
-    float plane_t(int axis, double k) const { return float((k - go[axis]) * inv_gd[axis]); }
+    float go[3];      // origin in grid coordinates
+    float gd[3];      // direction in grid units per t
+    float inv_gd[3];  // 1 / gd (inf when gd == 0)
+    float plane_t(int axis, float k) const { return (k - go[axis]) * inv_gd[axis]; }
 };
 // Returns invalid for a zero/non-finite direction or non-finite origin, or tmin > tmax,
 // or NaN bounds; miss when the ray does not meet the box within [tmin, tmax].
 TraceStatus make_ray_grid(const Geometry& geo, const Ray& ray, RayGrid& rg, float& t_near, float& t_far);
 
+// The OCCU bit array plus a coarse map of kBlock^3-voxel blocks (1 = some voxel occupied)
+// that lets the DDA jump over empty space.
+struct OccupancyGrid {
+    static constexpr std::uint32_t kBlock = 4;
+    std::uint32_t V = 0, nb = 0;
+    std::vector<std::uint8_t> bits;    // OCCU layout
+    std::vector<std::uint8_t> blocks;  // nb^3 bytes
+    OccupancyGrid() = default;
+    OccupancyGrid(std::uint32_t V, std::vector<std::uint8_t> voxel_bits);
+    bool block_occupied(std::uint32_t bx, std::uint32_t by, std::uint32_t bz) const {
+        return blocks[bx + nb * (by + std::size_t(nb) * bz)] != 0;
+    }
+};
+
 // Fills `out` with up to geo.H occupied entry points. `occupancy` is the OCCU bit array.
+// The OccupancyGrid overload skips empty blocks and returns exactly the same points.
 TraceStatus trace_points(const Geometry& geo, const std::uint8_t* occupancy, const Ray& ray, RayPoints& out);
+TraceStatus trace_points(const Geometry& geo, const OccupancyGrid& occupancy, const Ray& ray, RayPoints& out);
 
 // Every voxel crossed (occupied or not), in order, with entry t: for tests and tools.
 TraceStatus trace_all_voxels(const Geometry& geo, const Ray& ray, std::vector<std::uint32_t>& voxels,
@@ -162,7 +178,7 @@ Hit decode_output(const Geometry& geo, const RayPoints& pts, const Ray& ray, con
 // number of threads may call intersect() on it concurrently.
 struct Runtime {
     Geometry geo;
-    std::vector<std::uint8_t> occupancy;
+    OccupancyGrid occupancy;
     std::vector<std::vector<std::uint16_t>> grid;  // per level, fp16, entries * grid_stride
     std::uint32_t grid_stride = 0;                 // F rounded up to 4: one aligned load per entry
     Network net;
