@@ -70,6 +70,7 @@ struct Work {
     std::vector<std::vector<float>> db;       // per layer, outp
     std::vector<std::vector<float>> gg;       // grid gradient per level, entries * F
     std::vector<std::vector<std::uint8_t>> touched;  // per level, entries
+    std::vector<format::Corners> corners;            // one sample's (point, level) corners
     LossParts loss;
 };
 
@@ -386,14 +387,23 @@ LossParts Trainer::loss_and_gradients(const PreparedSet& set, std::span<const st
                 std::swap(G, other);
             }
             // ---- scatter into the hash tables (only the corners that carry weight) ----
+            // Two passes per sample, as in format::encode_points: corners first, prefetching
+            // the gradient rows (the tables exceed L2), then the accumulation.
             const std::size_t ip0 = pad16(geo_.input_width);
+            w.corners.resize(std::size_t(geo_.H) * L);
             for (std::size_t r = 0; r < n; ++r) {
                 const RayPoints& p = w.pts[r];
                 const float* dx = G + r * ip0;
                 for (std::uint32_t h = 0; h < p.count; ++h)
                     for (std::uint32_t l = 0; l < L; ++l) {
-                        format::Corners c;
+                        format::Corners& c = w.corners[std::size_t(h) * L + l];
                         format::level_corners(geo_, geo_.levels[l], p.g[h], c);
+                        for (std::uint32_t q = 0; q < c.n; ++q)
+                            __builtin_prefetch(w.gg[l].data() + std::size_t(c.index[q]) * F, 1);
+                    }
+                for (std::uint32_t h = 0; h < p.count; ++h)
+                    for (std::uint32_t l = 0; l < L; ++l) {
+                        const format::Corners& c = w.corners[std::size_t(h) * L + l];
                         const float* src = dx + (std::size_t(h) * L + l) * F;
                         float* table = w.gg[l].data();
                         for (std::uint32_t q = 0; q < c.n; ++q) {
