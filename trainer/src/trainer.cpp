@@ -647,7 +647,8 @@ double percentile(std::vector<double>& v, double q) {
 
 }  // namespace
 
-Metrics evaluate(const format::Runtime& rt, std::span<const Sample> samples, std::uint32_t threads) {
+Metrics evaluate(const format::Runtime& rt, std::span<const Sample> samples, std::uint32_t threads,
+                 std::span<const std::array<float, 3>> geometric_normals) {
     const std::uint32_t T = threads ? threads : std::max(1u, std::thread::hardware_concurrency());
     std::vector<format::Ray> rays(samples.size());
     for (std::size_t i = 0; i < samples.size(); ++i) rays[i] = samples[i].ray;
@@ -665,7 +666,7 @@ Metrics evaluate(const format::Runtime& rt, std::span<const Sample> samples, std
     struct Acc {
         std::uint64_t rays = 0, culled = 0, correct = 0, true_miss = 0, false_hit = 0, true_hit = 0, false_miss = 0,
                       culled_true_hits = 0;
-        std::vector<double> dist, ang;
+        std::vector<double> dist, ang, geo_ang;
     } acc[kFamilyCount];
     for (std::size_t i = 0; i < samples.size(); ++i) {
         const Sample& s = samples[i];
@@ -688,6 +689,15 @@ Metrics evaluate(const format::Runtime& rt, std::span<const Sample> samples, std
                 const double c = hits[i].normal[0] * s.normal[0] + hits[i].normal[1] * s.normal[1] +
                                  hits[i].normal[2] * s.normal[2];
                 a.ang.push_back(std::acos(std::clamp(c, -1.0, 1.0)) * 180.0 / M_PI);
+                if (i < geometric_normals.size()) {
+                    // The faceted normal's orientation is the triangle winding's; compare
+                    // as an unoriented line against it when the shading normal disagrees.
+                    const auto& gn = geometric_normals[i];
+                    double cg = hits[i].normal[0] * gn[0] + hits[i].normal[1] * gn[1] + hits[i].normal[2] * gn[2];
+                    const double sg = s.normal[0] * gn[0] + s.normal[1] * gn[1] + s.normal[2] * gn[2];
+                    if (sg < 0) cg = -cg;
+                    a.geo_ang.push_back(std::acos(std::clamp(cg, -1.0, 1.0)) * 180.0 / M_PI);
+                }
             }
         } else {
             ++a.true_miss;
@@ -695,7 +705,7 @@ Metrics evaluate(const format::Runtime& rt, std::span<const Sample> samples, std
         }
     }
     Metrics m;
-    std::vector<double> pooled_dist, pooled_ang;
+    std::vector<double> pooled_dist, pooled_ang, pooled_geo;
     std::size_t min_d = SIZE_MAX, min_a = SIZE_MAX;
     int present = 0;
     for (int f = 0; f < kFamilyCount; ++f)
@@ -718,10 +728,13 @@ Metrics evaluate(const format::Runtime& rt, std::span<const Sample> samples, std
         // Equal shares for the pooled distributions: the first min_d of each family.
         pooled_dist.insert(pooled_dist.end(), a.dist.begin(), a.dist.begin() + std::ptrdiff_t(min_d));
         pooled_ang.insert(pooled_ang.end(), a.ang.begin(), a.ang.begin() + std::ptrdiff_t(min_a));
+        pooled_geo.insert(pooled_geo.end(), a.geo_ang.begin(),
+                          a.geo_ang.begin() + std::ptrdiff_t(std::min(min_a, a.geo_ang.size())));
         fm.distance_median_pct = percentile(a.dist, 0.5);
         fm.distance_p95_pct = percentile(a.dist, 0.95);
         fm.normal_median_deg = percentile(a.ang, 0.5);
         fm.normal_p95_deg = percentile(a.ang, 0.95);
+        fm.geometric_normal_median_deg = percentile(a.geo_ang, 0.5);
         m.pooled.rays += a.rays;
         m.pooled.culled += a.culled;
         m.pooled.culled_true_hits += a.culled_true_hits;
@@ -740,6 +753,7 @@ Metrics evaluate(const format::Runtime& rt, std::span<const Sample> samples, std
     m.pooled.distance_p95_pct = percentile(pooled_dist, 0.95);
     m.pooled.normal_median_deg = percentile(pooled_ang, 0.5);
     m.pooled.normal_p95_deg = percentile(pooled_ang, 0.95);
+    m.pooled.geometric_normal_median_deg = percentile(pooled_geo, 0.5);
     return m;
 }
 

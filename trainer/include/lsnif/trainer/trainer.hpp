@@ -206,6 +206,7 @@ struct FamilyMetrics {
     double distance_p95_pct = 0;
     double normal_median_deg = 0;     // against the shading normal
     double normal_p95_deg = 0;
+    double geometric_normal_median_deg = 0;  // against the faceted normal, when provided
     double culled_fraction = 0;       // culled / (culled + rays)
     std::uint64_t culled_true_hits = 0;  // must be 0: a culled ray that truly hits
 };
@@ -216,7 +217,9 @@ struct Metrics {
 };
 
 // Runs the reader-side forward pass (format::intersect) on `samples` with `threads`
-// threads and compares against their ground truth.
-Metrics evaluate(const format::Runtime& rt, std::span<const Sample> samples, std::uint32_t threads = 0);
+// threads and compares against their ground truth. `geometric_normals` (optional, one per
+// sample) adds the error against the faceted normal, reported beside the shading one.
+Metrics evaluate(const format::Runtime& rt, std::span<const Sample> samples, std::uint32_t threads = 0,
+                 std::span<const std::array<float, 3>> geometric_normals = {});
 
 }  // namespace lsnif::trainer

@@ -1,0 +1,84 @@
+// `lsnif convert`: scene import -> classification -> voxelization -> Embree ground truth ->
+// training -> held-out evaluation and gate -> .lsnif assets + manifest (DESIGN.md §1).
+//
+// Library code: never prints or exits. Progress goes through a callback; problems are
+// collected per input and per mesh; the CLI decides what to print and the exit code.
+#pragma once
+
+#include <lsnif/format/container.hpp>
+#include <lsnif/trainer/trainer.hpp>
+
+#include <nlohmann/json.hpp>
+
+#include <cstdint>
+#include <functional>
+#include <string>
+#include <vector>
+
+namespace lsnif::converter {
+
+// Classification thresholds (documented in README "Classification").
+struct ClassifyRule {
+    std::uint64_t min_triangles = 2000;  // fewer: the BVH is tiny and exact; keep it
+    double min_memory_ratio = 1.0;       // BVH bytes must exceed this x the .lsnif bytes
+};
+
+// Held-out accuracy an asset must reach to ship (DESIGN.md §3 "Accuracy gate").
+struct Gate {
+    double min_visibility = 0.95;          // pooled visibility accuracy
+    double min_family_visibility = 0.90;   // every family
+    double max_distance_median_pct = 2.0;  // pooled, % of the box diagonal
+    double max_normal_median_deg = 30.0;   // pooled, against the shading normal
+};
+
+struct Preset {
+    std::string name;
+    format::ModelDesc model;            // box is filled per mesh
+    trainer::TrainConfig train;         // threads/seed are filled from the options
+    std::uint64_t train_rays = 1u << 20;
+    std::uint64_t eval_rays = 1u << 16;
+    ClassifyRule classify;
+    Gate gate;
+};
+// "default" (v1 model, <= 60 s per object on 2 cores), "fast", "quality".
+bool find_preset(const std::string& name, Preset& out);
+std::vector<std::string> preset_names();
+
+struct ConvertOptions {
+    std::vector<std::string> inputs;
+    std::string outdir;
+    std::uint64_t seed = 1;
+    std::uint32_t threads = 0;  // 0 = hardware threads
+    std::string preset = "default";
+    std::vector<std::string> force_complex;  // mesh names
+    std::vector<std::string> force_simple;
+    std::string command_line;  // recorded in metadata
+};
+
+// Progress events: stage changes and training steps.
+struct ProgressEvent {
+    std::string mesh;
+    std::string stage;  // import, classify, voxelize, sample, train, evaluate, write
+    std::uint32_t step = 0, steps = 0;
+    float loss = 0;
+    double eta_seconds = 0;
+};
+using ConvertProgress = std::function<void(const ProgressEvent&)>;
+
+struct ConvertResult {
+    nlohmann::json manifest;  // what was written to OUTDIR/manifest.json (empty if nothing)
+    nlohmann::json report;    // machine-readable report (--json)
+    std::vector<std::string> errors;    // "FILE: problem", one per failed input
+    std::vector<std::string> warnings;
+    bool ok() const { return errors.empty(); }
+};
+
+ConvertResult convert(const ConvertOptions& options, const ConvertProgress& progress = {});
+
+// Human-readable summary of a report (what `lsnif convert` prints).
+std::string convert_text(const ConvertResult& result);
+
+// Held-out metrics as the metadata schema stores them.
+nlohmann::json metrics_json(const trainer::Metrics& m);
+
+}  // namespace lsnif::converter
