@@ -1,0 +1,626 @@
+// OBJ / PLY / STL import through OpenMesh's format readers, ASCII OFF through our own.
+//
+// OpenMesh's readers talk to a BaseImporter. Its stock ImporterT builds a half-edge mesh
+// and silently drops every face that would make it non-manifold ("complex edge"), which
+// would change the geometry we train on. PolygonSoup below is our own BaseImporter: it
+// records vertices, per-vertex normals and faces exactly as read and builds no
+// connectivity, so nothing is lost; everything is validated afterwards.
+//
+// ASCII OFF has a reader of its own here (read_ascii_off): OpenMesh 9's OFF reader reads
+// the CGAL data set's files (ChineseDragon-10kv.off, armadillo.off) but returns an empty
+// mesh for any OFF file with a '#' comment line, which the format allows and many files
+// (CGAL's own writers included) have; OFF is simple enough that a strict line-based reader
+// with line numbers in its errors is less code than working around that. Binary OFF still
+// goes to OpenMesh. OpenMesh trusts the element counts of OFF and PLY headers and reserves
+// memory for them (a 3.5e9-vertex OFF header makes it allocate tens of GiB), so those
+// headers are checked against the file size first.
+#include "scene_internal.hpp"
+
+#include <OpenMesh/Core/IO/IOManager.hh>
+#include <OpenMesh/Core/IO/MeshIO.hh>
+#include <OpenMesh/Core/IO/importer/BaseImporter.hh>
+#include <OpenMesh/Core/System/omstream.hh>
+
+#include <algorithm>
+#include <charconv>
+#include <cmath>
+#include <exception>
+#include <fstream>
+#include <iostream>
+#include <mutex>
+#include <new>
+#include <sstream>
+#include <string>
+#include <string_view>
+#include <system_error>
+#include <vector>
+
+namespace lsnif::scene {
+namespace {
+
+using OpenMesh::EdgeHandle;
+using OpenMesh::FaceHandle;
+using OpenMesh::HalfedgeHandle;
+using OpenMesh::Vec2f;
+using OpenMesh::Vec3d;
+using OpenMesh::Vec3f;
+using OpenMesh::Vec3uc;
+using OpenMesh::Vec4f;
+using OpenMesh::Vec4uc;
+using OpenMesh::VertexHandle;
+using StatusInfo = OpenMesh::Attributes::StatusInfo;
+
+// Polygons with more corners than this are fan-triangulated (ear clipping is quadratic or
+// worse in the corner count); the importer warns when that happens.
+constexpr std::size_t kMaxEarClipCorners = 256;
+
+// A BaseImporter that keeps exactly what the reader delivers (see the file comment).
+// Only vertices, vertex normals and faces are kept; colours, texture coordinates and
+// status bits are ignored. Handles are not trusted: out-of-range ones are recorded (faces)
+// or ignored (attributes) and reported by the caller.
+class PolygonSoup final : public OpenMesh::IO::BaseImporter {
+public:
+    std::vector<float> points;           // 3 per vertex
+    std::vector<float> normals;          // 3 per vertex
+    std::vector<std::uint8_t> has_normal;  // per vertex
+    std::vector<long long> corners;      // vertex index of every face corner, as read
+    std::vector<std::size_t> face_start = {0};  // face f: corners[face_start[f], face_start[f+1])
+
+    VertexHandle add_vertex(const Vec3f& p) override {
+        points.insert(points.end(), {p[0], p[1], p[2]});
+        normals.insert(normals.end(), {0.0f, 0.0f, 0.0f});
+        has_normal.push_back(0);
+        return VertexHandle(int(has_normal.size() - 1));
+    }
+    VertexHandle add_vertex(const Vec3d& p) override {
+        return add_vertex(Vec3f(float(p[0]), float(p[1]), float(p[2])));
+    }
+    VertexHandle add_vertex() override { return add_vertex(Vec3f(0.0f, 0.0f, 0.0f)); }
+    FaceHandle add_face(const VHandles& vertices) override {
+        for (const VertexHandle& v : vertices) corners.push_back(v.idx());
+        face_start.push_back(corners.size());
+        return FaceHandle(int(face_start.size() - 2));
+    }
+    void set_point(VertexHandle v, const Vec3f& p) override {
+        if (valid(v)) std::copy_n(p.data(), 3, &points[3 * std::size_t(v.idx())]);
+    }
+    void set_normal(VertexHandle v, const Vec3f& n) override {
+        if (!valid(v)) return;
+        std::copy_n(n.data(), 3, &normals[3 * std::size_t(v.idx())]);
+        has_normal[std::size_t(v.idx())] = 1;
+    }
+    void set_normal(VertexHandle v, const Vec3d& n) override {
+        set_normal(v, Vec3f(float(n[0]), float(n[1]), float(n[2])));
+    }
+    std::size_t n_vertices() const override { return has_normal.size(); }
+    std::size_t n_faces() const override { return face_start.size() - 1; }
+    std::size_t n_edges() const override { return 0; }
+
+    // Everything else is ignored.
+    HalfedgeHandle add_edge(VertexHandle, VertexHandle) override { return HalfedgeHandle(); }
+    FaceHandle add_face(HalfedgeHandle) override { return FaceHandle(); }
+    void add_face_texcoords(FaceHandle, VertexHandle, const std::vector<Vec2f>&) override {}
+    void add_face_texcoords(FaceHandle, VertexHandle, const std::vector<Vec3f>&) override {}
+    void set_face_texindex(FaceHandle, int) override {}
+    void set_halfedge(VertexHandle, HalfedgeHandle) override {}
+    void set_color(VertexHandle, const Vec3uc&) override {}
+    void set_color(VertexHandle, const Vec4uc&) override {}
+    void set_color(VertexHandle, const Vec3f&) override {}
+    void set_color(VertexHandle, const Vec4f&) override {}
+    void set_texcoord(VertexHandle, const Vec2f&) override {}
+    void set_status(VertexHandle, const StatusInfo&) override {}
+    void set_next(HalfedgeHandle, HalfedgeHandle) override {}
+    void set_face(HalfedgeHandle, FaceHandle) override {}
+    void request_face_texcoords2D() override {}
+    void set_texcoord(HalfedgeHandle, const Vec2f&) override {}
+    void set_texcoord(VertexHandle, const Vec3f&) override {}
+    void set_texcoord(HalfedgeHandle, const Vec3f&) override {}
+    void set_status(HalfedgeHandle, const StatusInfo&) override {}
+    void set_color(EdgeHandle, const Vec3uc&) override {}
+    void set_color(EdgeHandle, const Vec4uc&) override {}
+    void set_color(EdgeHandle, const Vec3f&) override {}
+    void set_color(EdgeHandle, const Vec4f&) override {}
+    void set_status(EdgeHandle, const StatusInfo&) override {}
+    void set_normal(FaceHandle, const Vec3f&) override {}
+    void set_normal(FaceHandle, const Vec3d&) override {}
+    void set_color(FaceHandle, const Vec3uc&) override {}
+    void set_color(FaceHandle, const Vec4uc&) override {}
+    void set_color(FaceHandle, const Vec3f&) override {}
+    void set_color(FaceHandle, const Vec4f&) override {}
+    void set_status(FaceHandle, const StatusInfo&) override {}
+    void add_texture_information(int, std::string) override {}
+
+private:
+    bool valid(VertexHandle v) const {
+        return v.idx() >= 0 && std::size_t(v.idx()) < has_normal.size();
+    }
+};
+
+// Captures what OpenMesh's readers report while alive. OpenMesh writes its messages to
+// omerr() and omlog(), which forward to std::cerr and std::clog (and some readers write to
+// std::cerr directly), so those two streams are pointed at a string buffer for the
+// duration and restored afterwards; omout() (std::cout) is muted. (Disconnecting the
+// mostreams' targets instead would leak: OpenMesh 9's multiplex_streambuf::disconnect
+// never deletes the target it removes.) Process-wide: callers hold log_mutex(), and output
+// other threads write to std::cerr / std::clog during a read lands in the warnings.
+class LogCapture {
+public:
+    LogCapture()
+        : old_err_(std::cerr.rdbuf(&buffer_)),
+          old_log_(std::clog.rdbuf(&buffer_)),
+          out_enabled_(omout().is_enabled()) {
+        omout().disable();
+    }
+    ~LogCapture() {
+        flush_openmesh();
+        std::cerr.rdbuf(old_err_);
+        std::clog.rdbuf(old_log_);
+        if (out_enabled_) omout().enable();
+    }
+    LogCapture(const LogCapture&) = delete;
+    LogCapture& operator=(const LogCapture&) = delete;
+
+    std::vector<std::string> lines() {
+        flush_openmesh();
+        std::vector<std::string> out;
+        std::istringstream in(buffer_.str());
+        for (std::string line; std::getline(in, line);) {
+            while (!line.empty() && (line.back() == '\r' || line.back() == ' ')) line.pop_back();
+            if (!line.empty()) out.push_back(line);
+        }
+        return out;
+    }
+
+private:
+    static void flush_openmesh() {
+        omerr().flush();
+        omlog().flush();
+        omout().flush();
+    }
+    std::stringbuf buffer_;
+    std::streambuf* old_err_;
+    std::streambuf* old_log_;
+    bool out_enabled_;
+};
+
+std::mutex& log_mutex() {
+    static std::mutex m;
+    return m;
+}
+
+std::string read_head(const std::filesystem::path& path, std::size_t limit) {
+    std::ifstream in(path, std::ios::binary);
+    std::string head(limit, '\0');
+    in.read(head.data(), std::streamsize(limit));
+    head.resize(std::size_t(std::max<std::streamsize>(in.gcount(), 0)));
+    return head;
+}
+
+bool parse_count(const std::string& token, unsigned long long& out) {
+    if (token.empty() || token.size() > 20) return false;
+    unsigned long long v = 0;
+    for (const char c : token) {
+        if (c < '0' || c > '9') return false;
+        const unsigned long long next = v * 10 + unsigned(c - '0');
+        if (next / 10 != v) return false;
+        v = next;
+    }
+    out = v;
+    return true;
+}
+
+// OFF: "[ST][C][N][4][n]OFF [BINARY]", then "nv nf ne" ('#' comments anywhere). Every
+// ASCII vertex takes at least 6 bytes ("0 0 0\n"), every face at least 2. Returns "" or
+// the problem. Headers it does not understand are left to OpenMesh.
+std::string check_off_header(const std::string& head, std::uintmax_t size) {
+    std::vector<std::string> tokens;
+    std::istringstream in(head);
+    for (std::string line; tokens.size() < 4 && std::getline(in, line);) {
+        if (const auto hash = line.find('#'); hash != std::string::npos) line.resize(hash);
+        std::istringstream ls(line);
+        for (std::string t; tokens.size() < 4 && ls >> t;) tokens.push_back(t);
+    }
+    if (tokens.empty()) return {};
+    std::size_t i = 0;
+    const std::string& keyword = tokens[0];
+    if (keyword.size() >= 3 && keyword.compare(keyword.size() - 3, 3, "OFF") == 0) {
+        // nOFF and 4OFF have other layouts, BINARY files other sizes: not checked.
+        if (keyword.find('n') != std::string::npos || keyword.find('4') != std::string::npos) {
+            return {};
+        }
+        ++i;
+        if (i < tokens.size() && tokens[i] == "BINARY") return {};
+    }
+    unsigned long long nv = 0, nf = 0;
+    if (i + 1 >= tokens.size() || !parse_count(tokens[i], nv) || !parse_count(tokens[i + 1], nf)) {
+        return {};
+    }
+    if (nv > size / 6 || nf > size / 2 || nv * 6 + nf * 2 > size + 2) {
+        return "the OFF header declares " + std::to_string(nv) + " vertices and " +
+               std::to_string(nf) + " faces, more than a file of " + std::to_string(size) +
+               " bytes can hold";
+    }
+    return {};
+}
+
+// PLY: every "element NAME COUNT" of the header must fit in the file (at least one byte
+// per element). Returns "" or the problem.
+std::string check_ply_header(const std::string& head, std::uintmax_t size) {
+    std::istringstream in(head);
+    std::string line;
+    if (!std::getline(in, line) || line.rfind("ply", 0) != 0) return {};
+    while (std::getline(in, line)) {
+        std::istringstream ls(line);
+        std::string word, name, count_text;
+        ls >> word;
+        if (word == "end_header") break;
+        if (word != "element") continue;
+        ls >> name >> count_text;
+        unsigned long long count = 0;
+        if (parse_count(count_text, count) && count > size) {
+            return "the PLY header declares " + std::to_string(count) + " '" + name +
+                   "' elements, more than a file of " + std::to_string(size) + " bytes can hold";
+        }
+    }
+    return {};
+}
+
+bool is_space(char c) { return c == ' ' || c == '\t' || c == '\r' || c == '\v' || c == '\f'; }
+
+// Splits `line` at whitespace into `out` (views into line).
+void split(std::string_view line, std::vector<std::string_view>& out) {
+    out.clear();
+    std::size_t i = 0;
+    while (i < line.size()) {
+        while (i < line.size() && is_space(line[i])) ++i;
+        const std::size_t start = i;
+        while (i < line.size() && !is_space(line[i])) ++i;
+        if (i > start) out.push_back(line.substr(start, i - start));
+    }
+}
+
+bool parse_float(std::string_view t, float& out) {
+    if (!t.empty() && t[0] == '+') t.remove_prefix(1);
+    double d = 0.0;  // parsed in double, then rounded once to float
+    const auto [end, ec] = std::from_chars(t.data(), t.data() + t.size(), d);
+    if (ec != std::errc() || end != t.data() + t.size()) return false;
+    out = float(d);
+    return true;
+}
+
+bool parse_int(std::string_view t, long long& out) {
+    if (!t.empty() && t[0] == '+') t.remove_prefix(1);
+    const auto [end, ec] = std::from_chars(t.data(), t.data() + t.size(), out);
+    return ec == std::errc() && end == t.data() + t.size();
+}
+
+// ASCII OFF (Geomview's format, as written by CGAL and most tools):
+//   [ST][C][N]OFF            optional keyword: texture coordinates, colours, normals
+//   nv nf [ne]               may stand on the keyword's line
+//   nv vertex lines          x y z [nx ny nz when N] [colour / texture values: ignored]
+//   nf face lines            k i_1 ... i_k [colour values: ignored]
+// '#' starts a comment to the end of its line; blank lines are skipped; anything after the
+// faces is ignored. Fills `soup` (indices are range-checked by the caller). Returns "" or
+// the problem with its line number; sets `binary` (and reads nothing) for "OFF BINARY".
+std::string read_ascii_off(const std::string& text, PolygonSoup& soup, bool& binary) {
+    binary = false;
+    std::size_t pos = 0, line_no = 0;
+    std::string_view line;
+    std::vector<std::string_view> tok;
+    // Next non-blank line, comment stripped, split into tok; false at the end.
+    auto next = [&]() {
+        while (pos < text.size()) {
+            std::size_t end = text.find('\n', pos);
+            if (end == std::string::npos) end = text.size();
+            line = std::string_view(text).substr(pos, end - pos);
+            pos = end + 1;
+            ++line_no;
+            if (const auto hash = line.find('#'); hash != std::string_view::npos) line = line.substr(0, hash);
+            split(line, tok);
+            if (!tok.empty()) return true;
+        }
+        return false;
+    };
+    auto at = [&line_no](const std::string& what) { return "line " + std::to_string(line_no) + ": " + what; };
+    if (!next()) return "no OFF header";
+    std::size_t first = 0;
+    bool has_normals = false;
+    const std::string_view keyword = tok[0];
+    if (keyword.size() >= 3 && keyword.substr(keyword.size() - 3) == "OFF") {
+        const std::string_view prefix = keyword.substr(0, keyword.size() - 3);
+        if (prefix.find_first_not_of("STCN") != std::string_view::npos) {
+            return at("OFF variant '" + std::string(keyword) + "' is not supported (only 3D [ST][C][N]OFF)");
+        }
+        has_normals = prefix.find('N') != std::string_view::npos;
+        if (tok.size() > 1 && tok[1] == "BINARY") {
+            binary = true;
+            return {};
+        }
+        first = 1;
+        if (tok.size() == 1) {
+            if (!next()) return "no vertex/face counts after the OFF keyword";
+            first = 0;
+        }
+    }
+    long long nv = 0, nf = 0;
+    if (tok.size() < first + 2 || !parse_int(tok[first], nv) || !parse_int(tok[first + 1], nf) || nv < 0 ||
+        nf < 0) {
+        return at("expected the vertex and face counts \"nv nf [ne]\"");
+    }
+    const std::size_t values = has_normals ? 6 : 3;
+    // Every vertex line takes at least 6 bytes: never reserve more than the text can hold.
+    const std::size_t reserve = std::min<std::size_t>(std::size_t(nv), text.size() / 6);
+    soup.points.reserve(3 * reserve);
+    soup.normals.reserve(3 * reserve);
+    soup.has_normal.reserve(reserve);
+    for (long long v = 0; v < nv; ++v) {
+        if (!next()) {
+            return "the file ends after " + std::to_string(v) + " of " + std::to_string(nv) + " vertices";
+        }
+        float x[6] = {};
+        if (tok.size() < values) {
+            return at("vertex " + std::to_string(v) + " has " + std::to_string(tok.size()) + " values, " +
+                      std::to_string(values) + " expected");
+        }
+        for (std::size_t k = 0; k < values; ++k) {
+            if (!parse_float(tok[k], x[k])) {
+                return at("vertex " + std::to_string(v) + ": '" + std::string(tok[k]) + "' is not a number");
+            }
+        }
+        const VertexHandle h = soup.add_vertex(Vec3f(x[0], x[1], x[2]));
+        if (has_normals) soup.set_normal(h, Vec3f(x[3], x[4], x[5]));
+    }
+    OpenMesh::IO::BaseImporter::VHandles face;
+    for (long long f = 0; f < nf; ++f) {
+        if (!next()) return "the file ends after " + std::to_string(f) + " of " + std::to_string(nf) + " faces";
+        long long k = 0;
+        if (!parse_int(tok[0], k) || k < 0 || std::size_t(k) > tok.size() - 1) {
+            return at("face " + std::to_string(f) + ": expected a corner count and that many vertex indices");
+        }
+        face.clear();
+        for (long long c = 1; c <= k; ++c) {
+            long long idx = 0;
+            if (!parse_int(tok[std::size_t(c)], idx)) {
+                return at("face " + std::to_string(f) + ": '" + std::string(tok[std::size_t(c)]) +
+                          "' is not a vertex index");
+            }
+            // Out-of-range values become -1 here and are reported by the caller.
+            face.push_back(VertexHandle(idx >= 0 && idx <= 0x7fffffffLL ? int(idx) : -1));
+        }
+        soup.add_face(face);
+    }
+    return {};
+}
+
+double cross2(const double* o, const double* a, const double* b) {
+    return (a[0] - o[0]) * (b[1] - o[1]) - (a[1] - o[1]) * (b[0] - o[0]);
+}
+
+// Triangulates one polygon (corner vertex indices, n >= 3, all valid) into `out`, keeping
+// its orientation. Ear clipping in the plane of the Newell normal; polygons that are
+// degenerate, self-intersecting (no ear left) or larger than kMaxEarClipCorners fall back
+// to a fan around the first corner. Returns false when the fan fallback was used for a
+// polygon that is not degenerate.
+bool triangulate(const std::vector<float>& pos, const std::uint32_t* poly, std::size_t n,
+                 std::vector<std::uint32_t>& out) {
+    auto fan = [&](const std::vector<std::uint32_t>& ring) {
+        for (std::size_t k = 1; k + 1 < ring.size(); ++k) {
+            out.insert(out.end(), {ring[0], ring[k], ring[k + 1]});
+        }
+    };
+    std::vector<std::uint32_t> ring(poly, poly + n);
+    if (n == 3) {
+        fan(ring);
+        return true;
+    }
+    // Newell normal: sum over edges of (y_i - y_j)(z_i + z_j), ...
+    double normal[3] = {0, 0, 0};
+    for (std::size_t i = 0; i < n; ++i) {
+        const float* a = &pos[3 * std::size_t(poly[i])];
+        const float* b = &pos[3 * std::size_t(poly[(i + 1) % n])];
+        normal[0] += (double(a[1]) - b[1]) * (double(a[2]) + b[2]);
+        normal[1] += (double(a[2]) - b[2]) * (double(a[0]) + b[0]);
+        normal[2] += (double(a[0]) - b[0]) * (double(a[1]) + b[1]);
+    }
+    int axis = 0;
+    for (int a = 1; a < 3; ++a) {
+        if (std::fabs(normal[a]) > std::fabs(normal[axis])) axis = a;
+    }
+    if (!(std::fabs(normal[axis]) > 0.0)) {  // degenerate polygon: any triangulation is
+        fan(ring);                           // equally degenerate
+        return true;
+    }
+    if (n > kMaxEarClipCorners) {
+        fan(ring);
+        return false;
+    }
+    // Project along `axis`, ordering the two kept coordinates so the polygon is
+    // counter-clockwise in 2D.
+    int u = (axis + 1) % 3, v = (axis + 2) % 3;
+    if (normal[axis] < 0) std::swap(u, v);
+    std::vector<double> xy(2 * n);
+    for (std::size_t i = 0; i < n; ++i) {
+        const float* p = &pos[3 * std::size_t(poly[i])];
+        xy[2 * i] = p[u];
+        xy[2 * i + 1] = p[v];
+    }
+    std::vector<std::size_t> left(n);
+    for (std::size_t i = 0; i < n; ++i) left[i] = i;
+    while (left.size() > 3) {
+        const std::size_t m = left.size();
+        bool clipped = false;
+        for (std::size_t k = 0; k < m && !clipped; ++k) {
+            const std::size_t ia = left[(k + m - 1) % m], ib = left[k], ic = left[(k + 1) % m];
+            const double *a = &xy[2 * ia], *b = &xy[2 * ib], *c = &xy[2 * ic];
+            if (!(cross2(a, b, c) > 0.0)) continue;  // reflex or collinear corner: no ear
+            bool empty = true;
+            for (std::size_t j = 0; j < m && empty; ++j) {
+                const std::size_t ip = left[j];
+                if (ip == ia || ip == ib || ip == ic) continue;
+                const double* p = &xy[2 * ip];
+                if (cross2(a, b, p) >= 0.0 && cross2(b, c, p) >= 0.0 && cross2(c, a, p) >= 0.0) {
+                    empty = false;
+                }
+            }
+            if (!empty) continue;
+            out.insert(out.end(), {ring[ia], ring[ib], ring[ic]});
+            left.erase(left.begin() + std::ptrdiff_t(k));
+            clipped = true;
+        }
+        if (!clipped) {  // self-intersecting or numerically degenerate remainder
+            std::vector<std::uint32_t> rest;
+            for (const std::size_t i : left) rest.push_back(ring[i]);
+            fan(rest);
+            return false;
+        }
+    }
+    out.insert(out.end(), {ring[left[0]], ring[left[1]], ring[left[2]]});
+    return true;
+}
+
+ImportResult failure(const std::string& file, const std::string& what) {
+    return {{}, file + ": " + what};
+}
+
+ImportResult failure(const std::string& file, const std::string& what,
+                     detail::WarningSink& warnings) {
+    ImportResult r = failure(file, what);
+    warnings.finish(r.scene.warnings);
+    return r;
+}
+
+ImportResult import_mesh_file_impl(const std::filesystem::path& path, const std::string& name) {
+    const std::string ext = detail::lower_extension(name);
+    if (ext != ".obj" && ext != ".ply" && ext != ".off" && ext != ".stl") {
+        return failure(name, "unsupported mesh format '" + ext + "' (supported: .obj .ply .off .stl)");
+    }
+    std::error_code ec;
+    if (!std::filesystem::is_regular_file(path, ec)) {
+        return failure(name, std::filesystem::exists(path, ec) ? "not a regular file"
+                                                               : "cannot open (no such file)");
+    }
+    const std::uintmax_t size = std::filesystem::file_size(path, ec);
+    if (ec) return failure(name, "cannot read its size: " + ec.message());
+    if (size == 0) return failure(name, "file is empty");
+    {
+        std::ifstream probe(path, std::ios::binary);
+        if (!probe) return failure(name, "cannot open for reading");
+    }
+    if (ext == ".off" || ext == ".ply") {
+        const std::string head = read_head(path, 1 << 16);
+        const std::string problem =
+            ext == ".off" ? check_off_header(head, size) : check_ply_header(head, size);
+        if (!problem.empty()) return failure(name, problem);
+    }
+
+    PolygonSoup soup;
+    detail::WarningSink warnings;
+    bool read_ok = false;
+    bool use_openmesh = true;
+    if (ext == ".off") {
+        std::string text(static_cast<std::size_t>(size), '\0');
+        std::ifstream in(path, std::ios::binary);
+        in.read(text.data(), std::streamsize(text.size()));
+        if (std::size_t(in.gcount()) != text.size()) return failure(name, "read error");
+        bool binary = false;
+        const std::string problem = read_ascii_off(text, soup, binary);
+        if (!problem.empty()) return failure(name, problem);
+        use_openmesh = binary;
+    }
+    if (use_openmesh) {
+        std::lock_guard<std::mutex> lock(log_mutex());
+        LogCapture capture;
+        OpenMesh::IO::Options options = OpenMesh::IO::Options::VertexNormal;
+        read_ok = OpenMesh::IO::IOManager().read(name, soup, options);
+        std::vector<std::string> log = capture.lines();
+        if (!read_ok) {
+            std::string why;
+            for (std::size_t i = 0; i < log.size() && i < 3; ++i) why += (i ? "; " : "") + log[i];
+            return failure(name, "OpenMesh could not read it as " + ext.substr(1) +
+                                     (why.empty() ? std::string() : " (" + why + ")"));
+        }
+        for (std::string& line : log) warnings.add("OpenMesh: " + line);
+    }
+
+    const std::size_t nv = soup.n_vertices();
+    if (nv == 0) return failure(name, "the file has no vertices", warnings);
+    if (nv > 0xffffffffull) return failure(name, "more than 2^32 - 1 vertices", warnings);
+    for (std::size_t v = 0; v < nv; ++v) {
+        const float* p = &soup.points[3 * v];
+        if (!std::isfinite(p[0]) || !std::isfinite(p[1]) || !std::isfinite(p[2])) {
+            return failure(name, "vertex " + std::to_string(v) + " is (" + std::to_string(p[0]) +
+                                     ", " + std::to_string(p[1]) + ", " + std::to_string(p[2]) +
+                                     "), not finite", warnings);
+        }
+    }
+
+    Mesh mesh;
+    mesh.name = path.stem().string();
+    const std::size_t nf = soup.n_faces();
+    std::size_t short_faces = 0, fanned = 0;
+    std::vector<std::uint32_t> poly;
+    for (std::size_t f = 0; f < nf; ++f) {
+        const std::size_t begin = soup.face_start[f], end = soup.face_start[f + 1];
+        poly.clear();
+        for (std::size_t c = begin; c < end; ++c) {
+            const long long idx = soup.corners[c];
+            if (idx < 0 || std::size_t(idx) >= nv) {
+                return failure(name, "face " + std::to_string(f) + " refers to vertex " +
+                                         std::to_string(idx) + ", but the file has " +
+                                         std::to_string(nv) + " vertices", warnings);
+            }
+            poly.push_back(std::uint32_t(idx));
+        }
+        if (poly.size() < 3) {
+            ++short_faces;
+            continue;
+        }
+        if (!triangulate(soup.points, poly.data(), poly.size(), mesh.indices)) ++fanned;
+    }
+    if (short_faces != 0) {
+        warnings.add(std::to_string(short_faces) + " faces with fewer than 3 corners skipped");
+    }
+    if (fanned != 0) {
+        warnings.add(std::to_string(fanned) +
+                     " polygons could not be ear-clipped (self-intersecting or more than " +
+                     std::to_string(kMaxEarClipCorners) + " corners); fan-triangulated");
+    }
+    if (mesh.indices.empty()) {
+        return failure(name,
+                       "no triangles (" + std::to_string(nf) + " faces, " +
+                           std::to_string(short_faces) + " of them with fewer than 3 corners)",
+                       warnings);
+    }
+    mesh.positions = std::move(soup.points);
+    mesh.normals = std::move(soup.normals);
+    mesh.triangle_materials.assign(mesh.triangle_count(), 0);
+    detail::finalize_normals(mesh, soup.has_normal, "mesh" + detail::quote_name(mesh.name), warnings);
+
+    ImportResult result;
+    result.scene.materials = {"default"};
+    Instance instance;
+    instance.mesh = 0;
+    instance.node_name = mesh.name;
+    result.scene.meshes.push_back(std::move(mesh));
+    result.scene.instances.push_back(std::move(instance));
+    warnings.finish(result.scene.warnings);
+    return result;
+}
+
+}  // namespace
+
+ImportResult import_mesh_file(const std::filesystem::path& path) {
+    std::string name;
+    try {
+        name = path.string();
+        return import_mesh_file_impl(path, name);
+    } catch (const std::bad_alloc&) {
+        return failure(name, "out of memory while importing");
+    } catch (const std::exception& e) {
+        return failure(name, std::string("import failed: ") + e.what());
+    } catch (...) {
+        return failure(name, "import failed (unknown exception)");
+    }
+}
+
+}  // namespace lsnif::scene
