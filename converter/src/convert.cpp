@@ -153,7 +153,7 @@ json metrics_json(const trainer::Metrics& m) {
             {"pooled", family_json(m.pooled)}};
 }
 
-std::vector<std::string> preset_names() { return {"default", "fast", "quality"}; }
+std::vector<std::string> preset_names() { return {"default", "fast", "quality", "smoke"}; }
 
 bool find_preset(const std::string& name, Preset& p) {
     p = Preset{};
@@ -169,6 +169,21 @@ bool find_preset(const std::string& name, Preset& p) {
     } else if (name == "quality") {
         p.train.steps = 4000;
         p.train_rays = 1u << 22;
+    } else if (name == "smoke") {
+        // Pipeline check in seconds (tests, CI): a small model and a lenient gate that only
+        // rejects an untrained network. Not for shipping assets.
+        p.model.grid_resolution = 16;
+        p.model.max_points = 8;
+        p.model.level_resolution = {32, 64};
+        p.model.features_per_level = 2;
+        p.model.log2_table_size = 12;
+        p.model.hidden_width = {32, 32};
+        p.train.batch_size = 2048;
+        p.train.steps = 400;
+        p.train_rays = 1u << 15;
+        p.eval_rays = 1u << 13;
+        p.classify.min_triangles = 100;
+        p.gate = {0.75, 0.6, 25.0, 90.0};
     } else {
         return false;
     }
@@ -184,6 +199,7 @@ ConvertResult convert(const ConvertOptions& opt, const ConvertProgress& progress
         res.errors.push_back("unknown preset '" + opt.preset + "' (known: " + names + ")");
         return res;
     }
+    if (opt.gate_min_visibility >= 0) preset.gate.min_visibility = opt.gate_min_visibility;
     const std::uint32_t threads = opt.threads ? opt.threads : std::max(1u, std::thread::hardware_concurrency());
     auto report = [&](const ProgressEvent& e) {
         if (progress) progress(e);

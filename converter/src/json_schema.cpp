@@ -217,4 +217,9 @@ const JsonSchema& metadata_schema() {
     return schema;
 }
 
+const JsonSchema& manifest_schema() {
+    static const JsonSchema schema(manifest_schema_text());
+    return schema;
+}
+
 }  // namespace lsnif::converter

@@ -121,9 +121,12 @@ int main(int argc, char** argv) {
     convert->add_flag("--json", convert_json, "Print a machine-readable report");
     convert->add_option("--seed", convert_opts.seed, "Random seed (sampling and training)");
     convert->add_option("--threads", convert_opts.threads, "Worker threads (0 = all cores)");
-    convert->add_option("--preset", convert_opts.preset, "default, fast or quality");
+    convert->add_option("--preset", convert_opts.preset, "default, fast, quality or smoke (pipeline check)");
     convert->add_option("--complex", convert_opts.force_complex, "Force a mesh (by name) to become an LSNIF");
     convert->add_option("--simple", convert_opts.force_simple, "Force a mesh (by name) to stay BVH");
+    convert->add_option("--gate-visibility", convert_opts.gate_min_visibility,
+                        "Override the pooled held-out visibility accuracy an asset needs (0..1)")
+        ->check(CLI::Range(0.0, 1.0));
 
     lsnif::converter::BenchOptions bench_opts;
     bool bench_json = false;

@@ -68,6 +68,7 @@ namespace {
 constexpr double kTinyAxis = 0x1p-900;        // |a|_1 below this: the axis is skipped
 constexpr double kHintWiden = 0x1p-30;        // row-interval hint widening, relative to S
 constexpr std::size_t kChunk = 8192;          // triangles per scheduling unit
+constexpr std::size_t kFloatChunk = 1 << 16;  // positions per validation unit
 constexpr unsigned kMaxThreads = 256;
 constexpr std::size_t kPrefetch = 16;         // triangles ahead whose vertices are prefetched
 
@@ -96,8 +97,14 @@ struct Axis {
 // General path: the triangle spans several voxels along at least two axes. Visits the voxels
 // of [f, l] (inclusive, clamped to the grid) and applies the normal and edge axes.
 // `tau` and `s` as in the file comment.
+//
+// flat_axis = c >= 0 means the (grown) triangle lies within one voxel slab along axis c.
+// Then it meets a cell of that slab iff its projection along c meets the cell's square, a
+// 2D triangle-square problem whose separating axes are the square's (the voxel range) and
+// the three edge normals, i.e. e_j × unit_c: those three axes suffice (fewer axes can only
+// reject less, so the no-miss guarantee is untouched, and the 2D test is exact).
 [[gnu::noinline]] void mark_by_sat(const double (&g)[3][3], double tau, double s, const int (&f)[3],
-                                   const int (&l)[3], std::uint32_t v, std::uint64_t* words) {
+                                   const int (&l)[3], int flat_axis, std::uint32_t v, std::uint64_t* words) {
     const double h = 0.5 + tau;
     double e[3][3];
     for (int j = 0; j < 3; ++j)
@@ -119,11 +126,11 @@ struct Axis {
     const double nx = e[0][1] * e[1][2] - e[0][2] * e[1][1];
     const double ny = e[0][2] * e[1][0] - e[0][0] * e[1][2];
     const double nz = e[0][0] * e[1][1] - e[0][1] * e[1][0];
-    const bool have_normal = add(nx, ny, nz);
+    const bool have_normal = flat_axis < 0 && add(nx, ny, nz);
     for (int j = 0; j < 3; ++j) {
-        add(0.0, e[j][2], -e[j][1]);  // e_j × (1,0,0)
-        add(-e[j][2], 0.0, e[j][0]);  // e_j × (0,1,0)
-        add(e[j][1], -e[j][0], 0.0);  // e_j × (0,0,1)
+        if (flat_axis < 0 || flat_axis == 0) add(0.0, e[j][2], -e[j][1]);  // e_j × (1,0,0)
+        if (flat_axis < 0 || flat_axis == 1) add(-e[j][2], 0.0, e[j][0]);  // e_j × (0,1,0)
+        if (flat_axis < 0 || flat_axis == 2) add(e[j][1], -e[j][0], 0.0);  // e_j × (0,0,1)
     }
 
     // Inner loop along the normal's dominant axis w, so that the normal test can bound the
@@ -172,15 +179,21 @@ struct Axis {
 // coordinates), S and tau (file comment).
 [[gnu::noinline]] void mark_general(const double (&g)[3][3], const double (&lo)[3], const double (&hi)[3],
                                     double s, double tau, const GridMap& map, std::uint64_t* words) {
+    // Non-finite coordinates only reach here from a mesh that voxelize() will reject; drop
+    // the triangle before any float-to-int conversion could see them.
+    double sum = 0.0;
+    for (const auto& p : g) sum += p[0] + p[1] + p[2];  // |g| < 2^287: no overflow
+    if (!std::isfinite(sum)) return;
     const double vd = map.vd;
     // Voxel x touches [lo - tau, hi + tau] iff ceil(lo - tau) - 1 <= x <= floor(hi + tau).
     double first[3], last[3];
-    int multi = 0;
+    int multi = 0, flat_axis = -1;
     for (int a = 0; a < 3; ++a) {
         first[a] = std::ceil(lo[a] - tau) - 1.0;
         last[a] = std::floor(hi[a] + tau);
         if (last[a] < 0.0 || first[a] > vd - 1.0) return;  // wholly outside the grid
-        multi += first[a] != last[a];
+        if (first[a] != last[a]) ++multi;
+        else flat_axis = a;  // one voxel slab along a (unclamped, so the whole triangle)
     }
     int f[3], l[3];
     for (int a = 0; a < 3; ++a) {
@@ -196,7 +209,7 @@ struct Axis {
                 for (int x = f[0]; x <= l[0]; ++x) set_bit(words, voxel_index(map.v, x, y, z));
         return;
     }
-    mark_by_sat(g, tau, s, f, l, map.v, words);
+    mark_by_sat(g, tau, s, f, l, multi == 2 ? flat_axis : -1, map.v, words);
 }
 
 // Marks every voxel triangle g (grid coordinates) may overlap; see the file comment.
@@ -219,9 +232,10 @@ inline void mark_triangle(const double (&g)[3][3], const GridMap& map, std::uint
     int spans = 0;
     for (int a = 0; a < 3; ++a) {
         const double a0 = lo[a] - tau, a1 = hi[a] + tau;
-        // Clamped first, so that the conversions below are always defined.
-        k0[a] = int(std::min(std::max(a0, 0.0), vd));
-        k1[a] = int(std::min(std::max(a1, 0.0), vd));
+        // Clamped first (NaN -> 0: std::max returns its first argument when unordered), so
+        // that the conversions are always defined.
+        k0[a] = int(std::min(vd, std::max(0.0, a0)));
+        k1[a] = int(std::min(vd, std::max(0.0, a1)));
         simple &= (double(k0[a]) < a0) & (a1 < vd);  // 0 < a0 (not an integer), a1 < V
         spans += k1[a] - k0[a];
     }
@@ -236,37 +250,54 @@ inline void mark_triangle(const double (&g)[3][3], const GridMap& map, std::uint
     mark_general(g, lo, hi, s, kSlackFactor * s, map, words);
 }
 
-void mark_range(const MeshView& mesh, const GridMap& map, std::size_t begin, std::size_t end,
+// Marks the triangles [begin, end). Triangles with an index out of range are skipped and
+// reported through the return value (false); the caller then discards the grid.
+bool mark_range(const MeshView& mesh, const GridMap& map, std::size_t begin, std::size_t end,
                 std::uint64_t* words) {
     const float* pos = mesh.positions.data();
     const std::uint32_t* idx = mesh.indices.data();
+    const std::size_t nv = mesh.vertex_count();
+    bool ok = true;
     for (std::size_t t = begin; t < end; ++t) {
         // The vertex fetches are the main memory cost on large meshes: request those of a
         // triangle kPrefetch ahead (indices are read sequentially and need no help).
-        if (t + kPrefetch < end) {
-            for (int i = 0; i < 3; ++i) __builtin_prefetch(pos + 3 * std::size_t(idx[3 * (t + kPrefetch) + i]));
+        if (t + kPrefetch < end && nv != 0) {
+            for (int i = 0; i < 3; ++i)
+                __builtin_prefetch(pos + 3 * std::min<std::size_t>(idx[3 * (t + kPrefetch) + i], nv - 1));
         }
+        const std::size_t i0 = idx[3 * t], i1 = idx[3 * t + 1], i2 = idx[3 * t + 2];
+        if ((i0 >= nv) | (i1 >= nv) | (i2 >= nv)) {
+            ok = false;
+            continue;
+        }
+        const float* p[3] = {pos + 3 * i0, pos + 3 * i1, pos + 3 * i2};
         double g[3][3];
-        for (int i = 0; i < 3; ++i) {
-            const float* p = pos + 3 * std::size_t(idx[3 * t + i]);
-            for (int a = 0; a < 3; ++a) g[i][a] = (double(p[a]) - map.origin[a]) * map.scale[a];
-        }
+        for (int i = 0; i < 3; ++i)
+            for (int a = 0; a < 3; ++a) g[i][a] = (double(p[i][a]) - map.origin[a]) * map.scale[a];
         mark_triangle(g, map, words);
     }
+    return ok;
+}
+
+// True iff every float of [begin, end) is finite (branch-free, vectorizes).
+bool all_finite(const float* begin, const float* end) {
+    std::uint32_t nonfinite = 0;
+    for (const float* f = begin; f != end; ++f)
+        nonfinite |= (std::bit_cast<std::uint32_t>(*f) & 0x7F800000u) == 0x7F800000u;
+    return nonfinite == 0;
 }
 
 std::string vertex_name(std::size_t i) { return "vertex " + std::to_string(i); }
 
-// Sizes, finiteness of every position, index range. Branch-free scans first (they
-// vectorize); the slow search for the first offender runs only on failure.
+// Sizes, finiteness of every position, index range; the first problem, as an Error.
+// Branch-free scans first (they vectorize); the search for the first offender runs only
+// on failure.
 std::optional<Error> check_mesh(const MeshView& mesh) {
     if (mesh.positions.size() % 3 != 0)
         return Error{"positions: " + std::to_string(mesh.positions.size()) + " floats is not a multiple of 3"};
     if (mesh.indices.size() % 3 != 0)
         return Error{"indices: " + std::to_string(mesh.indices.size()) + " indices is not a multiple of 3"};
-    std::uint32_t nonfinite = 0;
-    for (float f : mesh.positions) nonfinite |= (std::bit_cast<std::uint32_t>(f) & 0x7F800000u) == 0x7F800000u;
-    if (nonfinite) {
+    if (!all_finite(mesh.positions.data(), mesh.positions.data() + mesh.positions.size())) {
         for (std::size_t i = 0; i < mesh.positions.size(); ++i) {
             if (!std::isfinite(mesh.positions[i]))
                 return Error{vertex_name(i / 3) + ": coordinate " + "xyz"[i % 3] + " is " +
@@ -310,7 +341,7 @@ Result<Occupancy> voxelize_impl(const MeshView& mesh, const Box& box, std::uint3
             return Error{"box: empty on axis " + axis + " (min " + std::to_string(box.min[a]) + " >= max " +
                          std::to_string(box.max[a]) + ")"};
     }
-    if (auto err = check_mesh(mesh)) return *err;
+    if (mesh.positions.size() % 3 != 0 || mesh.indices.size() % 3 != 0) return *check_mesh(mesh);
 
     GridMap map{};
     map.v = v;
@@ -331,14 +362,29 @@ Result<Occupancy> voxelize_impl(const MeshView& mesh, const Box& box, std::uint3
     // One private grid per thread, OR-ed at the end: no shared writes, and the result is
     // independent of scheduling.
     std::vector<std::vector<std::uint64_t>> grids(threads, std::vector<std::uint64_t>(words, 0));
-    std::atomic<std::size_t> next{0};
+    // Validation is fused into the parallel passes (one read of the data, not two): the
+    // workers scan every position for non-finite values, then mark the triangles, skipping
+    // any with an index out of range. Marking tolerates non-finite coordinates (no
+    // undefined behaviour; mark_general drops such triangles), and on any problem the grid
+    // is discarded and check_mesh names the first offender, deterministically.
+    std::atomic<std::size_t> next_float{0}, next_triangle{0};
+    std::atomic<bool> invalid{false};
+    const std::size_t floats = mesh.positions.size();
     auto work = [&](unsigned id) {
         std::uint64_t* out = grids[id].data();
+        bool ok = true;
         for (;;) {
-            const std::size_t begin = next.fetch_add(kChunk, std::memory_order_relaxed);
-            if (begin >= triangles) break;
-            mark_range(mesh, map, begin, std::min(begin + kChunk, triangles), out);
+            const std::size_t begin = next_float.fetch_add(kFloatChunk, std::memory_order_relaxed);
+            if (begin >= floats) break;
+            const float* p = mesh.positions.data();
+            ok &= all_finite(p + begin, p + std::min(begin + kFloatChunk, floats));
         }
+        for (;;) {
+            const std::size_t begin = next_triangle.fetch_add(kChunk, std::memory_order_relaxed);
+            if (begin >= triangles) break;
+            ok &= mark_range(mesh, map, begin, std::min(begin + kChunk, triangles), out);
+        }
+        if (!ok) invalid.store(true, std::memory_order_relaxed);
     };
     std::vector<std::thread> pool;
     pool.reserve(threads);
@@ -351,6 +397,10 @@ Result<Occupancy> voxelize_impl(const MeshView& mesh, const Box& box, std::uint3
     }
     work(0);
     for (auto& th : pool) th.join();
+    if (invalid.load()) {
+        if (auto err = check_mesh(mesh)) return *err;
+        return Error{"invalid mesh"};  // unreachable: the workers check a subset of check_mesh
+    }
     for (unsigned id = 1; id < threads; ++id)
         for (std::size_t i = 0; i < words; ++i) grids[0][i] |= grids[id][i];
 

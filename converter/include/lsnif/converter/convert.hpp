@@ -40,7 +40,8 @@ struct Preset {
     ClassifyRule classify;
     Gate gate;
 };
-// "default" (v1 model, <= 60 s per object on 2 cores), "fast", "quality".
+// "default" (v1 model), "fast", "quality" (same model, more or fewer training steps) and
+// "smoke" (a tiny model for pipeline checks).
 bool find_preset(const std::string& name, Preset& out);
 std::vector<std::string> preset_names();
 
@@ -53,6 +54,7 @@ struct ConvertOptions {
     std::vector<std::string> force_complex;  // mesh names
     std::vector<std::string> force_simple;
     std::string command_line;  // recorded in metadata
+    double gate_min_visibility = -1;  // >= 0 overrides the preset's pooled visibility gate
 };
 
 // Progress events: stage changes and training steps.

@@ -39,5 +39,8 @@ private:
 // The metadata schema of schema/lsnif-metadata.schema.json, embedded at build time.
 const std::string& metadata_schema_text();
 const JsonSchema& metadata_schema();
+// schema/manifest.schema.json, embedded at build time.
+const std::string& manifest_schema_text();
+const JsonSchema& manifest_schema();
 
 }  // namespace lsnif::converter

@@ -1,0 +1,205 @@
+// Ground-truth training rays for `lsnif convert` (DESIGN.md §3, "Training"): the three
+// ray families, traced with Embree 3 against the original triangle mesh.
+//
+//   (a) outside   origin on a sphere of radius 0.75 x box diagonal around the box centre,
+//                 aimed at a uniform point in the box;
+//   (b) surface   leaving the mesh's own surface: a triangle picked with probability
+//                 proportional to its area (alias table, Walker 1977 / Vose 1991), a
+//                 uniform point on it (the square-root warp, Shirley 1990 / Pharr, Jakob,
+//                 Humphreys, PBRT 3rd ed. §13.6.5), a side (front/back of the geometric
+//                 normal, 50/50), the origin offset along that side's normal, and a
+//                 direction cosine-weighted (half the rays) or uniform (the other half)
+//                 over that side's hemisphere;
+//   (c) interior  origin uniform in the box but outside the solid, direction uniform on
+//                 the sphere. Candidates inside the solid are rejected when the mesh is
+//                 closed (or closed after capping small holes): a classification grid
+//                 settles most candidates, ray votes the rest (see InsideTest). Open
+//                 meshes have no inside and reject nothing.
+//
+// Sample i belongs to family i % 3, so the families have equal shares. A configurable
+// share of the rays (default 25 %) is shadow-like: tmax uniform in (0, box diagonal);
+// the rest have tmax = +inf. tmin is always 0 and directions are unit length, so t is a
+// distance in mesh units.
+//
+// Memory: besides Embree's scene, 136 bytes per triangle (two cache-line records and an
+// alias entry) and a 2-bit classification grid (64 KiB at the default resolution).
+//
+// Determinism: every ray draws its random numbers from its own stream derived from
+// (seed, index) (splitmix64, Steele et al. 2014), and the scene is immutable after
+// construction, so generate() returns bit-identical samples for a seed whatever the
+// thread count.
+//
+// Errors: this library never throws on bad input and never exits. create() returns null
+// and an error message for invalid meshes; Embree device errors are captured through
+// rtcSetDeviceErrorFunction into last_error().
+#pragma once
+
+#include <lsnif/trainer/trainer.hpp>
+
+#include <array>
+#include <cstddef>
+#include <cstdint>
+#include <memory>
+#include <span>
+#include <string>
+#include <vector>
+
+namespace lsnif::sampling {
+
+inline constexpr std::uint32_t kNoPrimitive = 0xFFFFFFFFu;
+
+// A triangle mesh as plain arrays (not copied beyond what Embree and the samplers need;
+// the spans only have to live during create()).
+struct MeshView {
+    std::span<const float> positions;        // xyz per vertex (mesh units), all finite
+    std::span<const std::uint32_t> indices;  // 3 per triangle, each < vertex count
+    // xyz per vertex, unit shading normals (renormalized after interpolation). Empty:
+    // computed as area-weighted averages of the adjacent faces' geometric normals.
+    std::span<const float> normals;
+    std::span<const std::uint32_t> materials;  // one per triangle; empty: every triangle 0
+};
+
+// The model box (DESIGN.md §3: the mesh AABB, padded). Every vertex must lie inside it.
+struct Box {
+    std::array<float, 3> min{}, max{};
+};
+
+struct SamplingConfig {
+    std::uint32_t threads = 0;      // worker threads for generate(); 0 = hardware threads
+    float shadow_fraction = 0.25f;  // share of rays with finite tmax, in [0, 1]
+    // Surface-leaving origin offset along the side's geometric normal:
+    //   offset = offset_diagonal x box diagonal + offset_relative x max_i |p_i|
+    // The first term clears Embree's intersection error near the mesh's own scale, the
+    // second one the float rounding of p itself when the mesh sits far from the origin
+    // (one float ulp is 1.2e-7 x |p|).
+    float offset_diagonal = 1e-4f;
+    float offset_relative = 1e-5f;
+    // Resolution of the inside/outside classification grid that settles most family (c)
+    // candidates without a ray (cells crossed by no triangle are wholly inside or
+    // outside). 0 disables the grid (every candidate origin is voted on by rays).
+    std::uint32_t classify_resolution = 64;
+    // Family (c) rejection sampling gives up after this many candidates and puts the
+    // origin on the nearest box face instead (outside the solid, counted in counters()).
+    std::uint32_t max_interior_attempts = 1000;
+    // A mesh that is not closed but whose holes are small (every boundary loop's bounding
+    // box diagonal <= max_hole_size x box diagonal) is closed for the inside test only:
+    // each loop gets a triangle fan, stored as a second Embree geometry that ground-truth
+    // rays never see (ray mask). Real scans and CAD exports often miss a few triangles;
+    // without this their family (c) would start rays inside the solid. 0 disables it
+    // (only meshes closed as given are rejection sampled).
+    float max_hole_size = 0.05f;
+};
+
+// How family (c) decides that an origin is inside the solid (after the classification
+// grid): not at all (open mesh), by the facing of the first hit (closed and consistently
+// oriented, caps included: one closest-hit query per vote; a vote clear of edges and
+// grazing angles decides alone), or by the parity of all crossings along the ray (closed
+// but not consistently oriented: one all-hits traversal per vote). Votes that are not
+// clear-cut are settled by the majority of three random directions.
+enum class InsideTest : std::uint8_t { none, first_hit_facing, parity };
+
+// Per-sample data the trainer's Sample has no field for (parallel to the samples).
+struct SampleExtras {
+    std::array<float, 3> geometric_normal{};  // unit normal of the hit triangle, right-hand
+                                              // rule on (v0, v1, v2); zero when no hit
+    std::uint32_t primitive = kNoPrimitive;   // hit triangle, kNoPrimitive when no hit
+    std::uint32_t source_primitive = kNoPrimitive;  // family (b): triangle left; else none
+    std::int8_t side = 0;  // family (b): +1 front (along the geometric normal), -1 back
+};
+
+// The extras' geometric normals as the parallel array trainer::evaluate() takes.
+std::vector<std::array<float, 3>> geometric_normals(std::span<const SampleExtras> extras);
+
+// Counters of the last generate() call.
+struct GenerateCounters {
+    std::uint64_t interior_candidates = 0;    // family (c) origins drawn (accepted + rejected)
+    std::uint64_t parity_queries = 0;         // inside-test rays traced (votes)
+    std::uint64_t interior_fallbacks = 0;     // origins put on the box after max attempts
+};
+
+// Throughput of ground-truth generation against plain Embree tracing of the same rays.
+struct GenerationStats {
+    std::uint64_t rays = 0;
+    std::uint32_t threads = 0;
+    double seconds = 0;          // best of the repeats: generate() for `rays` rays
+    double rays_per_second = 0;  // rays / seconds
+    // The same rays (taken from generate()'s output) traced by a plain parallel
+    // rtcIntersect1 loop with the same thread count and work split; best of the repeats.
+    double plain_seconds = 0;
+    double plain_rtcintersect_rays_per_second = 0;
+    double ratio = 0;  // rays_per_second / plain_rtcintersect_rays_per_second (1 = free)
+    // The same comparison in process CPU time (all threads), best of the repeats: less
+    // sensitive than wall time to other processes competing for the cores.
+    double cpu_seconds = 0, plain_cpu_seconds = 0;
+    double cpu_ratio = 0;  // plain_cpu_seconds / cpu_seconds
+};
+
+class EmbreeSource final : public trainer::SampleSource {
+public:
+    // Validates the mesh (non-empty, finite, indices in range, inside the box, positive
+    // total area), builds the Embree scene once (RTC_BUILD_QUALITY_HIGH,
+    // RTC_SCENE_FLAG_ROBUST, plus RTC_SCENE_FLAG_CONTEXT_FILTER_FUNCTION if parity votes
+    // are needed)
+    // and the samplers. Returns null and sets `error` on failure.
+    static std::unique_ptr<EmbreeSource> create(const MeshView& mesh, const Box& box, const SamplingConfig& cfg,
+                                                std::string& error);
+    ~EmbreeSource() override;
+    EmbreeSource(const EmbreeSource&) = delete;
+    EmbreeSource& operator=(const EmbreeSource&) = delete;
+
+    // trainer::SampleSource: `count` samples of the three families (out is resized),
+    // using threads() threads. Not to be called concurrently on one object (it records
+    // counters()); trace() and inside_solid() may run concurrently with anything.
+    void generate(std::uint64_t seed, std::size_t count, std::vector<trainer::Sample>& out) override;
+    // Same samples, plus the per-sample extras (resized to count) when `extras` != null.
+    void generate(std::uint64_t seed, std::size_t count, std::vector<trainer::Sample>& out,
+                  std::vector<SampleExtras>* extras);
+
+    // Ground truth for caller-made rays (e.g. held-out evaluation rays): fills t, normal,
+    // material and hit of every sample from its ray; family is left alone. Thread-safe.
+    void trace(std::span<trainer::Sample> samples, std::span<SampleExtras> extras = {}) const;
+
+    // The family (c) inside test (classification grid, then votes as inside_test() says;
+    // hole caps included); meaningful only when rejects_interior(). Thread-safe.
+    bool inside_solid(const std::array<float, 3>& p, std::uint64_t seed = 0) const;
+
+    // Every undirected edge shared by exactly two triangles (positions welded by exact
+    // value, degenerate triangles ignored).
+    bool is_closed() const;
+    // Family (c) origins are rejection-sampled against the solid: the mesh is closed, or
+    // every edge is used an even number of times, or its small holes were capped.
+    bool rejects_interior() const;
+    std::size_t cap_triangle_count() const;  // triangles of the hole caps (0 if none)
+    InsideTest inside_test() const;
+    // Net bytes Embree allocated while committing the scene (BVH nodes and leaf
+    // triangles; the few hole-cap triangles included), from the device memory monitor
+    // (rtcSetDeviceMemoryMonitorFunction). Embree 3 has no public node count.
+    std::size_t bvh_bytes() const;
+    // All bytes the device holds for this scene (BVH plus Embree's copies of the vertex
+    // and index buffers).
+    std::size_t device_bytes() const;
+    std::size_t triangle_count() const;
+    float diagonal() const;
+    // Worker threads for generate()/trace()/measure_throughput() (0 = hardware threads).
+    // Not thread-safe against concurrent generate()/trace().
+    void set_threads(std::uint32_t threads);
+    std::uint32_t threads() const;
+    const GenerateCounters& counters() const;  // of the last generate() call
+    // Embree errors captured since creation ("" when none). Thread-safe.
+    std::string last_error() const;
+
+    struct Impl;
+
+private:
+    explicit EmbreeSource(std::unique_ptr<Impl> impl);
+    std::unique_ptr<Impl> impl_;
+    friend GenerationStats measure_throughput(EmbreeSource&, std::uint64_t, std::size_t, std::uint32_t);
+};
+
+// Times generate(seed, count) against a plain parallel rtcIntersect1 loop over the same
+// rays, both with src.threads() threads and the same dynamic 1024-ray chunks; `repeats`
+// alternating runs, best time of each. Overwrites src.counters().
+GenerationStats measure_throughput(EmbreeSource& src, std::uint64_t seed, std::size_t count,
+                                   std::uint32_t repeats = 3);
+
+}  // namespace lsnif::sampling

@@ -1,0 +1,141 @@
+// `lsnif convert` end to end on real data: CGAL's dragon and assimp's 2CylinderEngine.
+// Uses the "smoke" preset (small model, seconds of training) to exercise every stage; the
+// accuracy of the default preset is measured by scripts and recorded in BENCHMARKS.md.
+#include <doctest/doctest.h>
+
+#include <lsnif/converter/convert.hpp>
+#include <lsnif/converter/file_tools.hpp>
+#include <lsnif/converter/json_schema.hpp>
+
+#include <filesystem>
+#include <fstream>
+
+using namespace lsnif::converter;
+using nlohmann::json;
+namespace fs = std::filesystem;
+
+namespace {
+
+const std::string kDragon = std::string(LSNIF_TEST_MESH_DIR) + "/ChineseDragon-10kv.off";
+const std::string kEngine = "/usr/share/assimp/models/glTF2/2CylinderEngine-glTF-Binary/2CylinderEngine.glb";
+
+fs::path fresh_dir(const std::string& name) {
+    const fs::path p = fs::path(LSNIF_TEST_WORK_DIR) / name;
+    fs::remove_all(p);
+    return p;
+}
+
+ConvertOptions smoke(const std::vector<std::string>& inputs, const fs::path& out) {
+    ConvertOptions o;
+    o.inputs = inputs;
+    o.outdir = out.string();
+    o.preset = "smoke";
+    o.threads = 2;
+    o.seed = 7;
+    return o;
+}
+
+std::string violations(const JsonSchema& schema, const json& doc) {
+    std::string s;
+    for (const auto& v : schema.validate(doc)) s += v.pointer + " " + v.message + "\n";
+    return s;
+}
+
+}  // namespace
+
+TEST_CASE("convert a real mesh: asset, metadata, manifest, reuse") {
+    REQUIRE(manifest_schema().valid());
+    const fs::path out = fresh_dir("dragon");
+    const ConvertResult r = convert(smoke({kDragon}, out));
+    REQUIRE_MESSAGE(r.ok(), (r.errors.empty() ? "" : r.errors[0]));
+    REQUIRE(fs::exists(out / "manifest.json"));
+    std::ifstream mf(out / "manifest.json");
+    const json manifest = json::parse(mf);
+    CHECK_MESSAGE(violations(manifest_schema(), manifest).empty(), violations(manifest_schema(), manifest));
+    REQUIRE(manifest["meshes"].size() == 1);
+    const json& m = manifest["meshes"][0];
+    CHECK(m["triangles"] == 19994);
+    REQUIRE(m["class"] == "complex");
+    CHECK(m["stats"]["bvh_bytes"].get<std::uint64_t>() > 0);
+    CHECK(m["stats"]["occupied_fraction"].get<double>() > 0.0);
+    const fs::path asset = out / m["lsnif"]["file"].get<std::string>();
+    // The asset passes the same validation a user runs (structure, schema, consistency).
+    const ValidationReport v = validate_file(asset.string());
+    CHECK_MESSAGE(v.valid(), v.to_text());
+    // Every family was measured and no true hit was culled by the occupancy.
+    for (const char* f : {"outside", "surface", "interior"}) {
+        CHECK(m["metrics"]["families"][f]["rays"].get<std::uint64_t>() > 100);
+        CHECK(m["metrics"]["families"][f]["visibility_accuracy"].get<double>() > 0.6);
+    }
+    CHECK(manifest["instances"].size() == 1);
+    // Only the manifest and the asset: no temporaries left behind.
+    CHECK(std::distance(fs::directory_iterator(out), fs::directory_iterator{}) == 2);
+
+    // Unchanged input and options: the asset is reused, byte for byte.
+    const auto before = fs::last_write_time(asset);
+    const ConvertResult again = convert(smoke({kDragon}, out));
+    REQUIRE(again.ok());
+    CHECK(again.manifest["meshes"][0]["lsnif"]["reused"] == true);
+    CHECK(fs::last_write_time(asset) == before);
+}
+
+TEST_CASE("an asset below the accuracy gate is not shipped: the mesh stays BVH with reasons") {
+    const fs::path out = fresh_dir("gate");
+    ConvertOptions o = smoke({kDragon}, out);
+    o.gate_min_visibility = 0.9999;  // unreachable for the smoke model
+    const ConvertResult r = convert(o);
+    REQUIRE(r.ok());
+    const json& m = r.manifest["meshes"][0];
+    CHECK(m["class"] == "simple");
+    bool gate_reason = false;
+    for (const auto& reason : m["reasons"]) gate_reason = gate_reason || reason.get<std::string>().find("gate") != std::string::npos;
+    CHECK(gate_reason);
+    CHECK_FALSE(m.contains("lsnif"));
+    CHECK(std::distance(fs::directory_iterator(out), fs::directory_iterator{}) == 1);  // manifest only
+}
+
+TEST_CASE("forced classification by mesh name") {
+    const fs::path out = fresh_dir("forced");
+    ConvertOptions o = smoke({kDragon}, out);
+    o.force_simple = {"ChineseDragon-10kv"};
+    const ConvertResult r = convert(o);
+    REQUIRE(r.ok());
+    CHECK(r.manifest["meshes"][0]["class"] == "simple");
+    CHECK(r.manifest["meshes"][0]["reasons"][0].get<std::string>().find("--simple") != std::string::npos);
+}
+
+TEST_CASE("2CylinderEngine converts: all meshes and 67 instances in the manifest") {
+    const fs::path out = fresh_dir("engine");
+    ConvertOptions o = smoke({kEngine}, out);
+    o.preset = "default";  // its meshes are small: classification keeps them all BVH, no training
+    const ConvertResult r = convert(o);
+    REQUIRE_MESSAGE(r.ok(), (r.errors.empty() ? "" : r.errors[0]));
+    CHECK(violations(manifest_schema(), r.manifest).empty());
+    CHECK(r.manifest["instances"].size() == 67);
+    CHECK(r.manifest["meshes"].size() == 29);
+    for (const auto& inst : r.manifest["instances"]) {
+        CHECK(inst["transform"].size() == 12);
+        CHECK(inst["mesh"].get<std::size_t>() < 29);
+    }
+}
+
+TEST_CASE("bad inputs: clear errors naming the file, no output, and multi-input runs continue") {
+    const fs::path out = fresh_dir("bad");
+    for (const std::string bad : {std::string(LSNIF_TEST_WORK_DIR) + "/does-not-exist.glb",
+                                  std::string(LSNIF_TEST_DATA_DIR) + "/valid/tiny.lsnif",  // unsupported format
+                                  std::string("/usr/share/assimp/models/glTF2/IndexOutOfRange/IndexOutOfRange.gltf")}) {
+        const ConvertResult r = convert(smoke({bad}, out));
+        REQUIRE_FALSE(r.ok());
+        CHECK(r.errors[0].find(fs::path(bad).filename().string()) != std::string::npos);
+        CHECK_FALSE(fs::exists(out));  // nothing converted: OUTDIR untouched
+    }
+    const ConvertResult mixed = convert(smoke({std::string(LSNIF_TEST_WORK_DIR) + "/missing.off", kDragon}, out));
+    CHECK_FALSE(mixed.ok());
+    REQUIRE(mixed.errors.size() == 1);
+    CHECK(mixed.manifest["inputs"][0]["status"] == "error");
+    CHECK(mixed.manifest["inputs"][1]["status"] == "ok");
+    CHECK(mixed.manifest["meshes"].size() == 1);
+    ConvertOptions unknown = smoke({kDragon}, out);
+    unknown.preset = "nope";
+    CHECK(convert(unknown).errors[0].find("unknown preset") != std::string::npos);
+}
