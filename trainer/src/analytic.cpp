@@ -1,5 +1,7 @@
 #include <lsnif/trainer/analytic.hpp>
 
+#include "rng.hpp"
+
 #include <algorithm>
 #include <cmath>
 
@@ -7,16 +9,7 @@ namespace lsnif::trainer {
 
 namespace {
 
-struct Rng {  // splitmix64
-    std::uint64_t s;
-    std::uint64_t next() {
-        std::uint64_t z = (s += 0x9E3779B97F4A7C15ull);
-        z = (z ^ (z >> 30)) * 0xBF58476D1CE4E5B9ull;
-        z = (z ^ (z >> 27)) * 0x94D049BB133111EBull;
-        return z ^ (z >> 31);
-    }
-    double u01() { return double(next() >> 11) * (1.0 / 9007199254740992.0); }
-};
+using Rng = detail::SplitMix64;
 
 void unit_sphere(Rng& rng, double v[3]) {
     const double z = 2.0 * rng.u01() - 1.0, phi = 2.0 * M_PI * rng.u01();

@@ -3,6 +3,7 @@
 #include <lsnif/trainer/trainer.hpp>
 
 #include "kernels.hpp"
+#include "rng.hpp"
 
 #include <algorithm>
 #include <chrono>
@@ -32,17 +33,7 @@ constexpr float kMaxParam = 1e4f;  // larger magnitudes are treated as divergenc
 
 std::uint32_t pad16(std::uint32_t n) { return (n + 15u) & ~15u; }
 
-// splitmix64 (Steele et al. 2014): deterministic, platform-independent.
-struct Rng {
-    std::uint64_t s;
-    std::uint64_t next() {
-        std::uint64_t z = (s += 0x9E3779B97F4A7C15ull);
-        z = (z ^ (z >> 30)) * 0xBF58476D1CE4E5B9ull;
-        z = (z ^ (z >> 27)) * 0x94D049BB133111EBull;
-        return z ^ (z >> 31);
-    }
-    float uniform(float lo, float hi) { return lo + (hi - lo) * float(next() >> 40) * (1.0f / 16777216.0f); }
-};
+using Rng = detail::SplitMix64;
 
 // Runs fn(t) for t in [0, T) on T threads (the caller is thread 0).
 template <class F>
