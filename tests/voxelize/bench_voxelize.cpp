@@ -1,7 +1,7 @@
 // Voxelizer throughput: a real mesh refined by 1-to-4 midpoint subdivision, voxelized
-// repeatedly with 1 and 2 threads (and hardware_concurrency() if larger).
+// repeatedly with 1 and 2 threads (and hardware_concurrency() if larger) by default.
 //
-//   bench_voxelize [mesh.off] [levels=3] [V=32] [repeats=15]
+//   bench_voxelize [mesh.off] [levels=3] [V=32] [repeats=15] [threads=1,2]
 //
 // Prints a table and, last, one JSON object. Timing covers exactly one voxelize() call
 // (validation of the input included); the best and the median of the repeats are given.
@@ -39,8 +39,22 @@ int main(int argc, char** argv) {
         return 1;
     }
 
-    std::vector<unsigned> thread_counts = {1, 2};
-    if (std::thread::hardware_concurrency() > 2) thread_counts.push_back(std::thread::hardware_concurrency());
+    std::vector<unsigned> thread_counts;
+    if (argc > 5) {
+        for (const char* p = argv[5]; *p;) {
+            char* end = nullptr;
+            const unsigned long n = std::strtoul(p, &end, 10);
+            if (end == p || n == 0 || n > 256) {
+                std::fprintf(stderr, "bench_voxelize: bad thread list '%s'\n", argv[5]);
+                return 1;
+            }
+            thread_counts.push_back(unsigned(n));
+            p = *end == ',' ? end + 1 : end;
+        }
+    } else {
+        thread_counts = {1, 2};
+        if (std::thread::hardware_concurrency() > 2) thread_counts.push_back(std::thread::hardware_concurrency());
+    }
 
     struct Row {
         unsigned threads;

@@ -17,9 +17,11 @@
 #include <array>
 #include <cmath>
 #include <cstdint>
+#include <cstdio>
 #include <limits>
 #include <random>
 #include <string>
+#include <utility>
 #include <vector>
 
 namespace vx = lsnif::voxelize;
@@ -560,6 +562,36 @@ TEST_CASE("vertices exactly on, and one ulp beside, grid planes") {
     }
 }
 
+TEST_CASE("extreme magnitudes: huge and subnormal boxes and coordinates") {
+    Rng rng(11);
+    auto wild = [&](double scale) {
+        // Random sign, exponent spread over 2^-20..2^20 of `scale`, or exactly 0.
+        if (rng.integer(0, 9) == 0) return 0.0f;
+        const double m = std::ldexp(rng.uniform(0.5, 1.0), rng.integer(-20, 20));
+        return float((rng.coin() ? 1 : -1) * m * scale);
+    };
+    const std::vector<std::pair<vx::Box, std::uint32_t>> boxes = {
+        {cube_box(-1e30f, 1e30f), 5},
+        {cube_box(-3e-39f, 4e-39f), 6},          // subnormal-scale box
+        {vx::Box{{0, 0, 0}, {1e-44f, 1e-44f, 1e-44f}}, 3},  // a few denormal ulps wide
+        {vx::Box{{-3.4e38f, -1, 1e20f}, {3.4e38f, 1, 1.0001e20f}}, 4},
+    };
+    for (const auto& [box, v] : boxes) {
+        std::vector<Tri> tris;
+        for (int i = 0; i < 200; ++i) {
+            Tri t;
+            for (Vec3& p : t)
+                for (int a = 0; a < 3; ++a) {
+                    const double mid = 0.5 * (double(box.min[a]) + double(box.max[a]));
+                    const double ext = double(box.max[a]) - double(box.min[a]);
+                    p[a] = float(std::clamp(mid + double(wild(float(ext))), -3.4e38, 3.4e38));
+                }
+            tris.push_back(t);
+        }
+        report("extreme", check_each(tris, box, v));
+    }
+}
+
 TEST_CASE("triangles outside the box or touching its boundary") {
     Rng rng(9);
     const vx::Box box = cube_box(0, 4);
@@ -652,6 +684,22 @@ TEST_CASE("many triangles: same bits for every thread count") {
         REQUIRE(occ.ok());
         CHECK(occ->bits == ref->bits);
     }
+    // Validation runs inside the parallel passes; the reported problem is still the first.
+    TriMesh bad = m;
+    bad.indices[3 * 40000 + 1] = 900000;
+    bad.indices[3 * 50000 + 2] = 800000;
+    for (unsigned threads : {1u, 2u, 3u}) {
+        const auto occ = vx::voxelize(view(bad), box, 32, {threads});
+        REQUIRE_FALSE(occ.ok());
+        CHECK(occ.error().message == "triangle 40000: index 900000 is out of range (180000 vertices)");
+    }
+    bad.positions[3 * 170000 + 2] = std::nanf("");
+    bad.positions[3 * 20000] = kInf;
+    for (unsigned threads : {1u, 2u, 3u}) {
+        const auto occ = vx::voxelize(view(bad), box, 32, {threads});
+        REQUIRE_FALSE(occ.ok());
+        CHECK(occ.error().message == "vertex 20000: coordinate x is infinite");
+    }
 }
 
 TEST_CASE("padded_box") {
@@ -734,6 +782,9 @@ TEST_CASE("invalid input is reported, never crashes") {
     CHECK(error_of(bad, box, 4) == "vertex 1: coordinate y is NaN");
     CHECK(vx::padded_box(view(bad)).error().message == "vertex 1: coordinate y is NaN");
     bad = m;
+    bad.positions.insert(bad.positions.end(), {0.5f, kInf, 0.5f});  // unreferenced, still rejected
+    CHECK(error_of(bad, box, 4) == "vertex 6: coordinate y is infinite");
+    bad = m;
     bad.positions[17] = -kInf;
     CHECK(error_of(bad, box, 4) == "vertex 5: coordinate z is infinite");
     bad = m;
@@ -742,6 +793,10 @@ TEST_CASE("invalid input is reported, never crashes") {
     CHECK(vx::padded_box(view(bad)).error().message == "triangle 1: index 6 is out of range (6 vertices)");
     bad.indices[4] = 0xFFFFFFFFu;
     CHECK(error_of(bad, box, 4) == "triangle 1: index 4294967295 is out of range (6 vertices)");
+    const std::vector<std::uint32_t> zero_tri = {0, 0, 0};
+    const auto no_vertices = vx::voxelize(vx::MeshView{{}, zero_tri}, box, 4);
+    REQUIRE_FALSE(no_vertices.ok());
+    CHECK(no_vertices.error().message == "triangle 0: index 0 is out of range (0 vertices)");
     bad = m;
     bad.indices.pop_back();
     CHECK(error_of(bad, box, 4).find("not a multiple of 3") != std::string::npos);
