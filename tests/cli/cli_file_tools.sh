@@ -33,16 +33,20 @@ done
 "$lsnif" inspect --json "$data/valid/v1_default.lsnif" | grep -q '"input_width": 108' || bad "inspect --json"
 "$lsnif" inspect "$data/invalid/table_checksum.lsnif" >/dev/null 2>&1; [[ $? == 1 ]] || bad "inspect of damaged file"
 
-# Every truncation and every header/table bit flip of a valid file, as processes.
+# Truncations and header/table bit flips of a valid file, as processes (exit code 1, never
+# a signal). Every truncation and every flip is also checked in-process through the same
+# validate code (tests/converter/test_file_tools.cpp); here a dense sample keeps the
+# sanitizer run short: every offset in header and table, every 5th beyond; bits 0 and 7
+# (and a middle bit) of every header/table byte.
 src="$data/valid/tiny.lsnif"
 size=$(stat -c %s "$src")
-for ((n = 0; n < size; n += 1)); do
+for ((n = 0; n < size; n += (n < 384 ? 1 : 5))); do
   head -c "$n" "$src" >"$work/t.lsnif"
   "$lsnif" validate "$work/t.lsnif" >/dev/null 2>&1; rc=$?
   [[ $rc == 1 ]] || { bad "truncation to $n bytes: exit $rc"; break; }
 done
 for ((byte = 0; byte < 384; byte += 1)); do
-  for bit in 0 3 7; do
+  for bit in 0 4 7; do
     cp "$src" "$work/f.lsnif"
     orig=$(od -An -tu1 -j "$byte" -N1 "$src" | tr -d ' ')
     printf "$(printf '\\%03o' $((orig ^ (1 << bit))))" | dd of="$work/f.lsnif" bs=1 seek="$byte" conv=notrunc status=none

@@ -101,6 +101,16 @@ TEST_CASE("validate rejects every truncation, reports one line per problem") {
     }
 }
 
+TEST_CASE("validate rejects every single-bit flip of header and section table") {
+    const auto good = load(data_dir() / "valid" / "tiny.lsnif");
+    for (std::size_t byte = 0; byte < 64 + 5 * 64; ++byte)
+        for (int bit = 0; bit < 8; ++bit) {
+            auto b = good;
+            b[byte] ^= std::uint8_t(1u << bit);
+            REQUIRE_MESSAGE(!validate_bytes(b, "f").valid(), "flip of byte " << byte << " bit " << bit << " accepted");
+        }
+}
+
 TEST_CASE("metadata must agree with the binary descriptor") {
     lsnif_info info{};
     info.grid_resolution = 32;
