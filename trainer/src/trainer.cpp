@@ -51,8 +51,9 @@ void parallel(std::uint32_t T, F&& fn) {
 
 float sigmoid(float z) { return z >= 0 ? 1.0f / (1.0f + std::exp(-z)) : std::exp(z) / (1.0f + std::exp(z)); }
 
-// Per-thread buffers.
-struct Work {
+// Per-thread buffers. Aligned so one thread's per-sample loss accumulation never shares a
+// cache line with another thread's buffer headers.
+struct alignas(128) Work {
     std::vector<RayPoints> pts;
     std::vector<float> x;                     // kSub x in0
     std::vector<std::vector<float>> act;      // per layer output, kSub x outp
