@@ -213,7 +213,7 @@ double process_cpu_seconds() {
 }
 
 // Samples are generated, traced and decoded in batches of this many (see trace_range).
-constexpr std::size_t kBatch = 64;
+constexpr std::size_t kBatch = 256;
 
 // Geometry masks: ground-truth rays see the mesh (geomID 0); parity rays also see the
 // caps over small holes (geomID 1), which exist only to make the surface watertight.
