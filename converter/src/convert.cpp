@@ -1,6 +1,5 @@
 // `lsnif convert`; see convert.hpp for the contracts.
 #include <lsnif/converter/convert.hpp>
-#include <lsnif/converter/json_schema.hpp>
 #include <lsnif/format/forward.hpp>
 #include <lsnif/sampling/sampling.hpp>
 #include <lsnif/scene/scene.hpp>
