@@ -30,8 +30,6 @@ Geometry make_geometry(const ModelDesc& d) {
     for (int a = 0; a < 3; ++a) {
         g.box_min[a] = d.box_min[a];
         g.box_max[a] = d.box_max[a];
-        g.cell[a] = float((double(d.box_max[a]) - d.box_min[a]) / g.V);
-        g.inv_cell[a] = float(g.V / (double(d.box_max[a]) - d.box_min[a]));
         diag2 += (double(d.box_max[a]) - d.box_min[a]) * (double(d.box_max[a]) - d.box_min[a]);
     }
     g.diagonal = float(std::sqrt(diag2));

@@ -127,12 +127,6 @@ struct ModelData {
     std::vector<std::vector<std::uint16_t>> biases;  // per layer: out
     std::uint16_t version_major = LSNIF_VERSION_MAJOR;
     std::uint16_t version_minor = LSNIF_VERSION_MINOR;
-
-    bool occupied(std::uint32_t x, std::uint32_t y, std::uint32_t z) const {
-        const std::uint64_t v = desc.grid_resolution;
-        const std::uint64_t i = x + v * (y + v * z);
-        return (occupancy[i >> 3] >> (i & 7)) & 1u;
-    }
 };
 
 // Allocates zeroed arrays of the right sizes for `desc` (occupancy all empty).

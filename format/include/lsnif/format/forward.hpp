@@ -47,8 +47,6 @@ struct LevelInfo {
 struct Geometry {
     std::uint32_t V, H, L, F;
     float box_min[3], box_max[3];
-    float cell[3];       // box extent / V per axis
-    float inv_cell[3];
     float diagonal;      // |box_max - box_min|
     std::array<std::uint32_t, 3> primes;
     std::vector<LevelInfo> levels;
