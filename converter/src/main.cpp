@@ -127,6 +127,10 @@ int main(int argc, char** argv) {
     convert->add_option("--gate-visibility", convert_opts.gate_min_visibility,
                         "Override the pooled held-out visibility accuracy an asset needs (0..1)")
         ->check(CLI::Range(0.0, 1.0));
+    convert->add_option("--steps", convert_opts.steps, "Override the preset's training steps")
+        ->check(CLI::Range(1u, 1000000u));
+    convert->add_option("--batch", convert_opts.batch_size, "Override the preset's batch size (rays per step)")
+        ->check(CLI::Range(64u, 1u << 20));
 
     lsnif::converter::BenchOptions bench_opts;
     bool bench_json = false;

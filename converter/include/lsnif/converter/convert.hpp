@@ -55,6 +55,8 @@ struct ConvertOptions {
     std::vector<std::string> force_simple;
     std::string command_line;  // recorded in metadata
     double gate_min_visibility = -1;  // >= 0 overrides the preset's pooled visibility gate
+    std::uint32_t steps = 0;          // > 0 overrides the preset's training steps
+    std::uint32_t batch_size = 0;     // > 0 overrides the preset's batch size
 };
 
 // Progress events: stage changes and training steps.
