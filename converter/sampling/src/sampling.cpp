@@ -219,6 +219,28 @@ constexpr std::size_t kBatch = 256;
 // caps over small holes (geomID 1), which exist only to make the surface watertight.
 constexpr unsigned kMeshMask = 0x1u, kCapMask = 0x2u;
 
+// One rtcIntersect1 record: the ray [tnear, tfar] seeing `mask`, the hit cleared as Embree
+// requires before a query.
+RTCRayHit make_ray_hit(const float org[3], const float dir[3], float tnear, float tfar, unsigned mask) {
+    RTCRayHit rh;
+    rh.ray.org_x = org[0];
+    rh.ray.org_y = org[1];
+    rh.ray.org_z = org[2];
+    rh.ray.tnear = tnear;
+    rh.ray.dir_x = dir[0];
+    rh.ray.dir_y = dir[1];
+    rh.ray.dir_z = dir[2];
+    rh.ray.time = 0;
+    rh.ray.tfar = tfar;
+    rh.ray.mask = mask;
+    rh.ray.id = 0;
+    rh.ray.flags = 0;
+    rh.hit.geomID = RTC_INVALID_GEOMETRY_ID;
+    rh.hit.primID = RTC_INVALID_GEOMETRY_ID;
+    rh.hit.instID[0] = RTC_INVALID_GEOMETRY_ID;
+    return rh;
+}
+
 // ---- parity counting through an Embree context filter ------------------------------------
 
 struct ParityHit {
@@ -353,22 +375,7 @@ struct EmbreeSource::Impl {
         if (!valid) return out;
         RTCIntersectContext ctx;
         rtcInitIntersectContext(&ctx);
-        RTCRayHit rh;
-        rh.ray.org_x = r.org[0];
-        rh.ray.org_y = r.org[1];
-        rh.ray.org_z = r.org[2];
-        rh.ray.tnear = r.tmin;
-        rh.ray.dir_x = r.dir[0];
-        rh.ray.dir_y = r.dir[1];
-        rh.ray.dir_z = r.dir[2];
-        rh.ray.time = 0;
-        rh.ray.tfar = r.tmax;
-        rh.ray.mask = kMeshMask;  // the mesh only, never the hole caps
-        rh.ray.id = 0;
-        rh.ray.flags = 0;
-        rh.hit.geomID = RTC_INVALID_GEOMETRY_ID;
-        rh.hit.primID = RTC_INVALID_GEOMETRY_ID;
-        rh.hit.instID[0] = RTC_INVALID_GEOMETRY_ID;
+        RTCRayHit rh = make_ray_hit(r.org, r.dir, r.tmin, r.tmax, kMeshMask);  // the mesh only, never the hole caps
         rtcIntersect1(scene, &ctx, &rh);
         if (rh.hit.geomID == RTC_INVALID_GEOMETRY_ID) return out;
         return {rh.ray.tfar, rh.hit.u, rh.hit.v, rh.hit.primID};
@@ -430,22 +437,8 @@ struct EmbreeSource::Impl {
         rtcInitIntersectContext(&pc.ctx);
         pc.ctx.filter = parity_filter;
         pc.hits = &hits;
-        RTCRayHit rh;
-        rh.ray.org_x = o[0];
-        rh.ray.org_y = o[1];
-        rh.ray.org_z = o[2];
-        rh.ray.tnear = 0;
-        rh.ray.dir_x = float(d.x);
-        rh.ray.dir_y = float(d.y);
-        rh.ray.dir_z = float(d.z);
-        rh.ray.time = 0;
-        rh.ray.tfar = INFINITY;
-        rh.ray.mask = kMeshMask | kCapMask;  // hole caps close the surface for parity
-        rh.ray.id = 0;
-        rh.ray.flags = 0;
-        rh.hit.geomID = RTC_INVALID_GEOMETRY_ID;
-        rh.hit.primID = RTC_INVALID_GEOMETRY_ID;
-        rh.hit.instID[0] = RTC_INVALID_GEOMETRY_ID;
+        const float dir[3] = {float(d.x), float(d.y), float(d.z)};
+        RTCRayHit rh = make_ray_hit(o, dir, 0.0f, INFINITY, kMeshMask | kCapMask);  // caps close the surface for parity
         rtcIntersect1(scene, &pc.ctx, &rh);
         // A triangle is crossed at most once: drop repeated references first.
         std::sort(hits.begin(), hits.end(), [](const ParityHit& a, const ParityHit& b) { return a.prim < b.prim; });
@@ -474,22 +467,8 @@ struct EmbreeSource::Impl {
     bool first_hit_from_inside(const float o[3], V3 d, bool& clean) const {
         RTCIntersectContext ctx;
         rtcInitIntersectContext(&ctx);
-        RTCRayHit rh;
-        rh.ray.org_x = o[0];
-        rh.ray.org_y = o[1];
-        rh.ray.org_z = o[2];
-        rh.ray.tnear = 0;
-        rh.ray.dir_x = float(d.x);
-        rh.ray.dir_y = float(d.y);
-        rh.ray.dir_z = float(d.z);
-        rh.ray.time = 0;
-        rh.ray.tfar = INFINITY;
-        rh.ray.mask = kMeshMask | kCapMask;
-        rh.ray.id = 0;
-        rh.ray.flags = 0;
-        rh.hit.geomID = RTC_INVALID_GEOMETRY_ID;
-        rh.hit.primID = RTC_INVALID_GEOMETRY_ID;
-        rh.hit.instID[0] = RTC_INVALID_GEOMETRY_ID;
+        const float dir[3] = {float(d.x), float(d.y), float(d.z)};
+        RTCRayHit rh = make_ray_hit(o, dir, 0.0f, INFINITY, kMeshMask | kCapMask);
         rtcIntersect1(scene, &ctx, &rh);
         clean = true;
         if (rh.hit.geomID == RTC_INVALID_GEOMETRY_ID) return false;
@@ -1253,22 +1232,7 @@ GenerationStats measure_throughput(EmbreeSource& src, std::uint64_t seed, std::s
             rtcInitIntersectContext(&ctx);
             for (std::size_t i = b; i < e; ++i) {
                 const format::Ray& ray = samples[i].ray;
-                RTCRayHit rh;
-                rh.ray.org_x = ray.org[0];
-                rh.ray.org_y = ray.org[1];
-                rh.ray.org_z = ray.org[2];
-                rh.ray.tnear = ray.tmin;
-                rh.ray.dir_x = ray.dir[0];
-                rh.ray.dir_y = ray.dir[1];
-                rh.ray.dir_z = ray.dir[2];
-                rh.ray.time = 0;
-                rh.ray.tfar = ray.tmax;
-                rh.ray.mask = kMeshMask;
-                rh.ray.id = 0;
-                rh.ray.flags = 0;
-                rh.hit.geomID = RTC_INVALID_GEOMETRY_ID;
-                rh.hit.primID = RTC_INVALID_GEOMETRY_ID;
-                rh.hit.instID[0] = RTC_INVALID_GEOMETRY_ID;
+                RTCRayHit rh = make_ray_hit(ray.org, ray.dir, ray.tmin, ray.tmax, kMeshMask);
                 rtcIntersect1(m.scene, &ctx, &rh);
                 plain[i] = {rh.ray.tfar, rh.hit.u, rh.hit.v,
                             rh.hit.geomID == RTC_INVALID_GEOMETRY_ID ? kNoPrimitive : rh.hit.primID};
