@@ -969,13 +969,9 @@ ImportResult import_gltf(const std::filesystem::path& path) {
     std::string name;
     try {
         name = path.string();
-        std::error_code ec;
-        if (!std::filesystem::is_regular_file(path, ec)) {
-            return failure(name, std::filesystem::exists(path, ec) ? "not a regular file"
-                                                                   : "cannot open (no such file)");
-        }
-        const std::uintmax_t size = std::filesystem::file_size(path, ec);
-        if (ec) return failure(name, "cannot read its size: " + ec.message());
+        std::uintmax_t size = 0;
+        if (const std::string problem = detail::regular_file_size(path, size); !problem.empty())
+            return failure(name, problem);
         if (size > UINT_MAX) return failure(name, "file is larger than 4 GiB (not supported)");
         std::vector<std::uint8_t> bytes(static_cast<std::size_t>(size));
         std::ifstream in(path, std::ios::binary);

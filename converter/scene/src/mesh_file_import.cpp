@@ -494,13 +494,9 @@ ImportResult import_mesh_file_impl(const std::filesystem::path& path, const std:
     if (ext != ".obj" && ext != ".ply" && ext != ".off" && ext != ".stl") {
         return failure(name, "unsupported mesh format '" + ext + "' (supported: .obj .ply .off .stl)");
     }
-    std::error_code ec;
-    if (!std::filesystem::is_regular_file(path, ec)) {
-        return failure(name, std::filesystem::exists(path, ec) ? "not a regular file"
-                                                               : "cannot open (no such file)");
-    }
-    const std::uintmax_t size = std::filesystem::file_size(path, ec);
-    if (ec) return failure(name, "cannot read its size: " + ec.message());
+    std::uintmax_t size = 0;
+    if (const std::string problem = detail::regular_file_size(path, size); !problem.empty())
+        return failure(name, problem);
     if (size == 0) return failure(name, "file is empty");
     {
         std::ifstream probe(path, std::ios::binary);

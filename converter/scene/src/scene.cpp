@@ -38,6 +38,15 @@ std::string quote_name(std::string_view name) {
     return out;
 }
 
+std::string regular_file_size(const std::filesystem::path& path, std::uintmax_t& size) {
+    std::error_code ec;
+    if (!std::filesystem::is_regular_file(path, ec))
+        return std::filesystem::exists(path, ec) ? "not a regular file" : "cannot open (no such file)";
+    size = std::filesystem::file_size(path, ec);
+    if (ec) return "cannot read its size: " + ec.message();
+    return {};
+}
+
 std::string lower_extension(const std::string& path) {
     const auto slash = path.find_last_of('/');
     const auto dot = path.find_last_of('.');

@@ -9,6 +9,8 @@
 #include <string_view>
 #include <vector>
 
+#include <filesystem>
+
 namespace lsnif::scene::detail {
 
 // Collects warnings, at most kMaxWarnings lines; the rest are counted and summarized by
@@ -38,5 +40,9 @@ std::string quote_name(std::string_view name);
 
 // Lower-case extension including the dot (".gltf"), "" when none.
 std::string lower_extension(const std::string& path);
+
+// Checks that `path` is a readable regular file and sets `size` to its byte count.
+// Returns "" or the problem, phrased to follow "<file>: ".
+std::string regular_file_size(const std::filesystem::path& path, std::uintmax_t& size);
 
 }  // namespace lsnif::scene::detail
