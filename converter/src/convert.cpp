@@ -298,12 +298,20 @@ ConvertResult convert(const ConvertOptions& opt, const ConvertProgress& progress
                 continue;
             }
             const std::uint64_t bvh = source->bvh_bytes();
+            // Size the tables to the mesh (ClassifyRule): halve T while the asset would not
+            // beat the BVH. Levels dense at the preset size stay dense (fewer rows than T).
+            if (!forced_complex)
+                while (desc.log2_table_size > preset.classify.min_log2_table_size &&
+                       double(bvh) < preset.classify.min_memory_ratio * double(lsnif_bytes_estimate(desc)))
+                    --desc.log2_table_size;
             const std::uint64_t est = lsnif_bytes_estimate(desc);
             json stats = {{"box_min", vec3(box->min)},
                           {"box_max", vec3(box->max)},
                           {"area_ratio", surface_area(mesh) / box_area},
                           {"components", count_components(mesh)},
                           {"closed", source->is_closed()},
+                          {"solid", source->rejects_interior()},
+                          {"log2_table_size", desc.log2_table_size},
                           {"bvh_bytes", bvh},
                           {"lsnif_bytes_estimate", est}};
             timings["classify"] = since(t0);
@@ -334,7 +342,18 @@ ConvertResult convert(const ConvertOptions& opt, const ConvertProgress& progress
             }
             if (forced_complex) reasons.push_back("forced complex by --complex " + mesh.name);
             else reasons.push_back(std::to_string(mesh.triangle_count()) + " triangles");
+            if (desc.log2_table_size != preset.model.log2_table_size)
+                reasons.push_back("hash tables sized to 2^" + std::to_string(desc.log2_table_size) + " rows (preset 2^" +
+                                  std::to_string(preset.model.log2_table_size) + ") to beat the BVH's memory");
 
+            if (opt.dry_run) {  // the plan only: no sampling, training or files
+                mj["class"] = "complex";
+                mj["reasons"] = reasons;
+                mj["stats"] = stats;
+                mj["timings"] = timings;
+                meshes.push_back(mj);
+                continue;
+            }
             // ---- asset name: content hash of geometry and settings ----
             const std::string key = scene::geometry_hash(mesh) + "|" + preset.name + "|" + std::to_string(opt.seed) +
                                     "|" + std::to_string(preset.train.steps) + "|" +
@@ -478,7 +497,8 @@ ConvertResult convert(const ConvertOptions& opt, const ConvertProgress& progress
 
     res.report = {{"inputs", inputs}, {"meshes", meshes}, {"instances", instances.size()},
                   {"errors", res.errors}, {"warnings", res.warnings}};
-    if (ok_inputs == 0) return res;  // nothing converted: leave OUTDIR untouched
+    if (opt.dry_run) res.report["dry_run"] = true;
+    if (ok_inputs == 0 || opt.dry_run) return res;  // nothing converted, or a plan: leave OUTDIR untouched
 
     json forced_c = opt.force_complex, forced_s = opt.force_simple;
     res.manifest = {{"format", "lsnif-manifest/1"},
@@ -540,6 +560,7 @@ std::string convert_text(const ConvertResult& r) {
                   r.report["instances"].get<std::uint64_t>());
     s += buf;
     if (r.report.contains("manifest")) s += "manifest: " + r.report["manifest"].get<std::string>() + "\n";
+    if (r.report.value("dry_run", false)) s += "dry run: nothing written\n";
     return s;
 }
 

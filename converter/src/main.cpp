@@ -131,6 +131,8 @@ int main(int argc, char** argv) {
         ->check(CLI::Range(1u, 1000000u));
     convert->add_option("--batch", convert_opts.batch_size, "Override the preset's batch size (rays per step)")
         ->check(CLI::Range(64u, 1u << 20));
+    convert->add_flag("--dry-run", convert_opts.dry_run,
+                      "Import and classify only: print the plan (class, reasons, model size), write nothing");
 
     lsnif::converter::BenchOptions bench_opts;
     bool bench_json = false;

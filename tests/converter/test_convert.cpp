@@ -104,6 +104,43 @@ TEST_CASE("forced classification by mesh name") {
     CHECK(r.manifest["meshes"][0]["reasons"][0].get<std::string>().find("--simple") != std::string::npos);
 }
 
+TEST_CASE("the model is sized to the mesh: tables shrink until the asset beats the BVH (dry run)") {
+    const fs::path out = fresh_dir("sizing");
+    ConvertOptions o = smoke({kDragon, std::string(LSNIF_TEST_MESH_DIR) + "/armadillo.off"}, out);
+    o.preset = "default";
+    o.dry_run = true;
+    const ConvertResult r = convert(o);
+    REQUIRE_MESSAGE(r.ok(), (r.errors.empty() ? "" : r.errors[0]));
+    CHECK(r.report["dry_run"] == true);
+    CHECK_FALSE(fs::exists(out));  // a plan writes nothing
+    REQUIRE(r.report["meshes"].size() == 2);
+    for (const json& m : r.report["meshes"]) {
+        INFO(m.dump());
+        REQUIRE(m["class"] == "complex");
+        const json& st = m["stats"];
+        // The chosen size beats the BVH, and the next larger one would not (or is the cap).
+        CHECK(st["bvh_bytes"].get<double>() >= st["lsnif_bytes_estimate"].get<double>());
+        const int log2 = st["log2_table_size"].get<int>();
+        CHECK(log2 <= 17);
+        CHECK(log2 >= 15);
+        if (log2 < 17) {
+            // Two hashed levels of F = 3 fp16 features: doubling T adds 2 * 3 * 2 * T bytes.
+            const double bigger = st["lsnif_bytes_estimate"].get<double>() + 12.0 * double(1u << log2);
+            CHECK(st["bvh_bytes"].get<double>() < bigger);
+            CHECK(m["reasons"].back().get<std::string>().find("sized to 2^" + std::to_string(log2)) != std::string::npos);
+        }
+    }
+    // The 20k-triangle dragon's BVH (~1.4 MB) is smaller than a 2^17 model (~1.6 MB);
+    // the 52k-triangle armadillo's is not.
+    CHECK(r.report["meshes"][0]["stats"]["log2_table_size"] == 16);
+    CHECK(r.report["meshes"][1]["stats"]["log2_table_size"] == 17);
+    // --complex keeps the preset's model.
+    o.force_complex = {"ChineseDragon-10kv"};
+    const ConvertResult f = convert(o);
+    REQUIRE(f.ok());
+    CHECK(f.report["meshes"][0]["stats"]["log2_table_size"] == 17);
+}
+
 TEST_CASE("2CylinderEngine converts: all meshes and 67 instances in the manifest") {
     const fs::path out = fresh_dir("engine");
     ConvertOptions o = smoke({kEngine}, out);

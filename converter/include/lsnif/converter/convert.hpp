@@ -18,9 +18,16 @@
 namespace lsnif::converter {
 
 // Classification thresholds (documented in README "Classification").
+//
+// Model sizing ("never model more than a scene needs"): the preset's hash-table size
+// 2^log2_table_size is the largest a mesh gets. It is halved while the .lsnif would not beat
+// the BVH by min_memory_ratio, down to 2^min_log2_table_size; a mesh that still does not
+// benefit stays BVH. `--complex NAME` skips both the sizing and the memory rule and uses the
+// preset's model as is.
 struct ClassifyRule {
-    std::uint64_t min_triangles = 2000;  // fewer: the BVH is tiny and exact; keep it
-    double min_memory_ratio = 1.0;       // BVH bytes must exceed this x the .lsnif bytes
+    std::uint64_t min_triangles = 2000;    // fewer: the BVH is tiny and exact; keep it
+    double min_memory_ratio = 1.0;         // BVH bytes must exceed this x the .lsnif bytes
+    std::uint32_t min_log2_table_size = 15;  // smallest table sizing may choose (2^15 rows)
 };
 
 // Held-out accuracy an asset must reach to ship (DESIGN.md §3 "Accuracy gate").
@@ -57,6 +64,7 @@ struct ConvertOptions {
     double gate_min_visibility = -1;  // >= 0 overrides the preset's pooled visibility gate
     std::uint32_t steps = 0;          // > 0 overrides the preset's training steps
     std::uint32_t batch_size = 0;     // > 0 overrides the preset's batch size
+    bool dry_run = false;             // import and classify only; report the plan, write nothing
 };
 
 // Progress events: stage changes and training steps.
