@@ -1,6 +1,7 @@
 // Ground-truth generation throughput: EmbreeSource::generate() (ray construction, parity
 // rejection for family (c), Embree tracing, normal interpolation) against a plain
-// parallel rtcIntersect1 loop over the same rays, same thread count (measure_throughput).
+// parallel rtcIntersect1 loop over the same rays, same thread count (measure_throughput);
+// the "packet" line traces the same rays with rtcIntersect16, for comparison only.
 //
 //   bench_sampling [mesh.off] [rays=3000000] [threads=2] [repeats=5] [subdivisions=0]
 //
@@ -66,6 +67,9 @@ int main(int argc, char** argv) {
     std::printf("ratio                %.3f\n", st.ratio);
     std::printf("cpu time             generate %.4f s, plain %.4f s, ratio %.3f\n", st.cpu_seconds,
                 st.plain_cpu_seconds, st.cpu_ratio);
+    std::printf("packet rtcIntersect16 %.4f s  %.3f Mrays/s (cpu %.4f s); generate vs packet: ratio %.3f, cpu %.3f\n",
+                st.packet_seconds, st.packet_rays_per_second * 1e-6, st.packet_cpu_seconds, st.packet_ratio,
+                st.packet_cpu_ratio);
     std::printf("load average (1 min) %.2f\n", load1);
     std::printf("interior candidates  %llu for %llu interior rays, parity rays %llu, fallbacks %llu\n",
                 (unsigned long long)c.interior_candidates, (unsigned long long)((rays + 1) / 3),

@@ -231,6 +231,71 @@ TEST_CASE("families have equal shares and plausible hit rates") {
     }
 }
 
+TEST_CASE("direction laws: uniform sphere (interior), cosine/uniform mixture (surface)") {
+    // Moments that the samplers' laws fix: a uniform direction has mean 0 and E[d_i^2] =
+    // 1/3; a surface ray's cosine to its side's normal has mean 2/3 under the cosine law
+    // and 1/2 under the uniform law, 7/12 for the 50/50 mixture, and E[cos^2] = 1/2 and
+    // 1/3, 5/12 for the mixture. Tolerances are > 6 standard errors at these counts.
+    auto src = make(sphere());
+    const std::size_t n = 90000;
+    std::vector<Sample> s;
+    std::vector<SampleExtras> x;
+    src->generate(31, n, s, &x);
+    double mean[3] = {}, sq[3] = {}, cos1 = 0, cos2 = 0;
+    std::size_t interior = 0, surface = 0;
+    const TriMesh& m = sphere();
+    for (std::size_t i = 0; i < n; ++i) {
+        const float* d = s[i].ray.dir;
+        if (s[i].family == Family::interior) {
+            ++interior;
+            for (int a = 0; a < 3; ++a) mean[a] += d[a], sq[a] += double(d[a]) * d[a];
+        } else if (s[i].family == Family::surface) {
+            ++surface;
+            const std::uint32_t* tri = &m.indices[3 * std::size_t(x[i].source_primitive)];
+            const float* p0 = &m.positions[3 * std::size_t(tri[0])];
+            const float* p1 = &m.positions[3 * std::size_t(tri[1])];
+            const float* p2 = &m.positions[3 * std::size_t(tri[2])];
+            const double e1[3] = {double(p1[0]) - p0[0], double(p1[1]) - p0[1], double(p1[2]) - p0[2]};
+            const double e2[3] = {double(p2[0]) - p0[0], double(p2[1]) - p0[1], double(p2[2]) - p0[2]};
+            const double ng[3] = {e1[1] * e2[2] - e1[2] * e2[1], e1[2] * e2[0] - e1[0] * e2[2],
+                                  e1[0] * e2[1] - e1[1] * e2[0]};
+            const double nl = std::sqrt(ng[0] * ng[0] + ng[1] * ng[1] + ng[2] * ng[2]);
+            double c = 0;
+            for (int a = 0; a < 3; ++a) c += x[i].side * ng[a] / nl * d[a];
+            cos1 += c, cos2 += c * c;
+        }
+    }
+    REQUIRE(interior == n / 3);
+    REQUIRE(surface == n / 3);
+    for (int a = 0; a < 3; ++a) {
+        CHECK(std::abs(mean[a] / double(interior)) < 0.02);
+        CHECK(std::abs(sq[a] / double(interior) - 1.0 / 3.0) < 0.01);
+    }
+    MESSAGE("surface cosine moments " << cos1 / double(surface) << ", " << cos2 / double(surface));
+    CHECK(std::abs(cos1 / double(surface) - 7.0 / 12.0) < 0.01);
+    CHECK(std::abs(cos2 / double(surface) - 5.0 / 12.0) < 0.01);
+}
+
+TEST_CASE("generate()'s packet tracing matches trace()'s rtcIntersect1 bit for bit") {
+    // generate() traces its rays 16 at a time (rtcIntersect16); trace() one at a time.
+    // A count that leaves partial packets at the end of the last batch.
+    auto src = make(dragon());
+    std::vector<Sample> s;
+    std::vector<SampleExtras> x;
+    src->generate(13, 30011, s, &x);
+    std::vector<Sample> again = s;
+    std::vector<SampleExtras> xa(again.size());
+    src->trace(again, xa);
+    std::size_t same = 0, hits = 0;
+    for (std::size_t i = 0; i < s.size(); ++i) {
+        same += bit_equal(s[i], again[i]) && xa[i].primitive == x[i].primitive &&
+                xa[i].geometric_normal == x[i].geometric_normal;
+        hits += s[i].hit;
+    }
+    CHECK(same == s.size());
+    CHECK(hits > s.size() / 4);
+}
+
 TEST_CASE("surface-leaving rays never hit their own triangle") {
     for (const TriMesh* m : {&dragon(), &sphere()}) {
         auto src = make(*m);
@@ -380,6 +445,49 @@ TEST_CASE("interior origins lie outside the closed solid") {
             CHECK(src->inside_solid(p, std::uint64_t(i)) == (sd < 0));
         }
         CHECK(checked > 2900);
+    }
+    SUBCASE("inside_solid next to the surface (voted cells) agrees with the references") {
+        // Points in grid cells the surface crosses, where the grid cannot decide and votes
+        // do (first along a short segment to a classified neighbour cell).
+        auto src = make(sphere());
+        std::uint64_t z = 7;
+        auto uniform = [&] {
+            z = z * 6364136223846793005ull + 1442695040888963407ull;
+            return double(z >> 11) / 9007199254740992.0;
+        };
+        int checked = 0;
+        for (int i = 0; i < 2000; ++i) {
+            // Uniform direction (rejection from the cube), radius within 3 % of the sphere's.
+            double d[3], l2;
+            do {
+                for (double& c : d) c = 2 * uniform() - 1;
+                l2 = d[0] * d[0] + d[1] * d[1] + d[2] * d[2];
+            } while (l2 > 1 || l2 < 1e-6);
+            const double r = kRadius * (0.97 + 0.06 * uniform());
+            std::array<float, 3> p;
+            for (int a = 0; a < 3; ++a) p[std::size_t(a)] = float(kCenter[std::size_t(a)] + r * d[a] / std::sqrt(l2));
+            const double sd = convex_distance(sphere(), {p[0], p[1], p[2]});
+            if (std::abs(sd) < 1e-4) continue;
+            ++checked;
+            CHECK(src->inside_solid(p, std::uint64_t(i)) == (sd < 0));
+        }
+        CHECK(checked > 1900);
+        // The dragon: origins of surface-leaving rays (1e-4 x diagonal off the surface, on
+        // either side) against brute-force parity.
+        auto d = make(dragon());
+        std::vector<Sample> s;
+        std::vector<SampleExtras> x;
+        d->generate(23, 900, s, &x);
+        int in = 0, out = 0;
+        for (const Sample& smp : s) {
+            if (smp.family != Family::surface) continue;
+            const std::array<float, 3> o = {smp.ray.org[0], smp.ray.org[1], smp.ray.org[2]};
+            const bool ref = brute_inside(dragon(), {o[0], o[1], o[2]});
+            CHECK(d->inside_solid(o, 5) == ref);
+            (ref ? in : out)++;
+        }
+        CHECK(in > 50);
+        CHECK(out > 50);
     }
     SUBCASE("inside test modes: inward-facing and inconsistently oriented spheres") {
         CHECK(make(sphere())->inside_test() == InsideTest::first_hit_facing);

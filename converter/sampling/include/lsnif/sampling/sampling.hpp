@@ -21,13 +21,19 @@
 // the rest have tmax = +inf. tmin is always 0 and directions are unit length, so t is a
 // distance in mesh units.
 //
-// Memory: besides Embree's scene, 136 bytes per triangle (two cache-line records and an
-// alias entry) and a 2-bit classification grid (64 KiB at the default resolution).
+// Memory: besides Embree's scene, 128 bytes per triangle (two cache-line records; the
+// alias table lives in the surface records) and a 2-bit classification grid (64 KiB at
+// the default resolution).
 //
-// Determinism: every ray draws its random numbers from its own stream derived from
-// (seed, index) (splitmix64, Steele et al. 2014), and the scene is immutable after
-// construction, so generate() returns bit-identical samples for a seed whatever the
-// thread count.
+// Throughput: rays are built and traced in batches of 256: their random table lookups
+// are prefetched a pass ahead, and they are traced 16 at a time through Embree's packet
+// interface (rtcIntersect16), which returns the same hits as rtcIntersect1.
+//
+// Determinism: every ray draws its random numbers from its own streams, derived from
+// (seed, index) only (seeded by splitmix64, Steele et al. 2014, continued by wyrand): one
+// for its construction, one for family (c)'s inside-test votes. The scene is immutable
+// after construction, so generate() returns bit-identical samples for a seed whatever the
+// thread count, and a shorter request is a prefix of a longer one.
 //
 // Errors: this library never throws on bad input and never exits. create() returns null
 // and an error message for invalid meshes; Embree device errors are captured through
@@ -93,9 +99,11 @@ struct SamplingConfig {
 // How family (c) decides that an origin is inside the solid (after the classification
 // grid): not at all (open mesh), by the facing of the first hit (closed and consistently
 // oriented, caps included: one closest-hit query per vote; a vote clear of edges and
-// grazing angles decides alone), or by the parity of all crossings along the ray (closed
-// but not consistently oriented: one all-hits traversal per vote). Votes that are not
-// clear-cut are settled by the majority of three random directions.
+// grazing angles decides alone; the first vote runs along the short segment to the centre
+// of a classified neighbour cell, whose state it takes when it meets no surface), or by
+// the parity of all crossings along the ray (closed but not consistently oriented: one
+// all-hits traversal per vote). Votes that are not clear-cut are settled by the majority
+// of three random directions.
 enum class InsideTest : std::uint8_t { none, first_hit_facing, parity };
 
 // Per-sample data the trainer's Sample has no field for (parallel to the samples).
@@ -132,6 +140,11 @@ struct GenerationStats {
     // sensitive than wall time to other processes competing for the cores.
     double cpu_seconds = 0, plain_cpu_seconds = 0;
     double cpu_ratio = 0;  // plain_cpu_seconds / cpu_seconds
+    // For comparison only (not the baseline): the same rays traced through Embree's
+    // 16-wide packet interface (rtcIntersect16), same threads and chunks, best of the
+    // repeats; the ratios are generation against it, in wall and in CPU time.
+    double packet_seconds = 0, packet_rays_per_second = 0, packet_ratio = 0;
+    double packet_cpu_seconds = 0, packet_cpu_ratio = 0;
 };
 
 class EmbreeSource final : public trainer::SampleSource {
@@ -198,7 +211,8 @@ private:
 
 // Times generate(seed, count) against a plain parallel rtcIntersect1 loop over the same
 // rays, both with src.threads() threads and the same dynamic 1024-ray chunks; `repeats`
-// alternating runs, best time of each. Overwrites src.counters().
+// alternating runs, best time of each. Also times the same rays through rtcIntersect16
+// (packet_* fields), for comparison. Overwrites src.counters().
 GenerationStats measure_throughput(EmbreeSource& src, std::uint64_t seed, std::size_t count,
                                    std::uint32_t repeats = 3);
 
