@@ -1,7 +1,9 @@
 // `lsnif bench train` and `lsnif bench infer`: throughput of the trainer and of the
 // reader's forward pass on the v1 default model, with the machine's sgemm rate (OpenBLAS)
 // measured in the same run as the yardstick. Absolute times on shared machines are noisy;
-// the ratios in one run are what BENCHMARKS.md records.
+// the ratios in one run are what BENCHMARKS.md records. `bench train` measures both MLP
+// precisions (fp32, and bf16 on AMX when available) in alternating slices, so their ratio
+// sees the same machine load.
 #include <lsnif/converter/bench.hpp>
 #include <lsnif/format/forward.hpp>
 #include <lsnif/trainer/analytic.hpp>
@@ -10,9 +12,12 @@
 #include <cblas.h>
 
 #include <algorithm>
+#include <array>
 #include <chrono>
 #include <cstdio>
 #include <fstream>
+#include <memory>
+#include <span>
 #include <thread>
 
 namespace lsnif::converter {
@@ -99,38 +104,70 @@ json bench_train(const BenchOptions& o) {
     src.generate(1, 1u << 18, raw);
     json runs = json::array();
     const double peak = sgemm_gflops(2048, int(o.threads), o.min_seconds);
+    bool bf16_available = false;
     for (std::uint32_t b : {1u << 14, 1u << 15, 1u << 16}) {
-        trainer::TrainConfig cfg;
-        cfg.batch_size = b;
-        cfg.threads = o.threads;
-        cfg.steps = 1000000;
-        trainer::Trainer tr(d, src.occupancy(d), cfg);
+        // One trainer per precision, same seed and batch; both are stepped in alternating
+        // slices (kSlices each, min_seconds in total per precision) so a load change on a
+        // shared machine hits both alike.
+        struct Run {
+            std::unique_ptr<trainer::Trainer> tr;
+            int steps = 0;
+            double seconds = 0;
+        };
+        std::array<Run, 2> slots;
+        std::size_t count = 0;
+        for (const auto p : {trainer::MlpPrecision::fp32, trainer::MlpPrecision::bf16}) {
+            trainer::TrainConfig cfg;
+            cfg.batch_size = b;
+            cfg.threads = o.threads;
+            cfg.steps = 1000000;
+            cfg.mlp_precision = p;
+            auto tr = std::make_unique<trainer::Trainer>(d, src.occupancy(d), cfg);
+            if (tr->mlp_precision() != p) continue;  // bf16 without AMX: fp32 only
+            slots[count++].tr = std::move(tr);
+        }
+        const std::span<Run> per(slots.data(), count);
+        bf16_available = count == 2;
         const auto tp = Clock::now();
-        const trainer::PreparedSet set = tr.prepare(raw);
+        const trainer::PreparedSet set = per[0].tr->prepare(raw);  // depends on geometry only
         const double prep_rays_per_second = double(raw.size()) / seconds_since(tp);
         std::vector<std::uint32_t> batch(b);
         for (std::size_t i = 0; i < b; ++i) batch[i] = std::uint32_t((i * 7919) % set.size());
-        tr.step(set, batch);  // warm-up: first-touch of all buffers
-        int steps = 0;
-        const auto t0 = Clock::now();
-        do {
-            tr.step(set, batch);
-            ++steps;
-        } while (seconds_since(t0) < o.min_seconds || steps < 3);
-        const double secs = seconds_since(t0);
-        const double sps = double(steps) * b / secs;
-        const double mlp_gflops = sps * tr.mlp_flops_per_sample() / 1e9;
-        runs.push_back({{"batch_size", b},
-                        {"steps", steps},
+        for (Run& r : per) r.tr->step(set, batch);  // warm-up: first-touch of all buffers
+        constexpr int kSlices = 3;
+        for (int slice = 0; slice < kSlices; ++slice)
+            for (Run& r : per) {
+                int steps = 0;
+                const auto t0 = Clock::now();
+                do {
+                    r.tr->step(set, batch);
+                    ++steps;
+                } while (seconds_since(t0) < o.min_seconds / kSlices || steps < 1);
+                r.seconds += seconds_since(t0);
+                r.steps += steps;
+            }
+        double fp32_sps = 0;
+        for (const Run& r : per) {
+            const double sps = double(r.steps) * b / r.seconds;
+            const double mlp_gflops = sps * r.tr->mlp_flops_per_sample() / 1e9;
+            const bool fp32 = r.tr->mlp_precision() == trainer::MlpPrecision::fp32;
+            if (fp32) fp32_sps = sps;
+            json run = {{"batch_size", b},
+                        {"precision", trainer::precision_name(r.tr->mlp_precision())},
+                        {"steps", r.steps},
                         {"samples_per_second", sps},
                         {"mlp_gflops", mlp_gflops},
                         {"mlp_fraction_of_sgemm", mlp_gflops / peak},
-                        {"prepare_rays_per_second", prep_rays_per_second}});
+                        {"prepare_rays_per_second", prep_rays_per_second}};
+            if (!fp32) run["speedup_vs_fp32"] = sps / fp32_sps;
+            runs.push_back(run);
+        }
     }
     return {{"benchmark", "train"},
             {"model", "V=32 H=18 levels 64,128 T=2^17 F=3 hidden 128x128 (v1 default)"},
             {"cpu", cpu_model()},
             {"threads", o.threads},
+            {"bf16_amx_available", bf16_available},
             {"sgemm_gflops_openblas_2048", peak},
             {"dense_kernel", kernel_comparison(o.min_seconds)},
             {"runs", runs}};
@@ -196,12 +233,19 @@ std::string bench_text(const json& r) {
                       k["shape"].get<std::string>().c_str(), k["lsnif_gflops"].get<double>(),
                       k["openblas_gflops"].get<double>());
         s += buf;
+        if (!r["bf16_amx_available"].get<bool>()) s += "bf16 MLP products: no AMX on this machine, fp32 only\n";
         for (const json& x : r["runs"]) {
             std::snprintf(buf, sizeof buf,
-                          "batch %6d: %10.0f samples/s, MLP %.1f GFLOP/s (%.0f%% of sgemm); ray preparation %.0f rays/s\n",
-                          x["batch_size"].get<int>(), x["samples_per_second"].get<double>(), x["mlp_gflops"].get<double>(),
+                          "batch %6d %-4s: %10.0f samples/s, MLP %.1f GFLOP/s (%.0f%% of sgemm); ray preparation %.0f rays/s",
+                          x["batch_size"].get<int>(), x["precision"].get<std::string>().c_str(),
+                          x["samples_per_second"].get<double>(), x["mlp_gflops"].get<double>(),
                           100 * x["mlp_fraction_of_sgemm"].get<double>(), x["prepare_rays_per_second"].get<double>());
             s += buf;
+            if (x.contains("speedup_vs_fp32")) {
+                std::snprintf(buf, sizeof buf, "; %.2fx fp32", x["speedup_vs_fp32"].get<double>());
+                s += buf;
+            }
+            s += "\n";
         }
     } else {
         for (const char* key : {"through_network", "mixed_with_early_out"}) {

@@ -2,6 +2,8 @@
 // forward pass, determinism, divergence guard, and learning an analytic scene end to end.
 #include <doctest/doctest.h>
 
+#include "amx.hpp"  // detail::amx_available(): skip the bf16 runs without AMX
+
 #include <lsnif/format/forward.hpp>
 #include <lsnif/trainer/adam.hpp>
 #include <lsnif/trainer/analytic.hpp>
@@ -73,6 +75,8 @@ TEST_CASE("finite-difference gradient check for every parameter kind and loss te
         TrainConfig cfg;
         cfg.threads = 2;
         cfg.seed = 3;
+        // Exact arithmetic: a 1e-4 step is below bf16 resolution for most weights.
+        cfg.mlp_precision = MlpPrecision::fp32;
         // One loss term at a time, so each term's gradient is checked on its own.
         cfg.loss = {term == 0 ? 1.f : 0.f, term == 1 ? 1.f : 0.f, term == 2 ? 1.f : 0.f, term == 3 ? 1.f : 0.f};
         cfg.huber_delta = 10.0f;  // quadratic regime: smooth for finite differences
@@ -167,21 +171,26 @@ TEST_CASE("same seed and thread count give identical weights; the guard survives
     SpheresSource src = two_spheres(d);
     std::vector<Sample> raw;
     src.generate(9, 4000, raw);
-    auto run = [&](std::uint64_t seed) {
-        TrainConfig cfg;
-        cfg.steps = 40;
-        cfg.batch_size = 1024;
-        cfg.threads = 2;
-        cfg.seed = seed;
-        Trainer tr(d, src.occupancy(d), cfg);
-        tr.train(tr.reachable(raw));
-        return tr.export_model("{}");
-    };
-    const auto a = run(1), b = run(1), c = run(2);
-    CHECK(a.weights == b.weights);
-    CHECK(a.grid == b.grid);
-    CHECK(a.biases == b.biases);
-    CHECK(a.weights != c.weights);
+    // Both MLP precisions (bf16 falls back to fp32 without AMX, which is then checked twice).
+    for (const MlpPrecision precision : {MlpPrecision::fp32, MlpPrecision::bf16}) {
+        CAPTURE(precision_name(precision));
+        auto run = [&](std::uint64_t seed) {
+            TrainConfig cfg;
+            cfg.steps = 40;
+            cfg.batch_size = 1024;
+            cfg.threads = 2;
+            cfg.seed = seed;
+            cfg.mlp_precision = precision;
+            Trainer tr(d, src.occupancy(d), cfg);
+            tr.train(tr.reachable(raw));
+            return tr.export_model("{}");
+        };
+        const auto a = run(1), b = run(1), c = run(2);
+        CHECK(a.weights == b.weights);
+        CHECK(a.grid == b.grid);
+        CHECK(a.biases == b.biases);
+        CHECK(a.weights != c.weights);
+    }
 
     TrainConfig cfg;
     cfg.steps = 60;
@@ -200,7 +209,9 @@ TEST_CASE("same seed and thread count give identical weights; the guard survives
     CHECK_FALSE(format::validate_model(exported));  // finite, writable
 }
 
-TEST_CASE("learns two spheres end to end: held-out accuracy per family") {
+namespace {
+
+void learn_spheres(MlpPrecision precision) {
     format::ModelDesc d;  // v1 dimensions except a smaller table and MLP: keeps CI fast
     d.grid_resolution = 32;
     d.max_points = 18;
@@ -216,7 +227,9 @@ TEST_CASE("learns two spheres end to end: held-out accuracy per family") {
     cfg.steps = 1200;
     cfg.batch_size = 4096;
     cfg.threads = 2;
+    cfg.mlp_precision = precision;
     Trainer tr(d, src.occupancy(d), cfg);
+    MESSAGE("MLP precision " << std::string(precision_name(tr.mlp_precision())));
     std::vector<Sample> raw, held;
     src.generate(100, 300000, raw);
     src.generate(200, 30000, held);  // different seed: held-out rays
@@ -240,4 +253,18 @@ TEST_CASE("learns two spheres end to end: held-out accuracy per family") {
     CHECK(m.pooled.distance_median_pct <= 1.0);
     CHECK(m.pooled.normal_median_deg <= 14.0);
     for (int f = 0; f < kFamilyCount; ++f) CHECK(m.family[f].visibility_accuracy >= 0.98);
+}
+
+}  // namespace
+
+TEST_CASE("learns two spheres end to end: held-out accuracy per family") { learn_spheres(MlpPrecision::fp32); }
+
+// Same budget and thresholds with the products in bf16 on AMX (the model is still
+// exported and evaluated in fp32/fp16 by the reader).
+TEST_CASE("learns two spheres end to end with bf16 AMX products") {
+    if (!detail::amx_available()) {
+        MESSAGE("AMX not available: bf16 end-to-end test skipped");
+        return;
+    }
+    learn_spheres(MlpPrecision::bf16);
 }

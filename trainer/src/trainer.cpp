@@ -2,6 +2,7 @@
 #include <lsnif/format/half.hpp>
 #include <lsnif/trainer/trainer.hpp>
 
+#include "amx.hpp"
 #include "kernels.hpp"
 #include "rng.hpp"
 
@@ -16,6 +17,15 @@ namespace lsnif::trainer {
 using format::Geometry;
 using format::RayPoints;
 using format::TraceStatus;
+
+const char* precision_name(MlpPrecision p) {
+    switch (p) {
+    case MlpPrecision::fp32: return "fp32";
+    case MlpPrecision::bf16: return "bf16";
+    case MlpPrecision::automatic: return "automatic";
+    }
+    return "?";
+}
 
 const char* family_name(Family f) {
     switch (f) {
@@ -32,6 +42,7 @@ constexpr std::size_t kSub = 128;  // rows per sub-chunk: keeps activations in L
 constexpr float kMaxParam = 1e4f;  // larger magnitudes are treated as divergence (fp16 max 65504)
 
 std::uint32_t pad16(std::uint32_t n) { return (n + 15u) & ~15u; }
+std::uint32_t pad32(std::uint32_t n) { return (n + 31u) & ~31u; }  // K of a bf16 product
 
 using Rng = detail::SplitMix64;
 
@@ -58,11 +69,16 @@ struct alignas(128) Work {
     std::vector<float> x;                     // kSub x in0
     std::vector<std::vector<float>> act;      // per layer output, kSub x outp
     std::vector<float> d0, d1;                // gradient ping-pong, kSub x max padded width
-    std::vector<std::vector<float>> dwt;      // per layer, in x outp (transposed layout)
+    std::vector<std::vector<float>> dwt;      // per layer, pad16(in) x outp (transposed layout)
     std::vector<std::vector<float>> db;       // per layer, outp
     std::vector<std::vector<float>> gg;       // grid gradient per level, entries * F
     std::vector<std::vector<std::uint8_t>> touched;  // per level, entries
     std::vector<format::Corners> corners;            // one sample's (point, level) corners
+    // bf16 path only (empty in fp32): operands of the AMX products of one sub-chunk.
+    detail::Bf16Buffer a_rows;  // forward A: layer input, kSub x pad32(in)
+    detail::Bf16Buffer a_t;     // weight-gradient A: layer input transposed, pad16(in) x pad32(kSub)
+    detail::Bf16Buffer g_rows;  // input-gradient A: G, kSub x pad32(out)
+    detail::Bf16Buffer g_vnni;  // weight-gradient B: G in pair-of-rows layout, pad32(kSub)/2 x 2 outp
     LossParts loss;
 };
 
@@ -73,6 +89,9 @@ struct Trainer::Impl {
     format::Network net;                      // forward layout of the current master weights
     std::vector<std::vector<float>> wpad;     // per layer [out][pad16(in)] for dX = G W
     std::vector<float> zeros;                 // bias for the backward products
+    // bf16 path: the current weights as B operands, refreshed every step (they change).
+    std::vector<detail::Bf16Buffer> wf;       // per layer, forward: Wt (K = in) in VNNI layout
+    std::vector<detail::Bf16Buffer> wb;       // per layer, input gradient: W (K = out) in VNNI layout
     // Adam state.
     std::vector<std::vector<float>> gm, gv, wm, wv, bm, bv;
     std::vector<std::vector<std::uint32_t>> row_step;
@@ -92,6 +111,8 @@ struct Trainer::Impl {
 Trainer::Trainer(const format::ModelDesc& desc, std::vector<std::uint8_t> occupancy, const TrainConfig& cfg)
     : impl_(new Impl), desc_(desc), geo_(format::make_geometry(desc)), occupancy_(std::move(occupancy)), cfg_(cfg) {
     threads_ = cfg.threads ? cfg.threads : std::max(1u, std::thread::hardware_concurrency());
+    precision_ = cfg.mlp_precision != MlpPrecision::fp32 && detail::amx_available() ? MlpPrecision::bf16
+                                                                                   : MlpPrecision::fp32;
     Rng rng{cfg.seed * 0x2545F4914F6CDD1Dull + 1};
     for (std::uint32_t l = 0; l < desc.level_count(); ++l) {
         grid_.emplace_back(desc.level_entries(l) * desc.features_per_level);
@@ -124,8 +145,14 @@ Trainer::Trainer(const format::ModelDesc& desc, std::vector<std::uint8_t> occupa
         im.wgrad.emplace_back(w_[k].size(), 0.0f);
         im.bgrad.emplace_back(b_[k].size(), 0.0f);
     }
-    std::uint32_t maxw = pad16(desc.input_width());
-    for (std::uint32_t k = 0; k < desc.layer_count(); ++k) maxw = std::max(maxw, pad16(desc.layer_shape(k).first));
+    std::uint32_t maxw = pad16(desc.input_width()), max_in32 = 0, max_out32 = 0, max_in16 = 0;
+    for (std::uint32_t k = 0; k < desc.layer_count(); ++k) {
+        const auto [o, i] = desc.layer_shape(k);
+        maxw = std::max(maxw, pad16(o));
+        max_in32 = std::max(max_in32, pad32(i));
+        max_in16 = std::max(max_in16, pad16(i));
+        max_out32 = std::max(max_out32, pad32(o));
+    }
     im.zeros.assign(maxw, 0.0f);
     im.work.resize(threads_);
     for (Work& w : im.work) {
@@ -134,11 +161,19 @@ Trainer::Trainer(const format::ModelDesc& desc, std::vector<std::uint8_t> occupa
         for (std::uint32_t k = 0; k < desc.layer_count(); ++k) {
             const auto [o, i] = desc.layer_shape(k);
             w.act.emplace_back(kSub * pad16(o));
-            w.dwt.emplace_back(std::size_t(i) * pad16(o), 0.0f);
+            // pad16(i) rows: the bf16 weight-gradient product covers whole 16-row tiles (the
+            // extra rows stay zero; reductions read the first i).
+            w.dwt.emplace_back(std::size_t(pad16(i)) * pad16(o), 0.0f);
             w.db.emplace_back(pad16(o), 0.0f);
         }
         w.d0.resize(kSub * maxw);
         w.d1.resize(kSub * maxw);
+        if (precision_ == MlpPrecision::bf16) {
+            w.a_rows.resize(kSub * max_in32);
+            w.a_t.resize(std::size_t(max_in16) * pad32(kSub));
+            w.g_rows.resize(kSub * max_out32);
+            w.g_vnni.resize(std::size_t(pad32(kSub)) * maxw);
+        }
         for (std::uint32_t l = 0; l < desc.level_count(); ++l) {
             w.gg.emplace_back(grid_[l].size(), 0.0f);
             w.touched.emplace_back(desc.level_entries(l), 0u);
@@ -189,6 +224,41 @@ void forward_layers(const Geometry& geo, const std::vector<format::GridView>& gr
                             k + 1 < net.wt.size(), w.act[k].data());
         src = w.act[k].data();
         lda = net.out_padded[k];
+    }
+}
+
+// forward_layers with the hidden layers' products in bf16 on AMX (MlpPrecision::bf16):
+// each hidden layer's input is rounded to bf16 rows, multiplied by the VNNI-packed weights
+// `wf` into w.act (fp32), then bias and ReLU are applied in fp32.
+// The output layer's forward stays fp32 (dense_narrow, ~2% of the MLP FLOPs; its two
+// backward products are bf16 like the others): the loss gradients depend on residuals
+// (distance error against a 1%-of-diagonal Huber delta) far smaller than the outputs, so
+// rounding its inputs to bf16 would move them by tens of percent late in training.
+// Measured on a trained v1-width model (test_amx.cpp), relative L2 difference of the
+// gradients to fp32: 44-49% for the output layer with a bf16 output forward, 3-7% for
+// every parameter kind with an fp32 one.
+void forward_layers_bf16(const Geometry& geo, const std::vector<format::GridView>& grid, const format::Network& net,
+                         const std::vector<detail::Bf16Buffer>& wf, std::size_t n, Work& w) {
+    for (std::size_t r = 0; r < n; ++r) format::encode_points(geo, grid.data(), w.pts[r], w.x.data() + r * geo.input_width);
+    const float* src = w.x.data();
+    std::size_t lda = geo.input_width;
+    for (std::size_t k = 0; k < net.wt.size(); ++k) {
+        const std::size_t in = net.in[k], kp = pad32(net.in[k]), outp = net.out_padded[k];
+        if (k + 1 == net.wt.size()) {  // dense_narrow: dense_layer's results, faster for outp = 16
+            if (!detail::dense_narrow(src, n, in, lda, net.wt[k].data(), net.bias[k].data(), outp, w.act[k].data()))
+                format::dense_layer(src, n, in, lda, net.wt[k].data(), net.bias[k].data(), outp, false, w.act[k].data());
+            break;
+        }
+        detail::pack_rows(src, n, in, lda, w.a_rows.data(), kp, detail::round_up(n, 16));
+        float* dst = w.act[k].data();
+        detail::gemm_bf16(n, outp, kp, w.a_rows.data(), kp, wf[k].data(), 2 * outp, dst, outp, false);
+        const float* bias = net.bias[k].data();
+        for (std::size_t r = 0; r < n; ++r) {
+            float* row = dst + r * outp;
+            for (std::size_t o = 0; o < outp; ++o) row[o] = std::max(row[o] + bias[o], 0.0f);
+        }
+        src = dst;
+        lda = outp;
     }
 }
 
@@ -276,13 +346,29 @@ LossParts Trainer::loss_and_gradients(const PreparedSet& set, std::span<const st
     Impl& im = *impl_;
     im.net = format::make_network(desc_, w_, b_);
     const std::uint32_t layers = desc_.layer_count();
-    im.wpad.resize(layers);
-    for (std::uint32_t k = 0; k < layers; ++k) {
-        const auto [o, i] = desc_.layer_shape(k);
-        const std::uint32_t ip = pad16(i);
-        im.wpad[k].assign(std::size_t(o) * ip, 0.0f);
-        for (std::uint32_t r = 0; r < o; ++r)
-            std::memcpy(im.wpad[k].data() + std::size_t(r) * ip, w_[k].data() + std::size_t(r) * i, i * sizeof(float));
+    const bool bf16 = precision_ == MlpPrecision::bf16;
+    if (bf16) {  // B operands of this step's products: forward Wt (K = in), backward W (K = out)
+        im.wf.resize(layers);
+        im.wb.resize(layers);
+        for (std::uint32_t k = 0; k < layers; ++k) {
+            const auto [o, i] = desc_.layer_shape(k);
+            const std::size_t op = im.net.out_padded[k], ip = pad16(i);
+            if (k + 1 < layers) {  // the output layer's forward stays fp32
+                im.wf[k].resize(std::size_t(pad32(i)) * op);
+                detail::pack_vnni(im.net.wt[k].data(), i, op, op, im.wf[k].data(), 2 * op, pad32(i));
+            }
+            im.wb[k].resize(std::size_t(pad32(o)) * ip);
+            detail::pack_vnni(w_[k].data(), o, i, i, im.wb[k].data(), 2 * ip, pad32(o));
+        }
+    } else {
+        im.wpad.resize(layers);
+        for (std::uint32_t k = 0; k < layers; ++k) {
+            const auto [o, i] = desc_.layer_shape(k);
+            const std::uint32_t ip = pad16(i);
+            im.wpad[k].assign(std::size_t(o) * ip, 0.0f);
+            for (std::uint32_t r = 0; r < o; ++r)
+                std::memcpy(im.wpad[k].data() + std::size_t(r) * ip, w_[k].data() + std::size_t(r) * i, i * sizeof(float));
+        }
     }
     std::vector<format::GridView> gp;
     for (auto& g : grid_) gp.push_back({g.data(), geo_.F, false});
@@ -314,7 +400,8 @@ LossParts Trainer::loss_and_gradients(const PreparedSet& set, std::span<const st
                 p.t[0] = set.t_first[i];
                 std::memcpy(p.g, &set.g[std::size_t(i) * set.H * 3], sizeof(float) * 3 * p.count);
             }
-            forward_layers(geo_, gp, im.net, n, w);
+            if (bf16) forward_layers_bf16(geo_, gp, im.net, im.wf, n, w);
+            else forward_layers(geo_, gp, im.net, n, w);
             // ---- losses and dL/d(outputs) ----
             const std::size_t outp = im.net.out_padded.back();
             float* dO = w.d0.data();
@@ -365,12 +452,26 @@ LossParts Trainer::loss_and_gradients(const PreparedSet& set, std::span<const st
                 const std::size_t in_k = im.net.in[k];
                 const float* X = k == 0 ? w.x.data() : w.act[k - 1].data();
                 const std::size_t ldx = k == 0 ? geo_.input_width : im.net.out_padded[k - 1];
-                detail::outer_accumulate(X, n, in_k, ldx, G, outp_k, w.dwt[k].data());
+                const std::size_t ip = pad16(std::uint32_t(in_k));
+                if (bf16) {
+                    // dWt += X^T G: A = X^T (rows = inputs, K = samples), B = G by row pairs.
+                    const std::size_t np = detail::round_up(n, 32);
+                    detail::pack_transposed(X, n, in_k, ldx, w.a_t.data(), np, ip);
+                    detail::pack_vnni(G, n, outp_k, outp_k, w.g_vnni.data(), 2 * outp_k, np);
+                    detail::gemm_bf16(ip, outp_k, np, w.a_t.data(), np, w.g_vnni.data(), 2 * outp_k, w.dwt[k].data(),
+                                      outp_k, true);
+                    // dX = G W (K = the real outputs, zero-padded to 32).
+                    const std::size_t kp = pad32(im.net.out[k]);
+                    detail::pack_rows(G, n, im.net.out[k], outp_k, w.g_rows.data(), kp, detail::round_up(n, 16));
+                    detail::gemm_bf16(n, ip, kp, w.g_rows.data(), kp, im.wb[k].data(), 2 * ip, other, ip, false);
+                } else {
+                    detail::outer_accumulate(X, n, in_k, ldx, G, outp_k, w.dwt[k].data());
+                    // dX = G W (contract over the real outputs; padded columns of G are zero).
+                    format::dense_layer(G, n, im.net.out[k], outp_k, im.wpad[k].data(), im.zeros.data(), ip, false,
+                                        other);
+                }
                 for (std::size_t r = 0; r < n; ++r)
                     for (std::size_t o = 0; o < outp_k; ++o) w.db[k][o] += G[r * outp_k + o];
-                // dX = G W (contract over the real outputs; padded columns of G are zero).
-                const std::size_t ip = pad16(std::uint32_t(in_k));
-                format::dense_layer(G, n, im.net.out[k], outp_k, im.wpad[k].data(), im.zeros.data(), ip, false, other);
                 if (k > 0) {  // ReLU derivative of the previous layer's output
                     const float* H = w.act[k - 1].data();
                     for (std::size_t q = 0; q < n * ip; ++q)
@@ -564,7 +665,33 @@ float Trainer::step(const PreparedSet& set, std::span<const std::uint32_t> batch
     return loss;
 }
 
-TrainResult Trainer::train(const PreparedSet& samples, const ProgressFn& progress) {
+void PreparedSet::append(PreparedSet&& o) {
+    if (samples.empty()) {
+        *this = std::move(o);
+        return;
+    }
+    samples.insert(samples.end(), o.samples.begin(), o.samples.end());
+    count.insert(count.end(), o.count.begin(), o.count.end());
+    t_near.insert(t_near.end(), o.t_near.begin(), o.t_near.end());
+    t_far.insert(t_far.end(), o.t_far.begin(), o.t_far.end());
+    t_first.insert(t_first.end(), o.t_first.begin(), o.t_first.end());
+    g.insert(g.end(), o.g.begin(), o.g.end());
+    o = PreparedSet{};
+}
+
+void PreparedSet::drop_front(std::size_t n) {
+    n = std::min(n, samples.size());
+    const auto d = std::ptrdiff_t(n);
+    samples.erase(samples.begin(), samples.begin() + d);
+    count.erase(count.begin(), count.begin() + d);
+    t_near.erase(t_near.begin(), t_near.begin() + d);
+    t_far.erase(t_far.begin(), t_far.begin() + d);
+    t_first.erase(t_first.begin(), t_first.begin() + d);
+    g.erase(g.begin(), g.begin() + d * std::ptrdiff_t(H) * 3);
+}
+
+TrainResult Trainer::train(const PreparedSet& samples, const ProgressFn& progress, std::uint32_t until_step) {
+    const std::uint32_t stop = until_step ? std::min(until_step, cfg_.steps) : cfg_.steps;
     TrainResult res;
     if (samples.size() == 0) {
         res.message = "no training samples reach the network";
@@ -572,9 +699,10 @@ TrainResult Trainer::train(const PreparedSet& samples, const ProgressFn& progres
     }
     const auto t0 = std::chrono::steady_clock::now();
     std::vector<std::uint32_t> batch(cfg_.batch_size);
-    Rng rng{cfg_.seed ^ 0xA0761D6478BD642Full};
+    // Seeded by the step too, so rounds of train() calls draw fresh batch indices.
+    Rng rng{(cfg_.seed ^ 0xA0761D6478BD642Full) + step_ * 0x9E3779B97F4A7C15ull};
     std::vector<float> losses;
-    while (step_ < cfg_.steps) {
+    while (step_ < stop) {
         for (auto& s : batch) s = std::uint32_t(rng.next() % samples.size());
         const float loss = step(samples, batch);
         res.samples += batch.size();

@@ -5,7 +5,10 @@
 // order).
 //
 // The forward computation is format/'s (trace_points, encode_points, dense_layer), so a
-// model trained here evaluates identically in a renderer once exported to fp16.
+// model trained here evaluates identically in a renderer once exported to fp16
+// (predict_raw checks this). Training steps may run the MLP products in bf16 on Intel AMX
+// instead (TrainConfig::mlp_precision); that changes the arithmetic of training, not of
+// prediction, export or evaluation.
 #pragma once
 
 #include <lsnif/format/container.hpp>
@@ -53,6 +56,16 @@ struct LossWeights {
     float material = 0.1f;
 };
 
+// Arithmetic of the MLP matrix products inside training steps (loss_and_gradients: forward
+// hidden and output layers, input gradients, weight gradients). bf16 rounds the operands of
+// those products to bfloat16 and runs them on Intel AMX tiles with fp32 accumulation; bias,
+// activations, losses, gradient reductions, master weights and Adam stay fp32. fp32 uses
+// format/'s kernels throughout (exact enough for finite-difference checks). automatic =
+// bf16 when the CPU and OS provide AMX (see Trainer::mlp_precision), else fp32.
+// predict_raw, export and evaluation are fp32 whatever this says.
+enum class MlpPrecision : std::uint8_t { fp32, bf16, automatic };
+const char* precision_name(MlpPrecision p);
+
 struct TrainConfig {
     std::uint32_t steps = 2000;
     std::uint32_t batch_size = 1u << 14;
@@ -73,6 +86,8 @@ struct TrainConfig {
     float divergence_factor = 8.0f;
     std::uint32_t snapshot_interval = 50;
     std::uint32_t max_rollbacks = 8;
+    // bf16 requested on a machine without AMX falls back to fp32 (never an error).
+    MlpPrecision mlp_precision = MlpPrecision::automatic;
 };
 
 struct Progress {
@@ -116,6 +131,10 @@ struct PreparedSet {
     std::vector<float> g;  // samples x H x 3 grid coordinates (slots past count unused)
     std::uint32_t H = 0;
     std::size_t size() const { return samples.size(); }
+    // Streaming training data (rounds of fresh rays): appends another set prepared by the
+    // same trainer (same H), and drops the oldest n samples.
+    void append(PreparedSet&& other);
+    void drop_front(std::size_t n);
 };
 
 class Trainer {
@@ -141,7 +160,10 @@ public:
     // Trains cfg.steps steps on random batches (with replacement) from `samples`.
     // Deterministic for (seed, threads, samples).
     TrainResult train(std::span<const Sample> samples, const ProgressFn& progress = {});
-    TrainResult train(const PreparedSet& set, const ProgressFn& progress = {});
+    // Runs steps until step() == until_step (0: cfg.steps); the schedule always spans
+    // cfg.steps, so a caller may train in rounds on changing sets. Counters (samples,
+    // seconds) are those of this call.
+    TrainResult train(const PreparedSet& set, const ProgressFn& progress = {}, std::uint32_t until_step = 0);
 
     // One optimizer step on the samples `batch` indexes. Returns the batch loss before
     // the update; NaN when the step was rejected by the divergence guard.
@@ -167,6 +189,8 @@ public:
     std::vector<std::vector<float>>& weights() { return w_; }
     std::vector<std::vector<float>>& biases() { return b_; }
     std::uint32_t threads() const { return threads_; }
+    // The precision training steps actually use: fp32 or bf16, never automatic.
+    MlpPrecision mlp_precision() const { return precision_; }
     std::uint64_t step_count() const { return step_; }
     float lr_scale() const { return lr_scale_; }
     // Multiplies both learning rates (the guard halves it; tests force absurd rates).
@@ -184,6 +208,7 @@ private:
     std::vector<std::uint8_t> occupancy_;
     TrainConfig cfg_;
     std::uint32_t threads_;
+    MlpPrecision precision_ = MlpPrecision::fp32;
     std::vector<std::vector<float>> grid_, w_, b_;
     std::uint64_t step_ = 0;
     float lr_scale_ = 1.0f;
