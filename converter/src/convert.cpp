@@ -164,15 +164,15 @@ bool find_preset(const std::string& name, Preset& p) {
     p.train.batch_size = 1u << 13;
     if (name == "default") {
         p.train.steps = 2400;
-        p.train_rays = 1u << 21;
+        p.train_rays = 1u << 23;
     } else if (name == "fast") {
         p.train.batch_size = 1u << 14;
         p.train.steps = 300;
-        p.train_rays = 1u << 20;
+        p.train_rays = 1u << 21;
     } else if (name == "quality") {
         p.train.batch_size = 1u << 12;
         p.train.steps = 4800;
-        p.train_rays = 1u << 21;
+        p.train_rays = 1u << 23;
     } else if (name == "smoke") {
         // Pipeline check in seconds (tests, CI): a small model and a lenient gate that only
         // rejects an untrained network. Not for shipping assets.
@@ -185,6 +185,7 @@ bool find_preset(const std::string& name, Preset& p) {
         p.train.batch_size = 2048;
         p.train.steps = 400;
         p.train_rays = 1u << 15;
+        p.train_chunk_rays = 1u << 14;  // two rounds: exercises the streaming path
         p.eval_rays = 1u << 13;
         p.classify.min_triangles = 100;
         p.gate = {0.75, 0.6, 25.0, 90.0};
@@ -357,7 +358,9 @@ ConvertResult convert(const ConvertOptions& opt, const ConvertProgress& progress
             // ---- asset name: content hash of geometry and settings ----
             const std::string key = scene::geometry_hash(mesh) + "|" + preset.name + "|" + std::to_string(opt.seed) +
                                     "|" + std::to_string(preset.train.steps) + "|" +
-                                    std::to_string(preset.train.batch_size) + "|" + std::to_string(preset.train_rays) +
+                                    std::to_string(preset.train.batch_size) + "|" + std::to_string(preset.train_rays) + "/" +
+                                    std::to_string(preset.train_chunk_rays) + "/" +
+                                    std::to_string(preset.train_window_chunks) +
                                     "|" + model_json(desc).dump();
             const std::string file = hex16(fnv1a64(key)) + ".lsnif";
             const fs::path asset = outdir / file;
@@ -380,34 +383,64 @@ ConvertResult convert(const ConvertOptions& opt, const ConvertProgress& progress
                 }
             }
             if (!reused) {
-                // ---- sample ----
+                // ---- sample held-out rays, then train in rounds of fresh rays ----
                 t0 = Clock::now();
                 report({mesh.name, "sample"});
-                std::vector<trainer::Sample> train_rays, held_out;
-                source->generate(opt.seed * 2 + 0, preset.train_rays, train_rays);
+                std::vector<trainer::Sample> held_out;
                 std::vector<sampling::SampleExtras> extras;
                 source->generate(opt.seed * 2 + 1 + 0x5bd1e995ull, preset.eval_rays, held_out, &extras);
-                timings["sample"] = since(t0);
-                // ---- train ----
-                t0 = Clock::now();
+                double sample_seconds = since(t0), prepare_seconds = 0;
                 trainer::TrainConfig tcfg = preset.train;
                 tcfg.threads = threads;
                 tcfg.seed = opt.seed;
                 trainer::Trainer tr(desc, occ->bits, tcfg);
-                const trainer::PreparedSet set = tr.prepare(train_rays);
-                train_rays.clear();
-                train_rays.shrink_to_fit();
-                double mean_points = 0;
-                for (auto c : set.count) mean_points += c;
-                stats["mean_occupied_per_ray"] = set.size() ? mean_points / double(set.size()) : 0.0;
+                const std::uint64_t chunk = std::max<std::uint64_t>(1, std::min(preset.train_chunk_rays, preset.train_rays));
+                const std::uint64_t rounds = std::min<std::uint64_t>((preset.train_rays + chunk - 1) / chunk, tcfg.steps);
+                trainer::PreparedSet pool;          // the latest train_window_chunks chunks
+                std::vector<std::size_t> in_pool;   // their sizes, oldest first
+                trainer::TrainResult tres;
+                double points = 0;
+                std::uint64_t reached = 0, drawn = 0;
                 const auto tr_t0 = Clock::now();
-                const trainer::TrainResult tres = tr.train(set, [&](const trainer::Progress& p) {
-                    const double elapsed = since(tr_t0);
-                    report({mesh.name, "train", p.step, p.steps, p.loss,
-                            p.step ? elapsed / p.step * (p.steps - p.step) : 0.0});
-                    return true;
-                });
-                timings["train"] = since(t0);
+                for (std::uint64_t r = 0; r < rounds && !tres.diverged; ++r) {
+                    auto tp = Clock::now();
+                    std::vector<trainer::Sample> rays;
+                    const std::uint64_t n = std::min(chunk, preset.train_rays - r * chunk);
+                    source->generate(fnv1a64("train|" + std::to_string(opt.seed) + "|" + std::to_string(r)), n, rays);
+                    drawn += n;
+                    sample_seconds += since(tp);
+                    tp = Clock::now();
+                    trainer::PreparedSet fresh = tr.prepare(rays);
+                    rays = {};
+                    for (auto c : fresh.count) points += c;
+                    reached += fresh.size();
+                    in_pool.push_back(fresh.size());
+                    pool.append(std::move(fresh));
+                    if (in_pool.size() > std::max<std::uint32_t>(1, preset.train_window_chunks)) {
+                        pool.drop_front(in_pool.front());
+                        in_pool.erase(in_pool.begin());
+                    }
+                    prepare_seconds += since(tp);
+                    const auto until = std::uint32_t(r + 1 == rounds ? tcfg.steps : tcfg.steps * (r + 1) / rounds);
+                    const trainer::TrainResult part = tr.train(pool, [&](const trainer::Progress& p) {
+                        const double elapsed = since(tr_t0);
+                        report({mesh.name, "train", p.step, p.steps, p.loss,
+                                p.step ? elapsed / p.step * (p.steps - p.step) : 0.0});
+                        return true;
+                    }, until);
+                    tres.steps = part.steps;
+                    tres.seconds += part.seconds;
+                    tres.samples += part.samples;
+                    tres.rollbacks = part.rollbacks;
+                    tres.final_loss = part.final_loss;
+                    tres.diverged = part.diverged;
+                    if (!part.message.empty()) tres.message = part.message;
+                }
+                stats["mean_occupied_per_ray"] = reached ? points / double(reached) : 0.0;
+                stats["training_rays"] = drawn;
+                timings["sample"] = sample_seconds;
+                timings["prepare"] = prepare_seconds;
+                timings["train"] = tres.seconds;
                 total_train_seconds += tres.seconds;
                 // ---- evaluate on held-out rays ----
                 t0 = Clock::now();
@@ -451,6 +484,9 @@ ConvertResult convert(const ConvertOptions& opt, const ConvertProgress& progress
                           {"steps", tres.steps},
                           {"batch_size", tcfg.batch_size},
                           {"samples", tres.samples},
+                          {"rays", drawn},
+                          {"rays_per_round", chunk},
+                          {"window_rounds", std::max<std::uint32_t>(1, preset.train_window_chunks)},
                           {"seconds", tres.seconds},
                           {"learning_rate_grid", tcfg.grid_adam.lr},
                           {"learning_rate_mlp", tcfg.mlp_adam.lr},
