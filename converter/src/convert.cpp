@@ -152,16 +152,35 @@ json metrics_json(const trainer::Metrics& m) {
             {"pooled", family_json(m.pooled)}};
 }
 
+// Everything else that changes the trained weights: the recipe (bump kRecipeVersion when
+// sampling or training code changes its streams), the thread count (training is
+// deterministic per thread count) and the MLP arithmetic this machine will use.
+constexpr int kRecipeVersion = 2;
+static std::string recipe_key(const Preset& p, std::uint32_t threads) {
+    const trainer::TrainConfig& c = p.train;
+    char buf[512];
+    std::snprintf(buf, sizeof buf, "r%d|t%u|%s|lw%g,%g,%g,%g|g%g,%g,%g,%g|m%g,%g,%g,%g,%g|d%g,%g,%g,%g", kRecipeVersion,
+                  threads, trainer::precision_name(trainer::resolve_precision(c.mlp_precision)), c.loss.visibility,
+                  c.loss.distance, c.loss.normal, c.loss.material, c.grid_adam.lr, c.grid_adam.beta1,
+                  c.grid_adam.beta2, c.grid_adam.eps, c.mlp_adam.lr, c.mlp_adam.beta1, c.mlp_adam.beta2,
+                  c.mlp_adam.eps, c.mlp_adam.l2, c.decay_start, c.final_lr_fraction, c.huber_delta,
+                  c.grad_clip_norm);
+    return buf;
+}
+
 std::vector<std::string> preset_names() { return {"default", "fast", "quality", "smoke"}; }
 
 bool find_preset(const std::string& name, Preset& p) {
     p = Preset{};
     p.name = name;
     // v1 model of DESIGN.md §3 in every preset; presets trade training time for accuracy.
-    // Measured on the dragon (BENCHMARKS.md): at equal samples, more and smaller steps win
-    // (1200 x 16384: 95.8 %, 0.95 %, 17.6 deg; 2400 x 8192: 96.3 %, 0.89 %, 16.2 deg;
-    // 4800 x 4096: 96.7 %, 0.82 %, 15.0 deg), at 95 s / 133 s / 164 s.
+    // Measured on the dragon (BENCHMARKS.md "Conversion", 2^23 streamed rays, bf16 MLP):
+    // at equal samples, more and smaller steps win slightly (1200 x 16384: 97.21 %, 0.90 %,
+    // 14.1 deg in 77 s of training; 2400 x 8192: 97.46 %, 0.85 %, 12.8 deg in 83 s), and
+    // doubling the normal loss weight buys 2 deg of normal error for 0.06 % of visibility
+    // (2400 x 8192 with weight 1: 97.52 %, 0.83 %, 14.7 deg).
     p.train.batch_size = 1u << 13;
+    p.train.loss.normal = 2.0f;
     if (name == "default") {
         p.train.steps = 2400;
         p.train_rays = 1u << 23;
@@ -361,7 +380,7 @@ ConvertResult convert(const ConvertOptions& opt, const ConvertProgress& progress
                                     std::to_string(preset.train.batch_size) + "|" + std::to_string(preset.train_rays) + "/" +
                                     std::to_string(preset.train_chunk_rays) + "/" +
                                     std::to_string(preset.train_window_chunks) +
-                                    "|" + model_json(desc).dump();
+                                    "|" + model_json(desc).dump() + "|" + recipe_key(preset, threads);
             const std::string file = hex16(fnv1a64(key)) + ".lsnif";
             const fs::path asset = outdir / file;
             json metrics;

@@ -163,7 +163,7 @@ TEST_CASE("2CylinderEngine converts: all meshes and 67 instances in the manifest
 
 TEST_CASE("bad inputs: clear errors naming the file, no output, and multi-input runs continue") {
     const fs::path out = fresh_dir("bad");
-    for (const std::string bad : {std::string(LSNIF_TEST_WORK_DIR) + "/does-not-exist.glb",
+    for (const std::string& bad : {std::string(LSNIF_TEST_WORK_DIR) + "/does-not-exist.glb",
                                   std::string(LSNIF_TEST_DATA_DIR) + "/valid/tiny.lsnif",  // unsupported format
                                   std::string("/usr/share/assimp/models/glTF2/IndexOutOfRange/IndexOutOfRange.gltf")}) {
         const ConvertResult r = convert(smoke({bad}, out));

@@ -65,6 +65,9 @@ struct LossWeights {
 // predict_raw, export and evaluation are fp32 whatever this says.
 enum class MlpPrecision : std::uint8_t { fp32, bf16, automatic };
 const char* precision_name(MlpPrecision p);
+// What a Trainer built with `requested` will run: bf16 only where the CPU and OS allow AMX.
+// Weights trained in bf16 and fp32 differ, so callers that cache assets key on this.
+MlpPrecision resolve_precision(MlpPrecision requested);
 
 struct TrainConfig {
     std::uint32_t steps = 2000;
