@@ -222,6 +222,7 @@ json bench_infer(const BenchOptions& o) {
 }
 
 std::string bench_text(const json& r) {
+    if (r["benchmark"] == "memory" || r["benchmark"] == "rays" || r["benchmark"] == "convert") return bench_scene_text(r);
     char buf[512];
     std::string s = "cpu: " + r["cpu"].get<std::string>() + ", threads " + std::to_string(r["threads"].get<int>()) +
                     "\nmodel: " + r["model"].get<std::string>() + "\n";

@@ -226,6 +226,11 @@ ConvertResult convert(const ConvertOptions& opt, const ConvertProgress& progress
     if (opt.gate_min_visibility >= 0) preset.gate.min_visibility = opt.gate_min_visibility;
     if (opt.steps > 0) preset.train.steps = opt.steps;
     if (opt.batch_size > 0) preset.train.batch_size = opt.batch_size;
+    if (opt.log2_table_size > 0) preset.model.log2_table_size = opt.log2_table_size;
+    if (opt.max_points > 0) preset.model.max_points = opt.max_points;
+    if (opt.grid_resolution > 0) preset.model.grid_resolution = opt.grid_resolution;
+    if (opt.hidden_width > 0)
+        for (auto& w : preset.model.hidden_width) w = opt.hidden_width;
     const std::uint32_t threads = opt.threads ? opt.threads : std::max(1u, std::thread::hardware_concurrency());
     auto report = [&](const ProgressEvent& e) {
         if (progress) progress(e);
@@ -235,12 +240,14 @@ ConvertResult convert(const ConvertOptions& opt, const ConvertProgress& progress
     std::vector<scene::Scene> scenes;  // kept alive while meshes are processed
     scenes.reserve(opt.inputs.size());
     std::size_t ok_inputs = 0, next_id = 0;
-    double total_train_seconds = 0;
+    double total_train_seconds = 0, import_seconds = 0;
 
     for (std::size_t in = 0; in < opt.inputs.size(); ++in) {
         const std::string& path = opt.inputs[in];
         report({path, "import"});
+        const auto import_t0 = Clock::now();
         auto imported = scene::import_scene(path);
+        import_seconds += since(import_t0);
         if (!imported.ok()) {
             res.errors.push_back(imported.error);
             inputs.push_back({{"path", path}, {"status", "error"}, {"error", imported.error}});
@@ -552,6 +559,7 @@ ConvertResult convert(const ConvertOptions& opt, const ConvertProgress& progress
 
     res.report = {{"inputs", inputs}, {"meshes", meshes}, {"instances", instances.size()},
                   {"errors", res.errors}, {"warnings", res.warnings}};
+    res.report["timings"] = {{"import", import_seconds}};  // per-mesh stages are in meshes[].timings
     if (opt.dry_run) res.report["dry_run"] = true;
     if (ok_inputs == 0 || opt.dry_run) return res;  // nothing converted, or a plan: leave OUTDIR untouched
 

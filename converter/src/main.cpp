@@ -2,18 +2,95 @@
 // everything it calls reports through return values.
 #include <lsnif/converter/bench.hpp>
 #include <lsnif/converter/convert.hpp>
+#include <lsnif/converter/eval.hpp>
 #include <lsnif/converter/file_tools.hpp>
 #include <lsnif/format/container.hpp>
 
 #include <CLI/CLI.hpp>
 
+#include <array>
 #include <chrono>
+#include <cmath>
+#include <cstdlib>
 #include <cstdio>
 
 #include <unistd.h>
 #include <iostream>
 
 namespace {
+
+// "x,y,z,..." into exactly n finite floats.
+bool parse_floats(const std::string& s, std::size_t n, float* out) {
+    std::vector<float> v;
+    std::size_t pos = 0;
+    for (;;) {
+        const std::size_t end = s.find(',', pos);
+        const std::string part = s.substr(pos, end == std::string::npos ? std::string::npos : end - pos);
+        char* stop = nullptr;
+        const float x = std::strtof(part.c_str(), &stop);
+        if (part.empty() || *stop != '\0' || !std::isfinite(x)) return false;
+        v.push_back(x);
+        if (end == std::string::npos) break;
+        pos = end + 1;
+    }
+    if (v.size() != n) return false;
+    std::copy(v.begin(), v.end(), out);
+    return true;
+}
+
+int run_eval(lsnif::converter::EvalOptions opt, const std::string& camera, const std::string& light,
+             const std::vector<std::string>& moves, bool as_json) {
+    if (!camera.empty()) {
+        float v[7] = {0, 0, 0, 0, 0, 0, 40.0f};
+        if (!parse_floats(camera, 7, v) && !parse_floats(camera, 6, v)) {
+            std::fprintf(stderr, "error: --camera '%s': expected ex,ey,ez,tx,ty,tz[,fov_deg]\n", camera.c_str());
+            return 2;
+        }
+        lsnif::converter::EvalCamera c;
+        c.eye = {v[0], v[1], v[2]};
+        c.target = {v[3], v[4], v[5]};
+        c.fov_deg = v[6];
+        opt.camera = c;
+    }
+    if (!light.empty()) {
+        std::array<float, 3> l{};
+        if (!parse_floats(light, 3, l.data())) {
+            std::fprintf(stderr, "error: --light '%s': expected x,y,z\n", light.c_str());
+            return 2;
+        }
+        opt.light = l;
+    }
+    for (const std::string& m : moves) {  // INSTANCE=m0,...,m11
+        const std::size_t eq = m.find('=');
+        std::array<float, 12> t{};
+        char* stop = nullptr;
+        const unsigned long idx = eq == std::string::npos ? 0 : std::strtoul(m.c_str(), &stop, 10);
+        if (eq == std::string::npos || stop != m.c_str() + eq || !parse_floats(m.substr(eq + 1), 12, t.data())) {
+            std::fprintf(stderr, "error: --instance-transform '%s': expected INDEX=m0,...,m11 (3x4 row-major)\n",
+                         m.c_str());
+            return 2;
+        }
+        opt.instance_transforms.emplace_back(std::uint32_t(idx), t);
+    }
+    const auto r = lsnif::converter::evaluate(opt);
+    for (const auto& e : r.errors) std::fprintf(stderr, "error: %s\n", e.c_str());
+    if (!r.ok()) return 1;
+    if (as_json) {
+        std::cout << r.report.dump(2) << "\n";
+    } else {
+        const auto& j = r.report;
+        std::printf("rendered %ux%u, %zu instances (%zu through LSNIF), images in %s\n", j["width"].get<unsigned>(),
+                    j["height"].get<unsigned>(), j["instances"].get<std::size_t>(),
+                    j["lsnif_instances"].get<std::size_t>(), j["images_dir"].get<std::string>().c_str());
+        for (const auto& [name, v] : j["images"].items())
+            std::printf("  %-10s FLIP mean %.4f (median %.4f, p95 %.4f)  PSNR %s dB\n", name.c_str(),
+                        v["flip_mean"].get<double>(), v["flip_median"].get<double>(), v["flip_p95"].get<double>(),
+                        v["psnr_db"].is_null() ? "inf" : std::to_string(v["psnr_db"].get<double>()).c_str());
+        std::printf("  overall    FLIP mean %.4f; secondary-ray time hybrid/reference %.2f\n",
+                    j["flip_mean"].get<double>(), j["secondary_time_ratio"].get<double>());
+    }
+    return 0;
+}
 
 int run_inspect(const std::string& path, bool as_json) {
     auto bytes = lsnif::format::read_file_bytes(path);
@@ -131,8 +208,34 @@ int main(int argc, char** argv) {
         ->check(CLI::Range(1u, 1000000u));
     convert->add_option("--batch", convert_opts.batch_size, "Override the preset's batch size (rays per step)")
         ->check(CLI::Range(64u, 1u << 20));
+    convert->add_option("--log2-table", convert_opts.log2_table_size, "Override T = 2^N hash-table rows per level")
+        ->check(CLI::Range(10u, 24u));
+    convert->add_option("--max-points", convert_opts.max_points, "Override H, voxel entry points per ray")
+        ->check(CLI::Range(1u, 64u));
+    convert->add_option("--grid", convert_opts.grid_resolution, "Override V, occupancy grid resolution")
+        ->check(CLI::Range(4u, 256u));
+    convert->add_option("--hidden", convert_opts.hidden_width, "Override the hidden layers' width")
+        ->check(CLI::Range(16u, 512u));
     convert->add_flag("--dry-run", convert_opts.dry_run,
                       "Import and classify only: print the plan (class, reasons, model size), write nothing");
+
+    lsnif::converter::EvalOptions eval_opts;
+    std::string eval_camera, eval_light;
+    std::vector<std::string> eval_moves;
+    bool eval_json = false;
+    auto* evalc = app.add_subcommand("eval", "Render reference (Embree) and hybrid (BVH + LSNIF) images of a converted "
+                                             "scene; compare them with FLIP and PSNR");
+    evalc->add_option("OUTDIR", eval_opts.outdir, "A `lsnif convert` output directory")->required();
+    evalc->add_option("--source", eval_opts.sources, "The converted inputs (default: the paths in the manifest)");
+    evalc->add_option("--images", eval_opts.images_dir, "Where PNGs and report.json go (default OUTDIR/eval)");
+    evalc->add_option("--camera", eval_camera, "ex,ey,ez,tx,ty,tz[,fov_deg] (default frames the scene)");
+    evalc->add_option("--light", eval_light, "Point light x,y,z (default above the scene)");
+    evalc->add_option("--instance-transform", eval_moves, "INDEX=m0,...,m11: place an instance elsewhere (3x4 row-major)");
+    evalc->add_option("--width", eval_opts.width, "Image width")->check(CLI::Range(1u, 8192u));
+    evalc->add_option("--height", eval_opts.height, "Image height")->check(CLI::Range(1u, 8192u));
+    evalc->add_option("--ao-samples", eval_opts.ao_samples, "Ambient-occlusion rays per pixel")->check(CLI::Range(1u, 1024u));
+    evalc->add_option("--threads", eval_opts.threads, "Worker threads (0 = all cores)");
+    evalc->add_flag("--json", eval_json, "Print the report as JSON");
 
     lsnif::converter::BenchOptions bench_opts;
     bool bench_json = false;
@@ -143,6 +246,25 @@ int main(int argc, char** argv) {
     bench->add_option("--seconds", bench_opts.min_seconds, "Minimum seconds per measurement")->check(CLI::Range(0.01, 600.0));
     auto* bench_train = bench->add_subcommand("train", "Training samples/s (forward+backward+Adam) for batch 2^14..2^16, vs sgemm");
     auto* bench_infer = bench->add_subcommand("infer", "Inference rays/s through the network and with occupancy early-outs");
+    lsnif::converter::SceneBenchOptions scene_bench;
+    auto* bench_memory = bench->add_subcommand("memory", ".lsnif bytes per complex object vs Embree's BVH and a BVH8 estimate");
+    auto* bench_rays = bench->add_subcommand("rays", "LSNIF inference vs rtcIntersect1/rtcIntersect16 on the same rays, per object");
+    for (auto* sub : {bench_memory, bench_rays}) {
+        sub->add_option("OUTDIR", scene_bench.outdir, "A `lsnif convert` output directory")->required();
+        sub->add_option("--source", scene_bench.sources, "The converted inputs (default: the manifest's paths)");
+        sub->add_flag("--json", bench_json, "Machine-readable output");
+        sub->add_option("--threads", scene_bench.threads, "Worker threads")->check(CLI::Range(1, 256));
+    }
+    bench_rays->add_option("--rays", scene_bench.rays, "Rays per object")->check(CLI::Range(1024ull, 1ull << 26));
+    bench_rays->add_option("--repeats", scene_bench.repeats, "Best of N")->check(CLI::Range(1u, 100u));
+    lsnif::converter::ConvertOptions bench_convert_opts;
+    auto* bench_conv = bench->add_subcommand("convert", "Convert INPUT... into OUTDIR and print the wall time split by stage");
+    bench_conv->add_option("INPUT", bench_convert_opts.inputs, "Scene files")->required();
+    bench_conv->add_option("-o,--output", bench_convert_opts.outdir, "Output directory")->required();
+    bench_conv->add_option("--preset", bench_convert_opts.preset, "Preset");
+    bench_conv->add_option("--threads", bench_convert_opts.threads, "Worker threads (0 = all cores)");
+    bench_conv->add_option("--complex", bench_convert_opts.force_complex, "Force a mesh (by name) to become an LSNIF");
+    bench_conv->add_flag("--json", bench_json, "Machine-readable output");
     for (auto* sub : {bench_train, bench_infer}) {
         sub->add_flag("--json", bench_json, "Machine-readable output");
         sub->add_option("--threads", bench_opts.threads, "Worker threads")->check(CLI::Range(1, 256));
@@ -161,9 +283,19 @@ int main(int argc, char** argv) {
             for (int i = 0; i < argc; ++i) convert_opts.command_line += (i ? " " : "") + std::string(argv[i]);
             return run_convert(convert_opts, convert_json);
         }
+        if (*evalc) return run_eval(eval_opts, eval_camera, eval_light, eval_moves, eval_json);
         if (*bench) {
-            const auto report = *bench_train ? lsnif::converter::bench_train(bench_opts)
-                                             : lsnif::converter::bench_infer(bench_opts);
+            nlohmann::json report;
+            std::string err;
+            if (*bench_train) report = lsnif::converter::bench_train(bench_opts);
+            else if (*bench_infer) report = lsnif::converter::bench_infer(bench_opts);
+            else if (*bench_memory) report = lsnif::converter::bench_memory(scene_bench, err);
+            else if (*bench_rays) report = lsnif::converter::bench_rays(scene_bench, err);
+            else report = lsnif::converter::bench_convert(bench_convert_opts, err);
+            if (report.is_null()) {
+                std::fprintf(stderr, "error: %s\n", err.c_str());
+                return 1;
+            }
             std::cout << (bench_json ? report.dump(2) + "\n" : lsnif::converter::bench_text(report));
             return 0;
         }

@@ -35,18 +35,19 @@ done
 
 # Truncations and header/table bit flips of a valid file, as processes (exit code 1, never
 # a signal). Every truncation and every flip is also checked in-process through the same
-# validate code (tests/converter/test_file_tools.cpp); here a dense sample keeps the
-# sanitizer run short: every offset in header and table, every 5th beyond; bits 0 and 7
-# (and a middle bit) of every header/table byte.
+# validate code (tests/converter/test_file_tools.cpp); here a sample keeps the sanitizer
+# run short (each sanitized process start costs ~0.15 s; the exhaustive sample of every
+# offset took 275 s in CI): every 3rd offset in header and table, every 17th beyond; one
+# bit of every 3rd header/table byte, cycling through the bit positions.
 src="$data/valid/tiny.lsnif"
 size=$(stat -c %s "$src")
-for ((n = 0; n < size; n += (n < 384 ? 1 : 5))); do
+for ((n = 0; n < size; n += (n < 384 ? 3 : 17))); do
   head -c "$n" "$src" >"$work/t.lsnif"
   "$lsnif" validate "$work/t.lsnif" >/dev/null 2>&1; rc=$?
   [[ $rc == 1 ]] || { bad "truncation to $n bytes: exit $rc"; break; }
 done
-for ((byte = 0; byte < 384; byte += 1)); do
-  for bit in 0 4 7; do
+for ((byte = 0; byte < 384; byte += 3)); do
+  for bit in $(((byte / 3) % 8)); do
     cp "$src" "$work/f.lsnif"
     orig=$(od -An -tu1 -j "$byte" -N1 "$src" | tr -d ' ')
     printf "$(printf '\\%03o' $((orig ^ (1 << bit))))" | dd of="$work/f.lsnif" bs=1 seek="$byte" conv=notrunc status=none

@@ -73,6 +73,12 @@ struct ConvertOptions {
     std::uint32_t steps = 0;          // > 0 overrides the preset's training steps
     std::uint32_t batch_size = 0;     // > 0 overrides the preset's batch size
     bool dry_run = false;             // import and classify only; report the plan, write nothing
+    // Model overrides (0 = the preset's value), for sweeps such as scripts/tradeoff. A
+    // changed table size is the largest the per-mesh sizing may choose.
+    std::uint32_t log2_table_size = 0;  // T = 2^n rows per hashed level
+    std::uint32_t max_points = 0;       // H, voxel entry points per ray
+    std::uint32_t grid_resolution = 0;  // V, occupancy grid cells per axis
+    std::uint32_t hidden_width = 0;     // width of both hidden layers
 };
 
 // Progress events: stage changes and training steps.

@@ -1,0 +1,100 @@
+// `lsnif eval`: renders a converted scene twice and compares the images (DESIGN.md §5,
+// "Image error"). Primary visibility always comes from the real meshes through Embree
+// (standing in for the paper's rasterized G-buffer: vertex and face data stay exact);
+// secondary rays — shadow rays to a point light, ambient-occlusion rays and mirror
+// reflections — are traced
+//   * reference: Embree for every mesh, and
+//   * hybrid:    Embree for simple meshes, the LSNIF reader (lsnif_intersect_instance)
+//                for complex ones, with each instance's transform applied at run time.
+// Camera, light and instance transforms are inputs of the render, not of the conversion:
+// they can change without touching the assets.
+//
+// Contract: never throws, exits or prints; failures are returned as "<file>: <problem>"
+// lines in EvalResult::errors, and no image is left half-written (PNGs go through a
+// temporary file and a rename).
+#pragma once
+
+#include <array>
+#include <cstdint>
+#include <memory>
+#include <optional>
+#include <span>
+#include <string>
+#include <utility>
+#include <vector>
+
+#include <lsnif/lsnif.h>
+#include <nlohmann/json.hpp>
+
+namespace lsnif::converter {
+
+struct EvalCamera {
+    std::array<float, 3> eye{}, target{}, up{0.0f, 1.0f, 0.0f};
+    float fov_deg = 40.0f;  // vertical field of view
+};
+
+struct EvalOptions {
+    std::string outdir;                // a conversion's OUTDIR (manifest.json + assets)
+    std::vector<std::string> sources;  // the converted inputs; empty = the manifest's paths
+    std::string images_dir;            // where PNGs and report.json go; "" = OUTDIR/eval
+    std::uint32_t width = 480, height = 360;
+    std::optional<EvalCamera> camera;           // default frames the scene's bounds
+    std::optional<std::array<float, 3>> light;  // point light; default above and in front
+    std::uint32_t ao_samples = 16;              // cosine-distributed rays per pixel
+    float ao_radius = 0.1f;                     // AO ray length, fraction of the scene diagonal
+    std::uint32_t threads = 0;                  // 0 = hardware threads
+    std::uint64_t seed = 1;
+    // Run-time placement changes: instance index -> object-to-world 3x4 row-major matrix.
+    std::vector<std::pair<std::uint32_t, std::array<float, 12>>> instance_transforms;
+    bool write_images = true;
+};
+
+struct EvalResult {
+    nlohmann::json report;            // see schema in docs and tests; empty on failure
+    std::vector<std::string> errors;  // "<file>: <problem>"
+    bool ok() const { return errors.empty(); }
+};
+
+EvalResult evaluate(const EvalOptions& opt);
+
+// ---- the two tracers, exposed for tests and examples ----------------------------------
+
+// Closest-hit record of a world-space ray. `instance` indexes the manifest's instances;
+// -1 = miss. `normal` is the unit world-space shading normal (interpolated vertex normals
+// for Embree hits, the network's normal for LSNIF hits).
+struct TraceHit {
+    float t = 0.0f;
+    std::array<float, 3> normal{};
+    std::int32_t instance = -1;
+};
+
+// A loaded scene: the manifest's instances over re-imported source geometry, with both
+// tracers built. Thread-safe for concurrent trace calls.
+class EvalScene {
+public:
+    // Loads OUTDIR/manifest.json, re-imports the sources (checking that every mesh's
+    // geometry hash matches the manifest), opens the complex meshes' assets and builds
+    // Embree scenes. Returns nullptr and fills `error` on failure.
+    static std::unique_ptr<EvalScene> load(const EvalOptions& opt, std::string& error);
+    ~EvalScene();
+    EvalScene(const EvalScene&) = delete;
+    EvalScene& operator=(const EvalScene&) = delete;
+
+    // `hybrid` selects the tracer. Rays use the reader's struct (world space, t in
+    // [tmin, tmax]); `hits`/`occluded` have rays.size() entries.
+    void closest(bool hybrid, std::span<const lsnif_ray> rays, std::span<TraceHit> hits) const;
+    void occluded(bool hybrid, std::span<const lsnif_ray> rays, std::span<std::uint8_t> occluded) const;
+
+    std::size_t instance_count() const;
+    std::size_t lsnif_instance_count() const;  // instances traced through the reader in hybrid
+    std::array<float, 6> world_bounds() const;  // min xyz, max xyz
+    std::array<float, 6> instance_bounds(std::size_t instance) const;
+    struct Impl;
+
+private:
+    explicit EvalScene(std::unique_ptr<Impl> impl);
+    std::unique_ptr<Impl> impl_;
+    friend EvalResult evaluate(const EvalOptions& opt);
+};
+
+}  // namespace lsnif::converter

@@ -1,0 +1,339 @@
+// `lsnif bench memory|rays|convert`: a converted scene measured against Embree on the same
+// machine in the same run (DESIGN.md §5 "Speed"; BENCHMARKS.md has the figures).
+#include <lsnif/converter/bench.hpp>
+#include <lsnif/converter/convert.hpp>
+#include <lsnif/lsnif.h>
+#include <lsnif/sampling/sampling.hpp>
+#include <lsnif/scene/scene.hpp>
+
+#include <embree3/rtcore.h>
+
+#include <algorithm>
+#include <atomic>
+#include <chrono>
+#include <filesystem>
+#include <fstream>
+#include <thread>
+
+namespace lsnif::converter {
+namespace fs = std::filesystem;
+using nlohmann::json;
+using Clock = std::chrono::steady_clock;
+
+namespace {
+
+double since(Clock::time_point t0) { return std::chrono::duration<double>(Clock::now() - t0).count(); }
+
+// One complex mesh of a conversion: its source geometry and its opened asset.
+struct Object {
+    std::string name;
+    scene::Mesh mesh;
+    sampling::Box box;
+    lsnif_model* model = nullptr;
+    std::uint64_t lsnif_bytes = 0;
+    std::uint32_t instances = 0;
+};
+
+struct Loaded {
+    std::vector<Object> objects;
+    json manifest;
+    ~Loaded() {
+        for (auto& o : objects)
+            if (o.model) lsnif_close(o.model);
+    }
+};
+
+bool load_objects(const SceneBenchOptions& opt, Loaded& out, std::string& error) {
+    const fs::path mp = fs::path(opt.outdir) / "manifest.json";
+    std::ifstream in(mp);
+    if (!in) {
+        error = mp.string() + ": cannot open (is it a `lsnif convert` output directory?)";
+        return false;
+    }
+    out.manifest = json::parse(in, nullptr, false);
+    if (!out.manifest.is_object() || !out.manifest.contains("meshes") || !out.manifest.contains("inputs")) {
+        error = mp.string() + ": not a manifest";
+        return false;
+    }
+    std::vector<std::string> sources = opt.sources;
+    if (sources.empty())
+        for (const json& i : out.manifest["inputs"]) sources.push_back(i.value("path", ""));
+    if (sources.size() != out.manifest["inputs"].size()) {
+        error = mp.string() + ": the conversion had " + std::to_string(out.manifest["inputs"].size()) +
+                " inputs, --source gives " + std::to_string(sources.size());
+        return false;
+    }
+    std::vector<std::optional<scene::Scene>> scenes(sources.size());
+    for (const json& m : out.manifest["meshes"]) {
+        if (m.value("class", "") != "complex" || !m.contains("lsnif")) continue;
+        const std::size_t input = m.value("input", std::size_t(0)), src = m.value("source_mesh", std::size_t(0));
+        if (input >= sources.size()) {
+            error = mp.string() + ": mesh '" + m.value("name", "") + "' refers to a missing input";
+            return false;
+        }
+        if (!scenes[input]) {
+            auto r = scene::import_scene(sources[input]);
+            if (!r.ok()) {
+                error = r.error;
+                return false;
+            }
+            scenes[input] = std::move(r.scene);
+        }
+        if (src >= scenes[input]->meshes.size() ||
+            scene::geometry_hash(scenes[input]->meshes[src]) != m.value("geometry_hash", "")) {
+            error = sources[input] + ": mesh '" + m.value("name", "") +
+                    "' differs from the converted geometry (geometry hash mismatch)";
+            return false;
+        }
+        Object o;
+        o.name = m.value("name", "");
+        o.mesh = scenes[input]->meshes[src];
+        for (int a = 0; a < 3; ++a) {
+            o.box.min[a] = m["stats"]["box_min"][a].get<float>();
+            o.box.max[a] = m["stats"]["box_max"][a].get<float>();
+        }
+        o.instances = m.value("instances", 1u);
+        const fs::path asset = fs::path(opt.outdir) / m["lsnif"]["file"].get<std::string>();
+        lsnif_error e{};
+        if (lsnif_open_file(asset.c_str(), &o.model, &e) != LSNIF_OK) {
+            error = asset.string() + ": " + lsnif_status_string(e.status) + " (" + e.message + ")";
+            return false;
+        }
+        std::error_code ec;
+        o.lsnif_bytes = fs::file_size(asset, ec);
+        out.objects.push_back(std::move(o));
+    }
+    if (out.objects.empty()) {
+        error = mp.string() + ": no complex mesh with an asset to measure";
+        return false;
+    }
+    return true;
+}
+
+// Node counts of an 8-wide BVH over the triangles, built by Embree's own BVH builder
+// (rtcBuildBVH, SAH, medium quality) with leaves of at most 3 triangles — the layout of
+// compressed wide BVHs (Ylitie et al. 2017) that the paper's 80-bytes-per-node estimate
+// assumes. Embree 3 does not expose the node count of its internal scene BVH.
+struct Bvh8Counts {
+    std::uint64_t inner = 0, leaves = 0;
+};
+
+Bvh8Counts count_bvh8_nodes(RTCDevice device, const scene::Mesh& m) {
+    std::vector<RTCBuildPrimitive> prims(m.triangle_count());
+    for (std::size_t t = 0; t < prims.size(); ++t) {
+        float lo[3] = {INFINITY, INFINITY, INFINITY}, hi[3] = {-INFINITY, -INFINITY, -INFINITY};
+        for (int c = 0; c < 3; ++c)
+            for (int a = 0; a < 3; ++a) {
+                const float v = m.positions[std::size_t(m.indices[t * 3 + c]) * 3 + a];
+                lo[a] = std::min(lo[a], v);
+                hi[a] = std::max(hi[a], v);
+            }
+        prims[t] = {lo[0], lo[1], lo[2], 0u, hi[0], hi[1], hi[2], std::uint32_t(t)};
+    }
+    struct Counters {
+        std::atomic<std::uint64_t> inner{0}, leaves{0};
+    } counters;
+    RTCBVH bvh = rtcNewBVH(device);
+    RTCBuildArguments args = rtcDefaultBuildArguments();
+    args.byteSize = sizeof(args);
+    args.buildQuality = RTC_BUILD_QUALITY_MEDIUM;
+    args.maxBranchingFactor = 8;
+    args.maxDepth = 1024;
+    args.sahBlockSize = 1;
+    args.minLeafSize = 1;
+    args.maxLeafSize = 3;
+    args.traversalCost = 1.0f;
+    args.intersectionCost = 1.0f;
+    args.bvh = bvh;
+    args.primitives = prims.data();
+    args.primitiveCount = prims.size();
+    args.primitiveArrayCapacity = prims.size();
+    args.userPtr = &counters;
+    args.createNode = [](RTCThreadLocalAllocator alloc, unsigned, void* user) -> void* {
+        static_cast<Counters*>(user)->inner++;
+        return rtcThreadLocalAlloc(alloc, 8, 8);
+    };
+    args.setNodeChildren = [](void*, void**, unsigned, void*) {};
+    args.setNodeBounds = [](void*, const RTCBounds**, unsigned, void*) {};
+    args.createLeaf = [](RTCThreadLocalAllocator alloc, const RTCBuildPrimitive*, size_t, void* user) -> void* {
+        static_cast<Counters*>(user)->leaves++;
+        return rtcThreadLocalAlloc(alloc, 8, 8);
+    };
+    rtcBuildBVH(&args);
+    rtcReleaseBVH(bvh);
+    return {counters.inner.load(), counters.leaves.load()};
+}
+
+std::unique_ptr<sampling::EmbreeSource> make_source(const Object& o, std::uint32_t threads, std::string& error) {
+    sampling::MeshView v{o.mesh.positions, o.mesh.indices, o.mesh.normals, o.mesh.triangle_materials};
+    sampling::SamplingConfig cfg;
+    cfg.threads = threads;
+    return sampling::EmbreeSource::create(v, o.box, cfg, error);
+}
+
+}  // namespace
+
+json bench_memory(const SceneBenchOptions& opt, std::string& error) {
+    Loaded l;
+    if (!load_objects(opt, l, error)) return {};
+    RTCDevice device = rtcNewDevice(nullptr);
+    json objects = json::array();
+    std::uint64_t total_lsnif = 0, total_bvh = 0, total_bvh8 = 0;
+    for (const Object& o : l.objects) {
+        auto src = make_source(o, opt.threads, error);
+        if (!src) {
+            rtcReleaseDevice(device);
+            error = o.name + ": " + error;
+            return {};
+        }
+        const Bvh8Counts c = count_bvh8_nodes(device, o.mesh);
+        const std::uint64_t bvh8 = 80 * c.inner;
+        total_lsnif += o.lsnif_bytes;
+        total_bvh += src->bvh_bytes();
+        total_bvh8 += bvh8;
+        objects.push_back({{"name", o.name},
+                           {"triangles", o.mesh.triangle_count()},
+                           {"instances", o.instances},
+                           {"lsnif_bytes", o.lsnif_bytes},
+                           {"embree_bvh_bytes", src->bvh_bytes()},
+                           {"embree_device_bytes", src->device_bytes()},
+                           {"bvh8_inner_nodes", c.inner},
+                           {"bvh8_leaves", c.leaves},
+                           {"bvh8_compressed_bytes_estimate", bvh8},
+                           {"ratio_embree_over_lsnif", double(src->bvh_bytes()) / double(o.lsnif_bytes)},
+                           {"ratio_bvh8_over_lsnif", double(bvh8) / double(o.lsnif_bytes)}});
+    }
+    rtcReleaseDevice(device);
+    return {{"benchmark", "memory"},
+            {"outdir", opt.outdir},
+            {"objects", objects},
+            {"total",
+             {{"lsnif_bytes", total_lsnif},
+              {"embree_bvh_bytes", total_bvh},
+              {"bvh8_compressed_bytes_estimate", total_bvh8},
+              {"ratio_embree_over_lsnif", double(total_bvh) / double(std::max<std::uint64_t>(1, total_lsnif))}}}};
+}
+
+json bench_rays(const SceneBenchOptions& opt, std::string& error) {
+    Loaded l;
+    if (!load_objects(opt, l, error)) return {};
+    json objects = json::array();
+    for (const Object& o : l.objects) {
+        auto src = make_source(o, opt.threads, error);
+        if (!src) {
+            error = o.name + ": " + error;
+            return {};
+        }
+        // Embree: rtcIntersect1 loop and rtcIntersect16 packets over the rays generate()
+        // makes (all three families, a quarter shadow rays), best of `repeats`.
+        const sampling::GenerationStats g = sampling::measure_throughput(*src, opt.seed, opt.rays, opt.repeats);
+        std::vector<trainer::Sample> samples;
+        src->generate(opt.seed, opt.rays, samples);
+        std::vector<lsnif_ray> rays(samples.size());
+        for (std::size_t i = 0; i < samples.size(); ++i) {
+            const auto& r = samples[i].ray;
+            rays[i] = {{r.org[0], r.org[1], r.org[2]}, r.tmin, {r.dir[0], r.dir[1], r.dir[2]}, r.tmax};
+        }
+        // The reader on the same rays: each thread takes 256-ray batches from a shared
+        // counter (lsnif.h's advice), same thread count.
+        std::vector<lsnif_hit> hits(rays.size());
+        double best = INFINITY;
+        for (std::uint32_t rep = 0; rep < opt.repeats; ++rep) {
+            std::atomic<std::size_t> next{0};
+            const auto t0 = Clock::now();
+            auto work = [&] {
+                for (std::size_t b; (b = next.fetch_add(256)) < rays.size();)
+                    lsnif_intersect(o.model, rays.data() + b, std::min<std::size_t>(256, rays.size() - b),
+                                    hits.data() + b);
+            };
+            std::vector<std::thread> pool;
+            for (std::uint32_t t = 1; t < std::max(1u, opt.threads); ++t) pool.emplace_back(work);
+            work();
+            for (auto& t : pool) t.join();
+            best = std::min(best, since(t0));
+        }
+        std::size_t agree = 0;
+        for (std::size_t i = 0; i < rays.size(); ++i) agree += (hits[i].hit != 0) == (samples[i].hit != 0);
+        const double lsnif_rps = double(rays.size()) / best;
+        objects.push_back({{"name", o.name},
+                           {"triangles", o.mesh.triangle_count()},
+                           {"rays", rays.size()},
+                           {"threads", opt.threads},
+                           {"lsnif_rays_per_second", lsnif_rps},
+                           {"rtcintersect1_rays_per_second", g.plain_rtcintersect_rays_per_second},
+                           {"rtcintersect16_rays_per_second", g.packet_rays_per_second},
+                           {"ratio_lsnif_over_rtcintersect1", lsnif_rps / g.plain_rtcintersect_rays_per_second},
+                           {"ratio_lsnif_over_rtcintersect16", lsnif_rps / g.packet_rays_per_second},
+                           {"time_ratio_lsnif_over_rtcintersect1", g.plain_rtcintersect_rays_per_second / lsnif_rps},
+                           {"hit_agreement", double(agree) / double(rays.size())}});
+    }
+    return {{"benchmark", "rays"}, {"outdir", opt.outdir}, {"objects", objects}};
+}
+
+json bench_convert(const ConvertOptions& copt, std::string& error) {
+    ConvertOptions o = copt;
+    const auto t0 = Clock::now();
+    const ConvertResult r = convert(o);
+    const double wall = since(t0);
+    if (!r.ok()) {
+        error = r.errors.empty() ? "conversion failed" : r.errors[0];
+        return {};
+    }
+    json objects = json::array();
+    json totals = json::object();
+    for (const json& m : r.report["meshes"]) {
+        if (!m.contains("timings")) continue;
+        json t = m["timings"];
+        for (const auto& [k, v] : t.items()) totals[k] = totals.value(k, 0.0) + v.get<double>();
+        objects.push_back({{"name", m["name"]}, {"class", m["class"]}, {"triangles", m.value("triangles", 0)},
+                           {"timings", t}});
+    }
+    json out = {{"benchmark", "convert"}, {"preset", o.preset}, {"threads", o.threads}, {"wall_seconds", wall},
+                {"objects", objects}, {"stage_totals", totals}};
+    if (r.report.contains("timings")) out["run_timings"] = r.report["timings"];
+    return out;
+}
+
+std::string bench_scene_text(const json& r) {
+    char buf[640];
+    std::string s;
+    if (r["benchmark"] == "memory") {
+        s += "object                      triangles  .lsnif bytes  Embree BVH bytes (ratio)  BVH8 est. bytes (ratio)\n";
+        for (const json& o : r["objects"]) {
+            std::snprintf(buf, sizeof buf, "%-26s %10llu %13llu %17llu (%5.2fx) %16llu (%5.2fx)\n",
+                          o["name"].get<std::string>().c_str(), o["triangles"].get<unsigned long long>(),
+                          o["lsnif_bytes"].get<unsigned long long>(), o["embree_bvh_bytes"].get<unsigned long long>(),
+                          o["ratio_embree_over_lsnif"].get<double>(),
+                          o["bvh8_compressed_bytes_estimate"].get<unsigned long long>(),
+                          o["ratio_bvh8_over_lsnif"].get<double>());
+            s += buf;
+        }
+    } else if (r["benchmark"] == "rays") {
+        s += "object                      rays     LSNIF rays/s  rtcIntersect1 rays/s (LSNIF ratio)  rtcIntersect16 (ratio)  hit agreement\n";
+        for (const json& o : r["objects"]) {
+            std::snprintf(buf, sizeof buf, "%-26s %8llu %12.0f %20.0f (%5.2fx) %16.0f (%5.2fx) %8.2f%%\n",
+                          o["name"].get<std::string>().c_str(), o["rays"].get<unsigned long long>(),
+                          o["lsnif_rays_per_second"].get<double>(), o["rtcintersect1_rays_per_second"].get<double>(),
+                          o["ratio_lsnif_over_rtcintersect1"].get<double>(),
+                          o["rtcintersect16_rays_per_second"].get<double>(),
+                          o["ratio_lsnif_over_rtcintersect16"].get<double>(), 100 * o["hit_agreement"].get<double>());
+            s += buf;
+        }
+    } else {
+        std::snprintf(buf, sizeof buf, "preset %s, wall %.2f s\n", r["preset"].get<std::string>().c_str(),
+                      r["wall_seconds"].get<double>());
+        s += buf;
+        if (r.contains("run_timings"))
+            for (const auto& [k, v] : r["run_timings"].items()) {
+                std::snprintf(buf, sizeof buf, "  %-10s %8.3f s\n", k.c_str(), v.get<double>());
+                s += buf;
+            }
+        for (const auto& [k, v] : r["stage_totals"].items()) {
+            std::snprintf(buf, sizeof buf, "  %-10s %8.3f s (all objects)\n", k.c_str(), v.get<double>());
+            s += buf;
+        }
+    }
+    return s;
+}
+
+}  // namespace lsnif::converter
