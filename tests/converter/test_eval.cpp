@@ -2,6 +2,7 @@
 // instance transforms, camera/light changes without re-conversion, and bad inputs.
 #include <doctest/doctest.h>
 
+#include <lsnif/converter/bench.hpp>
 #include <lsnif/converter/convert.hpp>
 #include <lsnif/converter/eval.hpp>
 
@@ -222,4 +223,56 @@ TEST_CASE("eval errors name the file: no manifest, wrong source geometry") {
     REQUIRE(r.errors.size() == 1);
     CHECK(r.errors[0].find("armadillo.off") != std::string::npos);
     CHECK(r.errors[0].find("geometry hash mismatch") != std::string::npos);
+}
+
+TEST_CASE("bench memory, rays and convert measure a real conversion against Embree") {
+    SceneBenchOptions o;
+    o.outdir = converted_dragon().string();
+    o.threads = 2;
+    o.rays = 8192;
+    o.repeats = 1;
+    std::string err;
+    const json mem = bench_memory(o, err);
+    REQUIRE_MESSAGE(!mem.is_null(), err);
+    REQUIRE(mem["objects"].size() == 1);
+    const json& m = mem["objects"][0];
+    CHECK(m["triangles"] == 19994);
+    CHECK(m["lsnif_bytes"].get<double>() == double(fs::file_size(
+              converted_dragon() / json::parse(file_bytes(converted_dragon() / "manifest.json"))["meshes"][0]["lsnif"]["file"]
+                                       .get<std::string>())));
+    CHECK(m["embree_bvh_bytes"].get<double>() > 100000.0);  // ~1.4 MB for 20k triangles
+    // An 8-wide tree over 20k triangles in leaves of <= 3: at least n/3/8 inner nodes,
+    // fewer than the triangle count.
+    CHECK(m["bvh8_inner_nodes"].get<double>() > 19994.0 / 24.0);
+    CHECK(m["bvh8_inner_nodes"].get<double>() < 19994.0);
+    CHECK(m["bvh8_compressed_bytes_estimate"] == 80 * m["bvh8_inner_nodes"].get<std::uint64_t>());
+
+    const json rays = bench_rays(o, err);
+    REQUIRE_MESSAGE(!rays.is_null(), err);
+    const json& r = rays["objects"][0];
+    CHECK(r["rays"] == 8192);
+    CHECK(r["lsnif_rays_per_second"].get<double>() > 0.0);
+    CHECK(r["ratio_lsnif_over_rtcintersect1"].get<double>() > 0.0);
+    CHECK(r["hit_agreement"].get<double>() > 0.75);  // the smoke model is small
+    CHECK(bench_scene_text(rays).find("ChineseDragon-10kv") != std::string::npos);
+
+    ConvertOptions c;
+    c.inputs = {kDragon};
+    c.outdir = (fs::path(LSNIF_TEST_WORK_DIR) / "bench_convert").string();
+    fs::remove_all(c.outdir);
+    c.preset = "smoke";
+    c.threads = 2;
+    c.force_complex = {"ChineseDragon-10kv"};
+    const json conv = bench_convert(c, err);
+    REQUIRE_MESSAGE(!conv.is_null(), err);
+    for (const char* stage : {"classify", "voxelize", "sample", "train", "evaluate", "write"})
+        CHECK_MESSAGE(conv["stage_totals"].contains(stage), stage);
+    CHECK(conv["run_timings"].contains("import"));
+    double sum = conv["run_timings"]["import"].get<double>();
+    for (const auto& [k, v] : conv["stage_totals"].items()) sum += v.get<double>();
+    CHECK(conv["wall_seconds"].get<double>() >= sum * 0.99);
+
+    o.outdir = (fs::path(LSNIF_TEST_WORK_DIR) / "no_such_conversion").string();
+    CHECK(bench_memory(o, err).is_null());
+    CHECK(err.find("manifest.json") != std::string::npos);
 }
