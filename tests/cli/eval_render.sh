@@ -1,0 +1,52 @@
+#!/usr/bin/env bash
+# End to end as processes: convert CGAL's dragon (smoke preset), then `lsnif eval`,
+# `lsnif bench memory` and the reference renderer examples/render on the result.
+# usage: eval_render.sh LSNIF_BINARY RENDER_BINARY MESH WORK_DIR
+set -u
+lsnif=$1 render=$2 mesh=$3 work=$4
+fail=0
+bad() { echo "FAIL: $*"; fail=1; }
+rm -rf "$work" && mkdir -p "$work"
+out=$work/conv
+
+"$lsnif" convert "$mesh" -o "$out" --preset smoke --complex ChineseDragon-10kv --threads 2 --seed 5 >/dev/null 2>&1 \
+  || { echo "FAIL: convert exited $?"; exit 1; }
+ls "$out"/*.lsnif >/dev/null 2>&1 || bad "no asset written"
+
+# eval: text report, the nine PNGs and report.json; JSON flavour parses and has FLIP in [0,1].
+txt=$("$lsnif" eval "$out" --width 64 --height 48 --ao-samples 2 --images "$work/img") || bad "eval exited $?"
+grep -q "overall    FLIP mean" <<<"$txt" || bad "eval text lacks the overall line: $txt"
+for kind in reference hybrid flip; do
+  for effect in shadow ao reflection; do
+    f=$work/img/${kind}_${effect}.png
+    [[ $(head -c 8 "$f" | od -An -tx1 | tr -d ' \n') == 89504e470d0a1a0a ]] || bad "$f is not a PNG"
+  done
+done
+[[ -s $work/img/report.json ]] || bad "no report.json"
+"$lsnif" eval "$out" --width 32 --height 24 --ao-samples 1 --images "$work/img2" --json >"$work/eval.json" || bad "eval --json exited $?"
+python3 - "$work/eval.json" <<'PY' || bad "eval JSON"
+import json, sys
+r = json.load(open(sys.argv[1]))
+assert r["lsnif_instances"] == 1, r
+for e in ("shadow", "ao", "reflection"):
+    assert 0.0 <= r["images"][e]["flip_mean"] <= 1.0
+PY
+# Bad camera string: usage error (exit 2), one error line, nothing rendered.
+"$lsnif" eval "$out" --camera 1,2,x --images "$work/img3" 2>"$work/err"; rc=$?
+[[ $rc == 2 ]] || bad "bad --camera exit $rc"
+grep -q "^error: --camera" "$work/err" || bad "bad --camera message: $(cat "$work/err")"
+[[ ! -e $work/img3 ]] || bad "bad --camera still rendered"
+# Missing conversion: exit 1 naming manifest.json.
+"$lsnif" eval "$work/nothing" 2>"$work/err"; rc=$?
+[[ $rc == 1 ]] && grep -q "manifest.json" "$work/err" || bad "missing OUTDIR: exit $rc, $(cat "$work/err")"
+
+# bench memory names the object and both byte counts.
+"$lsnif" bench memory "$out" | grep -q "ChineseDragon-10kv *19994" || bad "bench memory output"
+
+# The reference renderer: a P6 image of the requested size, not all background.
+"$render" "$out" "$work/r.ppm" 64 48 >/dev/null || bad "render exited $?"
+head -c 13 "$work/r.ppm" | cmp -s - <(printf 'P6\n64 48\n255\n') || bad "render header"
+[[ $(stat -c %s "$work/r.ppm") == $((13 + 64 * 48 * 3)) ]] || bad "render size"
+distinct=$(tail -c $((64 * 48 * 3)) "$work/r.ppm" | od -An -tu1 -v | tr -s ' ' '\n' | sort -u | wc -l)
+(( distinct > 10 )) || bad "render looks empty ($distinct distinct byte values)"
+exit $fail
