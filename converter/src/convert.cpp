@@ -92,6 +92,11 @@ std::vector<std::string> check_gate(const trainer::Metrics& m, const Gate& g) {
         fails.push_back(gate_reason("visibility accuracy", 100 * m.pooled.visibility_accuracy, "<",
                                     100 * g.min_visibility, "%"));
     for (int f = 0; f < trainer::kFamilyCount; ++f)
+        if (m.family[f].rays < g.min_family_rays)
+            fails.push_back(std::string("held-out ") + trainer::family_name(trainer::Family(f)) + " rays reaching the network: " +
+                            std::to_string(m.family[f].rays) + " < " + std::to_string(g.min_family_rays) +
+                            " (too few to measure)");
+    for (int f = 0; f < trainer::kFamilyCount; ++f)
         if (m.family[f].rays && m.family[f].visibility_accuracy < g.min_family_visibility)
             fails.push_back(gate_reason((std::string(trainer::family_name(trainer::Family(f))) + " visibility").c_str(),
                                         100 * m.family[f].visibility_accuracy, "<", 100 * g.min_family_visibility, "%"));
@@ -309,6 +314,22 @@ ConvertResult convert(const ConvertOptions& opt, const ConvertProgress& progress
                 finish_simple("cannot bound the mesh: " + box.error().message);
                 continue;
             }
+            {
+                double extent = 0, coord = 0;
+                for (int a = 0; a < 3; ++a) {
+                    extent = std::max(extent, double(box->max[a]) - double(box->min[a]));
+                    coord = std::max({coord, std::fabs(double(box->min[a])), std::fabs(double(box->max[a]))});
+                }
+                if (!(extent >= kMinModelExtent && extent <= kMaxModelExtent && coord <= kMaxModelExtent)) {
+                    char why[200];
+                    std::snprintf(why, sizeof why,
+                                  "box extent %.3g (coordinates up to %.3g) is outside the range LSNIF models in "
+                                  "single precision [%g, %g]",
+                                  extent, coord, kMinModelExtent, kMaxModelExtent);
+                    finish_simple(why);
+                    continue;
+                }
+            }
             format::ModelDesc desc = preset.model;
             desc.box_min = box->min;
             desc.box_max = box->max;
@@ -513,7 +534,8 @@ ConvertResult convert(const ConvertOptions& opt, const ConvertProgress& progress
                           {"rays", drawn},
                           {"rays_per_round", chunk},
                           {"window_rounds", std::max<std::uint32_t>(1, preset.train_window_chunks)},
-                          {"seconds", tres.seconds},
+                          // No wall time here: an asset must be reproducible byte for byte
+                          // (same input, seed and threads); timings are in the report.
                           {"learning_rate_grid", tcfg.grid_adam.lr},
                           {"learning_rate_mlp", tcfg.mlp_adam.lr},
                           {"loss_weights",

@@ -280,7 +280,19 @@ int main(int argc, char** argv) {
         if (*inspect) return run_inspect(inspect_path, inspect_json);
         if (*validate) return run_validate(validate_paths, validate_json);
         if (*convert) {
-            for (int i = 0; i < argc; ++i) convert_opts.command_line += (i ? " " : "") + std::string(argv[i]);
+            // Recorded in each asset's metadata: without the output directory and --json, which
+            // do not change the asset, so the same conversion into another directory gives the
+            // same bytes (the file name is already a content hash).
+            for (int i = 0; i < argc; ++i) {
+                const std::string a = argv[i];
+                if (a == "-o" || a == "--output") {
+                    ++i;
+                    continue;
+                }
+                if (a == "--json" || a.rfind("--output=", 0) == 0 || (a.size() > 2 && a.rfind("-o", 0) == 0 && a[2] != '-'))
+                    continue;
+                convert_opts.command_line += (convert_opts.command_line.empty() ? "" : " ") + a;
+            }
             return run_convert(convert_opts, convert_json);
         }
         if (*evalc) return run_eval(eval_opts, eval_camera, eval_light, eval_moves, eval_json);

@@ -3,6 +3,10 @@
 //   lsnif_make_example_scene --out FILE.glb --cgal-data DIR_OR_OFF [--subdivisions N]
 //                            [--tubes N] [--segments N] [--seed N]
 //   lsnif_make_example_scene --out FILE.glb --hairball-only [--tubes N] [--segments N] [--seed N]
+//   lsnif_make_example_scene --out FILE.glb --hard-case NAME [--scale S]
+//
+// --hard-case writes one case of the hard-geometry suite (hard_cases.hpp,
+// docs/failure-modes.md): a mesh named NAME (plus a "floor" mesh for "statue"), scaled by S.
 //
 // The scene (meters, +Y up, floor top at y = 0) mixes geometry that should stay in an
 // ordinary BVH with geometry complex enough for an LSNIF:
@@ -17,6 +21,7 @@
 // The file is written to FILE.glb.tmp and renamed, so no half-written FILE.glb remains.
 // Exit status: 0 on success, 1 on any error (with one "error: ..." line on stderr).
 
+#include "hard_cases.hpp"
 #include "procedural.hpp"
 
 #include <nlohmann/json.hpp>
@@ -238,6 +243,8 @@ struct Options {
     std::string out;
     std::string cgal_data;
     bool hairball_only = false;
+    std::string hard_case;  // non-empty: write this hard-geometry case only
+    double scale = 1.0;
     int subdivisions = 1;
     ex::HairballParams hairball;
 };
@@ -348,6 +355,25 @@ void build_hairball_scene(const Options& opt, GltfBuilder& gltf) {
     gltf.add_mesh_node(root, {{"name", "hairball"}}, gltf.add_mesh("hairball", ex::make_hairball(opt.hairball), m_hair));
 }
 
+// One case of the hard-geometry suite under a root node. False for an unknown case.
+bool build_hard_case(const Options& opt, GltfBuilder& gltf, std::string& error) {
+    ex::TriMesh mesh, floor;
+    if (!ex::make_hard_case(opt.hard_case, opt.scale, mesh, floor)) {
+        error = "unknown --hard-case '" + opt.hard_case + "'; one of:";
+        for (const auto& n : ex::hard_case_names()) error += " " + n;
+        return false;
+    }
+    const int m_obj = gltf.add_material("object", {0.6, 0.5, 0.3}, 0.0, 0.5);
+    const int root = gltf.add_node({{"name", opt.hard_case + "_case"}});
+    gltf.set_root(root);
+    gltf.add_mesh_node(root, {{"name", opt.hard_case}}, gltf.add_mesh(opt.hard_case, mesh, m_obj));
+    if (!floor.positions.empty()) {
+        const int m_floor = gltf.add_material("floor", {0.5, 0.5, 0.5}, 0.0, 0.8);
+        gltf.add_mesh_node(root, {{"name", "floor"}}, gltf.add_mesh("floor", floor, m_floor));
+    }
+    return true;
+}
+
 // Writes `bytes` to `path` through `path`.tmp and a rename. Returns false with `error` set
 // (and no file left at either name) on failure.
 bool write_atomically(const fs::path& path, const std::vector<std::uint8_t>& bytes, std::string& error) {
@@ -401,9 +427,13 @@ void print_usage(std::FILE* to) {
     std::fprintf(to,
                  "usage: lsnif_make_example_scene --out FILE.glb --cgal-data DIR_OR_OFF [options]\n"
                  "       lsnif_make_example_scene --out FILE.glb --hairball-only [options]\n"
+                 "       lsnif_make_example_scene --out FILE.glb --hard-case NAME [--scale S]\n"
                  "  --cgal-data PATH    directory holding data/meshes/%s (from libcgal-demo's\n"
                  "                      data.tar.gz), or the .off file itself\n"
                  "  --hairball-only     write only the hairball mesh (no CGAL data needed)\n"
+                 "  --hard-case NAME    write one hard-geometry case (hairball, cards, cloth, lattice,\n"
+                 "                      statue, flat, blob, triangle; no CGAL data needed)\n"
+                 "  --scale S           scale of the hard case (default 1; 1e-6..1e7)\n"
                  "  --subdivisions N    Loop subdivision steps of the CGAL mesh (0..3, default 1)\n"
                  "  --tubes N           hairball tubes (1..100000, default 300)\n"
                  "  --segments N        segments per tube (1..1000, default 20)\n"
@@ -437,6 +467,18 @@ bool parse_args(int argc, char** argv, Options& opt, bool& help, std::string& er
             help = true;
         } else if (arg == "--hairball-only") {
             opt.hairball_only = true;
+        } else if (arg == "--hard-case") {
+            if (!value(v)) return false;
+            opt.hard_case = std::string(v);
+        } else if (arg == "--scale") {
+            if (!value(v)) return false;
+            double x = 0;
+            const auto [end, ec] = std::from_chars(v.data(), v.data() + v.size(), x);
+            if (ec != std::errc() || end != v.data() + v.size() || !(x >= 1e-6 && x <= 1e7)) {
+                error = "bad value '" + std::string(v) + "' for --scale (a number in [1e-6, 1e7])";
+                return false;
+            }
+            opt.scale = x;
         } else if (arg == "--out" || arg == "--cgal-data") {
             if (!value(v)) return false;
             (arg == "--out" ? opt.out : opt.cgal_data) = std::string(v);
@@ -467,7 +509,7 @@ bool parse_args(int argc, char** argv, Options& opt, bool& help, std::string& er
         error = "--out FILE.glb is required";
         return false;
     }
-    if (!opt.hairball_only && opt.cgal_data.empty()) {
+    if (!opt.hairball_only && opt.hard_case.empty() && opt.cgal_data.empty()) {
         error = "--cgal-data PATH is required (or --hairball-only)";
         return false;
     }
@@ -490,7 +532,12 @@ int main(int argc, char** argv) {
     }
     try {
         GltfBuilder gltf;
-        if (opt.hairball_only) {
+        if (!opt.hard_case.empty()) {
+            if (!build_hard_case(opt, gltf, error)) {
+                std::fprintf(stderr, "error: %s\n", error.c_str());
+                return 1;
+            }
+        } else if (opt.hairball_only) {
             build_hairball_scene(opt, gltf);
         } else if (!build_full_scene(opt, gltf, error)) {
             std::fprintf(stderr, "error: %s\n", error.c_str());

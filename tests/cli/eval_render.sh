@@ -12,6 +12,12 @@ out=$work/conv
 "$lsnif" convert "$mesh" -o "$out" --preset smoke --complex ChineseDragon-10kv --threads 2 --seed 5 >/dev/null 2>&1 \
   || { echo "FAIL: convert exited $?"; exit 1; }
 ls "$out"/*.lsnif >/dev/null 2>&1 || bad "no asset written"
+# Same command into another directory (and with --json): byte-identical asset.
+"$lsnif" convert "$mesh" --json -o "$work/again" --preset smoke --complex ChineseDragon-10kv --threads 2 --seed 5 \
+  >/dev/null 2>&1 || bad "second convert exited $?"
+for f in "$out"/*.lsnif; do
+  cmp -s "$f" "$work/again/$(basename "$f")" || bad "$(basename "$f") differs between two identical conversions"
+done
 
 # eval: text report, the nine PNGs and report.json; JSON flavour parses and has FLIP in [0,1].
 txt=$("$lsnif" eval "$out" --width 64 --height 48 --ao-samples 2 --images "$work/img") || bad "eval exited $?"

@@ -38,7 +38,18 @@ struct Gate {
     double min_family_visibility = 0.90;   // every family
     double max_distance_median_pct = 2.0;  // pooled, % of the box diagonal
     double max_normal_median_deg = 30.0;   // pooled, against the shading normal
+    // Every family must have at least this many held-out rays that reach the network: a
+    // family the occupancy culls almost entirely (degenerate sampling, e.g. coordinates at
+    // the edge of float range) is unmeasured, and an unmeasured asset is not shipped.
+    std::uint64_t min_family_rays = 100;
 };
+
+// Box extents (largest axis of the padded box, in the mesh's units) that LSNIF models in
+// single precision: squared distances and dot products of box-sized vectors stay inside
+// float's normal range (~1e-38 .. 3e38) with margin. A mesh outside stays BVH, with the
+// reason, even when forced with --complex.
+inline constexpr double kMinModelExtent = 1e-15;
+inline constexpr double kMaxModelExtent = 1e15;
 
 struct Preset {
     std::string name;
