@@ -423,3 +423,68 @@ TEST_CASE("check_scene catches broken invariants") {
     bad.instances.clear();
     CHECK_FALSE(sc::check_scene(bad).empty());
 }
+
+TEST_CASE("PLY headers OpenMesh would hang on are errors: no end_header, bad grammar") {
+    const fs::path dir = fresh_dir("ply_headers");
+    const std::string props = "element vertex 2\nproperty float x\nproperty float y\nproperty float z\n";
+    const std::pair<std::string, std::string> cases[] = {
+        // Found by fuzz_import: OpenMesh 9 loops forever when the header never ends.
+        {"ply\nformat ascii 1.0\n" + props + "elem int 2 1\n3 0 1 3\n", "no end_header"},
+        {"ply\nformat ascii 2.0\n" + props + "end_header\n", "expected 'format"},
+        {"ply\nformat ascii 1.0\nelement vertex two\nend_header\n", "expected 'element NAME COUNT'"},
+        {"ply\nformat ascii 1.0\nproperty float x\nend_header\n", "property before any element"},
+        {"ply\nformat ascii 1.0\nelement vertex 1\nproperty real x\nend_header\n0\n", "expected 'property TYPE"},
+        {std::string("ply\nformat ascii 1.0\ncomment a") + '\0' + "b\n" + props + "end_header\n", "control byte"},
+        {"plyx\nformat ascii 1.0\nend_header\n", "must start with a line 'ply'"},
+    };
+    int k = 0;
+    for (const auto& [text, expected] : cases) {
+        std::string stem = "h";
+        stem += std::to_string(k++);  // (not "h" + to_string(): GCC 12 -Wrestrict false positive)
+        const fs::path file = dir / (stem + ".ply");
+        write_text(file, text);
+        const sc::ImportResult r = sc::import_scene(file);
+        CAPTURE(expected);
+        REQUIRE_FALSE(r.ok());
+        CHECK(r.error.rfind(file.string(), 0) == 0);
+        CHECK(r.error.find(expected) != std::string::npos);
+    }
+    // Exporters' unprefixed notes in the header are skipped, as OpenMesh does.
+    const fs::path ok = dir / "note.ply";
+    write_text(ok, "ply\nformat ascii 1.0\nCreated by some exporter\n" +
+                       std::string("element vertex 3\nproperty float x\nproperty float y\nproperty float z\n") +
+                       "element face 1\nproperty list uchar int vertex_indices\nend_header\n0 0 0\n1 0 0\n0 1 0\n3 0 1 2\n");
+    const sc::ImportResult r = sc::import_scene(ok);
+    CHECK_MESSAGE(r.ok(), r.error);
+}
+
+TEST_CASE("OBJ face corners OpenMesh would abort on are errors with the line number") {
+    const fs::path dir = fresh_dir("obj_corners");
+    const std::string verts = "v 0 0 0\nv 1 0 0\nv 0 1 0\nvn 0 0 1\n";
+    // Found by fuzz_import: Debian's OpenMesh asserts (aborts) on a corner without a vertex.
+    const std::pair<std::string, std::string> bad[] = {
+        {verts + "f /1 2 3\n", "line 5: face corner '/1'"},
+        {verts + "f 1 2 0\n", "line 5: face corner '0'"},
+        {verts + "f 1 2 3x\n", "face corner '3x'"},
+        {verts + "f 1/ 2 3\n", "face corner '1/'"},
+        {verts + "f\t\n", "face without corners"},
+    };
+    int k = 0;
+    for (const auto& [text, expected] : bad) {
+        std::string stem = "c";
+        stem += std::to_string(k++);
+        const fs::path file = dir / (stem + ".obj");
+        write_text(file, text);
+        const sc::ImportResult r = sc::import_scene(file);
+        CAPTURE(expected);
+        REQUIRE_FALSE(r.ok());
+        CHECK(r.error.find(expected) != std::string::npos);
+    }
+    for (const std::string& ok : {verts + "f 1 2 3\n", verts + "f 1//1 2//1 3//1\n", verts + "vt 0 0\nf 1/1 2/1 3/1/1\n",
+                                  verts + "f -3 -2 -1\n"}) {
+        const fs::path file = dir / "ok.obj";
+        write_text(file, ok);
+        const sc::ImportResult r = sc::import_scene(file);
+        CHECK_MESSAGE(r.ok(), r.error);
+    }
+}
