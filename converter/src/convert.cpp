@@ -444,6 +444,12 @@ ConvertResult convert(const ConvertOptions& opt, const ConvertProgress& progress
                 const std::uint64_t chunk = std::max<std::uint64_t>(1, std::min(preset.train_chunk_rays, preset.train_rays));
                 const std::uint64_t rounds = std::min<std::uint64_t>((preset.train_rays + chunk - 1) / chunk, tcfg.steps);
                 trainer::PreparedSet pool;          // the latest train_window_chunks chunks
+                trainer::PreparedSet fresh;         // this round's chunk (buffers reused)
+                std::vector<trainer::Sample> rays;  // this round's rays (capacity reused)
+                // Room for the whole window up front: a pool that regrows reallocates and
+                // copies hundreds of MB, and every fresh page is a page fault.
+                pool.reserve(std::size_t(chunk) * std::max<std::uint32_t>(1, preset.train_window_chunks),
+                             desc.max_points);
                 std::vector<std::size_t> in_pool;   // their sizes, oldest first
                 trainer::TrainResult tres;
                 double points = 0;
@@ -451,22 +457,22 @@ ConvertResult convert(const ConvertOptions& opt, const ConvertProgress& progress
                 const auto tr_t0 = Clock::now();
                 for (std::uint64_t r = 0; r < rounds && !tres.diverged; ++r) {
                     auto tp = Clock::now();
-                    std::vector<trainer::Sample> rays;
                     const std::uint64_t n = std::min(chunk, preset.train_rays - r * chunk);
                     source->generate(fnv1a64("train|" + std::to_string(opt.seed) + "|" + std::to_string(r)), n, rays);
                     drawn += n;
                     sample_seconds += since(tp);
                     tp = Clock::now();
-                    trainer::PreparedSet fresh = tr.prepare(rays);
-                    rays = {};
+                    tr.prepare_into(rays, fresh);
                     for (auto c : fresh.count) points += c;
                     reached += fresh.size();
-                    in_pool.push_back(fresh.size());
-                    pool.append(std::move(fresh));
-                    if (in_pool.size() > std::max<std::uint32_t>(1, preset.train_window_chunks)) {
+                    // Drop the oldest round before adding this one: the pool's buffers never
+                    // hold more than the window, and they stop growing after a few rounds.
+                    if (in_pool.size() >= std::max<std::uint32_t>(1, preset.train_window_chunks)) {
                         pool.drop_front(in_pool.front());
                         in_pool.erase(in_pool.begin());
                     }
+                    in_pool.push_back(fresh.size());
+                    pool.append(fresh);
                     prepare_seconds += since(tp);
                     const auto until = std::uint32_t(r + 1 == rounds ? tcfg.steps : tcfg.steps * (r + 1) / rounds);
                     const trainer::TrainResult part = tr.train(pool, [&](const trainer::Progress& p) {

@@ -13,6 +13,7 @@
 #include <cmath>
 #include <cstdlib>
 #include <cstdio>
+#include <filesystem>
 
 #include <unistd.h>
 #include <iostream>
@@ -284,7 +285,9 @@ int main(int argc, char** argv) {
             // do not change the asset, so the same conversion into another directory gives the
             // same bytes (the file name is already a content hash).
             for (int i = 0; i < argc; ++i) {
-                const std::string a = argv[i];
+                // The program by its name only: the same conversion run from another install
+                // or build directory gives the same asset.
+                const std::string a = i == 0 ? std::filesystem::path(argv[0]).filename().string() : std::string(argv[i]);
                 if (a == "-o" || a == "--output") {
                     ++i;
                     continue;

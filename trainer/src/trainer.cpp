@@ -104,6 +104,12 @@ struct Trainer::Impl {
     std::vector<std::vector<std::uint8_t>> active;
     std::vector<std::vector<float>> wgrad, bgrad;  // reduced MLP gradient, file layout
     double ema = 0;
+    // prepare_into()'s per-sample scratch, kept across rounds (see PreparedSet).
+    struct PrepareScratch {
+        Buffer<std::uint8_t> ok;
+        Buffer<std::uint16_t> count;
+        Buffer<float> tn, tf, t0, g;
+    } prep;
     struct Snapshot {
         std::vector<std::vector<float>> grid, w, b, gm, gv, wm, wv, bm, bv;
         std::vector<std::vector<std::uint32_t>> row_step;
@@ -294,12 +300,28 @@ std::vector<float> Trainer::predict_raw(std::span<const Sample> batch) {
 }
 
 PreparedSet Trainer::prepare(std::span<const Sample> samples) const {
+    PreparedSet set;
+    prepare_into(samples, set);
+    return set;
+}
+
+void Trainer::prepare_into(std::span<const Sample> samples, PreparedSet& set) const {
     const std::uint32_t H = geo_.H;
     const format::OccupancyGrid occ_grid(geo_.V, occupancy_);  // block skipping; same points
-    std::vector<std::uint8_t> ok(samples.size());
+    Impl::PrepareScratch& sc = impl_->prep;
+    sc.ok.resize(samples.size());
+    sc.count.resize(samples.size());
+    sc.tn.resize(samples.size());
+    sc.tf.resize(samples.size());
+    sc.t0.resize(samples.size());
+    sc.g.resize(samples.size() * H * 3);
+    auto& ok = sc.ok;
+    auto& count = sc.count;
+    auto& tn = sc.tn;
+    auto& tf = sc.tf;
+    auto& t0 = sc.t0;
+    auto& g = sc.g;
     std::vector<RayPoints> tmp(threads_);
-    std::vector<std::uint16_t> count(samples.size());
-    std::vector<float> tn(samples.size()), tf(samples.size()), t0(samples.size()), g(samples.size() * H * 3);
     const std::size_t per = (samples.size() + threads_ - 1) / threads_;
     parallel(threads_, [&](std::uint32_t t) {
         RayPoints& p = tmp[t];
@@ -324,7 +346,6 @@ PreparedSet Trainer::prepare(std::span<const Sample> samples) const {
         kept[t + 1] = n;
     });
     for (std::uint32_t t = 0; t < threads_; ++t) kept[t + 1] += kept[t];
-    PreparedSet set;
     set.H = H;
     const std::size_t n = kept[threads_];
     set.samples.resize(n);
@@ -347,7 +368,6 @@ PreparedSet Trainer::prepare(std::span<const Sample> samples) const {
             ++j;
         }
     });
-    return set;
 }
 
 LossParts Trainer::loss_and_gradients(std::span<const Sample> batch, Gradients* grads) {
@@ -696,18 +716,37 @@ float Trainer::step(const PreparedSet& set, std::span<const std::uint32_t> batch
     return loss;
 }
 
-void PreparedSet::append(PreparedSet&& o) {
-    if (samples.empty()) {
-        *this = std::move(o);
-        return;
-    }
-    samples.insert(samples.end(), o.samples.begin(), o.samples.end());
-    count.insert(count.end(), o.count.begin(), o.count.end());
-    t_near.insert(t_near.end(), o.t_near.begin(), o.t_near.end());
-    t_far.insert(t_far.end(), o.t_far.begin(), o.t_far.end());
-    t_first.insert(t_first.end(), o.t_first.begin(), o.t_first.end());
-    g.insert(g.end(), o.g.begin(), o.g.end());
-    o = PreparedSet{};
+namespace {
+
+// dst += src as one memcpy (insert() would construct element by element through the
+// allocator's construct(), which is not turned into a block copy).
+template <class T>
+void append_block(Buffer<T>& dst, const Buffer<T>& src) {
+    static_assert(std::is_trivially_copyable_v<T>);
+    const std::size_t old = dst.size();
+    dst.resize(old + src.size());
+    if (!src.empty()) std::memcpy(dst.data() + old, src.data(), src.size() * sizeof(T));
+}
+
+}  // namespace
+
+void PreparedSet::reserve(std::size_t n, std::uint32_t h) {
+    samples.reserve(n);
+    count.reserve(n);
+    t_near.reserve(n);
+    t_far.reserve(n);
+    t_first.reserve(n);
+    g.reserve(n * h * 3);
+}
+
+void PreparedSet::append(const PreparedSet& o) {
+    if (samples.empty()) H = o.H;
+    append_block(samples, o.samples);
+    append_block(count, o.count);
+    append_block(t_near, o.t_near);
+    append_block(t_far, o.t_far);
+    append_block(t_first, o.t_first);
+    append_block(g, o.g);
 }
 
 void PreparedSet::drop_front(std::size_t n) {

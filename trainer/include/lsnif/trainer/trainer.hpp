@@ -19,6 +19,8 @@
 #include <functional>
 #include <span>
 #include <string>
+#include <type_traits>
+#include <utility>
 #include <vector>
 
 namespace lsnif::trainer {
@@ -127,17 +129,46 @@ struct Gradients {
 // Training samples with their ray features (voxel entry points) computed once: the
 // points depend only on the ray and the occupancy, both fixed during training, so the
 // DDA runs once per sample instead of once per epoch. Only reachable samples are kept.
+//
+// Allocator for the set's buffers: resize() leaves new elements default-initialized (no
+// zeroing) — every element is written before it is read, and zeroing hundreds of MB per
+// round of streamed rays was a sixth of prepare()'s time (perf, 2026-11-23).
+template <class T>
+struct DefaultInitAllocator : std::allocator<T> {
+    template <class U>
+    struct rebind {
+        using other = DefaultInitAllocator<U>;
+    };
+    DefaultInitAllocator() noexcept = default;
+    template <class U>
+    DefaultInitAllocator(const DefaultInitAllocator<U>&) noexcept {}
+    template <class U>
+    void construct(U* p) noexcept(std::is_nothrow_default_constructible_v<U>) {
+        ::new (static_cast<void*>(p)) U;
+    }
+    template <class U, class... Args>
+    void construct(U* p, Args&&... args) {
+        ::new (static_cast<void*>(p)) U(std::forward<Args>(args)...);
+    }
+};
+template <class T>
+using Buffer = std::vector<T, DefaultInitAllocator<T>>;
+
 struct PreparedSet {
-    std::vector<Sample> samples;
-    std::vector<std::uint16_t> count;  // occupied entry points per sample (1..H)
-    std::vector<float> t_near, t_far, t_first;
-    std::vector<float> g;  // samples x H x 3 grid coordinates (slots past count unused)
+    Buffer<Sample> samples;
+    Buffer<std::uint16_t> count;  // occupied entry points per sample (1..H)
+    Buffer<float> t_near, t_far, t_first;
+    Buffer<float> g;  // samples x H x 3 grid coordinates (slots past count unused)
     std::uint32_t H = 0;
     std::size_t size() const { return samples.size(); }
-    // Streaming training data (rounds of fresh rays): appends another set prepared by the
-    // same trainer (same H), and drops the oldest n samples.
-    void append(PreparedSet&& other);
+    // Streaming training data (rounds of fresh rays): appends a copy of another set prepared
+    // by the same trainer (same H), and drops the oldest n samples. Both keep the buffers'
+    // capacity, so a window that is refilled every round stops allocating (fresh pages cost
+    // a page fault each) once it has reached its largest size.
+    void append(const PreparedSet& other);
     void drop_front(std::size_t n);
+    // Capacity for n samples of `h` entry points each (no allocation while size() <= n).
+    void reserve(std::size_t n, std::uint32_t h);
 };
 
 class Trainer {
@@ -159,6 +190,9 @@ public:
 
     // Traces every sample once (multi-threaded); drops those that do not reach the network.
     PreparedSet prepare(std::span<const Sample> samples) const;
+    // The same into `out`, reusing its buffers' capacity (and the trainer's scratch space):
+    // the form for rounds of streamed rays. Not thread-safe with itself.
+    void prepare_into(std::span<const Sample> samples, PreparedSet& out) const;
 
     // Trains cfg.steps steps on random batches (with replacement) from `samples`.
     // Deterministic for (seed, threads, samples).
