@@ -86,29 +86,6 @@ std::string gate_reason(const char* what, double value, const char* op, double l
     return buf;
 }
 
-std::vector<std::string> check_gate(const trainer::Metrics& m, const Gate& g) {
-    std::vector<std::string> fails;
-    if (m.pooled.visibility_accuracy < g.min_visibility)
-        fails.push_back(gate_reason("visibility accuracy", 100 * m.pooled.visibility_accuracy, "<",
-                                    100 * g.min_visibility, "%"));
-    for (int f = 0; f < trainer::kFamilyCount; ++f)
-        if (m.family[f].rays < g.min_family_rays)
-            fails.push_back(std::string("held-out ") + trainer::family_name(trainer::Family(f)) + " rays reaching the network: " +
-                            std::to_string(m.family[f].rays) + " < " + std::to_string(g.min_family_rays) +
-                            " (too few to measure)");
-    for (int f = 0; f < trainer::kFamilyCount; ++f)
-        if (m.family[f].rays && m.family[f].visibility_accuracy < g.min_family_visibility)
-            fails.push_back(gate_reason((std::string(trainer::family_name(trainer::Family(f))) + " visibility").c_str(),
-                                        100 * m.family[f].visibility_accuracy, "<", 100 * g.min_family_visibility, "%"));
-    if (m.pooled.distance_median_pct > g.max_distance_median_pct)
-        fails.push_back(gate_reason("median distance error", m.pooled.distance_median_pct, ">",
-                                    g.max_distance_median_pct, "% of diagonal"));
-    if (m.pooled.normal_median_deg > g.max_normal_median_deg)
-        fails.push_back(gate_reason("median normal error", m.pooled.normal_median_deg, ">", g.max_normal_median_deg,
-                                    " deg"));
-    return fails;
-}
-
 json family_json(const trainer::FamilyMetrics& f) {
     return {{"rays", f.rays},
             {"visibility_accuracy", f.visibility_accuracy},
@@ -149,6 +126,30 @@ struct MeshJob {
 };
 
 }  // namespace
+
+std::vector<std::string> gate_failures(const trainer::Metrics& m, const Gate& g) {
+    std::vector<std::string> fails;
+    if (m.pooled.visibility_accuracy < g.min_visibility)
+        fails.push_back(gate_reason("visibility accuracy", 100 * m.pooled.visibility_accuracy, "<",
+                                    100 * g.min_visibility, "%"));
+    for (int f = 0; f < trainer::kFamilyCount; ++f)
+        if (m.family[f].rays < g.min_family_rays)
+            fails.push_back(std::string("held-out ") + trainer::family_name(trainer::Family(f)) + " rays reaching the network: " +
+                            std::to_string(m.family[f].rays) + " < " + std::to_string(g.min_family_rays) +
+                            " (too few to measure)");
+    for (int f = 0; f < trainer::kFamilyCount; ++f)
+        if (m.family[f].rays && m.family[f].visibility_accuracy < g.min_family_visibility)
+            fails.push_back(gate_reason((std::string(trainer::family_name(trainer::Family(f))) + " visibility").c_str(),
+                                        100 * m.family[f].visibility_accuracy, "<", 100 * g.min_family_visibility, "%"));
+    if (m.pooled.distance_median_pct > g.max_distance_median_pct)
+        fails.push_back(gate_reason("median distance error", m.pooled.distance_median_pct, ">",
+                                    g.max_distance_median_pct, "% of diagonal"));
+    if (m.pooled.normal_median_deg > g.max_normal_median_deg)
+        fails.push_back(gate_reason("median normal error", m.pooled.normal_median_deg, ">", g.max_normal_median_deg,
+                                    " deg"));
+    return fails;
+}
+
 
 json metrics_json(const trainer::Metrics& m) {
     return {{"outside", family_json(m.family[0])},
@@ -504,7 +505,7 @@ ConvertResult convert(const ConvertOptions& opt, const ConvertProgress& progress
                 for (std::size_t i = 0; i < extras.size(); ++i) geo_normals[i] = extras[i].geometric_normal;
                 const trainer::Metrics m = trainer::evaluate(rt, held_out, threads, geo_normals);
                 metrics = {{"held_out_rays", held_out.size()}, {"families", metrics_json(m)}};
-                const auto fails = check_gate(m, preset.gate);
+                const auto fails = gate_failures(m, preset.gate);
                 passed = fails.empty() && !tres.diverged;
                 json gate = {{"passed", passed}};
                 std::vector<std::string> gate_reasons = fails;

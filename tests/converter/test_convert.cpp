@@ -229,3 +229,33 @@ TEST_CASE("ten seeds: every held-out metric finite, spread bounded (smoke preset
     CHECK(hi - lo < 0.05);
     CHECK(lo > 0.7);
 }
+
+TEST_CASE("the gate: each rule fails on its own, and an unmeasured family is a failure") {
+    lsnif::trainer::Metrics good;
+    for (auto& f : good.family) {
+        f.rays = 5000;
+        f.visibility_accuracy = 0.97;
+    }
+    good.pooled.rays = 15000;
+    good.pooled.visibility_accuracy = 0.97;
+    good.pooled.distance_median_pct = 0.9;
+    good.pooled.normal_median_deg = 12;
+    const Gate gate;  // defaults: 95 % pooled, 90 % per family, 2 %, 30 deg, 100 rays
+    CHECK(gate_failures(good, gate).empty());
+
+    auto one = [&](auto change, const char* expected) {
+        lsnif::trainer::Metrics m = good;
+        change(m);
+        const auto fails = gate_failures(m, gate);
+        CAPTURE(expected);
+        REQUIRE(fails.size() == 1);
+        CHECK(fails[0].find(expected) != std::string::npos);
+    };
+    one([](auto& m) { m.pooled.visibility_accuracy = 0.94; }, "visibility accuracy 94% < gate 95%");
+    one([](auto& m) { m.family[1].visibility_accuracy = 0.89; }, "surface visibility 89% < gate 90%");
+    one([](auto& m) { m.pooled.distance_median_pct = 2.5; }, "median distance error 2.5% of diagonal > gate 2");
+    one([](auto& m) { m.pooled.normal_median_deg = 31; }, "median normal error 31 deg > gate 30");
+    // A family almost entirely culled has no measurement: not a pass by default.
+    one([](auto& m) { m.family[0].rays = 40; }, "outside rays reaching the network: 40 < 100");
+    one([](auto& m) { m.family[2].rays = 0; }, "interior rays reaching the network: 0 < 100");
+}

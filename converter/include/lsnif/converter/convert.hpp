@@ -112,6 +112,10 @@ struct ConvertResult {
 
 ConvertResult convert(const ConvertOptions& options, const ConvertProgress& progress = {});
 
+// The accuracy gate's verdict on held-out metrics: one "held-out ..." reason per failed
+// rule (the text the manifest's reasons carry after "gate: "); empty means the asset ships.
+std::vector<std::string> gate_failures(const trainer::Metrics& metrics, const Gate& gate);
+
 // Human-readable summary of a report (what `lsnif convert` prints).
 std::string convert_text(const ConvertResult& result);
 
