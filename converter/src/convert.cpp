@@ -150,7 +150,6 @@ std::vector<std::string> gate_failures(const trainer::Metrics& m, const Gate& g)
     return fails;
 }
 
-
 json metrics_json(const trainer::Metrics& m) {
     return {{"outside", family_json(m.family[0])},
             {"surface", family_json(m.family[1])},
@@ -315,12 +314,13 @@ ConvertResult convert(const ConvertOptions& opt, const ConvertProgress& progress
                 finish_simple("cannot bound the mesh: " + box.error().message);
                 continue;
             }
+            const double ext[3] = {double(box->max[0]) - box->min[0], double(box->max[1]) - box->min[1],
+                                   double(box->max[2]) - box->min[2]};
             {
-                double extent = 0, coord = 0;
-                for (int a = 0; a < 3; ++a) {
-                    extent = std::max(extent, double(box->max[a]) - double(box->min[a]));
+                const double extent = std::max({ext[0], ext[1], ext[2]});
+                double coord = 0;
+                for (int a = 0; a < 3; ++a)
                     coord = std::max({coord, std::fabs(double(box->min[a])), std::fabs(double(box->max[a]))});
-                }
                 if (!(extent >= kMinModelExtent && extent <= kMaxModelExtent && coord <= kMaxModelExtent)) {
                     char why[200];
                     std::snprintf(why, sizeof why,
@@ -334,8 +334,6 @@ ConvertResult convert(const ConvertOptions& opt, const ConvertProgress& progress
             format::ModelDesc desc = preset.model;
             desc.box_min = box->min;
             desc.box_max = box->max;
-            const double ext[3] = {double(box->max[0]) - box->min[0], double(box->max[1]) - box->min[1],
-                                   double(box->max[2]) - box->min[2]};
             const double box_area = 2 * (ext[0] * ext[1] + ext[1] * ext[2] + ext[0] * ext[2]);
             sampling::MeshView sview{mesh.positions, mesh.indices, mesh.normals, mesh.triangle_materials};
             sampling::SamplingConfig scfg;

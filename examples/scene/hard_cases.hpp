@@ -9,8 +9,10 @@
 
 #include "procedural.hpp"
 
+#include <map>
 #include <string>
 #include <string_view>
+#include <utility>
 #include <vector>
 
 namespace lsnif::examples {
@@ -45,15 +47,12 @@ inline TriMesh make_icosphere(int levels) {
                  3, 9,  4, 3, 4,  2, 3, 2, 6, 3, 6,  8,  3, 8,  9,  4, 9, 5, 2, 4,  11, 6, 2,  10, 8,  6, 7, 9, 8, 1};
     for (int l = 0; l < levels; ++l) {
         std::vector<std::uint32_t> next;
-        std::vector<std::tuple<std::uint32_t, std::uint32_t, std::uint32_t>> edges;  // (lo, hi, mid)
+        std::map<std::pair<std::uint32_t, std::uint32_t>, std::uint32_t> edges;  // (lo, hi) -> mid
         auto mid = [&](std::uint32_t a, std::uint32_t b) {
-            const std::uint32_t lo = std::min(a, b), hi = std::max(a, b);
-            for (const auto& [x, y, z] : edges)
-                if (x == lo && y == hi) return z;
-            const auto k = std::uint32_t(m.positions.size());
-            m.positions.push_back(normalize(0.5 * (m.positions[a] + m.positions[b])));
-            edges.emplace_back(lo, hi, k);
-            return k;
+            const auto [it, added] =
+                edges.try_emplace({std::min(a, b), std::max(a, b)}, std::uint32_t(m.positions.size()));
+            if (added) m.positions.push_back(normalize(0.5 * (m.positions[a] + m.positions[b])));
+            return it->second;
         };
         for (std::size_t f = 0; f < m.indices.size(); f += 3) {
             const std::uint32_t a = m.indices[f], b = m.indices[f + 1], c = m.indices[f + 2];
