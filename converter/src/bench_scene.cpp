@@ -2,6 +2,7 @@
 // machine in the same run (DESIGN.md §5 "Speed"; BENCHMARKS.md has the figures).
 #include <lsnif/converter/bench.hpp>
 #include <lsnif/converter/convert.hpp>
+#include <lsnif/converter/manifest.hpp>
 #include <lsnif/lsnif.h>
 #include <lsnif/sampling/sampling.hpp>
 #include <lsnif/scene/scene.hpp>
@@ -12,7 +13,6 @@
 #include <atomic>
 #include <chrono>
 #include <filesystem>
-#include <fstream>
 #include <thread>
 
 namespace lsnif::converter {
@@ -44,25 +44,11 @@ struct Loaded {
 };
 
 bool load_objects(const SceneBenchOptions& opt, Loaded& out, std::string& error) {
-    const fs::path mp = fs::path(opt.outdir) / "manifest.json";
-    std::ifstream in(mp);
-    if (!in) {
-        error = mp.string() + ": cannot open (is it a `lsnif convert` output directory?)";
-        return false;
-    }
-    out.manifest = json::parse(in, nullptr, false);
-    if (!out.manifest.is_object() || !out.manifest.contains("meshes") || !out.manifest.contains("inputs")) {
-        error = mp.string() + ": not a manifest";
-        return false;
-    }
-    std::vector<std::string> sources = opt.sources;
-    if (sources.empty())
-        for (const json& i : out.manifest["inputs"]) sources.push_back(i.value("path", ""));
-    if (sources.size() != out.manifest["inputs"].size()) {
-        error = mp.string() + ": the conversion had " + std::to_string(out.manifest["inputs"].size()) +
-                " inputs, --source gives " + std::to_string(sources.size());
-        return false;
-    }
+    LoadedManifest loaded;
+    if (!load_manifest(opt.outdir, opt.sources, loaded, error)) return false;
+    out.manifest = std::move(loaded.doc);
+    const fs::path& mp = loaded.path;
+    const std::vector<std::string>& sources = loaded.sources;
     std::vector<std::optional<scene::Scene>> scenes(sources.size());
     for (const json& m : out.manifest["meshes"]) {
         if (m.value("class", "") != "complex" || !m.contains("lsnif")) continue;
@@ -74,7 +60,7 @@ bool load_objects(const SceneBenchOptions& opt, Loaded& out, std::string& error)
         if (!scenes[input]) {
             auto r = scene::import_scene(sources[input]);
             if (!r.ok()) {
-                error = r.error;
+                error = mp.string() + ": input " + std::to_string(input) + ": " + r.error;
                 return false;
             }
             scenes[input] = std::move(r.scene);

@@ -1,5 +1,6 @@
 // `lsnif convert`; see convert.hpp for the contracts.
 #include <lsnif/converter/convert.hpp>
+#include <lsnif/converter/manifest.hpp>
 #include <lsnif/format/forward.hpp>
 #include <lsnif/sampling/sampling.hpp>
 #include <lsnif/scene/scene.hpp>
@@ -255,14 +256,17 @@ ConvertResult convert(const ConvertOptions& opt, const ConvertProgress& progress
         import_seconds += since(import_t0);
         if (!imported.ok()) {
             res.errors.push_back(imported.error);
-            inputs.push_back({{"path", path}, {"status", "error"}, {"error", imported.error}});
+            inputs.push_back({{"path", manifest_relative_path(path, outdir)},
+                              {"given", path},
+                              {"status", "error"},
+                              {"error", imported.error}});
             scenes.emplace_back();
             continue;
         }
         ++ok_inputs;
         scenes.push_back(std::move(imported.scene));
         const scene::Scene& sc = scenes.back();
-        json in_json = {{"path", path}, {"status", "ok"}};
+        json in_json = {{"path", manifest_relative_path(path, outdir)}, {"given", path}, {"status", "ok"}};
         if (!sc.warnings.empty()) {
             in_json["warnings"] = sc.warnings;
             for (const auto& w : sc.warnings) res.warnings.push_back(path + ": " + w);
@@ -591,7 +595,7 @@ ConvertResult convert(const ConvertOptions& opt, const ConvertProgress& progress
     if (ok_inputs == 0 || opt.dry_run) return res;  // nothing converted, or a plan: leave OUTDIR untouched
 
     json forced_c = opt.force_complex, forced_s = opt.force_simple;
-    res.manifest = {{"format", "lsnif-manifest/1"},
+    res.manifest = {{"format", kManifestFormat},
                     {"tool", {{"name", "lsnif"}, {"version", LSNIF_VERSION_STRING}}},
                     {"settings", {{"preset", preset.name}, {"seed", opt.seed}, {"threads", threads},
                                   {"forced_complex", forced_c}, {"forced_simple", forced_s}}},

@@ -1,6 +1,7 @@
 // `lsnif eval`: reference (Embree everywhere) and hybrid (Embree + LSNIF reader) renders of
 // a converted scene, compared with FLIP and PSNR (eval.hpp has the contract).
 #include <lsnif/converter/eval.hpp>
+#include <lsnif/converter/manifest.hpp>
 
 #include <embree3/rtcore.h>
 
@@ -284,33 +285,18 @@ void EvalScene::occluded(bool hybrid, std::span<const lsnif_ray> rays, std::span
 }
 
 std::unique_ptr<EvalScene> EvalScene::load(const EvalOptions& opt, std::string& error) {
+    LoadedManifest loaded;
+    if (!load_manifest(opt.outdir, opt.sources, loaded, error)) return nullptr;
     const fs::path dir = opt.outdir;
-    const fs::path manifest_path = dir / "manifest.json";
-    std::ifstream in(manifest_path);
-    if (!in) {
-        error = manifest_path.string() + ": cannot open (is it a `lsnif convert` output directory?)";
-        return nullptr;
-    }
-    const json manifest = json::parse(in, nullptr, false);
-    if (!manifest.is_object() || !manifest.contains("meshes") || !manifest.contains("instances") ||
-        !manifest.contains("inputs")) {
-        error = manifest_path.string() + ": not a manifest (needs inputs, meshes and instances)";
-        return nullptr;
-    }
-    std::vector<std::string> sources = opt.sources;
-    if (sources.empty())
-        for (const json& i : manifest["inputs"]) sources.push_back(i.value("path", ""));
-    if (sources.size() != manifest["inputs"].size()) {
-        error = manifest_path.string() + ": the conversion had " + std::to_string(manifest["inputs"].size()) +
-                " inputs, --source gives " + std::to_string(sources.size());
-        return nullptr;
-    }
+    const fs::path& manifest_path = loaded.path;
+    const json& manifest = loaded.doc;
+    const std::vector<std::string>& sources = loaded.sources;
     std::vector<scene::Scene> scenes(sources.size());
     for (std::size_t s = 0; s < sources.size(); ++s) {
         if (manifest["inputs"][s].value("status", "") != "ok") continue;  // failed in convert: no meshes from it
         auto r = scene::import_scene(sources[s]);
         if (!r.ok()) {
-            error = r.error;
+            error = manifest_path.string() + ": input " + std::to_string(s) + ": " + r.error;
             return nullptr;
         }
         scenes[s] = std::move(r.scene);

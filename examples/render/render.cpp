@@ -2,16 +2,23 @@
 // directory and render the hybrid scene — Embree's BVH for simple meshes, the LSNIF reader
 // for complex ones — with a point light and hard shadows, into a binary PPM.
 //
-//   lsnif_render OUTDIR OUT.ppm [WIDTH HEIGHT]
+//   lsnif_render OUTDIR OUT.ppm [WIDTH HEIGHT] [--camera ex,ey,ez,tx,ty,tz]
 //
-// What a renderer needs from the conversion is all in OUTDIR/manifest.json:
+// What a renderer needs from the conversion is all in OUTDIR/manifest.json
+// (schema/manifest.schema.json):
+//   inputs[i].path       the source file, relative to OUTDIR (resolve it as OUTDIR/path: the
+//                        converted scene works from any working directory and can be moved
+//                        together with its sources)
 //   meshes[i].class      "complex" (trace its .lsnif) or "simple" (trace the source mesh)
-//   meshes[i].lsnif.file the asset, shared by all instances of the mesh
+//   meshes[i].lsnif.file the asset, relative to OUTDIR, shared by all instances of the mesh
 //   meshes[i].input / source_mesh   where the simple geometry is (the renderer's importer
 //                                   reads it; here lsnif::scene stands in for that importer)
 //   instances[j]         mesh index and object-to-world 3x4 row-major transform
 // The reader is thread-safe for concurrent lsnif_intersect_instance calls on one model
 // and works best on batches of >= 256 rays, so rays are traced a row at a time.
+//
+// Embree (and the reader) are only given rays whose origin and direction are finite: a
+// pixel whose primary ray missed has no shadow ray at all.
 #include <lsnif/lsnif.h>
 #include <lsnif/scene/scene.hpp>
 
@@ -19,26 +26,43 @@
 #include <nlohmann/json.hpp>
 
 #include <algorithm>
+#include <array>
 #include <cmath>
 #include <cstdint>
 #include <cstdio>
 #include <cstdlib>
 #include <cstring>
+#include <exception>
+#include <filesystem>
 #include <fstream>
+#include <optional>
+#include <stdexcept>
 #include <string>
 #include <vector>
 
 namespace {
 
-struct Instance {
-    int mesh;
-    float xf[12];            // object -> world, the layout lsnif_intersect_instance takes
-    lsnif_model* model;      // non-null: traced through the reader
-    float box[6];            // world bounds, to skip rays that cannot reach the instance
-    float nmat[9];           // cofactor matrix of A: object -> world normals (up to scale)
+namespace fs = std::filesystem;
+using nlohmann::json;
+using Vec3 = std::array<float, 3>;
+
+// Every failure below main() is one of these; main prints "error: <message>" and exits 1.
+struct Failure : std::runtime_error {
+    using std::runtime_error::runtime_error;
 };
 
 float dot3(const float* a, const float* b) { return a[0] * b[0] + a[1] * b[1] + a[2] * b[2]; }
+
+Vec3 normalized(Vec3 v) {
+    const float l = std::sqrt(dot3(v.data(), v.data()));
+    return {v[0] / l, v[1] / l, v[2] / l};
+}
+
+bool finite_ray(const lsnif_ray& r) {
+    for (int a = 0; a < 3; ++a)
+        if (!std::isfinite(r.org[a]) || !std::isfinite(r.dir[a])) return false;
+    return !std::isnan(r.tmin) && !std::isnan(r.tmax);
+}
 
 bool ray_hits_box(const lsnif_ray& r, const float* b) {
     float t0 = r.tmin, t1 = r.tmax;
@@ -51,211 +75,353 @@ bool ray_hits_box(const lsnif_ray& r, const float* b) {
     return t0 <= t1;
 }
 
-}  // namespace
+void grow(float* box, const float* p) {
+    for (int a = 0; a < 3; ++a) box[a] = std::min(box[a], p[a]), box[a + 3] = std::max(box[a + 3], p[a]);
+}
 
-int main(int argc, char** argv) {
-    if (argc != 3 && argc != 5) {
-        std::fprintf(stderr, "usage: %s OUTDIR OUT.ppm [WIDTH HEIGHT]\n", argv[0]);
-        return 2;
-    }
-    const std::string dir = argv[1];
-    const int W = argc == 5 ? std::atoi(argv[3]) : 320, H = argc == 5 ? std::atoi(argv[4]) : 240;
-    if (W < 1 || H < 1 || W > 8192 || H > 8192) {
-        std::fprintf(stderr, "error: image size out of range\n");
-        return 2;
-    }
-    std::ifstream mf(dir + "/manifest.json");
-    const nlohmann::json manifest = nlohmann::json::parse(mf, nullptr, false);
-    if (!mf || manifest.is_discarded()) {
-        std::fprintf(stderr, "error: %s/manifest.json: cannot read\n", dir.c_str());
-        return 1;
-    }
+struct Options {
+    fs::path outdir, image;
+    int width = 320, height = 240;
+    std::optional<std::array<float, 6>> camera;  // eye, target
+};
 
-    // 1. Geometry: simple meshes become Embree scenes, complex meshes open their asset.
-    RTCDevice device = rtcNewDevice(nullptr);
-    std::vector<lsnif::scene::Scene> inputs;
-    for (const auto& in : manifest["inputs"]) {
-        auto r = lsnif::scene::import_scene(in["path"].get<std::string>());
-        inputs.push_back(std::move(r.scene));  // a failed input has no meshes in the manifest
+// Returns nothing on a usage error (after printing usage).
+std::optional<Options> parse_args(int argc, char** argv) {
+    Options o;
+    std::vector<std::string> pos;
+    for (int i = 1; i < argc; ++i) {
+        const std::string a = argv[i];
+        if (a == "--camera" && i + 1 < argc) {
+            std::array<float, 6> c{};
+            if (std::sscanf(argv[++i], "%f,%f,%f,%f,%f,%f", &c[0], &c[1], &c[2], &c[3], &c[4], &c[5]) != 6 ||
+                !std::all_of(c.begin(), c.end(), [](float v) { return std::isfinite(v); }))
+                return std::nullopt;
+            o.camera = c;
+        } else {
+            pos.push_back(a);
+        }
     }
+    if (pos.size() != 2 && pos.size() != 4) return std::nullopt;
+    o.outdir = pos[0];
+    o.image = pos[1];
+    if (pos.size() == 4) {
+        o.width = std::atoi(pos[2].c_str());
+        o.height = std::atoi(pos[3].c_str());
+        if (o.width < 1 || o.height < 1 || o.width > 8192 || o.height > 8192) return std::nullopt;
+    }
+    return o;
+}
+
+// The converted scene: simple meshes as Embree scenes instanced into one top-level scene,
+// complex meshes as open LSNIF models with their instances' transforms. Owns every handle.
+class HybridScene {
+public:
+    explicit HybridScene(const fs::path& outdir);
+    ~HybridScene();
+    HybridScene(const HybridScene&) = delete;
+    HybridScene& operator=(const HybridScene&) = delete;
+
+    const float* world_box() const { return world_; }
+    std::size_t instance_count() const { return instances_.size(); }
+
+    // Closest hit of every ray (all finite): Embree for the simple part, then every LSNIF
+    // instance whose box the ray reaches; the nearest hit wins. Normals are world-space:
+    // Embree's geometric normal (transformed here) or the network's.
+    void trace(const std::vector<lsnif_ray>& rays, std::vector<lsnif_hit>& hits) const;
+
+private:
     struct Mesh {
         RTCScene scene = nullptr;
         lsnif_model* model = nullptr;
         float box[6] = {INFINITY, INFINITY, INFINITY, -INFINITY, -INFINITY, -INFINITY};
     };
-    std::vector<Mesh> meshes;
-    for (const auto& m : manifest["meshes"]) {
-        Mesh out;
-        const auto& src = inputs.at(m["input"]).meshes.at(m["source_mesh"]);
-        for (std::size_t v = 0; v < src.positions.size(); ++v)
-            out.box[v % 3] = std::min(out.box[v % 3], src.positions[v]),
-            out.box[v % 3 + 3] = std::max(out.box[v % 3 + 3], src.positions[v]);
-        if (m["class"] == "complex") {
-            const std::string file = dir + "/" + m["lsnif"]["file"].get<std::string>();
-            lsnif_error err;
-            if (lsnif_open_file(file.c_str(), &out.model, &err) != LSNIF_OK) {
-                std::fprintf(stderr, "error: %s: %s\n", file.c_str(), err.message);
-                return 1;
-            }
-        } else {
-            out.scene = rtcNewScene(device);
-            RTCGeometry g = rtcNewGeometry(device, RTC_GEOMETRY_TYPE_TRIANGLE);
-            // Embree-owned copies: Embree may read 16 bytes past the last vertex, which a
-            // shared buffer would have to guarantee.
-            void* vb = rtcSetNewGeometryBuffer(g, RTC_BUFFER_TYPE_VERTEX, 0, RTC_FORMAT_FLOAT3, 12, src.vertex_count());
-            void* ib = rtcSetNewGeometryBuffer(g, RTC_BUFFER_TYPE_INDEX, 0, RTC_FORMAT_UINT3, 12, src.triangle_count());
-            std::memcpy(vb, src.positions.data(), src.positions.size() * sizeof(float));
-            std::memcpy(ib, src.indices.data(), src.indices.size() * sizeof(std::uint32_t));
-            rtcCommitGeometry(g);
-            rtcAttachGeometry(out.scene, g);
-            rtcReleaseGeometry(g);
-            rtcCommitScene(out.scene);
-        }
-        meshes.push_back(out);
-    }
-
-    // 2. Instances: simple ones go into one top-level Embree scene, complex ones are kept
-    //    with their transform and world box for the reader.
-    RTCScene top = rtcNewScene(device);
-    std::vector<Instance> instances;
-    float world[6] = {INFINITY, INFINITY, INFINITY, -INFINITY, -INFINITY, -INFINITY};
-    for (const auto& j : manifest["instances"]) {
-        Instance in{j["mesh"].get<int>(), {}, nullptr, {INFINITY, INFINITY, INFINITY, -INFINITY, -INFINITY, -INFINITY}, {}};
-        for (int k = 0; k < 12; ++k) in.xf[k] = j["transform"][k].get<float>();
-        // Normals transform by the inverse transpose of A = cofactor(A) / det(A); the sign
-        // of det keeps mirrored instances' normals outward.
-        const float* a = in.xf;
-        const float co[9] = {a[5] * a[10] - a[6] * a[9], a[6] * a[8] - a[4] * a[10], a[4] * a[9] - a[5] * a[8],
-                             a[2] * a[9] - a[1] * a[10], a[0] * a[10] - a[2] * a[8], a[1] * a[8] - a[0] * a[9],
-                             a[1] * a[6] - a[2] * a[5], a[2] * a[4] - a[0] * a[6], a[0] * a[5] - a[1] * a[4]};
-        const float det = a[0] * co[0] + a[1] * co[1] + a[2] * co[2];
-        for (int k = 0; k < 9; ++k) in.nmat[k] = det < 0 ? -co[k] : co[k];
-        const Mesh& m = meshes[in.mesh];
-        for (int c = 0; c < 8; ++c) {  // world box = transformed object-box corners
-            const float p[3] = {m.box[c & 1 ? 3 : 0], m.box[c & 2 ? 4 : 1], m.box[c & 4 ? 5 : 2]};
-            for (int a = 0; a < 3; ++a) {
-                const float w = in.xf[4 * a] * p[0] + in.xf[4 * a + 1] * p[1] + in.xf[4 * a + 2] * p[2] + in.xf[4 * a + 3];
-                in.box[a] = std::min(in.box[a], w), in.box[a + 3] = std::max(in.box[a + 3], w);
-                world[a] = std::min(world[a], w), world[a + 3] = std::max(world[a + 3], w);
-            }
-        }
-        if (m.model) {
-            in.model = m.model;
-        } else {
-            RTCGeometry g = rtcNewGeometry(device, RTC_GEOMETRY_TYPE_INSTANCE);
-            rtcSetGeometryInstancedScene(g, m.scene);
-            rtcSetGeometryTransform(g, 0, RTC_FORMAT_FLOAT3X4_ROW_MAJOR, in.xf);
-            rtcCommitGeometry(g);
-            rtcAttachGeometryByID(top, g, unsigned(instances.size()));  // instID = our index
-            rtcReleaseGeometry(g);
-        }
-        instances.push_back(in);
-    }
-    rtcCommitScene(top);
-
-    // 3. The hybrid trace of a batch: Embree for the simple part, then every LSNIF instance
-    //    whose box the ray reaches; the nearest hit wins. Normals: Embree's geometric
-    //    normal (object space, so transformed here) or the network's world-space normal.
-    auto trace = [&](std::vector<lsnif_ray>& rays, std::vector<lsnif_hit>& hits) {
-        for (std::size_t i = 0; i < rays.size(); ++i) {
-            RTCIntersectContext ctx;
-            rtcInitIntersectContext(&ctx);
-            RTCRayHit rh{};
-            rh.ray = {rays[i].org[0], rays[i].org[1], rays[i].org[2], rays[i].tmin,
-                      rays[i].dir[0], rays[i].dir[1], rays[i].dir[2], 0.0f, rays[i].tmax, 0xFFFFFFFFu, 0, 0};
-            rh.hit.geomID = RTC_INVALID_GEOMETRY_ID;
-            rtcIntersect1(top, &ctx, &rh);
-            hits[i] = {INFINITY, {0, 0, 0}, 0, 0};
-            if (rh.hit.geomID != RTC_INVALID_GEOMETRY_ID) {
-                const float* n = instances[rh.hit.instID[0]].nmat;
-                const float g[3] = {rh.hit.Ng_x, rh.hit.Ng_y, rh.hit.Ng_z};
-                hits[i] = {rh.ray.tfar, {dot3(n, g), dot3(n + 3, g), dot3(n + 6, g)}, 1, 0};
-            }
-        }
-        std::vector<lsnif_ray> batch;
-        std::vector<std::size_t> index;
-        std::vector<lsnif_hit> out;
-        for (const Instance& in : instances) {
-            if (!in.model) continue;
-            batch.clear();
-            index.clear();
-            for (std::size_t i = 0; i < rays.size(); ++i) {
-                lsnif_ray r = rays[i];
-                r.tmax = std::min(r.tmax, hits[i].t);  // only a nearer hit matters
-                if (ray_hits_box(r, in.box)) batch.push_back(r), index.push_back(i);
-            }
-            out.resize(batch.size());
-            if (!batch.empty() && lsnif_intersect_instance(in.model, in.xf, batch.data(), batch.size(), out.data()) == LSNIF_OK)
-                for (std::size_t k = 0; k < batch.size(); ++k)
-                    if (out[k].hit && out[k].t < hits[index[k]].t) hits[index[k]] = out[k];
-        }
+    struct Instance {
+        float xf[12];        // object -> world, the layout lsnif_intersect_instance takes
+        lsnif_model* model;  // non-null: traced through the reader
+        float box[6];        // world bounds, to skip rays that cannot reach the instance
+        float nmat[9];       // cofactor matrix of A: object -> world normals (up to scale)
     };
 
-    // 4. Camera framing the scene, light above it; primary rays, then shadow rays.
-    const float c[3] = {0.5f * (world[0] + world[3]), 0.5f * (world[1] + world[4]), 0.5f * (world[2] + world[5])};
-    const float diag = std::sqrt((world[3] - world[0]) * (world[3] - world[0]) + (world[4] - world[1]) * (world[4] - world[1]) +
-                                 (world[5] - world[2]) * (world[5] - world[2]));
-    const float eye[3] = {c[0] + 0.5f * diag, c[1] + 0.37f * diag, c[2] + 0.92f * diag};
-    const float light[3] = {c[0] + 0.5f * diag, c[1] + 1.2f * diag, c[2] + 0.7f * diag};
-    float f[3] = {c[0] - eye[0], c[1] - eye[1], c[2] - eye[2]};
-    const float fl = std::sqrt(dot3(f, f));
-    for (float& x : f) x /= fl;
-    float r[3] = {-f[2], 0.0f, f[0]};  // f x (0,1,0)
-    const float rl = std::sqrt(dot3(r, r));
-    for (float& x : r) x /= rl;
-    const float u[3] = {r[1] * f[2] - r[2] * f[1], r[2] * f[0] - r[0] * f[2], r[0] * f[1] - r[1] * f[0]};
-    const float th = std::tan(20.0f * 3.14159265f / 180.0f);
+    std::vector<lsnif::scene::Scene> load_inputs(const json& manifest, const fs::path& outdir) const;
+    void add_mesh(const json& m, const std::vector<lsnif::scene::Scene>& inputs, const fs::path& outdir);
+    void add_instance(const json& j);
 
-    std::vector<unsigned char> image(std::size_t(W) * H * 3);
-    std::vector<lsnif_ray> prim(W), shadow(W);
-    std::vector<lsnif_hit> ph(W), sh(W);
-    for (int y = 0; y < H; ++y) {
-        for (int x = 0; x < W; ++x) {
-            const float sx = (2.0f * (x + 0.5f) / W - 1.0f) * th * W / H, sy = (1.0f - 2.0f * (y + 0.5f) / H) * th;
-            prim[x] = {{eye[0], eye[1], eye[2]}, 0.0f, {f[0] + sx * r[0] + sy * u[0], f[1] + sx * r[1] + sy * u[1], f[2] + sx * r[2] + sy * u[2]}, INFINITY};
-        }
-        trace(prim, ph);
-        for (int x = 0; x < W; ++x) {
-            float p[3], n[3] = {ph[x].normal[0], ph[x].normal[1], ph[x].normal[2]};
-            const float nl = std::sqrt(dot3(n, n)) + 1e-30f;
-            for (int a = 0; a < 3; ++a) p[a] = prim[x].org[a] + ph[x].t * prim[x].dir[a], n[a] /= nl;
-            if (dot3(n, prim[x].dir) > 0) for (float& v : n) v = -v;  // face the camera
-            const float eps = 1e-4f * diag;  // leave the surface before tracing on
-            float l[3] = {light[0] - p[0], light[1] - p[1], light[2] - p[2]};
-            shadow[x] = {{p[0] + eps * n[0], p[1] + eps * n[1], p[2] + eps * n[2]}, 0.0f, {l[0], l[1], l[2]}, ph[x].hit ? 1.0f : -1.0f};
-        }
-        trace(shadow, sh);
-        for (int x = 0; x < W; ++x) {
-            float v = 0.05f;  // background
-            if (ph[x].hit) {
-                float n[3] = {ph[x].normal[0], ph[x].normal[1], ph[x].normal[2]};
-                if (dot3(n, prim[x].dir) > 0) for (float& q : n) q = -q;
-                const float ll = std::sqrt(dot3(shadow[x].dir, shadow[x].dir)), nl = std::sqrt(dot3(n, n)) + 1e-30f;
-                const float lambert = std::max(0.0f, dot3(n, shadow[x].dir) / (ll * nl));
-                v = 0.1f + 0.9f * lambert * (sh[x].hit ? 0.0f : 1.0f);
-            }
-            const unsigned char g = (unsigned char)std::lround(255.0f * std::pow(std::min(v, 1.0f), 1.0f / 2.2f));
-            image[(std::size_t(y) * W + x) * 3 + 0] = image[(std::size_t(y) * W + x) * 3 + 1] = image[(std::size_t(y) * W + x) * 3 + 2] = g;
-        }
-    }
+    fs::path manifest_path_;
+    RTCDevice device_ = nullptr;
+    RTCScene top_ = nullptr;
+    std::vector<Mesh> meshes_;
+    std::vector<Instance> instances_;
+    float world_[6] = {INFINITY, INFINITY, INFINITY, -INFINITY, -INFINITY, -INFINITY};
+};
 
-    std::FILE* out = std::fopen(argv[2], "wb");
-    if (!out) {
-        std::fprintf(stderr, "error: %s: cannot open for writing\n", argv[2]);
-        return 1;
-    }
-    std::fprintf(out, "P6\n%d %d\n255\n", W, H);
-    const bool ok = std::fwrite(image.data(), 1, image.size(), out) == image.size();
-    if (std::fclose(out) != 0 || !ok) {
-        std::fprintf(stderr, "error: %s: write failed\n", argv[2]);
-        return 1;
-    }
-    for (auto& m : meshes) {
+HybridScene::HybridScene(const fs::path& outdir) : manifest_path_(outdir / "manifest.json") {
+    std::ifstream mf(manifest_path_);
+    const json manifest = json::parse(mf, nullptr, false);
+    if (!mf || !manifest.is_object()) throw Failure(manifest_path_.string() + ": cannot read");
+    if (manifest.value("format", "") != "lsnif-manifest/2")
+        throw Failure(manifest_path_.string() + ": not a lsnif-manifest/2 manifest (re-run lsnif convert)");
+    device_ = rtcNewDevice(nullptr);
+    top_ = rtcNewScene(device_);
+    if (!device_ || !top_) throw Failure("embree: cannot create a device");
+    const std::vector<lsnif::scene::Scene> inputs = load_inputs(manifest, outdir);
+    for (const json& m : manifest.at("meshes")) add_mesh(m, inputs, outdir);
+    for (const json& j : manifest.at("instances")) add_instance(j);
+    if (instances_.empty()) throw Failure(manifest_path_.string() + ": the scene has no instances");
+    rtcCommitScene(top_);
+}
+
+HybridScene::~HybridScene() {
+    for (Mesh& m : meshes_) {
         if (m.model) lsnif_close(m.model);
         if (m.scene) rtcReleaseScene(m.scene);
     }
-    rtcReleaseScene(top);
-    rtcReleaseDevice(device);
-    std::printf("wrote %s (%dx%d, %zu instances)\n", argv[2], W, H, instances.size());
+    if (top_) rtcReleaseScene(top_);
+    if (device_) rtcReleaseDevice(device_);
+}
+
+std::vector<lsnif::scene::Scene> HybridScene::load_inputs(const json& manifest, const fs::path& outdir) const {
+    std::vector<lsnif::scene::Scene> inputs;
+    const json& list = manifest.at("inputs");
+    for (std::size_t i = 0; i < list.size(); ++i) {
+        inputs.emplace_back();
+        if (list[i].value("status", "") != "ok") continue;  // failed in convert: no meshes refer to it
+        // The manifest's path rule: relative to the manifest's own directory.
+        const fs::path source = outdir / list[i].at("path").get<std::string>();
+        auto r = lsnif::scene::import_scene(source.string());
+        if (!r.ok()) throw Failure(manifest_path_.string() + ": input " + std::to_string(i) + ": " + r.error);
+        inputs.back() = std::move(r.scene);
+    }
+    return inputs;
+}
+
+void HybridScene::add_mesh(const json& m, const std::vector<lsnif::scene::Scene>& inputs, const fs::path& outdir) {
+    const std::size_t input = m.at("input").get<std::size_t>(), index = m.at("source_mesh").get<std::size_t>();
+    if (input >= inputs.size() || index >= inputs[input].meshes.size())
+        throw Failure(manifest_path_.string() + ": mesh '" + m.value("name", "") + "' refers to input " +
+                      std::to_string(input) + " mesh " + std::to_string(index) + ", which the source does not have");
+    const lsnif::scene::Mesh& src = inputs[input].meshes[index];
+    Mesh& out = meshes_.emplace_back();
+    for (std::size_t v = 0; v + 2 < src.positions.size(); v += 3) grow(out.box, &src.positions[v]);
+    if (m.at("class") == "complex") {
+        const fs::path file = outdir / m.at("lsnif").at("file").get<std::string>();
+        lsnif_error err;
+        if (lsnif_open_file(file.c_str(), &out.model, &err) != LSNIF_OK)
+            throw Failure(file.string() + ": " + err.message);
+        return;
+    }
+    out.scene = rtcNewScene(device_);
+    RTCGeometry g = rtcNewGeometry(device_, RTC_GEOMETRY_TYPE_TRIANGLE);
+    // Embree-owned copies: Embree may read 16 bytes past the last vertex, which a shared
+    // buffer would have to guarantee.
+    void* vb = rtcSetNewGeometryBuffer(g, RTC_BUFFER_TYPE_VERTEX, 0, RTC_FORMAT_FLOAT3, 12, src.vertex_count());
+    void* ib = rtcSetNewGeometryBuffer(g, RTC_BUFFER_TYPE_INDEX, 0, RTC_FORMAT_UINT3, 12, src.triangle_count());
+    if (!vb || !ib) {
+        rtcReleaseGeometry(g);
+        throw Failure("embree: cannot allocate mesh '" + src.name + "'");
+    }
+    std::memcpy(vb, src.positions.data(), src.positions.size() * sizeof(float));
+    std::memcpy(ib, src.indices.data(), src.indices.size() * sizeof(std::uint32_t));
+    rtcCommitGeometry(g);
+    rtcAttachGeometry(out.scene, g);
+    rtcReleaseGeometry(g);
+    rtcCommitScene(out.scene);
+}
+
+void HybridScene::add_instance(const json& j) {
+    const std::size_t mesh = j.at("mesh").get<std::size_t>();
+    const json& t = j.at("transform");
+    if (mesh >= meshes_.size() || !t.is_array() || t.size() != 12)
+        throw Failure(manifest_path_.string() + ": instance " + std::to_string(instances_.size()) + " is malformed");
+    Instance in{{}, meshes_[mesh].model, {INFINITY, INFINITY, INFINITY, -INFINITY, -INFINITY, -INFINITY}, {}};
+    for (int k = 0; k < 12; ++k) in.xf[k] = t[k].get<float>();
+    // Normals transform by the inverse transpose of A = cofactor(A) / det(A); the sign of
+    // det keeps mirrored instances' normals outward.
+    const float* a = in.xf;
+    const float co[9] = {a[5] * a[10] - a[6] * a[9], a[6] * a[8] - a[4] * a[10], a[4] * a[9] - a[5] * a[8],
+                         a[2] * a[9] - a[1] * a[10], a[0] * a[10] - a[2] * a[8], a[1] * a[8] - a[0] * a[9],
+                         a[1] * a[6] - a[2] * a[5], a[2] * a[4] - a[0] * a[6], a[0] * a[5] - a[1] * a[4]};
+    const float det = a[0] * co[0] + a[1] * co[1] + a[2] * co[2];
+    for (int k = 0; k < 9; ++k) in.nmat[k] = det < 0 ? -co[k] : co[k];
+    const Mesh& m = meshes_[mesh];
+    for (int c = 0; c < 8 && m.box[0] <= m.box[3]; ++c) {  // world box = transformed object-box corners
+        const float p[3] = {m.box[c & 1 ? 3 : 0], m.box[c & 2 ? 4 : 1], m.box[c & 4 ? 5 : 2]};
+        float w[3];
+        for (int r = 0; r < 3; ++r) w[r] = in.xf[4 * r] * p[0] + in.xf[4 * r + 1] * p[1] + in.xf[4 * r + 2] * p[2] + in.xf[4 * r + 3];
+        grow(in.box, w);
+        grow(world_, w);
+    }
+    if (!m.model) {
+        RTCGeometry g = rtcNewGeometry(device_, RTC_GEOMETRY_TYPE_INSTANCE);
+        rtcSetGeometryInstancedScene(g, m.scene);
+        rtcSetGeometryTransform(g, 0, RTC_FORMAT_FLOAT3X4_ROW_MAJOR, in.xf);
+        rtcCommitGeometry(g);
+        rtcAttachGeometryByID(top_, g, unsigned(instances_.size()));  // instID = our index
+        rtcReleaseGeometry(g);
+    }
+    instances_.push_back(in);
+}
+
+void HybridScene::trace(const std::vector<lsnif_ray>& rays, std::vector<lsnif_hit>& hits) const {
+    hits.assign(rays.size(), lsnif_hit{INFINITY, {0, 0, 0}, 0, 0});
+    for (std::size_t i = 0; i < rays.size(); ++i) {
+        const lsnif_ray& r = rays[i];
+        RTCIntersectContext ctx;
+        rtcInitIntersectContext(&ctx);
+        RTCRayHit rh{};
+        rh.ray = {r.org[0], r.org[1], r.org[2], r.tmin, r.dir[0], r.dir[1], r.dir[2], 0.0f, r.tmax, 0xFFFFFFFFu, 0, 0};
+        rh.hit.geomID = RTC_INVALID_GEOMETRY_ID;
+        rtcIntersect1(top_, &ctx, &rh);
+        if (rh.hit.geomID == RTC_INVALID_GEOMETRY_ID) continue;
+        const float* n = instances_[rh.hit.instID[0]].nmat;
+        const float g[3] = {rh.hit.Ng_x, rh.hit.Ng_y, rh.hit.Ng_z};
+        hits[i] = {rh.ray.tfar, {dot3(n, g), dot3(n + 3, g), dot3(n + 6, g)}, 1, 0};
+    }
+    std::vector<lsnif_ray> batch;
+    std::vector<std::size_t> index;
+    std::vector<lsnif_hit> out;
+    for (const Instance& in : instances_) {
+        if (!in.model) continue;
+        batch.clear();
+        index.clear();
+        for (std::size_t i = 0; i < rays.size(); ++i) {
+            lsnif_ray r = rays[i];
+            r.tmax = std::min(r.tmax, hits[i].t);  // only a nearer hit matters
+            if (ray_hits_box(r, in.box)) batch.push_back(r), index.push_back(i);
+        }
+        out.resize(batch.size());
+        if (!batch.empty() && lsnif_intersect_instance(in.model, in.xf, batch.data(), batch.size(), out.data()) == LSNIF_OK)
+            for (std::size_t k = 0; k < batch.size(); ++k)
+                if (out[k].hit && out[k].t < hits[index[k]].t) hits[index[k]] = out[k];
+    }
+}
+
+struct Camera {
+    Vec3 eye, forward, right, up;
+    float tan_half = std::tan(20.0f * 3.14159265f / 180.0f);  // 40-degree vertical field of view
+};
+
+Camera make_camera(const Vec3& eye, const Vec3& target) {
+    const Vec3 f{target[0] - eye[0], target[1] - eye[1], target[2] - eye[2]};
+    if (!(dot3(f.data(), f.data()) > 0.0f)) throw Failure("--camera: the eye and the target coincide");
+    Camera c{eye, normalized(f), {}, {}};
+    Vec3 r{-c.forward[2], 0.0f, c.forward[0]};  // forward x (0,1,0)
+    if (!(dot3(r.data(), r.data()) > 1e-12f)) r = {1.0f, 0.0f, 0.0f};  // looking straight up or down
+    c.right = normalized(r);
+    c.up = {c.right[1] * c.forward[2] - c.right[2] * c.forward[1], c.right[2] * c.forward[0] - c.right[0] * c.forward[2],
+            c.right[0] * c.forward[1] - c.right[1] * c.forward[0]};
+    return c;
+}
+
+// One row: primary rays, then shadow rays from the pixels that hit, then shading.
+void render_row(const HybridScene& scene, const Camera& cam, const Vec3& light, float eps, int y, int W, int H,
+                unsigned char* row) {
+    std::vector<lsnif_ray> prim(W), shadow;
+    std::vector<lsnif_hit> ph, sh;
+    std::vector<int> lit;  // pixel of each shadow ray
+    for (int x = 0; x < W; ++x) {
+        const float sx = (2.0f * (x + 0.5f) / W - 1.0f) * cam.tan_half * W / H, sy = (1.0f - 2.0f * (y + 0.5f) / H) * cam.tan_half;
+        Vec3 d;
+        for (int a = 0; a < 3; ++a) d[a] = cam.forward[a] + sx * cam.right[a] + sy * cam.up[a];
+        prim[x] = {{cam.eye[0], cam.eye[1], cam.eye[2]}, 0.0f, {d[0], d[1], d[2]}, INFINITY};
+    }
+    scene.trace(prim, ph);
+    std::vector<Vec3> normal(W);
+    for (int x = 0; x < W; ++x) {
+        if (!ph[x].hit) continue;
+        Vec3 n{ph[x].normal[0], ph[x].normal[1], ph[x].normal[2]};
+        const float nl = std::sqrt(dot3(n.data(), n.data())) + 1e-30f;
+        for (float& v : n) v /= nl;
+        if (dot3(n.data(), prim[x].dir) > 0) for (float& v : n) v = -v;  // face the camera
+        normal[x] = n;
+        lsnif_ray s;
+        for (int a = 0; a < 3; ++a) {
+            const float p = prim[x].org[a] + ph[x].t * prim[x].dir[a] + eps * n[a];  // leave the surface
+            s.org[a] = p;
+            s.dir[a] = light[a] - p;
+        }
+        s.tmin = 0.0f;
+        s.tmax = 1.0f;  // up to the light
+        if (!finite_ray(s)) continue;  // a degenerate hit: shaded as lit, never traced
+        shadow.push_back(s);
+        lit.push_back(x);
+    }
+    scene.trace(shadow, sh);
+    std::vector<char> occluded(W, 0);
+    for (std::size_t k = 0; k < lit.size(); ++k) occluded[lit[k]] = sh[k].hit;
+    for (int x = 0; x < W; ++x) {
+        float v = 0.05f;  // background
+        if (ph[x].hit) {
+            Vec3 l;
+            for (int a = 0; a < 3; ++a) l[a] = light[a] - (prim[x].org[a] + ph[x].t * prim[x].dir[a]);
+            const float lambert = std::max(0.0f, dot3(normal[x].data(), normalized(l).data()));
+            v = 0.1f + 0.9f * lambert * (occluded[x] ? 0.0f : 1.0f);
+        }
+        const auto g = (unsigned char)std::lround(255.0f * std::pow(std::clamp(v, 0.0f, 1.0f), 1.0f / 2.2f));
+        row[3 * x] = row[3 * x + 1] = row[3 * x + 2] = g;
+    }
+}
+
+// Binary PPM through a temporary file and a rename: no half-written image is ever left.
+void write_ppm(const fs::path& path, int W, int H, const std::vector<unsigned char>& rgb) {
+    const fs::path tmp = path.string() + ".tmp";
+    std::FILE* out = std::fopen(tmp.c_str(), "wb");
+    if (!out) throw Failure(path.string() + ": cannot open for writing");
+    std::fprintf(out, "P6\n%d %d\n255\n", W, H);
+    const bool ok = std::fwrite(rgb.data(), 1, rgb.size(), out) == rgb.size();
+    std::error_code ec;
+    if (std::fclose(out) != 0 || !ok) {
+        fs::remove(tmp, ec);
+        throw Failure(path.string() + ": write failed");
+    }
+    fs::rename(tmp, path, ec);
+    if (ec) {
+        fs::remove(tmp, ec);
+        throw Failure(path.string() + ": cannot rename the finished image into place");
+    }
+}
+
+int run(const Options& opt) {
+    const HybridScene scene(opt.outdir);
+    const float* w = scene.world_box();
+    const Vec3 c{0.5f * (w[0] + w[3]), 0.5f * (w[1] + w[4]), 0.5f * (w[2] + w[5])};
+    const Vec3 ext{w[3] - w[0], w[4] - w[1], w[5] - w[2]};
+    const float diag = std::max(std::sqrt(dot3(ext.data(), ext.data())), 1e-6f);
+    if (!std::isfinite(diag) || !std::isfinite(c[0] + c[1] + c[2]))
+        throw Failure(opt.outdir.string() + "/manifest.json: the scene's bounds are not finite");
+    // Default view: the scene framed from above and in front; the light above it.
+    const Camera cam = opt.camera ? make_camera({(*opt.camera)[0], (*opt.camera)[1], (*opt.camera)[2]},
+                                                {(*opt.camera)[3], (*opt.camera)[4], (*opt.camera)[5]})
+                                  : make_camera({c[0] + 0.5f * diag, c[1] + 0.37f * diag, c[2] + 0.92f * diag}, c);
+    const Vec3 light{c[0] + 0.5f * diag, c[1] + 1.2f * diag, c[2] + 0.7f * diag};
+    const float eps = 1e-4f * diag;
+
+    std::vector<unsigned char> image(std::size_t(opt.width) * opt.height * 3);
+    for (int y = 0; y < opt.height; ++y)
+        render_row(scene, cam, light, eps, y, opt.width, opt.height, &image[std::size_t(y) * opt.width * 3]);
+    write_ppm(opt.image, opt.width, opt.height, image);
+    std::printf("wrote %s (%dx%d, %zu instances)\n", opt.image.c_str(), opt.width, opt.height, scene.instance_count());
     return 0;
+}
+
+}  // namespace
+
+int main(int argc, char** argv) {
+    const std::optional<Options> opt = parse_args(argc, argv);
+    if (!opt) {
+        std::fprintf(stderr,
+                     "usage: %s OUTDIR OUT.ppm [WIDTH HEIGHT] [--camera ex,ey,ez,tx,ty,tz]\n"
+                     "  WIDTH, HEIGHT in 1..8192 (default 320x240)\n",
+                     argc > 0 ? argv[0] : "lsnif_render");
+        return 2;
+    }
+    try {
+        return run(*opt);
+    } catch (const Failure& e) {
+        std::fprintf(stderr, "error: %s\n", e.what());
+    } catch (const json::exception& e) {  // a manifest that parses but lacks a field or has the wrong type
+        std::fprintf(stderr, "error: %s/manifest.json: malformed: %s\n", opt->outdir.c_str(), e.what());
+    } catch (const std::exception& e) {
+        std::fprintf(stderr, "error: %s\n", e.what());
+    }
+    return 1;
 }

@@ -1,0 +1,43 @@
+// The scene manifest (OUTDIR/manifest.json, schema/manifest.schema.json): the one place that
+// knows its format tag and its path rule, for the writer (`lsnif convert`) and every reader
+// (`lsnif eval`, `lsnif bench memory|rays`).
+//
+// Path rule: `inputs[].path` is relative to the directory that holds the manifest (absolute
+// only where no relative path exists), so OUTDIR can be moved or archived together with its
+// sources in the same relative layout and still be read from any working directory.
+// `inputs[].given` keeps the path as it was given on the command line, for people only.
+//
+// Contract: no function here throws, exits or prints; failures come back as
+// "<file>: <problem>" in `error`.
+#pragma once
+
+#include <filesystem>
+#include <string>
+#include <vector>
+
+#include <nlohmann/json.hpp>
+
+namespace lsnif::converter {
+
+inline constexpr const char* kManifestFormat = "lsnif-manifest/2";
+
+// The form `inputs[].path` records for `input` (as given, relative to the current working
+// directory or absolute) in a manifest written into `manifest_dir`: relative to
+// `manifest_dir`, in generic ('/') form, or the absolute path if none exists.
+std::string manifest_relative_path(const std::filesystem::path& input, const std::filesystem::path& manifest_dir);
+
+// A manifest read back, with each input's file resolved for this process.
+struct LoadedManifest {
+    std::filesystem::path path;        // OUTDIR/manifest.json
+    nlohmann::json doc;                // the parsed manifest: an object with inputs, meshes, instances
+    std::vector<std::string> sources;  // per input: the file to import, usable from the current directory
+};
+
+// Reads OUTDIR/manifest.json and checks its format tag and top-level shape. `sources`
+// overrides where the inputs are (one per manifest input, relative to the current directory,
+// e.g. from `--source`); empty means the manifest's own paths, resolved from its directory.
+// A manifest of an older format is refused with a message that says to re-run convert.
+bool load_manifest(const std::filesystem::path& outdir, const std::vector<std::string>& sources, LoadedManifest& out,
+                   std::string& error);
+
+}  // namespace lsnif::converter
