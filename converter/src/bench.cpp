@@ -50,7 +50,7 @@ trainer::SpheresSource bench_scene(const format::ModelDesc& d) {
 }
 
 format::ModelDesc v1_desc() {
-    format::ModelDesc d;  // DESIGN.md §3 defaults: V=32, H=18, 64/128, T=2^17, F=3, 2x128
+    format::ModelDesc d;  // docs/architecture.md §3 defaults: V=32, H=18, 64/128, T=2^17, F=3, 2x128
     d.box_min = {-1.f, -1.f, -1.f};
     d.box_max = {1.f, 1.f, 1.f};
     return d;

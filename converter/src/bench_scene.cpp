@@ -1,5 +1,5 @@
 // `lsnif bench memory|rays|convert`: a converted scene measured against Embree on the same
-// machine in the same run (DESIGN.md §5 "Speed"; BENCHMARKS.md has the figures).
+// machine in the same run (docs/architecture.md §5 "Speed"; BENCHMARKS.md has the figures).
 #include <lsnif/converter/bench.hpp>
 #include <lsnif/converter/convert.hpp>
 #include <lsnif/converter/manifest.hpp>

@@ -179,7 +179,7 @@ std::vector<std::string> preset_names() { return {"default", "fast", "quality", 
 bool find_preset(const std::string& name, Preset& p) {
     p = Preset{};
     p.name = name;
-    // v1 model of DESIGN.md §3 in every preset; presets trade training time for accuracy.
+    // v1 model of docs/architecture.md §3 in every preset; presets trade training time for accuracy.
     // Measured on the dragon (BENCHMARKS.md "Conversion", 2^23 streamed rays, bf16 MLP):
     // at equal samples, more and smaller steps win slightly (1200 x 16384: 97.21 %, 0.90 %,
     // 14.1 deg in 77 s of training; 2400 x 8192: 97.46 %, 0.85 %, 12.8 deg in 83 s), and

@@ -158,7 +158,7 @@ inline TriMesh subdivide(const TriMesh& in) {
     return out;
 }
 
-// The model box of DESIGN.md §3: the AABB padded by 1 % of the largest extent per side.
+// The model box of docs/architecture.md §3: the AABB padded by 1 % of the largest extent per side.
 inline Box padded_box(const TriMesh& m) {
     Box b;
     b.min = {INFINITY, INFINITY, INFINITY};

@@ -1,5 +1,5 @@
 // `lsnif convert`: scene import -> classification -> voxelization -> Embree ground truth ->
-// training -> held-out evaluation and gate -> .lsnif assets + manifest (DESIGN.md §1).
+// training -> held-out evaluation and gate -> .lsnif assets + manifest (docs/architecture.md §1).
 //
 // Library code: never prints or exits. Progress goes through a callback; problems are
 // collected per input and per mesh; the CLI decides what to print and the exit code.
@@ -32,7 +32,7 @@ struct ClassifyRule {
     std::uint32_t min_log2_table_size = 15;  // smallest table sizing may choose (2^15 rows)
 };
 
-// Held-out accuracy an asset must reach to ship (DESIGN.md §3 "Accuracy gate").
+// Held-out accuracy an asset must reach to ship (docs/architecture.md §3 "Gate").
 struct Gate {
     double min_visibility = 0.95;          // pooled visibility accuracy
     double min_family_visibility = 0.90;   // every family

@@ -1,5 +1,5 @@
-// `lsnif eval`: renders a converted scene twice and compares the images (DESIGN.md §5,
-// "Image error"). Primary visibility always comes from the real meshes through Embree
+// `lsnif eval`: renders a converted scene twice and compares the images (docs/architecture.md §5,
+// "Images"). Primary visibility always comes from the real meshes through Embree
 // (standing in for the paper's rasterized G-buffer: vertex and face data stay exact);
 // secondary rays — shadow rays to a point light, ambient-occlusion rays and mirror
 // reflections — are traced

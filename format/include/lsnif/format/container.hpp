@@ -57,7 +57,7 @@ inline constexpr std::uint32_t kMaxLevelResolution = 4096;
 inline constexpr std::uint32_t kMaxHiddenWidth = 1024;
 inline constexpr std::uint32_t kMaxMaterials = 4096;
 
-// Hyperparameters of one LSNIF. Defaults are the v1 model of DESIGN.md §3; a reader
+// Hyperparameters of one LSNIF. Defaults are the v1 model of docs/architecture.md §3; a reader
 // never uses them — every value is read from the file.
 struct ModelDesc {
     std::uint32_t grid_resolution = 32;

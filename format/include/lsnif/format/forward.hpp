@@ -1,4 +1,4 @@
-// The LSNIF forward pass (DESIGN.md §3, FORMAT.md §8): ray clipping, voxel DDA over the
+// The LSNIF forward pass (docs/architecture.md §3, FORMAT.md §8): ray clipping, voxel DDA over the
 // occupancy grid, multi-level hash-grid encoding of the voxel entry points, MLP, decode.
 //
 // This is THE implementation: the C reader API, the trainer and every benchmark call these
@@ -116,7 +116,7 @@ TraceStatus trace_all_voxels(const Geometry& geo, const Ray& ray, std::vector<st
 
 // Lattice corners with non-zero trilinear weight around a point of level `lv`. A point on
 // a voxel face of an aligned level has one coordinate on a lattice plane, so only 4
-// corners carry weight ("sparse" grid, DESIGN.md §3); the zero-weight ones are dropped.
+// corners carry weight ("sparse" grid, docs/architecture.md §3); the zero-weight ones are dropped.
 struct Corners {
     std::uint32_t n;
     std::uint32_t index[8];  // row in the level's table

@@ -21,7 +21,7 @@ public:
     SpheresSource(std::vector<Sphere> spheres, std::array<float, 3> box_min, std::array<float, 3> box_max,
                   float shadow_fraction = 0.25f);
 
-    // Families cycle per index: outside, surface, interior (DESIGN.md §3 (a), (b), (c)).
+    // Families cycle per index: outside, surface, interior (docs/architecture.md §3 "Training").
     void generate(std::uint64_t seed, std::size_t count, std::vector<Sample>& out) override;
 
     // Exact nearest hit in [tmin, tmax]; returns false on a miss.

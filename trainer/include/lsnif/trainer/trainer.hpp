@@ -1,4 +1,4 @@
-// Training of one LSNIF (DESIGN.md §3): losses, backward pass through the MLP and the
+// Training of one LSNIF (docs/architecture.md §3): losses, backward pass through the MLP and the
 // sparse hash-grid encoding, hand-written Adam, learning-rate schedule, gradient clipping
 // and a divergence guard. Multi-threaded with std::thread; for a fixed seed and thread
 // count every step is bit-for-bit deterministic (fixed work partition, fixed reduction
@@ -25,7 +25,7 @@
 
 namespace lsnif::trainer {
 
-// Ray families of DESIGN.md §3.
+// Ray families of docs/architecture.md §3.
 enum class Family : std::uint8_t { outside = 0, surface = 1, interior = 2 };
 inline constexpr int kFamilyCount = 3;
 const char* family_name(Family f);
@@ -256,7 +256,7 @@ private:
     friend struct Impl;
 };
 
-// ---- held-out evaluation (DESIGN.md §5) -------------------------------------------------
+// ---- held-out evaluation (docs/architecture.md §5) -------------------------------------------------
 
 struct FamilyMetrics {
     std::uint64_t rays = 0;           // rays that reached the network

@@ -1,4 +1,4 @@
-// Images for `lsnif eval` (DESIGN.md §5, "Image error"): the float RGB image type, the sRGB
+// Images for `lsnif eval` (docs/architecture.md §5, "Images"): the float RGB image type, the sRGB
 // transfer functions, PSNR, the FLIP error heat map and PNG writing.
 //
 // Encoding convention: an Image holds display values in [0, 1]. Whether they are

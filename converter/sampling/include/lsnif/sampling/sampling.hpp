@@ -1,4 +1,4 @@
-// Ground-truth training rays for `lsnif convert` (DESIGN.md §3, "Training"): the three
+// Ground-truth training rays for `lsnif convert` (docs/architecture.md §3, "Training"): the three
 // ray families, traced with Embree 3 against the original triangle mesh.
 //
 //   (a) outside   origin on a sphere of radius 0.75 x box diagonal around the box centre,
@@ -65,7 +65,7 @@ struct MeshView {
     std::span<const std::uint32_t> materials;  // one per triangle; empty: every triangle 0
 };
 
-// The model box (DESIGN.md §3: the mesh AABB, padded). Every vertex must lie inside it.
+// The model box (docs/architecture.md §3: the mesh AABB, padded). Every vertex must lie inside it.
 struct Box {
     std::array<float, 3> min{}, max{};
 };

@@ -1,4 +1,4 @@
-// Scene import for `lsnif convert` (DESIGN.md §1, first stage): glTF 2.0 (.gltf, .glb)
+// Scene import for `lsnif convert` (docs/architecture.md §1, first stage): glTF 2.0 (.gltf, .glb)
 // through tinygltf, OBJ / PLY / STL through OpenMesh and OFF through a reader of our own,
 // into one in-memory model of unique meshes, their instances and material names.
 //
@@ -70,7 +70,7 @@ struct Mesh {
     // object space. From the file where it has them; otherwise computed as documented at
     // compute_vertex_normals(). (The glTF 2.0 spec, "Meshes", asks for flat normals when
     // a primitive has none; we compute smooth ones on purpose: the network learns shading
-    // normals, and smooth ones are what a renderer would interpolate — DESIGN.md §3.)
+    // normals, and smooth ones are what a renderer would interpolate — docs/architecture.md §3.)
     std::vector<float> normals;
     NormalOrigin normal_origin = NormalOrigin::computed;
 

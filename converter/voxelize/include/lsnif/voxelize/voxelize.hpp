@@ -1,4 +1,4 @@
-// Conservative triangle voxelizer: the occupancy grid of an LSNIF asset (DESIGN.md §3,
+// Conservative triangle voxelizer: the occupancy grid of an LSNIF asset (docs/architecture.md §3,
 // schema/FORMAT.md §6.3).
 //
 // A voxel is marked iff some triangle overlaps its *closed* cell (touching a face, an edge
@@ -100,7 +100,7 @@ struct BoxOptions {
     double min_thickness = 1.0 / 16;
 };
 
-// DESIGN.md §3 "Box": the AABB of the vertices referenced by the triangles, padded by
+// docs/architecture.md §3 "Box": the AABB of the vertices referenced by the triangles, padded by
 // options.padding * L on each side, every axis at least options.min_thickness * L thick.
 // If L = 0 (every triangle collapses to one point p) L is taken as max(|p|_inf, 1) * 2^-10.
 // The result is rounded outward to float, so it strictly contains the AABB on every axis
