@@ -18,7 +18,7 @@
 #include <fstream>
 #include <memory>
 #include <span>
-#include <thread>
+#include <lsnif/base/parallel.hpp>
 
 namespace lsnif::converter {
 
@@ -195,14 +195,11 @@ json bench_infer(const BenchOptions& o) {
         format::IntersectStats st;
         const auto t0 = Clock::now();
         do {
-            std::vector<std::thread> pool;
             std::vector<format::IntersectStats> part(T);
-            for (std::uint32_t t = 0; t < T; ++t)
-                pool.emplace_back([&, t] {
-                    const std::size_t b = std::min(rays.size(), t * per), e = std::min(rays.size(), b + per);
-                    part[t] = format::intersect(rt, std::span(rays).subspan(b, e - b), std::span(hits).subspan(b, e - b));
-                });
-            for (auto& th : pool) th.join();
+            base::run_on_threads(T, [&](std::uint32_t t) {
+                const std::size_t b = std::min(rays.size(), t * per), e = std::min(rays.size(), b + per);
+                part[t] = format::intersect(rt, std::span(rays).subspan(b, e - b), std::span(hits).subspan(b, e - b));
+            });
             st = {};
             for (auto& p : part) st.inferred += p.inferred, st.culled += p.culled;
             total += rays.size();

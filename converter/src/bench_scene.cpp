@@ -13,7 +13,7 @@
 #include <atomic>
 #include <chrono>
 #include <filesystem>
-#include <thread>
+#include <lsnif/base/parallel.hpp>
 
 namespace lsnif::converter {
 namespace fs = std::filesystem;
@@ -225,17 +225,10 @@ json bench_rays(const SceneBenchOptions& opt, std::string& error) {
         std::vector<lsnif_hit> hits(rays.size());
         double best = INFINITY;
         for (std::uint32_t rep = 0; rep < opt.repeats; ++rep) {
-            std::atomic<std::size_t> next{0};
             const auto t0 = Clock::now();
-            auto work = [&] {
-                for (std::size_t b; (b = next.fetch_add(256)) < rays.size();)
-                    lsnif_intersect(o.model, rays.data() + b, std::min<std::size_t>(256, rays.size() - b),
-                                    hits.data() + b);
-            };
-            std::vector<std::thread> pool;
-            for (std::uint32_t t = 1; t < std::max(1u, opt.threads); ++t) pool.emplace_back(work);
-            work();
-            for (auto& t : pool) t.join();
+            base::parallel_chunks(rays.size(), opt.threads, 256, [&](std::uint32_t, std::size_t b, std::size_t e) {
+                lsnif_intersect(o.model, rays.data() + b, e - b, hits.data() + b);
+            });
             best = std::min(best, since(t0));
         }
         std::size_t agree = 0;

@@ -13,7 +13,7 @@
 #include <cstdio>
 #include <filesystem>
 #include <numeric>
-#include <thread>
+#include <lsnif/base/parallel.hpp>
 
 namespace lsnif::converter {
 
@@ -237,7 +237,7 @@ ConvertResult convert(const ConvertOptions& opt, const ConvertProgress& progress
     if (opt.grid_resolution > 0) preset.model.grid_resolution = opt.grid_resolution;
     if (opt.hidden_width > 0)
         for (auto& w : preset.model.hidden_width) w = opt.hidden_width;
-    const std::uint32_t threads = opt.threads ? opt.threads : std::max(1u, std::thread::hardware_concurrency());
+    const std::uint32_t threads = base::resolve_threads(opt.threads);
     auto report = [&](const ProgressEvent& e) {
         if (progress) progress(e);
     };

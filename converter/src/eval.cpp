@@ -1,6 +1,9 @@
 // `lsnif eval`: reference (Embree everywhere) and hybrid (Embree + LSNIF reader) renders of
 // a converted scene, compared with FLIP and PSNR (eval.hpp has the contract).
 #include <lsnif/converter/eval.hpp>
+#include <lsnif/base/affine.hpp>
+#include <lsnif/base/parallel.hpp>
+#include <lsnif/base/random.hpp>
 #include <lsnif/converter/manifest.hpp>
 
 #include <embree3/rtcore.h>
@@ -13,7 +16,6 @@
 #include <filesystem>
 #include <fstream>
 #include <limits>
-#include <thread>
 
 #include <lsnif/eval/flip.hpp>
 #include <lsnif/eval/image.hpp>
@@ -45,45 +47,11 @@ Vec3 apply_point(const Affine& m, Vec3 p) {
             m[8] * p[0] + m[9] * p[1] + m[10] * p[2] + m[11]};
 }
 
-// Normals transform by the inverse transpose of A; the cofactor matrix is that up to the
-// (positive or negative) determinant, and the sign is restored so mirrored instances keep
-// outward normals. Returns false for a singular A.
-bool normal_matrix(const Affine& m, std::array<float, 9>& n) {
-    const double a = m[0], b = m[1], c = m[2], d = m[4], e = m[5], f = m[6], g = m[8], h = m[9], i = m[10];
-    const double co[9] = {e * i - f * h, f * g - d * i, d * h - e * g,  //
-                          c * h - b * i, a * i - c * g, b * g - a * h,  //
-                          b * f - c * e, c * d - a * f, a * e - b * d};
-    const double det = a * co[0] + b * co[1] + c * co[2];
-    if (!(std::fabs(det) > 1e-30) || !std::isfinite(det)) return false;
-    const double s = det > 0 ? 1.0 : -1.0;
-    for (int k = 0; k < 9; ++k) n[k] = float(co[k] * s);  // row r = cofactors of row r of A
-    return true;
-}
-
 Vec3 apply_normal(const std::array<float, 9>& n, Vec3 v) {
     return normalize({n[0] * v[0] + n[1] * v[1] + n[2] * v[2], n[3] * v[0] + n[4] * v[1] + n[5] * v[2],
                       n[6] * v[0] + n[7] * v[1] + n[8] * v[2]});
 }
 
-std::uint64_t splitmix64(std::uint64_t& s) {
-    std::uint64_t z = (s += 0x9E3779B97F4A7C15ull);
-    z = (z ^ (z >> 30)) * 0xBF58476D1CE4E5B9ull;
-    z = (z ^ (z >> 27)) * 0x94D049BB133111EBull;
-    return z ^ (z >> 31);
-}
-float uniform01(std::uint64_t& s) { return float(splitmix64(s) >> 40) * (1.0f / 16777216.0f); }
-
-template <class F>
-void parallel_rows(std::uint32_t threads, std::uint32_t rows, F&& body) {
-    std::atomic<std::uint32_t> next{0};
-    auto worker = [&](std::uint32_t t) {
-        for (std::uint32_t r; (r = next.fetch_add(1)) < rows;) body(t, r);
-    };
-    std::vector<std::thread> pool;
-    for (std::uint32_t t = 1; t < threads; ++t) pool.emplace_back(worker, t);
-    worker(0);
-    for (auto& th : pool) th.join();
-}
 
 }  // namespace
 
@@ -384,10 +352,13 @@ std::unique_ptr<EvalScene> EvalScene::load(const EvalOptions& opt, std::string& 
         for (int k = 0; k < 12; ++k) in.transform[k] = insts[i]["transform"][k].get<float>();
         for (const auto& [which, m] : opt.instance_transforms)
             if (which == i) in.transform = m;
-        if (!normal_matrix(in.transform, in.nmat)) {
-            error = manifest_path.string() + ": instance " + std::to_string(i) + " has a singular transform";
+        const auto inverse = base::invert_linear(in.transform.data());
+        if (!inverse) {
+            error = manifest_path.string() + ": instance " + std::to_string(i) +
+                    " has a singular or non-finite transform";
             return nullptr;
         }
+        in.nmat = base::normal_matrix(*inverse);
         const auto& ob = im.meshes[in.mesh].box;
         in.box = {INFINITY, INFINITY, INFINITY, -INFINITY, -INFINITY, -INFINITY};
         for (int c = 0; c < 8; ++c) {
@@ -482,7 +453,7 @@ EvalResult evaluate(const EvalOptions& opt) {
         return res;
     }
     const std::uint32_t W = opt.width, H = opt.height, S = std::max(1u, opt.ao_samples);
-    const std::uint32_t threads = opt.threads ? opt.threads : std::max(1u, std::thread::hardware_concurrency());
+    const std::uint32_t threads = base::resolve_threads(opt.threads);
     const Vec3 lo{im.world[0], im.world[1], im.world[2]}, hi{im.world[3], im.world[4], im.world[5]};
     const Vec3 center = (lo + hi) * 0.5f;
     const float diag = std::max(length(hi - lo), 1e-20f);
@@ -507,7 +478,7 @@ EvalResult evaluate(const EvalOptions& opt) {
     gb.n.resize(gb.p.size());
     gb.inst.assign(gb.p.size(), -1);
     gb.eps.resize(gb.p.size());
-    parallel_rows(threads, H, [&](std::uint32_t, std::uint32_t y) {
+    base::parallel_chunks(H, threads, 1, [&](std::uint32_t, std::size_t y, std::size_t) {
         std::vector<lsnif_ray> rays(W);
         std::vector<TraceHit> hits(W);
         for (std::uint32_t x = 0; x < W; ++x) {
@@ -543,7 +514,7 @@ EvalResult evaluate(const EvalOptions& opt) {
     for (int hybrid = 0; hybrid < 2; ++hybrid) {
         for (auto& v : img[hybrid]) v.assign(std::size_t(W) * H * 3, 0.0f);
         std::vector<double> per_thread(threads, 0.0);
-        parallel_rows(threads, H, [&](std::uint32_t t, std::uint32_t y) {
+        base::parallel_chunks(H, threads, 1, [&](std::uint32_t t, std::size_t y, std::size_t) {
             std::vector<lsnif_ray> shadow, ao, refl;
             std::vector<std::uint32_t> px;
             for (std::uint32_t x = 0; x < W; ++x) {
@@ -555,11 +526,11 @@ EvalResult evaluate(const EvalOptions& opt) {
                 const float dist = length(tl);
                 shadow.push_back({{o[0], o[1], o[2]}, 0.0f, {tl[0] / dist, tl[1] / dist, tl[2] / dist}, dist});
                 // Cosine-weighted hemisphere about n (Malley's method), per-pixel stream.
-                std::uint64_t s = opt.seed * 0x9E3779B97F4A7C15ull + i * 0xD1B54A32D192ED03ull;
+                base::SplitMix64 rng{opt.seed * base::kGoldenGamma + i * 0xD1B54A32D192ED03ull};
                 const Vec3 a = std::fabs(n[0]) > 0.5f ? Vec3{0, 1, 0} : Vec3{1, 0, 0};
                 const Vec3 tx = normalize(cross(a, n)), ty = cross(n, tx);
                 for (std::uint32_t k = 0; k < S; ++k) {
-                    const float r = std::sqrt(uniform01(s)), phi = 6.2831853f * uniform01(s);
+                    const float r = std::sqrt(rng.uniform01f()), phi = 6.2831853f * rng.uniform01f();
                     const float lx = r * std::cos(phi), ly = r * std::sin(phi);
                     const Vec3 d = normalize(tx * lx + ty * ly + n * std::sqrt(std::max(0.0f, 1.0f - r * r)));
                     ao.push_back({{o[0], o[1], o[2]}, 0.0f, {d[0], d[1], d[2]}, opt.ao_radius * diag});

@@ -19,6 +19,7 @@
 //
 // Embree (and the reader) are only given rays whose origin and direction are finite: a
 // pixel whose primary ray missed has no shadow ray at all.
+#include <lsnif/base/affine.hpp>
 #include <lsnif/lsnif.h>
 #include <lsnif/scene/scene.hpp>
 
@@ -139,7 +140,7 @@ private:
         float xf[12];        // object -> world, the layout lsnif_intersect_instance takes
         lsnif_model* model;  // non-null: traced through the reader
         float box[6];        // world bounds, to skip rays that cannot reach the instance
-        float nmat[9];       // cofactor matrix of A: object -> world normals (up to scale)
+        std::array<float, 9> nmat;  // A^-T: object -> world normals (before normalizing)
     };
 
     std::vector<lsnif::scene::Scene> load_inputs(const json& manifest, const fs::path& outdir) const;
@@ -234,14 +235,11 @@ void HybridScene::add_instance(const json& j) {
         throw Failure(manifest_path_.string() + ": instance " + std::to_string(instances_.size()) + " is malformed");
     Instance in{{}, meshes_[mesh].model, {INFINITY, INFINITY, INFINITY, -INFINITY, -INFINITY, -INFINITY}, {}};
     for (int k = 0; k < 12; ++k) in.xf[k] = t[k].get<float>();
-    // Normals transform by the inverse transpose of A = cofactor(A) / det(A); the sign of
-    // det keeps mirrored instances' normals outward.
-    const float* a = in.xf;
-    const float co[9] = {a[5] * a[10] - a[6] * a[9], a[6] * a[8] - a[4] * a[10], a[4] * a[9] - a[5] * a[8],
-                         a[2] * a[9] - a[1] * a[10], a[0] * a[10] - a[2] * a[8], a[1] * a[8] - a[0] * a[9],
-                         a[1] * a[6] - a[2] * a[5], a[2] * a[4] - a[0] * a[6], a[0] * a[5] - a[1] * a[4]};
-    const float det = a[0] * co[0] + a[1] * co[1] + a[2] * co[2];
-    for (int k = 0; k < 9; ++k) in.nmat[k] = det < 0 ? -co[k] : co[k];
+    const auto inverse = lsnif::base::invert_linear(in.xf);  // the C API's own rule
+    if (!inverse)
+        throw Failure(manifest_path_.string() + ": instance " + std::to_string(instances_.size()) +
+                      " has a singular or non-finite transform");
+    in.nmat = lsnif::base::normal_matrix(*inverse);
     const Mesh& m = meshes_[mesh];
     for (int c = 0; c < 8 && m.box[0] <= m.box[3]; ++c) {  // world box = transformed object-box corners
         const float p[3] = {m.box[c & 1 ? 3 : 0], m.box[c & 2 ? 4 : 1], m.box[c & 4 ? 5 : 2]};
@@ -272,7 +270,7 @@ void HybridScene::trace(const std::vector<lsnif_ray>& rays, std::vector<lsnif_hi
         rh.hit.geomID = RTC_INVALID_GEOMETRY_ID;
         rtcIntersect1(top_, &ctx, &rh);
         if (rh.hit.geomID == RTC_INVALID_GEOMETRY_ID) continue;
-        const float* n = instances_[rh.hit.instID[0]].nmat;
+        const float* n = instances_[rh.hit.instID[0]].nmat.data();
         const float g[3] = {rh.hit.Ng_x, rh.hit.Ng_y, rh.hit.Ng_z};
         hits[i] = {rh.ray.tfar, {dot3(n, g), dot3(n + 3, g), dot3(n + 6, g)}, 1, 0};
     }

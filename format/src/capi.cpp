@@ -1,5 +1,6 @@
 // The C API of <lsnif/lsnif.h>: thin wrappers over the C++ reader. Nothing may throw
 // out of these functions, so each body runs inside a catch-all.
+#include <lsnif/base/affine.hpp>
 #include <lsnif/format/container.hpp>
 
 #include "model_impl.hpp"
@@ -83,6 +84,12 @@ const char* lsnif_status_string(lsnif_status status) {
     case LSNIF_ERR_INTERNAL: return "internal error";
     }
     return "unknown status";
+}
+
+const char* lsnif_version(uint32_t* container_major, uint32_t* container_minor) {
+    if (container_major) *container_major = LSNIF_VERSION_MAJOR;
+    if (container_minor) *container_minor = LSNIF_VERSION_MINOR;
+    return LSNIF_LIBRARY_VERSION;
 }
 
 lsnif_status lsnif_scan_memory(const void* data, size_t size, lsnif_header_info* header,
@@ -238,24 +245,9 @@ lsnif_status lsnif_intersect(const lsnif_model* model, const lsnif_ray* rays, si
 lsnif_status lsnif_intersect_instance(const lsnif_model* model, const float m[12], const lsnif_ray* rays,
                                       size_t count, lsnif_hit* hits) {
     if (!model || !m || (count && (!rays || !hits))) return LSNIF_ERR_INVALID_ARGUMENT;
-    // Inverse of the linear part A (row-major rows 0..2, columns 0..2; translation m[3], m[7], m[11]).
-    double a[3][3], inv[3][3];
-    for (int r = 0; r < 3; ++r)
-        for (int c = 0; c < 3; ++c) a[r][c] = m[4 * r + c];
-    for (int i = 0; i < 12; ++i)
-        if (!std::isfinite(m[i])) return LSNIF_ERR_INVALID_ARGUMENT;
-    const double det = a[0][0] * (a[1][1] * a[2][2] - a[1][2] * a[2][1]) -
-                       a[0][1] * (a[1][0] * a[2][2] - a[1][2] * a[2][0]) +
-                       a[0][2] * (a[1][0] * a[2][1] - a[1][1] * a[2][0]);
-    double scale = 0;
-    for (auto& row : a)
-        for (double v : row) scale = std::max(scale, std::fabs(v));
-    if (!(std::fabs(det) > 1e-12 * scale * scale * scale)) return LSNIF_ERR_INVALID_ARGUMENT;
-    for (int r = 0; r < 3; ++r)
-        for (int c = 0; c < 3; ++c) {
-            const int r1 = (c + 1) % 3, r2 = (c + 2) % 3, c1 = (r + 1) % 3, c2 = (r + 2) % 3;
-            inv[r][c] = (a[r1][c1] * a[r2][c2] - a[r1][c2] * a[r2][c1]) / det;  // adjugate / det
-        }
+    const auto inverse = lsnif::base::invert_linear(m);  // translation m[3], m[7], m[11]
+    if (!inverse) return LSNIF_ERR_INVALID_ARGUMENT;
+    const auto& inv = inverse->inv;
     return guarded(nullptr, [&] {
         constexpr std::size_t kChunk = 1024;
         lsnif_ray local[kChunk];

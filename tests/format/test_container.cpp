@@ -266,6 +266,54 @@ TEST_CASE("C API: open, info, arrays, metadata, status strings, bad arguments") 
     CHECK(std::string(lsnif_status_string(LSNIF_ERR_VERSION_OLDER)).find("re-convert") != std::string::npos);
 }
 
+TEST_CASE("every C API call follows its documented NULL rule") {
+    auto bytes = load(data_dir() / "valid" / "v1_default.lsnif");
+    lsnif_model* m = nullptr;
+    REQUIRE(lsnif_open_memory(bytes.data(), bytes.size(), &m, nullptr) == LSNIF_OK);
+    lsnif_array a{};
+    lsnif_ray ray{{0, 0, 0}, 0, {1, 0, 0}, 1};
+    lsnif_hit hit{};
+    const float identity[12] = {1, 0, 0, 0, 0, 1, 0, 0, 0, 0, 1, 0};
+    lsnif_model* out = m;
+    CHECK(lsnif_open_memory(bytes.data(), bytes.size(), nullptr, nullptr) == LSNIF_ERR_INVALID_ARGUMENT);
+    CHECK(lsnif_open_memory(nullptr, 0, &out, nullptr) != LSNIF_OK);  // empty input: not a file
+    CHECK(out == nullptr);                                             // *out cleared on failure
+    CHECK(lsnif_open_file(nullptr, &out, nullptr) == LSNIF_ERR_INVALID_ARGUMENT);
+    CHECK(lsnif_open_file("x.lsnif", nullptr, nullptr) == LSNIF_ERR_INVALID_ARGUMENT);
+    CHECK(lsnif_get_info(m, nullptr) == LSNIF_ERR_INVALID_ARGUMENT);
+    CHECK(lsnif_get_array(nullptr, LSNIF_ARRAY_OCCUPANCY, 0, &a) == LSNIF_ERR_INVALID_ARGUMENT);
+    CHECK(lsnif_get_array(m, LSNIF_ARRAY_OCCUPANCY, 0, nullptr) == LSNIF_ERR_INVALID_ARGUMENT);
+    CHECK(lsnif_layer_count(nullptr) == 0);
+    std::size_t len = 7;
+    CHECK(lsnif_metadata(nullptr, &len) == nullptr);
+    CHECK(len == 0);
+    CHECK(lsnif_metadata(m, nullptr) != nullptr);
+    CHECK(lsnif_intersect(nullptr, &ray, 1, &hit) == LSNIF_ERR_INVALID_ARGUMENT);
+    CHECK(lsnif_intersect(m, nullptr, 1, &hit) == LSNIF_ERR_INVALID_ARGUMENT);
+    CHECK(lsnif_intersect(m, &ray, 1, nullptr) == LSNIF_ERR_INVALID_ARGUMENT);
+    CHECK(lsnif_intersect(m, nullptr, 0, nullptr) == LSNIF_OK);
+    CHECK(lsnif_intersect_instance(m, nullptr, &ray, 1, &hit) == LSNIF_ERR_INVALID_ARGUMENT);
+    CHECK(lsnif_intersect_instance(nullptr, identity, &ray, 1, &hit) == LSNIF_ERR_INVALID_ARGUMENT);
+    CHECK(lsnif_intersect_instance(m, identity, nullptr, 0, nullptr) == LSNIF_OK);
+    std::uint32_t count = 9;
+    CHECK(lsnif_scan_memory(nullptr, 4, nullptr, nullptr, 0, &count, nullptr) == LSNIF_ERR_INVALID_ARGUMENT);
+    CHECK(lsnif_scan_memory(bytes.data(), bytes.size(), nullptr, nullptr, 1, &count, nullptr) ==
+          LSNIF_ERR_INVALID_ARGUMENT);
+    CHECK(lsnif_scan_memory(bytes.data(), bytes.size(), nullptr, nullptr, 0, nullptr, nullptr) == LSNIF_OK);
+    CHECK(std::string(lsnif_status_string(lsnif_status(1000))) == "unknown status");
+    lsnif_close(m);
+}
+
+TEST_CASE("the runtime version matches the header this program was built with") {
+    std::uint32_t major = 0, minor = 99;
+    const char* release = lsnif_version(&major, &minor);
+    REQUIRE(release != nullptr);
+    CHECK(major == LSNIF_VERSION_MAJOR);
+    CHECK(minor == LSNIF_VERSION_MINOR);
+    CHECK(std::string(release).find('.') != std::string::npos);  // "MAJOR.MINOR.PATCH"
+    CHECK(std::string(lsnif_version(nullptr, nullptr)) == release);
+}
+
 TEST_CASE("scan reports every section and its checksum state") {
     auto bytes = load(data_dir() / "valid" / "unknown_optional_section.lsnif");
     lsnif_header_info h{};

@@ -1,6 +1,6 @@
 #include <lsnif/trainer/analytic.hpp>
 
-#include "rng.hpp"
+#include <lsnif/base/random.hpp>
 
 #include <algorithm>
 #include <cmath>
@@ -9,7 +9,7 @@ namespace lsnif::trainer {
 
 namespace {
 
-using Rng = detail::SplitMix64;
+using Rng = base::SplitMix64;
 
 void unit_sphere(Rng& rng, double v[3]) {
     const double z = 2.0 * rng.u01() - 1.0, phi = 2.0 * M_PI * rng.u01();

@@ -4,13 +4,13 @@
 
 #include "amx.hpp"
 #include "kernels.hpp"
-#include "rng.hpp"
+#include <lsnif/base/parallel.hpp>
+#include <lsnif/base/random.hpp>
 
 #include <algorithm>
 #include <chrono>
 #include <cmath>
 #include <cstring>
-#include <thread>
 
 namespace lsnif::trainer {
 
@@ -48,20 +48,12 @@ constexpr float kMaxParam = 1e4f;  // larger magnitudes are treated as divergenc
 std::uint32_t pad16(std::uint32_t n) { return (n + 15u) & ~15u; }
 std::uint32_t pad32(std::uint32_t n) { return (n + 31u) & ~31u; }  // K of a bf16 product
 
-using Rng = detail::SplitMix64;
+using Rng = base::SplitMix64;
 
-// Runs fn(t) for t in [0, T) on T threads (the caller is thread 0).
+// Runs fn(t) for t in [0, T) on the shared pool (the caller is thread 0).
 template <class F>
 void parallel(std::uint32_t T, F&& fn) {
-    if (T <= 1) {
-        fn(0u);
-        return;
-    }
-    std::vector<std::thread> pool;
-    pool.reserve(T - 1);
-    for (std::uint32_t t = 1; t < T; ++t) pool.emplace_back([&fn, t] { fn(t); });
-    fn(0u);
-    for (auto& th : pool) th.join();
+    base::run_on_threads(T, fn);
 }
 
 float sigmoid(float z) { return z >= 0 ? 1.0f / (1.0f + std::exp(-z)) : std::exp(z) / (1.0f + std::exp(z)); }
@@ -121,7 +113,7 @@ struct Trainer::Impl {
 
 Trainer::Trainer(const format::ModelDesc& desc, std::vector<std::uint8_t> occupancy, const TrainConfig& cfg)
     : impl_(new Impl), desc_(desc), geo_(format::make_geometry(desc)), occupancy_(std::move(occupancy)), cfg_(cfg) {
-    threads_ = cfg.threads ? cfg.threads : std::max(1u, std::thread::hardware_concurrency());
+    threads_ = base::resolve_threads(cfg.threads);
     precision_ = resolve_precision(cfg.mlp_precision);
     Rng rng{cfg.seed * 0x2545F4914F6CDD1Dull + 1};
     for (std::uint32_t l = 0; l < desc.level_count(); ++l) {
@@ -839,7 +831,7 @@ double percentile(std::vector<double>& v, double q) {
 
 Metrics evaluate(const format::Runtime& rt, std::span<const Sample> samples, std::uint32_t threads,
                  std::span<const std::array<float, 3>> geometric_normals) {
-    const std::uint32_t T = threads ? threads : std::max(1u, std::thread::hardware_concurrency());
+    const std::uint32_t T = base::resolve_threads(threads);
     std::vector<format::Ray> rays(samples.size());
     for (std::size_t i = 0; i < samples.size(); ++i) rays[i] = samples[i].ray;
     std::vector<format::Hit> hits(samples.size());

@@ -1,4 +1,6 @@
 // Ground-truth ray generation with Embree 3 (see sampling.hpp for the contract).
+#include <lsnif/base/parallel.hpp>
+#include <lsnif/base/random.hpp>
 #include <lsnif/sampling/sampling.hpp>
 
 #include <embree3/rtcore.h>
@@ -18,8 +20,6 @@
 #include <ctime>
 #include <mutex>
 #include <numbers>
-#include <system_error>
-#include <thread>
 #include <unordered_map>
 #include <utility>
 
@@ -32,13 +32,8 @@ namespace {
 
 // ---- random numbers ---------------------------------------------------------------------
 
-// splitmix64 finalizer (Steele, Lea, Flood 2014): a bijective 64-bit mix.
-constexpr std::uint64_t mix64(std::uint64_t z) {
-    z = (z ^ (z >> 30)) * 0xBF58476D1CE4E5B9ull;
-    z = (z ^ (z >> 27)) * 0x94D049BB133111EBull;
-    return z ^ (z >> 31);
-}
-constexpr std::uint64_t kGolden = 0x9E3779B97F4A7C15ull;
+using base::mix64;  // splitmix64's output function: seeds the per-ray streams
+constexpr std::uint64_t kGolden = base::kGoldenGamma;
 
 // A ray's draws: wyrand (Wang Yi 2019), a Weyl sequence whose state is folded by one
 // 64 x 64 -> 128-bit multiply per draw, about half the instructions of a splitmix64
@@ -190,38 +185,15 @@ private:
     unsigned saved_ = 0;
 };
 
-std::uint32_t resolve_threads(std::uint32_t t) {
-    if (t) return t;
-    const unsigned hw = std::thread::hardware_concurrency();
-    return hw ? hw : 1;
-}
-
-// Runs body(begin, end) over [0, n) in chunks handed out dynamically to `threads` threads
-// (the caller is one of them). Results must not depend on the chunk-to-thread mapping.
-// If a thread cannot be started, the remaining ones (at least the caller) do the work.
+// Runs body(begin, end) over [0, n) in chunks of 1024 handed out dynamically to `threads`
+// threads of the shared pool. Results must not depend on the chunk-to-thread mapping.
+// Flush-to-zero is set per chunk: the pool's threads outlive the call.
 template <class Body>
 void parallel_chunks(std::size_t n, std::uint32_t threads, Body&& body) {
-    constexpr std::size_t kChunk = 1024;
-    std::atomic<std::size_t> next{0};
-    auto worker = [&] {
+    base::parallel_chunks(n, threads, 1024, [&](std::uint32_t, std::size_t b, std::size_t e) {
         FastFloatScope ffs;
-        for (;;) {
-            const std::size_t b = next.fetch_add(kChunk, std::memory_order_relaxed);
-            if (b >= n) break;
-            body(b, std::min(n, b + kChunk));
-        }
-    };
-    const std::size_t wanted = std::min<std::size_t>(threads, (n + kChunk - 1) / kChunk);
-    std::vector<std::thread> pool;
-    for (std::size_t t = 1; t < wanted; ++t) {
-        try {
-            pool.emplace_back(worker);
-        } catch (const std::system_error&) {
-            break;
-        }
-    }
-    worker();
-    for (std::thread& th : pool) th.join();
+        body(b, e);
+    });
 }
 
 double seconds_since(std::chrono::steady_clock::time_point t0) {
@@ -1328,7 +1300,7 @@ void EmbreeSource::generate(std::uint64_t seed, std::size_t count, std::vector<S
     if (extras) extras->resize(count);
     const Impl& m = *impl_;
     std::atomic<std::uint64_t> candidates{0}, queries{0}, fallbacks{0};
-    parallel_chunks(count, resolve_threads(m.cfg.threads), [&](std::size_t b, std::size_t e) {
+    parallel_chunks(count, base::resolve_threads(m.cfg.threads), [&](std::size_t b, std::size_t e) {
         std::vector<ParityHit> hits;
         GenerateCounters c;
         m.generate_range(seed, b, e, out.data(), extras ? extras->data() : nullptr, hits, c);
@@ -1342,7 +1314,7 @@ void EmbreeSource::generate(std::uint64_t seed, std::size_t count, std::vector<S
 void EmbreeSource::trace(std::span<Sample> samples, std::span<SampleExtras> extras) const {
     const Impl& m = *impl_;
     const bool with_extras = extras.size() >= samples.size();
-    parallel_chunks(samples.size(), resolve_threads(m.cfg.threads), [&](std::size_t b, std::size_t e) {
+    parallel_chunks(samples.size(), base::resolve_threads(m.cfg.threads), [&](std::size_t b, std::size_t e) {
         m.trace_range(samples.data() + b, with_extras ? extras.data() + b : nullptr, e - b);
     });
 }
@@ -1366,7 +1338,7 @@ std::size_t EmbreeSource::device_bytes() const { return impl_->device_total; }
 std::size_t EmbreeSource::triangle_count() const { return impl_->triangles; }
 float EmbreeSource::diagonal() const { return float(impl_->diag); }
 void EmbreeSource::set_threads(std::uint32_t threads) { impl_->cfg.threads = threads; }
-std::uint32_t EmbreeSource::threads() const { return resolve_threads(impl_->cfg.threads); }
+std::uint32_t EmbreeSource::threads() const { return base::resolve_threads(impl_->cfg.threads); }
 const GenerateCounters& EmbreeSource::counters() const { return impl_->counters; }
 std::string EmbreeSource::last_error() const { return impl_->error_text(); }
 

@@ -55,7 +55,7 @@
 #include <new>
 #include <optional>
 #include <string>
-#include <thread>
+#include <lsnif/base/parallel.hpp>
 #include <vector>
 
 #if defined(__FAST_MATH__)
@@ -356,7 +356,7 @@ Result<Occupancy> voxelize_impl(const MeshView& mesh, const Box& box, std::uint3
     const std::size_t words = (voxels + 63) / 64;
     const std::size_t triangles = mesh.triangle_count();
     const std::size_t chunks = (triangles + kChunk - 1) / kChunk;
-    unsigned threads = options.threads ? options.threads : std::max(1u, std::thread::hardware_concurrency());
+    unsigned threads = base::resolve_threads(options.threads);
     threads = unsigned(std::min<std::size_t>({threads, kMaxThreads, std::max<std::size_t>(chunks, 1)}));
 
     // One private grid per thread, OR-ed at the end: no shared writes, and the result is
@@ -386,17 +386,7 @@ Result<Occupancy> voxelize_impl(const MeshView& mesh, const Box& box, std::uint3
         }
         if (!ok) invalid.store(true, std::memory_order_relaxed);
     };
-    std::vector<std::thread> pool;
-    pool.reserve(threads);
-    for (unsigned id = 1; id < threads; ++id) {
-        try {
-            pool.emplace_back(work, id);
-        } catch (...) {  // std::system_error, std::bad_alloc: never unwind past running threads
-            break;  // fewer threads: the others (and this one) take the remaining chunks
-        }
-    }
-    work(0);
-    for (auto& th : pool) th.join();
+    base::run_on_threads(threads, [&](std::uint32_t id) { work(id); });
     if (invalid.load()) {
         if (auto err = check_mesh(mesh)) return *err;
         return Error{"invalid mesh"};  // unreachable: the workers check a subset of check_mesh

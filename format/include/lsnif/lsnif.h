@@ -10,6 +10,18 @@
  * Ownership: an lsnif_model owns a decoded copy of every section. Pointers returned
  * by the accessors stay valid until lsnif_close() on that handle. A handle may be
  * read from several threads at once (no accessor mutates it).
+ *
+ * NULL: each function states which pointers may be NULL. Passing NULL anywhere else
+ * returns LSNIF_ERR_INVALID_ARGUMENT (functions returning a value return 0 or NULL
+ * instead, as stated); nothing is dereferenced first.
+ *
+ * Per-thread scratch: lsnif_intersect and lsnif_intersect_instance keep their working
+ * buffers (feature points, network inputs and activations for 256 rays at a time) in
+ * thread-local storage, so concurrent calls share nothing and a hot loop allocates
+ * nothing after its first call. Each calling thread keeps them, sized for the largest
+ * model it has traced, until the thread exits: about 0.7 MiB for the v1 model (330 KiB
+ * of feature points, whatever the model, plus 256 * (input width + 2 * widest layer)
+ * floats).
  */
 #ifndef LSNIF_LSNIF_H
 #define LSNIF_LSNIF_H
@@ -38,6 +50,8 @@ extern "C" {
 #define LSNIF_MAX_LEVELS 8
 #define LSNIF_MAX_HIDDEN_LAYERS 8
 
+/* Status codes are frozen: a value never changes meaning and new codes are only
+ * appended, so a program may store or switch on them across library versions. */
 typedef enum lsnif_status {
     LSNIF_OK = 0,
     LSNIF_ERR_INVALID_ARGUMENT = 1, /* NULL pointer, bad index, bad size from the caller */
@@ -60,11 +74,19 @@ typedef enum lsnif_status {
     LSNIF_ERR_INTERNAL = 18
 } lsnif_status;
 
-/* Static English name of a status ("ok", "checksum mismatch", ...). Never NULL. */
+/* Static English name of a status ("ok", "checksum mismatch", ...). Never NULL, also
+ * for values this library does not know ("unknown status"). */
 LSNIF_API const char* lsnif_status_string(lsnif_status status);
 
+/* The linked library's version, which may differ from the header a program was
+ * compiled with (a shared library upgraded underneath it). Returns the release as a
+ * static "MAJOR.MINOR.PATCH" string and writes the container version it reads, the
+ * runtime value of LSNIF_VERSION_MAJOR / LSNIF_VERSION_MINOR. Either pointer may be
+ * NULL. */
+LSNIF_API const char* lsnif_version(uint32_t* container_major, uint32_t* container_minor);
+
 /* Optional detail for a failure: pass a pointer to one of these to the open and
- * scan functions. On failure `message` names the structure and field at fault and
+ * scan functions (or NULL when the status is enough). On failure `message` names the structure and field at fault and
  * `offset` the file offset involved (or UINT64_MAX when none applies). */
 typedef struct lsnif_error {
     lsnif_status status;
@@ -111,7 +133,9 @@ typedef struct lsnif_header_info {
  * `capacity` entries of `sections` (may be NULL when capacity is 0) and sets
  * `*count` to the number of sections in the table. Returns the first structural
  * error; per-section payload problems are reported in the entries and as
- * LSNIF_ERR_CHECKSUM / LSNIF_ERR_DECOMPRESS after all entries are filled. */
+ * LSNIF_ERR_CHECKSUM / LSNIF_ERR_DECOMPRESS after all entries are filled.
+ * NULL: `data` only when size is 0, `sections` only when capacity is 0; `header`,
+ * `count` and `error` may be NULL. */
 LSNIF_API lsnif_status lsnif_scan_memory(const void* data, size_t size,
                                          lsnif_header_info* header,
                                          lsnif_section_info* sections, uint32_t capacity,
@@ -157,17 +181,22 @@ typedef struct lsnif_info {
 
 /* Opens a model from memory. The bytes are copied/decoded: `data` may be freed
  * after the call. Every offset, size, checksum, reserved field and model
- * dimension is verified; on success `*out` must be released with lsnif_close(). */
+ * dimension is verified; on success `*out` must be released with lsnif_close(), on
+ * failure `*out` is NULL. NULL: `data` only when size is 0; `error` may be NULL; `out`
+ * must not be. */
 LSNIF_API lsnif_status lsnif_open_memory(const void* data, size_t size, lsnif_model** out,
                                          lsnif_error* error);
-/* Same as lsnif_open_memory for a file path (UTF-8 / native narrow encoding). */
+/* Same as lsnif_open_memory for a file path (UTF-8 / native narrow encoding). `path`
+ * and `out` must not be NULL; `error` may be. */
 LSNIF_API lsnif_status lsnif_open_file(const char* path, lsnif_model** out, lsnif_error* error);
 /* Releases a handle. NULL is allowed. */
 LSNIF_API void lsnif_close(lsnif_model* model);
 
+/* Fills `*out`. Neither pointer may be NULL. */
 LSNIF_API lsnif_status lsnif_get_info(const lsnif_model* model, lsnif_info* out);
 
-/* The JSON metadata (UTF-8, not NUL-counted in *length, but NUL-terminated). */
+/* The JSON metadata (UTF-8, not NUL-counted in *length, but NUL-terminated). `length`
+ * may be NULL; a NULL model returns NULL and sets *length to 0. */
 LSNIF_API const char* lsnif_metadata(const lsnif_model* model, size_t* length);
 
 /* ---- Raw arrays for GPU upload ----------------------------------------------- */
@@ -192,8 +221,10 @@ typedef struct lsnif_array {
     uint64_t dims[3];   /* outermost first: [rows][cols] or [entries][features] or [V][V][V] (z,y,x) */
 } lsnif_array;
 
-/* Number of MLP layers (hidden layers + output layer). */
+/* Number of MLP layers (hidden layers + output layer); 0 for a NULL model. */
 LSNIF_API uint32_t lsnif_layer_count(const lsnif_model* model);
+/* One raw array (see lsnif_array_kind for `index`). Neither pointer may be NULL; an
+ * index out of range returns LSNIF_ERR_INVALID_ARGUMENT. */
 LSNIF_API lsnif_status lsnif_get_array(const lsnif_model* model, lsnif_array_kind kind,
                                        uint32_t index, lsnif_array* out);
 
@@ -218,14 +249,16 @@ typedef struct lsnif_hit {
 /* Intersects `count` object-space rays. Rays that cross no occupied voxel are misses
  * without inference. Runs on the calling thread; concurrent calls on the same model
  * are safe (renderers parallelize across batches). Batches of >= 256 rays amortize
- * the network evaluation best. */
+ * the network evaluation best. `model` must not be NULL; `rays` and `hits` may be NULL
+ * only when count is 0. */
 LSNIF_API lsnif_status lsnif_intersect(const lsnif_model* model, const lsnif_ray* rays, size_t count,
                                        lsnif_hit* hits);
 
 /* Same for world-space rays against an instance placed by `object_to_world`, a 3x4
  * row-major affine matrix [A | b] (x_world = A x_object + b). Returned t is the world
  * ray's parameter (affine maps preserve it) and the normal is transformed by A^-T.
- * Returns LSNIF_ERR_INVALID_ARGUMENT for a singular or non-finite matrix. */
+ * Returns LSNIF_ERR_INVALID_ARGUMENT for a singular or non-finite matrix. NULL rules
+ * as lsnif_intersect; `object_to_world` must not be NULL. */
 LSNIF_API lsnif_status lsnif_intersect_instance(const lsnif_model* model, const float object_to_world[12],
                                                 const lsnif_ray* rays, size_t count, lsnif_hit* hits);
 

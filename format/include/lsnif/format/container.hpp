@@ -7,6 +7,7 @@
 // LSNIF_ERR_OUT_OF_MEMORY.)
 #pragma once
 
+#include <lsnif/base/result.hpp>
 #include <lsnif/lsnif.h>
 
 #include <array>
@@ -97,21 +98,7 @@ struct Error {
 };
 
 template <class T>
-class Result {
-public:
-    Result(T value) : v_(std::move(value)) {}
-    Result(Error error) : v_(std::move(error)) {}
-    bool ok() const { return v_.index() == 0; }
-    explicit operator bool() const { return ok(); }
-    T& value() { return std::get<0>(v_); }
-    const T& value() const { return std::get<0>(v_); }
-    T& operator*() { return value(); }
-    T* operator->() { return &value(); }
-    const Error& error() const { return std::get<1>(v_); }
-
-private:
-    std::variant<T, Error> v_;
-};
+using Result = base::Result<T, Error>;
 
 // Checks ranges and internal consistency of a descriptor (FORMAT.md §5).
 Error validate_desc(const ModelDesc& desc);

@@ -1,6 +1,6 @@
 // Training of one LSNIF (docs/architecture.md §3): losses, backward pass through the MLP and the
 // sparse hash-grid encoding, hand-written Adam, learning-rate schedule, gradient clipping
-// and a divergence guard. Multi-threaded with std::thread; for a fixed seed and thread
+// and a divergence guard. Multi-threaded on the shared pool (lsnif/base/parallel.hpp); for a fixed seed and thread
 // count every step is bit-for-bit deterministic (fixed work partition, fixed reduction
 // order).
 //

@@ -25,12 +25,14 @@
 // takes a branch-light O(1) path (the common case when triangles are small against voxels);
 // otherwise every cell of its AABB gets the SAT (3 axes when the triangle stays within one
 // voxel slab, else up to 13; rows are pre-clipped by the normal's plane). Triangles are
-// processed by std::thread workers into private grids that are OR-ed at the end, so the
+// processed by the shared thread pool into private grids that are OR-ed at the end, so the
 // output does not depend on the thread count.
 //
 // Library code never throws or exits: every function returns Result/Error (allocation
 // failure included).
 #pragma once
+
+#include <lsnif/base/result.hpp>
 
 #include <array>
 #include <cstddef>
@@ -54,23 +56,7 @@ struct Error {
 };
 
 template <class T>
-class Result {
-public:
-    Result(T value) : v_(std::move(value)) {}
-    Result(Error error) : v_(std::move(error)) {}
-    bool ok() const { return v_.index() == 0; }
-    explicit operator bool() const { return ok(); }
-    T& value() { return std::get<0>(v_); }
-    const T& value() const { return std::get<0>(v_); }
-    T& operator*() { return value(); }
-    const T& operator*() const { return value(); }
-    T* operator->() { return &value(); }
-    const T* operator->() const { return &value(); }
-    const Error& error() const { return std::get<1>(v_); }
-
-private:
-    std::variant<T, Error> v_;
-};
+using Result = base::Result<T, Error>;
 
 // A triangle mesh, borrowed (not owned; must outlive the call).
 //   positions: x, y, z of each vertex, object space, 3 floats per vertex; all finite.

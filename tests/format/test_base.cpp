@@ -1,0 +1,140 @@
+// lsnif::base: the shared helpers (thread pool, random numbers, affine transforms, result).
+#include <lsnif/base/affine.hpp>
+#include <lsnif/base/parallel.hpp>
+#include <lsnif/base/random.hpp>
+#include <lsnif/base/result.hpp>
+
+#include <doctest/doctest.h>
+
+#include <atomic>
+#include <cmath>
+#include <stdexcept>
+#include <string>
+#include <thread>
+#include <vector>
+
+using namespace lsnif::base;
+
+TEST_CASE("run_on_threads calls every share exactly once, on distinct threads") {
+    for (std::uint32_t T : {1u, 2u, 3u, 8u}) {
+        std::vector<std::atomic<int>> calls(T);
+        std::vector<std::thread::id> ids(T);
+        run_on_threads(T, [&](std::uint32_t t) {
+            calls[t].fetch_add(1);
+            ids[t] = std::this_thread::get_id();
+        });
+        for (std::uint32_t t = 0; t < T; ++t) CHECK(calls[t].load() == 1);
+        CHECK(ids[0] == std::this_thread::get_id());  // share 0 is the caller
+        for (std::uint32_t t = 1; t < T; ++t) CHECK(ids[t] != ids[0]);
+    }
+}
+
+TEST_CASE("the pool's workers persist between calls") {
+    // A thread-local count survives only on a thread that served an earlier call: with a
+    // fresh thread per call every worker would report 1.
+    static thread_local int served = 0;
+    std::atomic<int> most{0};
+    for (int call = 0; call < 64; ++call)
+        run_on_threads(2, [&](std::uint32_t t) {
+            if (t == 0) return;
+            const int n = ++served;
+            for (int m = most.load(); n > m && !most.compare_exchange_weak(m, n);) {
+            }
+        });
+    CHECK(most.load() > 1);
+}
+
+TEST_CASE("nested and concurrent calls complete instead of deadlocking") {
+    std::atomic<int> inner{0};
+    run_on_threads(3, [&](std::uint32_t) { run_on_threads(3, [&](std::uint32_t) { inner.fetch_add(1); }); });
+    CHECK(inner.load() == 9);
+    std::atomic<int> total{0};
+    std::thread other([&] { run_on_threads(4, [&](std::uint32_t) { total.fetch_add(1); }); });
+    run_on_threads(4, [&](std::uint32_t) { total.fetch_add(1); });
+    other.join();
+    CHECK(total.load() == 8);
+}
+
+TEST_CASE("an exception in a share reaches the caller after every share finished") {
+    std::atomic<int> finished{0};
+    CHECK_THROWS_AS(run_on_threads(4,
+                                   [&](std::uint32_t t) {
+                                       finished.fetch_add(1);
+                                       if (t == 2) throw std::runtime_error("share 2");
+                                   }),
+                    std::runtime_error);
+    CHECK(finished.load() == 4);
+    std::atomic<int> after{0};  // the pool is usable again
+    run_on_threads(2, [&](std::uint32_t) { after.fetch_add(1); });
+    CHECK(after.load() == 2);
+}
+
+TEST_CASE("parallel_chunks covers [0, n) exactly once") {
+    for (std::size_t n : {std::size_t(0), std::size_t(1), std::size_t(1000), std::size_t(4097)}) {
+        std::vector<std::atomic<int>> seen(n);
+        parallel_chunks(n, 3, 64, [&](std::uint32_t, std::size_t b, std::size_t e) {
+            for (std::size_t i = b; i < e; ++i) seen[i].fetch_add(1);
+        });
+        for (std::size_t i = 0; i < n; ++i) REQUIRE(seen[i].load() == 1);
+    }
+    CHECK(resolve_threads(5) == 5);
+    CHECK(resolve_threads(0) >= 1);
+}
+
+TEST_CASE("SplitMix64 reproduces the reference sequence") {
+    // splitmix64 seeded with 0: the first outputs of the reference implementation.
+    SplitMix64 r{0};
+    CHECK(r.next() == 0xE220A8397B1DCDAFull);
+    CHECK(r.next() == 0x6E789E6AA1B965F4ull);
+    CHECK(r.next() == 0x06C45D188009454Full);
+    SplitMix64 u{42};
+    for (int i = 0; i < 1000; ++i) {
+        const float f = u.uniform01f();
+        const double d = u.u01();
+        const float g = u.uniform(-2.0f, 3.0f);
+        REQUIRE((f >= 0.0f && f < 1.0f));
+        REQUIRE((d >= 0.0 && d < 1.0));
+        REQUIRE((g >= -2.0f && g < 3.0f));
+    }
+}
+
+TEST_CASE("invert_linear inverts, keeps the sign of mirrors and applies one singularity rule") {
+    // Rotation by 30 degrees about y, scaled by 2, mirrored in x, translated.
+    const float c = std::cos(0.5235988f), s = std::sin(0.5235988f);
+    const float m[12] = {-2 * c, 0, 2 * s, 1, 0, 2, 0, -3, 2 * s, 0, 2 * c, 5};
+    const auto li = invert_linear(m);
+    REQUIRE(li.has_value());
+    CHECK(li->det < 0);
+    for (int r = 0; r < 3; ++r)
+        for (int k = 0; k < 3; ++k) {
+            double v = 0;
+            for (int j = 0; j < 3; ++j) v += li->inv[r][j] * m[4 * j + k];
+            CHECK(v == doctest::Approx(r == k ? 1.0 : 0.0).epsilon(1e-6));
+        }
+    // A normal of the plane x = 0 in object space maps to the normal of its image.
+    const auto n = normal_matrix(*li);
+    const float nx[3] = {n[0], n[3], n[6]};  // N (1, 0, 0)
+    const float tangent[3] = {m[1], m[5], m[9]};  // image of (0, 1, 0), which lies in the plane
+    CHECK(nx[0] * tangent[0] + nx[1] * tangent[1] + nx[2] * tangent[2] == doctest::Approx(0.0).epsilon(1e-6));
+    // Tiny but regular scales are fine; a flattened axis, NaN or infinity are not.
+    const float tiny[12] = {1e-5f, 0, 0, 0, 0, 1e-5f, 0, 0, 0, 0, 1e-5f, 0};
+    CHECK(invert_linear(tiny).has_value());
+    const float flat[12] = {1, 0, 0, 0, 0, 1, 0, 0, 0, 0, 1e-13f, 0};
+    CHECK_FALSE(invert_linear(flat).has_value());
+    float bad[12] = {1, 0, 0, 0, 0, 1, 0, 0, 0, 0, 1, 0};
+    bad[3] = NAN;
+    CHECK_FALSE(invert_linear(bad).has_value());
+    bad[3] = INFINITY;
+    CHECK_FALSE(invert_linear(bad).has_value());
+}
+
+TEST_CASE("Result holds a value or an error") {
+    struct Err {
+        std::string message;
+    };
+    Result<int, Err> good = 7, bad = Err{"no"};
+    CHECK(good.ok());
+    CHECK(*good == 7);
+    CHECK_FALSE(bad);
+    CHECK(bad.error().message == "no");
+}
