@@ -16,9 +16,9 @@
 #include <chrono>
 #include <cstdio>
 #include <fstream>
+#include <lsnif/base/parallel.hpp>
 #include <memory>
 #include <span>
-#include <lsnif/base/parallel.hpp>
 
 namespace lsnif::converter {
 
@@ -27,7 +27,9 @@ using Clock = std::chrono::steady_clock;
 
 namespace {
 
-double seconds_since(Clock::time_point t0) { return std::chrono::duration<double>(Clock::now() - t0).count(); }
+double seconds_since(Clock::time_point t0) {
+    return std::chrono::duration<double>(Clock::now() - t0).count();
+}
 
 std::string cpu_model() {
     std::ifstream f("/proc/cpuinfo");
@@ -45,7 +47,8 @@ trainer::SpheresSource bench_scene(const format::ModelDesc& d) {
         x = x * 6364136223846793005ull + 1442695040888963407ull;
         return float(x >> 40) / float(1 << 24);
     };
-    for (int i = 0; i < 24; ++i) s.push_back({{u() * 1.4f - 0.7f, u() * 1.4f - 0.7f, u() * 1.4f - 0.7f}, 0.05f + 0.2f * u()});
+    for (int i = 0; i < 24; ++i)
+        s.push_back({{u() * 1.4f - 0.7f, u() * 1.4f - 0.7f, u() * 1.4f - 0.7f}, 0.05f + 0.2f * u()});
     return trainer::SpheresSource(std::move(s), d.box_min, d.box_max);
 }
 
@@ -61,11 +64,13 @@ format::ModelDesc v1_desc() {
 double sgemm_gflops(int n, int threads, double min_seconds) {
     openblas_set_num_threads(threads);
     std::vector<float> a(std::size_t(n) * n, 0.5f), b(std::size_t(n) * n, 0.25f), c(std::size_t(n) * n);
-    cblas_sgemm(CblasRowMajor, CblasNoTrans, CblasNoTrans, n, n, n, 1.f, a.data(), n, b.data(), n, 0.f, c.data(), n);
+    cblas_sgemm(CblasRowMajor, CblasNoTrans, CblasNoTrans, n, n, n, 1.f, a.data(), n, b.data(), n, 0.f,
+                c.data(), n);
     int reps = 0;
     const auto t0 = Clock::now();
     do {
-        cblas_sgemm(CblasRowMajor, CblasNoTrans, CblasNoTrans, n, n, n, 1.f, a.data(), n, b.data(), n, 0.f, c.data(), n);
+        cblas_sgemm(CblasRowMajor, CblasNoTrans, CblasNoTrans, n, n, n, 1.f, a.data(), n, b.data(), n, 0.f,
+                    c.data(), n);
         ++reps;
     } while (seconds_since(t0) < min_seconds);
     return 2.0 * double(n) * n * n * reps / seconds_since(t0) / 1e9;
@@ -87,10 +92,11 @@ json kernel_comparison(double min_seconds) {
         return 2.0 * rows * in * out * reps / seconds_since(t0) / 1e9;
     };
     openblas_set_num_threads(1);
-    const double ours = rate([&] { format::dense_layer(A.data(), rows, in, in, W.data(), bias.data(), out, true, C.data()); });
+    const double ours = rate(
+        [&] { format::dense_layer(A.data(), rows, in, in, W.data(), bias.data(), out, true, C.data()); });
     const double blas = rate([&] {
-        cblas_sgemm(CblasRowMajor, CblasNoTrans, CblasNoTrans, rows, out, in, 1.f, A.data(), in, W.data(), out, 0.f,
-                    C.data(), out);
+        cblas_sgemm(CblasRowMajor, CblasNoTrans, CblasNoTrans, rows, out, in, 1.f, A.data(), in, W.data(),
+                    out, 0.f, C.data(), out);
     });
     return {{"shape", "4096x108 * 108x128, 1 thread"}, {"lsnif_gflops", ours}, {"openblas_gflops", blas}};
 }
@@ -198,7 +204,8 @@ json bench_infer(const BenchOptions& o) {
             std::vector<format::IntersectStats> part(T);
             base::run_on_threads(T, [&](std::uint32_t t) {
                 const std::size_t b = std::min(rays.size(), t * per), e = std::min(rays.size(), b + per);
-                part[t] = format::intersect(rt, std::span(rays).subspan(b, e - b), std::span(hits).subspan(b, e - b));
+                part[t] = format::intersect(rt, std::span(rays).subspan(b, e - b),
+                                            std::span(hits).subspan(b, e - b));
             });
             st = {};
             for (auto& p : part) st.inferred += p.inferred, st.culled += p.culled;
@@ -219,25 +226,31 @@ json bench_infer(const BenchOptions& o) {
 }
 
 std::string bench_text(const json& r) {
-    if (r["benchmark"] == "memory" || r["benchmark"] == "rays" || r["benchmark"] == "convert") return bench_scene_text(r);
+    if (r["benchmark"] == "memory" || r["benchmark"] == "rays" || r["benchmark"] == "convert")
+        return bench_scene_text(r);
     char buf[512];
-    std::string s = "cpu: " + r["cpu"].get<std::string>() + ", threads " + std::to_string(r["threads"].get<int>()) +
-                    "\nmodel: " + r["model"].get<std::string>() + "\n";
+    std::string s = "cpu: " + r["cpu"].get<std::string>() + ", threads " +
+                    std::to_string(r["threads"].get<int>()) + "\nmodel: " + r["model"].get<std::string>() +
+                    "\n";
     if (r["benchmark"] == "train") {
-        std::snprintf(buf, sizeof buf, "OpenBLAS sgemm 2048^3: %.1f GFLOP/s\n", r["sgemm_gflops_openblas_2048"].get<double>());
+        std::snprintf(buf, sizeof buf, "OpenBLAS sgemm 2048^3: %.1f GFLOP/s\n",
+                      r["sgemm_gflops_openblas_2048"].get<double>());
         s += buf;
         const json& k = r["dense_kernel"];
         std::snprintf(buf, sizeof buf, "dense kernel %s: lsnif %.1f GFLOP/s, OpenBLAS %.1f GFLOP/s\n",
                       k["shape"].get<std::string>().c_str(), k["lsnif_gflops"].get<double>(),
                       k["openblas_gflops"].get<double>());
         s += buf;
-        if (!r["bf16_amx_available"].get<bool>()) s += "bf16 MLP products: no AMX on this machine, fp32 only\n";
+        if (!r["bf16_amx_available"].get<bool>())
+            s += "bf16 MLP products: no AMX on this machine, fp32 only\n";
         for (const json& x : r["runs"]) {
             std::snprintf(buf, sizeof buf,
-                          "batch %6d %-4s: %10.0f samples/s, MLP %.1f GFLOP/s (%.0f%% of sgemm); ray preparation %.0f rays/s",
+                          "batch %6d %-4s: %10.0f samples/s, MLP %.1f GFLOP/s (%.0f%% of sgemm); ray "
+                          "preparation %.0f rays/s",
                           x["batch_size"].get<int>(), x["precision"].get<std::string>().c_str(),
                           x["samples_per_second"].get<double>(), x["mlp_gflops"].get<double>(),
-                          100 * x["mlp_fraction_of_sgemm"].get<double>(), x["prepare_rays_per_second"].get<double>());
+                          100 * x["mlp_fraction_of_sgemm"].get<double>(),
+                          x["prepare_rays_per_second"].get<double>());
             s += buf;
             if (x.contains("speedup_vs_fp32")) {
                 std::snprintf(buf, sizeof buf, "; %.2fx fp32", x["speedup_vs_fp32"].get<double>());

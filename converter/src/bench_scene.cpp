@@ -1,9 +1,9 @@
 // `lsnif bench memory|rays|convert`: a converted scene measured against Embree on the same
 // machine in the same run (docs/architecture.md §5 "Speed"; BENCHMARKS.md has the figures).
+#include <lsnif/lsnif.h>
 #include <lsnif/converter/bench.hpp>
 #include <lsnif/converter/convert.hpp>
 #include <lsnif/converter/manifest.hpp>
-#include <lsnif/lsnif.h>
 #include <lsnif/sampling/sampling.hpp>
 #include <lsnif/scene/scene.hpp>
 
@@ -22,7 +22,9 @@ using Clock = std::chrono::steady_clock;
 
 namespace {
 
-double since(Clock::time_point t0) { return std::chrono::duration<double>(Clock::now() - t0).count(); }
+double since(Clock::time_point t0) {
+    return std::chrono::duration<double>(Clock::now() - t0).count();
+}
 
 // One complex mesh of a conversion: its source geometry and its opened asset.
 struct Object {
@@ -52,7 +54,8 @@ bool load_objects(const SceneBenchOptions& opt, Loaded& out, std::string& error)
     std::vector<std::optional<scene::Scene>> scenes(sources.size());
     for (const json& m : out.manifest["meshes"]) {
         if (m.value("class", "") != "complex" || !m.contains("lsnif")) continue;
-        const std::size_t input = m.value("input", std::size_t(0)), src = m.value("source_mesh", std::size_t(0));
+        const std::size_t input = m.value("input", std::size_t(0)),
+                          src = m.value("source_mesh", std::size_t(0));
         if (input >= sources.size()) {
             error = mp.string() + ": mesh '" + m.value("name", "") + "' refers to a missing input";
             return false;
@@ -141,7 +144,8 @@ Bvh8Counts count_bvh8_nodes(RTCDevice device, const scene::Mesh& m) {
     };
     args.setNodeChildren = [](void*, void**, unsigned, void*) {};
     args.setNodeBounds = [](void*, const RTCBounds**, unsigned, void*) {};
-    args.createLeaf = [](RTCThreadLocalAllocator alloc, const RTCBuildPrimitive*, size_t, void* user) -> void* {
+    args.createLeaf = [](RTCThreadLocalAllocator alloc, const RTCBuildPrimitive*, size_t,
+                         void* user) -> void* {
         static_cast<Counters*>(user)->leaves++;
         return rtcThreadLocalAlloc(alloc, 8, 8);
     };
@@ -150,7 +154,8 @@ Bvh8Counts count_bvh8_nodes(RTCDevice device, const scene::Mesh& m) {
     return {counters.inner.load(), counters.leaves.load()};
 }
 
-std::unique_ptr<sampling::EmbreeSource> make_source(const Object& o, std::uint32_t threads, std::string& error) {
+std::unique_ptr<sampling::EmbreeSource> make_source(const Object& o, std::uint32_t threads,
+                                                    std::string& error) {
     sampling::MeshView v{o.mesh.positions, o.mesh.indices, o.mesh.normals, o.mesh.triangle_materials};
     sampling::SamplingConfig cfg;
     cfg.threads = threads;
@@ -190,14 +195,15 @@ json bench_memory(const SceneBenchOptions& opt, std::string& error) {
                            {"ratio_bvh8_over_lsnif", double(bvh8) / double(o.lsnif_bytes)}});
     }
     rtcReleaseDevice(device);
-    return {{"benchmark", "memory"},
-            {"outdir", opt.outdir},
-            {"objects", objects},
-            {"total",
-             {{"lsnif_bytes", total_lsnif},
-              {"embree_bvh_bytes", total_bvh},
-              {"bvh8_compressed_bytes_estimate", total_bvh8},
-              {"ratio_embree_over_lsnif", double(total_bvh) / double(std::max<std::uint64_t>(1, total_lsnif))}}}};
+    return {
+        {"benchmark", "memory"},
+        {"outdir", opt.outdir},
+        {"objects", objects},
+        {"total",
+         {{"lsnif_bytes", total_lsnif},
+          {"embree_bvh_bytes", total_bvh},
+          {"bvh8_compressed_bytes_estimate", total_bvh8},
+          {"ratio_embree_over_lsnif", double(total_bvh) / double(std::max<std::uint64_t>(1, total_lsnif))}}}};
 }
 
 json bench_rays(const SceneBenchOptions& opt, std::string& error) {
@@ -212,7 +218,8 @@ json bench_rays(const SceneBenchOptions& opt, std::string& error) {
         }
         // Embree: rtcIntersect1 loop and rtcIntersect16 packets over the rays generate()
         // makes (all three families, a quarter shadow rays), best of `repeats`.
-        const sampling::GenerationStats g = sampling::measure_throughput(*src, opt.seed, opt.rays, opt.repeats);
+        const sampling::GenerationStats g =
+            sampling::measure_throughput(*src, opt.seed, opt.rays, opt.repeats);
         std::vector<trainer::Sample> samples;
         src->generate(opt.seed, opt.rays, samples);
         std::vector<lsnif_ray> rays(samples.size());
@@ -226,25 +233,27 @@ json bench_rays(const SceneBenchOptions& opt, std::string& error) {
         double best = INFINITY;
         for (std::uint32_t rep = 0; rep < opt.repeats; ++rep) {
             const auto t0 = Clock::now();
-            base::parallel_chunks(rays.size(), opt.threads, 256, [&](std::uint32_t, std::size_t b, std::size_t e) {
-                lsnif_intersect(o.model, rays.data() + b, e - b, hits.data() + b);
-            });
+            base::parallel_chunks(rays.size(), opt.threads, 256,
+                                  [&](std::uint32_t, std::size_t b, std::size_t e) {
+                                      lsnif_intersect(o.model, rays.data() + b, e - b, hits.data() + b);
+                                  });
             best = std::min(best, since(t0));
         }
         std::size_t agree = 0;
         for (std::size_t i = 0; i < rays.size(); ++i) agree += (hits[i].hit != 0) == (samples[i].hit != 0);
         const double lsnif_rps = double(rays.size()) / best;
-        objects.push_back({{"name", o.name},
-                           {"triangles", o.mesh.triangle_count()},
-                           {"rays", rays.size()},
-                           {"threads", opt.threads},
-                           {"lsnif_rays_per_second", lsnif_rps},
-                           {"rtcintersect1_rays_per_second", g.plain_rtcintersect_rays_per_second},
-                           {"rtcintersect16_rays_per_second", g.packet_rays_per_second},
-                           {"ratio_lsnif_over_rtcintersect1", lsnif_rps / g.plain_rtcintersect_rays_per_second},
-                           {"ratio_lsnif_over_rtcintersect16", lsnif_rps / g.packet_rays_per_second},
-                           {"time_ratio_lsnif_over_rtcintersect1", g.plain_rtcintersect_rays_per_second / lsnif_rps},
-                           {"hit_agreement", double(agree) / double(rays.size())}});
+        objects.push_back(
+            {{"name", o.name},
+             {"triangles", o.mesh.triangle_count()},
+             {"rays", rays.size()},
+             {"threads", opt.threads},
+             {"lsnif_rays_per_second", lsnif_rps},
+             {"rtcintersect1_rays_per_second", g.plain_rtcintersect_rays_per_second},
+             {"rtcintersect16_rays_per_second", g.packet_rays_per_second},
+             {"ratio_lsnif_over_rtcintersect1", lsnif_rps / g.plain_rtcintersect_rays_per_second},
+             {"ratio_lsnif_over_rtcintersect16", lsnif_rps / g.packet_rays_per_second},
+             {"time_ratio_lsnif_over_rtcintersect1", g.plain_rtcintersect_rays_per_second / lsnif_rps},
+             {"hit_agreement", double(agree) / double(rays.size())}});
     }
     return {{"benchmark", "rays"}, {"outdir", opt.outdir}, {"objects", objects}};
 }
@@ -264,11 +273,13 @@ json bench_convert(const ConvertOptions& copt, std::string& error) {
         if (!m.contains("timings")) continue;
         json t = m["timings"];
         for (const auto& [k, v] : t.items()) totals[k] = totals.value(k, 0.0) + v.get<double>();
-        objects.push_back({{"name", m["name"]}, {"class", m["class"]}, {"triangles", m.value("triangles", 0)},
+        objects.push_back({{"name", m["name"]},
+                           {"class", m["class"]},
+                           {"triangles", m.value("triangles", 0)},
                            {"timings", t}});
     }
-    json out = {{"benchmark", "convert"}, {"preset", o.preset}, {"threads", o.threads}, {"wall_seconds", wall},
-                {"objects", objects}, {"stage_totals", totals}};
+    json out = {{"benchmark", "convert"}, {"preset", o.preset}, {"threads", o.threads},
+                {"wall_seconds", wall},   {"objects", objects}, {"stage_totals", totals}};
     if (r.report.contains("timings")) out["run_timings"] = r.report["timings"];
     return out;
 }
@@ -277,25 +288,29 @@ std::string bench_scene_text(const json& r) {
     char buf[640];
     std::string s;
     if (r["benchmark"] == "memory") {
-        s += "object                      triangles  .lsnif bytes  Embree BVH bytes (ratio)  BVH8 est. bytes (ratio)\n";
+        s += "object                      triangles  .lsnif bytes  Embree BVH bytes (ratio)  BVH8 est. bytes "
+             "(ratio)\n";
         for (const json& o : r["objects"]) {
             std::snprintf(buf, sizeof buf, "%-26s %10llu %13llu %17llu (%5.2fx) %16llu (%5.2fx)\n",
                           o["name"].get<std::string>().c_str(), o["triangles"].get<unsigned long long>(),
-                          o["lsnif_bytes"].get<unsigned long long>(), o["embree_bvh_bytes"].get<unsigned long long>(),
+                          o["lsnif_bytes"].get<unsigned long long>(),
+                          o["embree_bvh_bytes"].get<unsigned long long>(),
                           o["ratio_embree_over_lsnif"].get<double>(),
                           o["bvh8_compressed_bytes_estimate"].get<unsigned long long>(),
                           o["ratio_bvh8_over_lsnif"].get<double>());
             s += buf;
         }
     } else if (r["benchmark"] == "rays") {
-        s += "object                      rays     LSNIF rays/s  rtcIntersect1 rays/s (LSNIF ratio)  rtcIntersect16 (ratio)  hit agreement\n";
+        s += "object                      rays     LSNIF rays/s  rtcIntersect1 rays/s (LSNIF ratio)  "
+             "rtcIntersect16 (ratio)  hit agreement\n";
         for (const json& o : r["objects"]) {
-            std::snprintf(buf, sizeof buf, "%-26s %8llu %12.0f %20.0f (%5.2fx) %16.0f (%5.2fx) %8.2f%%\n",
-                          o["name"].get<std::string>().c_str(), o["rays"].get<unsigned long long>(),
-                          o["lsnif_rays_per_second"].get<double>(), o["rtcintersect1_rays_per_second"].get<double>(),
-                          o["ratio_lsnif_over_rtcintersect1"].get<double>(),
-                          o["rtcintersect16_rays_per_second"].get<double>(),
-                          o["ratio_lsnif_over_rtcintersect16"].get<double>(), 100 * o["hit_agreement"].get<double>());
+            std::snprintf(
+                buf, sizeof buf, "%-26s %8llu %12.0f %20.0f (%5.2fx) %16.0f (%5.2fx) %8.2f%%\n",
+                o["name"].get<std::string>().c_str(), o["rays"].get<unsigned long long>(),
+                o["lsnif_rays_per_second"].get<double>(), o["rtcintersect1_rays_per_second"].get<double>(),
+                o["ratio_lsnif_over_rtcintersect1"].get<double>(),
+                o["rtcintersect16_rays_per_second"].get<double>(),
+                o["ratio_lsnif_over_rtcintersect16"].get<double>(), 100 * o["hit_agreement"].get<double>());
             s += buf;
         }
     } else {

@@ -12,8 +12,8 @@
 #include <cmath>
 #include <cstdio>
 #include <filesystem>
-#include <numeric>
 #include <lsnif/base/parallel.hpp>
+#include <numeric>
 
 namespace lsnif::converter {
 
@@ -23,7 +23,9 @@ using Clock = std::chrono::steady_clock;
 
 namespace {
 
-double since(Clock::time_point t0) { return std::chrono::duration<double>(Clock::now() - t0).count(); }
+double since(Clock::time_point t0) {
+    return std::chrono::duration<double>(Clock::now() - t0).count();
+}
 
 std::uint64_t fnv1a64(const std::string& s, std::uint64_t h = 0xcbf29ce484222325ull) {
     for (unsigned char c : s) {
@@ -39,7 +41,9 @@ std::string hex16(std::uint64_t v) {
     return buf;
 }
 
-json vec3(const std::array<float, 3>& v) { return json::array({v[0], v[1], v[2]}); }
+json vec3(const std::array<float, 3>& v) {
+    return json::array({v[0], v[1], v[2]});
+}
 
 // Index-connected components (vertices shared by index), union-find with path halving.
 std::size_t count_components(const scene::Mesh& m) {
@@ -69,7 +73,8 @@ double surface_area(const scene::Mesh& m) {
         const float* p2 = &m.positions[3 * std::size_t(m.indices[3 * t + 2])];
         const double e1[3] = {double(p1[0]) - p0[0], double(p1[1]) - p0[1], double(p1[2]) - p0[2]};
         const double e2[3] = {double(p2[0]) - p0[0], double(p2[1]) - p0[1], double(p2[2]) - p0[2]};
-        const double c[3] = {e1[1] * e2[2] - e1[2] * e2[1], e1[2] * e2[0] - e1[0] * e2[2], e1[0] * e2[1] - e1[1] * e2[0]};
+        const double c[3] = {e1[1] * e2[2] - e1[2] * e2[1], e1[2] * e2[0] - e1[0] * e2[2],
+                             e1[0] * e2[1] - e1[1] * e2[0]};
         area += 0.5 * std::sqrt(c[0] * c[0] + c[1] * c[1] + c[2] * c[2]);
     }
     return area;
@@ -135,19 +140,20 @@ std::vector<std::string> gate_failures(const trainer::Metrics& m, const Gate& g)
                                     100 * g.min_visibility, "%"));
     for (int f = 0; f < trainer::kFamilyCount; ++f)
         if (m.family[f].rays < g.min_family_rays)
-            fails.push_back(std::string("held-out ") + trainer::family_name(trainer::Family(f)) + " rays reaching the network: " +
-                            std::to_string(m.family[f].rays) + " < " + std::to_string(g.min_family_rays) +
-                            " (too few to measure)");
+            fails.push_back(std::string("held-out ") + trainer::family_name(trainer::Family(f)) +
+                            " rays reaching the network: " + std::to_string(m.family[f].rays) + " < " +
+                            std::to_string(g.min_family_rays) + " (too few to measure)");
     for (int f = 0; f < trainer::kFamilyCount; ++f)
         if (m.family[f].rays && m.family[f].visibility_accuracy < g.min_family_visibility)
-            fails.push_back(gate_reason((std::string(trainer::family_name(trainer::Family(f))) + " visibility").c_str(),
-                                        100 * m.family[f].visibility_accuracy, "<", 100 * g.min_family_visibility, "%"));
+            fails.push_back(
+                gate_reason((std::string(trainer::family_name(trainer::Family(f))) + " visibility").c_str(),
+                            100 * m.family[f].visibility_accuracy, "<", 100 * g.min_family_visibility, "%"));
     if (m.pooled.distance_median_pct > g.max_distance_median_pct)
         fails.push_back(gate_reason("median distance error", m.pooled.distance_median_pct, ">",
                                     g.max_distance_median_pct, "% of diagonal"));
     if (m.pooled.normal_median_deg > g.max_normal_median_deg)
-        fails.push_back(gate_reason("median normal error", m.pooled.normal_median_deg, ">", g.max_normal_median_deg,
-                                    " deg"));
+        fails.push_back(gate_reason("median normal error", m.pooled.normal_median_deg, ">",
+                                    g.max_normal_median_deg, " deg"));
     return fails;
 }
 
@@ -165,16 +171,18 @@ constexpr int kRecipeVersion = 2;
 static std::string recipe_key(const Preset& p, std::uint32_t threads) {
     const trainer::TrainConfig& c = p.train;
     char buf[512];
-    std::snprintf(buf, sizeof buf, "r%d|t%u|%s|lw%g,%g,%g,%g|g%g,%g,%g,%g|m%g,%g,%g,%g,%g|d%g,%g,%g,%g", kRecipeVersion,
-                  threads, trainer::precision_name(trainer::resolve_precision(c.mlp_precision)), c.loss.visibility,
-                  c.loss.distance, c.loss.normal, c.loss.material, c.grid_adam.lr, c.grid_adam.beta1,
-                  c.grid_adam.beta2, c.grid_adam.eps, c.mlp_adam.lr, c.mlp_adam.beta1, c.mlp_adam.beta2,
-                  c.mlp_adam.eps, c.mlp_adam.l2, c.decay_start, c.final_lr_fraction, c.huber_delta,
-                  c.grad_clip_norm);
+    std::snprintf(
+        buf, sizeof buf, "r%d|t%u|%s|lw%g,%g,%g,%g|g%g,%g,%g,%g|m%g,%g,%g,%g,%g|d%g,%g,%g,%g", kRecipeVersion,
+        threads, trainer::precision_name(trainer::resolve_precision(c.mlp_precision)), c.loss.visibility,
+        c.loss.distance, c.loss.normal, c.loss.material, c.grid_adam.lr, c.grid_adam.beta1, c.grid_adam.beta2,
+        c.grid_adam.eps, c.mlp_adam.lr, c.mlp_adam.beta1, c.mlp_adam.beta2, c.mlp_adam.eps, c.mlp_adam.l2,
+        c.decay_start, c.final_lr_fraction, c.huber_delta, c.grad_clip_norm);
     return buf;
 }
 
-std::vector<std::string> preset_names() { return {"default", "fast", "quality", "smoke"}; }
+std::vector<std::string> preset_names() {
+    return {"default", "fast", "quality", "smoke"};
+}
 
 bool find_preset(const std::string& name, Preset& p) {
     p = Preset{};
@@ -289,10 +297,10 @@ ConvertResult convert(const ConvertOptions& opt, const ConvertProgress& progress
                        {"instances", inst_count}};
             std::vector<std::string> reasons;
             json timings = json::object();
-            const bool forced_complex =
-                std::find(opt.force_complex.begin(), opt.force_complex.end(), mesh.name) != opt.force_complex.end();
-            const bool forced_simple =
-                std::find(opt.force_simple.begin(), opt.force_simple.end(), mesh.name) != opt.force_simple.end();
+            const bool forced_complex = std::find(opt.force_complex.begin(), opt.force_complex.end(),
+                                                  mesh.name) != opt.force_complex.end();
+            const bool forced_simple = std::find(opt.force_simple.begin(), opt.force_simple.end(),
+                                                 mesh.name) != opt.force_simple.end();
             auto finish_simple = [&](const std::string& why) {
                 reasons.push_back(why);
                 mj["class"] = "simple";
@@ -327,10 +335,11 @@ ConvertResult convert(const ConvertOptions& opt, const ConvertProgress& progress
                     coord = std::max({coord, std::fabs(double(box->min[a])), std::fabs(double(box->max[a]))});
                 if (!(extent >= kMinModelExtent && extent <= kMaxModelExtent && coord <= kMaxModelExtent)) {
                     char why[200];
-                    std::snprintf(why, sizeof why,
-                                  "box extent %.3g (coordinates up to %.3g) is outside the range LSNIF models in "
-                                  "single precision [%g, %g]",
-                                  extent, coord, kMinModelExtent, kMaxModelExtent);
+                    std::snprintf(
+                        why, sizeof why,
+                        "box extent %.3g (coordinates up to %.3g) is outside the range LSNIF models in "
+                        "single precision [%g, %g]",
+                        extent, coord, kMinModelExtent, kMaxModelExtent);
                     finish_simple(why);
                     continue;
                 }
@@ -343,7 +352,8 @@ ConvertResult convert(const ConvertOptions& opt, const ConvertProgress& progress
             sampling::SamplingConfig scfg;
             scfg.threads = threads;
             std::string serr;
-            auto source = sampling::EmbreeSource::create(sview, sampling::Box{box->min, box->max}, scfg, serr);
+            auto source =
+                sampling::EmbreeSource::create(sview, sampling::Box{box->min, box->max}, scfg, serr);
             if (!source) {
                 finish_simple("Embree could not build the mesh: " + serr);
                 continue;
@@ -380,8 +390,8 @@ ConvertResult convert(const ConvertOptions& opt, const ConvertProgress& progress
             timings["voxelize"] = since(t0);
             const double ratio = double(bvh) / double(est);
             char why[200];
-            std::snprintf(why, sizeof why, "Embree BVH %" PRIu64 " bytes vs LSNIF %" PRIu64 " bytes (%.2fx)", bvh, est,
-                          ratio);
+            std::snprintf(why, sizeof why, "Embree BVH %" PRIu64 " bytes vs LSNIF %" PRIu64 " bytes (%.2fx)",
+                          bvh, est, ratio);
             reasons.push_back(why);
             if (!forced_complex && ratio < preset.classify.min_memory_ratio) {
                 mj["stats"] = stats;
@@ -391,11 +401,14 @@ ConvertResult convert(const ConvertOptions& opt, const ConvertProgress& progress
                 finish_simple(s2);
                 continue;
             }
-            if (forced_complex) reasons.push_back("forced complex by --complex " + mesh.name);
-            else reasons.push_back(std::to_string(mesh.triangle_count()) + " triangles");
+            if (forced_complex)
+                reasons.push_back("forced complex by --complex " + mesh.name);
+            else
+                reasons.push_back(std::to_string(mesh.triangle_count()) + " triangles");
             if (desc.log2_table_size != preset.model.log2_table_size)
-                reasons.push_back("hash tables sized to 2^" + std::to_string(desc.log2_table_size) + " rows (preset 2^" +
-                                  std::to_string(preset.model.log2_table_size) + ") to beat the BVH's memory");
+                reasons.push_back("hash tables sized to 2^" + std::to_string(desc.log2_table_size) +
+                                  " rows (preset 2^" + std::to_string(preset.model.log2_table_size) +
+                                  ") to beat the BVH's memory");
 
             if (opt.dry_run) {  // the plan only: no sampling, training or files
                 mj["class"] = "complex";
@@ -406,12 +419,12 @@ ConvertResult convert(const ConvertOptions& opt, const ConvertProgress& progress
                 continue;
             }
             // ---- asset name: content hash of geometry and settings ----
-            const std::string key = scene::geometry_hash(mesh) + "|" + preset.name + "|" + std::to_string(opt.seed) +
-                                    "|" + std::to_string(preset.train.steps) + "|" +
-                                    std::to_string(preset.train.batch_size) + "|" + std::to_string(preset.train_rays) + "/" +
-                                    std::to_string(preset.train_chunk_rays) + "/" +
-                                    std::to_string(preset.train_window_chunks) +
-                                    "|" + model_json(desc).dump() + "|" + recipe_key(preset, threads);
+            const std::string key =
+                scene::geometry_hash(mesh) + "|" + preset.name + "|" + std::to_string(opt.seed) + "|" +
+                std::to_string(preset.train.steps) + "|" + std::to_string(preset.train.batch_size) + "|" +
+                std::to_string(preset.train_rays) + "/" + std::to_string(preset.train_chunk_rays) + "/" +
+                std::to_string(preset.train_window_chunks) + "|" + model_json(desc).dump() + "|" +
+                recipe_key(preset, threads);
             const std::string file = hex16(fnv1a64(key)) + ".lsnif";
             const fs::path asset = outdir / file;
             json metrics;
@@ -444,8 +457,10 @@ ConvertResult convert(const ConvertOptions& opt, const ConvertProgress& progress
                 tcfg.threads = threads;
                 tcfg.seed = opt.seed;
                 trainer::Trainer tr(desc, occ->bits, tcfg);
-                const std::uint64_t chunk = std::max<std::uint64_t>(1, std::min(preset.train_chunk_rays, preset.train_rays));
-                const std::uint64_t rounds = std::min<std::uint64_t>((preset.train_rays + chunk - 1) / chunk, tcfg.steps);
+                const std::uint64_t chunk =
+                    std::max<std::uint64_t>(1, std::min(preset.train_chunk_rays, preset.train_rays));
+                const std::uint64_t rounds =
+                    std::min<std::uint64_t>((preset.train_rays + chunk - 1) / chunk, tcfg.steps);
                 trainer::PreparedSet pool;          // the latest train_window_chunks chunks
                 trainer::PreparedSet fresh;         // this round's chunk (buffers reused)
                 std::vector<trainer::Sample> rays;  // this round's rays (capacity reused)
@@ -453,7 +468,7 @@ ConvertResult convert(const ConvertOptions& opt, const ConvertProgress& progress
                 // copies hundreds of MB, and every fresh page is a page fault.
                 pool.reserve(std::size_t(chunk) * std::max<std::uint32_t>(1, preset.train_window_chunks),
                              desc.max_points);
-                std::vector<std::size_t> in_pool;   // their sizes, oldest first
+                std::vector<std::size_t> in_pool;  // their sizes, oldest first
                 trainer::TrainResult tres;
                 double points = 0;
                 std::uint64_t reached = 0, drawn = 0;
@@ -461,7 +476,8 @@ ConvertResult convert(const ConvertOptions& opt, const ConvertProgress& progress
                 for (std::uint64_t r = 0; r < rounds && !tres.diverged; ++r) {
                     auto tp = Clock::now();
                     const std::uint64_t n = std::min(chunk, preset.train_rays - r * chunk);
-                    source->generate(fnv1a64("train|" + std::to_string(opt.seed) + "|" + std::to_string(r)), n, rays);
+                    source->generate(fnv1a64("train|" + std::to_string(opt.seed) + "|" + std::to_string(r)),
+                                     n, rays);
                     drawn += n;
                     sample_seconds += since(tp);
                     tp = Clock::now();
@@ -477,13 +493,17 @@ ConvertResult convert(const ConvertOptions& opt, const ConvertProgress& progress
                     in_pool.push_back(fresh.size());
                     pool.append(fresh);
                     prepare_seconds += since(tp);
-                    const auto until = std::uint32_t(r + 1 == rounds ? tcfg.steps : tcfg.steps * (r + 1) / rounds);
-                    const trainer::TrainResult part = tr.train(pool, [&](const trainer::Progress& p) {
-                        const double elapsed = since(tr_t0);
-                        report({mesh.name, "train", p.step, p.steps, p.loss,
-                                p.step ? elapsed / p.step * (p.steps - p.step) : 0.0});
-                        return true;
-                    }, until);
+                    const auto until =
+                        std::uint32_t(r + 1 == rounds ? tcfg.steps : tcfg.steps * (r + 1) / rounds);
+                    const trainer::TrainResult part = tr.train(
+                        pool,
+                        [&](const trainer::Progress& p) {
+                            const double elapsed = since(tr_t0);
+                            report({mesh.name, "train", p.step, p.steps, p.loss,
+                                    p.step ? elapsed / p.step * (p.steps - p.step) : 0.0});
+                            return true;
+                        },
+                        until);
                     tres.steps = part.steps;
                     tres.seconds += part.seconds;
                     tres.samples += part.samples;
@@ -521,42 +541,44 @@ ConvertResult convert(const ConvertOptions& opt, const ConvertProgress& progress
                     report({mesh.name, "write"});
                     std::vector<std::string> materials;
                     for (const auto& name : sc.materials) materials.push_back(name);
-                    json meta = {
-                        {"format", "lsnif-metadata/1"},
-                        {"tool", {{"name", "lsnif"}, {"version", LSNIF_VERSION_STRING}, {"command", opt.command_line}}},
-                        {"object",
-                         {{"name", mesh.name},
-                          {"source", path},
-                          {"source_hash", scene::geometry_hash(mesh)},
-                          {"box_min", vec3(box->min)},
-                          {"box_max", vec3(box->max)},
-                          {"triangle_count", mesh.triangle_count()},
-                          {"vertex_count", mesh.vertex_count()},
-                          {"closed", source->is_closed()}}},
-                        {"model", model_json(desc)},
-                        {"training",
-                         {{"seed", opt.seed},
-                          {"threads", threads},
-                          {"steps", tres.steps},
-                          {"batch_size", tcfg.batch_size},
-                          {"samples", tres.samples},
-                          {"rays", drawn},
-                          {"rays_per_round", chunk},
-                          {"window_rounds", std::max<std::uint32_t>(1, preset.train_window_chunks)},
-                          // No wall time here: an asset must be reproducible byte for byte
-                          // (same input, seed and threads); timings are in the report.
-                          {"learning_rate_grid", tcfg.grid_adam.lr},
-                          {"learning_rate_mlp", tcfg.mlp_adam.lr},
-                          {"loss_weights",
-                           {{"visibility", tcfg.loss.visibility},
-                            {"distance", tcfg.loss.distance},
-                            {"normal", tcfg.loss.normal},
-                            {"material", tcfg.loss.material}}},
-                          {"final_loss", std::isfinite(tres.final_loss) ? tres.final_loss : 0.0f},
-                          {"preset", preset.name},
-                          {"divergence_rollbacks", tres.rollbacks}}},
-                        {"metrics", metrics},
-                        {"extensions", {{"lsnif_convert_key", key}}}};
+                    json meta = {{"format", "lsnif-metadata/1"},
+                                 {"tool",
+                                  {{"name", "lsnif"},
+                                   {"version", LSNIF_VERSION_STRING},
+                                   {"command", opt.command_line}}},
+                                 {"object",
+                                  {{"name", mesh.name},
+                                   {"source", path},
+                                   {"source_hash", scene::geometry_hash(mesh)},
+                                   {"box_min", vec3(box->min)},
+                                   {"box_max", vec3(box->max)},
+                                   {"triangle_count", mesh.triangle_count()},
+                                   {"vertex_count", mesh.vertex_count()},
+                                   {"closed", source->is_closed()}}},
+                                 {"model", model_json(desc)},
+                                 {"training",
+                                  {{"seed", opt.seed},
+                                   {"threads", threads},
+                                   {"steps", tres.steps},
+                                   {"batch_size", tcfg.batch_size},
+                                   {"samples", tres.samples},
+                                   {"rays", drawn},
+                                   {"rays_per_round", chunk},
+                                   {"window_rounds", std::max<std::uint32_t>(1, preset.train_window_chunks)},
+                                   // No wall time here: an asset must be reproducible byte for byte
+                                   // (same input, seed and threads); timings are in the report.
+                                   {"learning_rate_grid", tcfg.grid_adam.lr},
+                                   {"learning_rate_mlp", tcfg.mlp_adam.lr},
+                                   {"loss_weights",
+                                    {{"visibility", tcfg.loss.visibility},
+                                     {"distance", tcfg.loss.distance},
+                                     {"normal", tcfg.loss.normal},
+                                     {"material", tcfg.loss.material}}},
+                                   {"final_loss", std::isfinite(tres.final_loss) ? tres.final_loss : 0.0f},
+                                   {"preset", preset.name},
+                                   {"divergence_rollbacks", tres.rollbacks}}},
+                                 {"metrics", metrics},
+                                 {"extensions", {{"lsnif_convert_key", key}}}};
                     model.metadata_json = meta.dump(2);
                     std::error_code ec;
                     fs::create_directories(outdir, ec);
@@ -588,23 +610,31 @@ ConvertResult convert(const ConvertOptions& opt, const ConvertProgress& progress
                                  {"transform", std::vector<float>(i.transform.begin(), i.transform.end())}});
     }
 
-    res.report = {{"inputs", inputs}, {"meshes", meshes}, {"instances", instances.size()},
-                  {"errors", res.errors}, {"warnings", res.warnings}};
+    res.report = {{"inputs", inputs},
+                  {"meshes", meshes},
+                  {"instances", instances.size()},
+                  {"errors", res.errors},
+                  {"warnings", res.warnings}};
     res.report["timings"] = {{"import", import_seconds}};  // per-mesh stages are in meshes[].timings
     if (opt.dry_run) res.report["dry_run"] = true;
     if (ok_inputs == 0 || opt.dry_run) return res;  // nothing converted, or a plan: leave OUTDIR untouched
 
     json forced_c = opt.force_complex, forced_s = opt.force_simple;
-    res.manifest = {{"format", kManifestFormat},
-                    {"tool", {{"name", "lsnif"}, {"version", LSNIF_VERSION_STRING}}},
-                    {"settings", {{"preset", preset.name}, {"seed", opt.seed}, {"threads", threads},
-                                  {"forced_complex", forced_c}, {"forced_simple", forced_s}}},
-                    {"inputs", inputs},
-                    {"meshes", meshes},
-                    {"instances", instances},
-                    {"simple_geometry",
-                     {{"location", "inputs"},
-                      {"note", "simple meshes are read from their input file (meshes[].input, meshes[].source_mesh)"}}}};
+    res.manifest = {
+        {"format", kManifestFormat},
+        {"tool", {{"name", "lsnif"}, {"version", LSNIF_VERSION_STRING}}},
+        {"settings",
+         {{"preset", preset.name},
+          {"seed", opt.seed},
+          {"threads", threads},
+          {"forced_complex", forced_c},
+          {"forced_simple", forced_s}}},
+        {"inputs", inputs},
+        {"meshes", meshes},
+        {"instances", instances},
+        {"simple_geometry",
+         {{"location", "inputs"},
+          {"note", "simple meshes are read from their input file (meshes[].input, meshes[].source_mesh)"}}}};
     std::error_code ec;
     fs::create_directories(outdir, ec);
     if (ec) {
@@ -612,9 +642,9 @@ ConvertResult convert(const ConvertOptions& opt, const ConvertProgress& progress
         return res;
     }
     const std::string text = res.manifest.dump(2) + "\n";
-    if (format::Error e = format::write_bytes_atomically(
-            (outdir / "manifest.json").string(),
-            {reinterpret_cast<const std::uint8_t*>(text.data()), text.size()}))
+    if (format::Error e =
+            format::write_bytes_atomically((outdir / "manifest.json").string(),
+                                           {reinterpret_cast<const std::uint8_t*>(text.data()), text.size()}))
         res.errors.push_back(e.message);
     res.report["manifest"] = (outdir / "manifest.json").string();
     return res;
@@ -625,24 +655,31 @@ std::string convert_text(const ConvertResult& r) {
     char buf[512];
     if (!r.report.contains("meshes")) return s;
     for (const json& m : r.report["meshes"]) {
-        std::snprintf(buf, sizeof buf, "%-8s %-24s %9" PRIu64 " tris  x%-3" PRIu64, m["class"].get<std::string>().c_str(),
+        std::snprintf(buf, sizeof buf, "%-8s %-24s %9" PRIu64 " tris  x%-3" PRIu64,
+                      m["class"].get<std::string>().c_str(),
                       m["name"].get<std::string>().substr(0, 24).c_str(), m["triangles"].get<std::uint64_t>(),
                       m.value("instances", std::uint64_t(0)));
         s += buf;
         if (m.contains("lsnif")) {
             const json& p = m["metrics"]["families"]["pooled"];
-            std::snprintf(buf, sizeof buf, "  %s %6.1f KiB  vis %.2f%%  dist %.3f%%  normal %.1f deg%s",
-                          m["lsnif"]["file"].get<std::string>().c_str(), m["lsnif"]["bytes"].get<double>() / 1024,
-                          100 * p["visibility_accuracy"].get<double>(), p["distance_error_median_pct"].get<double>(),
-                          p["normal_error_median_deg"].get<double>(), m["lsnif"]["reused"].get<bool>() ? " (reused)" : "");
+            std::snprintf(
+                buf, sizeof buf, "  %s %6.1f KiB  vis %.2f%%  dist %.3f%%  normal %.1f deg%s",
+                m["lsnif"]["file"].get<std::string>().c_str(), m["lsnif"]["bytes"].get<double>() / 1024,
+                100 * p["visibility_accuracy"].get<double>(), p["distance_error_median_pct"].get<double>(),
+                p["normal_error_median_deg"].get<double>(),
+                m["lsnif"]["reused"].get<bool>() ? " (reused)" : "");
             s += buf;
             const json& fam = m["metrics"]["families"];
             for (const char* f : {"outside", "surface", "interior"}) {
-                std::snprintf(buf, sizeof buf, "\n           %-8s vis %.2f%%  dist %.3f%% (p95 %.2f%%)  normal %.1f deg (p95 %.1f)  culled %.0f%%",
+                std::snprintf(buf, sizeof buf,
+                              "\n           %-8s vis %.2f%%  dist %.3f%% (p95 %.2f%%)  normal %.1f deg (p95 "
+                              "%.1f)  culled %.0f%%",
                               f, 100 * fam[f]["visibility_accuracy"].get<double>(),
                               fam[f]["distance_error_median_pct"].get<double>(),
-                              fam[f]["distance_error_p95_pct"].get<double>(), fam[f]["normal_error_median_deg"].get<double>(),
-                              fam[f]["normal_error_p95_deg"].get<double>(), 100 * fam[f]["culled_fraction"].get<double>());
+                              fam[f]["distance_error_p95_pct"].get<double>(),
+                              fam[f]["normal_error_median_deg"].get<double>(),
+                              fam[f]["normal_error_p95_deg"].get<double>(),
+                              100 * fam[f]["culled_fraction"].get<double>());
                 s += buf;
             }
         } else if (!m["reasons"].empty()) {

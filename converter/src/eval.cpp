@@ -1,9 +1,9 @@
 // `lsnif eval`: reference (Embree everywhere) and hybrid (Embree + LSNIF reader) renders of
 // a converted scene, compared with FLIP and PSNR (eval.hpp has the contract).
-#include <lsnif/converter/eval.hpp>
 #include <lsnif/base/affine.hpp>
 #include <lsnif/base/parallel.hpp>
 #include <lsnif/base/random.hpp>
+#include <lsnif/converter/eval.hpp>
 #include <lsnif/converter/manifest.hpp>
 
 #include <embree3/rtcore.h>
@@ -28,13 +28,27 @@ using Vec3 = std::array<float, 3>;
 
 namespace {
 
-Vec3 operator+(Vec3 a, Vec3 b) { return {a[0] + b[0], a[1] + b[1], a[2] + b[2]}; }
-Vec3 operator-(Vec3 a, Vec3 b) { return {a[0] - b[0], a[1] - b[1], a[2] - b[2]}; }
-Vec3 operator*(Vec3 a, float s) { return {a[0] * s, a[1] * s, a[2] * s}; }
-Vec3 mul(Vec3 a, Vec3 b) { return {a[0] * b[0], a[1] * b[1], a[2] * b[2]}; }
-float dot(Vec3 a, Vec3 b) { return a[0] * b[0] + a[1] * b[1] + a[2] * b[2]; }
-Vec3 cross(Vec3 a, Vec3 b) { return {a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]}; }
-float length(Vec3 a) { return std::sqrt(dot(a, a)); }
+Vec3 operator+(Vec3 a, Vec3 b) {
+    return {a[0] + b[0], a[1] + b[1], a[2] + b[2]};
+}
+Vec3 operator-(Vec3 a, Vec3 b) {
+    return {a[0] - b[0], a[1] - b[1], a[2] - b[2]};
+}
+Vec3 operator*(Vec3 a, float s) {
+    return {a[0] * s, a[1] * s, a[2] * s};
+}
+Vec3 mul(Vec3 a, Vec3 b) {
+    return {a[0] * b[0], a[1] * b[1], a[2] * b[2]};
+}
+float dot(Vec3 a, Vec3 b) {
+    return a[0] * b[0] + a[1] * b[1] + a[2] * b[2];
+}
+Vec3 cross(Vec3 a, Vec3 b) {
+    return {a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]};
+}
+float length(Vec3 a) {
+    return std::sqrt(dot(a, a));
+}
 Vec3 normalize(Vec3 a) {
     const float l = length(a);
     return l > 0.0f ? a * (1.0f / l) : Vec3{0.0f, 0.0f, 1.0f};
@@ -51,7 +65,6 @@ Vec3 apply_normal(const std::array<float, 9>& n, Vec3 v) {
     return normalize({n[0] * v[0] + n[1] * v[1] + n[2] * v[2], n[3] * v[0] + n[4] * v[1] + n[5] * v[2],
                       n[6] * v[0] + n[7] * v[1] + n[8] * v[2]});
 }
-
 
 }  // namespace
 
@@ -111,7 +124,8 @@ struct EvalScene::Impl {
         const float u = rh.hit.u, v = rh.hit.v, w = 1.0f - u - v;
         Vec3 n{};
         for (int a = 0; a < 3; ++a)
-            n[a] = w * m.normals[tri[0] * 3 + a] + u * m.normals[tri[1] * 3 + a] + v * m.normals[tri[2] * 3 + a];
+            n[a] =
+                w * m.normals[tri[0] * 3 + a] + u * m.normals[tri[1] * 3 + a] + v * m.normals[tri[2] * 3 + a];
         h.t = rh.ray.tfar;
         h.normal = apply_normal(in.nmat, n);
         h.instance = std::int32_t(inst);
@@ -121,10 +135,18 @@ struct EvalScene::Impl {
 
 EvalScene::EvalScene(std::unique_ptr<Impl> impl) : impl_(std::move(impl)) {}
 EvalScene::~EvalScene() = default;
-std::size_t EvalScene::instance_count() const { return impl_->instances.size(); }
-std::size_t EvalScene::lsnif_instance_count() const { return impl_->lsnif_instances.size(); }
-std::array<float, 6> EvalScene::world_bounds() const { return impl_->world; }
-std::array<float, 6> EvalScene::instance_bounds(std::size_t i) const { return impl_->instances.at(i).box; }
+std::size_t EvalScene::instance_count() const {
+    return impl_->instances.size();
+}
+std::size_t EvalScene::lsnif_instance_count() const {
+    return impl_->lsnif_instances.size();
+}
+std::array<float, 6> EvalScene::world_bounds() const {
+    return impl_->world;
+}
+std::array<float, 6> EvalScene::instance_bounds(std::size_t i) const {
+    return impl_->instances.at(i).box;
+}
 
 namespace {
 
@@ -187,8 +209,8 @@ void EvalScene::closest(bool hybrid, std::span<const lsnif_ray> rays, std::span<
         const lsnif_model* model = im.meshes[in.mesh].model;
         auto flush = [&] {
             if (batch.empty()) return;
-            if (lsnif_intersect_instance(model, in.transform.data(), batch.data(), batch.size(), out.data()) ==
-                LSNIF_OK) {
+            if (lsnif_intersect_instance(model, in.transform.data(), batch.data(), batch.size(),
+                                         out.data()) == LSNIF_OK) {
                 for (std::size_t k = 0; k < batch.size(); ++k) {
                     TraceHit& h = hits[idx[k]];
                     const lsnif_hit& o = out[k];
@@ -235,8 +257,8 @@ void EvalScene::occluded(bool hybrid, std::span<const lsnif_ray> rays, std::span
         const lsnif_model* model = im.meshes[in.mesh].model;
         auto flush = [&] {
             if (batch.empty()) return;
-            if (lsnif_intersect_instance(model, in.transform.data(), batch.data(), batch.size(), out.data()) ==
-                LSNIF_OK)
+            if (lsnif_intersect_instance(model, in.transform.data(), batch.data(), batch.size(),
+                                         out.data()) == LSNIF_OK)
                 for (std::size_t k = 0; k < batch.size(); ++k)
                     if (out[k].hit && out[k].t >= batch[k].tmin && out[k].t <= batch[k].tmax) occ[idx[k]] = 1;
             batch.clear();
@@ -261,7 +283,8 @@ std::unique_ptr<EvalScene> EvalScene::load(const EvalOptions& opt, std::string& 
     const std::vector<std::string>& sources = loaded.sources;
     std::vector<scene::Scene> scenes(sources.size());
     for (std::size_t s = 0; s < sources.size(); ++s) {
-        if (manifest["inputs"][s].value("status", "") != "ok") continue;  // failed in convert: no meshes from it
+        if (manifest["inputs"][s].value("status", "") != "ok")
+            continue;  // failed in convert: no meshes from it
         auto r = scene::import_scene(sources[s]);
         if (!r.ok()) {
             error = manifest_path.string() + ": input " + std::to_string(s) + ": " + r.error;
@@ -281,10 +304,12 @@ std::unique_ptr<EvalScene> EvalScene::load(const EvalOptions& opt, std::string& 
     rtcSetDeviceMemoryMonitorFunction(im.device, &Impl::on_memory, &im);
 
     for (const json& mj : manifest["meshes"]) {
-        const std::size_t input = mj.value("input", std::size_t(0)), src = mj.value("source_mesh", std::size_t(0));
+        const std::size_t input = mj.value("input", std::size_t(0)),
+                          src = mj.value("source_mesh", std::size_t(0));
         if (input >= scenes.size() || src >= scenes[input].meshes.size()) {
             error = manifest_path.string() + ": mesh '" + mj.value("name", "") + "' refers to input " +
-                    std::to_string(input) + " mesh " + std::to_string(src) + ", which the source does not have";
+                    std::to_string(input) + " mesh " + std::to_string(src) +
+                    ", which the source does not have";
             return nullptr;
         }
         const scene::Mesh& sm = scenes[input].meshes[src];
@@ -307,10 +332,10 @@ std::unique_ptr<EvalScene> EvalScene::load(const EvalOptions& opt, std::string& 
         const std::uint64_t before = im.memory;
         m.scene = rtcNewScene(im.device);
         RTCGeometry g = rtcNewGeometry(im.device, RTC_GEOMETRY_TYPE_TRIANGLE);
-        auto* vb = static_cast<float*>(rtcSetNewGeometryBuffer(g, RTC_BUFFER_TYPE_VERTEX, 0, RTC_FORMAT_FLOAT3,
-                                                               3 * sizeof(float), sm.vertex_count()));
-        auto* ib = static_cast<std::uint32_t*>(rtcSetNewGeometryBuffer(g, RTC_BUFFER_TYPE_INDEX, 0, RTC_FORMAT_UINT3,
-                                                                       3 * sizeof(std::uint32_t), sm.triangle_count()));
+        auto* vb = static_cast<float*>(rtcSetNewGeometryBuffer(
+            g, RTC_BUFFER_TYPE_VERTEX, 0, RTC_FORMAT_FLOAT3, 3 * sizeof(float), sm.vertex_count()));
+        auto* ib = static_cast<std::uint32_t*>(rtcSetNewGeometryBuffer(
+            g, RTC_BUFFER_TYPE_INDEX, 0, RTC_FORMAT_UINT3, 3 * sizeof(std::uint32_t), sm.triangle_count()));
         if (!vb || !ib) {
             rtcReleaseGeometry(g);
             error = "embree: cannot allocate buffers for mesh '" + sm.name + "': " + im.embree_error;
@@ -327,8 +352,8 @@ std::unique_ptr<EvalScene> EvalScene::load(const EvalOptions& opt, std::string& 
             const fs::path asset = dir / mj["lsnif"]["file"].get<std::string>();
             lsnif_error err{};
             if (lsnif_open_file(asset.c_str(), &m.model, &err) != LSNIF_OK) {
-                error = asset.string() + ": cannot open the asset: " + lsnif_status_string(err.status) + " (" +
-                        err.message + ")";
+                error = asset.string() + ": cannot open the asset: " + lsnif_status_string(err.status) +
+                        " (" + err.message + ")";
                 im.meshes.push_back(std::move(m));  // released by ~Impl
                 return nullptr;
             }
@@ -345,7 +370,8 @@ std::unique_ptr<EvalScene> EvalScene::load(const EvalOptions& opt, std::string& 
     for (std::size_t i = 0; i < insts.size(); ++i) {
         Impl::Instance in;
         in.mesh = insts[i].value("mesh", 0u);
-        if (in.mesh >= im.meshes.size() || !insts[i].contains("transform") || insts[i]["transform"].size() != 12) {
+        if (in.mesh >= im.meshes.size() || !insts[i].contains("transform") ||
+            insts[i]["transform"].size() != 12) {
             error = manifest_path.string() + ": instance " + std::to_string(i) + " is malformed";
             return nullptr;
         }
@@ -362,7 +388,8 @@ std::unique_ptr<EvalScene> EvalScene::load(const EvalOptions& opt, std::string& 
         const auto& ob = im.meshes[in.mesh].box;
         in.box = {INFINITY, INFINITY, INFINITY, -INFINITY, -INFINITY, -INFINITY};
         for (int c = 0; c < 8; ++c) {
-            const Vec3 p = apply_point(in.transform, {ob[c & 1 ? 3 : 0], ob[c & 2 ? 4 : 1], ob[c & 4 ? 5 : 2]});
+            const Vec3 p =
+                apply_point(in.transform, {ob[c & 1 ? 3 : 0], ob[c & 2 ? 4 : 1], ob[c & 4 ? 5 : 2]});
             for (int a = 0; a < 3; ++a) {
                 in.box[a] = std::min(in.box[a], p[a]);
                 in.box[a + 3] = std::max(in.box[a + 3], p[a]);
@@ -382,8 +409,10 @@ std::unique_ptr<EvalScene> EvalScene::load(const EvalOptions& opt, std::string& 
             rtcAttachGeometryByID(top, g, std::uint32_t(i));
             rtcReleaseGeometry(g);
         }
-        if (as_lsnif) im.lsnif_instances.push_back(std::uint32_t(i));
-        else im.hybrid_has_geometry = true;
+        if (as_lsnif)
+            im.lsnif_instances.push_back(std::uint32_t(i));
+        else
+            im.hybrid_has_geometry = true;
         im.instances.push_back(in);
     }
     if (im.instances.empty()) {
@@ -408,8 +437,12 @@ Vec3 albedo(std::uint32_t mesh) {
     const float h = std::fmod(0.13f + 0.618034f * float(mesh), 1.0f) * 6.0f, s = 0.45f, v = 0.85f;
     const float c = v * s, x = c * (1.0f - std::fabs(std::fmod(h, 2.0f) - 1.0f)), m = v - c;
     const int k = int(h) % 6;
-    const Vec3 rgb = k == 0 ? Vec3{c, x, 0} : k == 1 ? Vec3{x, c, 0} : k == 2 ? Vec3{0, c, x}
-                   : k == 3 ? Vec3{0, x, c} : k == 4 ? Vec3{x, 0, c} : Vec3{c, 0, x};
+    const Vec3 rgb = k == 0   ? Vec3{c, x, 0}
+                     : k == 1 ? Vec3{x, c, 0}
+                     : k == 2 ? Vec3{0, c, x}
+                     : k == 3 ? Vec3{0, x, c}
+                     : k == 4 ? Vec3{x, 0, c}
+                              : Vec3{c, 0, x};
     return rgb + Vec3{m, m, m};
 }
 
@@ -458,7 +491,8 @@ EvalResult evaluate(const EvalOptions& opt) {
     const Vec3 center = (lo + hi) * 0.5f;
     const float diag = std::max(length(hi - lo), 1e-20f);
     EvalCamera cam;
-    if (opt.camera) cam = *opt.camera;
+    if (opt.camera)
+        cam = *opt.camera;
     else {
         cam.target = center;
         cam.eye = center + normalize({0.55f, 0.4f, 1.0f}) * (1.15f * diag);
@@ -524,7 +558,8 @@ EvalResult evaluate(const EvalOptions& opt) {
                 const Vec3 n = gb.n[i], o = gb.p[i] + n * gb.eps[i];
                 const Vec3 tl = light - o;
                 const float dist = length(tl);
-                shadow.push_back({{o[0], o[1], o[2]}, 0.0f, {tl[0] / dist, tl[1] / dist, tl[2] / dist}, dist});
+                shadow.push_back(
+                    {{o[0], o[1], o[2]}, 0.0f, {tl[0] / dist, tl[1] / dist, tl[2] / dist}, dist});
                 // Cosine-weighted hemisphere about n (Malley's method), per-pixel stream.
                 base::SplitMix64 rng{opt.seed * base::kGoldenGamma + i * 0xD1B54A32D192ED03ull};
                 const Vec3 a = std::fabs(n[0]) > 0.5f ? Vec3{0, 1, 0} : Vec3{1, 0, 0};
@@ -548,7 +583,8 @@ EvalResult evaluate(const EvalOptions& opt) {
             per_thread[t] += seconds_since(tt);
             for (std::uint32_t x = 0; x < W; ++x)  // background everywhere first
                 for (int e = 0; e < kEffects; ++e)
-                    for (int c = 0; c < 3; ++c) img[hybrid][e][(std::size_t(y) * W + x) * 3 + c] = kBackground[c];
+                    for (int c = 0; c < 3; ++c)
+                        img[hybrid][e][(std::size_t(y) * W + x) * 3 + c] = kBackground[c];
             for (std::size_t k = 0; k < px.size(); ++k) {
                 const std::size_t i = std::size_t(y) * W + px[k];
                 const Vec3 base = albedo(im.instances[gb.inst[i]].mesh);
@@ -605,7 +641,7 @@ EvalResult evaluate(const EvalOptions& opt) {
         if (opt.write_images) {
             const std::string stem = names[e];
             const std::pair<std::string, const eval::Image*> files[] = {{"reference_" + stem + ".png", &ref},
-                                                                         {"hybrid_" + stem + ".png", &hyb}};
+                                                                        {"hybrid_" + stem + ".png", &hyb}};
             for (const auto& [file, image] : files) {
                 auto w = eval::write_png((images / file).string(), *image);
                 if (!w) {
@@ -613,7 +649,8 @@ EvalResult evaluate(const EvalOptions& opt) {
                     return res;
                 }
             }
-            auto w = eval::write_png((images / ("flip_" + stem + ".png")).string(), eval::heatmap(f->error_map, W, H));
+            auto w = eval::write_png((images / ("flip_" + stem + ".png")).string(),
+                                     eval::heatmap(f->error_map, W, H));
             if (!w) {
                 res.errors.push_back(w.error());
                 return res;

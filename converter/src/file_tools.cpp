@@ -1,6 +1,6 @@
+#include <lsnif/lsnif.h>
 #include <lsnif/converter/file_tools.hpp>
 #include <lsnif/converter/json_schema.hpp>
-#include <lsnif/lsnif.h>
 
 #include <cinttypes>
 #include <cstdio>
@@ -35,32 +35,36 @@ json info_json(const lsnif_info& info) {
                           {"indexing", info.level_dense[l] ? "dense" : "hashed"}});
     json hidden = json::array();
     for (std::uint32_t k = 0; k < info.hidden_layer_count; ++k) hidden.push_back(info.hidden_width[k]);
-    return {{"grid_resolution", info.grid_resolution},
-            {"occupied_voxels", info.occupied_voxels},
-            {"occupied_fraction", double(info.occupied_voxels) /
-                                      (double(info.grid_resolution) * info.grid_resolution * info.grid_resolution)},
-            {"max_points", info.max_points},
-            {"features_per_level", info.features_per_level},
-            {"log2_table_size", info.log2_table_size},
-            {"levels", levels},
-            {"hash_primes", {info.hash_primes[0], info.hash_primes[1], info.hash_primes[2]}},
-            {"input_width", info.input_width},
-            {"hidden_widths", hidden},
-            {"output_count", info.output_count},
-            {"material_count", info.material_count},
-            {"activation", "relu"},
-            {"distance_encoding", distance_encoding_name(info.distance_encoding)},
-            {"box_min", {info.box_min[0], info.box_min[1], info.box_min[2]}},
-            {"box_max", {info.box_max[0], info.box_max[1], info.box_max[2]}},
-            {"parameter_count", info.parameter_count},
-            {"decoded_bytes", info.decoded_bytes}};
+    return {
+        {"grid_resolution", info.grid_resolution},
+        {"occupied_voxels", info.occupied_voxels},
+        {"occupied_fraction", double(info.occupied_voxels) / (double(info.grid_resolution) *
+                                                              info.grid_resolution * info.grid_resolution)},
+        {"max_points", info.max_points},
+        {"features_per_level", info.features_per_level},
+        {"log2_table_size", info.log2_table_size},
+        {"levels", levels},
+        {"hash_primes", {info.hash_primes[0], info.hash_primes[1], info.hash_primes[2]}},
+        {"input_width", info.input_width},
+        {"hidden_widths", hidden},
+        {"output_count", info.output_count},
+        {"material_count", info.material_count},
+        {"activation", "relu"},
+        {"distance_encoding", distance_encoding_name(info.distance_encoding)},
+        {"box_min", {info.box_min[0], info.box_min[1], info.box_min[2]}},
+        {"box_max", {info.box_max[0], info.box_max[1], info.box_max[2]}},
+        {"parameter_count", info.parameter_count},
+        {"decoded_bytes", info.decoded_bytes}};
 }
 
 std::string fmt_bytes(std::uint64_t n) {
     char buf[64];
-    if (n < 10 * 1024) std::snprintf(buf, sizeof buf, "%" PRIu64 " B", n);
-    else if (n < 10 * 1024 * 1024) std::snprintf(buf, sizeof buf, "%.1f KiB", double(n) / 1024);
-    else std::snprintf(buf, sizeof buf, "%.1f MiB", double(n) / (1024 * 1024));
+    if (n < 10 * 1024)
+        std::snprintf(buf, sizeof buf, "%" PRIu64 " B", n);
+    else if (n < 10 * 1024 * 1024)
+        std::snprintf(buf, sizeof buf, "%.1f KiB", double(n) / 1024);
+    else
+        std::snprintf(buf, sizeof buf, "%.1f MiB", double(n) / (1024 * 1024));
     return buf;
 }
 
@@ -101,8 +105,7 @@ std::vector<std::string> metadata_consistency(const json& meta, const lsnif_info
                 const json& v = (*o)[key][i];
                 // The descriptor stores f32; the JSON must round-trip to the same float.
                 if (!v.is_number() || float(v.get<double>()) != want[i]) {
-                    check(std::string("object.") + key,
-                          (*o)[key], json{want[0], want[1], want[2]});
+                    check(std::string("object.") + key, (*o)[key], json{want[0], want[1], want[2]});
                     break;
                 }
             }
@@ -127,10 +130,9 @@ ValidationReport validate_bytes(std::span<const std::uint8_t> bytes, const std::
                     r.problems.push_back(
                         {lsnif_status_string(lsnif_status(sections[i].payload_status)), sections[i].offset,
                          std::string("section '") + sections[i].tag + "' payload is damaged (" +
-                             (sections[i].payload_status == LSNIF_ERR_DECOMPRESS
-                                  ? "zstd data does not decode"
-                                  : sections[i].decoded ? "uncompressed checksum mismatch"
-                                                        : "stored-bytes checksum mismatch") +
+                             (sections[i].payload_status == LSNIF_ERR_DECOMPRESS ? "zstd data does not decode"
+                              : sections[i].decoded ? "uncompressed checksum mismatch"
+                                                    : "stored-bytes checksum mismatch") +
                              ")"});
             if (r.problems.empty()) r.problems.push_back(problem_from(err));
         } else {
@@ -152,13 +154,14 @@ ValidationReport validate_bytes(std::span<const std::uint8_t> bytes, const std::
     try {
         meta = json::parse(text, text + len);
     } catch (const json::parse_error& e) {
-        r.problems.push_back({"metadata", UINT64_MAX, std::string("metadata is not valid JSON: ") + e.what()});
+        r.problems.push_back(
+            {"metadata", UINT64_MAX, std::string("metadata is not valid JSON: ") + e.what()});
         return r;
     }
     for (const SchemaViolation& v : metadata_schema().validate(meta))
-        r.problems.push_back({"metadata", UINT64_MAX,
-                              "metadata " + (v.pointer.empty() ? std::string("(root)") : v.pointer) + " " +
-                                  v.message});
+        r.problems.push_back(
+            {"metadata", UINT64_MAX,
+             "metadata " + (v.pointer.empty() ? std::string("(root)") : v.pointer) + " " + v.message});
     for (const std::string& m : metadata_consistency(meta, info))
         r.problems.push_back({"metadata", UINT64_MAX, m});
     return r;
@@ -202,25 +205,26 @@ json inspect_bytes(std::span<const std::uint8_t> bytes, const std::string& name)
     const lsnif_status st = lsnif_scan_memory(bytes.data(), bytes.size(), &header, sections.data(),
                                               std::uint32_t(sections.size()), &count, &err);
     if (count > 0 || st == LSNIF_OK) {
-        report["header"] = {{"version", std::to_string(header.version_major) + "." +
-                                            std::to_string(header.version_minor)},
-                            {"file_size", header.file_size},
-                            {"table_offset", header.table_offset},
-                            {"section_count", header.section_count}};
+        report["header"] = {
+            {"version", std::to_string(header.version_major) + "." + std::to_string(header.version_minor)},
+            {"file_size", header.file_size},
+            {"table_offset", header.table_offset},
+            {"section_count", header.section_count}};
         json secs = json::array();
         for (std::uint32_t i = 0; i < count && i < sections.size(); ++i) {
             const auto& s = sections[i];
-            secs.push_back({{"tag", s.tag},
-                            {"known", bool(s.known)},
-                            {"required", bool(s.flags & LSNIF_SECTION_REQUIRED)},
-                            {"compression", s.compression == LSNIF_COMPRESSION_ZSTD ? "zstd" : "none"},
-                            {"offset", s.offset},
-                            {"stored_size", s.stored_size},
-                            {"raw_size", s.raw_size},
-                            {"compression_ratio", s.stored_size ? double(s.raw_size) / double(s.stored_size) : 1.0},
-                            {"stored_crc32c", s.stored_crc32c},
-                            {"raw_crc32c", s.raw_crc32c},
-                            {"checksum", s.checksum_ok ? "ok" : "mismatch"}});
+            secs.push_back(
+                {{"tag", s.tag},
+                 {"known", bool(s.known)},
+                 {"required", bool(s.flags & LSNIF_SECTION_REQUIRED)},
+                 {"compression", s.compression == LSNIF_COMPRESSION_ZSTD ? "zstd" : "none"},
+                 {"offset", s.offset},
+                 {"stored_size", s.stored_size},
+                 {"raw_size", s.raw_size},
+                 {"compression_ratio", s.stored_size ? double(s.raw_size) / double(s.stored_size) : 1.0},
+                 {"stored_crc32c", s.stored_crc32c},
+                 {"raw_crc32c", s.raw_crc32c},
+                 {"checksum", s.checksum_ok ? "ok" : "mismatch"}});
         }
         report["sections"] = secs;
     }
@@ -266,15 +270,14 @@ std::string inspect_text(const json& r) {
             o << line;
         }
     }
-    if (r.contains("error"))
-        o << "  error: " << r["error"]["message"].get<std::string>() << "\n";
+    if (r.contains("error")) o << "  error: " << r["error"]["message"].get<std::string>() << "\n";
     if (r.contains("model")) {
         const json& m = r["model"];
         o << "  model: V=" << m["grid_resolution"] << " (" << m["occupied_voxels"] << " occupied, "
           << std::fixed;
         o.precision(1);
-        o << 100.0 * m["occupied_fraction"].get<double>() << "%), H=" << m["max_points"] << ", F="
-          << m["features_per_level"] << ", T=2^" << m["log2_table_size"] << ", levels";
+        o << 100.0 * m["occupied_fraction"].get<double>() << "%), H=" << m["max_points"]
+          << ", F=" << m["features_per_level"] << ", T=2^" << m["log2_table_size"] << ", levels";
         for (const json& l : m["levels"])
             o << " " << l["resolution"] << "(" << l["indexing"].get<std::string>() << ")";
         o << "\n  mlp: " << m["input_width"];
@@ -286,7 +289,8 @@ std::string inspect_text(const json& r) {
         o << "  parameters: " << m["parameter_count"] << " (" << fmt_bytes(m["decoded_bytes"])
           << " decoded)\n";
     }
-    if (r.contains("metadata")) o << "  metadata: " << r["metadata"].dump(2) << "\n";
+    if (r.contains("metadata"))
+        o << "  metadata: " << r["metadata"].dump(2) << "\n";
     else if (r.contains("metadata_text"))
         o << "  metadata (not JSON): " << r["metadata_text"].get<std::string>() << "\n";
     return o.str();

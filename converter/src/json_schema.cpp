@@ -11,11 +11,33 @@ using nlohmann::json;
 namespace {
 
 const std::set<std::string>& known_keywords() {
-    static const std::set<std::string> k = {
-        "$schema", "$id", "$comment", "title", "description", "$defs", "$ref", "type", "enum",
-        "const", "properties", "required", "additionalProperties", "items", "minItems",
-        "maxItems", "minimum", "maximum", "exclusiveMinimum", "exclusiveMaximum", "minLength",
-        "maxLength", "pattern", "oneOf", "anyOf", "default", "examples"};
+    static const std::set<std::string> k = {"$schema",
+                                            "$id",
+                                            "$comment",
+                                            "title",
+                                            "description",
+                                            "$defs",
+                                            "$ref",
+                                            "type",
+                                            "enum",
+                                            "const",
+                                            "properties",
+                                            "required",
+                                            "additionalProperties",
+                                            "items",
+                                            "minItems",
+                                            "maxItems",
+                                            "minimum",
+                                            "maximum",
+                                            "exclusiveMinimum",
+                                            "exclusiveMaximum",
+                                            "minLength",
+                                            "maxLength",
+                                            "pattern",
+                                            "oneOf",
+                                            "anyOf",
+                                            "default",
+                                            "examples"};
     return k;
 }
 
@@ -58,18 +80,20 @@ bool type_matches(const json& v, const std::string& t) {
     if (t == "null") return v.is_null();
     if (t == "number") return v.is_number();
     if (t == "integer")
-        return v.is_number_integer() ||
-               (v.is_number_float() && std::isfinite(v.get<double>()) &&
-                v.get<double>() == std::floor(v.get<double>()));
+        return v.is_number_integer() || (v.is_number_float() && std::isfinite(v.get<double>()) &&
+                                         v.get<double>() == std::floor(v.get<double>()));
     return false;
 }
 
 std::string escape_pointer(const std::string& key) {
     std::string out;
     for (char c : key) {
-        if (c == '~') out += "~0";
-        else if (c == '/') out += "~1";
-        else out += c;
+        if (c == '~')
+            out += "~0";
+        else if (c == '/')
+            out += "~1";
+        else
+            out += c;
     }
     return out;
 }
@@ -94,8 +118,10 @@ struct Validator {
         if (auto it = s.find("$ref"); it != s.end()) {
             const std::string name = it->get<std::string>().substr(8);
             const auto defs = root.find("$defs");
-            if (defs == root.end() || !defs->contains(name)) fail(ptr, "schema $ref '" + name + "' is undefined");
-            else run((*defs)[name], v, ptr);
+            if (defs == root.end() || !defs->contains(name))
+                fail(ptr, "schema $ref '" + name + "' is undefined");
+            else
+                run((*defs)[name], v, ptr);
         }
         if (auto it = s.find("type"); it != s.end()) {
             bool ok = false;
@@ -115,8 +141,7 @@ struct Validator {
                 return;  // the remaining keywords would only repeat the mismatch
             }
         }
-        if (auto it = s.find("const"); it != s.end() && v != *it)
-            fail(ptr, "must equal " + it->dump());
+        if (auto it = s.find("const"); it != s.end() && v != *it) fail(ptr, "must equal " + it->dump());
         if (auto it = s.find("enum"); it != s.end()) {
             bool found = false;
             for (const auto& e : *it) found = found || e == v;
@@ -164,11 +189,13 @@ struct Validator {
             const auto extra = s.find("additionalProperties");
             for (const auto& [key, value] : v.items()) {
                 const std::string child = ptr + "/" + escape_pointer(key);
-                if (props != s.end() && props->contains(key)) run((*props)[key], value, child);
+                if (props != s.end() && props->contains(key))
+                    run((*props)[key], value, child);
                 else if (extra != s.end()) {
                     if (extra->is_boolean() && !extra->get<bool>())
                         fail(child, "is not a known property");
-                    else run(*extra, value, child);
+                    else
+                        run(*extra, value, child);
                 }
             }
         }

@@ -44,8 +44,9 @@ bool load_manifest(const fs::path& outdir, const std::vector<std::string>& sourc
     }
     const json format = out.doc.value("format", json());
     if (format != kManifestFormat) {
-        error = where + ": manifest format " + (format.is_string() ? format.get<std::string>() : format.dump()) +
-                ", this lsnif reads " + kManifestFormat +
+        error = where + ": manifest format " +
+                (format.is_string() ? format.get<std::string>() : format.dump()) + ", this lsnif reads " +
+                kManifestFormat +
                 " (inputs relative to the manifest): re-run lsnif convert, which reuses the assets";
         return false;
     }
@@ -57,8 +58,8 @@ bool load_manifest(const fs::path& outdir, const std::vector<std::string>& sourc
     const json& inputs = out.doc["inputs"];
     if (!sources.empty()) {
         if (sources.size() != inputs.size()) {
-            error = where + ": the conversion had " + std::to_string(inputs.size()) + " inputs, --source gives " +
-                    std::to_string(sources.size());
+            error = where + ": the conversion had " + std::to_string(inputs.size()) +
+                    " inputs, --source gives " + std::to_string(sources.size());
             return false;
         }
         out.sources = sources;

@@ -19,8 +19,8 @@
 //
 // Embree (and the reader) are only given rays whose origin and direction are finite: a
 // pixel whose primary ray missed has no shadow ray at all.
-#include <lsnif/base/affine.hpp>
 #include <lsnif/lsnif.h>
+#include <lsnif/base/affine.hpp>
 #include <lsnif/scene/scene.hpp>
 
 #include <embree3/rtcore.h>
@@ -52,7 +52,9 @@ struct Failure : std::runtime_error {
     using std::runtime_error::runtime_error;
 };
 
-float dot3(const float* a, const float* b) { return a[0] * b[0] + a[1] * b[1] + a[2] * b[2]; }
+float dot3(const float* a, const float* b) {
+    return a[0] * b[0] + a[1] * b[1] + a[2] * b[2];
+}
 
 Vec3 normalized(Vec3 v) {
     const float l = std::sqrt(dot3(v.data(), v.data()));
@@ -137,9 +139,9 @@ private:
         float box[6] = {INFINITY, INFINITY, INFINITY, -INFINITY, -INFINITY, -INFINITY};
     };
     struct Instance {
-        float xf[12];        // object -> world, the layout lsnif_intersect_instance takes
-        lsnif_model* model;  // non-null: traced through the reader
-        float box[6];        // world bounds, to skip rays that cannot reach the instance
+        float xf[12];               // object -> world, the layout lsnif_intersect_instance takes
+        lsnif_model* model;         // non-null: traced through the reader
+        float box[6];               // world bounds, to skip rays that cannot reach the instance
         std::array<float, 9> nmat;  // A^-T: object -> world normals (before normalizing)
     };
 
@@ -180,7 +182,8 @@ HybridScene::~HybridScene() {
     if (device_) rtcReleaseDevice(device_);
 }
 
-std::vector<lsnif::scene::Scene> HybridScene::load_inputs(const json& manifest, const fs::path& outdir) const {
+std::vector<lsnif::scene::Scene> HybridScene::load_inputs(const json& manifest,
+                                                          const fs::path& outdir) const {
     std::vector<lsnif::scene::Scene> inputs;
     const json& list = manifest.at("inputs");
     for (std::size_t i = 0; i < list.size(); ++i) {
@@ -195,11 +198,14 @@ std::vector<lsnif::scene::Scene> HybridScene::load_inputs(const json& manifest, 
     return inputs;
 }
 
-void HybridScene::add_mesh(const json& m, const std::vector<lsnif::scene::Scene>& inputs, const fs::path& outdir) {
-    const std::size_t input = m.at("input").get<std::size_t>(), index = m.at("source_mesh").get<std::size_t>();
+void HybridScene::add_mesh(const json& m, const std::vector<lsnif::scene::Scene>& inputs,
+                           const fs::path& outdir) {
+    const std::size_t input = m.at("input").get<std::size_t>(),
+                      index = m.at("source_mesh").get<std::size_t>();
     if (input >= inputs.size() || index >= inputs[input].meshes.size())
         throw Failure(manifest_path_.string() + ": mesh '" + m.value("name", "") + "' refers to input " +
-                      std::to_string(input) + " mesh " + std::to_string(index) + ", which the source does not have");
+                      std::to_string(input) + " mesh " + std::to_string(index) +
+                      ", which the source does not have");
     const lsnif::scene::Mesh& src = inputs[input].meshes[index];
     Mesh& out = meshes_.emplace_back();
     for (std::size_t v = 0; v + 2 < src.positions.size(); v += 3) grow(out.box, &src.positions[v]);
@@ -214,8 +220,10 @@ void HybridScene::add_mesh(const json& m, const std::vector<lsnif::scene::Scene>
     RTCGeometry g = rtcNewGeometry(device_, RTC_GEOMETRY_TYPE_TRIANGLE);
     // Embree-owned copies: Embree may read 16 bytes past the last vertex, which a shared
     // buffer would have to guarantee.
-    void* vb = rtcSetNewGeometryBuffer(g, RTC_BUFFER_TYPE_VERTEX, 0, RTC_FORMAT_FLOAT3, 12, src.vertex_count());
-    void* ib = rtcSetNewGeometryBuffer(g, RTC_BUFFER_TYPE_INDEX, 0, RTC_FORMAT_UINT3, 12, src.triangle_count());
+    void* vb =
+        rtcSetNewGeometryBuffer(g, RTC_BUFFER_TYPE_VERTEX, 0, RTC_FORMAT_FLOAT3, 12, src.vertex_count());
+    void* ib =
+        rtcSetNewGeometryBuffer(g, RTC_BUFFER_TYPE_INDEX, 0, RTC_FORMAT_UINT3, 12, src.triangle_count());
     if (!vb || !ib) {
         rtcReleaseGeometry(g);
         throw Failure("embree: cannot allocate mesh '" + src.name + "'");
@@ -232,7 +240,8 @@ void HybridScene::add_instance(const json& j) {
     const std::size_t mesh = j.at("mesh").get<std::size_t>();
     const json& t = j.at("transform");
     if (mesh >= meshes_.size() || !t.is_array() || t.size() != 12)
-        throw Failure(manifest_path_.string() + ": instance " + std::to_string(instances_.size()) + " is malformed");
+        throw Failure(manifest_path_.string() + ": instance " + std::to_string(instances_.size()) +
+                      " is malformed");
     Instance in{{}, meshes_[mesh].model, {INFINITY, INFINITY, INFINITY, -INFINITY, -INFINITY, -INFINITY}, {}};
     for (int k = 0; k < 12; ++k) in.xf[k] = t[k].get<float>();
     const auto inverse = lsnif::base::invert_linear(in.xf);  // the C API's own rule
@@ -244,7 +253,8 @@ void HybridScene::add_instance(const json& j) {
     for (int c = 0; c < 8 && m.box[0] <= m.box[3]; ++c) {  // world box = transformed object-box corners
         const float p[3] = {m.box[c & 1 ? 3 : 0], m.box[c & 2 ? 4 : 1], m.box[c & 4 ? 5 : 2]};
         float w[3];
-        for (int r = 0; r < 3; ++r) w[r] = in.xf[4 * r] * p[0] + in.xf[4 * r + 1] * p[1] + in.xf[4 * r + 2] * p[2] + in.xf[4 * r + 3];
+        for (int r = 0; r < 3; ++r)
+            w[r] = in.xf[4 * r] * p[0] + in.xf[4 * r + 1] * p[1] + in.xf[4 * r + 2] * p[2] + in.xf[4 * r + 3];
         grow(in.box, w);
         grow(world_, w);
     }
@@ -266,7 +276,8 @@ void HybridScene::trace(const std::vector<lsnif_ray>& rays, std::vector<lsnif_hi
         RTCIntersectContext ctx;
         rtcInitIntersectContext(&ctx);
         RTCRayHit rh{};
-        rh.ray = {r.org[0], r.org[1], r.org[2], r.tmin, r.dir[0], r.dir[1], r.dir[2], 0.0f, r.tmax, 0xFFFFFFFFu, 0, 0};
+        rh.ray = {r.org[0], r.org[1], r.org[2], r.tmin,      r.dir[0], r.dir[1],
+                  r.dir[2], 0.0f,     r.tmax,   0xFFFFFFFFu, 0,        0};
         rh.hit.geomID = RTC_INVALID_GEOMETRY_ID;
         rtcIntersect1(top_, &ctx, &rh);
         if (rh.hit.geomID == RTC_INVALID_GEOMETRY_ID) continue;
@@ -287,7 +298,8 @@ void HybridScene::trace(const std::vector<lsnif_ray>& rays, std::vector<lsnif_hi
             if (ray_hits_box(r, in.box)) batch.push_back(r), index.push_back(i);
         }
         out.resize(batch.size());
-        if (!batch.empty() && lsnif_intersect_instance(in.model, in.xf, batch.data(), batch.size(), out.data()) == LSNIF_OK)
+        if (!batch.empty() &&
+            lsnif_intersect_instance(in.model, in.xf, batch.data(), batch.size(), out.data()) == LSNIF_OK)
             for (std::size_t k = 0; k < batch.size(); ++k)
                 if (out[k].hit && out[k].t < hits[index[k]].t) hits[index[k]] = out[k];
     }
@@ -302,22 +314,24 @@ Camera make_camera(const Vec3& eye, const Vec3& target) {
     const Vec3 f{target[0] - eye[0], target[1] - eye[1], target[2] - eye[2]};
     if (!(dot3(f.data(), f.data()) > 0.0f)) throw Failure("--camera: the eye and the target coincide");
     Camera c{eye, normalized(f), {}, {}};
-    Vec3 r{-c.forward[2], 0.0f, c.forward[0]};  // forward x (0,1,0)
+    Vec3 r{-c.forward[2], 0.0f, c.forward[0]};                         // forward x (0,1,0)
     if (!(dot3(r.data(), r.data()) > 1e-12f)) r = {1.0f, 0.0f, 0.0f};  // looking straight up or down
     c.right = normalized(r);
-    c.up = {c.right[1] * c.forward[2] - c.right[2] * c.forward[1], c.right[2] * c.forward[0] - c.right[0] * c.forward[2],
+    c.up = {c.right[1] * c.forward[2] - c.right[2] * c.forward[1],
+            c.right[2] * c.forward[0] - c.right[0] * c.forward[2],
             c.right[0] * c.forward[1] - c.right[1] * c.forward[0]};
     return c;
 }
 
 // One row: primary rays, then shadow rays from the pixels that hit, then shading.
-void render_row(const HybridScene& scene, const Camera& cam, const Vec3& light, float eps, int y, int W, int H,
-                unsigned char* row) {
+void render_row(const HybridScene& scene, const Camera& cam, const Vec3& light, float eps, int y, int W,
+                int H, unsigned char* row) {
     std::vector<lsnif_ray> prim(W), shadow;
     std::vector<lsnif_hit> ph, sh;
     std::vector<int> lit;  // pixel of each shadow ray
     for (int x = 0; x < W; ++x) {
-        const float sx = (2.0f * (x + 0.5f) / W - 1.0f) * cam.tan_half * W / H, sy = (1.0f - 2.0f * (y + 0.5f) / H) * cam.tan_half;
+        const float sx = (2.0f * (x + 0.5f) / W - 1.0f) * cam.tan_half * W / H,
+                    sy = (1.0f - 2.0f * (y + 0.5f) / H) * cam.tan_half;
         Vec3 d;
         for (int a = 0; a < 3; ++a) d[a] = cam.forward[a] + sx * cam.right[a] + sy * cam.up[a];
         prim[x] = {{cam.eye[0], cam.eye[1], cam.eye[2]}, 0.0f, {d[0], d[1], d[2]}, INFINITY};
@@ -329,7 +343,8 @@ void render_row(const HybridScene& scene, const Camera& cam, const Vec3& light, 
         Vec3 n{ph[x].normal[0], ph[x].normal[1], ph[x].normal[2]};
         const float nl = std::sqrt(dot3(n.data(), n.data())) + 1e-30f;
         for (float& v : n) v /= nl;
-        if (dot3(n.data(), prim[x].dir) > 0) for (float& v : n) v = -v;  // face the camera
+        if (dot3(n.data(), prim[x].dir) > 0)
+            for (float& v : n) v = -v;  // face the camera
         normal[x] = n;
         lsnif_ray s;
         for (int a = 0; a < 3; ++a) {
@@ -338,7 +353,7 @@ void render_row(const HybridScene& scene, const Camera& cam, const Vec3& light, 
             s.dir[a] = light[a] - p;
         }
         s.tmin = 0.0f;
-        s.tmax = 1.0f;  // up to the light
+        s.tmax = 1.0f;                 // up to the light
         if (!finite_ray(s)) continue;  // a degenerate hit: shaded as lit, never traced
         shadow.push_back(s);
         lit.push_back(x);
@@ -387,9 +402,10 @@ int run(const Options& opt) {
     if (!std::isfinite(diag) || !std::isfinite(c[0] + c[1] + c[2]))
         throw Failure(opt.outdir.string() + "/manifest.json: the scene's bounds are not finite");
     // Default view: the scene framed from above and in front; the light above it.
-    const Camera cam = opt.camera ? make_camera({(*opt.camera)[0], (*opt.camera)[1], (*opt.camera)[2]},
-                                                {(*opt.camera)[3], (*opt.camera)[4], (*opt.camera)[5]})
-                                  : make_camera({c[0] + 0.5f * diag, c[1] + 0.37f * diag, c[2] + 0.92f * diag}, c);
+    const Camera cam = opt.camera
+                           ? make_camera({(*opt.camera)[0], (*opt.camera)[1], (*opt.camera)[2]},
+                                         {(*opt.camera)[3], (*opt.camera)[4], (*opt.camera)[5]})
+                           : make_camera({c[0] + 0.5f * diag, c[1] + 0.37f * diag, c[2] + 0.92f * diag}, c);
     const Vec3 light{c[0] + 0.5f * diag, c[1] + 1.2f * diag, c[2] + 0.7f * diag};
     const float eps = 1e-4f * diag;
 
@@ -397,7 +413,8 @@ int run(const Options& opt) {
     for (int y = 0; y < opt.height; ++y)
         render_row(scene, cam, light, eps, y, opt.width, opt.height, &image[std::size_t(y) * opt.width * 3]);
     write_ppm(opt.image, opt.width, opt.height, image);
-    std::printf("wrote %s (%dx%d, %zu instances)\n", opt.image.c_str(), opt.width, opt.height, scene.instance_count());
+    std::printf("wrote %s (%dx%d, %zu instances)\n", opt.image.c_str(), opt.width, opt.height,
+                scene.instance_count());
     return 0;
 }
 

@@ -40,11 +40,13 @@ TriMesh make_grid_surface(int nu, int nv, F&& p) {
 inline TriMesh make_icosphere(int levels) {
     const double t = (1.0 + std::sqrt(5.0)) / 2.0;
     TriMesh m;
-    for (const Vec3 v : {Vec3{-1, t, 0}, Vec3{1, t, 0}, Vec3{-1, -t, 0}, Vec3{1, -t, 0}, Vec3{0, -1, t}, Vec3{0, 1, t},
-                         Vec3{0, -1, -t}, Vec3{0, 1, -t}, Vec3{t, 0, -1}, Vec3{t, 0, 1}, Vec3{-t, 0, -1}, Vec3{-t, 0, 1}})
+    for (const Vec3 v :
+         {Vec3{-1, t, 0}, Vec3{1, t, 0}, Vec3{-1, -t, 0}, Vec3{1, -t, 0}, Vec3{0, -1, t}, Vec3{0, 1, t},
+          Vec3{0, -1, -t}, Vec3{0, 1, -t}, Vec3{t, 0, -1}, Vec3{t, 0, 1}, Vec3{-t, 0, -1}, Vec3{-t, 0, 1}})
         m.positions.push_back(normalize(v));
-    m.indices = {0, 11, 5, 0, 5,  1, 0, 1, 7, 0, 7,  10, 0, 10, 11, 1, 5, 9, 5, 11, 4, 11, 10, 2,  10, 7, 6, 7, 1, 8,
-                 3, 9,  4, 3, 4,  2, 3, 2, 6, 3, 6,  8,  3, 8,  9,  4, 9, 5, 2, 4,  11, 6, 2,  10, 8,  6, 7, 9, 8, 1};
+    m.indices = {0, 11, 5,  0, 5,  1, 0, 1, 7, 0, 7,  10, 0, 10, 11, 1, 5, 9, 5, 11,
+                 4, 11, 10, 2, 10, 7, 6, 7, 1, 8, 3,  9,  4, 3,  4,  2, 3, 2, 6, 3,
+                 6, 8,  3,  8, 9,  4, 9, 5, 2, 4, 11, 6,  2, 10, 8,  6, 7, 9, 8, 1};
     for (int l = 0; l < levels; ++l) {
         std::vector<std::uint32_t> next;
         std::map<std::pair<std::uint32_t, std::uint32_t>, std::uint32_t> edges;  // (lo, hi) -> mid
@@ -69,7 +71,9 @@ inline void transform_mesh(TriMesh& m, Vec3 scale, Vec3 offset) {
 }
 
 // Uniform scale about the origin (the cases are centred on it).
-inline void scale_mesh(TriMesh& m, double s) { transform_mesh(m, {s, s, s}, {0, 0, 0}); }
+inline void scale_mesh(TriMesh& m, double s) {
+    transform_mesh(m, {s, s, s}, {0, 0, 0});
+}
 
 // A lumpy closed blob: an icosphere whose radius is modulated by a few smooth random
 // bumps (sums of x*y*z products, no trigonometry), radius in about [0.35, 0.5].
@@ -157,7 +161,9 @@ inline TriMesh make_statue() {
     return m;
 }
 
-inline TriMesh make_statue_floor() { return make_box({-3, -0.6, -3}, {3, -0.5, 3}); }
+inline TriMesh make_statue_floor() {
+    return make_box({-3, -0.6, -3}, {3, -0.5, 3});
+}
 
 // A very flat closed object: the blob squashed to 1/500 of its width.
 inline TriMesh make_flat() {
@@ -175,10 +181,14 @@ inline TriMesh make_single_triangle() {
 }
 
 // The hairball of the example scene at unit size.
-inline TriMesh make_hard_hairball() { return make_hairball(HairballParams{}); }
+inline TriMesh make_hard_hairball() {
+    return make_hairball(HairballParams{});
+}
 
 // The reference object of the scale sweep: a smooth closed blob (20,480 triangles).
-inline TriMesh make_scale_reference() { return make_blob(5, 0x5CA1Eull); }
+inline TriMesh make_scale_reference() {
+    return make_blob(5, 0x5CA1Eull);
+}
 
 // Case names, as accepted by make_hard_case() and lsnif_make_example_scene --hard-case.
 inline std::vector<std::string> hard_case_names() {
@@ -190,18 +200,26 @@ inline std::vector<std::string> hard_case_names() {
 // Returns false for an unknown name.
 inline bool make_hard_case(std::string_view name, double scale, TriMesh& mesh, TriMesh& floor) {
     floor = {};
-    if (name == "hairball") mesh = make_hard_hairball();
-    else if (name == "cards") mesh = make_cards(3000, 0xCA4D5ull);
-    else if (name == "cloth") mesh = make_cloth(100);
-    else if (name == "lattice") mesh = make_lattice(12);
+    if (name == "hairball")
+        mesh = make_hard_hairball();
+    else if (name == "cards")
+        mesh = make_cards(3000, 0xCA4D5ull);
+    else if (name == "cloth")
+        mesh = make_cloth(100);
+    else if (name == "lattice")
+        mesh = make_lattice(12);
     else if (name == "statue") {
         mesh = make_statue();
         floor = make_statue_floor();
         scale_mesh(floor, scale);
-    } else if (name == "flat") mesh = make_flat();
-    else if (name == "blob") mesh = make_scale_reference();
-    else if (name == "triangle") mesh = make_single_triangle();
-    else return false;
+    } else if (name == "flat")
+        mesh = make_flat();
+    else if (name == "blob")
+        mesh = make_scale_reference();
+    else if (name == "triangle")
+        mesh = make_single_triangle();
+    else
+        return false;
     scale_mesh(mesh, scale);
     return true;
 }

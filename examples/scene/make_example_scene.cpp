@@ -33,9 +33,9 @@
 #include <cstdint>
 #include <cstdio>
 #include <cstring>
+#include <exception>
 #include <filesystem>
 #include <fstream>
-#include <exception>
 #include <optional>
 #include <string>
 #include <string_view>
@@ -56,9 +56,9 @@ constexpr int kUnsignedInt = 5125;
 constexpr int kArrayBuffer = 34962;
 constexpr int kElementArrayBuffer = 34963;
 constexpr int kTriangles = 4;
-constexpr std::uint32_t kGlbMagic = 0x46546C67;      // "glTF"
-constexpr std::uint32_t kChunkJson = 0x4E4F534A;     // "JSON"
-constexpr std::uint32_t kChunkBin = 0x004E4942;      // "BIN\0"
+constexpr std::uint32_t kGlbMagic = 0x46546C67;   // "glTF"
+constexpr std::uint32_t kChunkJson = 0x4E4F534A;  // "JSON"
+constexpr std::uint32_t kChunkBin = 0x004E4942;   // "BIN\0"
 
 // ---- small helpers --------------------------------------------------------------------
 
@@ -104,10 +104,11 @@ json trs_node(const std::string& name, ex::Vec3 t, Yaw r = kYaw0, double k = 1.0
 // A matrix node: T * R_y * S(k), column-major as glTF requires.
 json matrix_node(const std::string& name, ex::Vec3 t, Yaw r, double k = 1.0) {
     return {{"name", name},
-            {"matrix", {k * r.c, 0.0, -k * r.s, 0.0,  //
-                        0.0, k, 0.0, 0.0,              //
-                        k * r.s, 0.0, k * r.c, 0.0,    //
-                        t.x, t.y, t.z, 1.0}}};
+            {"matrix",
+             {k * r.c, 0.0, -k * r.s, 0.0,  //
+              0.0, k, 0.0, 0.0,             //
+              k * r.s, 0.0, k * r.c, 0.0,   //
+              t.x, t.y, t.z, 1.0}}};
 }
 
 // ---- glTF document under construction --------------------------------------------------
@@ -124,11 +125,11 @@ public:
 
     // A metal/roughness material without textures; returns its index.
     int add_material(const std::string& name, std::array<double, 3> rgb, double metallic, double roughness) {
-        doc_["materials"].push_back(
-            {{"name", name},
-             {"pbrMetallicRoughness",
-              {{"baseColorFactor", {rgb[0], rgb[1], rgb[2], 1.0}}, {"metallicFactor", metallic},
-               {"roughnessFactor", roughness}}}});
+        doc_["materials"].push_back({{"name", name},
+                                     {"pbrMetallicRoughness",
+                                      {{"baseColorFactor", {rgb[0], rgb[1], rgb[2], 1.0}},
+                                       {"metallicFactor", metallic},
+                                       {"roughnessFactor", roughness}}}});
         return int(doc_["materials"].size()) - 1;
     }
 
@@ -166,13 +167,12 @@ public:
                              {"count", mesh.indices.size()},
                              {"type", "SCALAR"}});
         const std::size_t index_accessor = accessors.size() - 1;
-        doc_["meshes"].push_back(
-            {{"name", name},
-             {"primitives",
-              {{{"attributes", {{"POSITION", position_accessor}}},
-                {"indices", index_accessor},
-                {"material", material},
-                {"mode", kTriangles}}}}});
+        doc_["meshes"].push_back({{"name", name},
+                                  {"primitives",
+                                   {{{"attributes", {{"POSITION", position_accessor}}},
+                                     {"indices", index_accessor},
+                                     {"material", material},
+                                     {"mode", kTriangles}}}}});
         return int(doc_["meshes"].size()) - 1;
     }
 
@@ -191,7 +191,9 @@ public:
         return index;
     }
 
-    void set_root(int node) { doc_["scenes"] = json::array({{{"name", "example_scene"}, {"nodes", {node}}}}); }
+    void set_root(int node) {
+        doc_["scenes"] = json::array({{{"name", "example_scene"}, {"nodes", {node}}}});
+    }
 
     // The complete GLB: 12-byte header, JSON chunk padded with spaces, BIN chunk padded with
     // zeros, all little-endian.
@@ -307,7 +309,8 @@ bool build_full_scene(const Options& opt, GltfBuilder& gltf, std::string& error)
     // Room: 6 m x 6 m, 3 m high walls at z = -3 and x = -3; boxes authored in place.
     const int room = gltf.add_node({{"name", "room"}});
     gltf.add_child(root, room);
-    gltf.add_mesh_node(room, {{"name", "floor"}}, gltf.add_mesh("floor", ex::make_box({-3, -0.1, -3}, {3, 0, 3}), m_floor));
+    gltf.add_mesh_node(room, {{"name", "floor"}},
+                       gltf.add_mesh("floor", ex::make_box({-3, -0.1, -3}, {3, 0, 3}), m_floor));
     gltf.add_mesh_node(room, {{"name", "back_wall"}},
                        gltf.add_mesh("back_wall", ex::make_box({-3, 0, -3.1}, {3, 3, -3}), m_wall));
     gltf.add_mesh_node(room, {{"name", "side_wall"}},
@@ -335,14 +338,16 @@ bool build_full_scene(const Options& opt, GltfBuilder& gltf, std::string& error)
                        gltf.add_mesh("stool", ex::make_box_on_floor(0.4, 0.5, 0.4), m_wood));
 
     // The dragon: one TRS instance on the floor.
-    gltf.add_mesh_node(root, trs_node("dragon", {-1.0, 0.0, -1.5}, kYawMinus30), gltf.add_mesh("dragon", dragon, m_jade));
+    gltf.add_mesh_node(root, trs_node("dragon", {-1.0, 0.0, -1.5}, kYawMinus30),
+                       gltf.add_mesh("dragon", dragon, m_jade));
 
     // The hairball: one mesh (diameter 1), three instances (two TRS, one matrix).
     const int hair = gltf.add_mesh("hairball", ex::make_hairball(opt.hairball), m_hair);
     const int hairballs = gltf.add_node({{"name", "hairballs"}});
     gltf.add_child(root, hairballs);
     gltf.add_mesh_node(hairballs, trs_node("hairball_on_table", {1.0, 0.75 + 0.4, 0.5}, kYaw60, 0.8), hair);
-    gltf.add_mesh_node(hairballs, trs_node("hairball_on_cabinet", {2.3, 1.8 + 0.25, -2.6}, kYawMinus120, 0.5), hair);
+    gltf.add_mesh_node(hairballs, trs_node("hairball_on_cabinet", {2.3, 1.8 + 0.25, -2.6}, kYawMinus120, 0.5),
+                       hair);
     gltf.add_mesh_node(hairballs, matrix_node("hairball_on_floor", {0.4, 0.3, -1.9}, kYaw90, 0.6), hair);
     return true;
 }
@@ -352,7 +357,8 @@ void build_hairball_scene(const Options& opt, GltfBuilder& gltf) {
     const int m_hair = gltf.add_material("hair", {0.12, 0.08, 0.05}, 0.0, 0.45);
     const int root = gltf.add_node({{"name", "hairball_scene"}});
     gltf.set_root(root);
-    gltf.add_mesh_node(root, {{"name", "hairball"}}, gltf.add_mesh("hairball", ex::make_hairball(opt.hairball), m_hair));
+    gltf.add_mesh_node(root, {{"name", "hairball"}},
+                       gltf.add_mesh("hairball", ex::make_hairball(opt.hairball), m_hair));
 }
 
 // One case of the hard-geometry suite under a root node. False for an unknown case.
@@ -409,14 +415,16 @@ void print_stats(const json& doc, const fs::path& out, std::size_t bytes) {
     std::size_t total_instances = 0, total_triangles = 0;
     for (std::size_t m = 0; m < doc["meshes"].size(); ++m) {
         const json& prim = doc["meshes"][m]["primitives"][0];
-        const std::size_t vertices = doc["accessors"][prim["attributes"]["POSITION"].get<std::size_t>()]["count"];
-        const std::size_t triangles = doc["accessors"][prim["indices"].get<std::size_t>()]["count"].get<std::size_t>() / 3;
+        const std::size_t vertices =
+            doc["accessors"][prim["attributes"]["POSITION"].get<std::size_t>()]["count"];
+        const std::size_t triangles =
+            doc["accessors"][prim["indices"].get<std::size_t>()]["count"].get<std::size_t>() / 3;
         std::size_t instances = 0;
         for (const json& node : doc["nodes"]) instances += node.contains("mesh") && node["mesh"] == m;
         total_instances += instances;
         total_triangles += instances * triangles;
-        std::printf("mesh %-10s %7zu vertices %7zu triangles  x%zu\n", doc["meshes"][m]["name"].get<std::string>().c_str(),
-                    vertices, triangles, instances);
+        std::printf("mesh %-10s %7zu vertices %7zu triangles  x%zu\n",
+                    doc["meshes"][m]["name"].get<std::string>().c_str(), vertices, triangles, instances);
     }
     std::printf("%zu meshes, %zu instances, %zu instanced triangles, %zu nodes\n", doc["meshes"].size(),
                 total_instances, total_triangles, doc["nodes"].size());
@@ -490,7 +498,9 @@ bool parse_args(int argc, char** argv, Options& opt, bool& help, std::string& er
                 error = "bad value '" + std::string(v) + "' for " + std::string(arg);
                 return false;
             }
-            (arg == "--subdivisions" ? opt.subdivisions : arg == "--tubes" ? opt.hairball.tubes : opt.hairball.segments) = *n;
+            (arg == "--subdivisions" ? opt.subdivisions
+             : arg == "--tubes"      ? opt.hairball.tubes
+                                     : opt.hairball.segments) = *n;
         } else if (arg == "--seed") {
             if (!value(v)) return false;
             const auto n = parse_int<std::uint64_t>(v, 0, UINT64_MAX);

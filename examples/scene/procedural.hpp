@@ -31,16 +31,28 @@ struct Vec3 {
     double x = 0, y = 0, z = 0;
 };
 
-inline Vec3 operator+(Vec3 a, Vec3 b) { return {a.x + b.x, a.y + b.y, a.z + b.z}; }
-inline Vec3 operator-(Vec3 a, Vec3 b) { return {a.x - b.x, a.y - b.y, a.z - b.z}; }
-inline Vec3 operator*(double s, Vec3 a) { return {s * a.x, s * a.y, s * a.z}; }
-inline double dot(Vec3 a, Vec3 b) { return a.x * b.x + a.y * b.y + a.z * b.z; }
+inline Vec3 operator+(Vec3 a, Vec3 b) {
+    return {a.x + b.x, a.y + b.y, a.z + b.z};
+}
+inline Vec3 operator-(Vec3 a, Vec3 b) {
+    return {a.x - b.x, a.y - b.y, a.z - b.z};
+}
+inline Vec3 operator*(double s, Vec3 a) {
+    return {s * a.x, s * a.y, s * a.z};
+}
+inline double dot(Vec3 a, Vec3 b) {
+    return a.x * b.x + a.y * b.y + a.z * b.z;
+}
 inline Vec3 cross(Vec3 a, Vec3 b) {
     return {a.y * b.z - a.z * b.y, a.z * b.x - a.x * b.z, a.x * b.y - a.y * b.x};
 }
-inline double length(Vec3 a) { return std::sqrt(dot(a, a)); }
+inline double length(Vec3 a) {
+    return std::sqrt(dot(a, a));
+}
 // a / |a|; requires |a| > 0.
-inline Vec3 normalize(Vec3 a) { return (1.0 / length(a)) * a; }
+inline Vec3 normalize(Vec3 a) {
+    return (1.0 / length(a)) * a;
+}
 
 // ---- triangle mesh ----------------------------------------------------------------------
 
@@ -182,14 +194,21 @@ inline std::vector<Vec3> hairball_curve(const HairballParams& p, SplitMix64& rng
         // Heading: random turn, then kept tangent to the sphere at dir.
         heading = heading + p.wiggle * rng.in_unit_ball();
         heading = heading - dot(heading, dir) * dir;
-        if (length(heading) < 1e-9) heading = cross(dir, std::abs(dir.x) < 0.5 ? Vec3{1, 0, 0} : Vec3{0, 1, 0});
+        if (length(heading) < 1e-9)
+            heading = cross(dir, std::abs(dir.x) < 0.5 ? Vec3{1, 0, 0} : Vec3{0, 1, 0});
         heading = normalize(heading);
         dir = normalize(dir + p.step * heading);
         // Radius: a damped random velocity, reflected at the shell's walls.
         dr = 0.7 * dr + 0.01 * rng.uniform(-1.0, 1.0);
         r += dr;
-        if (r > 1.0) { r = 2.0 - r; dr = -dr; }
-        if (r < p.shell_inner) { r = 2.0 * p.shell_inner - r; dr = -dr; }
+        if (r > 1.0) {
+            r = 2.0 - r;
+            dr = -dr;
+        }
+        if (r < p.shell_inner) {
+            r = 2.0 * p.shell_inner - r;
+            dr = -dr;
+        }
     }
     return points;
 }
@@ -199,7 +218,8 @@ inline std::vector<Vec3> hairball_curve(const HairballParams& p, SplitMix64& rng
 inline TriMesh sweep_tube(const std::vector<Vec3>& curve, double radius) {
     // Hexagon directions (cos, sin) of k * 60 degrees, exact up to sqrt's rounding.
     const double h = 0.5 * std::sqrt(3.0);
-    const std::array<std::array<double, 2>, 6> hex{{{1, 0}, {0.5, h}, {-0.5, h}, {-1, 0}, {-0.5, -h}, {0.5, -h}}};
+    const std::array<std::array<double, 2>, 6> hex{
+        {{1, 0}, {0.5, h}, {-0.5, h}, {-1, 0}, {-0.5, -h}, {0.5, -h}}};
     const std::size_t n = curve.size();
     TriMesh m;
     Vec3 normal{};
@@ -377,7 +397,8 @@ inline TriMesh loop_subdivide(const TriMesh& in) {
     std::vector<Edge> edges;
     std::vector<std::uint32_t> edge_of_slot(3 * nt);
     for (const Corner& c : corners) {
-        if (edges.empty() || edges.back().lo != c.lo || edges.back().hi != c.hi) edges.push_back({c.lo, c.hi});
+        if (edges.empty() || edges.back().lo != c.lo || edges.back().hi != c.hi)
+            edges.push_back({c.lo, c.hi});
         Edge& e = edges.back();
         if (e.faces < 2) e.opposite[e.faces] = c.opposite;
         ++e.faces;
@@ -430,7 +451,9 @@ inline TriMesh loop_subdivide(const TriMesh& in) {
     out.indices.reserve(12 * nt);
     for (std::size_t t = 0; t < nt; ++t) {
         const std::uint32_t a = in.indices[3 * t], b = in.indices[3 * t + 1], c = in.indices[3 * t + 2];
-        const auto mid = [&](std::size_t k) { return static_cast<std::uint32_t>(nv + edge_of_slot[3 * t + k]); };
+        const auto mid = [&](std::size_t k) {
+            return static_cast<std::uint32_t>(nv + edge_of_slot[3 * t + k]);
+        };
         const std::uint32_t ab = mid(0), bc = mid(1), ca = mid(2);
         out.indices.insert(out.indices.end(), {a, ab, ca, b, bc, ab, c, ca, bc, ab, bc, ca});
     }

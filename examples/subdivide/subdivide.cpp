@@ -90,6 +90,7 @@ int main(int argc, char** argv) {
         return fail(out + ": cannot rename the temporary file: " + ec.message());
     }
     std::printf("%s: %zu -> %zu triangles (%d Loop iterations), %zu vertices\n", out.c_str(), faces_in,
-                static_cast<std::size_t>(mesh.n_faces()), iterations, static_cast<std::size_t>(mesh.n_vertices()));
+                static_cast<std::size_t>(mesh.n_faces()), iterations,
+                static_cast<std::size_t>(mesh.n_vertices()));
     return 0;
 }

@@ -8,7 +8,9 @@
 
 namespace lsnif::format::detail {
 
-inline std::uint16_t load_u16(const std::uint8_t* p) { return std::uint16_t(p[0] | p[1] << 8); }
+inline std::uint16_t load_u16(const std::uint8_t* p) {
+    return std::uint16_t(p[0] | p[1] << 8);
+}
 inline std::uint32_t load_u32(const std::uint8_t* p) {
     return std::uint32_t(p[0]) | std::uint32_t(p[1]) << 8 | std::uint32_t(p[2]) << 16 |
            std::uint32_t(p[3]) << 24;

@@ -63,25 +63,25 @@ extern "C" {
 
 const char* lsnif_status_string(lsnif_status status) {
     switch (status) {
-    case LSNIF_OK: return "ok";
-    case LSNIF_ERR_INVALID_ARGUMENT: return "invalid argument";
-    case LSNIF_ERR_IO: return "i/o error";
-    case LSNIF_ERR_NOT_LSNIF: return "not an lsnif file";
-    case LSNIF_ERR_TRANSFER_DAMAGE: return "damaged in transfer";
-    case LSNIF_ERR_TRUNCATED: return "truncated";
-    case LSNIF_ERR_VERSION_NEWER: return "written by a newer lsnif; upgrade";
-    case LSNIF_ERR_VERSION_OLDER: return "written by an older lsnif; re-convert";
-    case LSNIF_ERR_CHECKSUM: return "checksum mismatch";
-    case LSNIF_ERR_RESERVED: return "reserved field not zero";
-    case LSNIF_ERR_LIMIT: return "size limit exceeded";
-    case LSNIF_ERR_LAYOUT: return "invalid layout";
-    case LSNIF_ERR_MISSING_SECTION: return "missing required section";
-    case LSNIF_ERR_UNKNOWN_REQUIRED: return "unknown required section";
-    case LSNIF_ERR_DECOMPRESS: return "decompression failed";
-    case LSNIF_ERR_MODEL: return "invalid model";
-    case LSNIF_ERR_NONFINITE: return "non-finite value";
-    case LSNIF_ERR_OUT_OF_MEMORY: return "out of memory";
-    case LSNIF_ERR_INTERNAL: return "internal error";
+        case LSNIF_OK: return "ok";
+        case LSNIF_ERR_INVALID_ARGUMENT: return "invalid argument";
+        case LSNIF_ERR_IO: return "i/o error";
+        case LSNIF_ERR_NOT_LSNIF: return "not an lsnif file";
+        case LSNIF_ERR_TRANSFER_DAMAGE: return "damaged in transfer";
+        case LSNIF_ERR_TRUNCATED: return "truncated";
+        case LSNIF_ERR_VERSION_NEWER: return "written by a newer lsnif; upgrade";
+        case LSNIF_ERR_VERSION_OLDER: return "written by an older lsnif; re-convert";
+        case LSNIF_ERR_CHECKSUM: return "checksum mismatch";
+        case LSNIF_ERR_RESERVED: return "reserved field not zero";
+        case LSNIF_ERR_LIMIT: return "size limit exceeded";
+        case LSNIF_ERR_LAYOUT: return "invalid layout";
+        case LSNIF_ERR_MISSING_SECTION: return "missing required section";
+        case LSNIF_ERR_UNKNOWN_REQUIRED: return "unknown required section";
+        case LSNIF_ERR_DECOMPRESS: return "decompression failed";
+        case LSNIF_ERR_MODEL: return "invalid model";
+        case LSNIF_ERR_NONFINITE: return "non-finite value";
+        case LSNIF_ERR_OUT_OF_MEMORY: return "out of memory";
+        case LSNIF_ERR_INTERNAL: return "internal error";
     }
     return "unknown status";
 }
@@ -106,8 +106,7 @@ lsnif_status lsnif_scan_memory(const void* data, size_t size, lsnif_header_info*
         }
         if (header) *header = r->header;
         if (count) *count = std::uint32_t(r->sections.size());
-        std::copy_n(r->sections.begin(), std::min<std::size_t>(capacity, r->sections.size()),
-                    sections);
+        std::copy_n(r->sections.begin(), std::min<std::size_t>(capacity, r->sections.size()), sections);
         fill_error(error, r->first_payload_error);
         return r->first_payload_error.status;
     });
@@ -134,7 +133,9 @@ lsnif_status lsnif_open_file(const char* path, lsnif_model** out, lsnif_error* e
     });
 }
 
-void lsnif_close(lsnif_model* model) { delete model; }
+void lsnif_close(lsnif_model* model) {
+    delete model;
+}
 
 lsnif_status lsnif_get_info(const lsnif_model* model, lsnif_info* out) {
     if (!model || !out) return LSNIF_ERR_INVALID_ARGUMENT;
@@ -197,37 +198,37 @@ lsnif_status lsnif_get_array(const lsnif_model* model, lsnif_array_kind kind, ui
     const auto& d = m.desc;
     lsnif_array a{};
     switch (kind) {
-    case LSNIF_ARRAY_OCCUPANCY:
-        if (index != 0) return LSNIF_ERR_INVALID_ARGUMENT;
-        a.data = m.occupancy.data();
-        a.bytes = m.occupancy.size();
-        a.dtype = LSNIF_DTYPE_BITS;
-        a.rank = 3;
-        a.dims[0] = a.dims[1] = a.dims[2] = d.grid_resolution;
-        break;
-    case LSNIF_ARRAY_GRID_LEVEL:
-        if (index >= d.level_count()) return LSNIF_ERR_INVALID_ARGUMENT;
-        a.data = m.grid[index].data();
-        a.bytes = m.grid[index].size() * 2;
-        a.dtype = LSNIF_DTYPE_FLOAT16;
-        a.rank = 2;
-        a.dims[0] = d.level_entries(index);
-        a.dims[1] = d.features_per_level;
-        break;
-    case LSNIF_ARRAY_LAYER_WEIGHTS:
-    case LSNIF_ARRAY_LAYER_BIAS: {
-        if (index >= d.layer_count()) return LSNIF_ERR_INVALID_ARGUMENT;
-        const auto [o, i] = d.layer_shape(index);
-        const auto& v = kind == LSNIF_ARRAY_LAYER_WEIGHTS ? m.weights[index] : m.biases[index];
-        a.data = v.data();
-        a.bytes = v.size() * 2;
-        a.dtype = LSNIF_DTYPE_FLOAT16;
-        a.rank = kind == LSNIF_ARRAY_LAYER_WEIGHTS ? 2 : 1;
-        a.dims[0] = o;
-        a.dims[1] = kind == LSNIF_ARRAY_LAYER_WEIGHTS ? i : 0;
-        break;
-    }
-    default: return LSNIF_ERR_INVALID_ARGUMENT;
+        case LSNIF_ARRAY_OCCUPANCY:
+            if (index != 0) return LSNIF_ERR_INVALID_ARGUMENT;
+            a.data = m.occupancy.data();
+            a.bytes = m.occupancy.size();
+            a.dtype = LSNIF_DTYPE_BITS;
+            a.rank = 3;
+            a.dims[0] = a.dims[1] = a.dims[2] = d.grid_resolution;
+            break;
+        case LSNIF_ARRAY_GRID_LEVEL:
+            if (index >= d.level_count()) return LSNIF_ERR_INVALID_ARGUMENT;
+            a.data = m.grid[index].data();
+            a.bytes = m.grid[index].size() * 2;
+            a.dtype = LSNIF_DTYPE_FLOAT16;
+            a.rank = 2;
+            a.dims[0] = d.level_entries(index);
+            a.dims[1] = d.features_per_level;
+            break;
+        case LSNIF_ARRAY_LAYER_WEIGHTS:
+        case LSNIF_ARRAY_LAYER_BIAS: {
+            if (index >= d.layer_count()) return LSNIF_ERR_INVALID_ARGUMENT;
+            const auto [o, i] = d.layer_shape(index);
+            const auto& v = kind == LSNIF_ARRAY_LAYER_WEIGHTS ? m.weights[index] : m.biases[index];
+            a.data = v.data();
+            a.bytes = v.size() * 2;
+            a.dtype = LSNIF_DTYPE_FLOAT16;
+            a.rank = kind == LSNIF_ARRAY_LAYER_WEIGHTS ? 2 : 1;
+            a.dims[0] = o;
+            a.dims[1] = kind == LSNIF_ARRAY_LAYER_WEIGHTS ? i : 0;
+            break;
+        }
+        default: return LSNIF_ERR_INVALID_ARGUMENT;
     }
     *out = a;
     return LSNIF_OK;
@@ -256,7 +257,8 @@ lsnif_status lsnif_intersect_instance(const lsnif_model* model, const float m[12
             for (std::size_t i = 0; i < n; ++i) {
                 const lsnif_ray& w = rays[base + i];
                 lsnif_ray& o = local[i];
-                const double p[3] = {double(w.org[0]) - m[3], double(w.org[1]) - m[7], double(w.org[2]) - m[11]};
+                const double p[3] = {double(w.org[0]) - m[3], double(w.org[1]) - m[7],
+                                     double(w.org[2]) - m[11]};
                 for (int r = 0; r < 3; ++r) {
                     o.org[r] = float(inv[r][0] * p[0] + inv[r][1] * p[1] + inv[r][2] * p[2]);
                     o.dir[r] = float(inv[r][0] * w.dir[0] + inv[r][1] * w.dir[1] + inv[r][2] * w.dir[2]);
@@ -285,7 +287,9 @@ lsnif_status lsnif_intersect_instance(const lsnif_model* model, const float m[12
 
 }  // extern "C"
 
-static_assert(sizeof(lsnif_ray) == sizeof(lsnif::format::Ray) && offsetof(lsnif_ray, dir) == offsetof(lsnif::format::Ray, dir) &&
+static_assert(sizeof(lsnif_ray) == sizeof(lsnif::format::Ray) &&
+              offsetof(lsnif_ray, dir) == offsetof(lsnif::format::Ray, dir) &&
               offsetof(lsnif_ray, tmax) == offsetof(lsnif::format::Ray, tmax));
-static_assert(sizeof(lsnif_hit) == sizeof(lsnif::format::Hit) && offsetof(lsnif_hit, hit) == offsetof(lsnif::format::Hit, hit) &&
+static_assert(sizeof(lsnif_hit) == sizeof(lsnif::format::Hit) &&
+              offsetof(lsnif_hit, hit) == offsetof(lsnif::format::Hit, hit) &&
               offsetof(lsnif_hit, material) == offsetof(lsnif::format::Hit, material));

@@ -70,8 +70,7 @@ bool tag_printable(std::uint32_t tag) {
 }
 
 bool is_known_tag(std::uint32_t tag) {
-    return tag == kTagMeta || tag == kTagModel || tag == kTagOccupancy || tag == kTagGrid ||
-           tag == kTagMlp;
+    return tag == kTagMeta || tag == kTagModel || tag == kTagOccupancy || tag == kTagGrid || tag == kTagMlp;
 }
 
 bool valid_utf8(const std::uint8_t* s, std::size_t n) {
@@ -85,10 +84,14 @@ bool valid_utf8(const std::uint8_t* s, std::size_t n) {
         }
         std::size_t len;
         std::uint32_t cp;
-        if ((c & 0xE0) == 0xC0) len = 2, cp = c & 0x1F;
-        else if ((c & 0xF0) == 0xE0) len = 3, cp = c & 0x0F;
-        else if ((c & 0xF8) == 0xF0) len = 4, cp = c & 0x07;
-        else return false;
+        if ((c & 0xE0) == 0xC0)
+            len = 2, cp = c & 0x1F;
+        else if ((c & 0xF0) == 0xE0)
+            len = 3, cp = c & 0x0F;
+        else if ((c & 0xF8) == 0xF0)
+            len = 4, cp = c & 0x07;
+        else
+            return false;
         if (n - i < len) return false;
         for (std::size_t k = 1; k < len; ++k) {
             if ((s[i + k] & 0xC0) != 0x80) return false;
@@ -102,7 +105,9 @@ bool valid_utf8(const std::uint8_t* s, std::size_t n) {
     return true;
 }
 
-std::uint64_t align_up(std::uint64_t v) { return (v + kAlignment - 1) & ~(kAlignment - 1); }
+std::uint64_t align_up(std::uint64_t v) {
+    return (v + kAlignment - 1) & ~(kAlignment - 1);
+}
 
 // ---- FORMAT.md §5: descriptor encoding ----------------------------------------------
 
@@ -132,9 +137,8 @@ std::vector<std::uint8_t> encode_desc(const ModelDesc& d) {
 
 Result<ModelDesc> decode_desc(const std::vector<std::uint8_t>& b, std::uint64_t file_offset) {
     if (b.size() != kDescriptorSize)
-        return make_error(LSNIF_ERR_MODEL, file_offset,
-                          "MODL section: size %zu, expected exactly %u bytes", b.size(),
-                          kDescriptorSize);
+        return make_error(LSNIF_ERR_MODEL, file_offset, "MODL section: size %zu, expected exactly %u bytes",
+                          b.size(), kDescriptorSize);
     const std::uint8_t* p = b.data();
     if (load_u32(p) != kDescriptorSize)
         return make_error(LSNIF_ERR_MODEL, file_offset,
@@ -147,12 +151,13 @@ Result<ModelDesc> decode_desc(const std::vector<std::uint8_t>& b, std::uint64_t 
     d.features_per_level = load_u32(p + 16);
     d.log2_table_size = load_u32(p + 20);
     if (levels < 1 || levels > LSNIF_MAX_LEVELS)
-        return make_error(LSNIF_ERR_MODEL, file_offset,
-                          "MODL section: level_count %u outside 1..%u", levels, LSNIF_MAX_LEVELS);
+        return make_error(LSNIF_ERR_MODEL, file_offset, "MODL section: level_count %u outside 1..%u", levels,
+                          LSNIF_MAX_LEVELS);
     d.level_resolution.assign(levels, 0);
     for (std::uint32_t l = 0; l < LSNIF_MAX_LEVELS; ++l) {
         const std::uint32_t r = load_u32(p + 24 + 4 * l);
-        if (l < levels) d.level_resolution[l] = r;
+        if (l < levels)
+            d.level_resolution[l] = r;
         else if (r != 0)
             return make_error(LSNIF_ERR_RESERVED, file_offset,
                               "MODL section: level_resolution[%u] is %u but level_count is %u "
@@ -161,13 +166,13 @@ Result<ModelDesc> decode_desc(const std::vector<std::uint8_t>& b, std::uint64_t 
     }
     const std::uint32_t hidden = load_u32(p + 56);
     if (hidden < 1 || hidden > LSNIF_MAX_HIDDEN_LAYERS)
-        return make_error(LSNIF_ERR_MODEL, file_offset,
-                          "MODL section: hidden_layer_count %u outside 1..%u", hidden,
-                          LSNIF_MAX_HIDDEN_LAYERS);
+        return make_error(LSNIF_ERR_MODEL, file_offset, "MODL section: hidden_layer_count %u outside 1..%u",
+                          hidden, LSNIF_MAX_HIDDEN_LAYERS);
     d.hidden_width.assign(hidden, 0);
     for (std::uint32_t k = 0; k < LSNIF_MAX_HIDDEN_LAYERS; ++k) {
         const std::uint32_t w = load_u32(p + 60 + 4 * k);
-        if (k < hidden) d.hidden_width[k] = w;
+        if (k < hidden)
+            d.hidden_width[k] = w;
         else if (w != 0)
             return make_error(LSNIF_ERR_RESERVED, file_offset,
                               "MODL section: hidden_width[%u] is %u but hidden_layer_count is %u "
@@ -191,8 +196,8 @@ Result<ModelDesc> decode_desc(const std::vector<std::uint8_t>& b, std::uint64_t 
     }
     if (outputs != d.output_count())
         return make_error(LSNIF_ERR_MODEL, file_offset,
-                          "MODL section: output_count %u, expected 5 + material_count = %u",
-                          outputs, d.output_count());
+                          "MODL section: output_count %u, expected 5 + material_count = %u", outputs,
+                          d.output_count());
     return d;
 }
 
@@ -214,16 +219,18 @@ Error check_magic(std::span<const std::uint8_t> b) {
     const std::size_t n = std::min<std::size_t>(b.size(), kMagic.size());
     if (std::equal(b.begin(), b.begin() + n, kMagic.begin())) {
         if (b.size() < kMagic.size())
-            return make_error(LSNIF_ERR_TRUNCATED, 0,
-                              "file is %zu bytes, shorter than the 8-byte signature", b.size());
+            return make_error(LSNIF_ERR_TRUNCATED, 0, "file is %zu bytes, shorter than the 8-byte signature",
+                              b.size());
         return {};
     }
     // Same "LSN" core but damaged framing bytes: the file went through a text-mode or
     // 7-bit channel (FORMAT.md §4.1 explains each byte).
     if (b.size() >= 4 && b[1] == 'L' && b[2] == 'S' && b[3] == 'N') {
         const char* why = "signature bytes altered";
-        if (b[0] == 0x0C) why = "high bit of byte 0 stripped (7-bit transfer)";
-        else if (b.size() >= 6 && b[4] == 0x0A) why = "CR LF converted to LF (text-mode transfer)";
+        if (b[0] == 0x0C)
+            why = "high bit of byte 0 stripped (7-bit transfer)";
+        else if (b.size() >= 6 && b[4] == 0x0A)
+            why = "CR LF converted to LF (text-mode transfer)";
         else if (b.size() >= 6 && b[4] == 0x0D && b[5] == 0x0D)
             why = "LF converted to CR LF (text-mode transfer)";
         else if (b.size() >= 8 && b[4] == 0x0D && b[5] == 0x0A && b[6] == 0x1A && b[7] == 0x0D)
@@ -237,8 +244,8 @@ Error check_magic(std::span<const std::uint8_t> b) {
 Result<Structure> parse_structure(std::span<const std::uint8_t> b) {
     if (Error e = check_magic(b)) return e;
     if (b.size() < 12)
-        return make_error(LSNIF_ERR_TRUNCATED, b.size(),
-                          "file is %zu bytes, shorter than the 64-byte header", b.size());
+        return make_error(LSNIF_ERR_TRUNCATED, b.size(), "file is %zu bytes, shorter than the 64-byte header",
+                          b.size());
     const std::uint8_t* h = b.data();
     const std::uint16_t major = load_u16(h + 8), minor = load_u16(h + 10);
     // FORMAT.md §2: bytes 0..11 are frozen across every version, so this check comes
@@ -247,8 +254,7 @@ Result<Structure> parse_structure(std::span<const std::uint8_t> b) {
         return make_error(LSNIF_ERR_VERSION_NEWER, 8,
                           "format version %u.%u was written by a newer lsnif (this reader reads "
                           "%u.0 to %u.%u); upgrade lsnif",
-                          major, minor, LSNIF_VERSION_MAJOR, LSNIF_VERSION_MAJOR,
-                          LSNIF_VERSION_MINOR);
+                          major, minor, LSNIF_VERSION_MAJOR, LSNIF_VERSION_MAJOR, LSNIF_VERSION_MINOR);
     if (major < LSNIF_VERSION_MAJOR)
         return make_error(LSNIF_ERR_VERSION_OLDER, 8,
                           "format version %u.%u is older than this reader supports (%u.x); "
@@ -260,8 +266,8 @@ Result<Structure> parse_structure(std::span<const std::uint8_t> b) {
                           "up to %u.%u); upgrade lsnif",
                           major, minor, LSNIF_VERSION_MAJOR, LSNIF_VERSION_MINOR);
     if (b.size() < kHeaderSize)
-        return make_error(LSNIF_ERR_TRUNCATED, b.size(),
-                          "file is %zu bytes, shorter than the 64-byte header", b.size());
+        return make_error(LSNIF_ERR_TRUNCATED, b.size(), "file is %zu bytes, shorter than the 64-byte header",
+                          b.size());
     const std::uint32_t header_crc = load_u32(h + 60);
     const std::uint32_t actual_header_crc = crc32c(h, 60);
     if (header_crc != actual_header_crc)
@@ -270,8 +276,7 @@ Result<Structure> parse_structure(std::span<const std::uint8_t> b) {
                           header_crc, actual_header_crc);
     const std::uint32_t header_size = load_u32(h + 12);
     if (header_size != kHeaderSize)
-        return make_error(LSNIF_ERR_LAYOUT, 12, "header_size is %u, expected %u", header_size,
-                          kHeaderSize);
+        return make_error(LSNIF_ERR_LAYOUT, 12, "header_size is %u, expected %u", header_size, kHeaderSize);
     Structure s;
     s.header.version_major = major;
     s.header.version_minor = minor;
@@ -287,29 +292,27 @@ Result<Structure> parse_structure(std::span<const std::uint8_t> b) {
     if (!all_zero(h + 48, 12))
         return make_error(LSNIF_ERR_RESERVED, 48, "header reserved bytes 48..59 are not zero");
     if (entry_size != kEntrySize)
-        return make_error(LSNIF_ERR_LAYOUT, 36, "section entry size is %u, expected %u",
-                          entry_size, kEntrySize);
+        return make_error(LSNIF_ERR_LAYOUT, 36, "section entry size is %u, expected %u", entry_size,
+                          kEntrySize);
     if (s.header.file_size > kMaxFileSize)
         return make_error(LSNIF_ERR_LIMIT, 16,
                           "declared file size %" PRIu64 " exceeds the limit of %" PRIu64 " bytes",
                           s.header.file_size, kMaxFileSize);
     if (b.size() < s.header.file_size)
         return make_error(LSNIF_ERR_TRUNCATED, b.size(),
-                          "file is truncated: %zu bytes present, header declares %" PRIu64,
-                          b.size(), s.header.file_size);
+                          "file is truncated: %zu bytes present, header declares %" PRIu64, b.size(),
+                          s.header.file_size);
     if (b.size() > s.header.file_size)
         return make_error(LSNIF_ERR_LAYOUT, s.header.file_size,
-                          "%" PRIu64 " unexpected bytes after the declared end of file (%" PRIu64
-                          " bytes)",
+                          "%" PRIu64 " unexpected bytes after the declared end of file (%" PRIu64 " bytes)",
                           std::uint64_t(b.size()) - s.header.file_size, s.header.file_size);
     const std::uint32_t count = s.header.section_count;
     if (count < 1 || count > kMaxSections)
-        return make_error(LSNIF_ERR_LIMIT, 32, "section count %u outside 1..%u", count,
-                          kMaxSections);
+        return make_error(LSNIF_ERR_LIMIT, 32, "section count %u outside 1..%u", count, kMaxSections);
     const std::uint64_t table_offset = s.header.table_offset;
     const std::uint64_t table_bytes = std::uint64_t(count) * kEntrySize;
-    if (table_offset < kHeaderSize || table_offset % kAlignment != 0 ||
-        table_offset > s.header.file_size || s.header.file_size - table_offset < table_bytes)
+    if (table_offset < kHeaderSize || table_offset % kAlignment != 0 || table_offset > s.header.file_size ||
+        s.header.file_size - table_offset < table_bytes)
         return make_error(LSNIF_ERR_LAYOUT, 24,
                           "section table (offset %" PRIu64 ", %" PRIu64
                           " bytes) is misaligned or outside the file (%" PRIu64 " bytes)",
@@ -317,8 +320,7 @@ Result<Structure> parse_structure(std::span<const std::uint8_t> b) {
     const std::uint32_t actual_table_crc = crc32c(h + table_offset, table_bytes);
     if (table_crc != actual_table_crc)
         return make_error(LSNIF_ERR_CHECKSUM, table_offset,
-                          "section table checksum mismatch (stored %08" PRIx32
-                          ", computed %08" PRIx32 ")",
+                          "section table checksum mismatch (stored %08" PRIx32 ", computed %08" PRIx32 ")",
                           table_crc, actual_table_crc);
 
     // Regions for the overlap and padding checks: [begin, end).
@@ -327,33 +329,29 @@ Result<Structure> parse_structure(std::span<const std::uint8_t> b) {
     for (std::uint32_t i = 0; i < count; ++i) {
         const std::uint64_t eo = table_offset + std::uint64_t(i) * kEntrySize;
         const std::uint8_t* e = h + eo;
-        Entry en{load_u32(e), load_u32(e + 4), load_u32(e + 8), load_u64(e + 16), load_u64(e + 24),
-                 load_u64(e + 32), load_u32(e + 40), load_u32(e + 44), eo};
+        Entry en{load_u32(e),      load_u32(e + 4),  load_u32(e + 8),
+                 load_u64(e + 16), load_u64(e + 24), load_u64(e + 32),
+                 load_u32(e + 40), load_u32(e + 44), eo};
         const std::string tag = tag_string(en.tag);
         if (!tag_printable(en.tag))
             return make_error(LSNIF_ERR_LAYOUT, eo,
-                              "section %u: tag '%s' is not four printable ASCII characters", i,
-                              tag.c_str());
+                              "section %u: tag '%s' is not four printable ASCII characters", i, tag.c_str());
         for (const Entry& prev : s.entries)
             if (prev.tag == en.tag)
-                return make_error(LSNIF_ERR_LAYOUT, eo, "section %u: duplicate tag '%s'", i,
-                                  tag.c_str());
+                return make_error(LSNIF_ERR_LAYOUT, eo, "section %u: duplicate tag '%s'", i, tag.c_str());
         if (en.flags & ~std::uint32_t{LSNIF_SECTION_REQUIRED})
-            return make_error(LSNIF_ERR_RESERVED, eo + 4,
-                              "section %u ('%s'): unknown flag bits %08" PRIx32, i, tag.c_str(),
-                              en.flags);
+            return make_error(LSNIF_ERR_RESERVED, eo + 4, "section %u ('%s'): unknown flag bits %08" PRIx32,
+                              i, tag.c_str(), en.flags);
         if (load_u32(e + 12) != 0 || !all_zero(e + 48, 16))
-            return make_error(LSNIF_ERR_RESERVED, eo,
-                              "section %u ('%s'): reserved entry fields are not zero", i,
-                              tag.c_str());
+            return make_error(LSNIF_ERR_RESERVED, eo, "section %u ('%s'): reserved entry fields are not zero",
+                              i, tag.c_str());
         if (en.compression > LSNIF_COMPRESSION_ZSTD)
-            return make_error(LSNIF_ERR_LAYOUT, eo + 8,
-                              "section %u ('%s'): unknown compression method %u", i, tag.c_str(),
-                              en.compression);
+            return make_error(LSNIF_ERR_LAYOUT, eo + 8, "section %u ('%s'): unknown compression method %u", i,
+                              tag.c_str(), en.compression);
         if (en.raw_size > kMaxSectionRawSize)
             return make_error(LSNIF_ERR_LIMIT, eo + 32,
-                              "section %u ('%s'): uncompressed size %" PRIu64
-                              " exceeds the limit of %" PRIu64 " bytes",
+                              "section %u ('%s'): uncompressed size %" PRIu64 " exceeds the limit of %" PRIu64
+                              " bytes",
                               i, tag.c_str(), en.raw_size, kMaxSectionRawSize);
         if (en.compression == LSNIF_COMPRESSION_NONE && en.stored_size != en.raw_size)
             return make_error(LSNIF_ERR_LAYOUT, eo + 24,
@@ -390,8 +388,7 @@ Result<Structure> parse_structure(std::span<const std::uint8_t> b) {
                               begin, cursor);
         if (!all_zero(h + cursor, begin - cursor))
             return make_error(LSNIF_ERR_RESERVED, cursor,
-                              "padding bytes %" PRIu64 "..%" PRIu64 " are not zero", cursor,
-                              begin - 1);
+                              "padding bytes %" PRIu64 "..%" PRIu64 " are not zero", cursor, begin - 1);
         cursor = end;
     }
     if (!all_zero(h + cursor, s.header.file_size - cursor))
@@ -442,13 +439,12 @@ Error decode_payload(std::span<const std::uint8_t> b, const Entry& en, std::uint
             produced += ob.pos;
             if (produced > en.raw_size)
                 return make_error(LSNIF_ERR_DECOMPRESS, en.offset,
-                                  "section '%s': decompresses to more than the declared %" PRIu64
-                                  " bytes",
+                                  "section '%s': decompresses to more than the declared %" PRIu64 " bytes",
                                   tag.c_str(), en.raw_size);
             if (ret == 0) break;  // frame complete
             if (in.pos == in.size && ob.pos < ob.size)
-                return make_error(LSNIF_ERR_DECOMPRESS, en.offset,
-                                  "section '%s': zstd frame is incomplete", tag.c_str());
+                return make_error(LSNIF_ERR_DECOMPRESS, en.offset, "section '%s': zstd frame is incomplete",
+                                  tag.c_str());
         }
         if (in.pos != in.size)
             return make_error(LSNIF_ERR_DECOMPRESS, en.offset,
@@ -500,7 +496,9 @@ std::uint64_t mlp_bytes(const ModelDesc& d) {
     return n * 2;
 }
 
-std::uint64_t occupancy_bytes(const ModelDesc& d) { return (d.voxel_count() + 7) / 8; }
+std::uint64_t occupancy_bytes(const ModelDesc& d) {
+    return (d.voxel_count() + 7) / 8;
+}
 
 }  // namespace
 
@@ -525,7 +523,8 @@ std::string tag_string(std::uint32_t tag) {
     std::string s;
     for (int i = 0; i < 4; ++i) {
         const unsigned c = (tag >> (8 * i)) & 0xFFu;
-        if (c >= 0x20 && c <= 0x7E && c != '\\') s += char(c);
+        if (c >= 0x20 && c <= 0x7E && c != '\\')
+            s += char(c);
         else {
             char buf[8];
             std::snprintf(buf, sizeof buf, "\\x%02X", c);
@@ -575,8 +574,7 @@ Error validate_desc(const ModelDesc& d) {
             return bad("level_resolution[%u] = %u outside 1..%u", l, d.level_resolution[l],
                        kMaxLevelResolution);
     if (d.hidden_width.empty() || d.hidden_width.size() > LSNIF_MAX_HIDDEN_LAYERS)
-        return bad("hidden_layer_count %zu outside 1..%u", d.hidden_width.size(),
-                   LSNIF_MAX_HIDDEN_LAYERS);
+        return bad("hidden_layer_count %zu outside 1..%u", d.hidden_width.size(), LSNIF_MAX_HIDDEN_LAYERS);
     for (std::size_t k = 0; k < d.hidden_width.size(); ++k)
         if (d.hidden_width[k] < 1 || d.hidden_width[k] > kMaxHiddenWidth)
             return bad("hidden_width[%zu] = %u outside 1..%u", k, d.hidden_width[k], kMaxHiddenWidth);
@@ -630,8 +628,8 @@ Error validate_model(const ModelData& m) {
                           d.level_count());
     for (std::uint32_t l = 0; l < d.level_count(); ++l) {
         if (m.grid[l].size() != d.level_entries(l) * d.features_per_level)
-            return make_error(LSNIF_ERR_MODEL, UINT64_MAX, "grid level %u has %zu values, expected %llu",
-                              l, m.grid[l].size(),
+            return make_error(LSNIF_ERR_MODEL, UINT64_MAX, "grid level %u has %zu values, expected %llu", l,
+                              m.grid[l].size(),
                               (unsigned long long)(d.level_entries(l) * d.features_per_level));
         for (std::size_t i = 0; i < m.grid[l].size(); ++i)
             if (!half_is_finite(m.grid[l][i]))
@@ -653,27 +651,29 @@ Error validate_model(const ModelData& m) {
                                   "MLP layer %u weight [%zu][%zu] is not finite", k, j / i, j % i);
         for (std::size_t j = 0; j < o; ++j)
             if (!half_is_finite(m.biases[k][j]))
-                return make_error(LSNIF_ERR_NONFINITE, UINT64_MAX, "MLP layer %u bias [%zu] is not finite",
-                                  k, j);
+                return make_error(LSNIF_ERR_NONFINITE, UINT64_MAX, "MLP layer %u bias [%zu] is not finite", k,
+                                  j);
     }
     if (m.metadata_json.size() > kMaxMetadataSize)
         return make_error(LSNIF_ERR_LIMIT, UINT64_MAX, "metadata is %zu bytes, limit %llu",
                           m.metadata_json.size(), (unsigned long long)kMaxMetadataSize);
-    if (!valid_utf8(reinterpret_cast<const std::uint8_t*>(m.metadata_json.data()),
-                    m.metadata_json.size()))
+    if (!valid_utf8(reinterpret_cast<const std::uint8_t*>(m.metadata_json.data()), m.metadata_json.size()))
         return make_error(LSNIF_ERR_MODEL, UINT64_MAX, "metadata is not NUL-free UTF-8");
     // The reader has no JSON parser (format/ depends on zstd only); it checks the
     // object's braces so an empty or truncated text never passes as metadata.
     const std::size_t first = m.metadata_json.find_first_not_of(" \t\r\n");
     const std::size_t last = m.metadata_json.find_last_not_of(" \t\r\n");
     if (first == std::string::npos || m.metadata_json[first] != '{' || m.metadata_json[last] != '}')
-        return make_error(LSNIF_ERR_MODEL, UINT64_MAX, "metadata is not a JSON object (must start with '{' and end with '}')");
+        return make_error(LSNIF_ERR_MODEL, UINT64_MAX,
+                          "metadata is not a JSON object (must start with '{' and end with '}')");
     return {};
 }
 
 // ---- writer ---------------------------------------------------------------------------
 
-std::vector<std::uint8_t> encode_descriptor(const ModelDesc& desc) { return encode_desc(desc); }
+std::vector<std::uint8_t> encode_descriptor(const ModelDesc& desc) {
+    return encode_desc(desc);
+}
 
 std::vector<RawSection> model_sections(const ModelData& m) {
     std::vector<RawSection> secs;
@@ -705,7 +705,8 @@ Result<std::vector<std::uint8_t>> assemble(const std::vector<RawSection>& secs, 
                               kMaxSections);
         for (std::size_t i = 0; i < secs.size(); ++i) {
             if (secs[i].raw.size() > kMaxSectionRawSize)
-                return make_error(LSNIF_ERR_LIMIT, UINT64_MAX, "section '%s' is %zu bytes, above the %llu-byte limit",
+                return make_error(LSNIF_ERR_LIMIT, UINT64_MAX,
+                                  "section '%s' is %zu bytes, above the %llu-byte limit",
                                   tag_string(secs[i].tag).c_str(), secs[i].raw.size(),
                                   (unsigned long long)kMaxSectionRawSize);
             for (std::size_t j = 0; j < i; ++j)
@@ -746,7 +747,8 @@ Result<std::vector<std::uint8_t>> assemble(const std::vector<RawSection>& secs, 
         }
         const std::uint64_t file_size = cursor;
         if (file_size > kMaxFileSize)
-            return make_error(LSNIF_ERR_LIMIT, UINT64_MAX, "file would be %llu bytes, above the %llu-byte limit",
+            return make_error(LSNIF_ERR_LIMIT, UINT64_MAX,
+                              "file would be %llu bytes, above the %llu-byte limit",
                               (unsigned long long)file_size, (unsigned long long)kMaxFileSize);
         std::vector<std::uint8_t> out(file_size, 0);
         std::uint8_t* h = out.data();
@@ -845,15 +847,14 @@ Result<std::vector<std::uint8_t>> read_file_bytes(const std::string& path) {
             }
             if (data.size() + n > kMaxFileSize) {
                 std::fclose(f);
-                return make_error(LSNIF_ERR_LIMIT, UINT64_MAX, "'%s' is larger than %llu bytes",
-                                  path.c_str(), (unsigned long long)kMaxFileSize);
+                return make_error(LSNIF_ERR_LIMIT, UINT64_MAX, "'%s' is larger than %llu bytes", path.c_str(),
+                                  (unsigned long long)kMaxFileSize);
             }
             data.insert(data.end(), buf, buf + n);
         }
         const bool failed = std::ferror(f);
         std::fclose(f);
-        if (failed)
-            return make_error(LSNIF_ERR_IO, UINT64_MAX, "error reading '%s'", path.c_str());
+        if (failed) return make_error(LSNIF_ERR_IO, UINT64_MAX, "error reading '%s'", path.c_str());
         return data;
     });
 }
@@ -904,8 +905,8 @@ Result<ModelData> read_model(std::span<const std::uint8_t> bytes) {
         const Entry& me = *find_entry(s, kTagModel);
         if (me.raw_size != kDescriptorSize)
             return make_error(LSNIF_ERR_MODEL, me.entry_offset + 32,
-                              "MODL section: raw size %" PRIu64 ", expected exactly %u",
-                              me.raw_size, kDescriptorSize);
+                              "MODL section: raw size %" PRIu64 ", expected exactly %u", me.raw_size,
+                              kDescriptorSize);
         std::vector<std::uint8_t> desc_bytes(kDescriptorSize);
         if (Error e = decode_payload(bytes, me, desc_bytes.data())) return e;
         auto desc = decode_desc(desc_bytes, me.offset);
@@ -916,8 +917,8 @@ Result<ModelData> read_model(std::span<const std::uint8_t> bytes) {
             const Entry& e = *find_entry(s, tag);
             if (e.raw_size != want)
                 return make_error(LSNIF_ERR_MODEL, e.entry_offset + 32,
-                                  "section '%s': raw size %" PRIu64
-                                  " does not match the %" PRIu64 " bytes the model descriptor implies",
+                                  "section '%s': raw size %" PRIu64 " does not match the %" PRIu64
+                                  " bytes the model descriptor implies",
                                   tag_string(tag).c_str(), e.raw_size, want);
             return {};
         };

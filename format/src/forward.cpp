@@ -92,7 +92,8 @@ namespace {
 // the cell the plain walk would be in at that parameter, so every accepted (occupied)
 // voxel is still reported with the same entry.
 template <class Want, class Visit>
-TraceStatus walk(const Geometry& geo, const Ray& ray, const OccupancyGrid* blocks, Want&& want, Visit&& visit) {
+TraceStatus walk(const Geometry& geo, const Ray& ray, const OccupancyGrid* blocks, Want&& want,
+                 Visit&& visit) {
     RayGrid rg;
     float t_near, t_far;
     const TraceStatus st = make_ray_grid(geo, ray, rg, t_near, t_far);
@@ -217,7 +218,8 @@ TraceStatus trace_points(const Geometry& geo, const OccupancyGrid& occ, const Ra
     return trace_points_impl(geo, occ.bits.data(), &occ, ray, out);
 }
 
-OccupancyGrid::OccupancyGrid(std::uint32_t V, std::vector<std::uint8_t> voxel_bits) : V(V), bits(std::move(voxel_bits)) {
+OccupancyGrid::OccupancyGrid(std::uint32_t V, std::vector<std::uint8_t> voxel_bits)
+    : V(V), bits(std::move(voxel_bits)) {
     nb = (V + kBlock - 1) / kBlock;
     blocks.assign(std::size_t(nb) * nb * nb, 0);
     for (std::uint32_t z = 0; z < V; ++z)
@@ -268,9 +270,9 @@ void level_corners(const Geometry& geo, const LevelInfo& lv, const float g[3], C
         for (int y = 0; y < cn[1]; ++y)
             for (int x = 0; x < cn[0]; ++x) {
                 const std::uint32_t X = ci[0][x], Y = ci[1][y], Z = ci[2][z];
-                const std::uint32_t idx = lv.dense ? X + lv.stride * (Y + lv.stride * Z)
-                                                   : ((X * geo.primes[0]) ^ (Y * geo.primes[1]) ^
-                                                      (Z * geo.primes[2])) & lv.mask;
+                const std::uint32_t idx =
+                    lv.dense ? X + lv.stride * (Y + lv.stride * Z)
+                             : ((X * geo.primes[0]) ^ (Y * geo.primes[1]) ^ (Z * geo.primes[2])) & lv.mask;
                 out.index[out.n] = idx;
                 out.weight[out.n] = cw[0][x] * cw[1][y] * cw[2][z];
                 ++out.n;
@@ -279,7 +281,9 @@ void level_corners(const Geometry& geo, const LevelInfo& lv, const float g[3], C
 
 namespace {
 
-inline float load_feature(const float* p) { return *p; }
+inline float load_feature(const float* p) {
+    return *p;
+}
 inline float load_feature(const std::uint16_t* p) {
 #if defined(__F16C__)
     return _cvtsh_ss(*p);
@@ -344,13 +348,16 @@ void encode_points(const Geometry& geo, const GridView* grid, const RayPoints& p
 
 namespace {
 
-std::uint32_t pad16(std::uint32_t n) { return (n + 15u) & ~15u; }
+std::uint32_t pad16(std::uint32_t n) {
+    return (n + 15u) & ~15u;
+}
 
 void add_layer(Network& net, std::uint32_t in, std::uint32_t out, const float* w_row_major, const float* b) {
     const std::uint32_t op = pad16(out);
     std::vector<float> wt(std::size_t(in) * op, 0.0f), bias(op, 0.0f);
     for (std::uint32_t o = 0; o < out; ++o) {
-        for (std::uint32_t i = 0; i < in; ++i) wt[std::size_t(i) * op + o] = w_row_major[std::size_t(o) * in + i];
+        for (std::uint32_t i = 0; i < in; ++i)
+            wt[std::size_t(i) * op + o] = w_row_major[std::size_t(o) * in + i];
         bias[o] = b[o];
     }
     net.in.push_back(in);
@@ -364,55 +371,55 @@ void add_layer(Network& net, std::uint32_t in, std::uint32_t out, const float* w
 // Register-blocked kernel: MB rows x (NV vectors of W floats) accumulators, the weight
 // vectors of one input index reused across MB rows, inputs broadcast. The same source is
 // compiled for several ISAs; vector width W is the native SIMD width of each.
-#define LSNIF_DENSE_KERNEL(NAME, TARGET, W)                                                            \
-    TARGET void NAME(const float* A, std::size_t n, std::size_t in, std::size_t lda, const float* wt, \
-                     const float* bias, std::size_t outp, bool relu, float* C) {                       \
-        typedef float vec __attribute__((vector_size(W * 4), aligned(4)));                             \
-        constexpr std::size_t MB = 6;                                                                  \
-        constexpr std::size_t NV = 4;                                                                  \
-        std::size_t o = 0;                                                                             \
-        for (; o < outp; o += NV * W) {                                                                \
-            const std::size_t nv = std::min<std::size_t>(NV, (outp - o) / W);                          \
-            std::size_t r = 0;                                                                         \
-            for (; r < n; r += MB) {                                                                   \
-                const std::size_t mb = std::min(MB, n - r);                                            \
-                vec acc[MB][NV];                                                                       \
-                for (std::size_t v = 0; v < nv; ++v) {                                                 \
-                    vec b0 = *reinterpret_cast<const vec*>(bias + o + v * W);                          \
-                    for (std::size_t m = 0; m < MB; ++m) acc[m][v] = b0;                               \
-                }                                                                                      \
-                if (mb == MB && nv == NV) {                                                            \
-                    for (std::size_t i = 0; i < in; ++i) {                                             \
-                        const float* wrow = wt + i * outp + o;                                         \
-                        const vec w0 = *reinterpret_cast<const vec*>(wrow);                            \
-                        const vec w1 = *reinterpret_cast<const vec*>(wrow + W);                        \
-                        const vec w2 = *reinterpret_cast<const vec*>(wrow + 2 * W);                    \
-                        const vec w3 = *reinterpret_cast<const vec*>(wrow + 3 * W);                    \
-                        for (std::size_t m = 0; m < MB; ++m) {                                         \
-                            const float a = A[(r + m) * lda + i];                                      \
-                            acc[m][0] += a * w0;                                                       \
-                            acc[m][1] += a * w1;                                                       \
-                            acc[m][2] += a * w2;                                                       \
-                            acc[m][3] += a * w3;                                                       \
-                        }                                                                              \
-                    }                                                                                  \
-                } else {                                                                               \
-                    for (std::size_t i = 0; i < in; ++i) {                                             \
-                        const float* wrow = wt + i * outp + o;                                         \
-                        for (std::size_t v = 0; v < nv; ++v) {                                         \
-                            const vec w = *reinterpret_cast<const vec*>(wrow + v * W);                 \
+#define LSNIF_DENSE_KERNEL(NAME, TARGET, W)                                                             \
+    TARGET void NAME(const float* A, std::size_t n, std::size_t in, std::size_t lda, const float* wt,   \
+                     const float* bias, std::size_t outp, bool relu, float* C) {                        \
+        typedef float vec __attribute__((vector_size(W * 4), aligned(4)));                              \
+        constexpr std::size_t MB = 6;                                                                   \
+        constexpr std::size_t NV = 4;                                                                   \
+        std::size_t o = 0;                                                                              \
+        for (; o < outp; o += NV * W) {                                                                 \
+            const std::size_t nv = std::min<std::size_t>(NV, (outp - o) / W);                           \
+            std::size_t r = 0;                                                                          \
+            for (; r < n; r += MB) {                                                                    \
+                const std::size_t mb = std::min(MB, n - r);                                             \
+                vec acc[MB][NV];                                                                        \
+                for (std::size_t v = 0; v < nv; ++v) {                                                  \
+                    vec b0 = *reinterpret_cast<const vec*>(bias + o + v * W);                           \
+                    for (std::size_t m = 0; m < MB; ++m) acc[m][v] = b0;                                \
+                }                                                                                       \
+                if (mb == MB && nv == NV) {                                                             \
+                    for (std::size_t i = 0; i < in; ++i) {                                              \
+                        const float* wrow = wt + i * outp + o;                                          \
+                        const vec w0 = *reinterpret_cast<const vec*>(wrow);                             \
+                        const vec w1 = *reinterpret_cast<const vec*>(wrow + W);                         \
+                        const vec w2 = *reinterpret_cast<const vec*>(wrow + 2 * W);                     \
+                        const vec w3 = *reinterpret_cast<const vec*>(wrow + 3 * W);                     \
+                        for (std::size_t m = 0; m < MB; ++m) {                                          \
+                            const float a = A[(r + m) * lda + i];                                       \
+                            acc[m][0] += a * w0;                                                        \
+                            acc[m][1] += a * w1;                                                        \
+                            acc[m][2] += a * w2;                                                        \
+                            acc[m][3] += a * w3;                                                        \
+                        }                                                                               \
+                    }                                                                                   \
+                } else {                                                                                \
+                    for (std::size_t i = 0; i < in; ++i) {                                              \
+                        const float* wrow = wt + i * outp + o;                                          \
+                        for (std::size_t v = 0; v < nv; ++v) {                                          \
+                            const vec w = *reinterpret_cast<const vec*>(wrow + v * W);                  \
                             for (std::size_t m = 0; m < mb; ++m) acc[m][v] += A[(r + m) * lda + i] * w; \
-                        }                                                                              \
-                    }                                                                                  \
-                }                                                                                      \
-                for (std::size_t m = 0; m < mb; ++m)                                                   \
-                    for (std::size_t v = 0; v < nv; ++v) {                                             \
-                        vec x = acc[m][v];                                                             \
-                        if (relu) x = x > 0.0f ? x : 0.0f;                                             \
-                        *reinterpret_cast<vec*>(C + (r + m) * outp + o + v * W) = x;                   \
-                    }                                                                                  \
-            }                                                                                          \
-        }                                                                                              \
+                        }                                                                               \
+                    }                                                                                   \
+                }                                                                                       \
+                for (std::size_t m = 0; m < mb; ++m)                                                    \
+                    for (std::size_t v = 0; v < nv; ++v) {                                              \
+                        vec x = acc[m][v];                                                              \
+                        if (relu) x = x > 0.0f ? x : 0.0f;                                              \
+                        *reinterpret_cast<vec*>(C + (r + m) * outp + o + v * W) = x;                    \
+                    }                                                                                   \
+            }                                                                                           \
+        }                                                                                               \
     }
 
 LSNIF_DENSE_KERNEL(dense_avx512, __attribute__((target("avx512f,avx512vl,avx2,fma"))), 16)
@@ -541,8 +548,10 @@ IntersectStats intersect(const Runtime& rt, std::span<const Ray> rays, std::span
             const TraceStatus ts = trace_points(geo, rt.occupancy, r, pts[k]);
             if (ts != TraceStatus::ok) {
                 h = Hit{kInf, {0, 0, 0}, 0, 0};
-                if (ts == TraceStatus::invalid) ++st.invalid;
-                else ++st.culled;
+                if (ts == TraceStatus::invalid)
+                    ++st.invalid;
+                else
+                    ++st.culled;
                 continue;
             }
             encode_points(geo, grid.data(), pts[k], input.data() + k * geo.input_width);

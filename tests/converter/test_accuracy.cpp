@@ -40,11 +40,11 @@ void check_targets(const nlohmann::json& mesh) {
     const auto& fam = mesh["metrics"]["families"];
     for (const char* f : {"outside", "surface", "interior", "pooled"}) {
         const auto& m = fam[f];
-        MESSAGE(mesh["name"].get<std::string>() << " " << std::string(f) << ": visibility "
-                                                << 100 * m["visibility_accuracy"].get<double>() << " %, distance "
-                                                << m["distance_error_median_pct"].get<double>() << " %, normal "
-                                                << m["normal_error_median_deg"].get<double>() << " deg (geometric "
-                                                << m["geometric_normal_error_median_deg"].get<double>() << " deg)");
+        MESSAGE(mesh["name"].get<std::string>()
+                << " " << std::string(f) << ": visibility " << 100 * m["visibility_accuracy"].get<double>()
+                << " %, distance " << m["distance_error_median_pct"].get<double>() << " %, normal "
+                << m["normal_error_median_deg"].get<double>() << " deg (geometric "
+                << m["geometric_normal_error_median_deg"].get<double>() << " deg)");
     }
     MESSAGE("timings (s): " << mesh["timings"].dump());
     const auto& p = fam["pooled"];

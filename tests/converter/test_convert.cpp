@@ -107,7 +107,8 @@ TEST_CASE("an asset below the accuracy gate is not shipped: the mesh stays BVH w
     const json& m = r.manifest["meshes"][0];
     CHECK(m["class"] == "simple");
     bool gate_reason = false;
-    for (const auto& reason : m["reasons"]) gate_reason = gate_reason || reason.get<std::string>().find("gate") != std::string::npos;
+    for (const auto& reason : m["reasons"])
+        gate_reason = gate_reason || reason.get<std::string>().find("gate") != std::string::npos;
     CHECK(gate_reason);
     CHECK_FALSE(m.contains("lsnif"));
     CHECK(std::distance(fs::directory_iterator(out), fs::directory_iterator{}) == 1);  // manifest only
@@ -148,7 +149,8 @@ TEST_CASE("the model is sized to the mesh: tables shrink until the asset beats t
             // Two hashed levels of F = 3 fp16 features: doubling T adds 2 * 3 * 2 * T bytes.
             const double bigger = st["lsnif_bytes_estimate"].get<double>() + 12.0 * double(1u << log2);
             CHECK(st["bvh_bytes"].get<double>() < factor * bigger);
-            CHECK(m["reasons"].back().get<std::string>().find("sized to 2^" + std::to_string(log2)) != std::string::npos);
+            CHECK(m["reasons"].back().get<std::string>().find("sized to 2^" + std::to_string(log2)) !=
+                  std::string::npos);
         }
     }
     // The 20k-triangle dragon's BVH (~1.4 MB) is less than twice a 2^16 model (~0.86 MB);
@@ -182,15 +184,17 @@ TEST_CASE("2CylinderEngine converts: all meshes and 67 instances in the manifest
 
 TEST_CASE("bad inputs: clear errors naming the file, no output, and multi-input runs continue") {
     const fs::path out = fresh_dir("bad");
-    for (const std::string& bad : {std::string(LSNIF_TEST_WORK_DIR) + "/does-not-exist.glb",
-                                  std::string(LSNIF_TEST_DATA_DIR) + "/valid/tiny.lsnif",  // unsupported format
-                                  std::string("/usr/share/assimp/models/glTF2/IndexOutOfRange/IndexOutOfRange.gltf")}) {
+    for (const std::string& bad :
+         {std::string(LSNIF_TEST_WORK_DIR) + "/does-not-exist.glb",
+          std::string(LSNIF_TEST_DATA_DIR) + "/valid/tiny.lsnif",  // unsupported format
+          std::string("/usr/share/assimp/models/glTF2/IndexOutOfRange/IndexOutOfRange.gltf")}) {
         const ConvertResult r = convert(smoke({bad}, out));
         REQUIRE_FALSE(r.ok());
         CHECK(r.errors[0].find(fs::path(bad).filename().string()) != std::string::npos);
         CHECK_FALSE(fs::exists(out));  // nothing converted: OUTDIR untouched
     }
-    const ConvertResult mixed = convert(smoke({std::string(LSNIF_TEST_WORK_DIR) + "/missing.off", kDragon}, out));
+    const ConvertResult mixed =
+        convert(smoke({std::string(LSNIF_TEST_WORK_DIR) + "/missing.off", kDragon}, out));
     CHECK_FALSE(mixed.ok());
     REQUIRE(mixed.errors.size() == 1);
     CHECK(mixed.manifest["inputs"][0]["status"] == "error");
@@ -215,8 +219,8 @@ TEST_CASE("ten seeds: every held-out metric finite, spread bounded (smoke preset
         REQUIRE(r.ok());
         const json& m = r.manifest["meshes"][0];
         for (const char* f : {"outside", "surface", "interior", "pooled"})
-            for (const char* k : {"visibility_accuracy", "distance_error_median_pct", "normal_error_median_deg",
-                                  "false_hit_rate", "false_miss_rate"}) {
+            for (const char* k : {"visibility_accuracy", "distance_error_median_pct",
+                                  "normal_error_median_deg", "false_hit_rate", "false_miss_rate"}) {
                 CAPTURE(f);
                 CAPTURE(k);
                 CHECK(std::isfinite(m["metrics"]["families"][f][k].get<double>()));
@@ -253,7 +257,8 @@ TEST_CASE("the gate: each rule fails on its own, and an unmeasured family is a f
     };
     one([](auto& m) { m.pooled.visibility_accuracy = 0.94; }, "visibility accuracy 94% < gate 95%");
     one([](auto& m) { m.family[1].visibility_accuracy = 0.89; }, "surface visibility 89% < gate 90%");
-    one([](auto& m) { m.pooled.distance_median_pct = 2.5; }, "median distance error 2.5% of diagonal > gate 2");
+    one([](auto& m) { m.pooled.distance_median_pct = 2.5; },
+        "median distance error 2.5% of diagonal > gate 2");
     one([](auto& m) { m.pooled.normal_median_deg = 31; }, "median normal error 31 deg > gate 30");
     // A family almost entirely culled has no measurement: not a pass by default.
     one([](auto& m) { m.family[0].rays = 40; }, "outside rays reaching the network: 40 < 100");

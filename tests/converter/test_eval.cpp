@@ -52,12 +52,14 @@ std::vector<lsnif_ray> rays_at_box(const std::array<float, 6>& b, std::size_t n,
     std::mt19937 rng(seed);
     std::uniform_real_distribution<float> u(0.0f, 1.0f);
     const float c[3] = {0.5f * (b[0] + b[3]), 0.5f * (b[1] + b[4]), 0.5f * (b[2] + b[5])};
-    const float r = std::sqrt((b[3] - b[0]) * (b[3] - b[0]) + (b[4] - b[1]) * (b[4] - b[1]) + (b[5] - b[2]) * (b[5] - b[2]));
+    const float r = std::sqrt((b[3] - b[0]) * (b[3] - b[0]) + (b[4] - b[1]) * (b[4] - b[1]) +
+                              (b[5] - b[2]) * (b[5] - b[2]));
     std::vector<lsnif_ray> rays(n);
     for (auto& ray : rays) {
         const float z = 2.0f * u(rng) - 1.0f, phi = 6.2831853f * u(rng), s = std::sqrt(1.0f - z * z);
         const float o[3] = {c[0] + r * s * std::cos(phi), c[1] + r * s * std::sin(phi), c[2] + r * z};
-        const float t[3] = {b[0] + u(rng) * (b[3] - b[0]), b[1] + u(rng) * (b[4] - b[1]), b[2] + u(rng) * (b[5] - b[2])};
+        const float t[3] = {b[0] + u(rng) * (b[3] - b[0]), b[1] + u(rng) * (b[4] - b[1]),
+                            b[2] + u(rng) * (b[5] - b[2])};
         ray = {{o[0], o[1], o[2]}, 0.0f, {t[0] - o[0], t[1] - o[1], t[2] - o[2]}, INFINITY};
     }
     return rays;
@@ -84,9 +86,10 @@ TEST_CASE("hybrid tracing applies the instance transform at run time, like Embre
     REQUIRE(at_origin->lsnif_instance_count() == 1);
 
     // Rotated 90 degrees about y, scaled by 2.5, moved far away: a transform with every part.
-    o.instance_transforms = {{0u, {0.0f, 0.0f, 2.5f, 400.0f,  //
-                                   0.0f, 2.5f, 0.0f, -120.0f,  //
-                                   -2.5f, 0.0f, 0.0f, 75.0f}}};
+    o.instance_transforms = {{0u,
+                              {0.0f, 0.0f, 2.5f, 400.0f,   //
+                               0.0f, 2.5f, 0.0f, -120.0f,  //
+                               -2.5f, 0.0f, 0.0f, 75.0f}}};
     const auto moved = EvalScene::load(o, err);
     REQUIRE_MESSAGE(moved, err);
     const auto box = moved->instance_bounds(0);
@@ -115,8 +118,9 @@ TEST_CASE("hybrid tracing applies the instance transform at run time, like Embre
     // a control: the same normals left in object space (as if the hybrid forgot A^-T; for
     // this A that is (-n_z, n_y, n_x) up to scale) must be clearly worse.
     auto deg = [](const std::array<float, 3>& a, const std::array<float, 3>& b) {
-        const float c = (a[0] * b[0] + a[1] * b[1] + a[2] * b[2]) /
-                        std::sqrt((a[0] * a[0] + a[1] * a[1] + a[2] * a[2]) * (b[0] * b[0] + b[1] * b[1] + b[2] * b[2]));
+        const float c =
+            (a[0] * b[0] + a[1] * b[1] + a[2] * b[2]) /
+            std::sqrt((a[0] * a[0] + a[1] * a[1] + a[2] * a[2]) * (b[0] * b[0] + b[1] * b[1] + b[2] * b[2]));
         return std::acos(std::clamp(c, -1.0f, 1.0f)) * 57.29578f;
     };
     std::vector<float> dt, angle, untransformed;
@@ -126,19 +130,23 @@ TEST_CASE("hybrid tracing applies the instance transform at run time, like Embre
                                         rays[i].dir[2] * rays[i].dir[2]);
             dt.push_back(std::fabs(ref[i].t - hyb[i].t) * len);
             angle.push_back(deg(ref[i].normal, hyb[i].normal));
-            untransformed.push_back(deg(ref[i].normal, {-hyb[i].normal[2], hyb[i].normal[1], hyb[i].normal[0]}));
+            untransformed.push_back(
+                deg(ref[i].normal, {-hyb[i].normal[2], hyb[i].normal[1], hyb[i].normal[0]}));
         }
     REQUIRE(dt.size() > 100);
     std::nth_element(dt.begin(), dt.begin() + dt.size() / 2, dt.end());
     std::nth_element(angle.begin(), angle.begin() + angle.size() / 2, angle.end());
-    std::nth_element(untransformed.begin(), untransformed.begin() + untransformed.size() / 2, untransformed.end());
-    const float diag = std::sqrt((box[3] - box[0]) * (box[3] - box[0]) + (box[4] - box[1]) * (box[4] - box[1]) +
-                                 (box[5] - box[2]) * (box[5] - box[2]));
-    MESSAGE("median distance error " << 100.0f * dt[dt.size() / 2] / diag << " % of the world box diagonal, median normal error "
+    std::nth_element(untransformed.begin(), untransformed.begin() + untransformed.size() / 2,
+                     untransformed.end());
+    const float diag =
+        std::sqrt((box[3] - box[0]) * (box[3] - box[0]) + (box[4] - box[1]) * (box[4] - box[1]) +
+                  (box[5] - box[2]) * (box[5] - box[2]));
+    MESSAGE("median distance error " << 100.0f * dt[dt.size() / 2] / diag
+                                     << " % of the world box diagonal, median normal error "
                                      << angle[angle.size() / 2] << " deg");
     CHECK(dt[dt.size() / 2] < 0.05f * diag);
-    MESSAGE("median normal error with the normals left in object space " << untransformed[untransformed.size() / 2]
-                                                                          << " deg");
+    MESSAGE("median normal error with the normals left in object space "
+            << untransformed[untransformed.size() / 2] << " deg");
     CHECK(angle[angle.size() / 2] < untransformed[untransformed.size() / 2] - 10.0f);
 
     // Occlusion queries agree too, and a segment that ends before the object is never
@@ -195,7 +203,8 @@ TEST_CASE("eval renders, compares with FLIP, and camera and light change without
         cam.eye[k] = 2.0f * c["target"][k].get<float>() - c["eye"][k].get<float>();  // from the other side
     }
     o.camera = cam;
-    o.light = {c["target"][0].get<float>(), c["target"][1].get<float>() - 500.0f, c["target"][2].get<float>()};
+    o.light = {c["target"][0].get<float>(), c["target"][1].get<float>() - 500.0f,
+               c["target"][2].get<float>()};
     o.images_dir = (fs::path(LSNIF_TEST_WORK_DIR) / "eval_images_b").string();
     fs::remove_all(o.images_dir);
     const EvalResult b = evaluate(o);
@@ -237,9 +246,11 @@ TEST_CASE("bench memory, rays and convert measure a real conversion against Embr
     REQUIRE(mem["objects"].size() == 1);
     const json& m = mem["objects"][0];
     CHECK(m["triangles"] == 19994);
-    CHECK(m["lsnif_bytes"].get<double>() == double(fs::file_size(
-              converted_dragon() / json::parse(file_bytes(converted_dragon() / "manifest.json"))["meshes"][0]["lsnif"]["file"]
-                                       .get<std::string>())));
+    CHECK(m["lsnif_bytes"].get<double>() ==
+          double(fs::file_size(
+              converted_dragon() /
+              json::parse(file_bytes(converted_dragon() / "manifest.json"))["meshes"][0]["lsnif"]["file"]
+                  .get<std::string>())));
     CHECK(m["embree_bvh_bytes"].get<double>() > 100000.0);  // ~1.4 MB for 20k triangles
     // An 8-wide tree over 20k triangles in leaves of <= 3: at least n/3/8 inner nodes,
     // fewer than the triangle count.

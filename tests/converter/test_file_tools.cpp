@@ -21,7 +21,9 @@ std::string load_text(const fs::path& p) {
     auto b = load(p);
     return {b.begin(), b.end()};
 }
-fs::path data_dir() { return fs::path(LSNIF_TEST_DATA_DIR); }
+fs::path data_dir() {
+    return fs::path(LSNIF_TEST_DATA_DIR);
+}
 }  // namespace
 
 TEST_CASE("json schema: types, required, additionalProperties, ranges, patterns, refs") {
@@ -107,7 +109,8 @@ TEST_CASE("validate rejects every single-bit flip of header and section table") 
         for (int bit = 0; bit < 8; ++bit) {
             auto b = good;
             b[byte] ^= std::uint8_t(1u << bit);
-            REQUIRE_MESSAGE(!validate_bytes(b, "f").valid(), "flip of byte " << byte << " bit " << bit << " accepted");
+            REQUIRE_MESSAGE(!validate_bytes(b, "f").valid(),
+                            "flip of byte " << byte << " bit " << bit << " accepted");
         }
 }
 
@@ -126,8 +129,11 @@ TEST_CASE("metadata must agree with the binary descriptor") {
     info.distance_encoding = 1;
     info.box_min[0] = -1.5f;
     info.box_max[0] = 0.1f;
-    json meta = {{"model", {{"grid_resolution", 32}, {"level_resolutions", {64, 128}}, {"hidden_widths", {64}},
-                            {"distance_encoding", "first_entry_diagonal"}}},
+    json meta = {{"model",
+                  {{"grid_resolution", 32},
+                   {"level_resolutions", {64, 128}},
+                   {"hidden_widths", {64}},
+                   {"distance_encoding", "first_entry_diagonal"}}},
                  {"object", {{"box_min", {-1.5, 0, 0}}, {"box_max", {0.1, 0, 0}}}}};
     CHECK(metadata_consistency(meta, info).empty());
     meta["model"]["hidden_widths"] = {128};

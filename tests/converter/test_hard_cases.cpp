@@ -15,8 +15,8 @@
 #include <cstdlib>
 #include <filesystem>
 #include <fstream>
-#include <utility>
 #include <string>
+#include <utility>
 
 using namespace lsnif::converter;
 using nlohmann::json;
@@ -30,8 +30,8 @@ fs::path make_case(const std::string& name, double scale) {
     char s[32];
     std::snprintf(s, sizeof s, "%g", scale);
     const fs::path glb = dir / (name + "_" + s + ".glb");
-    const std::string cmd = std::string(LSNIF_MAKE_SCENE_EXE) + " --out " + glb.string() + " --hard-case " + name +
-                            " --scale " + s + " > /dev/null";
+    const std::string cmd = std::string(LSNIF_MAKE_SCENE_EXE) + " --out " + glb.string() + " --hard-case " +
+                            name + " --scale " + s + " > /dev/null";
     REQUIRE_MESSAGE(std::system(cmd.c_str()) == 0, cmd);
     return glb;
 }
@@ -58,7 +58,8 @@ void require_finite_metrics(const json& m) {
     REQUIRE(m.contains("metrics"));
     for (const char* f : {"outside", "surface", "interior", "pooled"}) {
         const json& fam = m["metrics"]["families"][f];
-        for (const char* k : {"visibility_accuracy", "distance_error_median_pct", "normal_error_median_deg"}) {
+        for (const char* k :
+             {"visibility_accuracy", "distance_error_median_pct", "normal_error_median_deg"}) {
             INFO(m["name"].get<std::string>() << " " << f << " " << k);
             REQUIRE(fam.contains(k));
             CHECK(std::isfinite(fam[k].get<double>()));
@@ -81,7 +82,8 @@ TEST_CASE("hard geometry: a gated LSNIF or an explained BVH fallback for every c
         } else {
             ++fell_back;
             bool gate_reason = false;
-            for (const auto& r : m["reasons"]) gate_reason = gate_reason || r.get<std::string>().rfind("gate: ", 0) == 0;
+            for (const auto& r : m["reasons"])
+                gate_reason = gate_reason || r.get<std::string>().rfind("gate: ", 0) == 0;
             CHECK_MESSAGE(gate_reason, m["reasons"].dump());
             CHECK(m["metrics"]["gate"]["passed"] == false);
             CHECK_FALSE(m.contains("lsnif"));
@@ -101,16 +103,19 @@ TEST_CASE("scale: the same object at 1e-4, 1 and 1e5 units converts to the same 
         require_finite_metrics(m);
         CHECK(m["class"] == ref["class"]);
         const json& p = m["metrics"]["families"]["pooled"];
-        MESSAGE("scale " << s << ": visibility " << p["visibility_accuracy"].get<double>() << " (1: "
-                         << p0["visibility_accuracy"].get<double>() << "), distance "
+        MESSAGE("scale " << s << ": visibility " << p["visibility_accuracy"].get<double>()
+                         << " (1: " << p0["visibility_accuracy"].get<double>() << "), distance "
                          << p["distance_error_median_pct"].get<double>() << " % ("
                          << p0["distance_error_median_pct"].get<double>() << "), normal "
                          << p["normal_error_median_deg"].get<double>() << " deg ("
                          << p0["normal_error_median_deg"].get<double>() << ")");
-        CHECK(std::abs(p["visibility_accuracy"].get<double>() - p0["visibility_accuracy"].get<double>()) < 0.02);
-        CHECK(std::abs(p["distance_error_median_pct"].get<double>() - p0["distance_error_median_pct"].get<double>()) <
+        CHECK(std::abs(p["visibility_accuracy"].get<double>() - p0["visibility_accuracy"].get<double>()) <
+              0.02);
+        CHECK(std::abs(p["distance_error_median_pct"].get<double>() -
+                       p0["distance_error_median_pct"].get<double>()) <
               0.25 * p0["distance_error_median_pct"].get<double>() + 0.05);
-        CHECK(std::abs(p["normal_error_median_deg"].get<double>() - p0["normal_error_median_deg"].get<double>()) < 3.0);
+        CHECK(std::abs(p["normal_error_median_deg"].get<double>() -
+                       p0["normal_error_median_deg"].get<double>()) < 3.0);
     }
 }
 
@@ -140,8 +145,8 @@ TEST_CASE("coordinates at the edge of float range stay BVH with the reason, even
         REQUIRE(r.ok());
         const json& m = r.manifest["meshes"][0];
         CHECK(m["class"] == "simple");
-        CHECK(m["reasons"].back().get<std::string>().find("outside the range LSNIF models in single precision") !=
-              std::string::npos);
+        CHECK(m["reasons"].back().get<std::string>().find(
+                  "outside the range LSNIF models in single precision") != std::string::npos);
         CHECK_FALSE(m.contains("lsnif"));
     }
 }

@@ -67,7 +67,9 @@ std::string quoted(const fs::path& p) {
     return s;
 }
 
-std::string q(const fs::path& p) { return quoted(p); }
+std::string q(const fs::path& p) {
+    return quoted(p);
+}
 
 struct RunResult {
     int exit_code = -1;
@@ -91,7 +93,6 @@ RunResult run_generator(const std::string& args, const fs::path& dir) {
     r.err = read_text(err);
     return r;
 }
-
 
 // ---- independent GLB parsing -----------------------------------------------------------
 
@@ -142,16 +143,19 @@ Glb parse_glb(const std::vector<std::uint8_t>& b) {
 
 std::size_t component_size(int type) {
     switch (type) {
-        case 5120: case 5121: return 1;
-        case 5122: case 5123: return 2;
-        case 5125: case 5126: return 4;
+        case 5120:
+        case 5121: return 1;
+        case 5122:
+        case 5123: return 2;
+        case 5125:
+        case 5126: return 4;
         default: return 0;
     }
 }
 
 std::size_t component_count(const std::string& type) {
-    static const std::map<std::string, std::size_t> counts{{"SCALAR", 1}, {"VEC2", 2}, {"VEC3", 3}, {"VEC4", 4},
-                                                           {"MAT2", 4},   {"MAT3", 9}, {"MAT4", 16}};
+    static const std::map<std::string, std::size_t> counts{
+        {"SCALAR", 1}, {"VEC2", 2}, {"VEC3", 3}, {"VEC4", 4}, {"MAT2", 4}, {"MAT3", 9}, {"MAT4", 16}};
     const auto it = counts.find(type);
     return it == counts.end() ? 0 : it->second;
 }
@@ -315,8 +319,10 @@ std::vector<Instance> instances_of(const json& doc) {
         for (const json& c : node.value("children", json::array())) self(self, c.get<std::size_t>(), world);
     };
     const json& scene = doc.at("scenes").at(doc.value("scene", 0));
-    for (const json& r : scene.at("nodes")) walk(walk, r.get<std::size_t>(), Mat4{1, 0, 0, 0, 0, 1, 0, 0, 0, 0, 1, 0, 0, 0, 0, 1});
-    for (std::size_t i = 0; i < visits.size(); ++i) CHECK_MESSAGE(visits[i] == 1, "node ", i, " is not in the scene");
+    for (const json& r : scene.at("nodes"))
+        walk(walk, r.get<std::size_t>(), Mat4{1, 0, 0, 0, 0, 1, 0, 0, 0, 0, 1, 0, 0, 0, 0, 1});
+    for (std::size_t i = 0; i < visits.size(); ++i)
+        CHECK_MESSAGE(visits[i] == 1, "node ", i, " is not in the scene");
     return out;
 }
 
@@ -324,7 +330,8 @@ std::vector<Instance> instances_of(const json& doc) {
 std::pair<std::array<double, 3>, std::array<double, 3>> world_bounds(const MeshInfo& mesh, const Mat4& m) {
     std::array<double, 3> lo{INFINITY, INFINITY, INFINITY}, hi{-INFINITY, -INFINITY, -INFINITY};
     for (int corner = 0; corner < 8; ++corner) {
-        const double p[3] = {(corner & 1) ? mesh.max[0] : mesh.min[0], (corner & 2) ? mesh.max[1] : mesh.min[1],
+        const double p[3] = {(corner & 1) ? mesh.max[0] : mesh.min[0],
+                             (corner & 2) ? mesh.max[1] : mesh.min[1],
                              (corner & 4) ? mesh.max[2] : mesh.min[2]};
         for (int r = 0; r < 3; ++r) {
             const double v = m[r] * p[0] + m[4 + r] * p[1] + m[8 + r] * p[2] + m[12 + r];
@@ -364,7 +371,9 @@ double signed_volume(const ex::TriMesh& m) {
     return v;
 }
 
-bool near(ex::Vec3 a, ex::Vec3 b, double eps = 1e-12) { return ex::length(a - b) <= eps; }
+bool near(ex::Vec3 a, ex::Vec3 b, double eps = 1e-12) {
+    return ex::length(a - b) <= eps;
+}
 
 }  // namespace
 
@@ -420,7 +429,8 @@ TEST_CASE("hairball tubes are closed, outward, counted and inside the ball") {
     }
     // Same parameters, same mesh; another seed, another mesh.
     const ex::TriMesh again = ex::make_hairball(p);
-    CHECK(std::memcmp(again.positions.data(), hair.positions.data(), hair.positions.size() * sizeof(ex::Vec3)) == 0);
+    CHECK(std::memcmp(again.positions.data(), hair.positions.data(),
+                      hair.positions.size() * sizeof(ex::Vec3)) == 0);
     p.seed += 1;
     CHECK_FALSE(near(ex::make_hairball(p).positions[0], hair.positions[0]));
 }
@@ -479,8 +489,9 @@ TEST_CASE("read_off reads polygons and rejects broken files") {
     ex::TriMesh m;
     std::string error;
 
-    write_text(dir / "quad.off", "OFF # a comment\n# full-line comment\n5 2 0\n0 0 0\n1 0 0\n1 1 0\n0 1 0\n"
-                                 "0 0 1\n4 0 1 2 3 255 0 0\n3 0 1 4\n");
+    write_text(dir / "quad.off",
+               "OFF # a comment\n# full-line comment\n5 2 0\n0 0 0\n1 0 0\n1 1 0\n0 1 0\n"
+               "0 0 1\n4 0 1 2 3 255 0 0\n3 0 1 4\n");
     REQUIRE(ex::read_off((dir / "quad.off").string(), m, error));
     CHECK(m.positions.size() == 5);
     CHECK(m.indices == std::vector<std::uint32_t>{0, 1, 2, 0, 2, 3, 0, 1, 4});
@@ -612,14 +623,16 @@ TEST_CASE("the generator is deterministic") {
     CHECK_FALSE(fs::exists(dir / "a.glb.tmp"));
     // The .off file itself is accepted too and gives the same scene.
     const RunResult c = run_generator(
-        "--out " + q(dir / "c.glb") + " --cgal-data " + q(kCgalDir / "data/meshes/ChineseDragon-10kv.off"), dir);
+        "--out " + q(dir / "c.glb") + " --cgal-data " + q(kCgalDir / "data/meshes/ChineseDragon-10kv.off"),
+        dir);
     REQUIRE(c.exit_code == 0);
     CHECK(bytes_a == read_bytes(dir / "c.glb"));
 }
 
 TEST_CASE("--hairball-only writes a single small hairball") {
     const fs::path dir = fresh_dir("hairball_only");
-    const RunResult r = run_generator("--out " + q(dir / "h.glb") + " --hairball-only --tubes 7 --segments 5", dir);
+    const RunResult r =
+        run_generator("--out " + q(dir / "h.glb") + " --hairball-only --tubes 7 --segments 5", dir);
     REQUIRE_MESSAGE(r.exit_code == 0, r.err);
     const Glb glb = parse_glb(read_bytes(dir / "h.glb"));
     check_binary_layout(glb);
@@ -629,8 +642,11 @@ TEST_CASE("--hairball-only writes a single small hairball") {
     CHECK(meshes.at("hairball").vertices == 7u * 6 * 6);
     CHECK(instances_of(glb.doc).size() == 1);
     // A different seed gives different bytes, the same seed the same bytes.
-    REQUIRE(run_generator("--out " + q(dir / "s.glb") + " --hairball-only --tubes 7 --segments 5 --seed 7", dir).exit_code == 0);
-    REQUIRE(run_generator("--out " + q(dir / "h2.glb") + " --hairball-only --tubes 7 --segments 5", dir).exit_code == 0);
+    REQUIRE(
+        run_generator("--out " + q(dir / "s.glb") + " --hairball-only --tubes 7 --segments 5 --seed 7", dir)
+            .exit_code == 0);
+    REQUIRE(run_generator("--out " + q(dir / "h2.glb") + " --hairball-only --tubes 7 --segments 5", dir)
+                .exit_code == 0);
     CHECK(read_bytes(dir / "s.glb") != read_bytes(dir / "h.glb"));
     CHECK(read_bytes(dir / "h2.glb") == read_bytes(dir / "h.glb"));
 }
@@ -639,7 +655,8 @@ TEST_CASE("errors exit 1 with an error line and leave no files behind") {
     const fs::path dir = fresh_dir("errors");
 
     SUBCASE("missing CGAL data") {
-        const RunResult r = run_generator("--out " + q(dir / "x.glb") + " --cgal-data " + q(dir / "nowhere"), dir);
+        const RunResult r =
+            run_generator("--out " + q(dir / "x.glb") + " --cgal-data " + q(dir / "nowhere"), dir);
         CHECK(r.exit_code == 1);
         CHECK(r.err.rfind("error: ", 0) == 0);
         CHECK_FALSE(fs::exists(dir / "x.glb"));
@@ -647,14 +664,16 @@ TEST_CASE("errors exit 1 with an error line and leave no files behind") {
     }
     SUBCASE("a directory without the mesh") {
         fs::create_directories(dir / "empty");
-        const RunResult r = run_generator("--out " + q(dir / "x.glb") + " --cgal-data " + q(dir / "empty"), dir);
+        const RunResult r =
+            run_generator("--out " + q(dir / "x.glb") + " --cgal-data " + q(dir / "empty"), dir);
         CHECK(r.exit_code == 1);
         CHECK(r.err.find("ChineseDragon-10kv.off") != std::string::npos);
     }
     SUBCASE("a broken mesh keeps the previous output") {
         write_text(dir / "broken.off", "OFF\n3 1 0\n0 0 0\n");
         write_text(dir / "x.glb", "previous");
-        const RunResult r = run_generator("--out " + q(dir / "x.glb") + " --cgal-data " + q(dir / "broken.off"), dir);
+        const RunResult r =
+            run_generator("--out " + q(dir / "x.glb") + " --cgal-data " + q(dir / "broken.off"), dir);
         CHECK(r.exit_code == 1);
         CHECK(r.err.rfind("error: ", 0) == 0);
         CHECK(read_text(dir / "x.glb") == "previous");
@@ -665,14 +684,16 @@ TEST_CASE("errors exit 1 with an error line and leave no files behind") {
         CHECK(r.exit_code == 1);
         CHECK(r.err.rfind("error: ", 0) == 0);
         fs::create_directories(dir / "isdir.glb");  // renaming onto a directory fails
-        const RunResult d = run_generator("--out " + q(dir / "isdir.glb") + " --hairball-only --tubes 2", dir);
+        const RunResult d =
+            run_generator("--out " + q(dir / "isdir.glb") + " --hairball-only --tubes 2", dir);
         CHECK(d.exit_code == 1);
         CHECK(fs::is_directory(dir / "isdir.glb"));
         CHECK_FALSE(fs::exists(dir / "isdir.glb.tmp"));
     }
     SUBCASE("usage errors") {
-        for (const char* args : {"", "--hairball-only", "--out x.glb", "--out x.glb --hairball-only --tubes 0",
-                                 "--out x.glb --hairball-only --segments abc", "--out x.glb --bogus", "--out"}) {
+        for (const char* args :
+             {"", "--hairball-only", "--out x.glb", "--out x.glb --hairball-only --tubes 0",
+              "--out x.glb --hairball-only --segments abc", "--out x.glb --bogus", "--out"}) {
             CAPTURE(args);
             const RunResult r = run_generator(args, dir);
             CHECK(r.exit_code == 1);

@@ -113,7 +113,7 @@ TEST_CASE("invert_linear inverts, keeps the sign of mirrors and applies one sing
         }
     // A normal of the plane x = 0 in object space maps to the normal of its image.
     const auto n = normal_matrix(*li);
-    const float nx[3] = {n[0], n[3], n[6]};  // N (1, 0, 0)
+    const float nx[3] = {n[0], n[3], n[6]};       // N (1, 0, 0)
     const float tangent[3] = {m[1], m[5], m[9]};  // image of (0, 1, 0), which lies in the plane
     CHECK(nx[0] * tangent[0] + nx[1] * tangent[1] + nx[2] * tangent[2] == doctest::Approx(0.0).epsilon(1e-6));
     // Tiny but regular scales are fine; a flattened axis, NaN or infinity are not.

@@ -1,9 +1,9 @@
 // Container reader/writer: round trips, checksums, fp16, and rejection of damaged input.
 #include <doctest/doctest.h>
 
+#include <lsnif/lsnif.h>
 #include <lsnif/format/container.hpp>
 #include <lsnif/format/half.hpp>
-#include <lsnif/lsnif.h>
 
 #include <cmath>
 #include <cstring>
@@ -24,7 +24,9 @@ std::vector<std::uint8_t> load(const fs::path& p) {
     return {std::istreambuf_iterator<char>(f), std::istreambuf_iterator<char>()};
 }
 
-fs::path data_dir() { return fs::path(LSNIF_TEST_DATA_DIR); }
+fs::path data_dir() {
+    return fs::path(LSNIF_TEST_DATA_DIR);
+}
 
 ModelData random_model(const ModelDesc& d, std::uint32_t seed) {
     auto r = make_empty_model(d);
@@ -81,10 +83,10 @@ TEST_CASE("fp16 conversion is exact for every half and rounds to nearest even") 
     CHECK(half_to_float(0xC000) == -2.0f);
     CHECK(half_to_float(0x0001) == std::ldexp(1.0f, -24));  // smallest subnormal
     CHECK(half_to_float(0x7BFF) == 65504.0f);
-    CHECK(float_to_half(65520.0f) == 0x7C00);           // rounds up to Inf
-    CHECK(float_to_half(1.0f + std::ldexp(1.0f, -11)) == 0x3C00);  // tie -> even (down)
+    CHECK(float_to_half(65520.0f) == 0x7C00);                          // rounds up to Inf
+    CHECK(float_to_half(1.0f + std::ldexp(1.0f, -11)) == 0x3C00);      // tie -> even (down)
     CHECK(float_to_half(1.0f + 3 * std::ldexp(1.0f, -11)) == 0x3C02);  // tie -> even (up)
-    CHECK(float_to_half(std::ldexp(1.0f, -25)) == 0x0000);  // tie between 0 and min subnormal
+    CHECK(float_to_half(std::ldexp(1.0f, -25)) == 0x0000);             // tie between 0 and min subnormal
     CHECK(float_to_half(std::ldexp(1.5f, -25)) == 0x0001);
     CHECK(std::isnan(half_to_float(float_to_half(NAN))));
 }
@@ -124,8 +126,8 @@ TEST_CASE("round trip: write, read, identical dimensions, metadata and weights")
 
 TEST_CASE("dense vs hashed level sizes follow the (res+1)^3 <= T rule") {
     ModelDesc d = small_desc();
-    d.log2_table_size = 9;             // T = 512
-    d.level_resolution = {7, 8};       // 8^3 = 512 dense, 9^3 = 729 hashed
+    d.log2_table_size = 9;        // T = 512
+    d.level_resolution = {7, 8};  // 8^3 = 512 dense, 9^3 = 729 hashed
     CHECK(d.level_dense(0));
     CHECK(d.level_entries(0) == 512);
     CHECK_FALSE(d.level_dense(1));
@@ -277,7 +279,7 @@ TEST_CASE("every C API call follows its documented NULL rule") {
     lsnif_model* out = m;
     CHECK(lsnif_open_memory(bytes.data(), bytes.size(), nullptr, nullptr) == LSNIF_ERR_INVALID_ARGUMENT);
     CHECK(lsnif_open_memory(nullptr, 0, &out, nullptr) != LSNIF_OK);  // empty input: not a file
-    CHECK(out == nullptr);                                             // *out cleared on failure
+    CHECK(out == nullptr);                                            // *out cleared on failure
     CHECK(lsnif_open_file(nullptr, &out, nullptr) == LSNIF_ERR_INVALID_ARGUMENT);
     CHECK(lsnif_open_file("x.lsnif", nullptr, nullptr) == LSNIF_ERR_INVALID_ARGUMENT);
     CHECK(lsnif_get_info(m, nullptr) == LSNIF_ERR_INVALID_ARGUMENT);

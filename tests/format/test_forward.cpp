@@ -2,14 +2,14 @@
 // and the C intersect API with instance transforms.
 #include <doctest/doctest.h>
 
+#include <lsnif/lsnif.h>
 #include <lsnif/format/container.hpp>
 #include <lsnif/format/forward.hpp>
 #include <lsnif/format/half.hpp>
-#include <lsnif/lsnif.h>
 
 #include <algorithm>
-#include <cstring>
 #include <cmath>
+#include <cstring>
 #include <random>
 #include <tuple>
 
@@ -54,8 +54,7 @@ std::vector<std::pair<float, std::uint32_t>> brute_force(const Geometry& geo, co
                 }
                 if (!inside) continue;
                 const float lo = std::max(t_near, enter);
-                if (lo <= t_far && lo < exit)
-                    out.push_back({lo, std::uint32_t(x + V * (y + V * z))});
+                if (lo <= t_far && lo < exit) out.push_back({lo, std::uint32_t(x + V * (y + V * z))});
             }
     std::stable_sort(out.begin(), out.end(), [](auto& a, auto& b) { return a.first < b.first; });
     return out;
@@ -66,8 +65,8 @@ void check_against_brute_force(const Geometry& geo, const Ray& ray, const char* 
     std::vector<float> ts;
     trace_all_voxels(geo, ray, vox, ts);
     const auto ref = brute_force(geo, ray);
-    INFO(what << " org " << ray.org[0] << "," << ray.org[1] << "," << ray.org[2] << " dir " << ray.dir[0] << ","
-              << ray.dir[1] << "," << ray.dir[2] << " t [" << ray.tmin << "," << ray.tmax << "]");
+    INFO(what << " org " << ray.org[0] << "," << ray.org[1] << "," << ray.org[2] << " dir " << ray.dir[0]
+              << "," << ray.dir[1] << "," << ray.dir[2] << " t [" << ray.tmin << "," << ray.tmax << "]");
     REQUIRE(vox.size() == ref.size());
     for (std::size_t i = 0; i < ref.size(); ++i) {
         REQUIRE(vox[i] == ref[i].second);
@@ -198,8 +197,10 @@ TEST_CASE("empty-block skipping returns exactly the points of the plain walk") {
         // Sparse random voxels plus a shell: empty blocks next to occupied ones.
         for (std::uint64_t i = 0; i < d.voxel_count(); ++i) {
             const std::uint32_t x = i % V, y = (i / V) % V, z = i / (V * V);
-            const float c = (V - 1) * 0.5f, r = std::sqrt((x - c) * (x - c) + (y - c) * (y - c) + (z - c) * (z - c));
-            if (rng() % 97 == 0 || std::fabs(r - 0.3f * V) < 0.7f) m.occupancy[i >> 3] |= std::uint8_t(1u << (i & 7));
+            const float c = (V - 1) * 0.5f,
+                        r = std::sqrt((x - c) * (x - c) + (y - c) * (y - c) + (z - c) * (z - c));
+            if (rng() % 97 == 0 || std::fabs(r - 0.3f * V) < 0.7f)
+                m.occupancy[i >> 3] |= std::uint8_t(1u << (i & 7));
         }
         const Geometry geo = make_geometry(d);
         const OccupancyGrid grid(V, m.occupancy);
@@ -208,7 +209,7 @@ TEST_CASE("empty-block skipping returns exactly the points of the plain walk") {
             Ray r{};
             for (int k = 0; k < 3; ++k) {
                 r.org[k] = u(rng) * (i % 2 ? 0.9f : 2.0f);
-                r.dir[k] = i % 5 == 0 ? float(int(u(rng) * 2.0f)) : u(rng);  // some axis-aligned
+                r.dir[k] = i % 5 == 0 ? float(int(u(rng) * 2.0f)) : u(rng);               // some axis-aligned
                 if (i % 7 == 0) r.org[k] = std::round(r.org[k] * V * 0.5f) / (V * 0.5f);  // on planes
             }
             if (r.dir[0] == 0 && r.dir[1] == 0 && r.dir[2] == 0) r.dir[0] = 1;
@@ -330,10 +331,10 @@ TEST_CASE("C API intersect: occupancy early-out, decode, and instance transforms
     REQUIRE(lsnif_open_memory(bytes.data(), bytes.size(), &model, nullptr) == LSNIF_OK);
     const float diag = 2.0f * std::sqrt(3.0f);
     lsnif_ray rays[4] = {
-        {{-3.f, 0.1f, 0.1f}, 0.f, {1.f, 0.f, 0.f}, INFINITY},   // crosses the block: enters at x = -0.5
-        {{-3.f, 0.9f, 0.1f}, 0.f, {1.f, 0.f, 0.f}, INFINITY},   // only empty voxels: culled
-        {{-3.f, 0.1f, 0.1f}, 0.f, {0.f, 0.f, 0.f}, INFINITY},   // invalid
-        {{-3.f, 0.1f, 0.1f}, 0.f, {2.f, 0.f, 0.f}, 1.0f},       // ends before the block
+        {{-3.f, 0.1f, 0.1f}, 0.f, {1.f, 0.f, 0.f}, INFINITY},  // crosses the block: enters at x = -0.5
+        {{-3.f, 0.9f, 0.1f}, 0.f, {1.f, 0.f, 0.f}, INFINITY},  // only empty voxels: culled
+        {{-3.f, 0.1f, 0.1f}, 0.f, {0.f, 0.f, 0.f}, INFINITY},  // invalid
+        {{-3.f, 0.1f, 0.1f}, 0.f, {2.f, 0.f, 0.f}, 1.0f},      // ends before the block
     };
     lsnif_hit hits[4];
     REQUIRE(lsnif_intersect(model, rays, 4, hits) == LSNIF_OK);
@@ -347,13 +348,14 @@ TEST_CASE("C API intersect: occupancy early-out, decode, and instance transforms
 
     // Instance: rotate 90° about z, scale 3, translate; world rays are object rays mapped.
     const float M[12] = {0.f, -3.f, 0.f, 10.f,  //
-                         3.f, 0.f, 0.f, -2.f,   //
-                         0.f, 0.f, 3.f, 5.f};
+                         3.f, 0.f,  0.f, -2.f,  //
+                         0.f, 0.f,  3.f, 5.f};
     lsnif_ray world[1];
     for (int r = 0; r < 3; ++r) {
-        world[0].org[r] = M[4 * r] * rays[0].org[0] + M[4 * r + 1] * rays[0].org[1] + M[4 * r + 2] * rays[0].org[2] +
-                          M[4 * r + 3];
-        world[0].dir[r] = M[4 * r] * rays[0].dir[0] + M[4 * r + 1] * rays[0].dir[1] + M[4 * r + 2] * rays[0].dir[2];
+        world[0].org[r] = M[4 * r] * rays[0].org[0] + M[4 * r + 1] * rays[0].org[1] +
+                          M[4 * r + 2] * rays[0].org[2] + M[4 * r + 3];
+        world[0].dir[r] =
+            M[4 * r] * rays[0].dir[0] + M[4 * r + 1] * rays[0].dir[1] + M[4 * r + 2] * rays[0].dir[2];
     }
     world[0].tmin = 0.f;
     world[0].tmax = INFINITY;
@@ -361,7 +363,7 @@ TEST_CASE("C API intersect: occupancy early-out, decode, and instance transforms
     REQUIRE(lsnif_intersect_instance(model, M, world, 1, wh) == LSNIF_OK);
     CHECK(wh[0].hit == 1);
     CHECK(wh[0].t == doctest::Approx(hits[0].t).epsilon(1e-5));  // same parameter in both spaces
-    CHECK(wh[0].normal[2] == doctest::Approx(1.0f));  // z-axis normal stays z under this map
+    CHECK(wh[0].normal[2] == doctest::Approx(1.0f));             // z-axis normal stays z under this map
     const float singular[12] = {1, 0, 0, 0, 0, 0, 0, 0, 0, 0, 1, 0};
     CHECK(lsnif_intersect_instance(model, singular, world, 1, wh) == LSNIF_ERR_INVALID_ARGUMENT);
     CHECK(lsnif_intersect(nullptr, rays, 1, hits) == LSNIF_ERR_INVALID_ARGUMENT);

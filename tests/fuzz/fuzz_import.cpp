@@ -7,6 +7,7 @@
 // committed corpus (tests/fuzz/corpus/import).
 #include <lsnif/scene/scene.hpp>
 
+#include <unistd.h>
 #include <cstddef>
 #include <cstdint>
 #include <cstdio>
@@ -15,7 +16,6 @@
 #include <fstream>
 #include <span>
 #include <string>
-#include <unistd.h>
 
 namespace {
 

@@ -37,22 +37,23 @@ std::string metadata_for(const ModelDesc& d, const char* name) {
     for (auto r : d.level_resolution) levels += (levels.empty() ? "" : ", ") + std::to_string(r);
     for (auto w : d.hidden_width) hidden += (hidden.empty() ? "" : ", ") + std::to_string(w);
     char buf[2048];
-    std::snprintf(buf, sizeof buf,
-                  "{\n"
-                  "  \"format\": \"lsnif-metadata/1\",\n"
-                  "  \"tool\": {\"name\": \"lsnif-gen-golden\", \"version\": \"0.1.0\"},\n"
-                  "  \"object\": {\"name\": \"%s\", \"source_hash\": \"fnv1a64:%016llx\",\n"
-                  "             \"box_min\": [%.9g, %.9g, %.9g], \"box_max\": [%.9g, %.9g, %.9g]},\n"
-                  "  \"model\": {\"grid_resolution\": %u, \"max_points\": %u, \"level_resolutions\": [%s],\n"
-                  "            \"features_per_level\": %u, \"log2_table_size\": %u, \"hidden_widths\": [%s],\n"
-                  "            \"output_count\": %u, \"material_count\": %u, \"activation\": \"relu\",\n"
-                  "            \"distance_encoding\": \"%s\"}\n"
-                  "}\n",
-                  name, 0x1234abcdULL * d.grid_resolution, double(d.box_min[0]), double(d.box_min[1]),
-                  double(d.box_min[2]), double(d.box_max[0]), double(d.box_max[1]), double(d.box_max[2]),
-                  d.grid_resolution, d.max_points, levels.c_str(), d.features_per_level, d.log2_table_size,
-                  hidden.c_str(), d.output_count(), d.material_count,
-                  d.distance_encoding == LSNIF_DISTANCE_SEGMENT ? "segment" : "first_entry_diagonal");
+    std::snprintf(
+        buf, sizeof buf,
+        "{\n"
+        "  \"format\": \"lsnif-metadata/1\",\n"
+        "  \"tool\": {\"name\": \"lsnif-gen-golden\", \"version\": \"0.1.0\"},\n"
+        "  \"object\": {\"name\": \"%s\", \"source_hash\": \"fnv1a64:%016llx\",\n"
+        "             \"box_min\": [%.9g, %.9g, %.9g], \"box_max\": [%.9g, %.9g, %.9g]},\n"
+        "  \"model\": {\"grid_resolution\": %u, \"max_points\": %u, \"level_resolutions\": [%s],\n"
+        "            \"features_per_level\": %u, \"log2_table_size\": %u, \"hidden_widths\": [%s],\n"
+        "            \"output_count\": %u, \"material_count\": %u, \"activation\": \"relu\",\n"
+        "            \"distance_encoding\": \"%s\"}\n"
+        "}\n",
+        name, 0x1234abcdULL * d.grid_resolution, double(d.box_min[0]), double(d.box_min[1]),
+        double(d.box_min[2]), double(d.box_max[0]), double(d.box_max[1]), double(d.box_max[2]),
+        d.grid_resolution, d.max_points, levels.c_str(), d.features_per_level, d.log2_table_size,
+        hidden.c_str(), d.output_count(), d.material_count,
+        d.distance_encoding == LSNIF_DISTANCE_SEGMENT ? "segment" : "first_entry_diagonal");
     return buf;
 }
 
@@ -176,7 +177,8 @@ int main(int argc, char** argv) {
     dense.distance_encoding = LSNIF_DISTANCE_SEGMENT;
     WriteOptions stored;
     stored.zstd_level = 0;
-    write(out / "valid" / "dense_uncompressed.lsnif", bytes_of(serialize(make_model(dense, "dense", 2), stored)));
+    write(out / "valid" / "dense_uncompressed.lsnif",
+          bytes_of(serialize(make_model(dense, "dense", 2), stored)));
 
     WriteOptions extra;
     extra.extra_sections.push_back({make_tag("XTRA"), false, {'o', 'p', 't', 'i', 'o', 'n', 'a', 'l'}});
@@ -373,7 +375,8 @@ int main(int argc, char** argv) {
     }
     {
         ModelData m = tiny;
-        m.metadata_json = "{\"format\": \"lsnif-metadata/1\", \"tool\": {\"name\": \"x\", \"version\": \"1.0\"}}";
+        m.metadata_json =
+            "{\"format\": \"lsnif-metadata/1\", \"tool\": {\"name\": \"x\", \"version\": \"1.0\"}}";
         inv("metadata_schema.lsnif", bytes_of(serialize(m)));
     }
     {

@@ -26,7 +26,8 @@ int main(int argc, char** argv) {
     const std::uint32_t threads = argc > 3 ? std::uint32_t(std::atoi(argv[3])) : 2;
     const std::uint32_t repeats = argc > 4 ? std::uint32_t(std::atoi(argv[4])) : 5;
     if (rays == 0 || threads == 0 || repeats == 0) {
-        std::fprintf(stderr, "usage: bench_sampling [mesh.off] [rays>0] [threads>0] [repeats>0] [subdivisions]\n");
+        std::fprintf(stderr,
+                     "usage: bench_sampling [mesh.off] [rays>0] [threads>0] [repeats>0] [subdivisions]\n");
         return 2;
     }
     std::string err;
@@ -60,16 +61,18 @@ int main(int argc, char** argv) {
     std::printf("inside test          %s\n", kInside[int(src->inside_test())]);
     std::printf("setup (scene+grid)   %.3f s\n", build);
     std::printf("embree bvh bytes     %zu (device total %zu)\n", src->bvh_bytes(), src->device_bytes());
-    std::printf("rays, threads        %llu, %u (best of %u)\n", (unsigned long long)st.rays, st.threads, repeats);
+    std::printf("rays, threads        %llu, %u (best of %u)\n", (unsigned long long)st.rays, st.threads,
+                repeats);
     std::printf("generate             %.4f s  %.3f Mrays/s\n", st.seconds, st.rays_per_second * 1e-6);
     std::printf("plain rtcIntersect1  %.4f s  %.3f Mrays/s\n", st.plain_seconds,
                 st.plain_rtcintersect_rays_per_second * 1e-6);
     std::printf("ratio                %.3f\n", st.ratio);
     std::printf("cpu time             generate %.4f s, plain %.4f s, ratio %.3f\n", st.cpu_seconds,
                 st.plain_cpu_seconds, st.cpu_ratio);
-    std::printf("packet rtcIntersect16 %.4f s  %.3f Mrays/s (cpu %.4f s); generate vs packet: ratio %.3f, cpu %.3f\n",
-                st.packet_seconds, st.packet_rays_per_second * 1e-6, st.packet_cpu_seconds, st.packet_ratio,
-                st.packet_cpu_ratio);
+    std::printf(
+        "packet rtcIntersect16 %.4f s  %.3f Mrays/s (cpu %.4f s); generate vs packet: ratio %.3f, cpu %.3f\n",
+        st.packet_seconds, st.packet_rays_per_second * 1e-6, st.packet_cpu_seconds, st.packet_ratio,
+        st.packet_cpu_ratio);
     std::printf("load average (1 min) %.2f\n", load1);
     std::printf("interior candidates  %llu for %llu interior rays, parity rays %llu, fallbacks %llu\n",
                 (unsigned long long)c.interior_candidates, (unsigned long long)((rays + 1) / 3),

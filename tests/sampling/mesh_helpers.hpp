@@ -37,7 +37,7 @@ inline std::optional<TriMesh> read_off(const std::string& path, std::string& err
         error = path + ": cannot open";
         return std::nullopt;
     }
-    std::vector<std::string> tokens;  // all tokens, comments removed
+    std::vector<std::string> tokens;      // all tokens, comments removed
     std::vector<std::size_t> line_start;  // token index where each non-empty line starts
     for (std::string line; std::getline(in, line);) {
         if (auto h = line.find('#'); h != std::string::npos) line.resize(h);
@@ -83,7 +83,8 @@ inline std::optional<TriMesh> read_off(const std::string& path, std::string& err
                 if (idx >= nv) return fail("face index out of range");
                 poly[k] = std::uint32_t(idx);
             }
-            for (std::size_t k = 1; k + 1 < n; ++k) mesh.indices.insert(mesh.indices.end(), {poly[0], poly[k], poly[k + 1]});
+            for (std::size_t k = 1; k + 1 < n; ++k)
+                mesh.indices.insert(mesh.indices.end(), {poly[0], poly[k], poly[k + 1]});
         }
         return mesh;
     } catch (const std::exception& e) {
@@ -96,12 +97,13 @@ inline std::optional<TriMesh> read_off(const std::string& path, std::string& err
 // Faces are counter-clockwise seen from outside (geometric normals point outward).
 inline TriMesh icosphere(int levels, std::array<double, 3> c, double r) {
     const double t = (1.0 + std::sqrt(5.0)) / 2.0;
-    std::vector<std::array<double, 3>> v = {{-1, t, 0}, {1, t, 0}, {-1, -t, 0}, {1, -t, 0}, {0, -1, t}, {0, 1, t},
-                                            {0, -1, -t}, {0, 1, -t}, {t, 0, -1}, {t, 0, 1}, {-t, 0, -1}, {-t, 0, 1}};
-    std::vector<std::array<std::uint32_t, 3>> f = {{0, 11, 5}, {0, 5, 1},  {0, 1, 7},   {0, 7, 10}, {0, 10, 11},
-                                                   {1, 5, 9},  {5, 11, 4}, {11, 10, 2}, {10, 7, 6}, {7, 1, 8},
-                                                   {3, 9, 4},  {3, 4, 2},  {3, 2, 6},   {3, 6, 8},  {3, 8, 9},
-                                                   {4, 9, 5},  {2, 4, 11}, {6, 2, 10},  {8, 6, 7},  {9, 8, 1}};
+    std::vector<std::array<double, 3>> v = {{-1, t, 0}, {1, t, 0}, {-1, -t, 0}, {1, -t, 0},
+                                            {0, -1, t}, {0, 1, t}, {0, -1, -t}, {0, 1, -t},
+                                            {t, 0, -1}, {t, 0, 1}, {-t, 0, -1}, {-t, 0, 1}};
+    std::vector<std::array<std::uint32_t, 3>> f = {
+        {0, 11, 5},  {0, 5, 1},  {0, 1, 7},  {0, 7, 10}, {0, 10, 11}, {1, 5, 9}, {5, 11, 4},
+        {11, 10, 2}, {10, 7, 6}, {7, 1, 8},  {3, 9, 4},  {3, 4, 2},   {3, 2, 6}, {3, 6, 8},
+        {3, 8, 9},   {4, 9, 5},  {2, 4, 11}, {6, 2, 10}, {8, 6, 7},   {9, 8, 1}};
     auto unit = [](std::array<double, 3> p) {
         const double l = std::sqrt(p[0] * p[0] + p[1] * p[1] + p[2] * p[2]);
         return std::array<double, 3>{p[0] / l, p[1] / l, p[2] / l};
@@ -185,7 +187,8 @@ struct RefHit {
 // Möller & Trumbore 1997, in double, closest hit over all triangles with t in
 // [tmin, tmax * tmax_scale]. `bary_eps` grows (> 0) or shrinks (< 0) every triangle in
 // barycentric space, to tell grazing rays from real disagreements.
-inline RefHit brute_force(const TriMesh& m, const format::Ray& r, double bary_eps = 0, double tmax_scale = 1) {
+inline RefHit brute_force(const TriMesh& m, const format::Ray& r, double bary_eps = 0,
+                          double tmax_scale = 1) {
     RefHit best;
     const double o[3] = {r.org[0], r.org[1], r.org[2]}, d[3] = {r.dir[0], r.dir[1], r.dir[2]};
     const double tmax = std::isinf(r.tmax) ? INFINITY : double(r.tmax) * tmax_scale;
@@ -196,7 +199,8 @@ inline RefHit brute_force(const TriMesh& m, const format::Ray& r, double bary_ep
         const float* p2 = &m.positions[3 * std::size_t(m.indices[3 * k + 2])];
         const double e1[3] = {double(p1[0]) - p0[0], double(p1[1]) - p0[1], double(p1[2]) - p0[2]};
         const double e2[3] = {double(p2[0]) - p0[0], double(p2[1]) - p0[1], double(p2[2]) - p0[2]};
-        const double pv[3] = {d[1] * e2[2] - d[2] * e2[1], d[2] * e2[0] - d[0] * e2[2], d[0] * e2[1] - d[1] * e2[0]};
+        const double pv[3] = {d[1] * e2[2] - d[2] * e2[1], d[2] * e2[0] - d[0] * e2[2],
+                              d[0] * e2[1] - d[1] * e2[0]};
         const double det = e1[0] * pv[0] + e1[1] * pv[1] + e1[2] * pv[2];
         if (det == 0) continue;
         const double inv = 1.0 / det;
@@ -216,7 +220,8 @@ inline RefHit brute_force(const TriMesh& m, const format::Ray& r, double bary_ep
 }
 
 // Crossings of the ray o + t d (t > 0) with the mesh, in double (Möller–Trumbore).
-inline std::size_t crossings(const TriMesh& m, const std::array<double, 3>& o, const std::array<double, 3>& d) {
+inline std::size_t crossings(const TriMesh& m, const std::array<double, 3>& o,
+                             const std::array<double, 3>& d) {
     std::size_t n = 0;
     for (std::size_t k = 0; k < m.triangle_count(); ++k) {
         const float* p0 = &m.positions[3 * std::size_t(m.indices[3 * k])];
@@ -224,7 +229,8 @@ inline std::size_t crossings(const TriMesh& m, const std::array<double, 3>& o, c
         const float* p2 = &m.positions[3 * std::size_t(m.indices[3 * k + 2])];
         const double e1[3] = {double(p1[0]) - p0[0], double(p1[1]) - p0[1], double(p1[2]) - p0[2]};
         const double e2[3] = {double(p2[0]) - p0[0], double(p2[1]) - p0[1], double(p2[2]) - p0[2]};
-        const double pv[3] = {d[1] * e2[2] - d[2] * e2[1], d[2] * e2[0] - d[0] * e2[2], d[0] * e2[1] - d[1] * e2[0]};
+        const double pv[3] = {d[1] * e2[2] - d[2] * e2[1], d[2] * e2[0] - d[0] * e2[2],
+                              d[0] * e2[1] - d[1] * e2[0]};
         const double det = e1[0] * pv[0] + e1[1] * pv[1] + e1[2] * pv[2];
         if (det == 0) continue;
         const double inv = 1.0 / det;

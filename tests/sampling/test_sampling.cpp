@@ -47,12 +47,15 @@ std::unique_ptr<EmbreeSource> make(const TriMesh& m, std::uint32_t threads = 2, 
 }
 
 bool bit_equal(const Sample& a, const Sample& b) {
-    auto eq = [](float x, float y) { return std::bit_cast<std::uint32_t>(x) == std::bit_cast<std::uint32_t>(y); };
+    auto eq = [](float x, float y) {
+        return std::bit_cast<std::uint32_t>(x) == std::bit_cast<std::uint32_t>(y);
+    };
     for (int i = 0; i < 3; ++i)
-        if (!eq(a.ray.org[i], b.ray.org[i]) || !eq(a.ray.dir[i], b.ray.dir[i]) || !eq(a.normal[i], b.normal[i]))
+        if (!eq(a.ray.org[i], b.ray.org[i]) || !eq(a.ray.dir[i], b.ray.dir[i]) ||
+            !eq(a.normal[i], b.normal[i]))
             return false;
-    return eq(a.ray.tmin, b.ray.tmin) && eq(a.ray.tmax, b.ray.tmax) && eq(a.t, b.t) && a.material == b.material &&
-           a.hit == b.hit && a.family == b.family;
+    return eq(a.ray.tmin, b.ray.tmin) && eq(a.ray.tmax, b.ray.tmax) && eq(a.t, b.t) &&
+           a.material == b.material && a.hit == b.hit && a.family == b.family;
 }
 
 double dist_to_center(const float p[3]) {
@@ -70,7 +73,8 @@ double convex_distance(const TriMesh& m, const std::array<double, 3>& p) {
         const float* c = &m.positions[3 * std::size_t(m.indices[3 * k + 2])];
         const double e1[3] = {double(b[0]) - a[0], double(b[1]) - a[1], double(b[2]) - a[2]};
         const double e2[3] = {double(c[0]) - a[0], double(c[1]) - a[1], double(c[2]) - a[2]};
-        double n[3] = {e1[1] * e2[2] - e1[2] * e2[1], e1[2] * e2[0] - e1[0] * e2[2], e1[0] * e2[1] - e1[1] * e2[0]};
+        double n[3] = {e1[1] * e2[2] - e1[2] * e2[1], e1[2] * e2[0] - e1[0] * e2[2],
+                       e1[0] * e2[1] - e1[1] * e2[0]};
         const double l = std::sqrt(n[0] * n[0] + n[1] * n[1] + n[2] * n[2]);
         double s = 0;
         for (int i = 0; i < 3; ++i) s += n[i] / l * (p[std::size_t(i)] - a[i]);
@@ -80,7 +84,9 @@ double convex_distance(const TriMesh& m, const std::array<double, 3>& p) {
 }
 
 // Inscribed radius of the icosphere: the smallest distance from the centre to a face plane.
-double inscribed_radius(const TriMesh& m) { return -convex_distance(m, kCenter); }
+double inscribed_radius(const TriMesh& m) {
+    return -convex_distance(m, kCenter);
+}
 
 // Compares `count` generated samples with the brute-force reference; returns the number
 // of grazing rays (hit/miss disagreement explained by a 1e-5 barycentric margin).
@@ -109,7 +115,8 @@ int check_against_brute_force(const TriMesh& m, EmbreeSource& src, std::size_t c
             // Shading normal = barycentric interpolation of the vertex normals.
             double n[3], l = 0;
             for (int a = 0; a < 3; ++a) {
-                n[a] = (1 - ref.u - ref.v) * m.normals[3 * std::size_t(m.indices[3 * ref.prim]) + std::size_t(a)] +
+                n[a] = (1 - ref.u - ref.v) *
+                           m.normals[3 * std::size_t(m.indices[3 * ref.prim]) + std::size_t(a)] +
                        ref.u * m.normals[3 * std::size_t(m.indices[3 * ref.prim + 1]) + std::size_t(a)] +
                        ref.v * m.normals[3 * std::size_t(m.indices[3 * ref.prim + 2]) + std::size_t(a)];
                 l += n[a] * n[a];
@@ -176,16 +183,19 @@ TEST_CASE("families have equal shares and plausible hit rates") {
         REQUIRE(f == int(i % 3));
         ++count[f];
         CHECK(s[i].ray.tmin == 0.0f);
-        const double dl = std::sqrt(double(s[i].ray.dir[0]) * s[i].ray.dir[0] + double(s[i].ray.dir[1]) * s[i].ray.dir[1] +
-                                    double(s[i].ray.dir[2]) * s[i].ray.dir[2]);
+        const double dl =
+            std::sqrt(double(s[i].ray.dir[0]) * s[i].ray.dir[0] + double(s[i].ray.dir[1]) * s[i].ray.dir[1] +
+                      double(s[i].ray.dir[2]) * s[i].ray.dir[2]);
         CHECK(std::abs(dl - 1) < 1e-6);
         if (std::isinf(s[i].ray.tmax)) {
             ++inf_rays[f];
             inf_hits[f] += s[i].hit;
             if (s[i].family == Family::surface) {
                 // Convex sphere: leaving the outside never hits, leaving the inside always does.
-                if (x[i].side > 0) fronts++, front_hits += s[i].hit;
-                else backs++, back_misses += !s[i].hit;
+                if (x[i].side > 0)
+                    fronts++, front_hits += s[i].hit;
+                else
+                    backs++, back_misses += !s[i].hit;
             }
         } else {
             ++finite;
@@ -203,7 +213,7 @@ TEST_CASE("families have equal shares and plausible hit rates") {
     const double rate[3] = {double(inf_hits[0]) / inf_rays[0], double(inf_hits[1]) / inf_rays[1],
                             double(inf_hits[2]) / inf_rays[2]};
     MESSAGE("sphere hit rates (tmax = inf): outside " << rate[0] << ", surface " << rate[1] << ", interior "
-                                                     << rate[2]);
+                                                      << rate[2]);
     CHECK(rate[0] > 0.5);  // aimed at the box, which the sphere mostly fills
     CHECK(rate[1] > 0.45);
     CHECK(rate[1] < 0.55);  // half leave inward (always hit), half outward (never)
@@ -326,8 +336,9 @@ TEST_CASE("surface-leaving rays never hit their own triangle") {
                 cosine += x[i].side * ng[a] / nl * s[i].ray.dir[a];
             }
             // offset = 1e-4 x diagonal + 1e-5 x max|p_i| (SamplingConfig defaults)
-            const double pmax = std::max({std::abs(double(s[i].ray.org[0])), std::abs(double(s[i].ray.org[1])),
-                                          std::abs(double(s[i].ray.org[2]))});
+            const double pmax =
+                std::max({std::abs(double(s[i].ray.org[0])), std::abs(double(s[i].ray.org[1])),
+                          std::abs(double(s[i].ray.org[2]))});
             const double expected = 1e-4 * src->diagonal() + 1e-5 * pmax;
             CHECK(std::abs(height - expected) < 1e-6 * (src->diagonal() + pmax));
             CHECK(cosine >= 0);
@@ -407,14 +418,17 @@ TEST_CASE("interior origins lie outside the closed solid") {
         std::array<double, 3> g{};
         for (int k = 0; k < 3; ++k)
             for (int a = 0; a < 3; ++a)
-                g[std::size_t(a)] += sphere().positions[3 * std::size_t(sphere().indices[300 + std::size_t(k)]) + std::size_t(a)] / 3;
+                g[std::size_t(a)] +=
+                    sphere()
+                        .positions[3 * std::size_t(sphere().indices[300 + std::size_t(k)]) + std::size_t(a)] /
+                    3;
         Sample probe{};
         for (int a = 0; a < 3; ++a) {
             const double dir = g[std::size_t(a)] - kCenter[std::size_t(a)];
             probe.ray.org[a] = float(kCenter[std::size_t(a)] + 3 * dir);
             probe.ray.dir[a] = float(-dir / std::sqrt((g[0] - kCenter[0]) * (g[0] - kCenter[0]) +
-                                                     (g[1] - kCenter[1]) * (g[1] - kCenter[1]) +
-                                                     (g[2] - kCenter[2]) * (g[2] - kCenter[2])));
+                                                      (g[1] - kCenter[1]) * (g[1] - kCenter[1]) +
+                                                      (g[2] - kCenter[2]) * (g[2] - kCenter[2])));
         }
         probe.ray.tmax = INFINITY;
         std::vector<Sample> one = {probe};
@@ -437,7 +451,8 @@ TEST_CASE("interior origins lie outside the closed solid") {
             for (int a = 0; a < 3; ++a) {
                 z = z * 6364136223846793005ull + 1442695040888963407ull;
                 const double u = double(z >> 11) / 9007199254740992.0;
-                p[std::size_t(a)] = float(box.min[std::size_t(a)] + u * (box.max[std::size_t(a)] - box.min[std::size_t(a)]));
+                p[std::size_t(a)] =
+                    float(box.min[std::size_t(a)] + u * (box.max[std::size_t(a)] - box.min[std::size_t(a)]));
             }
             const double sd = convex_distance(sphere(), {p[0], p[1], p[2]});
             if (std::abs(sd) < 1e-4) continue;
@@ -465,7 +480,8 @@ TEST_CASE("interior origins lie outside the closed solid") {
             } while (l2 > 1 || l2 < 1e-6);
             const double r = kRadius * (0.97 + 0.06 * uniform());
             std::array<float, 3> p;
-            for (int a = 0; a < 3; ++a) p[std::size_t(a)] = float(kCenter[std::size_t(a)] + r * d[a] / std::sqrt(l2));
+            for (int a = 0; a < 3; ++a)
+                p[std::size_t(a)] = float(kCenter[std::size_t(a)] + r * d[a] / std::sqrt(l2));
             const double sd = convex_distance(sphere(), {p[0], p[1], p[2]});
             if (std::abs(sd) < 1e-4) continue;
             ++checked;
@@ -496,7 +512,8 @@ TEST_CASE("interior origins lie outside the closed solid") {
             std::swap(inward.indices[3 * k + 1], inward.indices[3 * k + 2]);
             if (k % 2) std::swap(mixed.indices[3 * k + 1], mixed.indices[3 * k + 2]);
         }
-        for (auto [m, mode] : {std::pair{&inward, InsideTest::first_hit_facing}, std::pair{&mixed, InsideTest::parity}}) {
+        for (auto [m, mode] :
+             {std::pair{&inward, InsideTest::first_hit_facing}, std::pair{&mixed, InsideTest::parity}}) {
             auto src = make(*m);
             CHECK(src->is_closed());
             CHECK(src->inside_test() == mode);
@@ -526,7 +543,8 @@ TEST_CASE("interior origins lie outside the closed solid") {
         bowl.indices.clear();
         for (std::size_t k = 0; k < sphere().triangle_count(); ++k) {
             double z = 0;
-            for (int j = 0; j < 3; ++j) z += sphere().positions[3 * std::size_t(sphere().indices[3 * k + std::size_t(j)]) + 2];
+            for (int j = 0; j < 3; ++j)
+                z += sphere().positions[3 * std::size_t(sphere().indices[3 * k + std::size_t(j)]) + 2];
             if (z / 3 < kCenter[2])
                 for (int j = 0; j < 3; ++j) bowl.indices.push_back(sphere().indices[3 * k + std::size_t(j)]);
         }
@@ -538,7 +556,8 @@ TEST_CASE("interior origins lie outside the closed solid") {
         std::vector<Sample> s;
         src->generate(23, 3000, s);
         std::size_t inside = 0;
-        for (const Sample& smp : s) inside += smp.family == Family::interior && dist_to_center(smp.ray.org) < 0.99;
+        for (const Sample& smp : s)
+            inside += smp.family == Family::interior && dist_to_center(smp.ray.org) < 0.99;
         CHECK(inside > 150);  // ~half of the 1000 interior origins fall in the ball's volume
         CHECK(src->counters().parity_queries == 0);
     }
@@ -629,10 +648,10 @@ TEST_CASE("materials, trace() and computed vertex normals") {
 TEST_CASE("memory monitor reports the BVH") {
     auto s = make(sphere());
     auto d = make(dragon());
-    MESSAGE("sphere (" << s->triangle_count() << " tris): bvh " << s->bvh_bytes() << " B, device " << s->device_bytes()
-                       << " B");
-    MESSAGE("dragon (" << d->triangle_count() << " tris): bvh " << d->bvh_bytes() << " B, device " << d->device_bytes()
-                       << " B");
+    MESSAGE("sphere (" << s->triangle_count() << " tris): bvh " << s->bvh_bytes() << " B, device "
+                       << s->device_bytes() << " B");
+    MESSAGE("dragon (" << d->triangle_count() << " tris): bvh " << d->bvh_bytes() << " B, device "
+                       << d->device_bytes() << " B");
     CHECK(s->bvh_bytes() > 0);
     CHECK(d->bvh_bytes() > s->bvh_bytes());
     CHECK(d->device_bytes() >= d->bvh_bytes() + d->triangle_count() * 12);  // + Embree's index copy

@@ -70,7 +70,9 @@ inline json load_gltf_json(const fs::path& path) {
 
 using Mat4 = std::array<double, 16>;  // column-major, element (r, c) at [4 * c + r]
 
-inline Mat4 mat_identity() { return {1, 0, 0, 0, 0, 1, 0, 0, 0, 0, 1, 0, 0, 0, 0, 1}; }
+inline Mat4 mat_identity() {
+    return {1, 0, 0, 0, 0, 1, 0, 0, 0, 0, 1, 0, 0, 0, 0, 1};
+}
 
 inline Mat4 mat_mul(const Mat4& a, const Mat4& b) {
     Mat4 r{};
@@ -88,11 +90,10 @@ inline Mat4 mat_mul(const Mat4& a, const Mat4& b) {
 inline std::array<double, 3> quat_rotate(const std::array<double, 4>& q, const std::array<double, 3>& v) {
     auto mul = [](const std::array<double, 4>& a, const std::array<double, 4>& b) {
         // (x, y, z, w) layout
-        return std::array<double, 4>{
-            a[3] * b[0] + a[0] * b[3] + a[1] * b[2] - a[2] * b[1],
-            a[3] * b[1] - a[0] * b[2] + a[1] * b[3] + a[2] * b[0],
-            a[3] * b[2] + a[0] * b[1] - a[1] * b[0] + a[2] * b[3],
-            a[3] * b[3] - a[0] * b[0] - a[1] * b[1] - a[2] * b[2]};
+        return std::array<double, 4>{a[3] * b[0] + a[0] * b[3] + a[1] * b[2] - a[2] * b[1],
+                                     a[3] * b[1] - a[0] * b[2] + a[1] * b[3] + a[2] * b[0],
+                                     a[3] * b[2] + a[0] * b[1] - a[1] * b[0] + a[2] * b[3],
+                                     a[3] * b[3] - a[0] * b[0] - a[1] * b[1] - a[2] * b[2]};
     };
     const std::array<double, 4> conj = {-q[0], -q[1], -q[2], q[3]};
     const auto r = mul(mul(q, {v[0], v[1], v[2], 0.0}), conj);
@@ -107,8 +108,10 @@ inline Mat4 node_local(const json& node) {
     }
     std::array<double, 3> t = {0, 0, 0}, s = {1, 1, 1};
     std::array<double, 4> q = {0, 0, 0, 1};
-    if (node.contains("translation")) for (int i = 0; i < 3; ++i) t[std::size_t(i)] = node["translation"][std::size_t(i)].get<double>();
-    if (node.contains("scale")) for (int i = 0; i < 3; ++i) s[std::size_t(i)] = node["scale"][std::size_t(i)].get<double>();
+    if (node.contains("translation"))
+        for (int i = 0; i < 3; ++i) t[std::size_t(i)] = node["translation"][std::size_t(i)].get<double>();
+    if (node.contains("scale"))
+        for (int i = 0; i < 3; ++i) s[std::size_t(i)] = node["scale"][std::size_t(i)].get<double>();
     if (node.contains("rotation")) {
         double n = 0;
         for (int i = 0; i < 4; ++i) {
@@ -239,7 +242,8 @@ struct GltfDoc {
     // Writes NAME.gltf and NAME.bin into dir; returns the .gltf path.
     fs::path write_gltf(const fs::path& dir, const std::string& name) {
         json doc = j;
-        if (doc["buffers"].empty()) doc["buffers"].push_back({{"byteLength", bin.size()}, {"uri", name + ".bin"}});
+        if (doc["buffers"].empty())
+            doc["buffers"].push_back({{"byteLength", bin.size()}, {"uri", name + ".bin"}});
         write_bytes(dir / (name + ".bin"), bin.data(), bin.size());
         write_text(dir / (name + ".gltf"), doc.dump(1));
         return dir / (name + ".gltf");

@@ -22,7 +22,8 @@ Vec3 vertex(const sc::Mesh& m, std::uint32_t i) {
 std::multiset<Tri> triangle_set(const sc::Mesh& m) {
     std::multiset<Tri> out;
     for (std::size_t t = 0; t < m.triangle_count(); ++t) {
-        Tri tri = {vertex(m, m.indices[3 * t]), vertex(m, m.indices[3 * t + 1]), vertex(m, m.indices[3 * t + 2])};
+        Tri tri = {vertex(m, m.indices[3 * t]), vertex(m, m.indices[3 * t + 1]),
+                   vertex(m, m.indices[3 * t + 2])};
         std::sort(tri.begin(), tri.end());
         out.insert(tri);
     }
@@ -31,7 +32,8 @@ std::multiset<Tri> triangle_set(const sc::Mesh& m) {
 
 // Geometric normal (unnormalized) of triangle t.
 std::array<double, 3> face_normal(const sc::Mesh& m, std::size_t t) {
-    const Vec3 a = vertex(m, m.indices[3 * t]), b = vertex(m, m.indices[3 * t + 1]), c = vertex(m, m.indices[3 * t + 2]);
+    const Vec3 a = vertex(m, m.indices[3 * t]), b = vertex(m, m.indices[3 * t + 1]),
+               c = vertex(m, m.indices[3 * t + 2]);
     const double e1[3] = {double(b[0]) - a[0], double(b[1]) - a[1], double(b[2]) - a[2]};
     const double e2[3] = {double(c[0]) - a[0], double(c[1]) - a[1], double(c[2]) - a[2]};
     return {e1[1] * e2[2] - e1[2] * e2[1], e1[2] * e2[0] - e1[0] * e2[2], e1[0] * e2[1] - e1[1] * e2[0]};
@@ -52,7 +54,8 @@ std::map<int, std::uint32_t> check_against_reference(const sc::Scene& scene, con
         CHECK(inst.node_name == expected_name);
         const auto [it, inserted] = slot_of.emplace(ref[i].mesh, inst.mesh);
         CHECK(it->second == inst.mesh);  // one glTF mesh is always the same Scene mesh
-        check_transform(inst.transform, ref[i].world, file.filename().string() + " instance " + std::to_string(i));
+        check_transform(inst.transform, ref[i].world,
+                        file.filename().string() + " instance " + std::to_string(i));
     }
     std::set<std::uint32_t> slots;
     for (const auto& [mesh, slot] : slot_of) slots.insert(slot);
@@ -82,10 +85,12 @@ TEST_CASE("2CylinderEngine.glb: 29 unique meshes, 67 instances, transforms match
         std::size_t vertices = 0;
         std::set<int> position_accessors;
         for (const auto& p : prims) {
-            const std::size_t count = gltf["accessors"][p["indices"].get<std::size_t>()]["count"].get<std::size_t>();
+            const std::size_t count =
+                gltf["accessors"][p["indices"].get<std::size_t>()]["count"].get<std::size_t>();
             want[std::uint32_t(p["material"].get<int>() + 1)] += count / 3;
             const int pa = p["attributes"]["POSITION"].get<int>();
-            if (position_accessors.insert(pa).second) vertices += gltf["accessors"][std::size_t(pa)]["count"].get<std::size_t>();
+            if (position_accessors.insert(pa).second)
+                vertices += gltf["accessors"][std::size_t(pa)]["count"].get<std::size_t>();
         }
         const sc::Mesh& m = s.meshes[slot];
         std::map<std::uint32_t, std::size_t> have;
@@ -137,7 +142,8 @@ TEST_CASE("TRS nodes, matrices and several primitives: transforms match the inde
         check_against_reference(r.scene, file);
     }
     // What is not applied is said.
-    const auto morph = sc::import_gltf(kGltf2Dir / "glTF-Sample-Models/AnimatedMorphCube-glTF/AnimatedMorphCube.gltf");
+    const auto morph =
+        sc::import_gltf(kGltf2Dir / "glTF-Sample-Models/AnimatedMorphCube-glTF/AnimatedMorphCube.gltf");
     CHECK(has_warning(morph.scene, "morph targets"));
     const auto skin = sc::import_gltf(kGltf2Dir / "simple_skin/simple_skin.gltf");
     CHECK(has_warning(skin.scene, "skinned"));
@@ -153,7 +159,8 @@ TEST_CASE("TRS nodes, matrices and several primitives: transforms match the inde
 TEST_CASE("Mesh_PrimitiveMode: triangle lists, strips and fans, indexed by uint8/16/32 or not") {
     const fs::path dir = kGltf2Dir / "glTF-Asset-Generator/Mesh_PrimitiveMode";
     auto load = [&](int n) {
-        const fs::path file = dir / ("Mesh_PrimitiveMode_" + std::string(n < 10 ? "0" : "") + std::to_string(n) + ".gltf");
+        const fs::path file =
+            dir / ("Mesh_PrimitiveMode_" + std::string(n < 10 ? "0" : "") + std::to_string(n) + ".gltf");
         return sc::import_gltf(file);
     };
     const sc::ImportResult list = load(6);  // non-indexed TRIANGLES: the reference quad
@@ -187,14 +194,18 @@ TEST_CASE("Mesh_PrimitiveMode: triangle lists, strips and fans, indexed by uint8
         // Strips alternate winding and fans pivot on v0: converted correctly, every triangle
         // faces the same way as the reference list (+Z, towards the viewer).
         for (std::size_t t = 0; t < m.triangle_count(); ++t) CHECK(face_normal(m, t)[2] > 0.0);
-        for (std::size_t v = 0; v < m.vertex_count(); ++v) CHECK(m.normals[3 * v + 2] == doctest::Approx(1.0));
+        for (std::size_t v = 0; v < m.vertex_count(); ++v)
+            CHECK(m.normals[3 * v + 2] == doctest::Approx(1.0));
     }
     // Points and lines are no triangles: skipped with a warning, then "no triangles".
     for (const int n : {0, 1, 2, 3, 7, 8, 9, 10}) {
         CAPTURE(n);
         const sc::ImportResult r = load(n);
-        require_error(r, (dir / ("Mesh_PrimitiveMode_" + std::string(n < 10 ? "0" : "") + std::to_string(n) + ".gltf")).string(),
-                      "no triangles");
+        require_error(
+            r,
+            (dir / ("Mesh_PrimitiveMode_" + std::string(n < 10 ? "0" : "") + std::to_string(n) + ".gltf"))
+                .string(),
+            "no triangles");
         CHECK(has_warning(r.scene, "is not a triangle topology; skipped"));
     }
 }
@@ -255,8 +266,10 @@ namespace {
 GltfDoc octahedron_doc() {
     GltfDoc d;
     const int pos = d.add_positions(octahedron_positions());
-    const int idx = d.add_indices_u16({0, 2, 4, 2, 1, 4, 1, 3, 4, 3, 0, 4, 2, 0, 5, 1, 2, 5, 3, 1, 5, 0, 3, 5});
-    const int mesh = d.add_mesh(json::array({{{"attributes", {{"POSITION", pos}}}, {"indices", idx}}}), "octa");
+    const int idx =
+        d.add_indices_u16({0, 2, 4, 2, 1, 4, 1, 3, 4, 3, 0, 4, 2, 0, 5, 1, 2, 5, 3, 1, 5, 0, 3, 5});
+    const int mesh =
+        d.add_mesh(json::array({{{"attributes", {{"POSITION", pos}}}, {"indices", idx}}}), "octa");
     d.add_node({{"mesh", mesh}, {"name", "octa_node"}});
     return d;
 }
@@ -272,9 +285,9 @@ TEST_CASE("generated: TRS hierarchy with a matrix child, exact expected transfor
     d.j["nodes"][0]["rotation"] = {0, 0, h, h};
     d.j["nodes"][0]["scale"] = {2, 2, 2};
     d.j["nodes"][0]["children"] = {1};
-    d.add_node({{"mesh", 0}, {"name", "child"},
-                {"matrix", {0.5, 0, 0, 0, 0, 0.5, 0, 0, 0, 0, 0.5, 0, 1, 0, 0, 1}}},
-               false);
+    d.add_node(
+        {{"mesh", 0}, {"name", "child"}, {"matrix", {0.5, 0, 0, 0, 0, 0.5, 0, 0, 0, 0, 0.5, 0, 1, 0, 0, 1}}},
+        false);
     const fs::path file = d.write_gltf(fresh_dir("trs"), "trs");
     const sc::ImportResult r = sc::import_gltf(file);
     require_ok(r);
@@ -284,8 +297,10 @@ TEST_CASE("generated: TRS hierarchy with a matrix child, exact expected transfor
     // child: root * [0.5 I | (1,0,0)] -> A = R*S*0.5 = 90deg about Z, scale 1; b = root(1,0,0) = (1,4,3)
     const sc::Transform child = {0, -1, 0, 1, 1, 0, 0, 4, 0, 0, 1, 3};
     for (int i = 0; i < 12; ++i) {
-        CHECK(r.scene.instances[0].transform[std::size_t(i)] == doctest::Approx(root[std::size_t(i)]).epsilon(1e-6));
-        CHECK(r.scene.instances[1].transform[std::size_t(i)] == doctest::Approx(child[std::size_t(i)]).epsilon(1e-6));
+        CHECK(r.scene.instances[0].transform[std::size_t(i)] ==
+              doctest::Approx(root[std::size_t(i)]).epsilon(1e-6));
+        CHECK(r.scene.instances[1].transform[std::size_t(i)] ==
+              doctest::Approx(child[std::size_t(i)]).epsilon(1e-6));
     }
     CHECK(r.scene.instances[0].node_name == "octa_node");
     CHECK(r.scene.instances[1].node_name == "child");
@@ -297,7 +312,8 @@ TEST_CASE("generated: TRS hierarchy with a matrix child, exact expected transfor
     const sc::Mesh& m = r.scene.meshes[0];
     CHECK(m.normal_origin == sc::NormalOrigin::computed);
     for (std::size_t v = 0; v < m.vertex_count(); ++v) {
-        for (int a = 0; a < 3; ++a) CHECK(m.normals[3 * v + std::size_t(a)] == doctest::Approx(m.positions[3 * v + std::size_t(a)]));
+        for (int a = 0; a < 3; ++a)
+            CHECK(m.normals[3 * v + std::size_t(a)] == doctest::Approx(m.positions[3 * v + std::size_t(a)]));
     }
 }
 
@@ -310,9 +326,9 @@ TEST_CASE("generated: several primitives, materials, non-indexed and uint8 indic
     d.j["materials"] = json::array({{{"name", "red"}}, json::object()});
     const int mesh = d.add_mesh(json::array({
         {{"attributes", {{"POSITION", pos}}}, {"indices", idx}, {"material", 1}},
-        {{"attributes", {{"POSITION", pos}}}},                         // same vertices, default material
+        {{"attributes", {{"POSITION", pos}}}},  // same vertices, default material
         {{"attributes", {{"POSITION", pos2}}}, {"material", 0}, {"mode", 4}},  // non-indexed, 2 triangles
-        {{"attributes", {{"POSITION", pos}}}, {"mode", 0}},            // points: skipped
+        {{"attributes", {{"POSITION", pos}}}, {"mode", 0}},                    // points: skipped
     }));
     d.add_node({{"mesh", mesh}});
     const fs::path file = d.write_gltf(fresh_dir("prims"), "prims");
@@ -327,7 +343,8 @@ TEST_CASE("generated: several primitives, materials, non-indexed and uint8 indic
     CHECK(m.triangle_count() == 4);
     CHECK(m.triangle_materials == std::vector<std::uint32_t>{2, 0, 1, 1});
     CHECK(s.materials == std::vector<std::string>{"default", "red", "material_1"});
-    CHECK(std::vector<std::uint32_t>(m.indices.begin(), m.indices.begin() + 6) == std::vector<std::uint32_t>{0, 1, 2, 0, 1, 2});
+    CHECK(std::vector<std::uint32_t>(m.indices.begin(), m.indices.begin() + 6) ==
+          std::vector<std::uint32_t>{0, 1, 2, 0, 1, 2});
     CHECK(has_warning(s, "mesh 0 primitive 3: POINTS is not a triangle topology; skipped"));
     // Same result from a .glb of the same document.
     const fs::path glb = d.write_glb(fresh_dir("prims_glb"), "prims");
@@ -345,9 +362,13 @@ TEST_CASE("generated: sparse accessors, normals from the file, KHR_mesh_quantiza
     const std::vector<float> sparse_val = {2, 0, 0, 0, 2, 0};
     const int iv = d.add_view(sparse_idx.data(), 4);
     const int vv = d.add_view(sparse_val.data(), 24);
-    d.j["accessors"].push_back({{"componentType", 5126}, {"count", 3}, {"type", "VEC3"},
-                                {"sparse", {{"count", 2}, {"indices", {{"bufferView", iv}, {"componentType", 5123}}},
-                                            {"values", {{"bufferView", vv}}}}}});
+    d.j["accessors"].push_back({{"componentType", 5126},
+                                {"count", 3},
+                                {"type", "VEC3"},
+                                {"sparse",
+                                 {{"count", 2},
+                                  {"indices", {{"bufferView", iv}, {"componentType", 5123}}},
+                                  {"values", {{"bufferView", vv}}}}}});
     const int pos = int(d.j["accessors"].size() - 1);
     // Normals stored with length 2: normalized on import.
     const std::vector<float> normals = {0, 0, 2, 0, 0, 2, 0, 0, 2};
@@ -362,14 +383,16 @@ TEST_CASE("generated: sparse accessors, normals from the file, KHR_mesh_quantiza
     CHECK(m.normals == std::vector<float>{0, 0, 1, 0, 0, 1, 0, 0, 1});
     CHECK(m.normal_origin == sc::NormalOrigin::source);
 
-
     // KHR_mesh_quantization: normalized signed shorts (32767 -> 1.0), stride 8 (6 bytes of
     // data, 2 of padding per vertex).
     GltfDoc q;
     const std::vector<std::int16_t> data = {0, 0, 0, 0, 32767, 0, 0, 0, 0, 32767, 0, 0};
     const int view = q.add_view(data.data(), data.size() * 2, 8);
-    q.j["accessors"].push_back(
-        {{"bufferView", view}, {"componentType", 5122}, {"normalized", true}, {"count", 3}, {"type", "VEC3"}});
+    q.j["accessors"].push_back({{"bufferView", view},
+                                {"componentType", 5122},
+                                {"normalized", true},
+                                {"count", 3},
+                                {"type", "VEC3"}});
     q.j["extensionsUsed"] = {"KHR_mesh_quantization"};
     q.j["extensionsRequired"] = {"KHR_mesh_quantization"};
     q.add_node({{"mesh", q.add_mesh(json::array({{{"attributes", {{"POSITION", 0}}}}}))}});
@@ -509,7 +532,8 @@ TEST_CASE("generated bad cases: clear errors, no crash") {
         const std::vector<float> sv = {9, 9, 9, 8, 8, 8};
         const int iv = d.add_view(si.data(), 2);
         const int vv = d.add_view(sv.data(), 24);
-        d.j["accessors"][0]["sparse"] = {{"count", 2}, {"indices", {{"bufferView", iv}, {"componentType", 5121}}},
+        d.j["accessors"][0]["sparse"] = {{"count", 2},
+                                         {"indices", {{"bufferView", iv}, {"componentType", 5121}}},
                                          {"values", {{"bufferView", vv}}}};
         expect(d, "sparse_order", "strictly increasing");
     }

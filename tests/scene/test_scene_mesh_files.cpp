@@ -36,14 +36,17 @@ void check_outward(const sc::Mesh& m) {
         const auto n = triangle_cross(m, t);
         double centroid[3] = {0, 0, 0};
         for (int k = 0; k < 3; ++k) {
-            for (int a = 0; a < 3; ++a) centroid[a] += m.positions[3 * std::size_t(m.indices[3 * t + std::size_t(k)]) + std::size_t(a)];
+            for (int a = 0; a < 3; ++a)
+                centroid[a] +=
+                    m.positions[3 * std::size_t(m.indices[3 * t + std::size_t(k)]) + std::size_t(a)];
         }
         CHECK(n[0] * centroid[0] + n[1] * centroid[1] + n[2] * centroid[2] > 0.0);
     }
     for (std::size_t v = 0; v < m.vertex_count(); ++v) {
         const float* n = &m.normals[3 * v];
         const float* p = &m.positions[3 * v];
-        CHECK(std::sqrt(double(n[0]) * n[0] + double(n[1]) * n[1] + double(n[2]) * n[2]) == doctest::Approx(1.0).epsilon(1e-6));
+        CHECK(std::sqrt(double(n[0]) * n[0] + double(n[1]) * n[1] + double(n[2]) * n[2]) ==
+              doctest::Approx(1.0).epsilon(1e-6));
         CHECK(n[0] * p[0] + n[1] * p[1] + n[2] * p[2] > 0.0f);
         for (int a = 0; a < 3; ++a) {
             if (p[a] != 0.0f) CHECK((n[a] > 0.0f) == (p[a] > 0.0f));
@@ -76,7 +79,8 @@ TEST_CASE("CGAL's OFF meshes load with the counts of their headers") {
         CHECK(s.instances[0].transform == sc::kIdentityTransform);
         CHECK(m.normal_origin == sc::NormalOrigin::computed);
         CHECK(s.materials == std::vector<std::string>{"default"});
-        CHECK(std::all_of(m.triangle_materials.begin(), m.triangle_materials.end(), [](std::uint32_t x) { return x == 0; }));
+        CHECK(std::all_of(m.triangle_materials.begin(), m.triangle_materials.end(),
+                          [](std::uint32_t x) { return x == 0; }));
         CHECK(s.warnings.empty());
     }
     // The dragon's first vertex and face, read from the file by hand.
@@ -114,8 +118,10 @@ TEST_CASE("OBJ: quads triangulated, computed normals unit and outward on a close
     std::ostringstream obj;
     const auto p = octahedron_positions();
     const auto idx = octahedron_indices();
-    for (std::size_t v = 0; v < p.size(); v += 3) obj << "v " << p[v] << ' ' << p[v + 1] << ' ' << p[v + 2] << '\n';
-    for (std::size_t t = 0; t < idx.size(); t += 3) obj << "f " << idx[t] + 1 << ' ' << idx[t + 1] + 1 << ' ' << idx[t + 2] + 1 << '\n';
+    for (std::size_t v = 0; v < p.size(); v += 3)
+        obj << "v " << p[v] << ' ' << p[v + 1] << ' ' << p[v + 2] << '\n';
+    for (std::size_t t = 0; t < idx.size(); t += 3)
+        obj << "f " << idx[t] + 1 << ' ' << idx[t + 1] + 1 << ' ' << idx[t + 2] + 1 << '\n';
     write_text(dir / "octa.obj", obj.str());
     const sc::ImportResult ro = sc::import_scene(dir / "octa.obj");
     require_ok(ro);
@@ -169,7 +175,8 @@ TEST_CASE("OBJ: concave polygons are ear-clipped, non-manifold faces are kept") 
                 ls >> p[0] >> p[1] >> p[2];
                 v.push_back(p);
             } else if (tag == "f") {
-                for (std::string corner; ls >> corner;) face.push_back(std::stoi(corner.substr(0, corner.find('/'))) - 1);
+                for (std::string corner; ls >> corner;)
+                    face.push_back(std::stoi(corner.substr(0, corner.find('/'))) - 1);
             }
         }
         // The face lists 66 corners: it returns to an edge it already used (31-32) at its end.
@@ -189,7 +196,8 @@ TEST_CASE("OBJ: concave polygons are ear-clipped, non-manifold faces are kept") 
             newell[2] += (a[0] - b[0]) * (a[1] + b[1]);
         }
     }
-    const double polygon_area = 0.5 * std::sqrt(newell[0] * newell[0] + newell[1] * newell[1] + newell[2] * newell[2]);
+    const double polygon_area =
+        0.5 * std::sqrt(newell[0] * newell[0] + newell[1] * newell[1] + newell[2] * newell[2]);
     double sum = 0;
     for (std::size_t t = 0; t < c.triangle_count(); ++t) {
         const auto n = triangle_cross(c, t);
@@ -202,8 +210,9 @@ TEST_CASE("OBJ: concave polygons are ear-clipped, non-manifold faces are kept") 
 
     // Three triangles on one edge (a "fin") plus a duplicate: a half-edge mesh would drop
     // some; the soup keeps all four.
-    write_text(dir / "fin.obj", "v 0 0 0\nv 1 0 0\nv 0 1 0\nv 0 -1 0\nv 0 0 1\n"
-                                "f 1 2 3\nf 1 2 4\nf 1 2 5\nf 1 2 3\n");
+    write_text(dir / "fin.obj",
+               "v 0 0 0\nv 1 0 0\nv 0 1 0\nv 0 -1 0\nv 0 0 1\n"
+               "f 1 2 3\nf 1 2 4\nf 1 2 5\nf 1 2 3\n");
     const sc::ImportResult rf = sc::import_mesh_file(dir / "fin.obj");
     require_ok(rf);
     CHECK(rf.scene.meshes[0].triangle_count() == 4);
@@ -215,14 +224,16 @@ TEST_CASE("PLY and STL, ASCII and binary; normals from the file") {
     const auto idx = octahedron_indices();
     {  // ASCII PLY with normals of length 3: used (normalized), origin "source"
         std::ostringstream ply;
-        ply << "ply\nformat ascii 1.0\nelement vertex 6\nproperty float x\nproperty float y\nproperty float z\n"
+        ply << "ply\nformat ascii 1.0\nelement vertex 6\nproperty float x\nproperty float y\nproperty float "
+               "z\n"
                "property float nx\nproperty float ny\nproperty float nz\nelement face 8\n"
                "property list uchar int vertex_indices\nend_header\n";
         for (std::size_t v = 0; v < 6; ++v) {
             ply << p[3 * v] << ' ' << p[3 * v + 1] << ' ' << p[3 * v + 2] << ' ' << 3 * p[3 * v] << ' '
                 << 3 * p[3 * v + 1] << ' ' << 3 * p[3 * v + 2] << '\n';
         }
-        for (std::size_t t = 0; t < 8; ++t) ply << "3 " << idx[3 * t] << ' ' << idx[3 * t + 1] << ' ' << idx[3 * t + 2] << '\n';
+        for (std::size_t t = 0; t < 8; ++t)
+            ply << "3 " << idx[3 * t] << ' ' << idx[3 * t + 1] << ' ' << idx[3 * t + 2] << '\n';
         write_text(dir / "octa.ply", ply.str());
         const sc::ImportResult r = sc::import_scene(dir / "octa.ply");
         require_ok(r);
@@ -233,9 +244,10 @@ TEST_CASE("PLY and STL, ASCII and binary; normals from the file") {
     }
     // Binary little-endian PLY: vertices + faces.
     auto binary_ply = [&](const std::vector<float>& xyz, const std::vector<std::uint32_t>& tris) {
-        std::string s = "ply\nformat binary_little_endian 1.0\nelement vertex " + std::to_string(xyz.size() / 3) +
-                        "\nproperty float x\nproperty float y\nproperty float z\nelement face " +
-                        std::to_string(tris.size() / 3) + "\nproperty list uchar int vertex_indices\nend_header\n";
+        std::string s =
+            "ply\nformat binary_little_endian 1.0\nelement vertex " + std::to_string(xyz.size() / 3) +
+            "\nproperty float x\nproperty float y\nproperty float z\nelement face " +
+            std::to_string(tris.size() / 3) + "\nproperty list uchar int vertex_indices\nend_header\n";
         std::vector<std::uint8_t> out(s.begin(), s.end());
         const auto* fb = reinterpret_cast<const std::uint8_t*>(xyz.data());
         out.insert(out.end(), fb, fb + xyz.size() * 4);
@@ -287,11 +299,13 @@ TEST_CASE("PLY and STL, ASCII and binary; normals from the file") {
     auto binary_stl = [&](const std::vector<float>& xyz) {
         std::vector<std::uint8_t> out(80, ' ');
         const std::uint32_t n = 8;
-        out.insert(out.end(), reinterpret_cast<const std::uint8_t*>(&n), reinterpret_cast<const std::uint8_t*>(&n) + 4);
+        out.insert(out.end(), reinterpret_cast<const std::uint8_t*>(&n),
+                   reinterpret_cast<const std::uint8_t*>(&n) + 4);
         for (std::size_t t = 0; t < 8; ++t) {
             float rec[12] = {};
             for (int k = 0; k < 3; ++k) {
-                for (int a = 0; a < 3; ++a) rec[3 + 3 * k + a] = xyz[3 * idx[3 * t + std::size_t(k)] + std::size_t(a)];
+                for (int a = 0; a < 3; ++a)
+                    rec[3 + 3 * k + a] = xyz[3 * idx[3 * t + std::size_t(k)] + std::size_t(a)];
             }
             const auto* b = reinterpret_cast<const std::uint8_t*>(rec);
             out.insert(out.end(), b, b + 48);
@@ -340,7 +354,8 @@ TEST_CASE("OFF: comments and polygons; bad files give errors naming the file") {
                   "face 0 refers to vertex 3, but the file has 3 vertices");
     write_text(dir / "huge.off", "OFF\n4000000000 1 0\n0 0 0\n");
     require_error(sc::import_scene(dir / "huge.off"), (dir / "huge.off").string(), "more than a file of");
-    write_text(dir / "huge.ply", "ply\nformat ascii 1.0\nelement vertex 900000000000\nproperty float x\nend_header\n");
+    write_text(dir / "huge.ply",
+               "ply\nformat ascii 1.0\nelement vertex 900000000000\nproperty float x\nend_header\n");
     require_error(sc::import_scene(dir / "huge.ply"), (dir / "huge.ply").string(), "more than a file of");
     write_text(dir / "noface.off", "OFF\n3 0 0\n0 0 0\n1 0 0\n0 1 0\n");
     require_error(sc::import_scene(dir / "noface.off"), (dir / "noface.off").string(), "no triangles");
@@ -355,9 +370,10 @@ TEST_CASE("OFF: comments and polygons; bad files give errors naming the file") {
     require_error(sc::import_scene(dir / "folder.obj"), (dir / "folder.obj").string(), "not a regular file");
 
     // assimp's invalid and degenerate files: errors, never crashes.
-    for (const char* name : {"invalid/OutOfMemory.off", "invalid/empty.off", "invalid/empty.obj", "invalid/empty.ply",
-                             "invalid/malformed.obj", "OFF/invalid.off", "OBJ/point_cloud.obj", "PLY/points.ply",
-                             "OBJ/testline.obj", "OBJ/testpoints.obj"}) {
+    for (const char* name :
+         {"invalid/OutOfMemory.off", "invalid/empty.off", "invalid/empty.obj", "invalid/empty.ply",
+          "invalid/malformed.obj", "OFF/invalid.off", "OBJ/point_cloud.obj", "PLY/points.ply",
+          "OBJ/testline.obj", "OBJ/testpoints.obj"}) {
         CAPTURE(name);
         const fs::path file = kAssimpDir / name;
         require_error(sc::import_scene(file), file.string(), "");
@@ -372,7 +388,8 @@ TEST_CASE("geometry_hash: FNV-1a 64 over counts, positions and indices") {
     // Reference computed here byte by byte from the documented layout.
     std::vector<std::uint8_t> bytes;
     auto put = [&bytes](const void* p, std::size_t n) {
-        bytes.insert(bytes.end(), static_cast<const std::uint8_t*>(p), static_cast<const std::uint8_t*>(p) + n);
+        bytes.insert(bytes.end(), static_cast<const std::uint8_t*>(p),
+                     static_cast<const std::uint8_t*>(p) + n);
     };
     const std::uint64_t counts[2] = {3, 1};
     put(counts, 16);
@@ -433,8 +450,10 @@ TEST_CASE("PLY headers OpenMesh would hang on are errors: no end_header, bad gra
         {"ply\nformat ascii 2.0\n" + props + "end_header\n", "expected 'format"},
         {"ply\nformat ascii 1.0\nelement vertex two\nend_header\n", "expected 'element NAME COUNT'"},
         {"ply\nformat ascii 1.0\nproperty float x\nend_header\n", "property before any element"},
-        {"ply\nformat ascii 1.0\nelement vertex 1\nproperty real x\nend_header\n0\n", "expected 'property TYPE"},
-        {std::string("ply\nformat ascii 1.0\ncomment a") + '\0' + "b\n" + props + "end_header\n", "control byte"},
+        {"ply\nformat ascii 1.0\nelement vertex 1\nproperty real x\nend_header\n0\n",
+         "expected 'property TYPE"},
+        {std::string("ply\nformat ascii 1.0\ncomment a") + '\0' + "b\n" + props + "end_header\n",
+         "control byte"},
         {"plyx\nformat ascii 1.0\nend_header\n", "must start with a line 'ply'"},
     };
     int k = 0;
@@ -451,9 +470,11 @@ TEST_CASE("PLY headers OpenMesh would hang on are errors: no end_header, bad gra
     }
     // Exporters' unprefixed notes in the header are skipped, as OpenMesh does.
     const fs::path ok = dir / "note.ply";
-    write_text(ok, "ply\nformat ascii 1.0\nCreated by some exporter\n" +
-                       std::string("element vertex 3\nproperty float x\nproperty float y\nproperty float z\n") +
-                       "element face 1\nproperty list uchar int vertex_indices\nend_header\n0 0 0\n1 0 0\n0 1 0\n3 0 1 2\n");
+    write_text(ok,
+               "ply\nformat ascii 1.0\nCreated by some exporter\n" +
+                   std::string("element vertex 3\nproperty float x\nproperty float y\nproperty float z\n") +
+                   "element face 1\nproperty list uchar int vertex_indices\nend_header\n0 0 0\n1 0 0\n0 1 "
+                   "0\n3 0 1 2\n");
     const sc::ImportResult r = sc::import_scene(ok);
     CHECK_MESSAGE(r.ok(), r.error);
 }
@@ -463,10 +484,8 @@ TEST_CASE("OBJ face corners OpenMesh would abort on are errors with the line num
     const std::string verts = "v 0 0 0\nv 1 0 0\nv 0 1 0\nvn 0 0 1\n";
     // Found by fuzz_import: Debian's OpenMesh asserts (aborts) on a corner without a vertex.
     const std::pair<std::string, std::string> bad[] = {
-        {verts + "f /1 2 3\n", "line 5: face corner '/1'"},
-        {verts + "f 1 2 0\n", "line 5: face corner '0'"},
-        {verts + "f 1 2 3x\n", "face corner '3x'"},
-        {verts + "f 1/ 2 3\n", "face corner '1/'"},
+        {verts + "f /1 2 3\n", "line 5: face corner '/1'"}, {verts + "f 1 2 0\n", "line 5: face corner '0'"},
+        {verts + "f 1 2 3x\n", "face corner '3x'"},         {verts + "f 1/ 2 3\n", "face corner '1/'"},
         {verts + "f\t\n", "face without corners"},
     };
     int k = 0;
@@ -480,8 +499,8 @@ TEST_CASE("OBJ face corners OpenMesh would abort on are errors with the line num
         REQUIRE_FALSE(r.ok());
         CHECK(r.error.find(expected) != std::string::npos);
     }
-    for (const std::string& ok : {verts + "f 1 2 3\n", verts + "f 1//1 2//1 3//1\n", verts + "vt 0 0\nf 1/1 2/1 3/1/1\n",
-                                  verts + "f -3 -2 -1\n"}) {
+    for (const std::string& ok : {verts + "f 1 2 3\n", verts + "f 1//1 2//1 3//1\n",
+                                  verts + "vt 0 0\nf 1/1 2/1 3/1/1\n", verts + "f -3 -2 -1\n"}) {
         const fs::path file = dir / "ok.obj";
         write_text(file, ok);
         const sc::ImportResult r = sc::import_scene(file);

@@ -53,7 +53,7 @@ TEST_CASE("fp32 -> bf16 rounds to nearest even like VCVTNEPS2BF16") {
     CHECK(to_bf16(-INFINITY) == 0xff80);
     CHECK(std::isnan(from_bf16(to_bf16(NAN))));
     CHECK(std::isnan(from_bf16(to_bf16(from_bits(0x7f800001)))));  // signalling NaN stays NaN
-    CHECK(to_bf16(from_bits(0x00000123)) == 0x0000);              // subnormal -> signed zero
+    CHECK(to_bf16(from_bits(0x00000123)) == 0x0000);               // subnormal -> signed zero
     CHECK(to_bf16(from_bits(0x80400000)) == 0x8000);
     CHECK(to_bf16(0.0f) == 0);
     CHECK(to_bf16(-0.0f) == 0x8000);
@@ -78,8 +78,8 @@ TEST_CASE("bf16 packers match their scalar definitions on ragged shapes, padding
     struct Shape {
         std::size_t rows, cols;
     };
-    for (const Shape s : {Shape{1, 1}, Shape{5, 3}, Shape{16, 16}, Shape{31, 17}, Shape{33, 108}, Shape{128, 128},
-                          Shape{100, 5}, Shape{64, 130}}) {
+    for (const Shape s : {Shape{1, 1}, Shape{5, 3}, Shape{16, 16}, Shape{31, 17}, Shape{33, 108},
+                          Shape{128, 128}, Shape{100, 5}, Shape{64, 130}}) {
         CAPTURE(s.rows);
         CAPTURE(s.cols);
         const std::size_t lds = s.cols + 3;
@@ -109,7 +109,8 @@ TEST_CASE("bf16 packers match their scalar definitions on ragged shapes, padding
             pack_vnni(src.data(), s.rows, s.cols, lds, dst.data(), ldd, k_pad);
             for (std::size_t kk = 0; kk < k_pad; ++kk)
                 for (std::size_t j = 0; j < ldd / 2; ++j)
-                    REQUIRE(dst[(kk / 2) * ldd + 2 * j + kk % 2] == ((kk < s.rows && j < s.cols) ? at(kk, j) : 0));
+                    REQUIRE(dst[(kk / 2) * ldd + 2 * j + kk % 2] ==
+                            ((kk < s.rows && j < s.cols) ? at(kk, j) : 0));
         }
     }
 }
@@ -123,8 +124,8 @@ TEST_CASE("AMX bf16 GEMM matches a double reference on ragged shapes") {
     // The trainer's shapes (v1: forward 128x128x108, weight gradient 112x128x128, output
     // layer 128x16x128, its input gradient 128x128x5), and ragged ones in every dimension.
     for (const Shape s : {Shape{128, 128, 108}, Shape{112, 128, 128}, Shape{128, 16, 128}, Shape{128, 112, 5},
-                          Shape{1, 1, 1}, Shape{5, 16, 32}, Shape{17, 33, 40}, Shape{100, 130, 70}, Shape{33, 17, 96},
-                          Shape{48, 80, 33}, Shape{15, 47, 200}}) {
+                          Shape{1, 1, 1}, Shape{5, 16, 32}, Shape{17, 33, 40}, Shape{100, 130, 70},
+                          Shape{33, 17, 96}, Shape{48, 80, 33}, Shape{15, 47, 200}}) {
         for (const bool accumulate : {false, true}) {
             CAPTURE(s.m);
             CAPTURE(s.n);
@@ -156,7 +157,8 @@ TEST_CASE("AMX bf16 GEMM matches a double reference on ragged shapes") {
                     double exact = accumulate ? C0[r * s.n + j] : 0.0, ideal = exact, mag = std::fabs(exact);
                     for (std::size_t q = 0; q < s.k; ++q) {
                         const double x = A[r * s.k + q], y = B[q * s.n + j];
-                        exact += double(from_bf16(to_bf16(A[r * s.k + q]))) * from_bf16(to_bf16(B[q * s.n + j]));
+                        exact +=
+                            double(from_bf16(to_bf16(A[r * s.k + q]))) * from_bf16(to_bf16(B[q * s.n + j]));
                         ideal += x * y;
                         mag += std::fabs(x * y);
                     }
@@ -167,7 +169,8 @@ TEST_CASE("AMX bf16 GEMM matches a double reference on ragged shapes") {
                     // Each operand rounded to bf16 (relative 2^-8): each product is off by
                     // at most 2^-7 + 2^-16 of its magnitude.
                     const double bf16_tol = (std::ldexp(1.0, -7) + std::ldexp(1.0, -16)) * mag + acc_tol;
-                    INFO("C[" << r << "][" << j << "] = " << got << ", exact " << exact << ", ideal " << ideal);
+                    INFO("C[" << r << "][" << j << "] = " << got << ", exact " << exact << ", ideal "
+                              << ideal);
                     REQUIRE(std::fabs(got - exact) <= acc_tol);
                     REQUIRE(std::fabs(got - ideal) <= bf16_tol);
                 }
@@ -189,7 +192,8 @@ TEST_CASE("AMX GEMM: tiles configured per thread, concurrent threads agree bit f
     std::vector<std::thread> pool;
     for (std::size_t t = 0; t < out.size(); ++t)
         pool.emplace_back([&, t] {
-            for (int rep = 0; rep < 50; ++rep) gemm_bf16(m, n, k, a.data(), k, b.data(), 2 * n, out[t].data(), n, false);
+            for (int rep = 0; rep < 50; ++rep)
+                gemm_bf16(m, n, k, a.data(), k, b.data(), 2 * n, out[t].data(), n, false);
         });
     for (auto& th : pool) th.join();
     for (const auto& o : out) CHECK(o == ref);
@@ -197,10 +201,12 @@ TEST_CASE("AMX GEMM: tiles configured per thread, concurrent threads agree bit f
 
 TEST_CASE("dense_narrow (the bf16 path's fp32 output layer) equals format::dense_layer bit for bit") {
     std::mt19937 rng(11);
-    for (const std::size_t n : {std::size_t(1), std::size_t(7), std::size_t(8), std::size_t(128), std::size_t(133)})
+    for (const std::size_t n :
+         {std::size_t(1), std::size_t(7), std::size_t(8), std::size_t(128), std::size_t(133)})
         for (const std::size_t outp : {std::size_t(16), std::size_t(48)}) {
             const std::size_t in = 128, lda = in + 4;
-            const auto A = random_matrix(n, lda, rng), Wt = random_matrix(in, outp, rng), bias = random_matrix(1, outp, rng);
+            const auto A = random_matrix(n, lda, rng), Wt = random_matrix(in, outp, rng),
+                       bias = random_matrix(1, outp, rng);
             std::vector<float> want(n * outp), got(n * outp, 0.0f);
             format::dense_layer(A.data(), n, in, lda, Wt.data(), bias.data(), outp, false, want.data());
             if (!dense_narrow(A.data(), n, in, lda, Wt.data(), bias.data(), outp, got.data())) {
@@ -255,8 +261,9 @@ TEST_CASE("precision selection: automatic and bf16 use AMX exactly when it is av
 TEST_CASE("bf16 loss and gradients agree with fp32 on a real batch of a trained model") {
     if (skip_without_amx()) return;
     const format::ModelDesc d = mid_desc();
-    SpheresSource src({{{-0.35f, 0.1f, 0.0f}, 0.4f}, {{0.4f, -0.2f, 0.1f}, 0.3f}, {{0.1f, 0.55f, -0.3f}, 0.2f}},
-                      d.box_min, d.box_max);
+    SpheresSource src(
+        {{{-0.35f, 0.1f, 0.0f}, 0.4f}, {{0.4f, -0.2f, 0.1f}, 0.3f}, {{0.1f, 0.55f, -0.3f}, 0.2f}}, d.box_min,
+        d.box_max);
     TrainConfig cfg;
     cfg.steps = 150;
     cfg.batch_size = 4096;
@@ -278,9 +285,9 @@ TEST_CASE("bf16 loss and gradients agree with fp32 on a real batch of a trained 
     Gradients g32, g16;
     const LossParts l32 = ref.loss_and_gradients(batch, &g32);
     const LossParts l16 = amx.loss_and_gradients(batch, &g16);
-    MESSAGE("loss fp32 " << l32.total << " bf16 " << l16.total << " (vis " << l32.visibility << "/" << l16.visibility
-                         << ", dist " << l32.distance << "/" << l16.distance << ", normal " << l32.normal << "/"
-                         << l16.normal << ")");
+    MESSAGE("loss fp32 " << l32.total << " bf16 " << l16.total << " (vis " << l32.visibility << "/"
+                         << l16.visibility << ", dist " << l32.distance << "/" << l16.distance << ", normal "
+                         << l32.normal << "/" << l16.normal << ")");
     // The hidden layers' inputs are rounded to bf16 (relative 2^-8): the loss moves by
     // ~1e-4 relative (measured 0.171825 vs 0.171850). Gradients move more: the loss
     // gradient depends on residuals much smaller than the outputs, which the rounded forward

@@ -53,7 +53,8 @@ int main(int argc, char** argv) {
         }
     } else {
         thread_counts = {1, 2};
-        if (std::thread::hardware_concurrency() > 2) thread_counts.push_back(std::thread::hardware_concurrency());
+        if (std::thread::hardware_concurrency() > 2)
+            thread_counts.push_back(std::thread::hardware_concurrency());
     }
 
     struct Row {
@@ -87,19 +88,21 @@ int main(int argc, char** argv) {
     const double tris = double(mesh->triangle_count());
     std::printf("mesh %s, %d subdivision level(s): %zu triangles, %zu vertices; V = %u; %d timed runs each\n",
                 path.c_str(), levels, mesh->triangle_count(), mesh->vertex_count(), v, repeats);
-    std::printf("%8s %12s %12s %16s %16s %10s\n", "threads", "best ms", "median ms", "best Mtri/s", "median Mtri/s",
-                "occupied");
+    std::printf("%8s %12s %12s %16s %16s %10s\n", "threads", "best ms", "median ms", "best Mtri/s",
+                "median Mtri/s", "occupied");
     for (const Row& r : rows)
         std::printf("%8u %12.3f %12.3f %16.1f %16.1f %10zu\n", r.threads, r.best * 1e3, r.median * 1e3,
                     tris / r.best * 1e-6, tris / r.median * 1e-6, r.occupied);
-    std::printf("{\"mesh\": \"%s\", \"levels\": %d, \"triangles\": %zu, \"resolution\": %u, \"repeats\": %d, "
-                "\"identical_across_threads\": %s, \"runs\": [",
-                path.c_str(), levels, mesh->triangle_count(), v, repeats, identical ? "true" : "false");
+    std::printf(
+        "{\"mesh\": \"%s\", \"levels\": %d, \"triangles\": %zu, \"resolution\": %u, \"repeats\": %d, "
+        "\"identical_across_threads\": %s, \"runs\": [",
+        path.c_str(), levels, mesh->triangle_count(), v, repeats, identical ? "true" : "false");
     for (std::size_t i = 0; i < rows.size(); ++i)
-        std::printf("%s{\"threads\": %u, \"best_s\": %.6f, \"median_s\": %.6f, \"best_triangles_per_s\": %.0f, "
-                    "\"median_triangles_per_s\": %.0f}",
-                    i ? ", " : "", rows[i].threads, rows[i].best, rows[i].median, tris / rows[i].best,
-                    tris / rows[i].median);
+        std::printf(
+            "%s{\"threads\": %u, \"best_s\": %.6f, \"median_s\": %.6f, \"best_triangles_per_s\": %.0f, "
+            "\"median_triangles_per_s\": %.0f}",
+            i ? ", " : "", rows[i].threads, rows[i].best, rows[i].median, tris / rows[i].best,
+            tris / rows[i].median);
     std::printf("]}\n");
     return identical ? 0 : 1;
 }

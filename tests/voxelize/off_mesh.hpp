@@ -17,8 +17,8 @@
 namespace lsnif::voxelize::testing {
 
 struct TriMesh {
-    std::vector<float> positions;       // xyz per vertex
-    std::vector<std::uint32_t> indices; // 3 per triangle
+    std::vector<float> positions;        // xyz per vertex
+    std::vector<std::uint32_t> indices;  // 3 per triangle
     std::size_t vertex_count() const { return positions.size() / 3; }
     std::size_t triangle_count() const { return indices.size() / 3; }
 };
@@ -97,7 +97,7 @@ inline TriMesh subdivide(const TriMesh& in) {
         if (inserted) {
             for (int a = 0; a < 3; ++a)
                 out.positions.push_back(0.5f * (in.positions[3 * std::size_t(i) + std::size_t(a)] +
-                                                 in.positions[3 * std::size_t(j) + std::size_t(a)]));
+                                                in.positions[3 * std::size_t(j) + std::size_t(a)]));
         }
         return it->second;
     };

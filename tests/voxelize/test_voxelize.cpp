@@ -40,7 +40,9 @@ using Tri = std::array<Vec3, 3>;
 
 constexpr float kInf = std::numeric_limits<float>::infinity();
 
-vx::MeshView view(const TriMesh& m) { return {m.positions, m.indices}; }
+vx::MeshView view(const TriMesh& m) {
+    return {m.positions, m.indices};
+}
 
 TriMesh soup(const std::vector<Tri>& tris) {
     TriMesh m;
@@ -53,7 +55,9 @@ TriMesh soup(const std::vector<Tri>& tris) {
     return m;
 }
 
-vx::Box cube_box(float lo, float hi) { return vx::Box{{lo, lo, lo}, {hi, hi, hi}}; }
+vx::Box cube_box(float lo, float hi) {
+    return vx::Box{{lo, lo, lo}, {hi, hi, hi}};
+}
 
 // Exact voxel cells.
 struct ExactGrid {
@@ -67,13 +71,15 @@ struct ExactGrid {
         }
     }
     Cuboid cuboid(int x, int y, int z) const {
-        return {Point(plane[0][x], plane[1][y], plane[2][z]), Point(plane[0][x + 1], plane[1][y + 1], plane[2][z + 1])};
+        return {Point(plane[0][x], plane[1][y], plane[2][z]),
+                Point(plane[0][x + 1], plane[1][y + 1], plane[2][z + 1])};
     }
     // The cell grown by r cell widths on every side.
     Cuboid grown(int x, int y, int z, double r) const {
         const FT rr(r);
         return {Point(plane[0][x] - rr * cell[0], plane[1][y] - rr * cell[1], plane[2][z] - rr * cell[2]),
-                Point(plane[0][x + 1] + rr * cell[0], plane[1][y + 1] + rr * cell[1], plane[2][z + 1] + rr * cell[2])};
+                Point(plane[0][x + 1] + rr * cell[0], plane[1][y + 1] + rr * cell[1],
+                      plane[2][z + 1] + rr * cell[2])};
     }
 };
 
@@ -277,9 +283,10 @@ Stats check_mesh(const TriMesh& m, const vx::Box& box, std::uint32_t v, unsigned
 }
 
 void report(const char* name, const Stats& st) {
-    MESSAGE(std::string(name) << ": " << st.triangles << " triangles, " << st.true_voxels << " overlapping voxels, " << st.marked
-                 << " marked, misses " << st.misses << ", false positives " << st.false_positives
-                 << " (unexplained " << st.unexplained << ")");
+    MESSAGE(std::string(name) << ": " << st.triangles << " triangles, " << st.true_voxels
+                              << " overlapping voxels, " << st.marked << " marked, misses " << st.misses
+                              << ", false positives " << st.false_positives << " (unexplained "
+                              << st.unexplained << ")");
     CHECK_MESSAGE(st.misses == 0, st.first_problem);
     CHECK_MESSAGE(st.unexplained == 0, st.first_problem);
 }
@@ -290,7 +297,9 @@ struct Rng {
     double uniform(double lo, double hi) { return std::uniform_real_distribution<double>(lo, hi)(gen); }
     int integer(int lo, int hi) { return std::uniform_int_distribution<int>(lo, hi)(gen); }
     bool coin() { return integer(0, 1) == 1; }
-    Vec3 point(double lo, double hi) { return {float(uniform(lo, hi)), float(uniform(lo, hi)), float(uniform(lo, hi))}; }
+    Vec3 point(double lo, double hi) {
+        return {float(uniform(lo, hi)), float(uniform(lo, hi)), float(uniform(lo, hi))};
+    }
     Vec3 lattice(int lo, int hi, float step = 1.0f) {
         return {float(integer(lo, hi)) * step, float(integer(lo, hi)) * step, float(integer(lo, hi)) * step};
     }
@@ -316,7 +325,8 @@ float ulp_down(float f, int n = 1) {
 
 TEST_CASE("random triangles of all sizes match the exact oracle") {
     Rng rng(1);
-    for (const auto& [box, v] : {std::pair{cube_box(0, 8), 8u}, std::pair{vx::Box{{-1.37f, 0.21f, -3.5f}, {2.91f, 0.26f, 7.25f}}, 7u}}) {
+    for (const auto& [box, v] : {std::pair{cube_box(0, 8), 8u},
+                                 std::pair{vx::Box{{-1.37f, 0.21f, -3.5f}, {2.91f, 0.26f, 7.25f}}, 7u}}) {
         std::vector<Tri> tris;
         for (int i = 0; i < 700; ++i) {
             Vec3 c;
@@ -359,8 +369,9 @@ TEST_CASE("triangles lying in voxel face planes") {
         const Vec3 c = rng.point(0, 8);
         const double size = std::exp(rng.uniform(std::log(0.01), std::log(5.0)));
         for (Vec3& p : t) {
-            p = lattice ? rng.lattice(-1, 9) : Vec3{float(c[0] + rng.uniform(-size, size)), float(c[1] + rng.uniform(-size, size)),
-                                                     float(c[2] + rng.uniform(-size, size))};
+            p = lattice ? rng.lattice(-1, 9)
+                        : Vec3{float(c[0] + rng.uniform(-size, size)), float(c[1] + rng.uniform(-size, size)),
+                               float(c[2] + rng.uniform(-size, size))};
             p[axis] = k;
         }
         tris.push_back(t);
@@ -386,7 +397,8 @@ TEST_CASE("planes through voxel corners and edges only") {
     for (int s = -1; s <= 19; ++s) {
         const float f = float(s);
         tris.push_back({Vec3{f, 0, 0}, Vec3{0, f, 0}, Vec3{0, 0, f}});
-        tris.push_back({Vec3{f - 6, 3, 3}, Vec3{3, f - 6, 3}, Vec3{3, 3, f - 6}});  // same plane family, shifted
+        tris.push_back(
+            {Vec3{f - 6, 3, 3}, Vec3{3, f - 6, 3}, Vec3{3, 3, f - 6}});  // same plane family, shifted
     }
     for (int i = 0; i < 600; ++i) {
         // Random lattice points on x + y + z = s, or (edge contacts) on x + y = s.
@@ -448,7 +460,8 @@ TEST_CASE("degenerate triangles: segments and points") {
         const Vec3 a = rng.lattice(-1, 7);
         const Vec3 d = rng.lattice(-2, 2, 0.5f);
         const float s = float(rng.integer(1, 3)), u = float(rng.integer(-2, 2));
-        tris.push_back({a, Vec3{a[0] + s * d[0], a[1] + s * d[1], a[2] + s * d[2]}, Vec3{a[0] + u * d[0], a[1] + u * d[1], a[2] + u * d[2]}});
+        tris.push_back({a, Vec3{a[0] + s * d[0], a[1] + s * d[1], a[2] + s * d[2]},
+                        Vec3{a[0] + u * d[0], a[1] + u * d[1], a[2] + u * d[2]}});
     }
     for (int i = 0; i < 400; ++i) {  // repeated vertex: a segment, random or on the lattice
         const Vec3 a = rng.coin() ? rng.lattice(-1, 7, 0.5f) : rng.point(-1, 7);
@@ -474,7 +487,8 @@ TEST_CASE("huge triangles spanning the grid") {
         const double r = (double(box.max[0]) - box.min[0]) * std::exp(rng.uniform(0.0, std::log(r_max)));
         const Vec3 a = rng.point(-r, r), b = rng.point(-r, r);
         Tri t;
-        for (int k = 0; k < 3; ++k) t[0][k] = q[k] + a[k], t[1][k] = q[k] + b[k], t[2][k] = q[k] - a[k] - b[k];
+        for (int k = 0; k < 3; ++k)
+            t[0][k] = q[k] + a[k], t[1][k] = q[k] + b[k], t[2][k] = q[k] - a[k] - b[k];
         return t;
     };
     for (int i = 0; i < 300; ++i) tris.push_back(through(cube_box(0, 8), 1e5));
@@ -519,7 +533,8 @@ TEST_CASE("vertices exactly on, and one ulp beside, grid planes") {
             Tri t;
             for (Vec3& p : t)
                 for (int a = 0; a < 3; ++a)
-                    p[a] = rng.integer(0, 4) == 0 ? float(rng.uniform(box.min[a], box.max[a])) : near_plane(a, rng.integer(0, 7));
+                    p[a] = rng.integer(0, 4) == 0 ? float(rng.uniform(box.min[a], box.max[a]))
+                                                  : near_plane(a, rng.integer(0, 7));
             tris.push_back(t);
         }
         report("near planes, odd box", check_each(tris, box, v));
@@ -572,7 +587,7 @@ TEST_CASE("extreme magnitudes: huge and subnormal boxes and coordinates") {
     };
     const std::vector<std::pair<vx::Box, std::uint32_t>> boxes = {
         {cube_box(-1e30f, 1e30f), 5},
-        {cube_box(-3e-39f, 4e-39f), 6},          // subnormal-scale box
+        {cube_box(-3e-39f, 4e-39f), 6},                     // subnormal-scale box
         {vx::Box{{0, 0, 0}, {1e-44f, 1e-44f, 1e-44f}}, 3},  // a few denormal ulps wide
         {vx::Box{{-3.4e38f, -1, 1e20f}, {3.4e38f, 1, 1.0001e20f}}, 4},
     };
@@ -610,7 +625,8 @@ TEST_CASE("triangles outside the box or touching its boundary") {
     report("outside", st);
 
     // Wholly outside: nothing marked.
-    const TriMesh far = soup({Tri{Vec3{5, 5, 5}, Vec3{6, 5, 5}, Vec3{5, 6, 5}}, Tri{Vec3{-1, 2, 2}, Vec3{-1, 3, 2}, Vec3{-0.5f, 2, 3}}});
+    const TriMesh far = soup({Tri{Vec3{5, 5, 5}, Vec3{6, 5, 5}, Vec3{5, 6, 5}},
+                              Tri{Vec3{-1, 2, 2}, Vec3{-1, 3, 2}, Vec3{-0.5f, 2, 3}}});
     const auto occ = vx::voxelize(view(far), box, 4);
     REQUIRE(occ.ok());
     CHECK(occ->count() == 0);
@@ -652,14 +668,17 @@ TEST_CASE("bit layout follows FORMAT.md §6.3") {
     std::vector<Tri> all;
     for (int z = 0; z < 3; ++z)
         for (int y = 0; y < 3; ++y)
-            for (int x = 0; x < 3; ++x) all.push_back({Vec3{x + 0.5f, y + 0.5f, z + 0.5f}, Vec3{x + 0.6f, y + 0.5f, z + 0.5f}, Vec3{x + 0.5f, y + 0.6f, z + 0.5f}});
+            for (int x = 0; x < 3; ++x)
+                all.push_back({Vec3{x + 0.5f, y + 0.5f, z + 0.5f}, Vec3{x + 0.6f, y + 0.5f, z + 0.5f},
+                               Vec3{x + 0.5f, y + 0.6f, z + 0.5f}});
     occ = vx::voxelize(view(soup(all)), box, 3);
     REQUIRE(occ.ok());
     CHECK(occ->bits == std::vector<std::uint8_t>{0xFF, 0xFF, 0xFF, 0x07});
     CHECK(occ->count() == 27);
 
     // z varies slowest: a point in voxel (0, 0, 2) is bit 18 = byte 2, bit 2.
-    occ = vx::voxelize(view(soup({Tri{Vec3{0.5f, 0.5f, 2.5f}, Vec3{0.5f, 0.5f, 2.5f}, Vec3{0.5f, 0.5f, 2.5f}}})), box, 3);
+    occ = vx::voxelize(
+        view(soup({Tri{Vec3{0.5f, 0.5f, 2.5f}, Vec3{0.5f, 0.5f, 2.5f}, Vec3{0.5f, 0.5f, 2.5f}}})), box, 3);
     REQUIRE(occ.ok());
     CHECK(occ->bits == std::vector<std::uint8_t>{0, 0, 0x04, 0});
 
@@ -674,7 +693,8 @@ TEST_CASE("bit layout follows FORMAT.md §6.3") {
 TEST_CASE("many triangles: same bits for every thread count") {
     Rng rng(10);
     std::vector<Tri> tris;
-    for (int i = 0; i < 60000; ++i) tris.push_back(rng.around(rng.point(0, 1), std::exp(rng.uniform(std::log(1e-4), std::log(0.3)))));
+    for (int i = 0; i < 60000; ++i)
+        tris.push_back(rng.around(rng.point(0, 1), std::exp(rng.uniform(std::log(1e-4), std::log(0.3)))));
     const TriMesh m = soup(tris);
     const vx::Box box = cube_box(0, 1);
     const auto ref = vx::voxelize(view(m), box, 32, {1});
@@ -731,16 +751,19 @@ TEST_CASE("padded_box") {
         const TriMesh pt = soup({Tri{Vec3{3, 3, 3}, Vec3{3, 3, 3}, Vec3{3, 3, 3}}});
         const auto box = vx::padded_box(view(pt));
         REQUIRE(box.ok());
-        for (int a = 0; a < 3; ++a) CHECK((box->min[a] < 3 && box->max[a] > 3 && box->max[a] - box->min[a] < 0.01f));
+        for (int a = 0; a < 3; ++a)
+            CHECK((box->min[a] < 3 && box->max[a] > 3 && box->max[a] - box->min[a] < 0.01f));
 
-        const TriMesh far = soup({Tri{Vec3{1e30f, 1e30f, 1e30f}, Vec3{1e30f, 1e30f, 1e30f}, Vec3{1e30f, 1e30f, 1e30f}}});
+        const TriMesh far =
+            soup({Tri{Vec3{1e30f, 1e30f, 1e30f}, Vec3{1e30f, 1e30f, 1e30f}, Vec3{1e30f, 1e30f, 1e30f}}});
         const auto fbox = vx::padded_box(view(far), {0.0, 1e-30});
         REQUIRE(fbox.ok());
         for (int a = 0; a < 3; ++a) CHECK((fbox->min[a] < 1e30f && fbox->max[a] > 1e30f));
     }
     SUBCASE("on a real mesh the padding is about half a voxel at V=32") {
         std::string err;
-        const auto mesh = vx::testing::read_off(std::string(LSNIF_VOXELIZE_MESH_DIR) + "/ChineseDragon-10kv.off", err);
+        const auto mesh =
+            vx::testing::read_off(std::string(LSNIF_VOXELIZE_MESH_DIR) + "/ChineseDragon-10kv.off", err);
         REQUIRE_MESSAGE(mesh.has_value(), err);
         const auto box = vx::padded_box(view(*mesh));
         REQUIRE(box.ok());
@@ -769,7 +792,8 @@ TEST_CASE("padded_box") {
 
 TEST_CASE("invalid input is reported, never crashes") {
     const vx::Box box = cube_box(0, 1);
-    TriMesh m = soup({Tri{Vec3{0, 0, 0}, Vec3{1, 0, 0}, Vec3{0, 1, 0}}, Tri{Vec3{0, 0, 1}, Vec3{1, 0, 1}, Vec3{0, 1, 1}}});
+    TriMesh m = soup(
+        {Tri{Vec3{0, 0, 0}, Vec3{1, 0, 0}, Vec3{0, 1, 0}}, Tri{Vec3{0, 0, 1}, Vec3{1, 0, 1}, Vec3{0, 1, 1}}});
     REQUIRE(vx::voxelize(view(m), box, 4).ok());
 
     auto error_of = [&](const TriMesh& mesh, const vx::Box& b, std::uint32_t v) {

@@ -60,13 +60,16 @@ Features detect() {
     bool bf16 = false;
     if (max_subleaf >= 1 && __get_cpuid_count(7, 1, &a, &b, &c, &d)) bf16 = a & (1u << 5);
     f.avx512_bf16 = avx512 && bf16;
-    f.amx = f.avx512_bf16 && amx_bf16 && amx_tile && (xcr0 & kTileState) == kTileState && request_tile_permission();
+    f.amx = f.avx512_bf16 && amx_bf16 && amx_tile && (xcr0 & kTileState) == kTileState &&
+            request_tile_permission();
     return f;
 }
 
 #else
 
-Features detect() { return {}; }
+Features detect() {
+    return {};
+}
 
 #endif
 
@@ -80,17 +83,19 @@ const Features& features() {
 void pack_rows_scalar(const float* src, std::size_t rows, std::size_t cols, std::size_t lds, Bf16* dst,
                       std::size_t ldd, std::size_t rows_pad) {
     for (std::size_t r = 0; r < rows_pad; ++r)
-        for (std::size_t c = 0; c < ldd; ++c) dst[r * ldd + c] = (r < rows && c < cols) ? to_bf16(src[r * lds + c]) : 0;
+        for (std::size_t c = 0; c < ldd; ++c)
+            dst[r * ldd + c] = (r < rows && c < cols) ? to_bf16(src[r * lds + c]) : 0;
 }
 
 void pack_transposed_scalar(const float* src, std::size_t rows, std::size_t cols, std::size_t lds, Bf16* dst,
                             std::size_t ldd, std::size_t cols_pad) {
     for (std::size_t c = 0; c < cols_pad; ++c)
-        for (std::size_t r = 0; r < ldd; ++r) dst[c * ldd + r] = (r < rows && c < cols) ? to_bf16(src[r * lds + c]) : 0;
+        for (std::size_t r = 0; r < ldd; ++r)
+            dst[c * ldd + r] = (r < rows && c < cols) ? to_bf16(src[r * lds + c]) : 0;
 }
 
-void pack_vnni_scalar(const float* src, std::size_t k, std::size_t n, std::size_t lds, Bf16* dst, std::size_t ldd,
-                      std::size_t k_pad) {
+void pack_vnni_scalar(const float* src, std::size_t k, std::size_t n, std::size_t lds, Bf16* dst,
+                      std::size_t ldd, std::size_t k_pad) {
     for (std::size_t p = 0; p < k_pad / 2; ++p)
         for (std::size_t j = 0; j < ldd / 2; ++j)
             for (std::size_t h = 0; h < 2; ++h) {
@@ -107,7 +112,9 @@ void pack_vnni_scalar(const float* src, std::size_t k, std::size_t n, std::size_
 // ---- AVX-512 BF16 packers: VCVTNEPS2BF16 rounds exactly like to_bf16 --------------------
 
 LSNIF_BF16_TARGET inline __mmask16 lane_mask16(std::size_t begin, std::size_t end) {
-    return begin >= end ? __mmask16(0) : end - begin >= 16 ? __mmask16(0xffff) : __mmask16((1u << (end - begin)) - 1u);
+    return begin >= end        ? __mmask16(0)
+           : end - begin >= 16 ? __mmask16(0xffff)
+                               : __mmask16((1u << (end - begin)) - 1u);
 }
 
 LSNIF_BF16_TARGET inline __m512 load_row(const float* row, bool valid, __mmask16 mask) {
@@ -117,8 +124,8 @@ LSNIF_BF16_TARGET inline __m512 load_row(const float* row, bool valid, __mmask16
 // 32 bf16 as 16 dwords, dword j = (bf16(even[j]), bf16(odd[j])): one VNNI row segment.
 LSNIF_BF16_TARGET inline __m512i interleave_pairs(__m512 even, __m512 odd) {
     // cvtne2ps puts `even` in the low 16 bf16 lanes and `odd` in the high ones.
-    const __m512i idx = _mm512_set_epi16(31, 15, 30, 14, 29, 13, 28, 12, 27, 11, 26, 10, 25, 9, 24, 8, 23, 7, 22, 6,
-                                         21, 5, 20, 4, 19, 3, 18, 2, 17, 1, 16, 0);
+    const __m512i idx = _mm512_set_epi16(31, 15, 30, 14, 29, 13, 28, 12, 27, 11, 26, 10, 25, 9, 24, 8, 23, 7,
+                                         22, 6, 21, 5, 20, 4, 19, 3, 18, 2, 17, 1, 16, 0);
     return _mm512_permutexvar_epi16(idx, (__m512i)_mm512_cvtne2ps_pbh(odd, even));
 }
 
@@ -132,15 +139,16 @@ LSNIF_BF16_TARGET void pack_rows_avx512(const float* src, std::size_t rows, std:
         }
 }
 
-LSNIF_BF16_TARGET void pack_vnni_avx512(const float* src, std::size_t k, std::size_t n, std::size_t lds, Bf16* dst,
-                                        std::size_t ldd, std::size_t k_pad) {
+LSNIF_BF16_TARGET void pack_vnni_avx512(const float* src, std::size_t k, std::size_t n, std::size_t lds,
+                                        Bf16* dst, std::size_t ldd, std::size_t k_pad) {
     const std::size_t width = ldd / 2;  // columns per VNNI row
     for (std::size_t p = 0; p < k_pad / 2; ++p)
         for (std::size_t j = 0; j < width; j += 16) {
             const __mmask16 m = lane_mask16(j, n);
             const __m512 even = load_row(src + 2 * p * lds + j, 2 * p < k, m);
             const __m512 odd = load_row(src + (2 * p + 1) * lds + j, 2 * p + 1 < k, m);
-            _mm512_mask_storeu_epi32(dst + p * ldd + 2 * j, lane_mask16(j, width), interleave_pairs(even, odd));
+            _mm512_mask_storeu_epi32(dst + p * ldd + 2 * j, lane_mask16(j, width),
+                                     interleave_pairs(even, odd));
         }
 }
 
@@ -179,8 +187,9 @@ LSNIF_BF16_TARGET inline void transpose16(__m512i r[16]) {
 // Blocks of 32 source rows x 16 columns: row pairs become dwords (as in the VNNI packer),
 // then a 16 x 16 dword transpose turns them into 16 destination rows of 32 bf16.
 // Requires ldd % 32 == 0 and cols_pad % 16 == 0 (the caller checks).
-LSNIF_BF16_TARGET void pack_transposed_avx512(const float* src, std::size_t rows, std::size_t cols, std::size_t lds,
-                                              Bf16* dst, std::size_t ldd, std::size_t cols_pad) {
+LSNIF_BF16_TARGET void pack_transposed_avx512(const float* src, std::size_t rows, std::size_t cols,
+                                              std::size_t lds, Bf16* dst, std::size_t ldd,
+                                              std::size_t cols_pad) {
     for (std::size_t r0 = 0; r0 < ldd; r0 += 32)
         for (std::size_t c0 = 0; c0 < cols_pad; c0 += 16) {
             const __mmask16 m = lane_mask16(c0, cols);
@@ -218,7 +227,9 @@ constexpr TileConfig kTileConfig = make_tile_config();
 // GCC 12's tile intrinsics are asm statements without memory operands: the compiler does
 // not know that tileloadd reads and tilestored writes memory. A barrier around them keeps
 // ordinary loads and stores of the same buffers in program order.
-inline void compiler_barrier() { __asm__ volatile("" ::: "memory"); }
+inline void compiler_barrier() {
+    __asm__ volatile("" ::: "memory");
+}
 
 // One block of MT x NT C tiles (MT, NT in {1, 2}) at rows i0, columns j0. Tiles 0..3 hold
 // C (0: (0,0), 1: (0,1), 2: (1,0), 3: (1,1)), 4..5 the A row tiles, 6..7 the B column tiles.
@@ -235,35 +246,45 @@ LSNIF_AMX_TARGET void gemm_block(std::size_t i0, std::size_t j0, std::size_t m, 
     // Copies the valid part of a ragged C tile into `stage` (zeros elsewhere), and back.
     auto stage_in = [&](int ti, int tj) {
         std::memset(stage, 0, sizeof stage);
-        const std::size_t rr = std::min<std::size_t>(16, m - (i0 + 16 * ti)), cc = std::min<std::size_t>(16, n - (j0 + 16 * tj));
-        for (std::size_t r = 0; r < rr; ++r) std::memcpy(stage + r * 16, cptr(ti, tj) + r * ldc, cc * sizeof(float));
+        const std::size_t rr = std::min<std::size_t>(16, m - (i0 + 16 * ti)),
+                          cc = std::min<std::size_t>(16, n - (j0 + 16 * tj));
+        for (std::size_t r = 0; r < rr; ++r)
+            std::memcpy(stage + r * 16, cptr(ti, tj) + r * ldc, cc * sizeof(float));
         compiler_barrier();
     };
     auto stage_out = [&](int ti, int tj) {
         compiler_barrier();
-        const std::size_t rr = std::min<std::size_t>(16, m - (i0 + 16 * ti)), cc = std::min<std::size_t>(16, n - (j0 + 16 * tj));
-        for (std::size_t r = 0; r < rr; ++r) std::memcpy(cptr(ti, tj) + r * ldc, stage + r * 16, cc * sizeof(float));
+        const std::size_t rr = std::min<std::size_t>(16, m - (i0 + 16 * ti)),
+                          cc = std::min<std::size_t>(16, n - (j0 + 16 * tj));
+        for (std::size_t r = 0; r < rr; ++r)
+            std::memcpy(cptr(ti, tj) + r * ldc, stage + r * 16, cc * sizeof(float));
     };
-#define LSNIF_LOAD_C(T, TI, TJ)                  \
-    if (!accumulate) {                           \
-        _tile_zero(T);                           \
-    } else if (full(TI, TJ)) {                   \
-        _tile_loadd(T, cptr(TI, TJ), sc);        \
-    } else {                                     \
-        stage_in(TI, TJ);                        \
-        _tile_loadd(T, stage, 64);               \
+#define LSNIF_LOAD_C(T, TI, TJ)           \
+    if (!accumulate) {                    \
+        _tile_zero(T);                    \
+    } else if (full(TI, TJ)) {            \
+        _tile_loadd(T, cptr(TI, TJ), sc); \
+    } else {                              \
+        stage_in(TI, TJ);                 \
+        _tile_loadd(T, stage, 64);        \
     }
-#define LSNIF_STORE_C(T, TI, TJ)                 \
-    if (full(TI, TJ)) {                          \
-        _tile_stored(T, cptr(TI, TJ), sc);       \
-    } else {                                     \
-        _tile_stored(T, stage, 64);              \
-        stage_out(TI, TJ);                       \
+#define LSNIF_STORE_C(T, TI, TJ)           \
+    if (full(TI, TJ)) {                    \
+        _tile_stored(T, cptr(TI, TJ), sc); \
+    } else {                               \
+        _tile_stored(T, stage, 64);        \
+        stage_out(TI, TJ);                 \
     }
     LSNIF_LOAD_C(0, 0, 0)
-    if constexpr (NT == 2) { LSNIF_LOAD_C(1, 0, 1) }
-    if constexpr (MT == 2) { LSNIF_LOAD_C(2, 1, 0) }
-    if constexpr (MT == 2 && NT == 2) { LSNIF_LOAD_C(3, 1, 1) }
+    if constexpr (NT == 2) {
+        LSNIF_LOAD_C(1, 0, 1)
+    }
+    if constexpr (MT == 2) {
+        LSNIF_LOAD_C(2, 1, 0)
+    }
+    if constexpr (MT == 2 && NT == 2) {
+        LSNIF_LOAD_C(3, 1, 1)
+    }
     const Bf16* a0 = a + i0 * lda;
     const Bf16* b0 = b + 2 * j0;
     for (std::size_t kk = 0; kk < k; kk += 32) {
@@ -279,9 +300,15 @@ LSNIF_AMX_TARGET void gemm_block(std::size_t i0, std::size_t j0, std::size_t m, 
         if constexpr (MT == 2 && NT == 2) _tile_dpbf16ps(3, 5, 7);
     }
     LSNIF_STORE_C(0, 0, 0)
-    if constexpr (NT == 2) { LSNIF_STORE_C(1, 0, 1) }
-    if constexpr (MT == 2) { LSNIF_STORE_C(2, 1, 0) }
-    if constexpr (MT == 2 && NT == 2) { LSNIF_STORE_C(3, 1, 1) }
+    if constexpr (NT == 2) {
+        LSNIF_STORE_C(1, 0, 1)
+    }
+    if constexpr (MT == 2) {
+        LSNIF_STORE_C(2, 1, 0)
+    }
+    if constexpr (MT == 2 && NT == 2) {
+        LSNIF_STORE_C(3, 1, 1)
+    }
 #undef LSNIF_LOAD_C
 #undef LSNIF_STORE_C
 }
@@ -298,10 +325,14 @@ LSNIF_AMX_TARGET void gemm_amx(std::size_t m, std::size_t n, std::size_t k, cons
         for (std::size_t tj = 0; tj < nt; tj += 2) {
             const bool two_m = ti + 1 < mt, two_n = tj + 1 < nt;
             const std::size_t i0 = 16 * ti, j0 = 16 * tj;
-            if (two_m && two_n) gemm_block<2, 2>(i0, j0, m, n, k, a, lda, b, ldb, c, ldc, accumulate);
-            else if (two_m) gemm_block<2, 1>(i0, j0, m, n, k, a, lda, b, ldb, c, ldc, accumulate);
-            else if (two_n) gemm_block<1, 2>(i0, j0, m, n, k, a, lda, b, ldb, c, ldc, accumulate);
-            else gemm_block<1, 1>(i0, j0, m, n, k, a, lda, b, ldb, c, ldc, accumulate);
+            if (two_m && two_n)
+                gemm_block<2, 2>(i0, j0, m, n, k, a, lda, b, ldb, c, ldc, accumulate);
+            else if (two_m)
+                gemm_block<2, 1>(i0, j0, m, n, k, a, lda, b, ldb, c, ldc, accumulate);
+            else if (two_n)
+                gemm_block<1, 2>(i0, j0, m, n, k, a, lda, b, ldb, c, ldc, accumulate);
+            else
+                gemm_block<1, 1>(i0, j0, m, n, k, a, lda, b, ldb, c, ldc, accumulate);
         }
     compiler_barrier();
     _tile_release();
@@ -311,10 +342,12 @@ LSNIF_AMX_TARGET void gemm_amx(std::size_t m, std::size_t n, std::size_t k, cons
 
 }  // namespace
 
-bool amx_available() { return features().amx; }
+bool amx_available() {
+    return features().amx;
+}
 
-void pack_rows(const float* src, std::size_t rows, std::size_t cols, std::size_t lds, Bf16* dst, std::size_t ldd,
-               std::size_t rows_pad) {
+void pack_rows(const float* src, std::size_t rows, std::size_t cols, std::size_t lds, Bf16* dst,
+               std::size_t ldd, std::size_t rows_pad) {
 #if LSNIF_HAVE_X86
     if (features().avx512_bf16) return pack_rows_avx512(src, rows, cols, lds, dst, ldd, rows_pad);
 #endif

@@ -48,12 +48,14 @@ inline float from_bf16(Bf16 h) {
     return x;
 }
 
-inline constexpr std::size_t round_up(std::size_t n, std::size_t m) { return (n + m - 1) / m * m; }
+inline constexpr std::size_t round_up(std::size_t n, std::size_t m) {
+    return (n + m - 1) / m * m;
+}
 
 // Rows layout (A operand): dst[r * ldd + c] = bf16(src[r * lds + c]) for r < rows, c < cols;
 // zero for cols <= c < ldd and for rows <= r < rows_pad.
-void pack_rows(const float* src, std::size_t rows, std::size_t cols, std::size_t lds, Bf16* dst, std::size_t ldd,
-               std::size_t rows_pad);
+void pack_rows(const float* src, std::size_t rows, std::size_t cols, std::size_t lds, Bf16* dst,
+               std::size_t ldd, std::size_t rows_pad);
 
 // Rows layout of the transpose (A operand = src^T): dst[c * ldd + r] = bf16(src[r * lds + c])
 // for r < rows, c < cols; zero for rows <= r < ldd and for cols <= c < cols_pad.
@@ -84,10 +86,14 @@ struct AlignedAllocator {
     AlignedAllocator() = default;
     template <class U>
     AlignedAllocator(const AlignedAllocator<U>&) {}
-    T* allocate(std::size_t n) { return static_cast<T*>(::operator new(n * sizeof(T), std::align_val_t(64))); }
+    T* allocate(std::size_t n) {
+        return static_cast<T*>(::operator new(n * sizeof(T), std::align_val_t(64)));
+    }
     void deallocate(T* p, std::size_t) { ::operator delete(p, std::align_val_t(64)); }
     template <class U>
-    bool operator==(const AlignedAllocator<U>&) const { return true; }
+    bool operator==(const AlignedAllocator<U>&) const {
+        return true;
+    }
 };
 using Bf16Buffer = std::vector<Bf16, AlignedAllocator<Bf16>>;
 

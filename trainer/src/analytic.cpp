@@ -33,8 +33,8 @@ void cosine_around(Rng& rng, const double n[3], double out[3]) {
 
 }  // namespace
 
-SpheresSource::SpheresSource(std::vector<Sphere> spheres, std::array<float, 3> box_min, std::array<float, 3> box_max,
-                             float shadow_fraction)
+SpheresSource::SpheresSource(std::vector<Sphere> spheres, std::array<float, 3> box_min,
+                             std::array<float, 3> box_max, float shadow_fraction)
     : spheres_(std::move(spheres)), lo_(box_min), hi_(box_max), shadow_fraction_(shadow_fraction) {}
 
 bool SpheresSource::intersect(const format::Ray& ray, float& t_out, float normal[3]) const {
@@ -63,7 +63,8 @@ bool SpheresSource::intersect(const format::Ray& ray, float& t_out, float normal
     if (which < 0) return false;
     t_out = float(best);
     const Sphere& sp = spheres_[std::size_t(which)];
-    for (int i = 0; i < 3; ++i) normal[i] = float((ray.org[i] + best * ray.dir[i] - sp.center[i]) / sp.radius);
+    for (int i = 0; i < 3; ++i)
+        normal[i] = float((ray.org[i] + best * ray.dir[i] - sp.center[i]) / sp.radius);
     const float len = std::sqrt(normal[0] * normal[0] + normal[1] * normal[1] + normal[2] * normal[2]);
     for (int i = 0; i < 3; ++i) normal[i] /= len;
     return true;
@@ -106,7 +107,8 @@ void SpheresSource::generate(std::uint64_t seed, std::size_t count, std::vector<
                 n[i] *= side;
                 o[i] = s.center[i] + side * n[i] * s.radius + n[i] * 1e-4 * diag;
             }
-            if (rng.next() & 1) cosine_around(rng, n, d);
+            if (rng.next() & 1)
+                cosine_around(rng, n, d);
             else {
                 unit_sphere(rng, d);
                 const double dn = d[0] * n[0] + d[1] * n[1] + d[2] * n[2];

@@ -16,7 +16,7 @@ void outer_accumulate(const float* X, std::size_t n, std::size_t in, std::size_t
 // loop. Same operation order per element (bias, then one FMA per input in order), so the
 // results equal dense_layer's bit for bit. Needs AVX-512F; returns false (and computes
 // nothing) without it.
-bool dense_narrow(const float* A, std::size_t n, std::size_t in, std::size_t lda, const float* Wt, const float* bias,
-                  std::size_t outp, float* C);
+bool dense_narrow(const float* A, std::size_t n, std::size_t in, std::size_t lda, const float* Wt,
+                  const float* bias, std::size_t outp, float* C);
 
 }  // namespace lsnif::trainer::detail

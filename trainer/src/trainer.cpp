@@ -2,10 +2,10 @@
 #include <lsnif/format/half.hpp>
 #include <lsnif/trainer/trainer.hpp>
 
-#include "amx.hpp"
-#include "kernels.hpp"
 #include <lsnif/base/parallel.hpp>
 #include <lsnif/base/random.hpp>
+#include "amx.hpp"
+#include "kernels.hpp"
 
 #include <algorithm>
 #include <chrono>
@@ -19,23 +19,24 @@ using format::RayPoints;
 using format::TraceStatus;
 
 MlpPrecision resolve_precision(MlpPrecision requested) {
-    return requested != MlpPrecision::fp32 && detail::amx_available() ? MlpPrecision::bf16 : MlpPrecision::fp32;
+    return requested != MlpPrecision::fp32 && detail::amx_available() ? MlpPrecision::bf16
+                                                                      : MlpPrecision::fp32;
 }
 
 const char* precision_name(MlpPrecision p) {
     switch (p) {
-    case MlpPrecision::fp32: return "fp32";
-    case MlpPrecision::bf16: return "bf16";
-    case MlpPrecision::automatic: return "automatic";
+        case MlpPrecision::fp32: return "fp32";
+        case MlpPrecision::bf16: return "bf16";
+        case MlpPrecision::automatic: return "automatic";
     }
     return "?";
 }
 
 const char* family_name(Family f) {
     switch (f) {
-    case Family::outside: return "outside";
-    case Family::surface: return "surface";
-    case Family::interior: return "interior";
+        case Family::outside: return "outside";
+        case Family::surface: return "surface";
+        case Family::interior: return "interior";
     }
     return "?";
 }
@@ -45,8 +46,12 @@ namespace {
 constexpr std::size_t kSub = 128;  // rows per sub-chunk: keeps activations in L2
 constexpr float kMaxParam = 1e4f;  // larger magnitudes are treated as divergence (fp16 max 65504)
 
-std::uint32_t pad16(std::uint32_t n) { return (n + 15u) & ~15u; }
-std::uint32_t pad32(std::uint32_t n) { return (n + 31u) & ~31u; }  // K of a bf16 product
+std::uint32_t pad16(std::uint32_t n) {
+    return (n + 15u) & ~15u;
+}
+std::uint32_t pad32(std::uint32_t n) {
+    return (n + 31u) & ~31u;
+}  // K of a bf16 product
 
 using Rng = base::SplitMix64;
 
@@ -56,18 +61,20 @@ void parallel(std::uint32_t T, F&& fn) {
     base::run_on_threads(T, fn);
 }
 
-float sigmoid(float z) { return z >= 0 ? 1.0f / (1.0f + std::exp(-z)) : std::exp(z) / (1.0f + std::exp(z)); }
+float sigmoid(float z) {
+    return z >= 0 ? 1.0f / (1.0f + std::exp(-z)) : std::exp(z) / (1.0f + std::exp(z));
+}
 
 // Per-thread buffers. Aligned so one thread's per-sample loss accumulation never shares a
 // cache line with another thread's buffer headers.
 struct alignas(128) Work {
     std::vector<RayPoints> pts;
-    std::vector<float> x;                     // kSub x in0
-    std::vector<std::vector<float>> act;      // per layer output, kSub x outp
-    std::vector<float> d0, d1;                // gradient ping-pong, kSub x max padded width
-    std::vector<std::vector<float>> dwt;      // per layer, pad16(in) x outp (transposed layout)
-    std::vector<std::vector<float>> db;       // per layer, outp
-    std::vector<std::vector<float>> gg;       // grid gradient per level, entries * F
+    std::vector<float> x;                            // kSub x in0
+    std::vector<std::vector<float>> act;             // per layer output, kSub x outp
+    std::vector<float> d0, d1;                       // gradient ping-pong, kSub x max padded width
+    std::vector<std::vector<float>> dwt;             // per layer, pad16(in) x outp (transposed layout)
+    std::vector<std::vector<float>> db;              // per layer, outp
+    std::vector<std::vector<float>> gg;              // grid gradient per level, entries * F
     std::vector<std::vector<std::uint8_t>> touched;  // per level, entries
     std::vector<format::Corners> corners;            // one sample's (point, level) corners
     // bf16 path only (empty in fp32): operands of the AMX products of one sub-chunk.
@@ -82,17 +89,17 @@ struct alignas(128) Work {
 
 struct Trainer::Impl {
     std::vector<Work> work;
-    format::Network net;                      // forward layout of the current master weights
-    std::vector<std::vector<float>> wpad;     // per layer [out][pad16(in)] for dX = G W
-    std::vector<float> zeros;                 // bias for the backward products
+    format::Network net;                   // forward layout of the current master weights
+    std::vector<std::vector<float>> wpad;  // per layer [out][pad16(in)] for dX = G W
+    std::vector<float> zeros;              // bias for the backward products
     // bf16 path: the current weights as B operands, refreshed every step (they change).
-    std::vector<detail::Bf16Buffer> wf;       // per layer, forward: Wt (K = in) in VNNI layout
-    std::vector<detail::Bf16Buffer> wb;       // per layer, input gradient: W (K = out) in VNNI layout
+    std::vector<detail::Bf16Buffer> wf;  // per layer, forward: Wt (K = in) in VNNI layout
+    std::vector<detail::Bf16Buffer> wb;  // per layer, input gradient: W (K = out) in VNNI layout
     // Adam state.
     std::vector<std::vector<float>> gm, gv, wm, wv, bm, bv;
     std::vector<std::vector<std::uint32_t>> row_step;
-    std::vector<double> grid_correction;  // [t] = adam_bias_correction(grid_adam, t); [0] unused
-    std::vector<std::vector<float>> gsum;     // reduced grid gradient of the step
+    std::vector<double> grid_correction;   // [t] = adam_bias_correction(grid_adam, t); [0] unused
+    std::vector<std::vector<float>> gsum;  // reduced grid gradient of the step
     std::vector<std::vector<std::uint8_t>> active;
     std::vector<std::vector<float>> wgrad, bgrad;  // reduced MLP gradient, file layout
     double ema = 0;
@@ -112,7 +119,11 @@ struct Trainer::Impl {
 };
 
 Trainer::Trainer(const format::ModelDesc& desc, std::vector<std::uint8_t> occupancy, const TrainConfig& cfg)
-    : impl_(new Impl), desc_(desc), geo_(format::make_geometry(desc)), occupancy_(std::move(occupancy)), cfg_(cfg) {
+    : impl_(new Impl),
+      desc_(desc),
+      geo_(format::make_geometry(desc)),
+      occupancy_(std::move(occupancy)),
+      cfg_(cfg) {
     threads_ = base::resolve_threads(cfg.threads);
     precision_ = resolve_precision(cfg.mlp_precision);
     Rng rng{cfg.seed * 0x2545F4914F6CDD1Dull + 1};
@@ -183,7 +194,9 @@ Trainer::Trainer(const format::ModelDesc& desc, std::vector<std::uint8_t> occupa
     }
 }
 
-Trainer::~Trainer() { delete impl_; }
+Trainer::~Trainer() {
+    delete impl_;
+}
 
 double Trainer::mlp_flops_per_sample() const {
     double f = 0;
@@ -216,9 +229,10 @@ namespace {
 // Forward of one sub-chunk: trace + encode into w.x, layers into w.act. Rows whose ray
 // does not reach the network get count = 0 (all-zero input).
 // Encoding and layers for rows whose w.pts are filled.
-void forward_layers(const Geometry& geo, const std::vector<format::GridView>& grid, const format::Network& net,
-                    std::size_t n, Work& w) {
-    for (std::size_t r = 0; r < n; ++r) format::encode_points(geo, grid.data(), w.pts[r], w.x.data() + r * geo.input_width);
+void forward_layers(const Geometry& geo, const std::vector<format::GridView>& grid,
+                    const format::Network& net, std::size_t n, Work& w) {
+    for (std::size_t r = 0; r < n; ++r)
+        format::encode_points(geo, grid.data(), w.pts[r], w.x.data() + r * geo.input_width);
     const float* src = w.x.data();
     std::size_t lda = geo.input_width;
     for (std::size_t k = 0; k < net.wt.size(); ++k) {
@@ -239,16 +253,20 @@ void forward_layers(const Geometry& geo, const std::vector<format::GridView>& gr
 // Measured on a trained v1-width model (test_amx.cpp), relative L2 difference of the
 // gradients to fp32: 44-49% for the output layer with a bf16 output forward, 3-7% for
 // every parameter kind with an fp32 one.
-void forward_layers_bf16(const Geometry& geo, const std::vector<format::GridView>& grid, const format::Network& net,
-                         const std::vector<detail::Bf16Buffer>& wf, std::size_t n, Work& w) {
-    for (std::size_t r = 0; r < n; ++r) format::encode_points(geo, grid.data(), w.pts[r], w.x.data() + r * geo.input_width);
+void forward_layers_bf16(const Geometry& geo, const std::vector<format::GridView>& grid,
+                         const format::Network& net, const std::vector<detail::Bf16Buffer>& wf, std::size_t n,
+                         Work& w) {
+    for (std::size_t r = 0; r < n; ++r)
+        format::encode_points(geo, grid.data(), w.pts[r], w.x.data() + r * geo.input_width);
     const float* src = w.x.data();
     std::size_t lda = geo.input_width;
     for (std::size_t k = 0; k < net.wt.size(); ++k) {
         const std::size_t in = net.in[k], kp = pad32(net.in[k]), outp = net.out_padded[k];
         if (k + 1 == net.wt.size()) {  // dense_narrow: dense_layer's results, faster for outp = 16
-            if (!detail::dense_narrow(src, n, in, lda, net.wt[k].data(), net.bias[k].data(), outp, w.act[k].data()))
-                format::dense_layer(src, n, in, lda, net.wt[k].data(), net.bias[k].data(), outp, false, w.act[k].data());
+            if (!detail::dense_narrow(src, n, in, lda, net.wt[k].data(), net.bias[k].data(), outp,
+                                      w.act[k].data()))
+                format::dense_layer(src, n, in, lda, net.wt[k].data(), net.bias[k].data(), outp, false,
+                                    w.act[k].data());
             break;
         }
         detail::pack_rows(src, n, in, lda, w.a_rows.data(), kp, detail::round_up(n, 16));
@@ -380,7 +398,8 @@ TrainResult Trainer::train(std::span<const Sample> samples, const ProgressFn& pr
     return train(prepare(samples), progress);
 }
 
-LossParts Trainer::loss_and_gradients(const PreparedSet& set, std::span<const std::uint32_t> batch, Gradients* grads) {
+LossParts Trainer::loss_and_gradients(const PreparedSet& set, std::span<const std::uint32_t> batch,
+                                      Gradients* grads) {
     Impl& im = *impl_;
     im.net = format::make_network(desc_, w_, b_);
     const std::uint32_t layers = desc_.layer_count();
@@ -405,7 +424,8 @@ LossParts Trainer::loss_and_gradients(const PreparedSet& set, std::span<const st
             const std::uint32_t ip = pad16(i);
             im.wpad[k].assign(std::size_t(o) * ip, 0.0f);
             for (std::uint32_t r = 0; r < o; ++r)
-                std::memcpy(im.wpad[k].data() + std::size_t(r) * ip, w_[k].data() + std::size_t(r) * i, i * sizeof(float));
+                std::memcpy(im.wpad[k].data() + std::size_t(r) * ip, w_[k].data() + std::size_t(r) * i,
+                            i * sizeof(float));
         }
     }
     std::vector<format::GridView> gp;
@@ -438,8 +458,10 @@ LossParts Trainer::loss_and_gradients(const PreparedSet& set, std::span<const st
                 p.t[0] = set.t_first[i];
                 std::memcpy(p.g, &set.g[std::size_t(i) * set.H * 3], sizeof(float) * 3 * p.count);
             }
-            if (bf16) forward_layers_bf16(geo_, gp, im.net, im.wf, n, w);
-            else forward_layers(geo_, gp, im.net, n, w);
+            if (bf16)
+                forward_layers_bf16(geo_, gp, im.net, im.wf, n, w);
+            else
+                forward_layers(geo_, gp, im.net, n, w);
             // ---- losses and dL/d(outputs) ----
             const std::size_t outp = im.net.out_padded.back();
             float* dO = w.d0.data();
@@ -450,7 +472,8 @@ LossParts Trainer::loss_and_gradients(const PreparedSet& set, std::span<const st
                 float* g = dO + r * outp;
                 const float y = s.hit ? 1.0f : 0.0f, z = o[0];
                 // BCE with logits: softplus(z) - y z, stable form.
-                w.loss.visibility += double(std::max(z, 0.0f) - z * y + std::log1p(std::exp(-std::fabs(z)))) * inv_b;
+                w.loss.visibility +=
+                    double(std::max(z, 0.0f) - z * y + std::log1p(std::exp(-std::fabs(z)))) * inv_b;
                 g[0] = lw.visibility * (sigmoid(z) - y) * inv_b;
                 const RayPoints& p = w.pts[r];
                 if (!s.hit || p.count == 0) continue;
@@ -478,8 +501,9 @@ LossParts Trainer::loss_and_gradients(const PreparedSet& set, std::span<const st
                     const std::uint32_t target_m = std::min(s.material, M - 1);
                     w.loss.material += (std::log(sum) - double(o[5 + target_m] - mx)) * inv_h;
                     for (std::uint32_t m = 0; m < M; ++m)
-                        g[5 + m] = lw.material * inv_h *
-                                   (float(std::exp(double(o[5 + m] - mx)) / sum) - (m == target_m ? 1.0f : 0.0f));
+                        g[5 + m] =
+                            lw.material * inv_h *
+                            (float(std::exp(double(o[5 + m] - mx)) / sum) - (m == target_m ? 1.0f : 0.0f));
                 }
             }
             // ---- backward through the MLP ----
@@ -496,17 +520,19 @@ LossParts Trainer::loss_and_gradients(const PreparedSet& set, std::span<const st
                     const std::size_t np = detail::round_up(n, 32);
                     detail::pack_transposed(X, n, in_k, ldx, w.a_t.data(), np, ip);
                     detail::pack_vnni(G, n, outp_k, outp_k, w.g_vnni.data(), 2 * outp_k, np);
-                    detail::gemm_bf16(ip, outp_k, np, w.a_t.data(), np, w.g_vnni.data(), 2 * outp_k, w.dwt[k].data(),
-                                      outp_k, true);
+                    detail::gemm_bf16(ip, outp_k, np, w.a_t.data(), np, w.g_vnni.data(), 2 * outp_k,
+                                      w.dwt[k].data(), outp_k, true);
                     // dX = G W (K = the real outputs, zero-padded to 32).
                     const std::size_t kp = pad32(im.net.out[k]);
-                    detail::pack_rows(G, n, im.net.out[k], outp_k, w.g_rows.data(), kp, detail::round_up(n, 16));
-                    detail::gemm_bf16(n, ip, kp, w.g_rows.data(), kp, im.wb[k].data(), 2 * ip, other, ip, false);
+                    detail::pack_rows(G, n, im.net.out[k], outp_k, w.g_rows.data(), kp,
+                                      detail::round_up(n, 16));
+                    detail::gemm_bf16(n, ip, kp, w.g_rows.data(), kp, im.wb[k].data(), 2 * ip, other, ip,
+                                      false);
                 } else {
                     detail::outer_accumulate(X, n, in_k, ldx, G, outp_k, w.dwt[k].data());
                     // dX = G W (contract over the real outputs; padded columns of G are zero).
-                    format::dense_layer(G, n, im.net.out[k], outp_k, im.wpad[k].data(), im.zeros.data(), ip, false,
-                                        other);
+                    format::dense_layer(G, n, im.net.out[k], outp_k, im.wpad[k].data(), im.zeros.data(), ip,
+                                        false, other);
                 }
                 for (std::size_t r = 0; r < n; ++r)
                     for (std::size_t o = 0; o < outp_k; ++o) w.db[k][o] += G[r * outp_k + o];
@@ -564,7 +590,8 @@ LossParts Trainer::loss_and_gradients(const PreparedSet& set, std::span<const st
         std::fill(im.bgrad[k].begin(), im.bgrad[k].end(), 0.0f);
         for (Work& w : im.work) {
             for (std::uint32_t ii = 0; ii < i; ++ii)
-                for (std::uint32_t oo = 0; oo < o; ++oo) im.wgrad[k][std::size_t(oo) * i + ii] += w.dwt[k][ii * op + oo];
+                for (std::uint32_t oo = 0; oo < o; ++oo)
+                    im.wgrad[k][std::size_t(oo) * i + ii] += w.dwt[k][ii * op + oo];
             for (std::uint32_t oo = 0; oo < o; ++oo) im.bgrad[k][oo] += w.db[k][oo];
             std::fill(w.dwt[k].begin(), w.dwt[k].end(), 0.0f);
             std::fill(w.db[k].begin(), w.db[k].end(), 0.0f);
@@ -597,7 +624,8 @@ LossParts Trainer::loss_and_gradients(const PreparedSet& set, std::span<const st
             grads->grid[l].assign(grid_[l].size(), 0.0f);
             for (std::size_t row = 0; row < im.active[l].size(); ++row)
                 if (im.active[l][row])
-                    for (std::uint32_t f = 0; f < F; ++f) grads->grid[l][row * F + f] = im.gsum[l][row * F + f];
+                    for (std::uint32_t f = 0; f < F; ++f)
+                        grads->grid[l][row * F + f] = im.gsum[l][row * F + f];
         }
         grads->weights = im.wgrad;
         grads->biases = im.bgrad;
@@ -642,7 +670,8 @@ float Trainer::step(const PreparedSet& set, std::span<const std::uint32_t> batch
     for (std::uint32_t l = 0; l < L; ++l)
         for (std::size_t row = 0; row < im.active[l].size(); ++row)
             if (im.active[l][row])
-                for (std::uint32_t f = 0; f < F; ++f) norm2 += double(im.gsum[l][row * F + f]) * im.gsum[l][row * F + f];
+                for (std::uint32_t f = 0; f < F; ++f)
+                    norm2 += double(im.gsum[l][row * F + f]) * im.gsum[l][row * F + f];
     const float loss = float(lp.total);
     const bool warm = step_ >= 20;
     const bool bad = !std::isfinite(loss) || !std::isfinite(norm2) ||
@@ -658,7 +687,8 @@ float Trainer::step(const PreparedSet& set, std::span<const std::uint32_t> batch
     // These parameters just produced a healthy loss: that is the state worth keeping.
     if (cfg_.snapshot_interval && step_ % cfg_.snapshot_interval == 0) snapshot();
     const double norm = std::sqrt(norm2);
-    const float scale = (cfg_.grad_clip_norm > 0 && norm > cfg_.grad_clip_norm) ? float(cfg_.grad_clip_norm / norm) : 1.0f;
+    const float scale =
+        (cfg_.grad_clip_norm > 0 && norm > cfg_.grad_clip_norm) ? float(cfg_.grad_clip_norm / norm) : 1.0f;
     const float lr_factor = schedule(step_) * lr_scale_;
     ++step_;
     for (std::uint32_t k = 0; k < desc_.layer_count(); ++k) {
@@ -673,7 +703,8 @@ float Trainer::step(const PreparedSet& set, std::span<const std::uint32_t> batch
     // A row's own step counter never exceeds the global one.
     if (im.grid_correction.empty()) im.grid_correction.push_back(0.0);
     while (im.grid_correction.size() <= step_)
-        im.grid_correction.push_back(adam_bias_correction(cfg_.grid_adam, std::uint32_t(im.grid_correction.size())));
+        im.grid_correction.push_back(
+            adam_bias_correction(cfg_.grid_adam, std::uint32_t(im.grid_correction.size())));
     std::vector<float> grid_max(threads_, 0.0f);
     parallel(threads_, [&](std::uint32_t t) {
         for (std::uint32_t l = 0; l < L; ++l) {
@@ -788,7 +819,8 @@ TrainResult Trainer::train(const PreparedSet& samples, const ProgressFn& progres
     res.seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
     const std::size_t tail = std::max<std::size_t>(1, losses.size() / 20);
     double sum = 0;
-    for (std::size_t i = losses.size() - std::min(tail, losses.size()); i < losses.size(); ++i) sum += losses[i];
+    for (std::size_t i = losses.size() - std::min(tail, losses.size()); i < losses.size(); ++i)
+        sum += losses[i];
     res.final_loss = losses.empty() ? NAN : float(sum / double(std::min(tail, losses.size())));
     return res;
 }
@@ -846,8 +878,8 @@ Metrics evaluate(const format::Runtime& rt, std::span<const Sample> samples, std
             culled[i] = format::trace_points(rt.geo, rt.occupancy, rays[i], p) != TraceStatus::ok;
     });
     struct Acc {
-        std::uint64_t rays = 0, culled = 0, correct = 0, true_miss = 0, false_hit = 0, true_hit = 0, false_miss = 0,
-                      culled_true_hits = 0;
+        std::uint64_t rays = 0, culled = 0, correct = 0, true_miss = 0, false_hit = 0, true_hit = 0,
+                      false_miss = 0, culled_true_hits = 0;
         std::vector<double> dist, ang, geo_ang;
     } acc[kFamilyCount];
     for (std::size_t i = 0; i < samples.size(); ++i) {
@@ -875,7 +907,8 @@ Metrics evaluate(const format::Runtime& rt, std::span<const Sample> samples, std
                     // The faceted normal's orientation is the triangle winding's; compare
                     // as an unoriented line against it when the shading normal disagrees.
                     const auto& gn = geometric_normals[i];
-                    double cg = hits[i].normal[0] * gn[0] + hits[i].normal[1] * gn[1] + hits[i].normal[2] * gn[2];
+                    double cg =
+                        hits[i].normal[0] * gn[0] + hits[i].normal[1] * gn[1] + hits[i].normal[2] * gn[2];
                     const double sg = s.normal[0] * gn[0] + s.normal[1] * gn[1] + s.normal[2] * gn[2];
                     if (sg < 0) cg = -cg;
                     a.geo_ang.push_back(std::acos(std::clamp(cg, -1.0, 1.0)) * 180.0 / M_PI);

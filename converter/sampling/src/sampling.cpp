@@ -64,21 +64,39 @@ struct Rng {
 // depends on the seed alone and is computed once per generate() call.
 constexpr std::uint64_t kMainSalt = 0x6C736E6966ull;  // the ray's construction draws
 constexpr std::uint64_t kVoteSalt = 0x766F746573ull;  // family (c): inside-test vote directions
-std::uint64_t stream_base(std::uint64_t seed, std::uint64_t salt) { return mix64(seed ^ salt); }
-Rng stream(std::uint64_t base, std::uint64_t index) { return Rng{mix64(base + index * kGolden)}; }
-Rng ray_rng(std::uint64_t seed, std::uint64_t index) { return stream(stream_base(seed, kMainSalt), index); }
+std::uint64_t stream_base(std::uint64_t seed, std::uint64_t salt) {
+    return mix64(seed ^ salt);
+}
+Rng stream(std::uint64_t base, std::uint64_t index) {
+    return Rng{mix64(base + index * kGolden)};
+}
+Rng ray_rng(std::uint64_t seed, std::uint64_t index) {
+    return stream(stream_base(seed, kMainSalt), index);
+}
 
 // ---- small vector helpers (double precision for sample construction) ---------------------
 
 struct V3 {
     double x, y, z;
 };
-V3 operator+(V3 a, V3 b) { return {a.x + b.x, a.y + b.y, a.z + b.z}; }
-V3 operator-(V3 a, V3 b) { return {a.x - b.x, a.y - b.y, a.z - b.z}; }
-V3 operator*(double s, V3 a) { return {s * a.x, s * a.y, s * a.z}; }
-double dot(V3 a, V3 b) { return a.x * b.x + a.y * b.y + a.z * b.z; }
-V3 cross(V3 a, V3 b) { return {a.y * b.z - a.z * b.y, a.z * b.x - a.x * b.z, a.x * b.y - a.y * b.x}; }
-double length(V3 a) { return std::sqrt(dot(a, a)); }
+V3 operator+(V3 a, V3 b) {
+    return {a.x + b.x, a.y + b.y, a.z + b.z};
+}
+V3 operator-(V3 a, V3 b) {
+    return {a.x - b.x, a.y - b.y, a.z - b.z};
+}
+V3 operator*(double s, V3 a) {
+    return {s * a.x, s * a.y, s * a.z};
+}
+double dot(V3 a, V3 b) {
+    return a.x * b.x + a.y * b.y + a.z * b.z;
+}
+V3 cross(V3 a, V3 b) {
+    return {a.y * b.z - a.z * b.y, a.z * b.x - a.x * b.z, a.x * b.y - a.y * b.x};
+}
+double length(V3 a) {
+    return std::sqrt(dot(a, a));
+}
 
 // Uniform point (x, y) of the open unit disk, q = x^2 + y^2, by rejection from the
 // square (acceptance pi/4). Two candidates per round, the first one inside wins: the
@@ -258,9 +276,9 @@ void parity_filter(const RTCFilterFunctionNArguments* args) {
     auto* pc = reinterpret_cast<ParityContext*>(args->context);
     for (unsigned i = 0; i < args->N; ++i) {
         if (args->valid[i] == 0) continue;
-        pc->hits->push_back({RTCRayN_tfar(args->ray, args->N, i),
-                             std::uint64_t(RTCHitN_geomID(args->hit, args->N, i)) << 32 |
-                                 RTCHitN_primID(args->hit, args->N, i)});
+        pc->hits->push_back(
+            {RTCRayN_tfar(args->ray, args->N, i), std::uint64_t(RTCHitN_geomID(args->hit, args->N, i)) << 32 |
+                                                      RTCHitN_primID(args->hit, args->N, i)});
         args->valid[i] = 0;
     }
 }
@@ -281,12 +299,12 @@ struct EmbreeSource::Impl {
 
     double lo[3]{}, hi[3]{}, center[3]{}, diag = 0;
     SamplingConfig cfg;
-    bool closed = false;         // edge-manifold as given
-    bool parity_ready = false;   // family (c) is rejection sampled (closed, or capped)
+    bool closed = false;        // edge-manifold as given
+    bool parity_ready = false;  // family (c) is rejection sampled (closed, or capped)
     // Consistently oriented (with the caps): the inside vote is the facing of the first
     // hit; otherwise it is the parity of all crossings.
     bool oriented = false;
-    double orientation = 1.0;  // +1 normals point out of the solid, -1 into it
+    double orientation = 1.0;         // +1 normals point out of the solid, -1 into it
     std::vector<std::uint32_t> caps;  // hole-cap triangles (3 vertex indices each)
 
     // Alias table over triangle areas (Vose 1991), construction precision.
@@ -370,7 +388,8 @@ struct EmbreeSource::Impl {
         if (!valid) return out;
         RTCIntersectContext ctx;
         rtcInitIntersectContext(&ctx);
-        RTCRayHit rh = make_ray_hit(r.org, r.dir, r.tmin, r.tmax, kMeshMask);  // the mesh only, never the hole caps
+        RTCRayHit rh =
+            make_ray_hit(r.org, r.dir, r.tmin, r.tmax, kMeshMask);  // the mesh only, never the hole caps
         rtcIntersect1(scene, &ctx, &rh);
         if (rh.hit.geomID == RTC_INVALID_GEOMETRY_ID) return out;
         return {rh.ray.tfar, rh.hit.u, rh.hit.v, rh.hit.primID};
@@ -428,10 +447,12 @@ struct EmbreeSource::Impl {
         pc.ctx.filter = parity_filter;
         pc.hits = &hits;
         const float dir[3] = {float(d.x), float(d.y), float(d.z)};
-        RTCRayHit rh = make_ray_hit(o, dir, 0.0f, INFINITY, kMeshMask | kCapMask);  // caps close the surface for parity
+        RTCRayHit rh =
+            make_ray_hit(o, dir, 0.0f, INFINITY, kMeshMask | kCapMask);  // caps close the surface for parity
         rtcIntersect1(scene, &pc.ctx, &rh);
         // A triangle is crossed at most once: drop repeated references first.
-        std::sort(hits.begin(), hits.end(), [](const ParityHit& a, const ParityHit& b) { return a.prim < b.prim; });
+        std::sort(hits.begin(), hits.end(),
+                  [](const ParityHit& a, const ParityHit& b) { return a.prim < b.prim; });
         hits.erase(std::unique(hits.begin(), hits.end(),
                                [](const ParityHit& a, const ParityHit& b) { return a.prim == b.prim; }),
                    hits.end());
@@ -473,7 +494,8 @@ struct EmbreeSource::Impl {
         const double len = length(ng);
         const double cosine = len > 0 ? orientation * dot(d, ng) / len : 0.0;
         const double u = rh.hit.u, v = rh.hit.v;
-        clean = std::abs(cosine) >= 1e-3 && std::min({u, v, 1.0 - u - v}) >= 1e-6 && rh.ray.tfar > 1e-7 * diag;
+        clean =
+            std::abs(cosine) >= 1e-3 && std::min({u, v, 1.0 - u - v}) >= 1e-6 && rh.ray.tfar > 1e-7 * diag;
         return cosine > 0;
     }
 
@@ -487,7 +509,8 @@ struct EmbreeSource::Impl {
     // first-hit vote) the majority of three votes along random directions, the third only
     // when the first two disagree. A vote goes wrong only when its ray grazes an edge or
     // vertex within float precision; two independent directions doing so is negligible.
-    bool parity_inside(const float o[3], Rng& rng, std::vector<ParityHit>& hits, std::uint64_t& queries) const {
+    bool parity_inside(const float o[3], Rng& rng, std::vector<ParityHit>& hits,
+                       std::uint64_t& queries) const {
         bool clean = false;
         if (oriented && !packed_grid.empty()) {
             const bool a = segment_vote(o, clean, queries);
@@ -530,7 +553,8 @@ struct EmbreeSource::Impl {
                 q[a] = step < 0 ? q[a] - 1 : q[a] + 1;
                 const unsigned state = cell_state(q[0] + grid_res * (q[1] + grid_res * q[2]));
                 if (!state) continue;
-                const V3 ctr{lo[0] + (double(q[0]) + 0.5) / inv_cell[0], lo[1] + (double(q[1]) + 0.5) / inv_cell[1],
+                const V3 ctr{lo[0] + (double(q[0]) + 0.5) / inv_cell[0],
+                             lo[1] + (double(q[1]) + 0.5) / inv_cell[1],
                              lo[2] + (double(q[2]) + 0.5) / inv_cell[2]};
                 const V3 d = ctr - V3{o[0], o[1], o[2]};
                 const double d2 = dot(d, d);
@@ -592,10 +616,10 @@ struct EmbreeSource::Impl {
         std::uint64_t main, votes;  // stream_base() of the seed for each purpose
     };
     struct Pending {
-        Rng rng;             // the ray's main stream, after the draws taken so far
-        std::uint32_t tri;   // family (b): alias slot, after resolve() the triangle
-        double coin;         // family (b): the alias method's second draw
-        V3 candidate;        // family (c): first candidate origin (rng is past it)
+        Rng rng;                // the ray's main stream, after the draws taken so far
+        std::uint32_t tri;      // family (b): alias slot, after resolve() the triangle
+        double coin;            // family (b): the alias method's second draw
+        V3 candidate;           // family (c): first candidate origin (rng is past it)
         std::uint32_t cell[2];  // family (c): grid cells of the first two candidates
     };
 
@@ -686,7 +710,8 @@ struct EmbreeSource::Impl {
         for (std::size_t k = 0; k < m; ++k) {
             const std::uint32_t miss = pk.hit.geomID[k];
             raw[k] = {pk.ray.tfar[k], std::bit_cast<float>(std::bit_cast<std::uint32_t>(pk.hit.u[k]) & ~miss),
-                      std::bit_cast<float>(std::bit_cast<std::uint32_t>(pk.hit.v[k]) & ~miss), pk.hit.primID[k] | miss};
+                      std::bit_cast<float>(std::bit_cast<std::uint32_t>(pk.hit.v[k]) & ~miss),
+                      pk.hit.primID[k] | miss};
         }
     }
     // intersect16() over n rays (the packet baseline of measure_throughput()).
@@ -725,8 +750,8 @@ struct EmbreeSource::Impl {
 
 // Marks every cell a triangle (mesh or hole cap) overlaps (separating-axis test on the
 // cell grown by 1e-3 of its size: conservative against rounding), then flood-fills the
-// untouched cells 6-connected to the box faces as outside. No surface passes through an untouched cell, so a connected set of them is
-// wholly inside or wholly outside; a set touching the box face is outside (the box
+// untouched cells 6-connected to the box faces as outside. No surface passes through an untouched cell, so a
+// connected set of them is wholly inside or wholly outside; a set touching the box face is outside (the box
 // contains the mesh). Each remaining set is classified by parity votes at up to three of
 // its cell centres.
 void EmbreeSource::Impl::build_grid() {
@@ -842,7 +867,7 @@ void EmbreeSource::Impl::finish(const Streams& st, std::size_t index, Pending& p
             d = (1.0 / length(d)) * d;
             break;
         }
-        case Family::surface: {  // (b)
+        case Family::surface: {             // (b)
             const std::size_t tri = p.tri;  // drawn by draw(), resolved by resolve()
             const SurfaceRecord& rec = surface[tri];
             // Uniform point: b0 = 1 - sqrt(u1), b1 = u2 sqrt(u1) (Shirley 1990; PBRT §13.6.5).
@@ -851,14 +876,16 @@ void EmbreeSource::Impl::finish(const Streams& st, std::size_t index, Pending& p
             const double su = std::sqrt(u1);
             // With b0 = 1 - su: b2 = 1 - b0 - b1 = su - b1, and p = v0 + b1 e1 + b2 e2.
             const double b1 = u2 * su, b2 = su - b1;
-            const V3 pt{rec.v0[0] + b1 * rec.e1[0] + b2 * rec.e2[0], rec.v0[1] + b1 * rec.e1[1] + b2 * rec.e2[1],
+            const V3 pt{rec.v0[0] + b1 * rec.e1[0] + b2 * rec.e2[0],
+                        rec.v0[1] + b1 * rec.e1[1] + b2 * rec.e2[1],
                         rec.v0[2] + b1 * rec.e1[2] + b2 * rec.e2[2]};
             const float* fn = rec.ng;
             const std::uint64_t coins = rng.next();  // bit 63: side, bit 62: direction law
             const double side = (coins >> 63) ? 1.0 : -1.0;
             const V3 n = side * V3{fn[0], fn[1], fn[2]};
-            const double eps = double(cfg.offset_diagonal) * diag +
-                               double(cfg.offset_relative) * std::max({std::abs(pt.x), std::abs(pt.y), std::abs(pt.z)});
+            const double eps =
+                double(cfg.offset_diagonal) * diag +
+                double(cfg.offset_relative) * std::max({std::abs(pt.x), std::abs(pt.y), std::abs(pt.z)});
             o = pt + eps * n;
             // Unit up to rounding (n is a unit normal stored in float): no renormalization.
             d = hemisphere(rng, n, (coins >> 62) & 1);
@@ -869,7 +896,7 @@ void EmbreeSource::Impl::finish(const Streams& st, std::size_t index, Pending& p
             break;
         }
         case Family::interior: {  // (c)
-            Rng votes{0};  // the vote stream, set up by the first vote
+            Rng votes{0};         // the vote stream, set up by the first vote
             bool votes_ready = false;
             auto vote_rng = [&]() -> Rng& {
                 if (!votes_ready) votes = stream(st.votes, index), votes_ready = true;
@@ -946,7 +973,8 @@ static bool cap_holes(EmbreeSource::Impl& m, const std::vector<std::pair<std::ui
             }
         const double ext = length({hi3[0] - lo3[0], hi3[1] - lo3[1], hi3[2] - lo3[2]});
         if (!(ext <= max_extent)) small = false;
-        for (std::size_t k = from + 1; k + 1 < path.size(); ++k) caps.insert(caps.end(), {path[from], path[k], path[k + 1]});
+        for (std::size_t k = from + 1; k + 1 < path.size(); ++k)
+            caps.insert(caps.end(), {path[from], path[k], path[k + 1]});
     };
     for (std::size_t start = 0; start < odd.size() && small; ++start) {
         if (used[start]) continue;
@@ -985,15 +1013,16 @@ static bool cap_holes(EmbreeSource::Impl& m, const std::vector<std::pair<std::ui
 EmbreeSource::EmbreeSource(std::unique_ptr<Impl> impl) : impl_(std::move(impl)) {}
 EmbreeSource::~EmbreeSource() = default;
 
-std::unique_ptr<EmbreeSource> EmbreeSource::create(const MeshView& mesh, const Box& box, const SamplingConfig& cfg,
-                                                   std::string& error) {
+std::unique_ptr<EmbreeSource> EmbreeSource::create(const MeshView& mesh, const Box& box,
+                                                   const SamplingConfig& cfg, std::string& error) {
     error.clear();
     auto fail = [&](std::string msg) {
         error = "sampling: " + std::move(msg);
         return std::unique_ptr<EmbreeSource>();
     };
     // ---- validation
-    if (mesh.positions.empty() || mesh.indices.empty()) return fail("empty mesh (no vertices or no triangles)");
+    if (mesh.positions.empty() || mesh.indices.empty())
+        return fail("empty mesh (no vertices or no triangles)");
     if (mesh.positions.size() % 3) return fail("positions size is not a multiple of 3");
     if (mesh.indices.size() % 3) return fail("indices size is not a multiple of 3");
     const std::size_t nv = mesh.positions.size() / 3, nt = mesh.indices.size() / 3;
@@ -1002,9 +1031,10 @@ std::unique_ptr<EmbreeSource> EmbreeSource::create(const MeshView& mesh, const B
         return fail("normals must be empty or one xyz per vertex");
     if (!mesh.materials.empty() && mesh.materials.size() != nt)
         return fail("materials must be empty or one per triangle");
-    if (!(cfg.shadow_fraction >= 0.0f && cfg.shadow_fraction <= 1.0f)) return fail("shadow_fraction outside [0, 1]");
-    if (!(cfg.offset_diagonal >= 0.0f) || !(cfg.offset_relative >= 0.0f) || !std::isfinite(cfg.offset_diagonal) ||
-        !std::isfinite(cfg.offset_relative))
+    if (!(cfg.shadow_fraction >= 0.0f && cfg.shadow_fraction <= 1.0f))
+        return fail("shadow_fraction outside [0, 1]");
+    if (!(cfg.offset_diagonal >= 0.0f) || !(cfg.offset_relative >= 0.0f) ||
+        !std::isfinite(cfg.offset_diagonal) || !std::isfinite(cfg.offset_relative))
         return fail("offsets must be finite and >= 0");
     if (cfg.classify_resolution > 1024) return fail("classify_resolution above 1024");
     if (!(cfg.max_hole_size >= 0.0f) || !std::isfinite(cfg.max_hole_size))
@@ -1012,7 +1042,8 @@ std::unique_ptr<EmbreeSource> EmbreeSource::create(const MeshView& mesh, const B
     for (int a = 0; a < 3; ++a) {
         if (!std::isfinite(box.min[std::size_t(a)]) || !std::isfinite(box.max[std::size_t(a)]))
             return fail("box is not finite");
-        if (!(box.min[std::size_t(a)] < box.max[std::size_t(a)])) return fail("box min must be below max on every axis");
+        if (!(box.min[std::size_t(a)] < box.max[std::size_t(a)]))
+            return fail("box min must be below max on every axis");
     }
     for (std::size_t i = 0; i < mesh.positions.size(); ++i) {
         const float p = mesh.positions[i];
@@ -1022,9 +1053,11 @@ std::unique_ptr<EmbreeSource> EmbreeSource::create(const MeshView& mesh, const B
             return fail("vertex " + std::to_string(i / 3) + " lies outside the box");
     }
     for (std::size_t i = 0; i < mesh.normals.size(); ++i)
-        if (!std::isfinite(mesh.normals[i])) return fail("normal " + std::to_string(i / 3) + " is not finite");
+        if (!std::isfinite(mesh.normals[i]))
+            return fail("normal " + std::to_string(i / 3) + " is not finite");
     for (std::size_t i = 0; i < mesh.indices.size(); ++i)
-        if (mesh.indices[i] >= nv) return fail("triangle " + std::to_string(i / 3) + " has an index out of range");
+        if (mesh.indices[i] >= nv)
+            return fail("triangle " + std::to_string(i / 3) + " has an index out of range");
 
     auto impl = std::make_unique<Impl>();
     Impl& m = *impl;
@@ -1072,7 +1105,8 @@ std::unique_ptr<EmbreeSource> EmbreeSource::create(const MeshView& mesh, const B
         for (std::size_t i = 0; i < nv; ++i) {
             const double len = length({vn[3 * i], vn[3 * i + 1], vn[3 * i + 2]});
             if (len > 0)
-                for (int a = 0; a < 3; ++a) m.normals[3 * i + std::size_t(a)] = float(vn[3 * i + std::size_t(a)] / len);
+                for (int a = 0; a < 3; ++a)
+                    m.normals[3 * i + std::size_t(a)] = float(vn[3 * i + std::size_t(a)] / len);
         }
     }
 
@@ -1100,7 +1134,8 @@ std::unique_ptr<EmbreeSource> EmbreeSource::create(const MeshView& mesh, const B
         }
         // Leftovers (rounding) keep probability 1 and alias themselves; a zero-area
         // leftover would be chosen, so give it away to the largest triangle instead.
-        const std::uint32_t biggest = std::uint32_t(std::max_element(area.begin(), area.end()) - area.begin());
+        const std::uint32_t biggest =
+            std::uint32_t(std::max_element(area.begin(), area.end()) - area.begin());
         for (std::uint32_t l : small)
             if (area[l] == 0) {
                 m.alias_prob[l] = 0.0;
@@ -1126,7 +1161,8 @@ std::unique_ptr<EmbreeSource> EmbreeSource::create(const MeshView& mesh, const B
             auto& list = buckets[h];
             std::uint32_t id = std::uint32_t(i);
             for (std::uint32_t j : list)
-                if (bits(m.positions[3 * std::size_t(j)]) == bx && bits(m.positions[3 * std::size_t(j) + 1]) == by &&
+                if (bits(m.positions[3 * std::size_t(j)]) == bx &&
+                    bits(m.positions[3 * std::size_t(j) + 1]) == by &&
                     bits(m.positions[3 * std::size_t(j) + 2]) == bz) {
                     id = j;
                     break;
@@ -1142,7 +1178,8 @@ std::unique_ptr<EmbreeSource> EmbreeSource::create(const MeshView& mesh, const B
                                 c = canon[m.indices[3 * t + 2]];
             if (a == b || b == c || c == a) continue;  // degenerate: no edges of its own
             for (auto [p, q] : {std::pair{a, b}, std::pair{b, c}, std::pair{c, a}})
-                edges.push_back((std::uint64_t(std::min(p, q)) << 32 | std::max(p, q)) << 1 | (p > q ? 1u : 0u));
+                edges.push_back((std::uint64_t(std::min(p, q)) << 32 | std::max(p, q)) << 1 |
+                                (p > q ? 1u : 0u));
         }
         std::sort(edges.begin(), edges.end());
         bool closed = !edges.empty(), oriented = !edges.empty();
@@ -1188,7 +1225,9 @@ std::unique_ptr<EmbreeSource> EmbreeSource::create(const MeshView& mesh, const B
 
     // ---- Embree device and scene
     m.device = rtcNewDevice(nullptr);
-    if (!m.device) return fail("rtcNewDevice failed (embree error " + std::to_string(int(rtcGetDeviceError(nullptr))) + ")");
+    if (!m.device)
+        return fail("rtcNewDevice failed (embree error " + std::to_string(int(rtcGetDeviceError(nullptr))) +
+                    ")");
     rtcSetDeviceErrorFunction(m.device, &Impl::on_error, &m);
     rtcSetDeviceMemoryMonitorFunction(m.device, &Impl::on_memory, &m);
     m.scene = rtcNewScene(m.device);
@@ -1205,8 +1244,8 @@ std::unique_ptr<EmbreeSource> EmbreeSource::create(const MeshView& mesh, const B
     // Embree-owned copies (rtcSetNewGeometryBuffer pads them for its vector loads).
     auto* vb = static_cast<float*>(
         rtcSetNewGeometryBuffer(geom, RTC_BUFFER_TYPE_VERTEX, 0, RTC_FORMAT_FLOAT3, 3 * sizeof(float), nv));
-    auto* ib = static_cast<std::uint32_t*>(
-        rtcSetNewGeometryBuffer(geom, RTC_BUFFER_TYPE_INDEX, 0, RTC_FORMAT_UINT3, 3 * sizeof(std::uint32_t), nt));
+    auto* ib = static_cast<std::uint32_t*>(rtcSetNewGeometryBuffer(
+        geom, RTC_BUFFER_TYPE_INDEX, 0, RTC_FORMAT_UINT3, 3 * sizeof(std::uint32_t), nt));
     if (!vb || !ib) {
         rtcReleaseGeometry(geom);
         return fail("embree buffer allocation failed: " + m.error_text());
@@ -1228,11 +1267,12 @@ std::unique_ptr<EmbreeSource> EmbreeSource::create(const MeshView& mesh, const B
         for (std::size_t k = 0; k < m.caps.size(); ++k) {
             auto [it, fresh] = local.try_emplace(m.caps[k], std::uint32_t(local.size()));
             if (fresh)
-                for (int a = 0; a < 3; ++a) cap_pos.push_back(m.positions[3 * std::size_t(m.caps[k]) + std::size_t(a)]);
+                for (int a = 0; a < 3; ++a)
+                    cap_pos.push_back(m.positions[3 * std::size_t(m.caps[k]) + std::size_t(a)]);
             cap_index[k] = it->second;
         }
-        auto* cvb = static_cast<float*>(rtcSetNewGeometryBuffer(cg, RTC_BUFFER_TYPE_VERTEX, 0, RTC_FORMAT_FLOAT3,
-                                                                3 * sizeof(float), cap_pos.size() / 3));
+        auto* cvb = static_cast<float*>(rtcSetNewGeometryBuffer(
+            cg, RTC_BUFFER_TYPE_VERTEX, 0, RTC_FORMAT_FLOAT3, 3 * sizeof(float), cap_pos.size() / 3));
         auto* cib = static_cast<std::uint32_t*>(rtcSetNewGeometryBuffer(
             cg, RTC_BUFFER_TYPE_INDEX, 0, RTC_FORMAT_UINT3, 3 * sizeof(std::uint32_t), m.caps.size() / 3));
         if (!cvb || !cib) {
@@ -1327,20 +1367,44 @@ bool EmbreeSource::inside_solid(const std::array<float, 3>& p, std::uint64_t see
     return impl_->inside(p.data(), rng, hits, queries);
 }
 
-bool EmbreeSource::is_closed() const { return impl_->closed; }
-bool EmbreeSource::rejects_interior() const { return impl_->parity_ready; }
-InsideTest EmbreeSource::inside_test() const {
-    return !impl_->parity_ready ? InsideTest::none : impl_->oriented ? InsideTest::first_hit_facing : InsideTest::parity;
+bool EmbreeSource::is_closed() const {
+    return impl_->closed;
 }
-std::size_t EmbreeSource::cap_triangle_count() const { return impl_->caps.size() / 3; }
-std::size_t EmbreeSource::bvh_bytes() const { return impl_->bvh; }
-std::size_t EmbreeSource::device_bytes() const { return impl_->device_total; }
-std::size_t EmbreeSource::triangle_count() const { return impl_->triangles; }
-float EmbreeSource::diagonal() const { return float(impl_->diag); }
-void EmbreeSource::set_threads(std::uint32_t threads) { impl_->cfg.threads = threads; }
-std::uint32_t EmbreeSource::threads() const { return base::resolve_threads(impl_->cfg.threads); }
-const GenerateCounters& EmbreeSource::counters() const { return impl_->counters; }
-std::string EmbreeSource::last_error() const { return impl_->error_text(); }
+bool EmbreeSource::rejects_interior() const {
+    return impl_->parity_ready;
+}
+InsideTest EmbreeSource::inside_test() const {
+    return !impl_->parity_ready ? InsideTest::none
+           : impl_->oriented    ? InsideTest::first_hit_facing
+                                : InsideTest::parity;
+}
+std::size_t EmbreeSource::cap_triangle_count() const {
+    return impl_->caps.size() / 3;
+}
+std::size_t EmbreeSource::bvh_bytes() const {
+    return impl_->bvh;
+}
+std::size_t EmbreeSource::device_bytes() const {
+    return impl_->device_total;
+}
+std::size_t EmbreeSource::triangle_count() const {
+    return impl_->triangles;
+}
+float EmbreeSource::diagonal() const {
+    return float(impl_->diag);
+}
+void EmbreeSource::set_threads(std::uint32_t threads) {
+    impl_->cfg.threads = threads;
+}
+std::uint32_t EmbreeSource::threads() const {
+    return base::resolve_threads(impl_->cfg.threads);
+}
+const GenerateCounters& EmbreeSource::counters() const {
+    return impl_->counters;
+}
+std::string EmbreeSource::last_error() const {
+    return impl_->error_text();
+}
 
 std::vector<std::array<float, 3>> geometric_normals(std::span<const SampleExtras> extras) {
     std::vector<std::array<float, 3>> out(extras.size());
@@ -1350,7 +1414,8 @@ std::vector<std::array<float, 3>> geometric_normals(std::span<const SampleExtras
 
 // ---- throughput --------------------------------------------------------------------------
 
-GenerationStats measure_throughput(EmbreeSource& src, std::uint64_t seed, std::size_t count, std::uint32_t repeats) {
+GenerationStats measure_throughput(EmbreeSource& src, std::uint64_t seed, std::size_t count,
+                                   std::uint32_t repeats) {
     GenerationStats st;
     st.rays = count;
     st.threads = src.threads();

@@ -5,8 +5,8 @@
 // specification.
 #include "scene_internal.hpp"
 
-#include <nlohmann/json.hpp>
 #include <tiny_gltf.h>
+#include <nlohmann/json.hpp>
 
 #include <algorithm>
 #include <bit>
@@ -115,8 +115,7 @@ std::string mode_name(int mode) {
 }
 
 bool is_unsigned_index_type(int type) {
-    return type == TINYGLTF_COMPONENT_TYPE_UNSIGNED_BYTE ||
-           type == TINYGLTF_COMPONENT_TYPE_UNSIGNED_SHORT ||
+    return type == TINYGLTF_COMPONENT_TYPE_UNSIGNED_BYTE || type == TINYGLTF_COMPONENT_TYPE_UNSIGNED_SHORT ||
            type == TINYGLTF_COMPONENT_TYPE_UNSIGNED_INT;
 }
 
@@ -170,8 +169,8 @@ std::uint32_t decode_uint(const unsigned char* p, int type) {
 }
 
 // The image loader tinygltf calls for embedded / bufferView images: we never decode images.
-bool ignore_image(tinygltf::Image*, const int, std::string*, std::string*, int, int,
-                  const unsigned char*, int, void*) {
+bool ignore_image(tinygltf::Image*, const int, std::string*, std::string*, int, int, const unsigned char*,
+                  int, void*) {
     return true;
 }
 
@@ -179,9 +178,8 @@ bool ignore_image(tinygltf::Image*, const int, std::string*, std::string*, int, 
 // (KHR_mesh_quantization) or without any effect on geometry (materials, textures, lights).
 bool extension_supported(const std::string& name) {
     return name == "KHR_mesh_quantization" || name.rfind("KHR_materials_", 0) == 0 ||
-           name == "KHR_texture_transform" || name == "KHR_texture_basisu" ||
-           name == "EXT_texture_webp" || name == "EXT_texture_avif" ||
-           name == "KHR_lights_punctual";
+           name == "KHR_texture_transform" || name == "KHR_texture_basisu" || name == "EXT_texture_webp" ||
+           name == "EXT_texture_avif" || name == "KHR_lights_punctual";
 }
 
 std::string unsupported_extension_message(const std::string& ext) {
@@ -276,8 +274,7 @@ std::string precheck(std::span<const std::uint8_t> bytes, bool binary) {
 
 class GltfImporter {
 public:
-    GltfImporter(const tinygltf::Model& model, std::string file)
-        : model_(model), file_(std::move(file)) {}
+    GltfImporter(const tinygltf::Model& model, std::string file) : model_(model), file_(std::move(file)) {}
 
     void add_parser_messages(const std::string& text) {
         std::size_t start = 0;
@@ -310,8 +307,7 @@ private:
     bool check_asset() {
         const std::string& v = model_.asset.version;
         if (v.rfind("2.", 0) != 0) {
-            return fail("asset.version is \"" + v +
-                        "\"; only glTF 2.x is supported (glTF 2.0 \"Asset\")");
+            return fail("asset.version is \"" + v + "\"; only glTF 2.x is supported (glTF 2.0 \"Asset\")");
         }
         const std::string& mv = model_.asset.minVersion;
         if (!mv.empty() && mv != "2.0") {
@@ -330,8 +326,9 @@ private:
         for (const std::string& ext : model_.extensionsUsed) {
             if (ext == "KHR_mesh_quantization") quantization_ = true;
             if (ext == "EXT_mesh_gpu_instancing") {
-                warnings_.add("extension EXT_mesh_gpu_instancing is ignored: only the nodes "
-                              "themselves are instanced");
+                warnings_.add(
+                    "extension EXT_mesh_gpu_instancing is ignored: only the nodes "
+                    "themselves are instanced");
             }
         }
         return true;
@@ -374,8 +371,8 @@ private:
                 if (!is_child[i]) roots.push_back(int(i));
             }
             if (!roots.empty()) {
-                warnings_.add("the file has no scenes; importing all " +
-                              std::to_string(roots.size()) + " root nodes");
+                warnings_.add("the file has no scenes; importing all " + std::to_string(roots.size()) +
+                              " root nodes");
             }
             origin = "the root node list";
         }
@@ -383,11 +380,10 @@ private:
         if (scene_.instances.empty()) {
             std::size_t skipped = 0;
             for (const std::int64_t slot : mesh_slot_) skipped += slot == kSkipped ? 1 : 0;
-            return fail(skipped == 0
-                            ? "no triangles to import: " + origin + " instances no mesh"
-                            : "no triangles to import: the " + std::to_string(skipped) +
-                                  " mesh(es) instanced by " + origin +
-                                  " have no triangle primitives (see warnings)");
+            return fail(skipped == 0 ? "no triangles to import: " + origin + " instances no mesh"
+                                     : "no triangles to import: the " + std::to_string(skipped) +
+                                           " mesh(es) instanced by " + origin +
+                                           " have no triangle primitives (see warnings)");
         }
         return true;
     }
@@ -408,12 +404,11 @@ private:
         while (!stack.empty()) {
             const Item item = stack.back();
             stack.pop_back();
-            const std::string lister =
-                item.parent < 0 ? origin : "node " + std::to_string(item.parent);
+            const std::string lister = item.parent < 0 ? origin : "node " + std::to_string(item.parent);
             if (item.node < 0 || std::size_t(item.node) >= model_.nodes.size()) {
                 return fail(lister + " refers to node " + std::to_string(item.node) +
-                            ", which does not exist (the file has " +
-                            std::to_string(model_.nodes.size()) + " nodes)");
+                            ", which does not exist (the file has " + std::to_string(model_.nodes.size()) +
+                            " nodes)");
             }
             const tinygltf::Node& node = model_.nodes[std::size_t(item.node)];
             const std::string what = "node " + std::to_string(item.node) + quote_name(node.name);
@@ -434,14 +429,14 @@ private:
                 std::int64_t slot = kSkipped;
                 if (!mesh_slot(node.mesh, what, slot)) return false;
                 if (node.skin >= 0) {
-                    warnings_.add(what + " is skinned: skinning is not applied, the mesh is "
-                                         "instanced with the node's transform");
+                    warnings_.add(what +
+                                  " is skinned: skinning is not applied, the mesh is "
+                                  "instanced with the node's transform");
                 }
                 if (slot >= 0) {
                     Instance inst;
                     inst.mesh = std::uint32_t(slot);
-                    inst.node_name =
-                        node.name.empty() ? "node_" + std::to_string(item.node) : node.name;
+                    inst.node_name = node.name.empty() ? "node_" + std::to_string(item.node) : node.name;
                     for (int r = 0; r < 3; ++r) {
                         for (int c = 0; c < 4; ++c) {
                             const float x = float(world.m[r][c]);
@@ -473,15 +468,17 @@ private:
                 if (!std::isfinite(x)) return fail(what + ": matrix has a non-finite element");
             }
             if (!node.translation.empty() || !node.rotation.empty() || !node.scale.empty()) {
-                warnings_.add(what + " has both matrix and translation/rotation/scale; the "
-                                     "matrix is used (glTF 2.0 \"Transformations\" forbids both)");
+                warnings_.add(what +
+                              " has both matrix and translation/rotation/scale; the "
+                              "matrix is used (glTF 2.0 \"Transformations\" forbids both)");
             }
             // Column-major: element (row r, column k) is c[4 * k + r]. The bottom row must be
             // (0, 0, 0, 1): the spec requires matrices decomposable to TRS.
             if (std::fabs(c[3]) > 1e-6 || std::fabs(c[7]) > 1e-6 || std::fabs(c[11]) > 1e-6 ||
                 std::fabs(c[15] - 1.0) > 1e-6) {
-                return fail(what + ": matrix is not affine (its bottom row is not 0 0 0 1; "
-                                   "glTF 2.0 \"Transformations\")");
+                return fail(what +
+                            ": matrix is not affine (its bottom row is not 0 0 0 1; "
+                            "glTF 2.0 \"Transformations\")");
             }
             for (int r = 0; r < 3; ++r) {
                 for (int k = 0; k < 4; ++k) out.m[r][k] = c[std::size_t(4 * k + r)];
@@ -489,13 +486,11 @@ private:
             return true;
         }
         double t[3] = {0, 0, 0}, q[4] = {0, 0, 0, 1}, s[3] = {1, 1, 1};
-        auto take = [&](const std::vector<double>& v, std::size_t n, double* dst,
-                        const char* name) {
+        auto take = [&](const std::vector<double>& v, std::size_t n, double* dst, const char* name) {
             if (v.empty()) return true;
             if (v.size() != n) {
-                return fail(what + ": " + name + " has " + std::to_string(v.size()) +
-                            " elements, not " + std::to_string(n) +
-                            " (glTF 2.0 \"Transformations\")");
+                return fail(what + ": " + name + " has " + std::to_string(v.size()) + " elements, not " +
+                            std::to_string(n) + " (glTF 2.0 \"Transformations\")");
             }
             for (std::size_t i = 0; i < n; ++i) {
                 if (!std::isfinite(v[i])) {
@@ -519,13 +514,12 @@ private:
         }
         const double x = q[0] / len, y = q[1] / len, z = q[2] / len, w = q[3] / len;
         // Rotation matrix of the unit quaternion (x, y, z, w).
-        const double rot[3][3] = {
-            {1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)},
-            {2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)},
-            {2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)}};
+        const double rot[3][3] = {{1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)},
+                                  {2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)},
+                                  {2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)}};
         for (int r = 0; r < 3; ++r) {
             for (int k = 0; k < 3; ++k) out.m[r][k] = rot[r][k] * s[k];  // R * S
-            out.m[r][3] = t[r];                                             // T * (R * S)
+            out.m[r][3] = t[r];                                          // T * (R * S)
         }
         return true;
     }
@@ -533,8 +527,8 @@ private:
     bool mesh_slot(int index, const std::string& node_what, std::int64_t& slot) {
         if (index < 0 || std::size_t(index) >= model_.meshes.size()) {
             return fail(node_what + " refers to mesh " + std::to_string(index) +
-                        ", which does not exist (the file has " +
-                        std::to_string(model_.meshes.size()) + " meshes)");
+                        ", which does not exist (the file has " + std::to_string(model_.meshes.size()) +
+                        " meshes)");
         }
         std::int64_t& cached = mesh_slot_[std::size_t(index)];
         if (cached == kUnvisited) {
@@ -556,29 +550,29 @@ private:
 
     // Bytes of a bufferView, checked against its buffer (glTF 2.0 "Buffers and Buffer
     // Views"). `stride` is its byteStride (0 = tightly packed).
-    bool view_bytes(int index, const std::string& what, const unsigned char*& data,
-                    std::size_t& length, std::size_t& stride) {
+    bool view_bytes(int index, const std::string& what, const unsigned char*& data, std::size_t& length,
+                    std::size_t& stride) {
         if (index < 0 || std::size_t(index) >= model_.bufferViews.size()) {
-            return fail(what + ": bufferView " + std::to_string(index) +
-                        " does not exist (the file has " +
+            return fail(what + ": bufferView " + std::to_string(index) + " does not exist (the file has " +
                         std::to_string(model_.bufferViews.size()) + " bufferViews)");
         }
         const tinygltf::BufferView& view = model_.bufferViews[std::size_t(index)];
         const std::string vwhat = what + ": bufferView " + std::to_string(index);
         if (view.buffer < 0 || std::size_t(view.buffer) >= model_.buffers.size()) {
             return fail(vwhat + " refers to buffer " + std::to_string(view.buffer) +
-                        ", which does not exist (the file has " +
-                        std::to_string(model_.buffers.size()) + " buffers)");
+                        ", which does not exist (the file has " + std::to_string(model_.buffers.size()) +
+                        " buffers)");
         }
         const tinygltf::Buffer& buffer = model_.buffers[std::size_t(view.buffer)];
         const std::size_t size = buffer.data.size();
         if (view.byteLength == 0) return fail(vwhat + " has byteLength 0");
         if (view.byteOffset > size || view.byteLength > size - view.byteOffset) {
-            return fail(vwhat + " (byteOffset " + std::to_string(view.byteOffset) +
-                        ", byteLength " + std::to_string(view.byteLength) +
-                        ") extends past the end of buffer " + std::to_string(view.buffer) +
+            return fail(vwhat + " (byteOffset " + std::to_string(view.byteOffset) + ", byteLength " +
+                        std::to_string(view.byteLength) + ") extends past the end of buffer " +
+                        std::to_string(view.buffer) +
                         quote_name(buffer.uri.size() < 200 ? buffer.uri : std::string()) + " (" +
-                        std::to_string(size) + " bytes loaded; glTF 2.0 \"Buffers and Buffer "
+                        std::to_string(size) +
+                        " bytes loaded; glTF 2.0 \"Buffers and Buffer "
                         "Views\")");
         }
         data = buffer.data.data() + view.byteOffset;
@@ -622,9 +616,8 @@ private:
                 __builtin_add_overflow(end, acc.byteOffset, &end) || end > vlen) {
                 return fail(awhat + " (byteOffset " + std::to_string(acc.byteOffset) + ", count " +
                             std::to_string(acc.count) + ", stride " + std::to_string(stride) +
-                            ") reads past the end of its bufferView " +
-                            std::to_string(acc.bufferView) + " (byteLength " +
-                            std::to_string(vlen) + "; glTF 2.0 \"Accessors\")");
+                            ") reads past the end of its bufferView " + std::to_string(acc.bufferView) +
+                            " (byteLength " + std::to_string(vlen) + "; glTF 2.0 \"Accessors\")");
             }
             base = vdata + acc.byteOffset;
         } else if (acc.count > kMaxZeroFilledElements) {
@@ -686,12 +679,12 @@ private:
             const std::uint32_t target = decode_uint(idata + k * isize, sp.indices.componentType);
             if (target >= acc.count) {
                 return fail(swhat + ": index " + std::to_string(target) + " at position " +
-                            std::to_string(k) + " is not below count " +
-                            std::to_string(acc.count) + " (glTF 2.0 \"Sparse Accessors\")");
+                            std::to_string(k) + " is not below count " + std::to_string(acc.count) +
+                            " (glTF 2.0 \"Sparse Accessors\")");
             }
             if (k > 0 && target <= previous) {
-                return fail(swhat + ": indices are not strictly increasing at position " +
-                            std::to_string(k) + " (glTF 2.0 \"Sparse Accessors\")");
+                return fail(swhat + ": indices are not strictly increasing at position " + std::to_string(k) +
+                            " (glTF 2.0 \"Sparse Accessors\")");
             }
             previous = target;
             for (std::size_t c = 0; c < components; ++c) {
@@ -704,8 +697,8 @@ private:
     bool accessor_exists(int index, const std::string& what) {
         if (index < 0 || std::size_t(index) >= model_.accessors.size()) {
             return fail(what + " refers to accessor " + std::to_string(index) +
-                        ", which does not exist (the file has " +
-                        std::to_string(model_.accessors.size()) + " accessors)");
+                        ", which does not exist (the file has " + std::to_string(model_.accessors.size()) +
+                        " accessors)");
         }
         return true;
     }
@@ -724,13 +717,11 @@ private:
         const int ct = acc.componentType;
         bool ok = ct == TINYGLTF_COMPONENT_TYPE_FLOAT;
         if (quantization_ && !ok) {
-            ok = is_position ? (ct == TINYGLTF_COMPONENT_TYPE_BYTE ||
-                                ct == TINYGLTF_COMPONENT_TYPE_UNSIGNED_BYTE ||
-                                ct == TINYGLTF_COMPONENT_TYPE_SHORT ||
-                                ct == TINYGLTF_COMPONENT_TYPE_UNSIGNED_SHORT)
-                             : ((ct == TINYGLTF_COMPONENT_TYPE_BYTE ||
-                                 ct == TINYGLTF_COMPONENT_TYPE_SHORT) &&
-                                acc.normalized);
+            ok = is_position
+                     ? (ct == TINYGLTF_COMPONENT_TYPE_BYTE || ct == TINYGLTF_COMPONENT_TYPE_UNSIGNED_BYTE ||
+                        ct == TINYGLTF_COMPONENT_TYPE_SHORT || ct == TINYGLTF_COMPONENT_TYPE_UNSIGNED_SHORT)
+                     : ((ct == TINYGLTF_COMPONENT_TYPE_BYTE || ct == TINYGLTF_COMPONENT_TYPE_SHORT) &&
+                        acc.normalized);
         }
         if (!ok) {
             return fail(rwhat + " accessor " + std::to_string(index) + " has component type " +
@@ -740,8 +731,7 @@ private:
         const bool normalized = acc.normalized;
         return read_accessor<float>(
             index, rwhat, 3,
-            [ct, normalized](const unsigned char* p) { return decode_float(p, ct, normalized); },
-            out);
+            [ct, normalized](const unsigned char* p) { return decode_float(p, ct, normalized); }, out);
     }
 
     bool read_indices(int index, const std::string& what, std::vector<std::uint32_t>& out) {
@@ -749,8 +739,8 @@ private:
         if (!accessor_exists(index, iwhat)) return false;
         const tinygltf::Accessor& acc = model_.accessors[std::size_t(index)];
         if (acc.type != TINYGLTF_TYPE_SCALAR || !is_unsigned_index_type(acc.componentType)) {
-            return fail(iwhat + " accessor " + std::to_string(index) + " is " +
-                        type_name(acc.type) + " of " + component_name(acc.componentType) +
+            return fail(iwhat + " accessor " + std::to_string(index) + " is " + type_name(acc.type) + " of " +
+                        component_name(acc.componentType) +
                         "; SCALAR of UNSIGNED_BYTE, UNSIGNED_SHORT or UNSIGNED_INT is required "
                         "(glTF 2.0 \"Meshes\")");
         }
@@ -781,8 +771,7 @@ private:
             const int mode = prim.mode < 0 ? TINYGLTF_MODE_TRIANGLES : prim.mode;
             if (mode == TINYGLTF_MODE_POINTS || mode == TINYGLTF_MODE_LINE ||
                 mode == TINYGLTF_MODE_LINE_LOOP || mode == TINYGLTF_MODE_LINE_STRIP) {
-                warnings_.add(pwhat + ": " + mode_name(mode) +
-                              " is not a triangle topology; skipped");
+                warnings_.add(pwhat + ": " + mode_name(mode) + " is not a triangle topology; skipped");
                 continue;
             }
             if (mode != TINYGLTF_MODE_TRIANGLES && mode != TINYGLTF_MODE_TRIANGLE_STRIP &&
@@ -805,8 +794,9 @@ private:
             }
             const std::uint32_t material = std::uint32_t(prim.material + 1);
             if (!prim.targets.empty() && !morph_warned) {
-                warnings_.add(what + " has morph targets; they are ignored and the base "
-                                     "geometry is imported");
+                warnings_.add(what +
+                              " has morph targets; they are ignored and the base "
+                              "geometry is imported");
                 morph_warned = true;
             }
 
@@ -821,10 +811,9 @@ private:
                 for (std::size_t v = 0; v < n; ++v) {
                     const float* p = &positions[3 * v];
                     if (!std::isfinite(p[0]) || !std::isfinite(p[1]) || !std::isfinite(p[2])) {
-                        return fail(pwhat + " POSITION accessor " + std::to_string(pos_acc) +
-                                    ": vertex " + std::to_string(v) + " is (" +
-                                    std::to_string(p[0]) + ", " + std::to_string(p[1]) + ", " +
-                                    std::to_string(p[2]) + "), not finite");
+                        return fail(pwhat + " POSITION accessor " + std::to_string(pos_acc) + ": vertex " +
+                                    std::to_string(v) + " is (" + std::to_string(p[0]) + ", " +
+                                    std::to_string(p[1]) + ", " + std::to_string(p[2]) + "), not finite");
                     }
                 }
                 if (nrm_acc >= 0) {
@@ -854,10 +843,9 @@ private:
                 if (!read_indices(prim.indices, pwhat, indices)) return false;
                 for (std::size_t i = 0; i < indices.size(); ++i) {
                     if (indices[i] >= count) {
-                        return fail(pwhat + ": index " + std::to_string(indices[i]) +
-                                    " at position " + std::to_string(i) +
-                                    " is out of range (POSITION has " + std::to_string(count) +
-                                    " vertices; glTF 2.0 \"Meshes\")");
+                        return fail(pwhat + ": index " + std::to_string(indices[i]) + " at position " +
+                                    std::to_string(i) + " is out of range (POSITION has " +
+                                    std::to_string(count) + " vertices; glTF 2.0 \"Meshes\")");
                     }
                 }
             } else {
@@ -924,8 +912,7 @@ ImportResult failure(std::string_view file, const std::string& what) {
 }  // namespace
 
 ImportResult import_gltf_from_memory(std::span<const std::uint8_t> bytes,
-                                     const std::filesystem::path& base_dir,
-                                     std::string_view display_name) {
+                                     const std::filesystem::path& base_dir, std::string_view display_name) {
     try {
         if (bytes.empty()) return failure(display_name, "file is empty");
         if (bytes.size() > UINT_MAX) {
@@ -941,16 +928,15 @@ ImportResult import_gltf_from_memory(std::span<const std::uint8_t> bytes,
         std::string err, warn;
         const std::string dir = base_dir.empty() ? std::string(".") : base_dir.string();
         const bool ok =
-            binary ? loader.LoadBinaryFromMemory(&model, &err, &warn, bytes.data(),
-                                                 unsigned(bytes.size()), dir)
-                   : loader.LoadASCIIFromString(&model, &err, &warn,
-                                                reinterpret_cast<const char*>(bytes.data()),
-                                                unsigned(bytes.size()), dir);
+            binary
+                ? loader.LoadBinaryFromMemory(&model, &err, &warn, bytes.data(), unsigned(bytes.size()), dir)
+                : loader.LoadASCIIFromString(&model, &err, &warn, reinterpret_cast<const char*>(bytes.data()),
+                                             unsigned(bytes.size()), dir);
         if (!ok) {
             std::string why = one_line(err);
             if (why.empty()) why = "unknown parse error";
-            return failure(display_name, std::string(binary ? "invalid binary glTF (.glb): "
-                                                            : "invalid glTF: ") + why);
+            return failure(display_name,
+                           std::string(binary ? "invalid binary glTF (.glb): " : "invalid glTF: ") + why);
         }
         GltfImporter importer(model, std::string(display_name));
         importer.add_parser_messages(err);  // non-fatal complaints land in err too

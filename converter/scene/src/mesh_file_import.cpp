@@ -60,10 +60,10 @@ constexpr std::size_t kMaxEarClipCorners = 256;
 // or ignored (attributes) and reported by the caller.
 class PolygonSoup final : public OpenMesh::IO::BaseImporter {
 public:
-    std::vector<float> points;           // 3 per vertex
-    std::vector<float> normals;          // 3 per vertex
-    std::vector<std::uint8_t> has_normal;  // per vertex
-    std::vector<long long> corners;      // vertex index of every face corner, as read
+    std::vector<float> points;                  // 3 per vertex
+    std::vector<float> normals;                 // 3 per vertex
+    std::vector<std::uint8_t> has_normal;       // per vertex
+    std::vector<long long> corners;             // vertex index of every face corner, as read
     std::vector<std::size_t> face_start = {0};  // face f: corners[face_start[f], face_start[f+1])
 
     VertexHandle add_vertex(const Vec3f& p) override {
@@ -131,9 +131,7 @@ public:
     void add_texture_information(int, std::string) override {}
 
 private:
-    bool valid(VertexHandle v) const {
-        return v.idx() >= 0 && std::size_t(v.idx()) < has_normal.size();
-    }
+    bool valid(VertexHandle v) const { return v.idx() >= 0 && std::size_t(v.idx()) < has_normal.size(); }
 };
 
 // Captures what OpenMesh's readers report while alive. OpenMesh writes its messages to
@@ -236,9 +234,8 @@ std::string check_off_header(const std::string& head, std::uintmax_t size) {
         return {};
     }
     if (nv > size / 6 || nf > size / 2 || nv * 6 + nf * 2 > size + 2) {
-        return "the OFF header declares " + std::to_string(nv) + " vertices and " +
-               std::to_string(nf) + " faces, more than a file of " + std::to_string(size) +
-               " bytes can hold";
+        return "the OFF header declares " + std::to_string(nv) + " vertices and " + std::to_string(nf) +
+               " faces, more than a file of " + std::to_string(size) + " bytes can hold";
     }
     return {};
 }
@@ -253,8 +250,8 @@ std::string check_ply_header(const std::string& head, std::uintmax_t size) {
     //   property TYPE NAME / property list TYPE TYPE NAME / end_header
     // Other lines (comment, obj_info, and the unprefixed notes some exporters write, e.g.
     // Blender's "Created by ...") are skipped, as OpenMesh does; control bytes are not text.
-    static const char* const kTypes[] = {"char",  "uchar", "short", "ushort", "int",    "uint",
-                                         "float", "double", "int8", "uint8",  "int16",  "uint16",
+    static const char* const kTypes[] = {"char",  "uchar",  "short",   "ushort", "int",   "uint",
+                                         "float", "double", "int8",    "uint8",  "int16", "uint16",
                                          "int32", "uint32", "float32", "float64"};
     auto is_type = [](const std::string& t) {
         for (const char* k : kTypes)
@@ -266,7 +263,8 @@ std::string check_ply_header(const std::string& head, std::uintmax_t size) {
     while (true) {
         const std::size_t nl = head.find('\n', pos);
         if (nl == std::string::npos)
-            return "the PLY header has no end_header line within its first " + std::to_string(head.size()) + " bytes";
+            return "the PLY header has no end_header line within its first " + std::to_string(head.size()) +
+                   " bytes";
         std::string line = head.substr(pos, nl - pos);
         pos = nl + 1;
         ++line_no;
@@ -291,7 +289,8 @@ std::string check_ply_header(const std::string& head, std::uintmax_t size) {
             return {};
         }
         if (w[0] == "format") {
-            if (w.size() != 3 || (w[1] != "ascii" && w[1] != "binary_little_endian" && w[1] != "binary_big_endian") ||
+            if (w.size() != 3 ||
+                (w[1] != "ascii" && w[1] != "binary_little_endian" && w[1] != "binary_big_endian") ||
                 w[2] != "1.0")
                 return bad("expected 'format ascii|binary_little_endian|binary_big_endian 1.0'");
             if (have_format) return bad("a second format line");
@@ -346,7 +345,8 @@ std::string check_obj_faces(const std::string& text) {
         line.remove_prefix(i + 2);
         if (!line.empty() && line.back() == '\r') line.remove_suffix(1);
         // A line continued with a backslash is joined by OpenMesh; keep it simple: refuse.
-        if (!line.empty() && line.back() == '\\') return "line " + std::to_string(line_no) + ": continued face line";
+        if (!line.empty() && line.back() == '\\')
+            return "line " + std::to_string(line_no) + ": continued face line";
         std::size_t corners = 0, k = 0;
         while (k < line.size()) {
             while (k < line.size() && (line[k] == ' ' || line[k] == '\t')) ++k;
@@ -365,7 +365,8 @@ std::string check_obj_faces(const std::string& text) {
             }
             if (!ok)
                 return "line " + std::to_string(line_no) + ": face corner '" +
-                       std::string(corner.substr(0, 40)) + "' is not v, v/vt, v//vn or v/vt/vn with non-zero indices";
+                       std::string(corner.substr(0, 40)) +
+                       "' is not v, v/vt, v//vn or v/vt/vn with non-zero indices";
             ++corners;
         }
         if (corners == 0) return "line " + std::to_string(line_no) + ": face without corners";
@@ -373,7 +374,9 @@ std::string check_obj_faces(const std::string& text) {
     return {};
 }
 
-bool is_space(char c) { return c == ' ' || c == '\t' || c == '\r' || c == '\v' || c == '\f'; }
+bool is_space(char c) {
+    return c == ' ' || c == '\t' || c == '\r' || c == '\v' || c == '\f';
+}
 
 // Splits `line` at whitespace into `out` (views into line).
 void split(std::string_view line, std::vector<std::string_view>& out) {
@@ -480,7 +483,8 @@ std::string read_ascii_off(const std::string& text, PolygonSoup& soup, bool& bin
     }
     OpenMesh::IO::BaseImporter::VHandles face;
     for (long long f = 0; f < nf; ++f) {
-        if (!next()) return "the file ends after " + std::to_string(f) + " of " + std::to_string(nf) + " faces";
+        if (!next())
+            return "the file ends after " + std::to_string(f) + " of " + std::to_string(nf) + " faces";
         long long k = 0;
         if (!parse_int(tok[0], k) || k < 0 || std::size_t(k) > tok.size() - 1) {
             return at("face " + std::to_string(f) + ": expected a corner count and that many vertex indices");
@@ -590,8 +594,7 @@ ImportResult failure(const std::string& file, const std::string& what) {
     return {{}, file + ": " + what};
 }
 
-ImportResult failure(const std::string& file, const std::string& what,
-                     detail::WarningSink& warnings) {
+ImportResult failure(const std::string& file, const std::string& what, detail::WarningSink& warnings) {
     ImportResult r = failure(file, what);
     warnings.finish(r.scene.warnings);
     return r;
@@ -612,7 +615,8 @@ ImportResult import_mesh_file_impl(const std::filesystem::path& path, const std:
     }
     if (ext == ".obj") {
         const std::string text = read_head(path, static_cast<std::size_t>(size));
-        if (const std::string problem = check_obj_faces(text); !problem.empty()) return failure(name, problem);
+        if (const std::string problem = check_obj_faces(text); !problem.empty())
+            return failure(name, problem);
     }
     if (ext == ".off" || ext == ".ply") {
         const std::string head = read_head(path, 1 << 16);
@@ -656,9 +660,10 @@ ImportResult import_mesh_file_impl(const std::filesystem::path& path, const std:
     for (std::size_t v = 0; v < nv; ++v) {
         const float* p = &soup.points[3 * v];
         if (!std::isfinite(p[0]) || !std::isfinite(p[1]) || !std::isfinite(p[2])) {
-            return failure(name, "vertex " + std::to_string(v) + " is (" + std::to_string(p[0]) +
-                                     ", " + std::to_string(p[1]) + ", " + std::to_string(p[2]) +
-                                     "), not finite", warnings);
+            return failure(name,
+                           "vertex " + std::to_string(v) + " is (" + std::to_string(p[0]) + ", " +
+                               std::to_string(p[1]) + ", " + std::to_string(p[2]) + "), not finite",
+                           warnings);
         }
     }
 
@@ -673,9 +678,10 @@ ImportResult import_mesh_file_impl(const std::filesystem::path& path, const std:
         for (std::size_t c = begin; c < end; ++c) {
             const long long idx = soup.corners[c];
             if (idx < 0 || std::size_t(idx) >= nv) {
-                return failure(name, "face " + std::to_string(f) + " refers to vertex " +
-                                         std::to_string(idx) + ", but the file has " +
-                                         std::to_string(nv) + " vertices", warnings);
+                return failure(name,
+                               "face " + std::to_string(f) + " refers to vertex " + std::to_string(idx) +
+                                   ", but the file has " + std::to_string(nv) + " vertices",
+                               warnings);
             }
             poly.push_back(std::uint32_t(idx));
         }
@@ -695,8 +701,8 @@ ImportResult import_mesh_file_impl(const std::filesystem::path& path, const std:
     }
     if (mesh.indices.empty()) {
         return failure(name,
-                       "no triangles (" + std::to_string(nf) + " faces, " +
-                           std::to_string(short_faces) + " of them with fewer than 3 corners)",
+                       "no triangles (" + std::to_string(nf) + " faces, " + std::to_string(short_faces) +
+                           " of them with fewer than 3 corners)",
                        warnings);
     }
     mesh.positions = std::move(soup.points);

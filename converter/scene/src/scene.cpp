@@ -100,8 +100,8 @@ void store_computed(const std::vector<double>& sums, std::size_t v, float* out) 
 
 }  // namespace
 
-void finalize_normals(Mesh& mesh, const std::vector<std::uint8_t>& has_source_normal,
-                      std::string_view what, WarningSink& warnings) {
+void finalize_normals(Mesh& mesh, const std::vector<std::uint8_t>& has_source_normal, std::string_view what,
+                      WarningSink& warnings) {
     const std::size_t n = mesh.vertex_count();
     mesh.normals.resize(3 * n);
     std::vector<double> sums;
@@ -196,8 +196,7 @@ std::string check_scene(const Scene& scene) {
             if (mat >= scene.materials.size()) return where + ": material index out of range";
         }
         for (std::size_t v = 0; v < mesh.vertex_count(); ++v) {
-            const double x = mesh.normals[3 * v], y = mesh.normals[3 * v + 1],
-                         z = mesh.normals[3 * v + 2];
+            const double x = mesh.normals[3 * v], y = mesh.normals[3 * v + 1], z = mesh.normals[3 * v + 2];
             const double len = std::sqrt(x * x + y * y + z * z);
             if (!(std::fabs(len - 1.0) <= 1e-5))
                 return where + ": normal of vertex " + std::to_string(v) + " is not unit length";

@@ -32,8 +32,8 @@ private:
 // Those are normalized; the others, and file normals that are zero or not finite, get the
 // area-weighted normal of compute_vertex_normals(). Sets mesh.normal_origin.
 // `what` names the mesh in the warning about unusable file normals.
-void finalize_normals(Mesh& mesh, const std::vector<std::uint8_t>& has_source_normal,
-                      std::string_view what, WarningSink& warnings);
+void finalize_normals(Mesh& mesh, const std::vector<std::uint8_t>& has_source_normal, std::string_view what,
+                      WarningSink& warnings);
 
 // "'name'" quoted for messages, or "" when empty.
 std::string quote_name(std::string_view name);

@@ -52,10 +52,10 @@
 #include <cmath>
 #include <cstring>
 #include <limits>
+#include <lsnif/base/parallel.hpp>
 #include <new>
 #include <optional>
 #include <string>
-#include <lsnif/base/parallel.hpp>
 #include <vector>
 
 #if defined(__FAST_MATH__)
@@ -70,7 +70,7 @@ constexpr double kHintWiden = 0x1p-30;        // row-interval hint widening, rel
 constexpr std::size_t kChunk = 8192;          // triangles per scheduling unit
 constexpr std::size_t kFloatChunk = 1 << 16;  // positions per validation unit
 constexpr unsigned kMaxThreads = 256;
-constexpr std::size_t kPrefetch = 16;         // triangles ahead whose vertices are prefetched
+constexpr std::size_t kPrefetch = 16;  // triangles ahead whose vertices are prefetched
 
 // Object space -> grid coordinates (item 1 above).
 struct GridMap {
@@ -81,7 +81,9 @@ struct GridMap {
     std::uint32_t v;
 };
 
-inline void set_bit(std::uint64_t* words, std::size_t i) { words[i >> 6] |= std::uint64_t{1} << (i & 63); }
+inline void set_bit(std::uint64_t* words, std::size_t i) {
+    words[i >> 6] |= std::uint64_t{1} << (i & 63);
+}
 
 inline std::size_t voxel_index(std::uint32_t v, int x, int y, int z) {
     return std::size_t(x) + std::size_t(v) * (std::size_t(y) + std::size_t(v) * std::size_t(z));
@@ -192,8 +194,10 @@ struct Axis {
         first[a] = std::ceil(lo[a] - tau) - 1.0;
         last[a] = std::floor(hi[a] + tau);
         if (last[a] < 0.0 || first[a] > vd - 1.0) return;  // wholly outside the grid
-        if (first[a] != last[a]) ++multi;
-        else flat_axis = a;  // one voxel slab along a (unclamped, so the whole triangle)
+        if (first[a] != last[a])
+            ++multi;
+        else
+            flat_axis = a;  // one voxel slab along a (unclamped, so the whole triangle)
     }
     int f[3], l[3];
     for (int a = 0; a < 3; ++a) {
@@ -287,14 +291,17 @@ bool all_finite(const float* begin, const float* end) {
     return nonfinite == 0;
 }
 
-std::string vertex_name(std::size_t i) { return "vertex " + std::to_string(i); }
+std::string vertex_name(std::size_t i) {
+    return "vertex " + std::to_string(i);
+}
 
 // Sizes, finiteness of every position, index range; the first problem, as an Error.
 // Branch-free scans first (they vectorize); the search for the first offender runs only
 // on failure.
 std::optional<Error> check_mesh(const MeshView& mesh) {
     if (mesh.positions.size() % 3 != 0)
-        return Error{"positions: " + std::to_string(mesh.positions.size()) + " floats is not a multiple of 3"};
+        return Error{"positions: " + std::to_string(mesh.positions.size()) +
+                     " floats is not a multiple of 3"};
     if (mesh.indices.size() % 3 != 0)
         return Error{"indices: " + std::to_string(mesh.indices.size()) + " indices is not a multiple of 3"};
     if (!all_finite(mesh.positions.data(), mesh.positions.data() + mesh.positions.size())) {
@@ -310,8 +317,9 @@ std::optional<Error> check_mesh(const MeshView& mesh) {
     if (!mesh.indices.empty() && std::uint64_t(max_index) >= nv) {
         for (std::size_t i = 0; i < mesh.indices.size(); ++i) {
             if (mesh.indices[i] >= nv)
-                return Error{"triangle " + std::to_string(i / 3) + ": index " + std::to_string(mesh.indices[i]) +
-                             " is out of range (" + std::to_string(nv) + " vertices)"};
+                return Error{"triangle " + std::to_string(i / 3) + ": index " +
+                             std::to_string(mesh.indices[i]) + " is out of range (" + std::to_string(nv) +
+                             " vertices)"};
         }
     }
     return std::nullopt;
@@ -329,10 +337,11 @@ float round_up(double d) {
     return f;
 }
 
-Result<Occupancy> voxelize_impl(const MeshView& mesh, const Box& box, std::uint32_t v, const Options& options) {
+Result<Occupancy> voxelize_impl(const MeshView& mesh, const Box& box, std::uint32_t v,
+                                const Options& options) {
     if (v < kMinResolution || v > kMaxResolution)
-        return Error{"resolution " + std::to_string(v) + " is outside [" + std::to_string(kMinResolution) + ", " +
-                     std::to_string(kMaxResolution) + "]"};
+        return Error{"resolution " + std::to_string(v) + " is outside [" + std::to_string(kMinResolution) +
+                     ", " + std::to_string(kMaxResolution) + "]"};
     for (int a = 0; a < 3; ++a) {
         const std::string axis(1, "xyz"[a]);
         if (!std::isfinite(box.min[a]) || !std::isfinite(box.max[a]))
@@ -468,7 +477,8 @@ Result<Box> padded_box(const MeshView& mesh, const BoxOptions& options) {
     }
 }
 
-Result<Occupancy> voxelize(const MeshView& mesh, const Box& box, std::uint32_t resolution, const Options& options) {
+Result<Occupancy> voxelize(const MeshView& mesh, const Box& box, std::uint32_t resolution,
+                           const Options& options) {
     try {
         return voxelize_impl(mesh, box, resolution, options);
     } catch (const std::bad_alloc&) {

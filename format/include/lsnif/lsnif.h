@@ -54,22 +54,22 @@ extern "C" {
  * appended, so a program may store or switch on them across library versions. */
 typedef enum lsnif_status {
     LSNIF_OK = 0,
-    LSNIF_ERR_INVALID_ARGUMENT = 1, /* NULL pointer, bad index, bad size from the caller */
-    LSNIF_ERR_IO = 2,               /* file could not be opened or read */
-    LSNIF_ERR_NOT_LSNIF = 3,        /* magic number does not match */
-    LSNIF_ERR_TRANSFER_DAMAGE = 4,  /* magic shows text-mode / 7-bit transfer damage */
-    LSNIF_ERR_TRUNCATED = 5,        /* file shorter than its header or table declares */
-    LSNIF_ERR_VERSION_NEWER = 6,    /* written by a newer lsnif: upgrade the reader */
-    LSNIF_ERR_VERSION_OLDER = 7,    /* written by an older, unsupported lsnif: re-convert */
-    LSNIF_ERR_CHECKSUM = 8,         /* a header, table or section checksum does not match */
-    LSNIF_ERR_RESERVED = 9,         /* a reserved field or padding byte is not zero */
-    LSNIF_ERR_LIMIT = 10,           /* a declared size exceeds a hard limit */
-    LSNIF_ERR_LAYOUT = 11,          /* offsets/sizes overlap, misalign or leave the file */
-    LSNIF_ERR_MISSING_SECTION = 12, /* a section required by v1 is absent */
-    LSNIF_ERR_UNKNOWN_REQUIRED = 13,/* a section marked required is unknown to this reader */
-    LSNIF_ERR_DECOMPRESS = 14,      /* zstd payload is malformed or has the wrong size */
-    LSNIF_ERR_MODEL = 15,           /* model descriptor inconsistent or out of range */
-    LSNIF_ERR_NONFINITE = 16,       /* a weight or box value is NaN or infinite */
+    LSNIF_ERR_INVALID_ARGUMENT = 1,  /* NULL pointer, bad index, bad size from the caller */
+    LSNIF_ERR_IO = 2,                /* file could not be opened or read */
+    LSNIF_ERR_NOT_LSNIF = 3,         /* magic number does not match */
+    LSNIF_ERR_TRANSFER_DAMAGE = 4,   /* magic shows text-mode / 7-bit transfer damage */
+    LSNIF_ERR_TRUNCATED = 5,         /* file shorter than its header or table declares */
+    LSNIF_ERR_VERSION_NEWER = 6,     /* written by a newer lsnif: upgrade the reader */
+    LSNIF_ERR_VERSION_OLDER = 7,     /* written by an older, unsupported lsnif: re-convert */
+    LSNIF_ERR_CHECKSUM = 8,          /* a header, table or section checksum does not match */
+    LSNIF_ERR_RESERVED = 9,          /* a reserved field or padding byte is not zero */
+    LSNIF_ERR_LIMIT = 10,            /* a declared size exceeds a hard limit */
+    LSNIF_ERR_LAYOUT = 11,           /* offsets/sizes overlap, misalign or leave the file */
+    LSNIF_ERR_MISSING_SECTION = 12,  /* a section required by v1 is absent */
+    LSNIF_ERR_UNKNOWN_REQUIRED = 13, /* a section marked required is unknown to this reader */
+    LSNIF_ERR_DECOMPRESS = 14,       /* zstd payload is malformed or has the wrong size */
+    LSNIF_ERR_MODEL = 15,            /* model descriptor inconsistent or out of range */
+    LSNIF_ERR_NONFINITE = 16,        /* a weight or box value is NaN or infinite */
     LSNIF_ERR_OUT_OF_MEMORY = 17,
     LSNIF_ERR_INTERNAL = 18
 } lsnif_status;
@@ -86,8 +86,8 @@ LSNIF_API const char* lsnif_status_string(lsnif_status status);
 LSNIF_API const char* lsnif_version(uint32_t* container_major, uint32_t* container_minor);
 
 /* Optional detail for a failure: pass a pointer to one of these to the open and
- * scan functions (or NULL when the status is enough). On failure `message` names the structure and field at fault and
- * `offset` the file offset involved (or UINT64_MAX when none applies). */
+ * scan functions (or NULL when the status is enough). On failure `message` names the structure and field at
+ * fault and `offset` the file offset involved (or UINT64_MAX when none applies). */
 typedef struct lsnif_error {
     lsnif_status status;
     uint32_t reserved;
@@ -97,25 +97,22 @@ typedef struct lsnif_error {
 
 /* ---- Container-level view (what `lsnif inspect` shows) ------------------------ */
 
-typedef enum lsnif_compression {
-    LSNIF_COMPRESSION_NONE = 0,
-    LSNIF_COMPRESSION_ZSTD = 1
-} lsnif_compression;
+typedef enum lsnif_compression { LSNIF_COMPRESSION_NONE = 0, LSNIF_COMPRESSION_ZSTD = 1 } lsnif_compression;
 
 #define LSNIF_SECTION_REQUIRED 1u
 
 typedef struct lsnif_section_info {
-    char tag[5];          /* four ASCII characters plus NUL */
-    uint8_t known;        /* 1 if this reader understands the tag */
-    uint8_t checksum_ok;  /* 1 if the payload verified completely: both CRC-32C and decoding */
-    uint8_t decoded;      /* 1 if decompression ran and produced exactly raw_size bytes
-                             (0 when the stored-bytes checksum failed first) */
+    char tag[5];             /* four ASCII characters plus NUL */
+    uint8_t known;           /* 1 if this reader understands the tag */
+    uint8_t checksum_ok;     /* 1 if the payload verified completely: both CRC-32C and decoding */
+    uint8_t decoded;         /* 1 if decompression ran and produced exactly raw_size bytes
+                                (0 when the stored-bytes checksum failed first) */
     uint32_t payload_status; /* LSNIF_OK, LSNIF_ERR_CHECKSUM or LSNIF_ERR_DECOMPRESS */
-    uint32_t flags;       /* LSNIF_SECTION_REQUIRED, ... */
-    uint32_t compression; /* lsnif_compression */
-    uint64_t offset;      /* byte offset of the stored payload in the file */
-    uint64_t stored_size; /* bytes in the file */
-    uint64_t raw_size;    /* bytes after decompression */
+    uint32_t flags;          /* LSNIF_SECTION_REQUIRED, ... */
+    uint32_t compression;    /* lsnif_compression */
+    uint64_t offset;         /* byte offset of the stored payload in the file */
+    uint64_t stored_size;    /* bytes in the file */
+    uint64_t raw_size;       /* bytes after decompression */
     uint32_t stored_crc32c;
     uint32_t raw_crc32c;
 } lsnif_section_info;
@@ -136,10 +133,9 @@ typedef struct lsnif_header_info {
  * LSNIF_ERR_CHECKSUM / LSNIF_ERR_DECOMPRESS after all entries are filled.
  * NULL: `data` only when size is 0, `sections` only when capacity is 0; `header`,
  * `count` and `error` may be NULL. */
-LSNIF_API lsnif_status lsnif_scan_memory(const void* data, size_t size,
-                                         lsnif_header_info* header,
-                                         lsnif_section_info* sections, uint32_t capacity,
-                                         uint32_t* count, lsnif_error* error);
+LSNIF_API lsnif_status lsnif_scan_memory(const void* data, size_t size, lsnif_header_info* header,
+                                         lsnif_section_info* sections, uint32_t capacity, uint32_t* count,
+                                         lsnif_error* error);
 
 /* ---- The model --------------------------------------------------------------- */
 
@@ -155,28 +151,28 @@ typedef enum lsnif_distance_encoding {
 typedef struct lsnif_info {
     uint16_t version_major;
     uint16_t version_minor;
-    uint32_t grid_resolution;      /* V: occupancy grid is V*V*V voxels */
-    uint32_t max_points;           /* H: voxel entry points fed to the encoding */
-    uint32_t level_count;          /* L */
-    uint32_t features_per_level;   /* F */
-    uint32_t log2_table_size;      /* T = 1 << log2_table_size entries per hashed level */
+    uint32_t grid_resolution;    /* V: occupancy grid is V*V*V voxels */
+    uint32_t max_points;         /* H: voxel entry points fed to the encoding */
+    uint32_t level_count;        /* L */
+    uint32_t features_per_level; /* F */
+    uint32_t log2_table_size;    /* T = 1 << log2_table_size entries per hashed level */
     uint32_t level_resolution[LSNIF_MAX_LEVELS];
     uint64_t level_entries[LSNIF_MAX_LEVELS]; /* rows actually stored per level */
     uint32_t level_dense[LSNIF_MAX_LEVELS];   /* 1 if the level is indexed densely */
     uint32_t hash_primes[3];
-    uint32_t input_width;          /* H * L * F */
+    uint32_t input_width; /* H * L * F */
     uint32_t hidden_layer_count;
     uint32_t hidden_width[LSNIF_MAX_HIDDEN_LAYERS];
-    uint32_t output_count;         /* 5 + material_count */
+    uint32_t output_count; /* 5 + material_count */
     uint32_t material_count;
-    uint32_t activation;           /* 0 = ReLU */
-    uint32_t distance_encoding;    /* lsnif_distance_encoding */
-    float box_min[3];              /* object-space bounds the grid spans */
+    uint32_t activation;        /* 0 = ReLU */
+    uint32_t distance_encoding; /* lsnif_distance_encoding */
+    float box_min[3];           /* object-space bounds the grid spans */
     float box_max[3];
-    uint64_t parameter_count;      /* hash-table features + MLP weights and biases */
+    uint64_t parameter_count; /* hash-table features + MLP weights and biases */
     uint64_t occupied_voxels;
     uint64_t file_size;
-    uint64_t decoded_bytes;        /* memory held by the handle for model arrays */
+    uint64_t decoded_bytes; /* memory held by the handle for model arrays */
 } lsnif_info;
 
 /* Opens a model from memory. The bytes are copied/decoded: `data` may be freed
@@ -202,31 +198,31 @@ LSNIF_API const char* lsnif_metadata(const lsnif_model* model, size_t* length);
 /* ---- Raw arrays for GPU upload ----------------------------------------------- */
 
 typedef enum lsnif_array_kind {
-    LSNIF_ARRAY_OCCUPANCY = 0,  /* bits; index 0 only */
-    LSNIF_ARRAY_GRID_LEVEL = 1, /* fp16 [entries][F]; index = level */
+    LSNIF_ARRAY_OCCUPANCY = 0,     /* bits; index 0 only */
+    LSNIF_ARRAY_GRID_LEVEL = 1,    /* fp16 [entries][F]; index = level */
     LSNIF_ARRAY_LAYER_WEIGHTS = 2, /* fp16 [out][in] row-major; index = layer */
-    LSNIF_ARRAY_LAYER_BIAS = 3  /* fp16 [out]; index = layer */
+    LSNIF_ARRAY_LAYER_BIAS = 3     /* fp16 [out]; index = layer */
 } lsnif_array_kind;
 
 typedef enum lsnif_dtype {
-    LSNIF_DTYPE_BITS = 0,    /* packed bits, LSB first, voxel x + V*(y + V*z) */
-    LSNIF_DTYPE_FLOAT16 = 1  /* IEEE 754 binary16, little-endian */
+    LSNIF_DTYPE_BITS = 0,   /* packed bits, LSB first, voxel x + V*(y + V*z) */
+    LSNIF_DTYPE_FLOAT16 = 1 /* IEEE 754 binary16, little-endian */
 } lsnif_dtype;
 
 typedef struct lsnif_array {
-    const void* data;   /* owned by the model handle */
+    const void* data; /* owned by the model handle */
     uint64_t bytes;
-    uint32_t dtype;     /* lsnif_dtype */
-    uint32_t rank;      /* number of valid entries in dims */
-    uint64_t dims[3];   /* outermost first: [rows][cols] or [entries][features] or [V][V][V] (z,y,x) */
+    uint32_t dtype;   /* lsnif_dtype */
+    uint32_t rank;    /* number of valid entries in dims */
+    uint64_t dims[3]; /* outermost first: [rows][cols] or [entries][features] or [V][V][V] (z,y,x) */
 } lsnif_array;
 
 /* Number of MLP layers (hidden layers + output layer); 0 for a NULL model. */
 LSNIF_API uint32_t lsnif_layer_count(const lsnif_model* model);
 /* One raw array (see lsnif_array_kind for `index`). Neither pointer may be NULL; an
  * index out of range returns LSNIF_ERR_INVALID_ARGUMENT. */
-LSNIF_API lsnif_status lsnif_get_array(const lsnif_model* model, lsnif_array_kind kind,
-                                       uint32_t index, lsnif_array* out);
+LSNIF_API lsnif_status lsnif_get_array(const lsnif_model* model, lsnif_array_kind kind, uint32_t index,
+                                       lsnif_array* out);
 
 /* ---- Intersection (FORMAT.md §8) ------------------------------------------------ */
 
@@ -240,10 +236,10 @@ typedef struct lsnif_ray {
 } lsnif_ray;
 
 typedef struct lsnif_hit {
-    float t;          /* ray parameter of the hit; +INFINITY on a miss */
-    float normal[3];  /* unit shading normal (object or world space, as the query) */
-    uint32_t hit;     /* 1 hit, 0 miss (also for invalid rays: zero or non-finite dir) */
-    uint32_t material;/* index of the most likely material; 0 without materials */
+    float t;           /* ray parameter of the hit; +INFINITY on a miss */
+    float normal[3];   /* unit shading normal (object or world space, as the query) */
+    uint32_t hit;      /* 1 hit, 0 miss (also for invalid rays: zero or non-finite dir) */
+    uint32_t material; /* index of the most likely material; 0 without materials */
 } lsnif_hit;
 
 /* Intersects `count` object-space rays. Rays that cross no occupied voxel are misses

@@ -25,10 +25,10 @@ namespace lsnif::converter {
 // benefit stays BVH. `--complex NAME` skips both the sizing and the memory rule and uses the
 // preset's model as is.
 struct ClassifyRule {
-    std::uint64_t min_triangles = 2000;    // fewer: the BVH is tiny and exact; keep it
+    std::uint64_t min_triangles = 2000;  // fewer: the BVH is tiny and exact; keep it
     // An approximation must at least halve the memory of what it replaces: a 10-30 % saving is
     // not worth ~3 % wrong visibility (2CylinderEngine has four 7-11k-triangle parts at 1.1-1.8x).
-    double min_memory_ratio = 2.0;         // BVH bytes must be at least this x the .lsnif bytes
+    double min_memory_ratio = 2.0;           // BVH bytes must be at least this x the .lsnif bytes
     std::uint32_t min_log2_table_size = 15;  // smallest table sizing may choose (2^15 rows)
 };
 
@@ -53,8 +53,8 @@ inline constexpr double kMaxModelExtent = 1e15;
 
 struct Preset {
     std::string name;
-    format::ModelDesc model;            // box is filled per mesh
-    trainer::TrainConfig train;         // threads/seed are filled from the options
+    format::ModelDesc model;     // box is filled per mesh
+    trainer::TrainConfig train;  // threads/seed are filled from the options
     // Training data is streamed in rounds: round r draws `train_chunk_rays` fresh rays, and
     // steps of that round sample the latest `train_window_chunks` chunks. Held-out accuracy
     // measured on the dragon rose from 96.3 % (2^21 rays reused for 10 epochs: 99.6 % on
@@ -79,7 +79,7 @@ struct ConvertOptions {
     std::string preset = "default";
     std::vector<std::string> force_complex;  // mesh names
     std::vector<std::string> force_simple;
-    std::string command_line;  // recorded in metadata
+    std::string command_line;         // recorded in metadata
     double gate_min_visibility = -1;  // >= 0 overrides the preset's pooled visibility gate
     std::uint32_t steps = 0;          // > 0 overrides the preset's training steps
     std::uint32_t batch_size = 0;     // > 0 overrides the preset's batch size
@@ -103,9 +103,9 @@ struct ProgressEvent {
 using ConvertProgress = std::function<void(const ProgressEvent&)>;
 
 struct ConvertResult {
-    nlohmann::json manifest;  // what was written to OUTDIR/manifest.json (empty if nothing)
-    nlohmann::json report;    // machine-readable report (--json)
-    std::vector<std::string> errors;    // "FILE: problem", one per failed input
+    nlohmann::json manifest;          // what was written to OUTDIR/manifest.json (empty if nothing)
+    nlohmann::json report;            // machine-readable report (--json)
+    std::vector<std::string> errors;  // "FILE: problem", one per failed input
     std::vector<std::string> warnings;
     bool ok() const { return errors.empty(); }
 };

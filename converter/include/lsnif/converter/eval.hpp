@@ -86,7 +86,7 @@ public:
     void occluded(bool hybrid, std::span<const lsnif_ray> rays, std::span<std::uint8_t> occluded) const;
 
     std::size_t instance_count() const;
-    std::size_t lsnif_instance_count() const;  // instances traced through the reader in hybrid
+    std::size_t lsnif_instance_count() const;   // instances traced through the reader in hybrid
     std::array<float, 6> world_bounds() const;  // min xyz, max xyz
     std::array<float, 6> instance_bounds(std::size_t instance) const;
     struct Impl;

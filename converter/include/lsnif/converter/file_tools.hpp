@@ -15,8 +15,8 @@
 namespace lsnif::converter {
 
 struct Problem {
-    std::string status;   // lsnif_status_string() of the failure, or "metadata"
-    std::uint64_t offset; // file offset or UINT64_MAX
+    std::string status;    // lsnif_status_string() of the failure, or "metadata"
+    std::uint64_t offset;  // file offset or UINT64_MAX
     std::string message;
 };
 

@@ -24,7 +24,8 @@ inline constexpr const char* kManifestFormat = "lsnif-manifest/2";
 // The form `inputs[].path` records for `input` (as given, relative to the current working
 // directory or absolute) in a manifest written into `manifest_dir`: relative to
 // `manifest_dir`, in generic ('/') form, or the absolute path if none exists.
-std::string manifest_relative_path(const std::filesystem::path& input, const std::filesystem::path& manifest_dir);
+std::string manifest_relative_path(const std::filesystem::path& input,
+                                   const std::filesystem::path& manifest_dir);
 
 // A manifest read back, with each input's file resolved for this process.
 struct LoadedManifest {
@@ -37,7 +38,7 @@ struct LoadedManifest {
 // overrides where the inputs are (one per manifest input, relative to the current directory,
 // e.g. from `--source`); empty means the manifest's own paths, resolved from its directory.
 // A manifest of an older format is refused with a message that says to re-run convert.
-bool load_manifest(const std::filesystem::path& outdir, const std::vector<std::string>& sources, LoadedManifest& out,
-                   std::string& error);
+bool load_manifest(const std::filesystem::path& outdir, const std::vector<std::string>& sources,
+                   LoadedManifest& out, std::string& error);
 
 }  // namespace lsnif::converter

@@ -33,7 +33,8 @@ inline std::optional<LinearInverse> invert_linear(const float* m) {
             scale = std::max(scale, std::fabs(a[r][c]));
         }
     LinearInverse out;
-    out.det = a[0][0] * (a[1][1] * a[2][2] - a[1][2] * a[2][1]) - a[0][1] * (a[1][0] * a[2][2] - a[1][2] * a[2][0]) +
+    out.det = a[0][0] * (a[1][1] * a[2][2] - a[1][2] * a[2][1]) -
+              a[0][1] * (a[1][0] * a[2][2] - a[1][2] * a[2][0]) +
               a[0][2] * (a[1][0] * a[2][1] - a[1][1] * a[2][0]);
     if (!(std::fabs(out.det) > 1e-12 * scale * scale * scale)) return std::nullopt;
     for (int r = 0; r < 3; ++r)

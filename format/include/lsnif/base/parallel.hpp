@@ -47,8 +47,8 @@ struct FirstError {
 };
 
 // Runs shares [first, T) on fresh threads and the caller; used when the pool is busy.
-inline void run_on_fresh_threads(std::uint32_t first, std::uint32_t T, const std::function<void(std::uint32_t)>& fn,
-                                 FirstError& err) {
+inline void run_on_fresh_threads(std::uint32_t first, std::uint32_t T,
+                                 const std::function<void(std::uint32_t)>& fn, FirstError& err) {
     std::vector<std::thread> threads;
     std::uint32_t t = first + 1;
     for (; t < T; ++t) {

@@ -7,8 +7,8 @@
 // LSNIF_ERR_OUT_OF_MEMORY.)
 #pragma once
 
-#include <lsnif/base/result.hpp>
 #include <lsnif/lsnif.h>
+#include <lsnif/base/result.hpp>
 
 #include <array>
 #include <cstddef>
@@ -40,8 +40,8 @@ constexpr std::uint32_t make_tag(const char (&s)[5]) {
     return std::uint32_t(std::uint8_t(s[0])) | std::uint32_t(std::uint8_t(s[1])) << 8 |
            std::uint32_t(std::uint8_t(s[2])) << 16 | std::uint32_t(std::uint8_t(s[3])) << 24;
 }
-inline constexpr std::uint32_t kTagMeta = make_tag("META");  // JSON metadata
-inline constexpr std::uint32_t kTagModel = make_tag("MODL"); // binary model descriptor
+inline constexpr std::uint32_t kTagMeta = make_tag("META");   // JSON metadata
+inline constexpr std::uint32_t kTagModel = make_tag("MODL");  // binary model descriptor
 inline constexpr std::uint32_t kTagOccupancy = make_tag("OCCU");
 inline constexpr std::uint32_t kTagGrid = make_tag("GRID");  // hash-grid tables, fp16
 inline constexpr std::uint32_t kTagMlp = make_tag("MLPW");   // MLP weights, fp16
@@ -108,10 +108,10 @@ Error validate_desc(const ModelDesc& desc);
 struct ModelData {
     ModelDesc desc;
     std::string metadata_json;
-    std::vector<std::uint8_t> occupancy;             // ceil(V^3 / 8) bytes
-    std::vector<std::vector<std::uint16_t>> grid;    // per level: entries * F
-    std::vector<std::vector<std::uint16_t>> weights; // per layer: out * in
-    std::vector<std::vector<std::uint16_t>> biases;  // per layer: out
+    std::vector<std::uint8_t> occupancy;              // ceil(V^3 / 8) bytes
+    std::vector<std::vector<std::uint16_t>> grid;     // per level: entries * F
+    std::vector<std::vector<std::uint16_t>> weights;  // per layer: out * in
+    std::vector<std::vector<std::uint16_t>> biases;   // per layer: out
     std::uint16_t version_major = LSNIF_VERSION_MAJOR;
     std::uint16_t version_minor = LSNIF_VERSION_MINOR;
 };

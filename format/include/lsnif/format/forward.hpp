@@ -28,8 +28,8 @@ struct Ray {
 };
 
 struct Hit {
-    float t;          // ray parameter of the hit (object space t == world t under affine maps)
-    float normal[3];  // unit shading normal, object space (world space for instance queries)
+    float t;                 // ray parameter of the hit (object space t == world t under affine maps)
+    float normal[3];         // unit shading normal, object space (world space for instance queries)
     std::uint32_t hit;       // 1 hit, 0 miss
     std::uint32_t material;  // argmax of material logits; 0 when the model has none
 };
@@ -37,17 +37,17 @@ struct Hit {
 struct LevelInfo {
     std::uint32_t res;
     bool dense;
-    std::uint32_t stride;   // res + 1 (dense indexing)
-    std::uint32_t mask;     // T - 1 (hashed indexing; T is a power of two)
-    float scale;            // res / V: grid coordinate -> level lattice coordinate
-    bool aligned;           // res is a multiple of V: voxel faces lie on lattice planes
+    std::uint32_t stride;  // res + 1 (dense indexing)
+    std::uint32_t mask;    // T - 1 (hashed indexing; T is a power of two)
+    float scale;           // res / V: grid coordinate -> level lattice coordinate
+    bool aligned;          // res is a multiple of V: voxel faces lie on lattice planes
 };
 
 // Everything the forward pass derives from a descriptor, computed once per model.
 struct Geometry {
     std::uint32_t V, H, L, F;
     float box_min[3], box_max[3];
-    float diagonal;      // |box_max - box_min|
+    float diagonal;  // |box_max - box_min|
     std::array<std::uint32_t, 3> primes;
     std::vector<LevelInfo> levels;
     std::uint32_t distance_encoding;
@@ -67,7 +67,7 @@ Geometry make_geometry(const ModelDesc& desc);
 struct RayPoints {
     std::uint32_t count = 0;  // occupied voxels found (<= H)
     float t_near = 0, t_far = 0;
-    float t[kMaxPoints];       // entry parameter per slot
+    float t[kMaxPoints];  // entry parameter per slot
     // Entry point in grid coordinates [0, V]. Coordinates on the voxel face the ray
     // enters through are snapped to that plane exactly (an integer), which is what makes
     // aligned levels touch 4 corners instead of 8.
@@ -161,8 +161,7 @@ void dense_layer(const float* A, std::size_t n, std::size_t in, std::size_t lda,
 
 // Runs all layers. `scratch` grows as needed; the result is n rows of
 // net.out_padded.back() floats, returned as a pointer into scratch.
-const float* mlp_forward(const Network& net, const float* input, std::size_t n,
-                         std::vector<float>& scratch);
+const float* mlp_forward(const Network& net, const float* input, std::size_t n, std::vector<float>& scratch);
 
 // ---- decode -------------------------------------------------------------------------------
 

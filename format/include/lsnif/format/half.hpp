@@ -54,6 +54,8 @@ inline std::uint16_t float_to_half(float f) {
     return std::uint16_t(sign | h);
 }
 
-inline bool half_is_finite(std::uint16_t h) { return (h & 0x7C00u) != 0x7C00u; }
+inline bool half_is_finite(std::uint16_t h) {
+    return (h & 0x7C00u) != 0x7C00u;
+}
 
 }  // namespace lsnif::format

@@ -1,8 +1,7 @@
 // Training of one LSNIF (docs/architecture.md §3): losses, backward pass through the MLP and the
 // sparse hash-grid encoding, hand-written Adam, learning-rate schedule, gradient clipping
-// and a divergence guard. Multi-threaded on the shared pool (lsnif/base/parallel.hpp); for a fixed seed and thread
-// count every step is bit-for-bit deterministic (fixed work partition, fixed reduction
-// order).
+// and a divergence guard. Multi-threaded on the shared pool (lsnif/base/parallel.hpp); for a fixed seed and
+// thread count every step is bit-for-bit deterministic (fixed work partition, fixed reduction order).
 //
 // The forward computation is format/'s (trace_points, encode_points, dense_layer), so a
 // model trained here evaluates identically in a renderer once exported to fp16
@@ -208,7 +207,8 @@ public:
     float step(std::span<const Sample> batch);  // prepares `batch` first (tests)
 
     // Loss and exact gradients without updating (for gradient checks).
-    LossParts loss_and_gradients(const PreparedSet& set, std::span<const std::uint32_t> batch, Gradients* grads);
+    LossParts loss_and_gradients(const PreparedSet& set, std::span<const std::uint32_t> batch,
+                                 Gradients* grads);
     LossParts loss_and_gradients(std::span<const Sample> batch, Gradients* grads);
 
     // fp16 export (the .lsnif content). Rounds every master weight to nearest-even.
@@ -259,18 +259,18 @@ private:
 // ---- held-out evaluation (docs/architecture.md §5) -------------------------------------------------
 
 struct FamilyMetrics {
-    std::uint64_t rays = 0;           // rays that reached the network
-    std::uint64_t culled = 0;         // rays culled by occupancy (certain misses)
+    std::uint64_t rays = 0;    // rays that reached the network
+    std::uint64_t culled = 0;  // rays culled by occupancy (certain misses)
     double visibility_accuracy = 0;
-    double false_hit_rate = 0;        // predicted hit among true misses
-    double false_miss_rate = 0;       // predicted miss among true hits
-    double distance_median_pct = 0;   // |Δt| in % of the box diagonal, on true & predicted hits
+    double false_hit_rate = 0;       // predicted hit among true misses
+    double false_miss_rate = 0;      // predicted miss among true hits
+    double distance_median_pct = 0;  // |Δt| in % of the box diagonal, on true & predicted hits
     double distance_p95_pct = 0;
-    double normal_median_deg = 0;     // against the shading normal
+    double normal_median_deg = 0;  // against the shading normal
     double normal_p95_deg = 0;
     double geometric_normal_median_deg = 0;  // against the faceted normal, when provided
-    double culled_fraction = 0;       // culled / (culled + rays)
-    std::uint64_t culled_true_hits = 0;  // must be 0: a culled ray that truly hits
+    double culled_fraction = 0;              // culled / (culled + rays)
+    std::uint64_t culled_true_hits = 0;      // must be 0: a culled ray that truly hits
 };
 
 struct Metrics {

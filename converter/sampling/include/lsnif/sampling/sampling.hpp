@@ -108,9 +108,9 @@ enum class InsideTest : std::uint8_t { none, first_hit_facing, parity };
 
 // Per-sample data the trainer's Sample has no field for (parallel to the samples).
 struct SampleExtras {
-    std::array<float, 3> geometric_normal{};  // unit normal of the hit triangle, right-hand
-                                              // rule on (v0, v1, v2); zero when no hit
-    std::uint32_t primitive = kNoPrimitive;   // hit triangle, kNoPrimitive when no hit
+    std::array<float, 3> geometric_normal{};        // unit normal of the hit triangle, right-hand
+                                                    // rule on (v0, v1, v2); zero when no hit
+    std::uint32_t primitive = kNoPrimitive;         // hit triangle, kNoPrimitive when no hit
     std::uint32_t source_primitive = kNoPrimitive;  // family (b): triangle left; else none
     std::int8_t side = 0;  // family (b): +1 front (along the geometric normal), -1 back
 };
@@ -120,9 +120,9 @@ std::vector<std::array<float, 3>> geometric_normals(std::span<const SampleExtras
 
 // Counters of the last generate() call.
 struct GenerateCounters {
-    std::uint64_t interior_candidates = 0;    // family (c) origins drawn (accepted + rejected)
-    std::uint64_t parity_queries = 0;         // inside-test rays traced (votes)
-    std::uint64_t interior_fallbacks = 0;     // origins put on the box after max attempts
+    std::uint64_t interior_candidates = 0;  // family (c) origins drawn (accepted + rejected)
+    std::uint64_t parity_queries = 0;       // inside-test rays traced (votes)
+    std::uint64_t interior_fallbacks = 0;   // origins put on the box after max attempts
 };
 
 // Throughput of ground-truth generation against plain Embree tracing of the same rays.
@@ -154,8 +154,8 @@ public:
     // RTC_SCENE_FLAG_ROBUST, plus RTC_SCENE_FLAG_CONTEXT_FILTER_FUNCTION if parity votes
     // are needed)
     // and the samplers. Returns null and sets `error` on failure.
-    static std::unique_ptr<EmbreeSource> create(const MeshView& mesh, const Box& box, const SamplingConfig& cfg,
-                                                std::string& error);
+    static std::unique_ptr<EmbreeSource> create(const MeshView& mesh, const Box& box,
+                                                const SamplingConfig& cfg, std::string& error);
     ~EmbreeSource() override;
     EmbreeSource(const EmbreeSource&) = delete;
     EmbreeSource& operator=(const EmbreeSource&) = delete;

@@ -90,8 +90,8 @@ struct Instance {
 };
 
 struct Scene {
-    std::vector<Mesh> meshes;          // unique geometry, each instanced at least once
-    std::vector<Instance> instances;   // glTF: depth-first node order, children in file order
+    std::vector<Mesh> meshes;            // unique geometry, each instanced at least once
+    std::vector<Instance> instances;     // glTF: depth-first node order, children in file order
     std::vector<std::string> materials;  // [0] = "default"; glTF material i is [i + 1] (its
                                          // name, "material_<i>" if it has none)
     std::vector<std::string> warnings;   // one line each, no file name prefix
@@ -133,14 +133,14 @@ ImportResult import_scene(const std::filesystem::path& path);
 // range (node, mesh, accessor, bufferView, buffer, material), accessor data outside its
 // bufferView or buffer, wrong accessor type or component type, vertex index >= vertex
 // count, NaN/Inf positions or transforms, a node reachable twice (cycles; "Nodes and
-// Hierarchy" requires disjoint strict trees), a missing or short buffer, and a scene with no triangles at all.
+// Hierarchy" requires disjoint strict trees), a missing or short buffer, and a scene with no triangles at
+// all.
 ImportResult import_gltf(const std::filesystem::path& path);
 
 // The same from memory (a .gltf's JSON text or a whole .glb). External buffers are read
 // relative to `base_dir`; `display_name` is what error messages call the file.
 ImportResult import_gltf_from_memory(std::span<const std::uint8_t> bytes,
-                                     const std::filesystem::path& base_dir,
-                                     std::string_view display_name);
+                                     const std::filesystem::path& base_dir, std::string_view display_name);
 
 // OBJ, PLY (ASCII / binary) and STL (ASCII / binary), read by OpenMesh's format readers
 // into a polygon soup (so non-manifold input is kept, not dropped as OpenMesh's half-edge
