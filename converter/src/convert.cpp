@@ -4,6 +4,7 @@
 #include <lsnif/format/forward.hpp>
 #include <lsnif/sampling/sampling.hpp>
 #include <lsnif/scene/scene.hpp>
+#include <lsnif/trainer/streamed.hpp>
 #include <lsnif/voxelize/voxelize.hpp>
 
 #include <algorithm>
@@ -13,7 +14,9 @@
 #include <cstdio>
 #include <filesystem>
 #include <lsnif/base/parallel.hpp>
+#include <memory>
 #include <numeric>
+#include <optional>
 
 namespace lsnif::converter {
 
@@ -124,13 +127,6 @@ json model_json(const format::ModelDesc& d) {
             {"parameter_count", d.parameter_count()}};
 }
 
-struct MeshJob {
-    const scene::Mesh* mesh;
-    const scene::Scene* scene;
-    std::size_t input, source_mesh, id, instances;
-    std::string input_path;
-};
-
 }  // namespace
 
 std::vector<std::string> gate_failures(const trainer::Metrics& m, const Gate& g) {
@@ -228,14 +224,66 @@ bool find_preset(const std::string& name, Preset& p) {
     return true;
 }
 
-ConvertResult convert(const ConvertOptions& opt, const ConvertProgress& progress) {
-    ConvertResult res;
+namespace {
+
+// ---- the stages of one run -------------------------------------------------------------
+//
+// convert() imports each input, then takes every mesh through
+//   classify -> voxelize -> (reuse | sample + train -> gate -> write asset)
+// and finally writes the manifest. Each stage is a function below; a stage that decides
+// "simple" returns nothing and the mesh is recorded with its reason.
+
+// What a run shares between its meshes.
+struct Run {
+    const ConvertOptions& opt;
     Preset preset;
+    std::uint32_t threads;
+    fs::path outdir;
+    ConvertProgress progress;
+    void report(const ProgressEvent& e) const {
+        if (progress) progress(e);
+    }
+    bool forced(const std::vector<std::string>& names, const std::string& mesh) const {
+        return std::find(names.begin(), names.end(), mesh) != names.end();
+    }
+};
+
+// A mesh's manifest entry while it moves through the stages.
+struct MeshRecord {
+    json entry;  // id, name, input, counts, geometry hash, instance count
+    std::vector<std::string> reasons;
+    json stats;  // null until classification measured the mesh
+    json timings = json::object();
+
+    json simple(const std::string& why) {
+        reasons.push_back(why);
+        return finish("simple");
+    }
+    json finish(const char* cls) {
+        entry["class"] = cls;
+        entry["reasons"] = reasons;
+        if (!stats.is_null()) entry["stats"] = stats;
+        entry["timings"] = timings;
+        return entry;
+    }
+};
+
+// A mesh that classification kept as a candidate for an LSNIF.
+struct Candidate {
+    voxelize::Box box;
+    format::ModelDesc desc;  // the preset's model, box set, tables sized to the mesh
+    std::unique_ptr<sampling::EmbreeSource> source;
+    bool forced = false;
+};
+
+// The preset with the command line's overrides applied; false (and `error`) for an
+// unknown preset name.
+bool resolve_preset(const ConvertOptions& opt, Preset& preset, std::string& error) {
     if (!find_preset(opt.preset, preset)) {
         std::string names;
         for (const auto& n : preset_names()) names += (names.empty() ? "" : ", ") + n;
-        res.errors.push_back("unknown preset '" + opt.preset + "' (known: " + names + ")");
-        return res;
+        error = "unknown preset '" + opt.preset + "' (known: " + names + ")";
+        return false;
     }
     if (opt.gate_min_visibility >= 0) preset.gate.min_visibility = opt.gate_min_visibility;
     if (opt.steps > 0) preset.train.steps = opt.steps;
@@ -245,365 +293,410 @@ ConvertResult convert(const ConvertOptions& opt, const ConvertProgress& progress
     if (opt.grid_resolution > 0) preset.model.grid_resolution = opt.grid_resolution;
     if (opt.hidden_width > 0)
         for (auto& w : preset.model.hidden_width) w = opt.hidden_width;
-    const std::uint32_t threads = base::resolve_threads(opt.threads);
-    auto report = [&](const ProgressEvent& e) {
-        if (progress) progress(e);
-    };
-    const fs::path outdir = opt.outdir;
-    json inputs = json::array(), meshes = json::array(), instances = json::array();
-    std::vector<scene::Scene> scenes;  // kept alive while meshes are processed
-    scenes.reserve(opt.inputs.size());
-    std::size_t ok_inputs = 0, next_id = 0;
-    double total_train_seconds = 0, import_seconds = 0;
+    return true;
+}
 
+// Why a box cannot be modelled in single precision (kMinModelExtent..kMaxModelExtent), or
+// an empty string.
+std::string range_problem(const voxelize::Box& box) {
+    double extent = 0, coord = 0;
+    for (int a = 0; a < 3; ++a) {
+        extent = std::max(extent, double(box.max[a]) - box.min[a]);
+        coord = std::max({coord, std::fabs(double(box.min[a])), std::fabs(double(box.max[a]))});
+    }
+    if (extent >= kMinModelExtent && extent <= kMaxModelExtent && coord <= kMaxModelExtent) return {};
+    char why[200];
+    std::snprintf(why, sizeof why,
+                  "box extent %.3g (coordinates up to %.3g) is outside the range LSNIF models in "
+                  "single precision [%g, %g]",
+                  extent, coord, kMinModelExtent, kMaxModelExtent);
+    return why;
+}
+
+// Classify: bounds, float range, Embree's BVH size, the table size that beats it and the
+// geometry statistics. Returns nothing when the mesh stays simple (reason recorded).
+// Contract: `rec.stats` is set whenever Embree built the mesh.
+std::optional<Candidate> classify(const Run& run, const scene::Mesh& mesh, MeshRecord& rec) {
+    const auto t0 = Clock::now();
+    run.report({mesh.name, "classify"});
+    Candidate c;
+    c.forced = run.forced(run.opt.force_complex, mesh.name);
+    const ClassifyRule& rule = run.preset.classify;
+    const voxelize::MeshView vview{mesh.positions, mesh.indices};
+    auto box = voxelize::padded_box(vview);
+    if (!box) {
+        rec.reasons.push_back("cannot bound the mesh: " + box.error().message);
+        return std::nullopt;
+    }
+    c.box = *box;
+    if (std::string why = range_problem(c.box); !why.empty()) {
+        rec.reasons.push_back(why);
+        return std::nullopt;
+    }
+    c.desc = run.preset.model;
+    c.desc.box_min = c.box.min;
+    c.desc.box_max = c.box.max;
+    sampling::MeshView sview{mesh.positions, mesh.indices, mesh.normals, mesh.triangle_materials};
+    sampling::SamplingConfig scfg;
+    scfg.threads = run.threads;
+    std::string serr;
+    c.source = sampling::EmbreeSource::create(sview, sampling::Box{c.box.min, c.box.max}, scfg, serr);
+    if (!c.source) {
+        rec.reasons.push_back("Embree could not build the mesh: " + serr);
+        return std::nullopt;
+    }
+    const std::uint64_t bvh = c.source->bvh_bytes();
+    // Size the tables to the mesh (ClassifyRule): halve T while the asset would not beat
+    // the BVH. Levels dense at the preset size stay dense (fewer rows than T).
+    if (!c.forced)
+        while (c.desc.log2_table_size > rule.min_log2_table_size &&
+               double(bvh) < rule.min_memory_ratio * double(lsnif_bytes_estimate(c.desc)))
+            --c.desc.log2_table_size;
+    const double ext[3] = {double(c.box.max[0]) - c.box.min[0], double(c.box.max[1]) - c.box.min[1],
+                           double(c.box.max[2]) - c.box.min[2]};
+    const double box_area = 2 * (ext[0] * ext[1] + ext[1] * ext[2] + ext[0] * ext[2]);
+    rec.stats = {{"box_min", vec3(c.box.min)},
+                 {"box_max", vec3(c.box.max)},
+                 {"area_ratio", surface_area(mesh) / box_area},
+                 {"components", count_components(mesh)},
+                 {"closed", c.source->is_closed()},
+                 {"solid", c.source->rejects_interior()},
+                 {"log2_table_size", c.desc.log2_table_size},
+                 {"bvh_bytes", bvh},
+                 {"lsnif_bytes_estimate", lsnif_bytes_estimate(c.desc)}};
+    rec.timings["classify"] = since(t0);
+    return c;
+}
+
+// Voxelize: the conservative occupancy grid of the candidate's model.
+std::optional<voxelize::Occupancy> voxelize_mesh(const Run& run, const scene::Mesh& mesh, const Candidate& c,
+                                                 MeshRecord& rec) {
+    const auto t0 = Clock::now();
+    run.report({mesh.name, "voxelize"});
+    voxelize::Options vopt;
+    vopt.threads = run.threads;
+    auto occ = voxelize::voxelize({mesh.positions, mesh.indices}, c.box, c.desc.grid_resolution, vopt);
+    if (!occ) {
+        rec.reasons.push_back("voxelization failed: " + occ.error().message);
+        return std::nullopt;
+    }
+    rec.stats["occupied_fraction"] = double(occ->count()) / double(c.desc.voxel_count());
+    rec.timings["voxelize"] = since(t0);
+    return std::move(*occ);
+}
+
+// The memory rule: an LSNIF must beat the BVH by min_memory_ratio (unless forced). Records
+// the comparison; false when the mesh stays simple (reason recorded).
+bool worth_an_lsnif(const Run& run, const scene::Mesh& mesh, const Candidate& c, MeshRecord& rec) {
+    const std::uint64_t bvh = c.source->bvh_bytes(), est = lsnif_bytes_estimate(c.desc);
+    const double ratio = double(bvh) / double(est);
+    const ClassifyRule& rule = run.preset.classify;
+    char why[200];
+    std::snprintf(why, sizeof why, "Embree BVH %" PRIu64 " bytes vs LSNIF %" PRIu64 " bytes (%.2fx)", bvh,
+                  est, ratio);
+    rec.reasons.push_back(why);
+    if (!c.forced && ratio < rule.min_memory_ratio) {
+        std::snprintf(why, sizeof why, "memory benefit %.2fx below the %.2fx threshold", ratio,
+                      rule.min_memory_ratio);
+        rec.reasons.push_back(why);
+        return false;
+    }
+    if (c.forced)
+        rec.reasons.push_back("forced complex by --complex " + mesh.name);
+    else
+        rec.reasons.push_back(std::to_string(mesh.triangle_count()) + " triangles");
+    if (c.desc.log2_table_size != run.preset.model.log2_table_size)
+        rec.reasons.push_back("hash tables sized to 2^" + std::to_string(c.desc.log2_table_size) +
+                              " rows (preset 2^" + std::to_string(run.preset.model.log2_table_size) +
+                              ") to beat the BVH's memory");
+    return true;
+}
+
+// The asset's content key: geometry and every setting that changes the weights. The file
+// is named by its hash, so an unchanged mesh finds its asset again.
+std::string asset_key(const Run& run, const scene::Mesh& mesh, const format::ModelDesc& desc) {
+    const Preset& p = run.preset;
+    return scene::geometry_hash(mesh) + "|" + p.name + "|" + std::to_string(run.opt.seed) + "|" +
+           std::to_string(p.train.steps) + "|" + std::to_string(p.train.batch_size) + "|" +
+           std::to_string(p.train_rays) + "/" + std::to_string(p.train_chunk_rays) + "/" +
+           std::to_string(p.train_window_chunks) + "|" + model_json(desc).dump() + "|" +
+           recipe_key(p, run.threads);
+}
+
+// Reuse: the held-out metrics of an existing asset written for exactly this key, or
+// nothing (absent, unreadable, or another key).
+std::optional<json> reusable_metrics(const fs::path& asset, const std::string& key) {
+    std::error_code ec;
+    if (!fs::exists(asset, ec)) return std::nullopt;
+    auto bytes = format::read_file_bytes(asset.string());
+    if (!bytes) return std::nullopt;
+    auto model = format::read_model(*bytes);
+    if (!model) return std::nullopt;
+    json meta = json::parse(model->metadata_json, nullptr, false);
+    if (!meta.is_object() || !meta.contains("metrics") || !meta["metrics"].contains("gate") ||
+        meta.value("extensions", json::object()).value("lsnif_convert_key", "") != key)
+        return std::nullopt;
+    return meta["metrics"];
+}
+
+// Sample + train: held-out rays, then the streamed training rounds. The trained model has
+// an empty metadata document until write_asset fills it.
+struct Trained {
+    format::ModelData model;
+    trainer::TrainConfig config;
+    trainer::StreamedResult stream;
+    std::vector<trainer::Sample> held_out;
+    std::vector<std::array<float, 3>> held_out_geometric_normals;
+};
+
+Trained sample_and_train(const Run& run, const scene::Mesh& mesh, Candidate& c,
+                         const voxelize::Occupancy& occ, MeshRecord& rec) {
+    Trained t;
+    auto t0 = Clock::now();
+    run.report({mesh.name, "sample"});
+    std::vector<sampling::SampleExtras> extras;
+    c.source->generate(run.opt.seed * 2 + 1 + 0x5bd1e995ull, run.preset.eval_rays, t.held_out, &extras);
+    t.held_out_geometric_normals.resize(extras.size());
+    for (std::size_t i = 0; i < extras.size(); ++i)
+        t.held_out_geometric_normals[i] = extras[i].geometric_normal;
+    const double held_out_seconds = since(t0);
+
+    t.config = run.preset.train;
+    t.config.threads = run.threads;
+    t.config.seed = run.opt.seed;
+    trainer::Trainer tr(c.desc, occ.bits, t.config);
+    trainer::StreamPlan plan;
+    plan.total_rays = run.preset.train_rays;
+    plan.rays_per_round = run.preset.train_chunk_rays;
+    plan.window_rounds = run.preset.train_window_chunks;
+    const std::uint64_t seed = run.opt.seed;
+    plan.round_seed = [seed](std::uint64_t r) {
+        return fnv1a64("train|" + std::to_string(seed) + "|" + std::to_string(r));
+    };
+    t0 = Clock::now();
+    t.stream = trainer::train_streamed(tr, *c.source, plan, [&](const trainer::Progress& p) {
+        const double elapsed = since(t0);
+        run.report({mesh.name, "train", p.step, p.steps, p.loss,
+                    p.step ? elapsed / p.step * (p.steps - p.step) : 0.0});
+        return true;
+    });
+    const trainer::StreamedResult& s = t.stream;
+    rec.stats["mean_occupied_per_ray"] = s.rays_reaching ? s.entry_points / double(s.rays_reaching) : 0.0;
+    rec.stats["training_rays"] = s.rays_drawn;
+    rec.timings["sample"] = held_out_seconds + s.generate_seconds;
+    rec.timings["prepare"] = s.prepare_seconds;
+    rec.timings["train"] = s.train.seconds;
+    t.model = tr.export_model("{}");
+    return t;
+}
+
+// Gate: held-out metrics of the trained model and the verdict, as the manifest records
+// them ({"held_out_rays", "families", "gate": {"passed", "reasons"?}}).
+json gate(const Run& run, const scene::Mesh& mesh, const Trained& t, MeshRecord& rec) {
+    const auto t0 = Clock::now();
+    run.report({mesh.name, "evaluate"});
+    const format::Runtime rt = format::make_runtime(t.model);
+    const trainer::Metrics m = trainer::evaluate(rt, t.held_out, run.threads, t.held_out_geometric_normals);
+    json metrics = {{"held_out_rays", t.held_out.size()}, {"families", metrics_json(m)}};
+    std::vector<std::string> reasons = gate_failures(m, run.preset.gate);
+    if (t.stream.train.diverged) reasons.push_back(t.stream.train.message);
+    json verdict = {{"passed", reasons.empty()}};
+    if (!reasons.empty()) verdict["reasons"] = reasons;
+    metrics["gate"] = verdict;
+    rec.timings["evaluate"] = since(t0);
+    return metrics;
+}
+
+// The asset's metadata document (schema/lsnif-metadata.schema.json). No wall times: an
+// asset must be reproducible byte for byte for the same input, seed and threads.
+json asset_metadata(const Run& run, const std::string& source, const scene::Mesh& mesh, const Candidate& c,
+                    const Trained& t, const json& metrics, const std::string& key) {
+    const trainer::TrainConfig& cfg = t.config;
+    const trainer::TrainResult& tres = t.stream.train;
+    return {
+        {"format", "lsnif-metadata/1"},
+        {"tool", {{"name", "lsnif"}, {"version", LSNIF_VERSION_STRING}, {"command", run.opt.command_line}}},
+        {"object",
+         {{"name", mesh.name},
+          {"source", source},
+          {"source_hash", scene::geometry_hash(mesh)},
+          {"box_min", vec3(c.box.min)},
+          {"box_max", vec3(c.box.max)},
+          {"triangle_count", mesh.triangle_count()},
+          {"vertex_count", mesh.vertex_count()},
+          {"closed", c.source->is_closed()}}},
+        {"model", model_json(c.desc)},
+        {"training",
+         {{"seed", run.opt.seed},
+          {"threads", run.threads},
+          {"steps", tres.steps},
+          {"batch_size", cfg.batch_size},
+          {"samples", tres.samples},
+          {"rays", t.stream.rays_drawn},
+          {"rays_per_round", t.stream.rays_per_round},
+          {"window_rounds", std::max<std::uint32_t>(1, run.preset.train_window_chunks)},
+          {"learning_rate_grid", cfg.grid_adam.lr},
+          {"learning_rate_mlp", cfg.mlp_adam.lr},
+          {"loss_weights",
+           {{"visibility", cfg.loss.visibility},
+            {"distance", cfg.loss.distance},
+            {"normal", cfg.loss.normal},
+            {"material", cfg.loss.material}}},
+          {"final_loss", std::isfinite(tres.final_loss) ? tres.final_loss : 0.0f},
+          {"preset", run.preset.name},
+          {"divergence_rollbacks", tres.rollbacks}}},
+        {"metrics", metrics},
+        {"extensions", {{"lsnif_convert_key", key}}}};
+}
+
+// Write: the asset through a temporary file and a rename. Returns the error, if any.
+std::string write_asset(const Run& run, const scene::Mesh& mesh, Trained& t, const json& metadata,
+                        const fs::path& asset, MeshRecord& rec) {
+    const auto t0 = Clock::now();
+    run.report({mesh.name, "write"});
+    t.model.metadata_json = metadata.dump(2);
+    std::error_code ec;
+    fs::create_directories(run.outdir, ec);
+    const format::Error e = format::write_file(asset.string(), t.model);
+    rec.timings["write"] = since(t0);
+    return e ? e.message : std::string();
+}
+
+// One mesh through every stage: its manifest entry. Errors that concern the run (an asset
+// that could not be written) are appended to `errors`.
+json convert_mesh(const Run& run, const std::string& source, const scene::Mesh& mesh, MeshRecord rec,
+                  std::vector<std::string>& errors) {
+    if (run.forced(run.opt.force_simple, mesh.name))
+        return rec.simple("forced simple by --simple " + mesh.name);
+    const ClassifyRule& rule = run.preset.classify;
+    if (mesh.triangle_count() < rule.min_triangles && !run.forced(run.opt.force_complex, mesh.name))
+        return rec.simple(std::to_string(mesh.triangle_count()) + " triangles < " +
+                          std::to_string(rule.min_triangles) + ": a BVH is small and exact");
+    std::optional<Candidate> c = classify(run, mesh, rec);
+    if (!c) return rec.finish("simple");
+    const std::optional<voxelize::Occupancy> occ = voxelize_mesh(run, mesh, *c, rec);
+    if (!occ || !worth_an_lsnif(run, mesh, *c, rec)) return rec.finish("simple");
+    if (run.opt.dry_run) return rec.finish("complex");  // the plan only: no sampling, training or files
+
+    const std::string key = asset_key(run, mesh, c->desc);
+    const std::string file = hex16(fnv1a64(key)) + ".lsnif";
+    const fs::path asset = run.outdir / file;
+    json metrics;
+    bool reused = false;
+    if (auto previous = reusable_metrics(asset, key)) {
+        metrics = std::move(*previous);
+        reused = true;
+    } else {
+        Trained t = sample_and_train(run, mesh, *c, *occ, rec);
+        metrics = gate(run, mesh, t, rec);
+        if (metrics["gate"]["passed"].get<bool>()) {
+            const std::string err =
+                write_asset(run, mesh, t, asset_metadata(run, source, mesh, *c, t, metrics, key), asset, rec);
+            if (!err.empty()) {
+                errors.push_back(source + ": mesh '" + mesh.name + "': " + err);
+                metrics["gate"]["passed"] = false;  // not shipped; the manifest must not point at it
+            }
+        }
+    }
+    rec.entry["metrics"] = metrics;
+    if (metrics["gate"]["passed"].get<bool>()) {
+        std::error_code ec;
+        rec.entry["lsnif"] = {{"file", file}, {"bytes", fs::file_size(asset, ec)}, {"reused", reused}};
+        return rec.finish("complex");
+    }
+    for (const auto& r : metrics["gate"].value("reasons", std::vector<std::string>{}))
+        rec.reasons.push_back("gate: " + r);
+    return rec.simple("held-out accuracy below the gate: stays BVH");
+}
+
+// The manifest entry of mesh k of input `in` before any stage ran.
+MeshRecord new_record(const scene::Scene& sc, std::size_t in, std::size_t k, std::size_t id) {
+    const scene::Mesh& mesh = sc.meshes[k];
+    std::size_t instances = 0;
+    for (const auto& i : sc.instances) instances += i.mesh == k;
+    MeshRecord rec;
+    rec.entry = {{"id", id},
+                 {"name", mesh.name},
+                 {"input", in},
+                 {"source_mesh", k},
+                 {"triangles", mesh.triangle_count()},
+                 {"vertices", mesh.vertex_count()},
+                 {"geometry_hash", scene::geometry_hash(mesh)},
+                 {"instances", instances}};
+    return rec;
+}
+
+// The manifest document (schema/manifest.schema.json).
+json manifest_json(const Run& run, const json& inputs, const json& meshes, const json& instances) {
+    json forced_c = run.opt.force_complex, forced_s = run.opt.force_simple;
+    return {
+        {"format", kManifestFormat},
+        {"tool", {{"name", "lsnif"}, {"version", LSNIF_VERSION_STRING}}},
+        {"settings",
+         {{"preset", run.preset.name},
+          {"seed", run.opt.seed},
+          {"threads", run.threads},
+          {"forced_complex", forced_c},
+          {"forced_simple", forced_s}}},
+        {"inputs", inputs},
+        {"meshes", meshes},
+        {"instances", instances},
+        {"simple_geometry",
+         {{"location", "inputs"},
+          {"note", "simple meshes are read from their input file (meshes[].input, meshes[].source_mesh)"}}}};
+}
+
+// Writes OUTDIR/manifest.json atomically. Returns the error, if any.
+std::string write_manifest(const fs::path& outdir, const json& manifest) {
+    std::error_code ec;
+    fs::create_directories(outdir, ec);
+    if (ec) return outdir.string() + ": cannot create the output directory: " + ec.message();
+    const std::string text = manifest.dump(2) + "\n";
+    const format::Error e =
+        format::write_bytes_atomically((outdir / "manifest.json").string(),
+                                       {reinterpret_cast<const std::uint8_t*>(text.data()), text.size()});
+    return e ? e.message : std::string();
+}
+
+}  // namespace
+
+ConvertResult convert(const ConvertOptions& opt, const ConvertProgress& progress) {
+    ConvertResult res;
+    Run run{opt, {}, base::resolve_threads(opt.threads), opt.outdir, progress};
+    std::string error;
+    if (!resolve_preset(opt, run.preset, error)) {
+        res.errors.push_back(error);
+        return res;
+    }
+    json inputs = json::array(), meshes = json::array(), instances = json::array();
+    std::size_t ok_inputs = 0, next_id = 0;
+    double import_seconds = 0;
     for (std::size_t in = 0; in < opt.inputs.size(); ++in) {
         const std::string& path = opt.inputs[in];
-        report({path, "import"});
-        const auto import_t0 = Clock::now();
+        run.report({path, "import"});
+        const auto t0 = Clock::now();
         auto imported = scene::import_scene(path);
-        import_seconds += since(import_t0);
+        import_seconds += since(t0);
+        json in_json = {{"path", manifest_relative_path(path, run.outdir)}, {"given", path}};
         if (!imported.ok()) {
             res.errors.push_back(imported.error);
-            inputs.push_back({{"path", manifest_relative_path(path, outdir)},
-                              {"given", path},
-                              {"status", "error"},
-                              {"error", imported.error}});
-            scenes.emplace_back();
+            in_json["status"] = "error";
+            in_json["error"] = imported.error;
+            inputs.push_back(in_json);
             continue;
         }
         ++ok_inputs;
-        scenes.push_back(std::move(imported.scene));
-        const scene::Scene& sc = scenes.back();
-        json in_json = {{"path", manifest_relative_path(path, outdir)}, {"given", path}, {"status", "ok"}};
+        const scene::Scene& sc = imported.scene;
+        in_json["status"] = "ok";
         if (!sc.warnings.empty()) {
             in_json["warnings"] = sc.warnings;
             for (const auto& w : sc.warnings) res.warnings.push_back(path + ": " + w);
         }
         inputs.push_back(in_json);
         const std::size_t first_id = next_id;
-
-        for (std::size_t k = 0; k < sc.meshes.size(); ++k) {
-            const scene::Mesh& mesh = sc.meshes[k];
-            const std::size_t id = next_id++;
-            std::size_t inst_count = 0;
-            for (const auto& i : sc.instances) inst_count += i.mesh == k;
-            json mj = {{"id", id},
-                       {"name", mesh.name},
-                       {"input", in},
-                       {"source_mesh", k},
-                       {"triangles", mesh.triangle_count()},
-                       {"vertices", mesh.vertex_count()},
-                       {"geometry_hash", scene::geometry_hash(mesh)},
-                       {"instances", inst_count}};
-            std::vector<std::string> reasons;
-            json timings = json::object();
-            const bool forced_complex = std::find(opt.force_complex.begin(), opt.force_complex.end(),
-                                                  mesh.name) != opt.force_complex.end();
-            const bool forced_simple = std::find(opt.force_simple.begin(), opt.force_simple.end(),
-                                                 mesh.name) != opt.force_simple.end();
-            auto finish_simple = [&](const std::string& why) {
-                reasons.push_back(why);
-                mj["class"] = "simple";
-                mj["reasons"] = reasons;
-                mj["timings"] = timings;
-                meshes.push_back(mj);
-            };
-            if (forced_simple) {
-                finish_simple("forced simple by --simple " + mesh.name);
-                continue;
-            }
-            if (mesh.triangle_count() < preset.classify.min_triangles && !forced_complex) {
-                finish_simple(std::to_string(mesh.triangle_count()) + " triangles < " +
-                              std::to_string(preset.classify.min_triangles) + ": a BVH is small and exact");
-                continue;
-            }
-            // ---- classify: geometry statistics and the memory benefit ----
-            auto t0 = Clock::now();
-            report({mesh.name, "classify"});
-            voxelize::MeshView vview{mesh.positions, mesh.indices};
-            auto box = voxelize::padded_box(vview);
-            if (!box) {
-                finish_simple("cannot bound the mesh: " + box.error().message);
-                continue;
-            }
-            const double ext[3] = {double(box->max[0]) - box->min[0], double(box->max[1]) - box->min[1],
-                                   double(box->max[2]) - box->min[2]};
-            {
-                const double extent = std::max({ext[0], ext[1], ext[2]});
-                double coord = 0;
-                for (int a = 0; a < 3; ++a)
-                    coord = std::max({coord, std::fabs(double(box->min[a])), std::fabs(double(box->max[a]))});
-                if (!(extent >= kMinModelExtent && extent <= kMaxModelExtent && coord <= kMaxModelExtent)) {
-                    char why[200];
-                    std::snprintf(
-                        why, sizeof why,
-                        "box extent %.3g (coordinates up to %.3g) is outside the range LSNIF models in "
-                        "single precision [%g, %g]",
-                        extent, coord, kMinModelExtent, kMaxModelExtent);
-                    finish_simple(why);
-                    continue;
-                }
-            }
-            format::ModelDesc desc = preset.model;
-            desc.box_min = box->min;
-            desc.box_max = box->max;
-            const double box_area = 2 * (ext[0] * ext[1] + ext[1] * ext[2] + ext[0] * ext[2]);
-            sampling::MeshView sview{mesh.positions, mesh.indices, mesh.normals, mesh.triangle_materials};
-            sampling::SamplingConfig scfg;
-            scfg.threads = threads;
-            std::string serr;
-            auto source =
-                sampling::EmbreeSource::create(sview, sampling::Box{box->min, box->max}, scfg, serr);
-            if (!source) {
-                finish_simple("Embree could not build the mesh: " + serr);
-                continue;
-            }
-            const std::uint64_t bvh = source->bvh_bytes();
-            // Size the tables to the mesh (ClassifyRule): halve T while the asset would not
-            // beat the BVH. Levels dense at the preset size stay dense (fewer rows than T).
-            if (!forced_complex)
-                while (desc.log2_table_size > preset.classify.min_log2_table_size &&
-                       double(bvh) < preset.classify.min_memory_ratio * double(lsnif_bytes_estimate(desc)))
-                    --desc.log2_table_size;
-            const std::uint64_t est = lsnif_bytes_estimate(desc);
-            json stats = {{"box_min", vec3(box->min)},
-                          {"box_max", vec3(box->max)},
-                          {"area_ratio", surface_area(mesh) / box_area},
-                          {"components", count_components(mesh)},
-                          {"closed", source->is_closed()},
-                          {"solid", source->rejects_interior()},
-                          {"log2_table_size", desc.log2_table_size},
-                          {"bvh_bytes", bvh},
-                          {"lsnif_bytes_estimate", est}};
-            timings["classify"] = since(t0);
-            t0 = Clock::now();
-            report({mesh.name, "voxelize"});
-            voxelize::Options vopt;
-            vopt.threads = threads;
-            auto occ = voxelize::voxelize(vview, *box, desc.grid_resolution, vopt);
-            if (!occ) {
-                mj["stats"] = stats;
-                finish_simple("voxelization failed: " + occ.error().message);
-                continue;
-            }
-            stats["occupied_fraction"] = double(occ->count()) / double(desc.voxel_count());
-            timings["voxelize"] = since(t0);
-            const double ratio = double(bvh) / double(est);
-            char why[200];
-            std::snprintf(why, sizeof why, "Embree BVH %" PRIu64 " bytes vs LSNIF %" PRIu64 " bytes (%.2fx)",
-                          bvh, est, ratio);
-            reasons.push_back(why);
-            if (!forced_complex && ratio < preset.classify.min_memory_ratio) {
-                mj["stats"] = stats;
-                char s2[160];
-                std::snprintf(s2, sizeof s2, "memory benefit %.2fx below the %.2fx threshold", ratio,
-                              preset.classify.min_memory_ratio);
-                finish_simple(s2);
-                continue;
-            }
-            if (forced_complex)
-                reasons.push_back("forced complex by --complex " + mesh.name);
-            else
-                reasons.push_back(std::to_string(mesh.triangle_count()) + " triangles");
-            if (desc.log2_table_size != preset.model.log2_table_size)
-                reasons.push_back("hash tables sized to 2^" + std::to_string(desc.log2_table_size) +
-                                  " rows (preset 2^" + std::to_string(preset.model.log2_table_size) +
-                                  ") to beat the BVH's memory");
-
-            if (opt.dry_run) {  // the plan only: no sampling, training or files
-                mj["class"] = "complex";
-                mj["reasons"] = reasons;
-                mj["stats"] = stats;
-                mj["timings"] = timings;
-                meshes.push_back(mj);
-                continue;
-            }
-            // ---- asset name: content hash of geometry and settings ----
-            const std::string key =
-                scene::geometry_hash(mesh) + "|" + preset.name + "|" + std::to_string(opt.seed) + "|" +
-                std::to_string(preset.train.steps) + "|" + std::to_string(preset.train.batch_size) + "|" +
-                std::to_string(preset.train_rays) + "/" + std::to_string(preset.train_chunk_rays) + "/" +
-                std::to_string(preset.train_window_chunks) + "|" + model_json(desc).dump() + "|" +
-                recipe_key(preset, threads);
-            const std::string file = hex16(fnv1a64(key)) + ".lsnif";
-            const fs::path asset = outdir / file;
-            json metrics;
-            bool passed = false;
-            bool reused = false;
-            {
-                lsnif_model* existing = nullptr;
-                if (fs::exists(asset) && lsnif_open_file(asset.c_str(), &existing, nullptr) == LSNIF_OK) {
-                    std::size_t len = 0;
-                    const char* text = lsnif_metadata(existing, &len);
-                    json meta = json::parse(text, text + len, nullptr, false);
-                    lsnif_close(existing);
-                    if (meta.is_object() && meta.contains("metrics") && meta["metrics"].contains("gate") &&
-                        meta.value("extensions", json::object()).value("lsnif_convert_key", "") == key) {
-                        metrics = meta["metrics"];
-                        passed = metrics["gate"]["passed"].get<bool>();
-                        reused = true;
-                    }
-                }
-            }
-            if (!reused) {
-                // ---- sample held-out rays, then train in rounds of fresh rays ----
-                t0 = Clock::now();
-                report({mesh.name, "sample"});
-                std::vector<trainer::Sample> held_out;
-                std::vector<sampling::SampleExtras> extras;
-                source->generate(opt.seed * 2 + 1 + 0x5bd1e995ull, preset.eval_rays, held_out, &extras);
-                double sample_seconds = since(t0), prepare_seconds = 0;
-                trainer::TrainConfig tcfg = preset.train;
-                tcfg.threads = threads;
-                tcfg.seed = opt.seed;
-                trainer::Trainer tr(desc, occ->bits, tcfg);
-                const std::uint64_t chunk =
-                    std::max<std::uint64_t>(1, std::min(preset.train_chunk_rays, preset.train_rays));
-                const std::uint64_t rounds =
-                    std::min<std::uint64_t>((preset.train_rays + chunk - 1) / chunk, tcfg.steps);
-                trainer::PreparedSet pool;          // the latest train_window_chunks chunks
-                trainer::PreparedSet fresh;         // this round's chunk (buffers reused)
-                std::vector<trainer::Sample> rays;  // this round's rays (capacity reused)
-                // Room for the whole window up front: a pool that regrows reallocates and
-                // copies hundreds of MB, and every fresh page is a page fault.
-                pool.reserve(std::size_t(chunk) * std::max<std::uint32_t>(1, preset.train_window_chunks),
-                             desc.max_points);
-                std::vector<std::size_t> in_pool;  // their sizes, oldest first
-                trainer::TrainResult tres;
-                double points = 0;
-                std::uint64_t reached = 0, drawn = 0;
-                const auto tr_t0 = Clock::now();
-                for (std::uint64_t r = 0; r < rounds && !tres.diverged; ++r) {
-                    auto tp = Clock::now();
-                    const std::uint64_t n = std::min(chunk, preset.train_rays - r * chunk);
-                    source->generate(fnv1a64("train|" + std::to_string(opt.seed) + "|" + std::to_string(r)),
-                                     n, rays);
-                    drawn += n;
-                    sample_seconds += since(tp);
-                    tp = Clock::now();
-                    tr.prepare_into(rays, fresh);
-                    for (auto c : fresh.count) points += c;
-                    reached += fresh.size();
-                    // Drop the oldest round before adding this one: the pool's buffers never
-                    // hold more than the window, and they stop growing after a few rounds.
-                    if (in_pool.size() >= std::max<std::uint32_t>(1, preset.train_window_chunks)) {
-                        pool.drop_front(in_pool.front());
-                        in_pool.erase(in_pool.begin());
-                    }
-                    in_pool.push_back(fresh.size());
-                    pool.append(fresh);
-                    prepare_seconds += since(tp);
-                    const auto until =
-                        std::uint32_t(r + 1 == rounds ? tcfg.steps : tcfg.steps * (r + 1) / rounds);
-                    const trainer::TrainResult part = tr.train(
-                        pool,
-                        [&](const trainer::Progress& p) {
-                            const double elapsed = since(tr_t0);
-                            report({mesh.name, "train", p.step, p.steps, p.loss,
-                                    p.step ? elapsed / p.step * (p.steps - p.step) : 0.0});
-                            return true;
-                        },
-                        until);
-                    tres.steps = part.steps;
-                    tres.seconds += part.seconds;
-                    tres.samples += part.samples;
-                    tres.rollbacks = part.rollbacks;
-                    tres.final_loss = part.final_loss;
-                    tres.diverged = part.diverged;
-                    if (!part.message.empty()) tres.message = part.message;
-                }
-                stats["mean_occupied_per_ray"] = reached ? points / double(reached) : 0.0;
-                stats["training_rays"] = drawn;
-                timings["sample"] = sample_seconds;
-                timings["prepare"] = prepare_seconds;
-                timings["train"] = tres.seconds;
-                total_train_seconds += tres.seconds;
-                // ---- evaluate on held-out rays ----
-                t0 = Clock::now();
-                report({mesh.name, "evaluate"});
-                format::ModelData model = tr.export_model("{}");
-                const format::Runtime rt = format::make_runtime(model);
-                std::vector<std::array<float, 3>> geo_normals(extras.size());
-                for (std::size_t i = 0; i < extras.size(); ++i) geo_normals[i] = extras[i].geometric_normal;
-                const trainer::Metrics m = trainer::evaluate(rt, held_out, threads, geo_normals);
-                metrics = {{"held_out_rays", held_out.size()}, {"families", metrics_json(m)}};
-                const auto fails = gate_failures(m, preset.gate);
-                passed = fails.empty() && !tres.diverged;
-                json gate = {{"passed", passed}};
-                std::vector<std::string> gate_reasons = fails;
-                if (tres.diverged) gate_reasons.push_back(tres.message);
-                if (!gate_reasons.empty()) gate["reasons"] = gate_reasons;
-                metrics["gate"] = gate;
-                timings["evaluate"] = since(t0);
-                // ---- write ----
-                if (passed) {
-                    t0 = Clock::now();
-                    report({mesh.name, "write"});
-                    std::vector<std::string> materials;
-                    for (const auto& name : sc.materials) materials.push_back(name);
-                    json meta = {{"format", "lsnif-metadata/1"},
-                                 {"tool",
-                                  {{"name", "lsnif"},
-                                   {"version", LSNIF_VERSION_STRING},
-                                   {"command", opt.command_line}}},
-                                 {"object",
-                                  {{"name", mesh.name},
-                                   {"source", path},
-                                   {"source_hash", scene::geometry_hash(mesh)},
-                                   {"box_min", vec3(box->min)},
-                                   {"box_max", vec3(box->max)},
-                                   {"triangle_count", mesh.triangle_count()},
-                                   {"vertex_count", mesh.vertex_count()},
-                                   {"closed", source->is_closed()}}},
-                                 {"model", model_json(desc)},
-                                 {"training",
-                                  {{"seed", opt.seed},
-                                   {"threads", threads},
-                                   {"steps", tres.steps},
-                                   {"batch_size", tcfg.batch_size},
-                                   {"samples", tres.samples},
-                                   {"rays", drawn},
-                                   {"rays_per_round", chunk},
-                                   {"window_rounds", std::max<std::uint32_t>(1, preset.train_window_chunks)},
-                                   // No wall time here: an asset must be reproducible byte for byte
-                                   // (same input, seed and threads); timings are in the report.
-                                   {"learning_rate_grid", tcfg.grid_adam.lr},
-                                   {"learning_rate_mlp", tcfg.mlp_adam.lr},
-                                   {"loss_weights",
-                                    {{"visibility", tcfg.loss.visibility},
-                                     {"distance", tcfg.loss.distance},
-                                     {"normal", tcfg.loss.normal},
-                                     {"material", tcfg.loss.material}}},
-                                   {"final_loss", std::isfinite(tres.final_loss) ? tres.final_loss : 0.0f},
-                                   {"preset", preset.name},
-                                   {"divergence_rollbacks", tres.rollbacks}}},
-                                 {"metrics", metrics},
-                                 {"extensions", {{"lsnif_convert_key", key}}}};
-                    model.metadata_json = meta.dump(2);
-                    std::error_code ec;
-                    fs::create_directories(outdir, ec);
-                    if (format::Error e = format::write_file(asset.string(), model)) {
-                        res.errors.push_back(path + ": mesh '" + mesh.name + "': " + e.message);
-                        passed = false;
-                    }
-                    timings["write"] = since(t0);
-                }
-            }
-            mj["stats"] = stats;
-            mj["metrics"] = metrics;
-            mj["timings"] = timings;
-            if (passed) {
-                std::error_code ec;
-                mj["class"] = "complex";
-                mj["reasons"] = reasons;
-                mj["lsnif"] = {{"file", file}, {"bytes", fs::file_size(asset, ec)}, {"reused", reused}};
-                meshes.push_back(mj);
-            } else {
-                for (const auto& r : metrics["gate"].value("reasons", std::vector<std::string>{}))
-                    reasons.push_back("gate: " + r);
-                finish_simple("held-out accuracy below the gate: stays BVH");
-            }
-        }
+        for (std::size_t k = 0; k < sc.meshes.size(); ++k)
+            meshes.push_back(
+                convert_mesh(run, path, sc.meshes[k], new_record(sc, in, k, next_id++), res.errors));
         for (const auto& i : sc.instances)
             instances.push_back({{"mesh", first_id + i.mesh},
                                  {"name", i.node_name},
@@ -619,34 +712,9 @@ ConvertResult convert(const ConvertOptions& opt, const ConvertProgress& progress
     if (opt.dry_run) res.report["dry_run"] = true;
     if (ok_inputs == 0 || opt.dry_run) return res;  // nothing converted, or a plan: leave OUTDIR untouched
 
-    json forced_c = opt.force_complex, forced_s = opt.force_simple;
-    res.manifest = {
-        {"format", kManifestFormat},
-        {"tool", {{"name", "lsnif"}, {"version", LSNIF_VERSION_STRING}}},
-        {"settings",
-         {{"preset", preset.name},
-          {"seed", opt.seed},
-          {"threads", threads},
-          {"forced_complex", forced_c},
-          {"forced_simple", forced_s}}},
-        {"inputs", inputs},
-        {"meshes", meshes},
-        {"instances", instances},
-        {"simple_geometry",
-         {{"location", "inputs"},
-          {"note", "simple meshes are read from their input file (meshes[].input, meshes[].source_mesh)"}}}};
-    std::error_code ec;
-    fs::create_directories(outdir, ec);
-    if (ec) {
-        res.errors.push_back(outdir.string() + ": cannot create the output directory: " + ec.message());
-        return res;
-    }
-    const std::string text = res.manifest.dump(2) + "\n";
-    if (format::Error e =
-            format::write_bytes_atomically((outdir / "manifest.json").string(),
-                                           {reinterpret_cast<const std::uint8_t*>(text.data()), text.size()}))
-        res.errors.push_back(e.message);
-    res.report["manifest"] = (outdir / "manifest.json").string();
+    res.manifest = manifest_json(run, inputs, meshes, instances);
+    if (std::string e = write_manifest(run.outdir, res.manifest); !e.empty()) res.errors.push_back(e);
+    res.report["manifest"] = (run.outdir / "manifest.json").string();
     return res;
 }
 

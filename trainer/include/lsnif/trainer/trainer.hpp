@@ -183,6 +183,7 @@ public:
     const format::ModelDesc& desc() const { return desc_; }
     const format::Geometry& geometry() const { return geo_; }
     const std::vector<std::uint8_t>& occupancy() const { return occupancy_; }
+    const TrainConfig& config() const { return cfg_; }
 
     // Keeps only the samples whose ray reaches the network (crosses an occupied voxel).
     std::vector<Sample> reachable(std::span<const Sample> samples) const;
