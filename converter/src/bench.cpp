@@ -4,6 +4,7 @@
 // the ratios in one run are what BENCHMARKS.md records. `bench train` measures both MLP
 // precisions (fp32, and bf16 on AMX when available) in alternating slices, so their ratio
 // sees the same machine load.
+#include <lsnif/base/clock.hpp>
 #include <lsnif/converter/bench.hpp>
 #include <lsnif/format/forward.hpp>
 #include <lsnif/trainer/analytic.hpp>
@@ -27,9 +28,7 @@ using Clock = std::chrono::steady_clock;
 
 namespace {
 
-double seconds_since(Clock::time_point t0) {
-    return std::chrono::duration<double>(Clock::now() - t0).count();
-}
+using base::seconds_since;
 
 std::string cpu_model() {
     std::ifstream f("/proc/cpuinfo");

@@ -1,6 +1,7 @@
 // `lsnif bench memory|rays|convert`: a converted scene measured against Embree on the same
 // machine in the same run (docs/architecture.md §5 "Speed"; BENCHMARKS.md has the figures).
 #include <lsnif/lsnif.h>
+#include <lsnif/base/clock.hpp>
 #include <lsnif/converter/bench.hpp>
 #include <lsnif/converter/convert.hpp>
 #include <lsnif/converter/manifest.hpp>
@@ -22,9 +23,7 @@ using Clock = std::chrono::steady_clock;
 
 namespace {
 
-double since(Clock::time_point t0) {
-    return std::chrono::duration<double>(Clock::now() - t0).count();
-}
+using base::seconds_since;
 
 // One complex mesh of a conversion: its source geometry and its opened asset.
 struct Object {
@@ -237,7 +236,7 @@ json bench_rays(const SceneBenchOptions& opt, std::string& error) {
                                   [&](std::uint32_t, std::size_t b, std::size_t e) {
                                       lsnif_intersect(o.model, rays.data() + b, e - b, hits.data() + b);
                                   });
-            best = std::min(best, since(t0));
+            best = std::min(best, seconds_since(t0));
         }
         std::size_t agree = 0;
         for (std::size_t i = 0; i < rays.size(); ++i) agree += (hits[i].hit != 0) == (samples[i].hit != 0);
@@ -262,7 +261,7 @@ json bench_convert(const ConvertOptions& copt, std::string& error) {
     ConvertOptions o = copt;
     const auto t0 = Clock::now();
     const ConvertResult r = convert(o);
-    const double wall = since(t0);
+    const double wall = seconds_since(t0);
     if (!r.ok()) {
         error = r.errors.empty() ? "conversion failed" : r.errors[0];
         return {};

@@ -1,4 +1,5 @@
 // `lsnif convert`; see convert.hpp for the contracts.
+#include <lsnif/base/clock.hpp>
 #include <lsnif/converter/convert.hpp>
 #include <lsnif/converter/manifest.hpp>
 #include <lsnif/format/forward.hpp>
@@ -26,9 +27,7 @@ using Clock = std::chrono::steady_clock;
 
 namespace {
 
-double since(Clock::time_point t0) {
-    return std::chrono::duration<double>(Clock::now() - t0).count();
-}
+using base::seconds_since;
 
 std::uint64_t fnv1a64(const std::string& s, std::uint64_t h = 0xcbf29ce484222325ull) {
     for (unsigned char c : s) {
@@ -315,12 +314,14 @@ std::string range_problem(const voxelize::Box& box) {
 
 // Classify: bounds, float range, Embree's BVH size, the table size that beats it and the
 // geometry statistics. Returns nothing when the mesh stays simple (reason recorded).
-// Contract: `rec.stats` is set whenever Embree built the mesh.
-std::optional<Candidate> classify(const Run& run, const scene::Mesh& mesh, MeshRecord& rec) {
+// `forced_complex` (--complex) skips the table sizing. Contract: `rec.stats` is set whenever
+// Embree built the mesh.
+std::optional<Candidate> classify(const Run& run, const scene::Mesh& mesh, bool forced_complex,
+                                  MeshRecord& rec) {
     const auto t0 = Clock::now();
     run.report({mesh.name, "classify"});
     Candidate c;
-    c.forced = run.forced(run.opt.force_complex, mesh.name);
+    c.forced = forced_complex;
     const ClassifyRule& rule = run.preset.classify;
     const voxelize::MeshView vview{mesh.positions, mesh.indices};
     auto box = voxelize::padded_box(vview);
@@ -364,7 +365,7 @@ std::optional<Candidate> classify(const Run& run, const scene::Mesh& mesh, MeshR
                  {"log2_table_size", c.desc.log2_table_size},
                  {"bvh_bytes", bvh},
                  {"lsnif_bytes_estimate", lsnif_bytes_estimate(c.desc)}};
-    rec.timings["classify"] = since(t0);
+    rec.timings["classify"] = seconds_since(t0);
     return c;
 }
 
@@ -381,7 +382,7 @@ std::optional<voxelize::Occupancy> voxelize_mesh(const Run& run, const scene::Me
         return std::nullopt;
     }
     rec.stats["occupied_fraction"] = double(occ->count()) / double(c.desc.voxel_count());
-    rec.timings["voxelize"] = since(t0);
+    rec.timings["voxelize"] = seconds_since(t0);
     return std::move(*occ);
 }
 
@@ -459,7 +460,7 @@ Trained sample_and_train(const Run& run, const scene::Mesh& mesh, Candidate& c,
     t.held_out_geometric_normals.resize(extras.size());
     for (std::size_t i = 0; i < extras.size(); ++i)
         t.held_out_geometric_normals[i] = extras[i].geometric_normal;
-    const double held_out_seconds = since(t0);
+    const double held_out_seconds = seconds_since(t0);
 
     t.config = run.preset.train;
     t.config.threads = run.threads;
@@ -475,7 +476,7 @@ Trained sample_and_train(const Run& run, const scene::Mesh& mesh, Candidate& c,
     };
     t0 = Clock::now();
     t.stream = trainer::train_streamed(tr, *c.source, plan, [&](const trainer::Progress& p) {
-        const double elapsed = since(t0);
+        const double elapsed = seconds_since(t0);
         run.report({mesh.name, "train", p.step, p.steps, p.loss,
                     p.step ? elapsed / p.step * (p.steps - p.step) : 0.0});
         return true;
@@ -503,7 +504,7 @@ json gate(const Run& run, const scene::Mesh& mesh, const Trained& t, MeshRecord&
     json verdict = {{"passed", reasons.empty()}};
     if (!reasons.empty()) verdict["reasons"] = reasons;
     metrics["gate"] = verdict;
-    rec.timings["evaluate"] = since(t0);
+    rec.timings["evaluate"] = seconds_since(t0);
     return metrics;
 }
 
@@ -558,7 +559,7 @@ std::string write_asset(const Run& run, const scene::Mesh& mesh, Trained& t, con
     std::error_code ec;
     fs::create_directories(run.outdir, ec);
     const format::Error e = format::write_file(asset.string(), t.model);
-    rec.timings["write"] = since(t0);
+    rec.timings["write"] = seconds_since(t0);
     return e ? e.message : std::string();
 }
 
@@ -569,10 +570,11 @@ json convert_mesh(const Run& run, const std::string& source, const scene::Mesh& 
     if (run.forced(run.opt.force_simple, mesh.name))
         return rec.simple("forced simple by --simple " + mesh.name);
     const ClassifyRule& rule = run.preset.classify;
-    if (mesh.triangle_count() < rule.min_triangles && !run.forced(run.opt.force_complex, mesh.name))
+    const bool forced_complex = run.forced(run.opt.force_complex, mesh.name);
+    if (mesh.triangle_count() < rule.min_triangles && !forced_complex)
         return rec.simple(std::to_string(mesh.triangle_count()) + " triangles < " +
                           std::to_string(rule.min_triangles) + ": a BVH is small and exact");
-    std::optional<Candidate> c = classify(run, mesh, rec);
+    std::optional<Candidate> c = classify(run, mesh, forced_complex, rec);
     if (!c) return rec.finish("simple");
     const std::optional<voxelize::Occupancy> occ = voxelize_mesh(run, mesh, *c, rec);
     if (!occ || !worth_an_lsnif(run, mesh, *c, rec)) return rec.finish("simple");
@@ -676,7 +678,7 @@ ConvertResult convert(const ConvertOptions& opt, const ConvertProgress& progress
         run.report({path, "import"});
         const auto t0 = Clock::now();
         auto imported = scene::import_scene(path);
-        import_seconds += since(t0);
+        import_seconds += seconds_since(t0);
         json in_json = {{"path", manifest_relative_path(path, run.outdir)}, {"given", path}};
         if (!imported.ok()) {
             res.errors.push_back(imported.error);

@@ -1,6 +1,7 @@
 // `lsnif eval`: reference (Embree everywhere) and hybrid (Embree + LSNIF reader) renders of
 // a converted scene, compared with FLIP and PSNR (eval.hpp has the contract).
 #include <lsnif/base/affine.hpp>
+#include <lsnif/base/clock.hpp>
 #include <lsnif/base/parallel.hpp>
 #include <lsnif/base/random.hpp>
 #include <lsnif/converter/eval.hpp>
@@ -459,9 +460,7 @@ struct GBuffer {
     std::vector<float> eps;          // origin offset of secondary rays
 };
 
-double seconds_since(std::chrono::steady_clock::time_point t0) {
-    return std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
-}
+using base::seconds_since;
 
 json flip_json(const eval::FlipStats& s, double psnr) {
     json j = {{"flip_mean", s.mean}, {"flip_median", s.median}, {"flip_p95", s.p95}, {"flip_max", s.max}};

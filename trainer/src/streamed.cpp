@@ -1,4 +1,5 @@
 // Training in rounds of fresh rays; see streamed.hpp for the contract.
+#include <lsnif/base/clock.hpp>
 #include <lsnif/trainer/streamed.hpp>
 
 #include <algorithm>
@@ -11,9 +12,7 @@ namespace lsnif::trainer {
 namespace {
 
 using Clock = std::chrono::steady_clock;
-double since(Clock::time_point t0) {
-    return std::chrono::duration<double>(Clock::now() - t0).count();
-}
+using base::seconds_since;
 
 // Adds one round's counters; steps, loss and state flags are the latest round's.
 void accumulate(TrainResult& total, const TrainResult& part) {
@@ -49,7 +48,7 @@ StreamedResult train_streamed(Trainer& trainer, SampleSource& source, const Stre
         const std::uint64_t n = std::min(chunk, plan.total_rays - r * chunk);
         source.generate(plan.round_seed(r), n, rays);
         out.rays_drawn += n;
-        out.generate_seconds += since(t0);
+        out.generate_seconds += seconds_since(t0);
 
         t0 = Clock::now();
         trainer.prepare_into(rays, fresh);
@@ -63,7 +62,7 @@ StreamedResult train_streamed(Trainer& trainer, SampleSource& source, const Stre
         }
         in_pool.push_back(fresh.size());
         pool.append(fresh);
-        out.prepare_seconds += since(t0);
+        out.prepare_seconds += seconds_since(t0);
 
         const auto until = std::uint32_t(r + 1 == out.rounds ? steps : steps * (r + 1) / out.rounds);
         accumulate(out.train, trainer.train(pool, progress, until));

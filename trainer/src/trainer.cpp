@@ -2,6 +2,7 @@
 #include <lsnif/format/half.hpp>
 #include <lsnif/trainer/trainer.hpp>
 
+#include <lsnif/base/clock.hpp>
 #include <lsnif/base/parallel.hpp>
 #include <lsnif/base/random.hpp>
 #include "amx.hpp"
@@ -810,13 +811,13 @@ TrainResult Trainer::train(const PreparedSet& samples, const ProgressFn& progres
         }
         losses.push_back(loss);
         if (progress) {
-            const double secs = std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
+            const double secs = base::seconds_since(t0);
             if (!progress({std::uint32_t(step_), cfg_.steps, loss, lr_scale_ * schedule(step_), secs})) break;
         }
     }
     res.steps = std::uint32_t(step_);
     res.rollbacks = rollbacks_;
-    res.seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
+    res.seconds = base::seconds_since(t0);
     const std::size_t tail = std::max<std::size_t>(1, losses.size() / 20);
     double sum = 0;
     for (std::size_t i = losses.size() - std::min(tail, losses.size()); i < losses.size(); ++i)

@@ -1,4 +1,5 @@
 // Ground-truth ray generation with Embree 3 (see sampling.hpp for the contract).
+#include <lsnif/base/clock.hpp>
 #include <lsnif/base/parallel.hpp>
 #include <lsnif/base/random.hpp>
 #include <lsnif/sampling/sampling.hpp>
@@ -214,9 +215,7 @@ void parallel_chunks(std::size_t n, std::uint32_t threads, Body&& body) {
     });
 }
 
-double seconds_since(std::chrono::steady_clock::time_point t0) {
-    return std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
-}
+using base::seconds_since;
 
 // CPU time of the whole process (every thread), in seconds.
 double process_cpu_seconds() {
