@@ -4,10 +4,10 @@
 // the ratios in one run are what BENCHMARKS.md records. `bench train` measures both MLP
 // precisions (fp32, and bf16 on AMX when available) in alternating slices, so their ratio
 // sees the same machine load.
+#include <lsnif/analytic/spheres.hpp>
 #include <lsnif/base/clock.hpp>
 #include <lsnif/converter/bench.hpp>
 #include <lsnif/format/forward.hpp>
-#include <lsnif/trainer/analytic.hpp>
 #include <lsnif/trainer/trainer.hpp>
 
 #include <cblas.h>
@@ -39,8 +39,8 @@ std::string cpu_model() {
 }
 
 // A scene of many small spheres: occupancy comparable to a detailed object.
-trainer::SpheresSource bench_scene(const format::ModelDesc& d) {
-    std::vector<trainer::Sphere> s;
+analytic::SpheresSource bench_scene(const format::ModelDesc& d) {
+    std::vector<analytic::Sphere> s;
     std::uint64_t x = 42;
     auto u = [&]() {
         x = x * 6364136223846793005ull + 1442695040888963407ull;
@@ -48,7 +48,7 @@ trainer::SpheresSource bench_scene(const format::ModelDesc& d) {
     };
     for (int i = 0; i < 24; ++i)
         s.push_back({{u() * 1.4f - 0.7f, u() * 1.4f - 0.7f, u() * 1.4f - 0.7f}, 0.05f + 0.2f * u()});
-    return trainer::SpheresSource(std::move(s), d.box_min, d.box_max);
+    return analytic::SpheresSource(std::move(s), d.box_min, d.box_max);
 }
 
 format::ModelDesc v1_desc() {
@@ -104,8 +104,8 @@ json kernel_comparison(double min_seconds) {
 
 json bench_train(const BenchOptions& o) {
     const format::ModelDesc d = v1_desc();
-    trainer::SpheresSource src = bench_scene(d);
-    std::vector<trainer::Sample> raw;
+    analytic::SpheresSource src = bench_scene(d);
+    std::vector<samples::Sample> raw;
     src.generate(1, 1u << 18, raw);
     json runs = json::array();
     const double peak = sgemm_gflops(2048, int(o.threads), o.min_seconds);
@@ -180,12 +180,12 @@ json bench_train(const BenchOptions& o) {
 
 json bench_infer(const BenchOptions& o) {
     const format::ModelDesc d = v1_desc();
-    trainer::SpheresSource src = bench_scene(d);
+    analytic::SpheresSource src = bench_scene(d);
     trainer::TrainConfig cfg;
     cfg.threads = o.threads;
     trainer::Trainer tr(d, src.occupancy(d), cfg);  // initialized weights: cost does not depend on values
     const format::Runtime rt = format::make_runtime(tr.export_model("{}"));
-    std::vector<trainer::Sample> raw;
+    std::vector<samples::Sample> raw;
     src.generate(2, 1u << 18, raw);
     std::vector<format::Ray> mix(raw.size());
     for (std::size_t i = 0; i < raw.size(); ++i) mix[i] = raw[i].ray;

@@ -219,7 +219,7 @@ json bench_rays(const SceneBenchOptions& opt, std::string& error) {
         // makes (all three families, a quarter shadow rays), best of `repeats`.
         const sampling::GenerationStats g =
             sampling::measure_throughput(*src, opt.seed, opt.rays, opt.repeats);
-        std::vector<trainer::Sample> samples;
+        std::vector<samples::Sample> samples;
         src->generate(opt.seed, opt.rays, samples);
         std::vector<lsnif_ray> rays(samples.size());
         for (std::size_t i = 0; i < samples.size(); ++i) {

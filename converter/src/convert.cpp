@@ -3,6 +3,7 @@
 #include <lsnif/converter/convert.hpp>
 #include <lsnif/converter/manifest.hpp>
 #include <lsnif/format/forward.hpp>
+#include <lsnif/samples/held_out.hpp>
 #include <lsnif/sampling/sampling.hpp>
 #include <lsnif/scene/scene.hpp>
 #include <lsnif/trainer/streamed.hpp>
@@ -94,7 +95,7 @@ std::string gate_reason(const char* what, double value, const char* op, double l
     return buf;
 }
 
-json family_json(const trainer::FamilyMetrics& f) {
+json family_json(const samples::FamilyMetrics& f) {
     return {{"rays", f.rays},
             {"visibility_accuracy", f.visibility_accuracy},
             {"false_hit_rate", f.false_hit_rate},
@@ -128,20 +129,20 @@ json model_json(const format::ModelDesc& d) {
 
 }  // namespace
 
-std::vector<std::string> gate_failures(const trainer::Metrics& m, const Gate& g) {
+std::vector<std::string> gate_failures(const samples::Metrics& m, const Gate& g) {
     std::vector<std::string> fails;
     if (m.pooled.visibility_accuracy < g.min_visibility)
         fails.push_back(gate_reason("visibility accuracy", 100 * m.pooled.visibility_accuracy, "<",
                                     100 * g.min_visibility, "%"));
-    for (int f = 0; f < trainer::kFamilyCount; ++f)
+    for (int f = 0; f < samples::kFamilyCount; ++f)
         if (m.family[f].rays < g.min_family_rays)
-            fails.push_back(std::string("held-out ") + trainer::family_name(trainer::Family(f)) +
+            fails.push_back(std::string("held-out ") + samples::family_name(samples::Family(f)) +
                             " rays reaching the network: " + std::to_string(m.family[f].rays) + " < " +
                             std::to_string(g.min_family_rays) + " (too few to measure)");
-    for (int f = 0; f < trainer::kFamilyCount; ++f)
+    for (int f = 0; f < samples::kFamilyCount; ++f)
         if (m.family[f].rays && m.family[f].visibility_accuracy < g.min_family_visibility)
             fails.push_back(
-                gate_reason((std::string(trainer::family_name(trainer::Family(f))) + " visibility").c_str(),
+                gate_reason((std::string(samples::family_name(samples::Family(f))) + " visibility").c_str(),
                             100 * m.family[f].visibility_accuracy, "<", 100 * g.min_family_visibility, "%"));
     if (m.pooled.distance_median_pct > g.max_distance_median_pct)
         fails.push_back(gate_reason("median distance error", m.pooled.distance_median_pct, ">",
@@ -152,7 +153,7 @@ std::vector<std::string> gate_failures(const trainer::Metrics& m, const Gate& g)
     return fails;
 }
 
-json metrics_json(const trainer::Metrics& m) {
+json metrics_json(const samples::Metrics& m) {
     return {{"outside", family_json(m.family[0])},
             {"surface", family_json(m.family[1])},
             {"interior", family_json(m.family[2])},
@@ -446,7 +447,7 @@ struct Trained {
     format::ModelData model;
     trainer::TrainConfig config;
     trainer::StreamedResult stream;
-    std::vector<trainer::Sample> held_out;
+    std::vector<samples::Sample> held_out;
     std::vector<std::array<float, 3>> held_out_geometric_normals;
 };
 
@@ -497,7 +498,8 @@ json gate(const Run& run, const scene::Mesh& mesh, const Trained& t, MeshRecord&
     const auto t0 = Clock::now();
     run.report({mesh.name, "evaluate"});
     const format::Runtime rt = format::make_runtime(t.model);
-    const trainer::Metrics m = trainer::evaluate(rt, t.held_out, run.threads, t.held_out_geometric_normals);
+    const samples::Metrics m =
+        samples::held_out_metrics(rt, t.held_out, run.threads, t.held_out_geometric_normals);
     json metrics = {{"held_out_rays", t.held_out.size()}, {"families", metrics_json(m)}};
     std::vector<std::string> reasons = gate_failures(m, run.preset.gate);
     if (t.stream.train.diverged) reasons.push_back(t.stream.train.message);

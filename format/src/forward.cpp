@@ -485,20 +485,19 @@ const float* mlp_forward(const Network& net, const float* input, std::size_t n, 
 // ---- decode -------------------------------------------------------------------------------
 
 Hit decode_output(const Geometry& geo, const RayPoints& pts, const Ray& ray, const float* o) {
+    using Out = OutputLayout;
     Hit h{};
-    h.hit = (pts.count > 0 && o[0] > 0.0f) ? 1u : 0u;
+    h.hit = (pts.count > 0 && o[Out::visibility] > 0.0f) ? 1u : 0u;
     const float dlen = std::sqrt(ray.dir[0] * ray.dir[0] + ray.dir[1] * ray.dir[1] + ray.dir[2] * ray.dir[2]);
-    float t;
-    if (geo.distance_encoding == LSNIF_DISTANCE_SEGMENT)
-        t = pts.t_near + o[1] * (pts.t_far - pts.t_near);
-    else
-        t = pts.t[0] + o[1] * geo.diagonal / dlen;
+    const float t = decode_distance(geo, pts, dlen, o[Out::distance]);
     h.t = h.hit ? std::clamp(t, pts.t_near, pts.t_far) : kInf;
-    const float nl = std::sqrt(o[2] * o[2] + o[3] * o[3] + o[4] * o[4]);
-    for (int a = 0; a < 3; ++a) h.normal[a] = nl > 0 ? o[2 + a] / nl : -ray.dir[a] / dlen;
+    const float* n = o + Out::normal;
+    const float nl = std::sqrt(n[0] * n[0] + n[1] * n[1] + n[2] * n[2]);
+    for (int a = 0; a < 3; ++a) h.normal[a] = nl > 0 ? n[a] / nl : -ray.dir[a] / dlen;
+    const float* logit = o + Out::material;
     h.material = 0;
     for (std::uint32_t m = 1; m < geo.material_count; ++m)
-        if (o[5 + m] > o[5 + h.material]) h.material = m;
+        if (logit[m] > logit[h.material]) h.material = m;
     return h;
 }
 

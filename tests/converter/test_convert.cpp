@@ -235,7 +235,7 @@ TEST_CASE("ten seeds: every held-out metric finite, spread bounded (smoke preset
 }
 
 TEST_CASE("the gate: each rule fails on its own, and an unmeasured family is a failure") {
-    lsnif::trainer::Metrics good;
+    lsnif::samples::Metrics good;
     for (auto& f : good.family) {
         f.rays = 5000;
         f.visibility_accuracy = 0.97;
@@ -248,7 +248,7 @@ TEST_CASE("the gate: each rule fails on its own, and an unmeasured family is a f
     CHECK(gate_failures(good, gate).empty());
 
     auto one = [&](auto change, const char* expected) {
-        lsnif::trainer::Metrics m = good;
+        lsnif::samples::Metrics m = good;
         change(m);
         const auto fails = gate_failures(m, gate);
         CAPTURE(expected);

@@ -14,8 +14,8 @@
 
 using namespace lsnif::sampling;
 using namespace lsnif::sampling::testing;
-using lsnif::trainer::Family;
-using lsnif::trainer::Sample;
+using lsnif::samples::Family;
+using lsnif::samples::Sample;
 
 namespace {
 

@@ -6,7 +6,7 @@
 #include "amx.hpp"
 #include "kernels.hpp"
 
-#include <lsnif/trainer/analytic.hpp>
+#include <lsnif/analytic/spheres.hpp>
 #include <lsnif/trainer/trainer.hpp>
 
 #include <cmath>
@@ -16,6 +16,8 @@
 
 using namespace lsnif;
 using namespace lsnif::trainer;
+using namespace lsnif::analytic;
+using namespace lsnif::samples;
 using namespace lsnif::trainer::detail;
 
 namespace {

@@ -1,13 +1,15 @@
 // train_streamed: training in rounds of fresh rays from a SampleSource.
 #include <doctest/doctest.h>
 
-#include <lsnif/trainer/analytic.hpp>
+#include <lsnif/analytic/spheres.hpp>
 #include <lsnif/trainer/streamed.hpp>
 
 #include <map>
 
 using namespace lsnif;
 using namespace lsnif::trainer;
+using namespace lsnif::analytic;
+using namespace lsnif::samples;
 
 namespace {
 

@@ -4,9 +4,10 @@
 
 #include "amx.hpp"  // detail::amx_available(): skip the bf16 runs without AMX
 
+#include <lsnif/analytic/spheres.hpp>
 #include <lsnif/format/forward.hpp>
+#include <lsnif/samples/held_out.hpp>
 #include <lsnif/trainer/adam.hpp>
-#include <lsnif/trainer/analytic.hpp>
 #include <lsnif/trainer/trainer.hpp>
 
 #include <cmath>
@@ -14,6 +15,8 @@
 
 using namespace lsnif;
 using namespace lsnif::trainer;
+using namespace lsnif::analytic;
+using namespace lsnif::samples;
 
 namespace {
 
@@ -246,7 +249,7 @@ void learn_spheres(MlpPrecision precision) {
     const TrainResult r = tr.train(train);
     REQUIRE_FALSE(r.diverged);
     const format::Runtime rt = format::make_runtime(tr.export_model("{}"));
-    const Metrics m = evaluate(rt, held, 2);
+    const Metrics m = held_out_metrics(rt, held, 2);
     for (int f = 0; f < kFamilyCount; ++f) {
         const FamilyMetrics& fm = m.family[f];
         MESSAGE(std::string(family_name(Family(f)))

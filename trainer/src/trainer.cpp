@@ -16,6 +16,7 @@
 namespace lsnif::trainer {
 
 using format::Geometry;
+using format::OutputLayout;
 using format::RayPoints;
 using format::TraceStatus;
 
@@ -29,15 +30,6 @@ const char* precision_name(MlpPrecision p) {
         case MlpPrecision::fp32: return "fp32";
         case MlpPrecision::bf16: return "bf16";
         case MlpPrecision::automatic: return "automatic";
-    }
-    return "?";
-}
-
-const char* family_name(Family f) {
-    switch (f) {
-        case Family::outside: return "outside";
-        case Family::surface: return "surface";
-        case Family::interior: return "interior";
     }
     return "?";
 }
@@ -117,6 +109,22 @@ struct Trainer::Impl {
         double ema = 0;
         bool valid = false;
     } snap;
+
+    // The stages of Trainer::loss_and_gradients, in order. Each needs `net` made from the
+    // current master weights.
+    // Lays the current weights out as the backward products want them: VNNI-packed bf16
+    // operands (wf, wb) or zero-padded fp32 rows (wpad).
+    void stage_weights(const format::ModelDesc& desc, const std::vector<std::vector<float>>& w, bool bf16);
+    // Backpropagates dL/d(output) (in w.d0) through the layers of one sub-chunk of n rows,
+    // accumulating w.dwt and w.db; returns dL/d(input features), n rows of pad16(input_width)
+    // (one of w.d0/w.d1).
+    float* mlp_backward(const Geometry& geo, std::size_t n, bool bf16, Work& w) const;
+    // Sums the threads' MLP gradients into wgrad/bgrad (file layout) and clears theirs.
+    void reduce_mlp_gradients(const format::ModelDesc& desc);
+    // Sums the threads' touched grid rows into gsum, marks them in `active`, clears theirs.
+    void reduce_grid_gradients(std::uint32_t F, std::uint32_t threads);
+    // Copies the reduced gradients out (gradient checks) and clears `active`.
+    void export_gradients(const std::vector<std::vector<float>>& grid, std::uint32_t F, Gradients& grads);
 };
 
 Trainer::Trainer(const format::ModelDesc& desc, std::vector<std::uint8_t> occupancy, const TrainConfig& cfg)
@@ -399,50 +407,267 @@ TrainResult Trainer::train(std::span<const Sample> samples, const ProgressFn& pr
     return train(prepare(samples), progress);
 }
 
+namespace {
+
+// Per-batch constants of the losses: the loss is a mean over the batch (visibility) or
+// over its true hits (the other terms), each term scaled by its weight.
+struct LossScale {
+    float inv_b;  // 1 / batch size
+    float inv_h;  // 1 / true hits in the batch
+    LossWeights weight;
+    float huber_delta;
+    std::uint32_t materials;
+};
+
+// Visibility: binary cross-entropy with logits, softplus(z) - y z in its stable form.
+void visibility_loss(const Sample& s, const float* o, const LossScale& k, LossParts& loss, float* g) {
+    const float y = s.hit ? 1.0f : 0.0f, z = o[OutputLayout::visibility];
+    loss.visibility += double(std::max(z, 0.0f) - z * y + std::log1p(std::exp(-std::fabs(z)))) * k.inv_b;
+    g[OutputLayout::visibility] = k.weight.visibility * (sigmoid(z) - y) * k.inv_b;
+}
+
+// Distance: Huber loss (quadratic below huber_delta) on the encoded distance, whose target
+// is format::encode_distance of the true hit.
+void distance_loss(const Geometry& geo, const Sample& s, const RayPoints& p, const float* o,
+                   const LossScale& k, LossParts& loss, float* g) {
+    const float dlen =
+        std::sqrt(s.ray.dir[0] * s.ray.dir[0] + s.ray.dir[1] * s.ray.dir[1] + s.ray.dir[2] * s.ray.dir[2]);
+    const float e = o[OutputLayout::distance] - format::encode_distance(geo, p, dlen, s.t);
+    const float ae = std::fabs(e), delta = k.huber_delta;
+    loss.distance += double(ae < delta ? 0.5f * e * e / delta : ae - 0.5f * delta) * k.inv_h;
+    g[OutputLayout::distance] = k.weight.distance * std::clamp(e / delta, -1.0f, 1.0f) * k.inv_h;
+}
+
+// Normal: 1 - cos(angle) between the raw output and the unit target normal.
+void normal_loss(const Sample& s, const float* o, const LossScale& k, LossParts& loss, float* g) {
+    const float* n = o + OutputLayout::normal;
+    const float len = std::sqrt(n[0] * n[0] + n[1] * n[1] + n[2] * n[2]) + 1e-12f;
+    const float c = (n[0] * s.normal[0] + n[1] * s.normal[1] + n[2] * s.normal[2]) / len;
+    loss.normal += double(1.0f - c) * k.inv_h;
+    for (int a = 0; a < 3; ++a)
+        g[OutputLayout::normal + a] =
+            -k.weight.normal * k.inv_h * (s.normal[a] / len - c * n[a] / (len * len));
+}
+
+// Material: softmax cross-entropy over the material logits (materials > 0).
+void material_loss(const Sample& s, const float* o, const LossScale& k, LossParts& loss, float* g) {
+    const std::uint32_t M = k.materials;
+    const float* logit = o + OutputLayout::material;
+    float mx = logit[0];
+    for (std::uint32_t m = 1; m < M; ++m) mx = std::max(mx, logit[m]);
+    double sum = 0;
+    for (std::uint32_t m = 0; m < M; ++m) sum += std::exp(double(logit[m] - mx));
+    const std::uint32_t target = std::min(s.material, M - 1);
+    loss.material += (std::log(sum) - double(logit[target] - mx)) * k.inv_h;
+    for (std::uint32_t m = 0; m < M; ++m)
+        g[OutputLayout::material + m] =
+            k.weight.material * k.inv_h *
+            (float(std::exp(double(logit[m] - mx)) / sum) - (m == target ? 1.0f : 0.0f));
+}
+
+// The losses of n output rows (stride outp) into w.loss, and dL/d(output) into dO (n x
+// outp, padding columns zero). Rays that miss, or that no voxel entry point reaches, train
+// visibility only.
+void output_losses(const Geometry& geo, const PreparedSet& set, std::span<const std::uint32_t> rows,
+                   const float* out, std::size_t outp, const LossScale& k, Work& w, float* dO) {
+    std::memset(dO, 0, rows.size() * outp * sizeof(float));
+    for (std::size_t r = 0; r < rows.size(); ++r) {
+        const Sample& s = set.samples[rows[r]];
+        const float* o = out + r * outp;
+        float* g = dO + r * outp;
+        visibility_loss(s, o, k, w.loss, g);
+        const RayPoints& p = w.pts[r];
+        if (!s.hit || p.count == 0) continue;
+        distance_loss(geo, s, p, o, k, w.loss, g);
+        normal_loss(s, o, k, w.loss, g);
+        if (k.materials > 0) material_loss(s, o, k, w.loss, g);
+    }
+}
+
+// Fills w.pts[0..rows) from the prepared set: the entry points were traced once, so no DDA.
+void load_points(const PreparedSet& set, std::span<const std::uint32_t> rows, Work& w) {
+    for (std::size_t r = 0; r < rows.size(); ++r) {
+        const std::uint32_t i = rows[r];
+        RayPoints& p = w.pts[r];
+        p.count = set.count[i];
+        p.t_near = set.t_near[i];
+        p.t_far = set.t_far[i];
+        p.t[0] = set.t_first[i];
+        std::memcpy(p.g, &set.g[std::size_t(i) * set.H * 3], sizeof(float) * 3 * p.count);
+    }
+}
+
+// Adds each hash-grid corner's share of dL/d(features) (dx: n rows of pad16(input_width))
+// into the thread's tables w.gg and marks the rows it touched. Only corners that carry
+// weight are visited. Two passes per sample, as in format::encode_points: corners first,
+// prefetching the gradient rows (the tables exceed L2), then the accumulation.
+void scatter_grid_gradients(const Geometry& geo, const float* dx, std::size_t n, Work& w) {
+    const std::uint32_t L = geo.L, F = geo.F;
+    const std::size_t ip0 = pad16(geo.input_width);
+    w.corners.resize(std::size_t(geo.H) * L);
+    for (std::size_t r = 0; r < n; ++r) {
+        const RayPoints& p = w.pts[r];
+        const float* dxr = dx + r * ip0;
+        for (std::uint32_t h = 0; h < p.count; ++h)
+            for (std::uint32_t l = 0; l < L; ++l) {
+                format::Corners& c = w.corners[std::size_t(h) * L + l];
+                format::level_corners(geo, geo.levels[l], p.g[h], c);
+                for (std::uint32_t q = 0; q < c.n; ++q)
+                    __builtin_prefetch(w.gg[l].data() + std::size_t(c.index[q]) * F, 1);
+            }
+        for (std::uint32_t h = 0; h < p.count; ++h)
+            for (std::uint32_t l = 0; l < L; ++l) {
+                const format::Corners& c = w.corners[std::size_t(h) * L + l];
+                const float* src = dxr + (std::size_t(h) * L + l) * F;
+                float* table = w.gg[l].data();
+                for (std::uint32_t q = 0; q < c.n; ++q) {
+                    float* dst = table + std::size_t(c.index[q]) * F;
+                    for (std::uint32_t f = 0; f < F; ++f) dst[f] += c.weight[q] * src[f];
+                    w.touched[l][c.index[q]] = 1;
+                }
+            }
+    }
+}
+
+}  // namespace
+
+void Trainer::Impl::stage_weights(const format::ModelDesc& desc, const std::vector<std::vector<float>>& w,
+                                  bool bf16) {
+    const std::uint32_t layers = desc.layer_count();
+    if (bf16) {  // B operands of this step's products: forward Wt (K = in), backward W (K = out)
+        wf.resize(layers);
+        wb.resize(layers);
+        for (std::uint32_t k = 0; k < layers; ++k) {
+            const auto [o, i] = desc.layer_shape(k);
+            const std::size_t op = net.out_padded[k], ip = pad16(i);
+            if (k + 1 < layers) {  // the output layer's forward stays fp32
+                wf[k].resize(std::size_t(pad32(i)) * op);
+                detail::pack_vnni(net.wt[k].data(), i, op, op, wf[k].data(), 2 * op, pad32(i));
+            }
+            wb[k].resize(std::size_t(pad32(o)) * ip);
+            detail::pack_vnni(w[k].data(), o, i, i, wb[k].data(), 2 * ip, pad32(o));
+        }
+        return;
+    }
+    wpad.resize(layers);
+    for (std::uint32_t k = 0; k < layers; ++k) {
+        const auto [o, i] = desc.layer_shape(k);
+        const std::uint32_t ip = pad16(i);
+        wpad[k].assign(std::size_t(o) * ip, 0.0f);
+        for (std::uint32_t r = 0; r < o; ++r)
+            std::memcpy(wpad[k].data() + std::size_t(r) * ip, w[k].data() + std::size_t(r) * i,
+                        i * sizeof(float));
+    }
+}
+
+float* Trainer::Impl::mlp_backward(const Geometry& geo, std::size_t n, bool bf16, Work& w) const {
+    float* G = w.d0.data();
+    float* other = w.d1.data();
+    for (int k = int(net.wt.size()) - 1; k >= 0; --k) {
+        const std::size_t outp_k = net.out_padded[k];
+        const std::size_t in_k = net.in[k];
+        const float* X = k == 0 ? w.x.data() : w.act[k - 1].data();
+        const std::size_t ldx = k == 0 ? geo.input_width : net.out_padded[k - 1];
+        const std::size_t ip = pad16(std::uint32_t(in_k));
+        if (bf16) {
+            // dWt += X^T G: A = X^T (rows = inputs, K = samples), B = G by row pairs.
+            const std::size_t np = detail::round_up(n, 32);
+            detail::pack_transposed(X, n, in_k, ldx, w.a_t.data(), np, ip);
+            detail::pack_vnni(G, n, outp_k, outp_k, w.g_vnni.data(), 2 * outp_k, np);
+            detail::gemm_bf16(ip, outp_k, np, w.a_t.data(), np, w.g_vnni.data(), 2 * outp_k, w.dwt[k].data(),
+                              outp_k, true);
+            // dX = G W (K = the real outputs, zero-padded to 32).
+            const std::size_t kp = pad32(net.out[k]);
+            detail::pack_rows(G, n, net.out[k], outp_k, w.g_rows.data(), kp, detail::round_up(n, 16));
+            detail::gemm_bf16(n, ip, kp, w.g_rows.data(), kp, wb[k].data(), 2 * ip, other, ip, false);
+        } else {
+            detail::outer_accumulate(X, n, in_k, ldx, G, outp_k, w.dwt[k].data());
+            // dX = G W (contract over the real outputs; padded columns of G are zero).
+            format::dense_layer(G, n, net.out[k], outp_k, wpad[k].data(), zeros.data(), ip, false, other);
+        }
+        for (std::size_t r = 0; r < n; ++r)
+            for (std::size_t o = 0; o < outp_k; ++o) w.db[k][o] += G[r * outp_k + o];
+        if (k > 0) {  // ReLU derivative of the previous layer's output
+            const float* H = w.act[k - 1].data();
+            for (std::size_t q = 0; q < n * ip; ++q)
+                if (!(H[q] > 0.0f)) other[q] = 0.0f;
+        }
+        std::swap(G, other);
+    }
+    return G;
+}
+
+void Trainer::Impl::reduce_mlp_gradients(const format::ModelDesc& desc) {
+    for (std::uint32_t k = 0; k < desc.layer_count(); ++k) {
+        const auto [o, i] = desc.layer_shape(k);
+        const std::size_t op = net.out_padded[k];
+        std::fill(wgrad[k].begin(), wgrad[k].end(), 0.0f);
+        std::fill(bgrad[k].begin(), bgrad[k].end(), 0.0f);
+        for (Work& w : work) {
+            for (std::uint32_t ii = 0; ii < i; ++ii)
+                for (std::uint32_t oo = 0; oo < o; ++oo)
+                    wgrad[k][std::size_t(oo) * i + ii] += w.dwt[k][ii * op + oo];
+            for (std::uint32_t oo = 0; oo < o; ++oo) bgrad[k][oo] += w.db[k][oo];
+            std::fill(w.dwt[k].begin(), w.dwt[k].end(), 0.0f);
+            std::fill(w.db[k].begin(), w.db[k].end(), 0.0f);
+        }
+    }
+}
+
+void Trainer::Impl::reduce_grid_gradients(std::uint32_t F, std::uint32_t threads) {
+    base::run_on_threads(threads, [&](std::uint32_t t) {
+        for (std::size_t l = 0; l < active.size(); ++l) {
+            const std::size_t rows = active[l].size();
+            const std::size_t per_rows = (rows + threads - 1) / threads;
+            const std::size_t rb = std::min(rows, t * per_rows), re = std::min(rows, rb + per_rows);
+            for (std::size_t row = rb; row < re; ++row) {
+                bool any = false;
+                for (const Work& w : work) any = any || w.touched[l][row];
+                if (!any) continue;
+                float* dst = gsum[l].data() + row * F;
+                for (std::uint32_t f = 0; f < F; ++f) dst[f] = 0.0f;
+                for (Work& w : work) {
+                    if (!w.touched[l][row]) continue;
+                    float* src = w.gg[l].data() + row * F;
+                    for (std::uint32_t f = 0; f < F; ++f) dst[f] += src[f], src[f] = 0.0f;
+                    w.touched[l][row] = 0;
+                }
+                active[l][row] = 1;
+            }
+        }
+    });
+}
+
+void Trainer::Impl::export_gradients(const std::vector<std::vector<float>>& grid, std::uint32_t F,
+                                     Gradients& grads) {
+    grads.grid.assign(grid.size(), {});
+    for (std::size_t l = 0; l < grid.size(); ++l) {
+        grads.grid[l].assign(grid[l].size(), 0.0f);
+        for (std::size_t row = 0; row < active[l].size(); ++row)
+            if (active[l][row])
+                for (std::uint32_t f = 0; f < F; ++f) grads.grid[l][row * F + f] = gsum[l][row * F + f];
+    }
+    grads.weights = wgrad;
+    grads.biases = bgrad;
+    for (auto& a : active) std::fill(a.begin(), a.end(), 0u);
+}
+
 LossParts Trainer::loss_and_gradients(const PreparedSet& set, std::span<const std::uint32_t> batch,
                                       Gradients* grads) {
     Impl& im = *impl_;
     im.net = format::make_network(desc_, w_, b_);
-    const std::uint32_t layers = desc_.layer_count();
     const bool bf16 = precision_ == MlpPrecision::bf16;
-    if (bf16) {  // B operands of this step's products: forward Wt (K = in), backward W (K = out)
-        im.wf.resize(layers);
-        im.wb.resize(layers);
-        for (std::uint32_t k = 0; k < layers; ++k) {
-            const auto [o, i] = desc_.layer_shape(k);
-            const std::size_t op = im.net.out_padded[k], ip = pad16(i);
-            if (k + 1 < layers) {  // the output layer's forward stays fp32
-                im.wf[k].resize(std::size_t(pad32(i)) * op);
-                detail::pack_vnni(im.net.wt[k].data(), i, op, op, im.wf[k].data(), 2 * op, pad32(i));
-            }
-            im.wb[k].resize(std::size_t(pad32(o)) * ip);
-            detail::pack_vnni(w_[k].data(), o, i, i, im.wb[k].data(), 2 * ip, pad32(o));
-        }
-    } else {
-        im.wpad.resize(layers);
-        for (std::uint32_t k = 0; k < layers; ++k) {
-            const auto [o, i] = desc_.layer_shape(k);
-            const std::uint32_t ip = pad16(i);
-            im.wpad[k].assign(std::size_t(o) * ip, 0.0f);
-            for (std::uint32_t r = 0; r < o; ++r)
-                std::memcpy(im.wpad[k].data() + std::size_t(r) * ip, w_[k].data() + std::size_t(r) * i,
-                            i * sizeof(float));
-        }
-    }
+    im.stage_weights(desc_, w_, bf16);
     std::vector<format::GridView> gp;
     for (auto& g : grid_) gp.push_back({g.data(), geo_.F, false});
 
     const std::size_t B = batch.size();
     std::size_t hits = 0;
     for (std::uint32_t i : batch) hits += set.samples[i].hit != 0;
-    const float inv_b = 1.0f / float(std::max<std::size_t>(1, B));
-    const float inv_h = 1.0f / float(std::max<std::size_t>(1, hits));
-    const LossWeights lw = cfg_.loss;
-    const float delta = cfg_.huber_delta;
-    const std::uint32_t M = desc_.material_count;
-    const std::uint32_t L = geo_.L, F = geo_.F;
+    const LossScale scale{1.0f / float(std::max<std::size_t>(1, B)),
+                          1.0f / float(std::max<std::size_t>(1, hits)), cfg_.loss, cfg_.huber_delta,
+                          desc_.material_count};
     const std::size_t per = (B + threads_ - 1) / threads_;
-
     parallel(threads_, [&](std::uint32_t t) {
         Work& w = im.work[t];
         w.loss = LossParts{};
@@ -450,131 +675,20 @@ LossParts Trainer::loss_and_gradients(const PreparedSet& set, std::span<const st
         for (std::size_t base = begin; base < end; base += kSub) {
             const std::size_t n = std::min(kSub, end - base);
             const auto rows = batch.subspan(base, n);
-            for (std::size_t r = 0; r < n; ++r) {  // prepared entry points, no DDA
-                const std::uint32_t i = rows[r];
-                RayPoints& p = w.pts[r];
-                p.count = set.count[i];
-                p.t_near = set.t_near[i];
-                p.t_far = set.t_far[i];
-                p.t[0] = set.t_first[i];
-                std::memcpy(p.g, &set.g[std::size_t(i) * set.H * 3], sizeof(float) * 3 * p.count);
-            }
+            load_points(set, rows, w);
             if (bf16)
                 forward_layers_bf16(geo_, gp, im.net, im.wf, n, w);
             else
                 forward_layers(geo_, gp, im.net, n, w);
-            // ---- losses and dL/d(outputs) ----
-            const std::size_t outp = im.net.out_padded.back();
-            float* dO = w.d0.data();
-            std::memset(dO, 0, n * outp * sizeof(float));
-            for (std::size_t r = 0; r < n; ++r) {
-                const Sample& s = set.samples[rows[r]];
-                const float* o = w.act.back().data() + r * outp;
-                float* g = dO + r * outp;
-                const float y = s.hit ? 1.0f : 0.0f, z = o[0];
-                // BCE with logits: softplus(z) - y z, stable form.
-                w.loss.visibility +=
-                    double(std::max(z, 0.0f) - z * y + std::log1p(std::exp(-std::fabs(z)))) * inv_b;
-                g[0] = lw.visibility * (sigmoid(z) - y) * inv_b;
-                const RayPoints& p = w.pts[r];
-                if (!s.hit || p.count == 0) continue;
-                // Distance target in the model's encoding (forward.hpp decode_output inverse).
-                const float dlen = std::sqrt(s.ray.dir[0] * s.ray.dir[0] + s.ray.dir[1] * s.ray.dir[1] +
-                                             s.ray.dir[2] * s.ray.dir[2]);
-                const float target = geo_.distance_encoding == LSNIF_DISTANCE_SEGMENT
-                                         ? (s.t - p.t_near) / std::max(p.t_far - p.t_near, 1e-30f)
-                                         : (s.t - p.t[0]) * dlen / geo_.diagonal;
-                const float e = o[1] - target;
-                const float ae = std::fabs(e);
-                w.loss.distance += double(ae < delta ? 0.5f * e * e / delta : ae - 0.5f * delta) * inv_h;
-                g[1] = lw.distance * std::clamp(e / delta, -1.0f, 1.0f) * inv_h;
-                // Normal: 1 - cos(angle) between the raw output and the unit target.
-                const float len = std::sqrt(o[2] * o[2] + o[3] * o[3] + o[4] * o[4]) + 1e-12f;
-                const float c = (o[2] * s.normal[0] + o[3] * s.normal[1] + o[4] * s.normal[2]) / len;
-                w.loss.normal += double(1.0f - c) * inv_h;
-                for (int a = 0; a < 3; ++a)
-                    g[2 + a] = -lw.normal * inv_h * (s.normal[a] / len - c * o[2 + a] / (len * len));
-                if (M > 0) {  // softmax cross-entropy over material logits
-                    float mx = o[5];
-                    for (std::uint32_t m = 1; m < M; ++m) mx = std::max(mx, o[5 + m]);
-                    double sum = 0;
-                    for (std::uint32_t m = 0; m < M; ++m) sum += std::exp(double(o[5 + m] - mx));
-                    const std::uint32_t target_m = std::min(s.material, M - 1);
-                    w.loss.material += (std::log(sum) - double(o[5 + target_m] - mx)) * inv_h;
-                    for (std::uint32_t m = 0; m < M; ++m)
-                        g[5 + m] =
-                            lw.material * inv_h *
-                            (float(std::exp(double(o[5 + m] - mx)) / sum) - (m == target_m ? 1.0f : 0.0f));
-                }
-            }
-            // ---- backward through the MLP ----
-            float* G = w.d0.data();
-            float* other = w.d1.data();
-            for (int k = int(layers) - 1; k >= 0; --k) {
-                const std::size_t outp_k = im.net.out_padded[k];
-                const std::size_t in_k = im.net.in[k];
-                const float* X = k == 0 ? w.x.data() : w.act[k - 1].data();
-                const std::size_t ldx = k == 0 ? geo_.input_width : im.net.out_padded[k - 1];
-                const std::size_t ip = pad16(std::uint32_t(in_k));
-                if (bf16) {
-                    // dWt += X^T G: A = X^T (rows = inputs, K = samples), B = G by row pairs.
-                    const std::size_t np = detail::round_up(n, 32);
-                    detail::pack_transposed(X, n, in_k, ldx, w.a_t.data(), np, ip);
-                    detail::pack_vnni(G, n, outp_k, outp_k, w.g_vnni.data(), 2 * outp_k, np);
-                    detail::gemm_bf16(ip, outp_k, np, w.a_t.data(), np, w.g_vnni.data(), 2 * outp_k,
-                                      w.dwt[k].data(), outp_k, true);
-                    // dX = G W (K = the real outputs, zero-padded to 32).
-                    const std::size_t kp = pad32(im.net.out[k]);
-                    detail::pack_rows(G, n, im.net.out[k], outp_k, w.g_rows.data(), kp,
-                                      detail::round_up(n, 16));
-                    detail::gemm_bf16(n, ip, kp, w.g_rows.data(), kp, im.wb[k].data(), 2 * ip, other, ip,
-                                      false);
-                } else {
-                    detail::outer_accumulate(X, n, in_k, ldx, G, outp_k, w.dwt[k].data());
-                    // dX = G W (contract over the real outputs; padded columns of G are zero).
-                    format::dense_layer(G, n, im.net.out[k], outp_k, im.wpad[k].data(), im.zeros.data(), ip,
-                                        false, other);
-                }
-                for (std::size_t r = 0; r < n; ++r)
-                    for (std::size_t o = 0; o < outp_k; ++o) w.db[k][o] += G[r * outp_k + o];
-                if (k > 0) {  // ReLU derivative of the previous layer's output
-                    const float* H = w.act[k - 1].data();
-                    for (std::size_t q = 0; q < n * ip; ++q)
-                        if (!(H[q] > 0.0f)) other[q] = 0.0f;
-                }
-                std::swap(G, other);
-            }
-            // ---- scatter into the hash tables (only the corners that carry weight) ----
-            // Two passes per sample, as in format::encode_points: corners first, prefetching
-            // the gradient rows (the tables exceed L2), then the accumulation.
-            const std::size_t ip0 = pad16(geo_.input_width);
-            w.corners.resize(std::size_t(geo_.H) * L);
-            for (std::size_t r = 0; r < n; ++r) {
-                const RayPoints& p = w.pts[r];
-                const float* dx = G + r * ip0;
-                for (std::uint32_t h = 0; h < p.count; ++h)
-                    for (std::uint32_t l = 0; l < L; ++l) {
-                        format::Corners& c = w.corners[std::size_t(h) * L + l];
-                        format::level_corners(geo_, geo_.levels[l], p.g[h], c);
-                        for (std::uint32_t q = 0; q < c.n; ++q)
-                            __builtin_prefetch(w.gg[l].data() + std::size_t(c.index[q]) * F, 1);
-                    }
-                for (std::uint32_t h = 0; h < p.count; ++h)
-                    for (std::uint32_t l = 0; l < L; ++l) {
-                        const format::Corners& c = w.corners[std::size_t(h) * L + l];
-                        const float* src = dx + (std::size_t(h) * L + l) * F;
-                        float* table = w.gg[l].data();
-                        for (std::uint32_t q = 0; q < c.n; ++q) {
-                            float* dst = table + std::size_t(c.index[q]) * F;
-                            for (std::uint32_t f = 0; f < F; ++f) dst[f] += c.weight[q] * src[f];
-                            w.touched[l][c.index[q]] = 1;
-                        }
-                    }
-            }
+            output_losses(geo_, set, rows, w.act.back().data(), im.net.out_padded.back(), scale, w,
+                          w.d0.data());
+            const float* dx = im.mlp_backward(geo_, n, bf16, w);
+            scatter_grid_gradients(geo_, dx, n, w);
         }
     });
 
-    // ---- reduce in thread order (deterministic) ----
+    // Reductions in thread order: deterministic for a fixed thread count.
+    const LossWeights& lw = cfg_.loss;
     LossParts total;
     for (const Work& w : im.work) {
         total.visibility += w.loss.visibility;
@@ -584,54 +698,9 @@ LossParts Trainer::loss_and_gradients(const PreparedSet& set, std::span<const st
     }
     total.total = lw.visibility * total.visibility + lw.distance * total.distance + lw.normal * total.normal +
                   lw.material * total.material;
-    for (std::uint32_t k = 0; k < layers; ++k) {
-        const auto [o, i] = desc_.layer_shape(k);
-        const std::size_t op = im.net.out_padded[k];
-        std::fill(im.wgrad[k].begin(), im.wgrad[k].end(), 0.0f);
-        std::fill(im.bgrad[k].begin(), im.bgrad[k].end(), 0.0f);
-        for (Work& w : im.work) {
-            for (std::uint32_t ii = 0; ii < i; ++ii)
-                for (std::uint32_t oo = 0; oo < o; ++oo)
-                    im.wgrad[k][std::size_t(oo) * i + ii] += w.dwt[k][ii * op + oo];
-            for (std::uint32_t oo = 0; oo < o; ++oo) im.bgrad[k][oo] += w.db[k][oo];
-            std::fill(w.dwt[k].begin(), w.dwt[k].end(), 0.0f);
-            std::fill(w.db[k].begin(), w.db[k].end(), 0.0f);
-        }
-    }
-    parallel(threads_, [&](std::uint32_t t) {
-        for (std::uint32_t l = 0; l < L; ++l) {
-            const std::size_t rows = im.active[l].size();
-            const std::size_t per_rows = (rows + threads_ - 1) / threads_;
-            const std::size_t rb = std::min(rows, t * per_rows), re = std::min(rows, rb + per_rows);
-            for (std::size_t row = rb; row < re; ++row) {
-                bool any = false;
-                for (const Work& w : im.work) any = any || w.touched[l][row];
-                if (!any) continue;
-                float* dst = im.gsum[l].data() + row * F;
-                for (std::uint32_t f = 0; f < F; ++f) dst[f] = 0.0f;
-                for (Work& w : im.work) {
-                    if (!w.touched[l][row]) continue;
-                    float* src = w.gg[l].data() + row * F;
-                    for (std::uint32_t f = 0; f < F; ++f) dst[f] += src[f], src[f] = 0.0f;
-                    w.touched[l][row] = 0;
-                }
-                im.active[l][row] = 1;
-            }
-        }
-    });
-    if (grads) {
-        grads->grid.assign(L, {});
-        for (std::uint32_t l = 0; l < L; ++l) {
-            grads->grid[l].assign(grid_[l].size(), 0.0f);
-            for (std::size_t row = 0; row < im.active[l].size(); ++row)
-                if (im.active[l][row])
-                    for (std::uint32_t f = 0; f < F; ++f)
-                        grads->grid[l][row * F + f] = im.gsum[l][row * F + f];
-        }
-        grads->weights = im.wgrad;
-        grads->biases = im.bgrad;
-        for (auto& a : im.active) std::fill(a.begin(), a.end(), 0u);
-    }
+    im.reduce_mlp_gradients(desc_);
+    im.reduce_grid_gradients(geo_.F, threads_);
+    if (grads) im.export_gradients(grid_, geo_.F, *grads);
     return total;
 }
 
@@ -847,130 +916,6 @@ void Trainer::round_to_fp16() {
     r(grid_);
     r(w_);
     r(b_);
-}
-
-// ---- evaluation -------------------------------------------------------------------------
-
-namespace {
-
-double percentile(std::vector<double>& v, double q) {
-    if (v.empty()) return 0.0;
-    const std::size_t k = std::min(v.size() - 1, std::size_t(q * double(v.size() - 1) + 0.5));
-    std::nth_element(v.begin(), v.begin() + k, v.end());
-    return v[k];
-}
-
-}  // namespace
-
-Metrics evaluate(const format::Runtime& rt, std::span<const Sample> samples, std::uint32_t threads,
-                 std::span<const std::array<float, 3>> geometric_normals) {
-    const std::uint32_t T = base::resolve_threads(threads);
-    std::vector<format::Ray> rays(samples.size());
-    for (std::size_t i = 0; i < samples.size(); ++i) rays[i] = samples[i].ray;
-    std::vector<format::Hit> hits(samples.size());
-    std::vector<std::uint8_t> culled(samples.size());
-    const std::size_t per = (samples.size() + T - 1) / T;
-    parallel(T, [&](std::uint32_t t) {
-        const std::size_t b = std::min(samples.size(), t * per), e = std::min(samples.size(), b + per);
-        if (b >= e) return;
-        format::intersect(rt, std::span(rays).subspan(b, e - b), std::span(hits).subspan(b, e - b));
-        RayPoints p;
-        for (std::size_t i = b; i < e; ++i)
-            culled[i] = format::trace_points(rt.geo, rt.occupancy, rays[i], p) != TraceStatus::ok;
-    });
-    struct Acc {
-        std::uint64_t rays = 0, culled = 0, correct = 0, true_miss = 0, false_hit = 0, true_hit = 0,
-                      false_miss = 0, culled_true_hits = 0;
-        std::vector<double> dist, ang, geo_ang;
-    } acc[kFamilyCount];
-    for (std::size_t i = 0; i < samples.size(); ++i) {
-        const Sample& s = samples[i];
-        Acc& a = acc[int(s.family) % kFamilyCount];
-        if (culled[i]) {
-            ++a.culled;
-            a.culled_true_hits += s.hit != 0;
-            continue;
-        }
-        ++a.rays;
-        const bool pred = hits[i].hit != 0;
-        a.correct += pred == (s.hit != 0);
-        if (s.hit) {
-            ++a.true_hit;
-            a.false_miss += !pred;
-            if (pred) {
-                const float dlen = std::sqrt(s.ray.dir[0] * s.ray.dir[0] + s.ray.dir[1] * s.ray.dir[1] +
-                                             s.ray.dir[2] * s.ray.dir[2]);
-                a.dist.push_back(100.0 * std::fabs(double(hits[i].t) - s.t) * dlen / rt.geo.diagonal);
-                const double c = hits[i].normal[0] * s.normal[0] + hits[i].normal[1] * s.normal[1] +
-                                 hits[i].normal[2] * s.normal[2];
-                a.ang.push_back(std::acos(std::clamp(c, -1.0, 1.0)) * 180.0 / M_PI);
-                if (i < geometric_normals.size()) {
-                    // The faceted normal's orientation is the triangle winding's; compare
-                    // as an unoriented line against it when the shading normal disagrees.
-                    const auto& gn = geometric_normals[i];
-                    double cg =
-                        hits[i].normal[0] * gn[0] + hits[i].normal[1] * gn[1] + hits[i].normal[2] * gn[2];
-                    const double sg = s.normal[0] * gn[0] + s.normal[1] * gn[1] + s.normal[2] * gn[2];
-                    if (sg < 0) cg = -cg;
-                    a.geo_ang.push_back(std::acos(std::clamp(cg, -1.0, 1.0)) * 180.0 / M_PI);
-                }
-            }
-        } else {
-            ++a.true_miss;
-            a.false_hit += pred;
-        }
-    }
-    Metrics m;
-    std::vector<double> pooled_dist, pooled_ang, pooled_geo;
-    std::size_t min_d = SIZE_MAX, min_a = SIZE_MAX;
-    int present = 0;
-    for (int f = 0; f < kFamilyCount; ++f)
-        if (acc[f].rays) {
-            min_d = std::min(min_d, acc[f].dist.size());
-            min_a = std::min(min_a, acc[f].ang.size());
-        }
-    for (int f = 0; f < kFamilyCount; ++f) {
-        Acc& a = acc[f];
-        FamilyMetrics& fm = m.family[f];
-        fm.rays = a.rays;
-        fm.culled = a.culled;
-        fm.culled_true_hits = a.culled_true_hits;
-        fm.culled_fraction = (a.rays + a.culled) ? double(a.culled) / double(a.rays + a.culled) : 0.0;
-        if (!a.rays) continue;
-        ++present;
-        fm.visibility_accuracy = double(a.correct) / double(a.rays);
-        fm.false_hit_rate = a.true_miss ? double(a.false_hit) / double(a.true_miss) : 0.0;
-        fm.false_miss_rate = a.true_hit ? double(a.false_miss) / double(a.true_hit) : 0.0;
-        // Equal shares for the pooled distributions: the first min_d of each family.
-        pooled_dist.insert(pooled_dist.end(), a.dist.begin(), a.dist.begin() + std::ptrdiff_t(min_d));
-        pooled_ang.insert(pooled_ang.end(), a.ang.begin(), a.ang.begin() + std::ptrdiff_t(min_a));
-        pooled_geo.insert(pooled_geo.end(), a.geo_ang.begin(),
-                          a.geo_ang.begin() + std::ptrdiff_t(std::min(min_a, a.geo_ang.size())));
-        fm.distance_median_pct = percentile(a.dist, 0.5);
-        fm.distance_p95_pct = percentile(a.dist, 0.95);
-        fm.normal_median_deg = percentile(a.ang, 0.5);
-        fm.normal_p95_deg = percentile(a.ang, 0.95);
-        fm.geometric_normal_median_deg = percentile(a.geo_ang, 0.5);
-        m.pooled.rays += a.rays;
-        m.pooled.culled += a.culled;
-        m.pooled.culled_true_hits += a.culled_true_hits;
-        m.pooled.visibility_accuracy += fm.visibility_accuracy;
-        m.pooled.false_hit_rate += fm.false_hit_rate;
-        m.pooled.false_miss_rate += fm.false_miss_rate;
-        m.pooled.culled_fraction += fm.culled_fraction;
-    }
-    if (present) {
-        m.pooled.visibility_accuracy /= present;
-        m.pooled.false_hit_rate /= present;
-        m.pooled.false_miss_rate /= present;
-        m.pooled.culled_fraction /= present;
-    }
-    m.pooled.distance_median_pct = percentile(pooled_dist, 0.5);
-    m.pooled.distance_p95_pct = percentile(pooled_dist, 0.95);
-    m.pooled.normal_median_deg = percentile(pooled_ang, 0.5);
-    m.pooled.normal_p95_deg = percentile(pooled_ang, 0.95);
-    m.pooled.geometric_normal_median_deg = percentile(pooled_geo, 0.5);
-    return m;
 }
 
 }  // namespace lsnif::trainer

@@ -26,8 +26,8 @@
 
 namespace lsnif::sampling {
 
-using trainer::Family;
-using trainer::Sample;
+using samples::Family;
+using samples::Sample;
 
 namespace {
 

@@ -6,6 +6,7 @@
 #pragma once
 
 #include <lsnif/format/container.hpp>
+#include <lsnif/samples/held_out.hpp>
 #include <lsnif/trainer/trainer.hpp>
 
 #include <nlohmann/json.hpp>
@@ -114,12 +115,12 @@ ConvertResult convert(const ConvertOptions& options, const ConvertProgress& prog
 
 // The accuracy gate's verdict on held-out metrics: one "held-out ..." reason per failed
 // rule (the text the manifest's reasons carry after "gate: "); empty means the asset ships.
-std::vector<std::string> gate_failures(const trainer::Metrics& metrics, const Gate& gate);
+std::vector<std::string> gate_failures(const samples::Metrics& metrics, const Gate& gate);
 
 // Human-readable summary of a report (what `lsnif convert` prints).
 std::string convert_text(const ConvertResult& result);
 
 // Held-out metrics as the metadata schema stores them.
-nlohmann::json metrics_json(const trainer::Metrics& m);
+nlohmann::json metrics_json(const samples::Metrics& m);
 
 }  // namespace lsnif::converter

@@ -58,6 +58,17 @@ inline constexpr std::uint32_t kMaxLevelResolution = 4096;
 inline constexpr std::uint32_t kMaxHiddenWidth = 1024;
 inline constexpr std::uint32_t kMaxMaterials = 4096;
 
+// One output row of the network (FORMAT.md §6.5), by index: the visibility logit, the
+// encoded distance (FORMAT.md §6.2 distance_encoding), the three components of the
+// shading normal (not necessarily unit length), then material_count material logits.
+// The one spelling of the layout for the reader's decode and the trainer's losses.
+struct OutputLayout {
+    static constexpr std::uint32_t visibility = 0;
+    static constexpr std::uint32_t distance = 1;
+    static constexpr std::uint32_t normal = 2;    // x, y, z at normal + 0, 1, 2
+    static constexpr std::uint32_t material = 5;  // material m at material + m
+};
+
 // Hyperparameters of one LSNIF. Defaults are the v1 model of docs/architecture.md §3; a reader
 // never uses them — every value is read from the file.
 struct ModelDesc {
@@ -76,7 +87,7 @@ struct ModelDesc {
 
     std::uint32_t level_count() const { return std::uint32_t(level_resolution.size()); }
     std::uint32_t input_width() const { return max_points * level_count() * features_per_level; }
-    std::uint32_t output_count() const { return 5 + material_count; }
+    std::uint32_t output_count() const { return OutputLayout::material + material_count; }
     std::uint64_t table_size() const { return std::uint64_t{1} << log2_table_size; }
     // A level is dense when its (res+1)^3 lattice vertices fit in the table (FORMAT.md §6.4).
     bool level_dense(std::uint32_t level) const;

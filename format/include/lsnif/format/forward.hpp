@@ -11,6 +11,7 @@
 
 #include <lsnif/format/container.hpp>
 
+#include <algorithm>
 #include <array>
 #include <cstddef>
 #include <cstdint>
@@ -165,9 +166,24 @@ const float* mlp_forward(const Network& net, const float* input, std::size_t n, 
 
 // ---- decode -------------------------------------------------------------------------------
 
-// Turns one output row into a hit (FORMAT.md §8): hit iff logit > 0; t from the distance
-// encoding, clamped to the clipped segment; normal normalized (−dir if degenerate).
+// Turns one output row (OutputLayout) into a hit (FORMAT.md §8): hit iff logit > 0; t from
+// the distance encoding, clamped to the clipped segment; normal normalized (−dir if
+// degenerate).
 Hit decode_output(const Geometry& geo, const RayPoints& pts, const Ray& ray, const float* out_row);
+
+// The distance encoding of FORMAT.md §6.2 both ways. `t` is the ray parameter, `y` the
+// network's distance output, `dir_length` = |ray.dir|; `pts` is the ray's trace (count > 0).
+// encode_distance is decode_distance's inverse before decode's clamp to the segment: the
+// trainer's distance target.
+inline float decode_distance(const Geometry& geo, const RayPoints& pts, float dir_length, float y) {
+    return geo.distance_encoding == LSNIF_DISTANCE_SEGMENT ? pts.t_near + y * (pts.t_far - pts.t_near)
+                                                           : pts.t[0] + y * geo.diagonal / dir_length;
+}
+inline float encode_distance(const Geometry& geo, const RayPoints& pts, float dir_length, float t) {
+    return geo.distance_encoding == LSNIF_DISTANCE_SEGMENT
+               ? (t - pts.t_near) / std::max(pts.t_far - pts.t_near, 1e-30f)
+               : (t - pts.t[0]) * dir_length / geo.diagonal;
+}
 
 // ---- the whole pass ------------------------------------------------------------------------
 

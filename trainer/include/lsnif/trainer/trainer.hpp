@@ -12,6 +12,7 @@
 
 #include <lsnif/format/container.hpp>
 #include <lsnif/format/forward.hpp>
+#include <lsnif/samples/sample.hpp>
 #include <lsnif/trainer/adam.hpp>
 
 #include <cstdint>
@@ -24,28 +25,11 @@
 
 namespace lsnif::trainer {
 
-// Ray families of docs/architecture.md §3.
-enum class Family : std::uint8_t { outside = 0, surface = 1, interior = 2 };
-inline constexpr int kFamilyCount = 3;
-const char* family_name(Family f);
-
-// One ground-truth ray. t/normal/material are meaningful only when hit != 0.
-struct Sample {
-    format::Ray ray;
-    float t;
-    float normal[3];  // unit shading normal at the hit (orientation as in the mesh)
-    std::uint32_t material;
-    std::uint8_t hit;
-    Family family;
-};
-
-// Where rays come from: Embree on a mesh in the converter, analytic shapes in tests.
-// generate() must be deterministic for a given seed (independent of threads).
-class SampleSource {
-public:
-    virtual ~SampleSource() = default;
-    virtual void generate(std::uint64_t seed, std::size_t count, std::vector<Sample>& out) = 0;
-};
+// The trainer consumes ground-truth rays of lsnif::samples (sample.hpp); these are the
+// names its interface uses for them.
+using samples::Family;
+using samples::Sample;
+using samples::SampleSource;
 
 // Defaults measured on the analytic spheres scene (BENCHMARKS.md "Loss weights"): raising
 // distance 1 -> 4 and normal 0.5 -> 1 cut the median distance error 1.96% -> 1.11% and the
@@ -256,33 +240,5 @@ private:
     void rollback();
     friend struct Impl;
 };
-
-// ---- held-out evaluation (docs/architecture.md §5) -------------------------------------------------
-
-struct FamilyMetrics {
-    std::uint64_t rays = 0;    // rays that reached the network
-    std::uint64_t culled = 0;  // rays culled by occupancy (certain misses)
-    double visibility_accuracy = 0;
-    double false_hit_rate = 0;       // predicted hit among true misses
-    double false_miss_rate = 0;      // predicted miss among true hits
-    double distance_median_pct = 0;  // |Δt| in % of the box diagonal, on true & predicted hits
-    double distance_p95_pct = 0;
-    double normal_median_deg = 0;  // against the shading normal
-    double normal_p95_deg = 0;
-    double geometric_normal_median_deg = 0;  // against the faceted normal, when provided
-    double culled_fraction = 0;              // culled / (culled + rays)
-    std::uint64_t culled_true_hits = 0;      // must be 0: a culled ray that truly hits
-};
-
-struct Metrics {
-    FamilyMetrics family[kFamilyCount];
-    FamilyMetrics pooled;  // the three families in equal shares
-};
-
-// Runs the reader-side forward pass (format::intersect) on `samples` with `threads`
-// threads and compares against their ground truth. `geometric_normals` (optional, one per
-// sample) adds the error against the faceted normal, reported beside the shading one.
-Metrics evaluate(const format::Runtime& rt, std::span<const Sample> samples, std::uint32_t threads = 0,
-                 std::span<const std::array<float, 3>> geometric_normals = {});
 
 }  // namespace lsnif::trainer

@@ -40,7 +40,7 @@
 // rtcSetDeviceErrorFunction into last_error().
 #pragma once
 
-#include <lsnif/trainer/trainer.hpp>
+#include <lsnif/samples/sample.hpp>
 
 #include <array>
 #include <cstddef>
@@ -106,7 +106,7 @@ struct SamplingConfig {
 // of three random directions.
 enum class InsideTest : std::uint8_t { none, first_hit_facing, parity };
 
-// Per-sample data the trainer's Sample has no field for (parallel to the samples).
+// Per-sample data samples::Sample has no field for (parallel to the samples).
 struct SampleExtras {
     std::array<float, 3> geometric_normal{};        // unit normal of the hit triangle, right-hand
                                                     // rule on (v0, v1, v2); zero when no hit
@@ -115,7 +115,7 @@ struct SampleExtras {
     std::int8_t side = 0;  // family (b): +1 front (along the geometric normal), -1 back
 };
 
-// The extras' geometric normals as the parallel array trainer::evaluate() takes.
+// The extras' geometric normals as the parallel array samples::held_out_metrics() takes.
 std::vector<std::array<float, 3>> geometric_normals(std::span<const SampleExtras> extras);
 
 // Counters of the last generate() call.
@@ -147,7 +147,7 @@ struct GenerationStats {
     double packet_cpu_seconds = 0, packet_cpu_ratio = 0;
 };
 
-class EmbreeSource final : public trainer::SampleSource {
+class EmbreeSource final : public samples::SampleSource {
 public:
     // Validates the mesh (non-empty, finite, indices in range, inside the box, positive
     // total area), builds the Embree scene once (RTC_BUILD_QUALITY_HIGH,
@@ -160,17 +160,17 @@ public:
     EmbreeSource(const EmbreeSource&) = delete;
     EmbreeSource& operator=(const EmbreeSource&) = delete;
 
-    // trainer::SampleSource: `count` samples of the three families (out is resized),
+    // samples::SampleSource: `count` samples of the three families (out is resized),
     // using threads() threads. Not to be called concurrently on one object (it records
     // counters()); trace() and inside_solid() may run concurrently with anything.
-    void generate(std::uint64_t seed, std::size_t count, std::vector<trainer::Sample>& out) override;
+    void generate(std::uint64_t seed, std::size_t count, std::vector<samples::Sample>& out) override;
     // Same samples, plus the per-sample extras (resized to count) when `extras` != null.
-    void generate(std::uint64_t seed, std::size_t count, std::vector<trainer::Sample>& out,
+    void generate(std::uint64_t seed, std::size_t count, std::vector<samples::Sample>& out,
                   std::vector<SampleExtras>* extras);
 
     // Ground truth for caller-made rays (e.g. held-out evaluation rays): fills t, normal,
     // material and hit of every sample from its ray; family is left alone. Thread-safe.
-    void trace(std::span<trainer::Sample> samples, std::span<SampleExtras> extras = {}) const;
+    void trace(std::span<samples::Sample> samples, std::span<SampleExtras> extras = {}) const;
 
     // The family (c) inside test (classification grid, then votes as inside_test() says;
     // hole caps included); meaningful only when rejects_interior(). Thread-safe.

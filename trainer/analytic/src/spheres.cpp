@@ -1,11 +1,14 @@
-#include <lsnif/trainer/analytic.hpp>
+#include <lsnif/analytic/spheres.hpp>
 
 #include <lsnif/base/random.hpp>
 
 #include <algorithm>
 #include <cmath>
 
-namespace lsnif::trainer {
+namespace lsnif::analytic {
+
+using samples::Family;
+using samples::Sample;
 
 namespace {
 
@@ -165,4 +168,4 @@ std::vector<std::uint8_t> SpheresSource::occupancy(const format::ModelDesc& desc
     return bits;
 }
 
-}  // namespace lsnif::trainer
+}  // namespace lsnif::analytic
