@@ -18,8 +18,8 @@
 #include <fstream>
 #include <limits>
 
-#include <lsnif/eval/flip.hpp>
-#include <lsnif/eval/image.hpp>
+#include <lsnif/image/flip.hpp>
+#include <lsnif/image/image.hpp>
 #include <lsnif/scene/scene.hpp>
 
 namespace lsnif::converter {
@@ -107,6 +107,18 @@ struct EvalScene::Impl {
         }
         if (device) rtcReleaseDevice(device);
     }
+    // Stages of EvalScene::load. Each returns false with `error` set on failure; what was
+    // created so far is released by ~Impl.
+    bool open_device(std::string& error);
+    // Uploads one source mesh to its own Embree scene (measuring its BVH bytes) and opens
+    // its shipped asset when the manifest gives one.
+    bool add_mesh(const scene::Mesh& sm, const json& manifest_mesh, const fs::path& outdir,
+                  std::string& error);
+    // Instance i of the manifest (opt.instance_transforms may override its placement) into
+    // the reference scene, and into the hybrid one unless its mesh is traced as an LSNIF.
+    bool add_instance(std::size_t i, const json& manifest_instance, const EvalOptions& opt,
+                      const std::string& manifest_path, std::string& error);
+
     static void on_error(void* user, RTCError, const char* str) {
         static_cast<Impl*>(user)->embree_error = str ? str : "unknown";
     }
@@ -275,149 +287,179 @@ void EvalScene::occluded(bool hybrid, std::span<const lsnif_ray> rays, std::span
     }
 }
 
-std::unique_ptr<EvalScene> EvalScene::load(const EvalOptions& opt, std::string& error) {
-    LoadedManifest loaded;
-    if (!load_manifest(opt.outdir, opt.sources, loaded, error)) return nullptr;
-    const fs::path dir = opt.outdir;
-    const fs::path& manifest_path = loaded.path;
-    const json& manifest = loaded.doc;
-    const std::vector<std::string>& sources = loaded.sources;
-    std::vector<scene::Scene> scenes(sources.size());
-    for (std::size_t s = 0; s < sources.size(); ++s) {
-        if (manifest["inputs"][s].value("status", "") != "ok")
-            continue;  // failed in convert: no meshes from it
-        auto r = scene::import_scene(sources[s]);
+namespace {
+
+// The source scene of every input that converted; an input that failed in convert
+// ("status" other than "ok") contributed no meshes and stays empty.
+bool import_sources(const LoadedManifest& loaded, std::vector<scene::Scene>& scenes, std::string& error) {
+    scenes.assign(loaded.sources.size(), {});
+    for (std::size_t s = 0; s < loaded.sources.size(); ++s) {
+        if (loaded.doc["inputs"][s].value("status", "") != "ok") continue;
+        auto r = scene::import_scene(loaded.sources[s]);
         if (!r.ok()) {
-            error = manifest_path.string() + ": input " + std::to_string(s) + ": " + r.error;
-            return nullptr;
+            error = loaded.path.string() + ": input " + std::to_string(s) + ": " + r.error;
+            return false;
         }
         scenes[s] = std::move(r.scene);
     }
+    return true;
+}
 
+// Object-space bounds (min xyz, max xyz) of a mesh's vertices.
+std::array<float, 6> vertex_bounds(const scene::Mesh& sm) {
+    std::array<float, 6> box{INFINITY, INFINITY, INFINITY, -INFINITY, -INFINITY, -INFINITY};
+    for (std::size_t v = 0; v < sm.vertex_count(); ++v)
+        for (int a = 0; a < 3; ++a) {
+            box[a] = std::min(box[a], sm.positions[v * 3 + a]);
+            box[a + 3] = std::max(box[a + 3], sm.positions[v * 3 + a]);
+        }
+    return box;
+}
+
+// World-space bounds of an object-space box under an affine transform (its 8 corners).
+std::array<float, 6> transformed_bounds(const Affine& transform, const std::array<float, 6>& ob) {
+    std::array<float, 6> box{INFINITY, INFINITY, INFINITY, -INFINITY, -INFINITY, -INFINITY};
+    for (int c = 0; c < 8; ++c) {
+        const Vec3 p = apply_point(transform, {ob[c & 1 ? 3 : 0], ob[c & 2 ? 4 : 1], ob[c & 4 ? 5 : 2]});
+        for (int a = 0; a < 3; ++a) {
+            box[a] = std::min(box[a], p[a]);
+            box[a + 3] = std::max(box[a + 3], p[a]);
+        }
+    }
+    return box;
+}
+
+}  // namespace
+
+bool EvalScene::Impl::open_device(std::string& error) {
+    device = rtcNewDevice(nullptr);
+    if (!device) {
+        error = "embree: rtcNewDevice failed";
+        return false;
+    }
+    rtcSetDeviceErrorFunction(device, &Impl::on_error, this);
+    rtcSetDeviceMemoryMonitorFunction(device, &Impl::on_memory, this);
+    return true;
+}
+
+bool EvalScene::Impl::add_mesh(const scene::Mesh& sm, const json& mj, const fs::path& outdir,
+                               std::string& error) {
+    Mesh m;
+    m.name = sm.name;
+    m.positions = sm.positions;
+    m.normals = sm.normals;
+    m.indices = sm.indices;
+    m.box = vertex_bounds(sm);
+    const std::uint64_t before = memory;
+    m.scene = rtcNewScene(device);
+    RTCGeometry g = rtcNewGeometry(device, RTC_GEOMETRY_TYPE_TRIANGLE);
+    auto* vb = static_cast<float*>(rtcSetNewGeometryBuffer(g, RTC_BUFFER_TYPE_VERTEX, 0, RTC_FORMAT_FLOAT3,
+                                                           3 * sizeof(float), sm.vertex_count()));
+    auto* ib = static_cast<std::uint32_t*>(rtcSetNewGeometryBuffer(
+        g, RTC_BUFFER_TYPE_INDEX, 0, RTC_FORMAT_UINT3, 3 * sizeof(std::uint32_t), sm.triangle_count()));
+    if (!vb || !ib) {
+        rtcReleaseGeometry(g);
+        meshes.push_back(std::move(m));  // released by ~Impl
+        error = "embree: cannot allocate buffers for mesh '" + sm.name + "': " + embree_error;
+        return false;
+    }
+    std::memcpy(vb, sm.positions.data(), sm.positions.size() * sizeof(float));
+    std::memcpy(ib, sm.indices.data(), sm.indices.size() * sizeof(std::uint32_t));
+    rtcCommitGeometry(g);
+    rtcAttachGeometry(m.scene, g);
+    rtcReleaseGeometry(g);
+    rtcCommitScene(m.scene);
+    m.bvh_bytes = memory - before;
+    if (mj.value("class", "") == "complex" && mj.contains("lsnif") && mj["lsnif"].contains("file")) {
+        const fs::path asset = outdir / mj["lsnif"]["file"].get<std::string>();
+        lsnif_error err{};
+        if (lsnif_open_file(asset.c_str(), &m.model, &err) != LSNIF_OK) {
+            error = asset.string() + ": cannot open the asset: " + lsnif_status_string(err.status) + " (" +
+                    err.message + ")";
+            meshes.push_back(std::move(m));  // released by ~Impl
+            return false;
+        }
+        std::error_code ec;
+        m.lsnif_bytes = fs::file_size(asset, ec);
+    }
+    meshes.push_back(std::move(m));
+    return true;
+}
+
+bool EvalScene::Impl::add_instance(std::size_t i, const json& ij, const EvalOptions& opt,
+                                   const std::string& manifest_path, std::string& error) {
+    Instance in;
+    in.mesh = ij.value("mesh", 0u);
+    if (in.mesh >= meshes.size() || !ij.contains("transform") || ij["transform"].size() != 12) {
+        error = manifest_path + ": instance " + std::to_string(i) + " is malformed";
+        return false;
+    }
+    for (int k = 0; k < 12; ++k) in.transform[k] = ij["transform"][k].get<float>();
+    for (const auto& [which, m] : opt.instance_transforms)
+        if (which == i) in.transform = m;
+    const auto inverse = base::invert_linear(in.transform.data());
+    if (!inverse) {
+        error = manifest_path + ": instance " + std::to_string(i) + " has a singular or non-finite transform";
+        return false;
+    }
+    in.nmat = base::normal_matrix(*inverse);
+    in.box = transformed_bounds(in.transform, meshes[in.mesh].box);
+    for (int a = 0; a < 3; ++a) {
+        world[a] = std::min(world[a], in.box[a]);
+        world[a + 3] = std::max(world[a + 3], in.box[a + 3]);
+    }
+    const bool as_lsnif = meshes[in.mesh].model != nullptr;
+    for (RTCScene top : {reference, hybrid}) {
+        if (top == hybrid && as_lsnif) continue;
+        RTCGeometry g = rtcNewGeometry(device, RTC_GEOMETRY_TYPE_INSTANCE);
+        rtcSetGeometryInstancedScene(g, meshes[in.mesh].scene);
+        rtcSetGeometryTransform(g, 0, RTC_FORMAT_FLOAT3X4_ROW_MAJOR, in.transform.data());
+        rtcCommitGeometry(g);
+        rtcAttachGeometryByID(top, g, std::uint32_t(i));
+        rtcReleaseGeometry(g);
+    }
+    if (as_lsnif)
+        lsnif_instances.push_back(std::uint32_t(i));
+    else
+        hybrid_has_geometry = true;
+    instances.push_back(in);
+    return true;
+}
+
+std::unique_ptr<EvalScene> EvalScene::load(const EvalOptions& opt, std::string& error) {
+    LoadedManifest loaded;
+    if (!load_manifest(opt.outdir, opt.sources, loaded, error)) return nullptr;
+    const std::string manifest_path = loaded.path.string();
+    std::vector<scene::Scene> scenes;
+    if (!import_sources(loaded, scenes, error)) return nullptr;
     auto impl = std::make_unique<Impl>();
     Impl& im = *impl;
-    im.device = rtcNewDevice(nullptr);
-    if (!im.device) {
-        error = "embree: rtcNewDevice failed";
-        return nullptr;
-    }
-    rtcSetDeviceErrorFunction(im.device, &Impl::on_error, &im);
-    rtcSetDeviceMemoryMonitorFunction(im.device, &Impl::on_memory, &im);
-
-    for (const json& mj : manifest["meshes"]) {
+    if (!im.open_device(error)) return nullptr;
+    for (const json& mj : loaded.doc["meshes"]) {
         const std::size_t input = mj.value("input", std::size_t(0)),
                           src = mj.value("source_mesh", std::size_t(0));
         if (input >= scenes.size() || src >= scenes[input].meshes.size()) {
-            error = manifest_path.string() + ": mesh '" + mj.value("name", "") + "' refers to input " +
+            error = manifest_path + ": mesh '" + mj.value("name", "") + "' refers to input " +
                     std::to_string(input) + " mesh " + std::to_string(src) +
                     ", which the source does not have";
             return nullptr;
         }
         const scene::Mesh& sm = scenes[input].meshes[src];
         if (scene::geometry_hash(sm) != mj.value("geometry_hash", "")) {
-            error = sources[input] + ": mesh '" + sm.name +
+            error = loaded.sources[input] + ": mesh '" + sm.name +
                     "' differs from the converted geometry (geometry hash mismatch): re-run lsnif convert";
             return nullptr;
         }
-        Impl::Mesh m;
-        m.name = sm.name;
-        m.positions = sm.positions;
-        m.normals = sm.normals;
-        m.indices = sm.indices;
-        m.box = {INFINITY, INFINITY, INFINITY, -INFINITY, -INFINITY, -INFINITY};
-        for (std::size_t v = 0; v < sm.vertex_count(); ++v)
-            for (int a = 0; a < 3; ++a) {
-                m.box[a] = std::min(m.box[a], sm.positions[v * 3 + a]);
-                m.box[a + 3] = std::max(m.box[a + 3], sm.positions[v * 3 + a]);
-            }
-        const std::uint64_t before = im.memory;
-        m.scene = rtcNewScene(im.device);
-        RTCGeometry g = rtcNewGeometry(im.device, RTC_GEOMETRY_TYPE_TRIANGLE);
-        auto* vb = static_cast<float*>(rtcSetNewGeometryBuffer(
-            g, RTC_BUFFER_TYPE_VERTEX, 0, RTC_FORMAT_FLOAT3, 3 * sizeof(float), sm.vertex_count()));
-        auto* ib = static_cast<std::uint32_t*>(rtcSetNewGeometryBuffer(
-            g, RTC_BUFFER_TYPE_INDEX, 0, RTC_FORMAT_UINT3, 3 * sizeof(std::uint32_t), sm.triangle_count()));
-        if (!vb || !ib) {
-            rtcReleaseGeometry(g);
-            error = "embree: cannot allocate buffers for mesh '" + sm.name + "': " + im.embree_error;
-            return nullptr;
-        }
-        std::memcpy(vb, sm.positions.data(), sm.positions.size() * sizeof(float));
-        std::memcpy(ib, sm.indices.data(), sm.indices.size() * sizeof(std::uint32_t));
-        rtcCommitGeometry(g);
-        rtcAttachGeometry(m.scene, g);
-        rtcReleaseGeometry(g);
-        rtcCommitScene(m.scene);
-        m.bvh_bytes = im.memory - before;
-        if (mj.value("class", "") == "complex" && mj.contains("lsnif") && mj["lsnif"].contains("file")) {
-            const fs::path asset = dir / mj["lsnif"]["file"].get<std::string>();
-            lsnif_error err{};
-            if (lsnif_open_file(asset.c_str(), &m.model, &err) != LSNIF_OK) {
-                error = asset.string() + ": cannot open the asset: " + lsnif_status_string(err.status) +
-                        " (" + err.message + ")";
-                im.meshes.push_back(std::move(m));  // released by ~Impl
-                return nullptr;
-            }
-            std::error_code ec;
-            m.lsnif_bytes = fs::file_size(asset, ec);
-        }
-        im.meshes.push_back(std::move(m));
+        if (!im.add_mesh(sm, mj, opt.outdir, error)) return nullptr;
     }
-
     im.reference = rtcNewScene(im.device);
     im.hybrid = rtcNewScene(im.device);
     im.world = {INFINITY, INFINITY, INFINITY, -INFINITY, -INFINITY, -INFINITY};
-    const json& insts = manifest["instances"];
-    for (std::size_t i = 0; i < insts.size(); ++i) {
-        Impl::Instance in;
-        in.mesh = insts[i].value("mesh", 0u);
-        if (in.mesh >= im.meshes.size() || !insts[i].contains("transform") ||
-            insts[i]["transform"].size() != 12) {
-            error = manifest_path.string() + ": instance " + std::to_string(i) + " is malformed";
-            return nullptr;
-        }
-        for (int k = 0; k < 12; ++k) in.transform[k] = insts[i]["transform"][k].get<float>();
-        for (const auto& [which, m] : opt.instance_transforms)
-            if (which == i) in.transform = m;
-        const auto inverse = base::invert_linear(in.transform.data());
-        if (!inverse) {
-            error = manifest_path.string() + ": instance " + std::to_string(i) +
-                    " has a singular or non-finite transform";
-            return nullptr;
-        }
-        in.nmat = base::normal_matrix(*inverse);
-        const auto& ob = im.meshes[in.mesh].box;
-        in.box = {INFINITY, INFINITY, INFINITY, -INFINITY, -INFINITY, -INFINITY};
-        for (int c = 0; c < 8; ++c) {
-            const Vec3 p =
-                apply_point(in.transform, {ob[c & 1 ? 3 : 0], ob[c & 2 ? 4 : 1], ob[c & 4 ? 5 : 2]});
-            for (int a = 0; a < 3; ++a) {
-                in.box[a] = std::min(in.box[a], p[a]);
-                in.box[a + 3] = std::max(in.box[a + 3], p[a]);
-            }
-        }
-        for (int a = 0; a < 3; ++a) {
-            im.world[a] = std::min(im.world[a], in.box[a]);
-            im.world[a + 3] = std::max(im.world[a + 3], in.box[a + 3]);
-        }
-        const bool as_lsnif = im.meshes[in.mesh].model != nullptr;
-        for (RTCScene top : {im.reference, im.hybrid}) {
-            if (top == im.hybrid && as_lsnif) continue;
-            RTCGeometry g = rtcNewGeometry(im.device, RTC_GEOMETRY_TYPE_INSTANCE);
-            rtcSetGeometryInstancedScene(g, im.meshes[in.mesh].scene);
-            rtcSetGeometryTransform(g, 0, RTC_FORMAT_FLOAT3X4_ROW_MAJOR, in.transform.data());
-            rtcCommitGeometry(g);
-            rtcAttachGeometryByID(top, g, std::uint32_t(i));
-            rtcReleaseGeometry(g);
-        }
-        if (as_lsnif)
-            im.lsnif_instances.push_back(std::uint32_t(i));
-        else
-            im.hybrid_has_geometry = true;
-        im.instances.push_back(in);
-    }
+    const json& insts = loaded.doc["instances"];
+    for (std::size_t i = 0; i < insts.size(); ++i)
+        if (!im.add_instance(i, insts[i], opt, manifest_path, error)) return nullptr;
     if (im.instances.empty()) {
-        error = manifest_path.string() + ": no instances";
+        error = manifest_path + ": no instances";
         return nullptr;
     }
     rtcCommitScene(im.reference);
@@ -462,15 +504,256 @@ struct GBuffer {
 
 using base::seconds_since;
 
-json flip_json(const eval::FlipStats& s, double psnr) {
+json flip_json(const image::FlipStats& s, double psnr) {
     json j = {{"flip_mean", s.mean}, {"flip_median", s.median}, {"flip_p95", s.p95}, {"flip_max", s.max}};
     j["psnr_db"] = std::isfinite(psnr) ? json(psnr) : json(nullptr);  // identical images: null (infinite)
     return j;
 }
 
+// The camera and light of a render: the options' or, by default, framing the scene's bounds.
+struct View {
+    EvalCamera cam;
+    Vec3 light, fwd, right, up;
+    float tan_half, aspect;
+    float diag;  // world bounds' diagonal
+    std::uint32_t W, H;
+};
+
+View make_view(const EvalOptions& opt, const std::array<float, 6>& world) {
+    View v;
+    v.W = opt.width;
+    v.H = opt.height;
+    const Vec3 lo{world[0], world[1], world[2]}, hi{world[3], world[4], world[5]};
+    const Vec3 center = (lo + hi) * 0.5f;
+    v.diag = std::max(length(hi - lo), 1e-20f);
+    if (opt.camera)
+        v.cam = *opt.camera;
+    else {
+        v.cam.target = center;
+        v.cam.eye = center + normalize({0.55f, 0.4f, 1.0f}) * (1.15f * v.diag);
+    }
+    v.light = opt.light ? *opt.light : center + Vec3{0.5f, 1.2f, 0.7f} * v.diag;
+    v.fwd = normalize(v.cam.target - v.cam.eye);
+    v.right = cross(v.fwd, v.cam.up);
+    if (length(v.right) < 1e-6f) v.right = cross(v.fwd, {1.0f, 0.0f, 0.0f});
+    v.right = normalize(v.right);
+    v.up = cross(v.right, v.fwd);
+    v.tan_half = std::tan(0.5f * v.cam.fov_deg * 3.14159265f / 180.0f);
+    v.aspect = float(v.W) / float(v.H);
+    return v;
+}
+
+// Primary visibility from the real meshes through Embree (standing in for a rasterized
+// G-buffer): position, camera-facing shading normal, instance and secondary-ray offset of
+// every pixel.
+GBuffer render_primary(const EvalScene& scene, const std::vector<std::array<float, 6>>& instance_boxes,
+                       const View& v, std::uint32_t threads) {
+    const std::uint32_t W = v.W, H = v.H;
+    GBuffer gb;
+    gb.p.resize(std::size_t(W) * H);
+    gb.n.resize(gb.p.size());
+    gb.inst.assign(gb.p.size(), -1);
+    gb.eps.resize(gb.p.size());
+    base::parallel_chunks(H, threads, 1, [&](std::uint32_t, std::size_t y, std::size_t) {
+        std::vector<lsnif_ray> rays(W);
+        std::vector<TraceHit> hits(W);
+        for (std::uint32_t x = 0; x < W; ++x) {
+            const float sx = (2.0f * (float(x) + 0.5f) / float(W) - 1.0f) * v.tan_half * v.aspect;
+            const float sy = (1.0f - 2.0f * (float(y) + 0.5f) / float(H)) * v.tan_half;
+            const Vec3 d = normalize(v.fwd + v.right * sx + v.up * sy);
+            rays[x] = {{v.cam.eye[0], v.cam.eye[1], v.cam.eye[2]}, 0.0f, {d[0], d[1], d[2]}, INFINITY};
+        }
+        scene.closest(false, rays, hits);
+        for (std::uint32_t x = 0; x < W; ++x) {
+            const std::size_t i = std::size_t(y) * W + x;
+            if (hits[x].instance < 0) continue;
+            const Vec3 d{rays[x].dir[0], rays[x].dir[1], rays[x].dir[2]};
+            gb.p[i] = v.cam.eye + d * hits[x].t;
+            Vec3 n = hits[x].normal;
+            if (dot(n, d) > 0.0f) n = n * -1.0f;  // shade the side the camera sees
+            gb.n[i] = n;
+            gb.inst[i] = hits[x].instance;
+            // Same offset rule as the training family (b) rays (sampling.hpp): a fraction of
+            // the object's diagonal plus a relative term for far-from-origin geometry.
+            const auto& b = instance_boxes[hits[x].instance];
+            const float m = std::max({std::fabs(gb.p[i][0]), std::fabs(gb.p[i][1]), std::fabs(gb.p[i][2])});
+            gb.eps[i] = 1e-4f * length(Vec3{b[3] - b[0], b[4] - b[1], b[5] - b[2]}) + 1e-5f * m;
+        }
+    });
+    return gb;
+}
+
+enum { kShadow, kAo, kReflection, kEffects };
+constexpr const char* kEffectNames[kEffects] = {"shadow", "ao", "reflection"};
+
+// Linear RGB images of the three effects from one tracer, and the time its secondary
+// rays took (summed over threads).
+struct EffectImages {
+    std::vector<float> rgb[kEffects];
+    double trace_seconds = 0;
+};
+
+// The secondary rays of one row: a shadow ray to the light, S cosine-distributed AO rays
+// and a mirror reflection per covered pixel, identical for both tracers (per-pixel random
+// streams).
+struct RowRays {
+    std::vector<lsnif_ray> shadow, ao, refl;
+    std::vector<std::uint32_t> px;  // the covered pixels' x
+};
+
+void make_row_rays(const GBuffer& gb, const View& v, const EvalOptions& opt, std::size_t y, std::uint32_t S,
+                   RowRays& rr) {
+    for (std::uint32_t x = 0; x < v.W; ++x) {
+        const std::size_t i = y * v.W + x;
+        if (gb.inst[i] < 0) continue;
+        rr.px.push_back(x);
+        const Vec3 n = gb.n[i], o = gb.p[i] + n * gb.eps[i];
+        const Vec3 tl = v.light - o;
+        const float dist = length(tl);
+        rr.shadow.push_back({{o[0], o[1], o[2]}, 0.0f, {tl[0] / dist, tl[1] / dist, tl[2] / dist}, dist});
+        // Cosine-weighted hemisphere about n (Malley's method), per-pixel stream.
+        base::SplitMix64 rng{opt.seed * base::kGoldenGamma + i * 0xD1B54A32D192ED03ull};
+        const Vec3 a = std::fabs(n[0]) > 0.5f ? Vec3{0, 1, 0} : Vec3{1, 0, 0};
+        const Vec3 tx = normalize(cross(a, n)), ty = cross(n, tx);
+        for (std::uint32_t k = 0; k < S; ++k) {
+            const float r = std::sqrt(rng.uniform01f()), phi = 6.2831853f * rng.uniform01f();
+            const float lx = r * std::cos(phi), ly = r * std::sin(phi);
+            const Vec3 d = normalize(tx * lx + ty * ly + n * std::sqrt(std::max(0.0f, 1.0f - r * r)));
+            rr.ao.push_back({{o[0], o[1], o[2]}, 0.0f, {d[0], d[1], d[2]}, opt.ao_radius * v.diag});
+        }
+        const Vec3 vd = normalize(gb.p[i] - v.cam.eye);
+        const Vec3 rd = vd - n * (2.0f * dot(vd, n));
+        rr.refl.push_back({{o[0], o[1], o[2]}, 0.0f, {rd[0], rd[1], rd[2]}, INFINITY});
+    }
+}
+
+// Shades pixel k of a row from its traced secondary rays: Lambert with shadow, the open
+// fraction of AO rays, and the mirror bounce (the hit object's Lambert, or the sky).
+void shade_pixel(const GBuffer& gb, const View& v, const std::vector<std::uint32_t>& mesh_of_instance,
+                 const RowRays& rr, std::size_t k, std::size_t i, std::uint32_t S,
+                 const std::vector<std::uint8_t>& shadow_occ, const std::vector<std::uint8_t>& ao_occ,
+                 const TraceHit& h, EffectImages& out) {
+    const Vec3 base = albedo(mesh_of_instance[gb.inst[i]]);
+    const Vec3 ldir = normalize(v.light - gb.p[i]);
+    const float lambert = std::max(0.0f, dot(gb.n[i], ldir));
+    const Vec3 sh = base * (0.12f + 0.88f * lambert * (shadow_occ[k] ? 0.0f : 1.0f));
+    std::uint32_t open = 0;
+    for (std::uint32_t q = 0; q < S; ++q) open += ao_occ[k * S + q] ? 0u : 1u;
+    const float aov = float(open) / float(S);
+    Vec3 rc;
+    const lsnif_ray& refl = rr.refl[k];
+    const Vec3 rd{refl.dir[0], refl.dir[1], refl.dir[2]};
+    if (h.instance >= 0) {
+        const Vec3 hp = Vec3{refl.org[0], refl.org[1], refl.org[2]} + rd * h.t;
+        Vec3 hn = h.normal;
+        if (dot(hn, rd) > 0.0f) hn = hn * -1.0f;
+        rc = albedo(mesh_of_instance[h.instance]) *
+             (0.2f + 0.8f * std::max(0.0f, dot(hn, normalize(v.light - hp))));
+    } else {
+        rc = sky(rd);
+    }
+    const Vec3 px[kEffects] = {sh, Vec3{aov, aov, aov}, mul(rc, Vec3{0.9f, 0.9f, 0.9f})};
+    for (int e = 0; e < kEffects; ++e)
+        for (int c = 0; c < 3; ++c) out.rgb[e][i * 3 + c] = px[e][c];
+}
+
+// The three effect images with one tracer (`hybrid`: LSNIF reader for complex meshes).
+EffectImages render_secondary(const EvalScene& scene, const std::vector<std::uint32_t>& mesh_of_instance,
+                              const GBuffer& gb, const View& v, const EvalOptions& opt, bool hybrid,
+                              std::uint32_t threads) {
+    const std::uint32_t W = v.W, S = std::max(1u, opt.ao_samples);
+    EffectImages out;
+    for (auto& img : out.rgb) img.assign(std::size_t(W) * v.H * 3, 0.0f);
+    std::vector<double> per_thread(threads, 0.0);
+    base::parallel_chunks(v.H, threads, 1, [&](std::uint32_t t, std::size_t y, std::size_t) {
+        RowRays rr;
+        make_row_rays(gb, v, opt, y, S, rr);
+        std::vector<std::uint8_t> shadow_occ(rr.shadow.size()), ao_occ(rr.ao.size());
+        std::vector<TraceHit> refl_hit(rr.refl.size());
+        const auto tt = std::chrono::steady_clock::now();
+        scene.occluded(hybrid, rr.shadow, shadow_occ);
+        scene.occluded(hybrid, rr.ao, ao_occ);
+        scene.closest(hybrid, rr.refl, refl_hit);
+        per_thread[t] += seconds_since(tt);
+        for (std::uint32_t x = 0; x < W; ++x)  // background everywhere first
+            for (int e = 0; e < kEffects; ++e)
+                for (int c = 0; c < 3; ++c) out.rgb[e][(y * W + x) * 3 + c] = kBackground[c];
+        for (std::size_t k = 0; k < rr.px.size(); ++k)
+            shade_pixel(gb, v, mesh_of_instance, rr, k, y * W + rr.px[k], S, shadow_occ, ao_occ, refl_hit[k],
+                        out);
+    });
+    for (double s : per_thread) out.trace_seconds += s;
+    return out;
+}
+
+// FLIP and PSNR of each effect (sRGB-encoded images), and the reference, hybrid and FLIP
+// heat-map PNGs in `images` when write_images. Returns the per-effect JSON and the mean
+// FLIP over the effects; false with `error` set on failure.
+bool compare_effects(const EffectImages& reference, const EffectImages& hybrid, const View& v,
+                     const fs::path& images, bool write_images, json& per, double& flip_mean,
+                     std::string& error) {
+    const std::uint32_t W = v.W, H = v.H;
+    per = json::object();
+    double flip_sum = 0;
+    for (int e = 0; e < kEffects; ++e) {
+        image::Image ref{W, H, reference.rgb[e]}, hyb{W, H, hybrid.rgb[e]};
+        for (auto* im2 : {&ref, &hyb})
+            for (float& x : im2->rgb) x = image::linear_to_srgb(std::clamp(x, 0.0f, 1.0f));
+        auto f = image::flip(ref, hyb, image::FlipOptions{});
+        if (!f) {
+            error = std::string("flip: ") + kEffectNames[e] + ": " + f.error().message;
+            return false;
+        }
+        json j = flip_json(f->stats, image::psnr(ref, hyb));
+        if (write_images) {
+            const std::string stem = kEffectNames[e];
+            const image::Image heat = image::heatmap(f->error_map, W, H);
+            const std::pair<std::string, const image::Image*> files[] = {{"reference_" + stem + ".png", &ref},
+                                                                         {"hybrid_" + stem + ".png", &hyb},
+                                                                         {"flip_" + stem + ".png", &heat}};
+            for (const auto& [file, img] : files) {
+                auto w = image::write_png((images / file).string(), *img);
+                if (!w) {
+                    error = w.error().message;
+                    return false;
+                }
+            }
+            j["files"] = {{"reference", "reference_" + stem + ".png"},
+                          {"hybrid", "hybrid_" + stem + ".png"},
+                          {"flip", "flip_" + stem + ".png"}};
+        }
+        flip_sum += f->stats.mean;
+        per[kEffectNames[e]] = j;
+    }
+    flip_mean = flip_sum / double(int(kEffects));
+    return true;
+}
+
+// `text` to `path` through a temporary file and a rename: no half-written file.
+bool write_text_atomically(const fs::path& path, const std::string& text, std::string& error) {
+    const fs::path tmp = path.string() + ".tmp";
+    {
+        std::ofstream o(tmp);
+        o << text;
+        if (!o) {
+            error = tmp.string() + ": cannot write";
+            std::error_code ec;
+            fs::remove(tmp, ec);
+            return false;
+        }
+    }
+    std::error_code ec;
+    fs::rename(tmp, path, ec);
+    if (ec) {
+        error = path.string() + ": " + ec.message();
+        return false;
+    }
+    return true;
+}
+
 }  // namespace
 
-EvalResult evaluate(const EvalOptions& opt) {
+EvalResult render_and_compare(const EvalOptions& opt) {
     EvalResult res;
     std::string err;
     auto scene = EvalScene::load(opt, err);
@@ -484,136 +767,18 @@ EvalResult evaluate(const EvalOptions& opt) {
                              " out of range (1..8192)");
         return res;
     }
-    const std::uint32_t W = opt.width, H = opt.height, S = std::max(1u, opt.ao_samples);
     const std::uint32_t threads = base::resolve_threads(opt.threads);
-    const Vec3 lo{im.world[0], im.world[1], im.world[2]}, hi{im.world[3], im.world[4], im.world[5]};
-    const Vec3 center = (lo + hi) * 0.5f;
-    const float diag = std::max(length(hi - lo), 1e-20f);
-    EvalCamera cam;
-    if (opt.camera)
-        cam = *opt.camera;
-    else {
-        cam.target = center;
-        cam.eye = center + normalize({0.55f, 0.4f, 1.0f}) * (1.15f * diag);
-    }
-    const Vec3 light = opt.light ? *opt.light : center + Vec3{0.5f, 1.2f, 0.7f} * diag;
-    const Vec3 fwd = normalize(cam.target - cam.eye);
-    Vec3 right = cross(fwd, cam.up);
-    if (length(right) < 1e-6f) right = cross(fwd, {1.0f, 0.0f, 0.0f});
-    right = normalize(right);
-    const Vec3 up = cross(right, fwd);
-    const float tan_half = std::tan(0.5f * cam.fov_deg * 3.14159265f / 180.0f), aspect = float(W) / float(H);
+    const View view = make_view(opt, im.world);
+    std::vector<std::array<float, 6>> instance_boxes;
+    std::vector<std::uint32_t> mesh_of_instance;
+    for (const auto& in : im.instances) instance_boxes.push_back(in.box), mesh_of_instance.push_back(in.mesh);
 
-    // ---- primary visibility: real meshes, Embree (the G-buffer) ----
-    auto t0 = std::chrono::steady_clock::now();
-    GBuffer gb;
-    gb.p.resize(std::size_t(W) * H);
-    gb.n.resize(gb.p.size());
-    gb.inst.assign(gb.p.size(), -1);
-    gb.eps.resize(gb.p.size());
-    base::parallel_chunks(H, threads, 1, [&](std::uint32_t, std::size_t y, std::size_t) {
-        std::vector<lsnif_ray> rays(W);
-        std::vector<TraceHit> hits(W);
-        for (std::uint32_t x = 0; x < W; ++x) {
-            const float sx = (2.0f * (float(x) + 0.5f) / float(W) - 1.0f) * tan_half * aspect;
-            const float sy = (1.0f - 2.0f * (float(y) + 0.5f) / float(H)) * tan_half;
-            const Vec3 d = normalize(fwd + right * sx + up * sy);
-            rays[x] = {{cam.eye[0], cam.eye[1], cam.eye[2]}, 0.0f, {d[0], d[1], d[2]}, INFINITY};
-        }
-        scene->closest(false, rays, hits);
-        for (std::uint32_t x = 0; x < W; ++x) {
-            const std::size_t i = std::size_t(y) * W + x;
-            if (hits[x].instance < 0) continue;
-            const Vec3 d{rays[x].dir[0], rays[x].dir[1], rays[x].dir[2]};
-            gb.p[i] = cam.eye + d * hits[x].t;
-            Vec3 n = hits[x].normal;
-            if (dot(n, d) > 0.0f) n = n * -1.0f;  // shade the side the camera sees
-            gb.n[i] = n;
-            gb.inst[i] = hits[x].instance;
-            // Same offset rule as the training family (b) rays (sampling.hpp): a fraction of
-            // the object's diagonal plus a relative term for far-from-origin geometry.
-            const auto& b = im.instances[hits[x].instance].box;
-            const float m = std::max({std::fabs(gb.p[i][0]), std::fabs(gb.p[i][1]), std::fabs(gb.p[i][2])});
-            gb.eps[i] = 1e-4f * length(Vec3{b[3] - b[0], b[4] - b[1], b[5] - b[2]}) + 1e-5f * m;
-        }
-    });
+    const auto t0 = std::chrono::steady_clock::now();
+    const GBuffer gb = render_primary(*scene, instance_boxes, view, threads);
     const double primary_seconds = seconds_since(t0);
+    const EffectImages reference = render_secondary(*scene, mesh_of_instance, gb, view, opt, false, threads);
+    const EffectImages hybrid = render_secondary(*scene, mesh_of_instance, gb, view, opt, true, threads);
 
-    // ---- secondary rays, traced by each tracer over identical rays ----
-    enum { kShadow, kAo, kReflection, kEffects };
-    const char* names[kEffects] = {"shadow", "ao", "reflection"};
-    std::vector<float> img[2][kEffects];
-    double trace_seconds[2] = {0, 0};
-    for (int hybrid = 0; hybrid < 2; ++hybrid) {
-        for (auto& v : img[hybrid]) v.assign(std::size_t(W) * H * 3, 0.0f);
-        std::vector<double> per_thread(threads, 0.0);
-        base::parallel_chunks(H, threads, 1, [&](std::uint32_t t, std::size_t y, std::size_t) {
-            std::vector<lsnif_ray> shadow, ao, refl;
-            std::vector<std::uint32_t> px;
-            for (std::uint32_t x = 0; x < W; ++x) {
-                const std::size_t i = std::size_t(y) * W + x;
-                if (gb.inst[i] < 0) continue;
-                px.push_back(x);
-                const Vec3 n = gb.n[i], o = gb.p[i] + n * gb.eps[i];
-                const Vec3 tl = light - o;
-                const float dist = length(tl);
-                shadow.push_back(
-                    {{o[0], o[1], o[2]}, 0.0f, {tl[0] / dist, tl[1] / dist, tl[2] / dist}, dist});
-                // Cosine-weighted hemisphere about n (Malley's method), per-pixel stream.
-                base::SplitMix64 rng{opt.seed * base::kGoldenGamma + i * 0xD1B54A32D192ED03ull};
-                const Vec3 a = std::fabs(n[0]) > 0.5f ? Vec3{0, 1, 0} : Vec3{1, 0, 0};
-                const Vec3 tx = normalize(cross(a, n)), ty = cross(n, tx);
-                for (std::uint32_t k = 0; k < S; ++k) {
-                    const float r = std::sqrt(rng.uniform01f()), phi = 6.2831853f * rng.uniform01f();
-                    const float lx = r * std::cos(phi), ly = r * std::sin(phi);
-                    const Vec3 d = normalize(tx * lx + ty * ly + n * std::sqrt(std::max(0.0f, 1.0f - r * r)));
-                    ao.push_back({{o[0], o[1], o[2]}, 0.0f, {d[0], d[1], d[2]}, opt.ao_radius * diag});
-                }
-                const Vec3 v = normalize(gb.p[i] - cam.eye);
-                const Vec3 rd = v - n * (2.0f * dot(v, n));
-                refl.push_back({{o[0], o[1], o[2]}, 0.0f, {rd[0], rd[1], rd[2]}, INFINITY});
-            }
-            std::vector<std::uint8_t> shadow_occ(shadow.size()), ao_occ(ao.size());
-            std::vector<TraceHit> refl_hit(refl.size());
-            const auto tt = std::chrono::steady_clock::now();
-            scene->occluded(hybrid, shadow, shadow_occ);
-            scene->occluded(hybrid, ao, ao_occ);
-            scene->closest(hybrid, refl, refl_hit);
-            per_thread[t] += seconds_since(tt);
-            for (std::uint32_t x = 0; x < W; ++x)  // background everywhere first
-                for (int e = 0; e < kEffects; ++e)
-                    for (int c = 0; c < 3; ++c)
-                        img[hybrid][e][(std::size_t(y) * W + x) * 3 + c] = kBackground[c];
-            for (std::size_t k = 0; k < px.size(); ++k) {
-                const std::size_t i = std::size_t(y) * W + px[k];
-                const Vec3 base = albedo(im.instances[gb.inst[i]].mesh);
-                const Vec3 ldir = normalize(light - gb.p[i]);
-                const float lambert = std::max(0.0f, dot(gb.n[i], ldir));
-                const Vec3 sh = base * (0.12f + 0.88f * lambert * (shadow_occ[k] ? 0.0f : 1.0f));
-                std::uint32_t open = 0;
-                for (std::uint32_t q = 0; q < S; ++q) open += ao_occ[k * S + q] ? 0u : 1u;
-                const float aov = float(open) / float(S);
-                Vec3 rc;
-                const TraceHit& h = refl_hit[k];
-                const Vec3 rd{refl[k].dir[0], refl[k].dir[1], refl[k].dir[2]};
-                if (h.instance >= 0) {
-                    const Vec3 hp = Vec3{refl[k].org[0], refl[k].org[1], refl[k].org[2]} + rd * h.t;
-                    Vec3 hn = h.normal;
-                    if (dot(hn, rd) > 0.0f) hn = hn * -1.0f;
-                    rc = albedo(im.instances[h.instance].mesh) *
-                         (0.2f + 0.8f * std::max(0.0f, dot(hn, normalize(light - hp))));
-                } else {
-                    rc = sky(rd);
-                }
-                const Vec3 out[kEffects] = {sh, Vec3{aov, aov, aov}, mul(rc, Vec3{0.9f, 0.9f, 0.9f})};
-                for (int e = 0; e < kEffects; ++e)
-                    for (int c = 0; c < 3; ++c) img[hybrid][e][i * 3 + c] = out[e][c];
-            }
-        });
-        for (double s : per_thread) trace_seconds[hybrid] += s;
-    }
-
-    // ---- compare, write ----
     const fs::path images = opt.images_dir.empty() ? fs::path(opt.outdir) / "eval" : fs::path(opt.images_dir);
     if (opt.write_images) {
         std::error_code ec;
@@ -623,81 +788,39 @@ EvalResult evaluate(const EvalOptions& opt) {
             return res;
         }
     }
-    json report;
-    json per = json::object();
-    double flip_sum = 0;
-    for (int e = 0; e < kEffects; ++e) {
-        eval::Image ref{W, H, img[0][e]}, hyb{W, H, img[1][e]};
-        for (auto* im2 : {&ref, &hyb})
-            for (float& v : im2->rgb) v = eval::linear_to_srgb(std::clamp(v, 0.0f, 1.0f));
-        auto f = eval::flip(ref, hyb, eval::FlipOptions{});
-        if (!f) {
-            res.errors.push_back(std::string("flip: ") + names[e] + ": " + f.error());
-            return res;
-        }
-        const double psnr = eval::psnr(ref, hyb);
-        json j = flip_json(f->stats, psnr);
-        if (opt.write_images) {
-            const std::string stem = names[e];
-            const std::pair<std::string, const eval::Image*> files[] = {{"reference_" + stem + ".png", &ref},
-                                                                        {"hybrid_" + stem + ".png", &hyb}};
-            for (const auto& [file, image] : files) {
-                auto w = eval::write_png((images / file).string(), *image);
-                if (!w) {
-                    res.errors.push_back(w.error());
-                    return res;
-                }
-            }
-            auto w = eval::write_png((images / ("flip_" + stem + ".png")).string(),
-                                     eval::heatmap(f->error_map, W, H));
-            if (!w) {
-                res.errors.push_back(w.error());
-                return res;
-            }
-            j["files"] = {{"reference", "reference_" + stem + ".png"},
-                          {"hybrid", "hybrid_" + stem + ".png"},
-                          {"flip", "flip_" + stem + ".png"}};
-        }
-        flip_sum += f->stats.mean;
-        per[names[e]] = j;
+    json per;
+    double flip_mean = 0;
+    if (!compare_effects(reference, hybrid, view, images, opt.write_images, per, flip_mean, err)) {
+        res.errors.push_back(err);
+        return res;
     }
     std::uint64_t lsnif_bytes = 0, bvh_replaced = 0;
     for (const auto& m : im.meshes)
         if (m.model) lsnif_bytes += m.lsnif_bytes, bvh_replaced += m.bvh_bytes;
+    json report;
     report["images"] = per;
-    report["flip_mean"] = flip_sum / double(int(kEffects));
-    report["width"] = W;
-    report["height"] = H;
-    report["ao_samples"] = S;
-    report["ao_radius"] = opt.ao_radius * diag;
-    report["camera"] = {{"eye", cam.eye}, {"target", cam.target}, {"up", cam.up}, {"fov_deg", cam.fov_deg}};
-    report["light"] = light;
+    report["flip_mean"] = flip_mean;
+    report["width"] = view.W;
+    report["height"] = view.H;
+    report["ao_samples"] = std::max(1u, opt.ao_samples);
+    report["ao_radius"] = opt.ao_radius * view.diag;
+    report["camera"] = {{"eye", view.cam.eye},
+                        {"target", view.cam.target},
+                        {"up", view.cam.up},
+                        {"fov_deg", view.cam.fov_deg}};
+    report["light"] = view.light;
     report["instances"] = im.instances.size();
     report["lsnif_instances"] = im.lsnif_instances.size();
     report["memory"] = {{"lsnif_bytes", lsnif_bytes}, {"bvh_bytes_replaced", bvh_replaced}};
     report["timings"] = {{"primary", primary_seconds},
-                         {"secondary_reference", trace_seconds[0]},
-                         {"secondary_hybrid", trace_seconds[1]}};
-    report["secondary_time_ratio"] = trace_seconds[0] > 0 ? trace_seconds[1] / trace_seconds[0] : 0.0;
+                         {"secondary_reference", reference.trace_seconds},
+                         {"secondary_hybrid", hybrid.trace_seconds}};
+    report["secondary_time_ratio"] =
+        reference.trace_seconds > 0 ? hybrid.trace_seconds / reference.trace_seconds : 0.0;
     report["images_dir"] = images.string();
-    if (opt.write_images) {
-        const fs::path rp = images / "report.json", tmp = images / "report.json.tmp";
-        {
-            std::ofstream o(tmp);
-            o << report.dump(2) << "\n";
-            if (!o) {
-                res.errors.push_back(tmp.string() + ": cannot write");
-                std::error_code ec;
-                fs::remove(tmp, ec);
-                return res;
-            }
-        }
-        std::error_code ec;
-        fs::rename(tmp, rp, ec);
-        if (ec) {
-            res.errors.push_back(rp.string() + ": " + ec.message());
-            return res;
-        }
+    if (opt.write_images && !write_text_atomically(images / "report.json", report.dump(2) + "\n", err)) {
+        res.errors.push_back(err);
+        return res;
     }
     res.report = std::move(report);
     return res;

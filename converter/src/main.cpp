@@ -76,7 +76,7 @@ int run_eval(lsnif::converter::EvalOptions opt, const std::string& camera, const
         }
         opt.instance_transforms.emplace_back(std::uint32_t(idx), t);
     }
-    const auto r = lsnif::converter::evaluate(opt);
+    const auto r = lsnif::converter::render_and_compare(opt);
     for (const auto& e : r.errors) std::fprintf(stderr, "error: %s\n", e.c_str());
     if (!r.ok()) return 1;
     if (as_json) {

@@ -177,7 +177,7 @@ TEST_CASE("eval renders, compares with FLIP, and camera and light change without
     o.threads = 2;
     o.images_dir = (fs::path(LSNIF_TEST_WORK_DIR) / "eval_images_a").string();
     fs::remove_all(o.images_dir);
-    const EvalResult a = evaluate(o);
+    const EvalResult a = render_and_compare(o);
     REQUIRE_MESSAGE(a.ok(), (a.errors.empty() ? "" : a.errors[0]));
     const json& ra = a.report;
     CHECK(ra["lsnif_instances"] == 1);
@@ -207,7 +207,7 @@ TEST_CASE("eval renders, compares with FLIP, and camera and light change without
                c["target"][2].get<float>()};
     o.images_dir = (fs::path(LSNIF_TEST_WORK_DIR) / "eval_images_b").string();
     fs::remove_all(o.images_dir);
-    const EvalResult b = evaluate(o);
+    const EvalResult b = render_and_compare(o);
     REQUIRE_MESSAGE(b.ok(), (b.errors.empty() ? "" : b.errors[0]));
     CHECK(b.report["camera"]["eye"] != ra["camera"]["eye"]);
     CHECK(b.report["light"] != ra["light"]);
@@ -221,14 +221,14 @@ TEST_CASE("eval renders, compares with FLIP, and camera and light change without
 TEST_CASE("eval errors name the file: no manifest, wrong source geometry") {
     EvalOptions o;
     o.outdir = (fs::path(LSNIF_TEST_WORK_DIR) / "no_such_conversion").string();
-    EvalResult r = evaluate(o);
+    EvalResult r = render_and_compare(o);
     REQUIRE(r.errors.size() == 1);
     CHECK(r.errors[0].find("manifest.json") != std::string::npos);
 
     o.outdir = converted_dragon().string();
     o.sources = {kArmadillo};
     o.write_images = false;
-    r = evaluate(o);
+    r = render_and_compare(o);
     REQUIRE(r.errors.size() == 1);
     CHECK(r.errors[0].find("armadillo.off") != std::string::npos);
     CHECK(r.errors[0].find("geometry hash mismatch") != std::string::npos);

@@ -6,7 +6,7 @@
 #define STBI_ONLY_PNG
 #include <stb/stb_image.h>
 
-namespace lsnif::eval::testing {
+namespace lsnif::image::testing {
 
 DecodedPng decode_png(const std::string& path) {
     DecodedPng out;
@@ -17,4 +17,4 @@ DecodedPng decode_png(const std::string& path) {
     return out;
 }
 
-}  // namespace lsnif::eval::testing
+}  // namespace lsnif::image::testing

@@ -6,7 +6,7 @@
 #include <string>
 #include <vector>
 
-namespace lsnif::eval::testing {
+namespace lsnif::image::testing {
 
 struct DecodedPng {
     int width = 0, height = 0, channels = 0;  // channels as stored in the file
@@ -15,4 +15,4 @@ struct DecodedPng {
 
 DecodedPng decode_png(const std::string& path);
 
-}  // namespace lsnif::eval::testing
+}  // namespace lsnif::image::testing

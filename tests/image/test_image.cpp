@@ -1,7 +1,7 @@
-// lsnif::eval images: sRGB transfer functions against the standard's values, PSNR by
+// lsnif::image images: sRGB transfer functions against the standard's values, PSNR by
 // hand, the heat map's ordering, and PNG writing checked byte by byte and by decoding the
 // file with an independent reader (stb_image).
-#include <lsnif/eval/image.hpp>
+#include <lsnif/image/image.hpp>
 
 #include "png_decode.hpp"
 
@@ -17,14 +17,14 @@
 #include <string>
 #include <vector>
 
-using namespace lsnif::eval;
+using namespace lsnif::image;
 namespace fs = std::filesystem;
 
 namespace {
 
 // A fresh, empty directory for one test case.
 fs::path work_dir(const std::string& name) {
-    const fs::path dir = fs::path(LSNIF_EVAL_WORK_DIR) / name;
+    const fs::path dir = fs::path(LSNIF_IMAGE_WORK_DIR) / name;
     fs::remove_all(dir);
     fs::create_directories(dir);
     return dir;
@@ -176,8 +176,7 @@ TEST_CASE("write_png writes a valid 8-bit RGB PNG, atomically, with the right pi
     const fs::path file = dir / "gradient.png";
     const Image im = gradient();
     const auto w = write_png(file.string(), im);
-    REQUIRE_MESSAGE(w.has_value(), w.error());
-    CHECK(w.error().empty());
+    REQUIRE_MESSAGE(w.ok(), w.error().message);
     // Only the file itself: the temporary file was renamed, not left behind.
     CHECK(entries(dir) == std::vector<std::string>{"gradient.png"});
 
@@ -230,10 +229,10 @@ TEST_CASE("write_png failures name the path and leave nothing behind") {
     const fs::path dir = work_dir("png_fail");
     const fs::path missing = dir / "no_such_dir" / "image.png";
     const auto r = write_png(missing.string(), gradient());
-    REQUIRE_FALSE(r.has_value());
-    CAPTURE(r.error());
-    CHECK(r.error().find(missing.string()) == 0);
-    CHECK(r.error().find("No such file or directory") != std::string::npos);
+    REQUIRE_FALSE(r.ok());
+    CAPTURE(r.error().message);
+    CHECK(r.error().message.find(missing.string()) == 0);
+    CHECK(r.error().message.find("No such file or directory") != std::string::npos);
     CHECK_FALSE(fs::exists(dir / "no_such_dir"));
     CHECK(entries(dir).empty());
 
@@ -241,17 +240,17 @@ TEST_CASE("write_png failures name the path and leave nothing behind") {
     const fs::path file = dir / "bad.png";
     for (const Image& bad : {Image{}, Image{2, 2, std::vector<float>(11)}}) {
         const auto b = write_png(file.string(), bad);
-        REQUIRE_FALSE(b.has_value());
-        CAPTURE(b.error());
-        CHECK(b.error().find(file.string() + ": image ") == 0);
+        REQUIRE_FALSE(b.ok());
+        CAPTURE(b.error().message);
+        CHECK(b.error().message.find(file.string() + ": image ") == 0);
     }
-    CHECK(write_png("", gradient()).error() == "write_png: empty path");
+    CHECK(write_png("", gradient()).error().message == "write_png: empty path");
     // The target is a directory: the rename fails, the temporary file is removed.
     fs::create_directories(dir / "taken.png");
     const auto t = write_png((dir / "taken.png").string(), gradient());
-    REQUIRE_FALSE(t.has_value());
-    CAPTURE(t.error());
-    CHECK(t.error().find((dir / "taken.png").string()) == 0);
+    REQUIRE_FALSE(t.ok());
+    CAPTURE(t.error().message);
+    CHECK(t.error().message.find((dir / "taken.png").string()) == 0);
     CHECK(entries(dir) == std::vector<std::string>{"taken.png"});
     CHECK(fs::is_empty(dir / "taken.png"));
 }

@@ -8,7 +8,7 @@
 // here is a product g(x) g(y) or a sum of two such products) and handle borders by
 // clamp-to-edge; symmetric and antisymmetric kernels are applied in paired form so that a
 // flat region gives exactly zero feature response.
-#include <lsnif/eval/flip.hpp>
+#include <lsnif/image/flip.hpp>
 
 #include "internal.hpp"
 
@@ -22,7 +22,7 @@
 #include <string>
 #include <vector>
 
-namespace lsnif::eval {
+namespace lsnif::image {
 namespace {
 
 using Mat3 = std::array<std::array<double, 3>, 3>;
@@ -406,7 +406,7 @@ Result<FlipResult> flip_checked(const Image& reference, const Image& test, const
         return Error{"pixels_per_degree must be in [" + std::to_string(kFlipMinPixelsPerDegree) + ", " +
                      std::to_string(kFlipMaxPixelsPerDegree) + "], got " + std::to_string(ppd)};
     Result<FeatureKernels> features = feature_kernels(ppd);
-    if (!features) return Error{features.error()};
+    if (!features) return features.error();
 
     const std::size_t w = reference.width, h = reference.height, n = w * h;
     Opponent ref = to_opponent(reference), tst = to_opponent(test);
@@ -517,4 +517,4 @@ Result<FlipResult> flip(const Image& reference, const Image& test, const FlipOpt
     }
 }
 
-}  // namespace lsnif::eval
+}  // namespace lsnif::image

@@ -1,6 +1,6 @@
 // Image helpers for `lsnif eval`: sRGB transfer, PSNR, the heat map and PNG writing
 // (image.hpp has the contracts).
-#include <lsnif/eval/image.hpp>
+#include <lsnif/image/image.hpp>
 
 #include "internal.hpp"
 
@@ -18,7 +18,7 @@
 #include <new>
 #include <system_error>
 
-namespace lsnif::eval {
+namespace lsnif::image {
 
 namespace internal {
 
@@ -209,4 +209,4 @@ Result<void> write_png(const std::string& path, const Image& image, Encoding enc
     }
 }
 
-}  // namespace lsnif::eval
+}  // namespace lsnif::image

@@ -1,14 +1,14 @@
-// Shared by the lsnif::eval translation units; not installed, not part of the API.
+// Shared by the lsnif::image translation units; not installed, not part of the API.
 #pragma once
 
-#include <lsnif/eval/image.hpp>
+#include <lsnif/image/image.hpp>
 
 #include <cstddef>
 #include <cstdint>
 #include <string>
 #include <vector>
 
-namespace lsnif::eval::internal {
+namespace lsnif::image::internal {
 
 // Empty when `image` is well formed (non-empty, rgb.size() == 3 w h), else what is wrong,
 // e.g. "is empty (0 x 4)". The caller prefixes which image it is.
@@ -24,4 +24,4 @@ std::string non_finite_problem(const Image& image);
 // an int (the caller checks). Returns false when stb fails (out of memory); never throws.
 bool encode_png(const std::uint8_t* rgb, int width, int height, std::vector<unsigned char>& out) noexcept;
 
-}  // namespace lsnif::eval::internal
+}  // namespace lsnif::image::internal

@@ -13,7 +13,7 @@
 #define STBI_WRITE_NO_STDIO
 #include <stb/stb_image_write.h>
 
-namespace lsnif::eval::internal {
+namespace lsnif::image::internal {
 namespace {
 
 struct Sink {
@@ -43,4 +43,4 @@ bool encode_png(const std::uint8_t* rgb, int width, int height, std::vector<unsi
     return ok != 0 && !sink.failed && !out.empty();
 }
 
-}  // namespace lsnif::eval::internal
+}  // namespace lsnif::image::internal

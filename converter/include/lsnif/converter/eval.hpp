@@ -55,7 +55,9 @@ struct EvalResult {
     bool ok() const { return errors.empty(); }
 };
 
-EvalResult evaluate(const EvalOptions& opt);
+// The whole of `lsnif eval`: loads the scene, renders reference and hybrid images of every
+// effect, compares them (lsnif::image: FLIP, PSNR) and writes the PNGs when asked.
+EvalResult render_and_compare(const EvalOptions& opt);
 
 // ---- the two tracers, exposed for tests and examples ----------------------------------
 
@@ -94,7 +96,7 @@ public:
 private:
     explicit EvalScene(std::unique_ptr<Impl> impl);
     std::unique_ptr<Impl> impl_;
-    friend EvalResult evaluate(const EvalOptions& opt);
+    friend EvalResult render_and_compare(const EvalOptions& opt);
 };
 
 }  // namespace lsnif::converter

@@ -1,7 +1,9 @@
 // The toolchain's one result type: a value or an error, for library calls that can fail
-// (header-only, standard library only). Each module picks its error type (format::Error
-// carries a status code and file offset, voxelize::Error a message) and aliases
-// Result<T> = base::Result<T, Error>.
+// (header-only, standard library only; the subset of C++23's std::expected we need, which
+// GCC 12 in C++20 mode lacks). Each module picks its error type (format::Error carries a
+// status code and file offset, voxelize::Error and image::Error a message) and aliases
+// Result<T> = base::Result<T, Error>. Result<void, E> is success without a value (e.g. a
+// file was written).
 #pragma once
 
 #include <utility>
@@ -10,7 +12,7 @@
 namespace lsnif::base {
 
 template <class T, class E>
-class Result {
+class [[nodiscard]] Result {
 public:
     Result(T value) : v_(std::in_place_index<0>, std::move(value)) {}
     Result(E error) : v_(std::in_place_index<1>, std::move(error)) {}
@@ -27,6 +29,21 @@ public:
 
 private:
     std::variant<T, E> v_;
+};
+
+template <class E>
+class [[nodiscard]] Result<void, E> {
+public:
+    Result() = default;
+    Result(E error) : error_(std::move(error)), ok_(false) {}
+    bool ok() const { return ok_; }
+    explicit operator bool() const { return ok(); }
+    // Meaningful when !ok(); a default E otherwise.
+    const E& error() const { return error_; }
+
+private:
+    E error_{};
+    bool ok_ = true;
 };
 
 }  // namespace lsnif::base

@@ -25,12 +25,12 @@
 // the build machine, mostly pow/cbrt of the per-pixel colour conversions (bench_flip).
 #pragma once
 
-#include <lsnif/eval/image.hpp>
-#include <lsnif/eval/result.hpp>
+#include <lsnif/image/image.hpp>
+#include <lsnif/image/result.hpp>
 
 #include <vector>
 
-namespace lsnif::eval {
+namespace lsnif::image {
 
 // The paper's constants.
 inline constexpr double kFlipQc = 0.7;   // colour-distance exponent
@@ -110,4 +110,4 @@ double flip_compress_color_distance(double d) noexcept;
 // flip()'s colour error between two flat images of these colours.
 double flip_color_error(double r0, double g0, double b0, double r1, double g1, double b1) noexcept;
 
-}  // namespace lsnif::eval
+}  // namespace lsnif::image

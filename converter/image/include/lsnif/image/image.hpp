@@ -11,14 +11,14 @@
 // (result.hpp) whose message names the offending file or argument.
 #pragma once
 
-#include <lsnif/eval/result.hpp>
+#include <lsnif/image/result.hpp>
 
 #include <cstdint>
 #include <span>
 #include <string>
 #include <vector>
 
-namespace lsnif::eval {
+namespace lsnif::image {
 
 // Row-major from the top row, 3 interleaved channels (R, G, B) per pixel:
 // rgb[3 * (y * width + x) + c]. A well-formed image has rgb.size() == 3 * width * height;
@@ -74,4 +74,4 @@ Image heatmap(std::span<const float> error, std::uint32_t width, std::uint32_t h
 // reason. The directory must exist.
 Result<void> write_png(const std::string& path, const Image& image, Encoding encoding = Encoding::srgb);
 
-}  // namespace lsnif::eval
+}  // namespace lsnif::image
