@@ -184,178 +184,215 @@ int run_convert(lsnif::converter::ConvertOptions opt, bool as_json) {
     return r.ok() ? 0 : 1;
 }
 
+// ---- subcommands: each registers its options on the app and runs once parsed ----------
+
+struct InspectCommand {
+    CLI::App* sub = nullptr;
+    std::string path;
+    bool json = false;
+    void add_to(CLI::App& app) {
+        sub = app.add_subcommand("inspect",
+                                 "Print header, sections, model dimensions and metadata of a .lsnif file");
+        sub->add_option("FILE", path, ".lsnif file")->required();
+        sub->add_flag("--json", json, "Machine-readable output");
+    }
+    int run() const { return run_inspect(path, json); }
+};
+
+struct ValidateCommand {
+    CLI::App* sub = nullptr;
+    std::vector<std::string> paths;
+    bool json = false;
+    void add_to(CLI::App& app) {
+        sub = app.add_subcommand("validate", "Check .lsnif files completely; exit 0 only if all are valid");
+        sub->add_option("FILE", paths, ".lsnif files")->required();
+        sub->add_flag("--json", json, "Machine-readable output");
+    }
+    int run() const { return run_validate(paths, json); }
+};
+
+// The command line recorded in each asset's metadata: without the output directory and
+// --json, which do not change the asset, and with the program by its name only, so the same
+// conversion run into another directory or from another build gives the same bytes (the
+// file name is already a content hash).
+std::string recorded_command_line(int argc, char** argv) {
+    std::string line;
+    for (int i = 0; i < argc; ++i) {
+        const std::string a =
+            i == 0 ? std::filesystem::path(argv[0]).filename().string() : std::string(argv[i]);
+        if (a == "-o" || a == "--output") {
+            ++i;
+            continue;
+        }
+        if (a == "--json" || a.rfind("--output=", 0) == 0 ||
+            (a.size() > 2 && a.rfind("-o", 0) == 0 && a[2] != '-'))
+            continue;
+        line += (line.empty() ? "" : " ") + a;
+    }
+    return line;
+}
+
+struct ConvertCommand {
+    CLI::App* sub = nullptr;
+    lsnif::converter::ConvertOptions opt;
+    bool json = false;
+    void add_to(CLI::App& app) {
+        sub = app.add_subcommand(
+            "convert", "Convert scenes (glTF, OBJ, PLY, OFF, STL) into LSNIF assets and a manifest");
+        sub->add_option("INPUT", opt.inputs, "Scene files")->required();
+        sub->add_option("-o,--output", opt.outdir, "Output directory")->required();
+        sub->add_flag("--json", json, "Print a machine-readable report");
+        sub->add_option("--seed", opt.seed, "Random seed (sampling and training)");
+        sub->add_option("--threads", opt.threads, "Worker threads (0 = all cores)");
+        sub->add_option("--preset", opt.preset, "default, fast, quality or smoke (pipeline check)");
+        sub->add_option("--complex", opt.force_complex, "Force a mesh (by name) to become an LSNIF");
+        sub->add_option("--simple", opt.force_simple, "Force a mesh (by name) to stay BVH");
+        sub->add_option("--gate-visibility", opt.gate_min_visibility,
+                        "Override the pooled held-out visibility accuracy an asset needs (0..1)")
+            ->check(CLI::Range(0.0, 1.0));
+        sub->add_option("--steps", opt.steps, "Override the preset's training steps")
+            ->check(CLI::Range(1u, 1000000u));
+        sub->add_option("--batch", opt.batch_size, "Override the preset's batch size (rays per step)")
+            ->check(CLI::Range(64u, 1u << 20));
+        sub->add_option("--log2-table", opt.log2_table_size, "Override T = 2^N hash-table rows per level")
+            ->check(CLI::Range(10u, 24u));
+        sub->add_option("--max-points", opt.max_points, "Override H, voxel entry points per ray")
+            ->check(CLI::Range(1u, 64u));
+        sub->add_option("--grid", opt.grid_resolution, "Override V, occupancy grid resolution")
+            ->check(CLI::Range(4u, 256u));
+        sub->add_option("--hidden", opt.hidden_width, "Override the hidden layers' width")
+            ->check(CLI::Range(16u, 512u));
+        sub->add_flag("--dry-run", opt.dry_run,
+                      "Import and classify only: print the plan (class, reasons, model size), write nothing");
+    }
+    int run(int argc, char** argv) {
+        opt.command_line = recorded_command_line(argc, argv);
+        return run_convert(opt, json);
+    }
+};
+
+struct EvalCommand {
+    CLI::App* sub = nullptr;
+    lsnif::converter::EvalOptions opt;
+    std::string camera, light;
+    std::vector<std::string> moves;
+    bool json = false;
+    void add_to(CLI::App& app) {
+        sub = app.add_subcommand("eval",
+                                 "Render reference (Embree) and hybrid (BVH + LSNIF) images of a converted "
+                                 "scene; compare them with FLIP and PSNR");
+        sub->add_option("OUTDIR", opt.outdir, "A `lsnif convert` output directory")->required();
+        sub->add_option("--source", opt.sources, "The converted inputs (default: the paths in the manifest)");
+        sub->add_option("--images", opt.images_dir, "Where PNGs and report.json go (default OUTDIR/eval)");
+        sub->add_option("--camera", camera, "ex,ey,ez,tx,ty,tz[,fov_deg] (default frames the scene)");
+        sub->add_option("--light", light, "Point light x,y,z (default above the scene)");
+        sub->add_option("--instance-transform", moves,
+                        "INDEX=m0,...,m11: place an instance elsewhere (3x4 row-major)");
+        sub->add_option("--width", opt.width, "Image width")->check(CLI::Range(1u, 8192u));
+        sub->add_option("--height", opt.height, "Image height")->check(CLI::Range(1u, 8192u));
+        sub->add_option("--ao-samples", opt.ao_samples, "Ambient-occlusion rays per pixel")
+            ->check(CLI::Range(1u, 1024u));
+        sub->add_option("--threads", opt.threads, "Worker threads (0 = all cores)");
+        sub->add_flag("--json", json, "Print the report as JSON");
+    }
+    int run() const { return run_eval(opt, camera, light, moves, json); }
+};
+
+struct BenchCommand {
+    CLI::App* sub = nullptr;
+    CLI::App *train = nullptr, *infer = nullptr, *memory = nullptr, *rays = nullptr, *convert = nullptr;
+    lsnif::converter::BenchOptions opt;
+    lsnif::converter::SceneBenchOptions scene;
+    lsnif::converter::ConvertOptions convert_opt;
+    bool json = false;
+    void add_to(CLI::App& app) {
+        sub = app.add_subcommand("bench", "Throughput benchmarks (see BENCHMARKS.md)");
+        sub->require_subcommand(1);
+        add_common(sub);
+        train = sub->add_subcommand(
+            "train", "Training samples/s (forward+backward+Adam) for batch 2^14..2^16, vs sgemm");
+        infer = sub->add_subcommand("infer",
+                                    "Inference rays/s through the network and with occupancy early-outs");
+        memory = sub->add_subcommand("memory",
+                                     ".lsnif bytes per complex object vs Embree's BVH and a BVH8 estimate");
+        rays = sub->add_subcommand(
+            "rays", "LSNIF inference vs rtcIntersect1/rtcIntersect16 on the same rays, per object");
+        for (auto* s : {memory, rays}) {
+            s->add_option("OUTDIR", scene.outdir, "A `lsnif convert` output directory")->required();
+            s->add_option("--source", scene.sources, "The converted inputs (default: the manifest's paths)");
+            s->add_flag("--json", json, "Machine-readable output");
+            s->add_option("--threads", scene.threads, "Worker threads")->check(CLI::Range(1, 256));
+        }
+        rays->add_option("--rays", scene.rays, "Rays per object")->check(CLI::Range(1024ull, 1ull << 26));
+        rays->add_option("--repeats", scene.repeats, "Best of N")->check(CLI::Range(1u, 100u));
+        convert = sub->add_subcommand("convert",
+                                      "Convert INPUT... into OUTDIR and print the wall time split by stage");
+        convert->add_option("INPUT", convert_opt.inputs, "Scene files")->required();
+        convert->add_option("-o,--output", convert_opt.outdir, "Output directory")->required();
+        convert->add_option("--preset", convert_opt.preset, "Preset");
+        convert->add_option("--threads", convert_opt.threads, "Worker threads (0 = all cores)");
+        convert->add_option("--complex", convert_opt.force_complex,
+                            "Force a mesh (by name) to become an LSNIF");
+        convert->add_flag("--json", json, "Machine-readable output");
+        for (auto* s : {train, infer}) add_common(s);
+    }
+    // --json, --threads and --seconds of bench train|infer, accepted before or after the
+    // subcommand's name.
+    void add_common(CLI::App* s) {
+        s->add_flag("--json", json, "Machine-readable output");
+        s->add_option("--threads", opt.threads, "Worker threads")->check(CLI::Range(1, 256));
+        s->add_option("--seconds", opt.min_seconds, "Minimum seconds per measurement")
+            ->check(CLI::Range(0.01, 600.0));
+    }
+    int run() const {
+        nlohmann::json report;
+        std::string err;
+        if (*train)
+            report = lsnif::converter::bench_train(opt);
+        else if (*infer)
+            report = lsnif::converter::bench_infer(opt);
+        else if (*memory)
+            report = lsnif::converter::bench_memory(scene, err);
+        else if (*rays)
+            report = lsnif::converter::bench_rays(scene, err);
+        else
+            report = lsnif::converter::bench_convert(convert_opt, err);
+        if (report.is_null()) {
+            std::fprintf(stderr, "error: %s\n", err.c_str());
+            return 1;
+        }
+        std::cout << (json ? report.dump(2) + "\n" : lsnif::converter::bench_text(report));
+        return 0;
+    }
+};
+
 }  // namespace
 
 int main(int argc, char** argv) {
     CLI::App app{"lsnif: convert scenes into LSNIF neural intersection assets and check them"};
     app.set_version_flag("--version", std::string(LSNIF_VERSION_STRING));
     app.require_subcommand(1);
-
-    std::string inspect_path;
-    bool inspect_json = false;
-    auto* inspect = app.add_subcommand(
-        "inspect", "Print header, sections, model dimensions and metadata of a .lsnif file");
-    inspect->add_option("FILE", inspect_path, ".lsnif file")->required();
-    inspect->add_flag("--json", inspect_json, "Machine-readable output");
-
-    std::vector<std::string> validate_paths;
-    bool validate_json = false;
-    auto* validate =
-        app.add_subcommand("validate", "Check .lsnif files completely; exit 0 only if all are valid");
-    validate->add_option("FILE", validate_paths, ".lsnif files")->required();
-    validate->add_flag("--json", validate_json, "Machine-readable output");
-
-    lsnif::converter::ConvertOptions convert_opts;
-    bool convert_json = false;
-    auto* convert = app.add_subcommand(
-        "convert", "Convert scenes (glTF, OBJ, PLY, OFF, STL) into LSNIF assets and a manifest");
-    convert->add_option("INPUT", convert_opts.inputs, "Scene files")->required();
-    convert->add_option("-o,--output", convert_opts.outdir, "Output directory")->required();
-    convert->add_flag("--json", convert_json, "Print a machine-readable report");
-    convert->add_option("--seed", convert_opts.seed, "Random seed (sampling and training)");
-    convert->add_option("--threads", convert_opts.threads, "Worker threads (0 = all cores)");
-    convert->add_option("--preset", convert_opts.preset, "default, fast, quality or smoke (pipeline check)");
-    convert->add_option("--complex", convert_opts.force_complex, "Force a mesh (by name) to become an LSNIF");
-    convert->add_option("--simple", convert_opts.force_simple, "Force a mesh (by name) to stay BVH");
-    convert
-        ->add_option("--gate-visibility", convert_opts.gate_min_visibility,
-                     "Override the pooled held-out visibility accuracy an asset needs (0..1)")
-        ->check(CLI::Range(0.0, 1.0));
-    convert->add_option("--steps", convert_opts.steps, "Override the preset's training steps")
-        ->check(CLI::Range(1u, 1000000u));
-    convert
-        ->add_option("--batch", convert_opts.batch_size, "Override the preset's batch size (rays per step)")
-        ->check(CLI::Range(64u, 1u << 20));
-    convert
-        ->add_option("--log2-table", convert_opts.log2_table_size,
-                     "Override T = 2^N hash-table rows per level")
-        ->check(CLI::Range(10u, 24u));
-    convert->add_option("--max-points", convert_opts.max_points, "Override H, voxel entry points per ray")
-        ->check(CLI::Range(1u, 64u));
-    convert->add_option("--grid", convert_opts.grid_resolution, "Override V, occupancy grid resolution")
-        ->check(CLI::Range(4u, 256u));
-    convert->add_option("--hidden", convert_opts.hidden_width, "Override the hidden layers' width")
-        ->check(CLI::Range(16u, 512u));
-    convert->add_flag("--dry-run", convert_opts.dry_run,
-                      "Import and classify only: print the plan (class, reasons, model size), write nothing");
-
-    lsnif::converter::EvalOptions eval_opts;
-    std::string eval_camera, eval_light;
-    std::vector<std::string> eval_moves;
-    bool eval_json = false;
-    auto* evalc =
-        app.add_subcommand("eval",
-                           "Render reference (Embree) and hybrid (BVH + LSNIF) images of a converted "
-                           "scene; compare them with FLIP and PSNR");
-    evalc->add_option("OUTDIR", eval_opts.outdir, "A `lsnif convert` output directory")->required();
-    evalc->add_option("--source", eval_opts.sources,
-                      "The converted inputs (default: the paths in the manifest)");
-    evalc->add_option("--images", eval_opts.images_dir,
-                      "Where PNGs and report.json go (default OUTDIR/eval)");
-    evalc->add_option("--camera", eval_camera, "ex,ey,ez,tx,ty,tz[,fov_deg] (default frames the scene)");
-    evalc->add_option("--light", eval_light, "Point light x,y,z (default above the scene)");
-    evalc->add_option("--instance-transform", eval_moves,
-                      "INDEX=m0,...,m11: place an instance elsewhere (3x4 row-major)");
-    evalc->add_option("--width", eval_opts.width, "Image width")->check(CLI::Range(1u, 8192u));
-    evalc->add_option("--height", eval_opts.height, "Image height")->check(CLI::Range(1u, 8192u));
-    evalc->add_option("--ao-samples", eval_opts.ao_samples, "Ambient-occlusion rays per pixel")
-        ->check(CLI::Range(1u, 1024u));
-    evalc->add_option("--threads", eval_opts.threads, "Worker threads (0 = all cores)");
-    evalc->add_flag("--json", eval_json, "Print the report as JSON");
-
-    lsnif::converter::BenchOptions bench_opts;
-    bool bench_json = false;
-    auto* bench = app.add_subcommand("bench", "Throughput benchmarks (see BENCHMARKS.md)");
-    bench->require_subcommand(1);
-    bench->add_flag("--json", bench_json, "Machine-readable output");
-    bench->add_option("--threads", bench_opts.threads, "Worker threads")->check(CLI::Range(1, 256));
-    bench->add_option("--seconds", bench_opts.min_seconds, "Minimum seconds per measurement")
-        ->check(CLI::Range(0.01, 600.0));
-    auto* bench_train = bench->add_subcommand(
-        "train", "Training samples/s (forward+backward+Adam) for batch 2^14..2^16, vs sgemm");
-    auto* bench_infer =
-        bench->add_subcommand("infer", "Inference rays/s through the network and with occupancy early-outs");
-    lsnif::converter::SceneBenchOptions scene_bench;
-    auto* bench_memory = bench->add_subcommand(
-        "memory", ".lsnif bytes per complex object vs Embree's BVH and a BVH8 estimate");
-    auto* bench_rays = bench->add_subcommand(
-        "rays", "LSNIF inference vs rtcIntersect1/rtcIntersect16 on the same rays, per object");
-    for (auto* sub : {bench_memory, bench_rays}) {
-        sub->add_option("OUTDIR", scene_bench.outdir, "A `lsnif convert` output directory")->required();
-        sub->add_option("--source", scene_bench.sources,
-                        "The converted inputs (default: the manifest's paths)");
-        sub->add_flag("--json", bench_json, "Machine-readable output");
-        sub->add_option("--threads", scene_bench.threads, "Worker threads")->check(CLI::Range(1, 256));
-    }
-    bench_rays->add_option("--rays", scene_bench.rays, "Rays per object")
-        ->check(CLI::Range(1024ull, 1ull << 26));
-    bench_rays->add_option("--repeats", scene_bench.repeats, "Best of N")->check(CLI::Range(1u, 100u));
-    lsnif::converter::ConvertOptions bench_convert_opts;
-    auto* bench_conv = bench->add_subcommand(
-        "convert", "Convert INPUT... into OUTDIR and print the wall time split by stage");
-    bench_conv->add_option("INPUT", bench_convert_opts.inputs, "Scene files")->required();
-    bench_conv->add_option("-o,--output", bench_convert_opts.outdir, "Output directory")->required();
-    bench_conv->add_option("--preset", bench_convert_opts.preset, "Preset");
-    bench_conv->add_option("--threads", bench_convert_opts.threads, "Worker threads (0 = all cores)");
-    bench_conv->add_option("--complex", bench_convert_opts.force_complex,
-                           "Force a mesh (by name) to become an LSNIF");
-    bench_conv->add_flag("--json", bench_json, "Machine-readable output");
-    for (auto* sub : {bench_train, bench_infer}) {
-        sub->add_flag("--json", bench_json, "Machine-readable output");
-        sub->add_option("--threads", bench_opts.threads, "Worker threads")->check(CLI::Range(1, 256));
-        sub->add_option("--seconds", bench_opts.min_seconds, "Minimum seconds per measurement")
-            ->check(CLI::Range(0.01, 600.0));
-    }
-
+    InspectCommand inspect;
+    ValidateCommand validate;
+    ConvertCommand convert;
+    EvalCommand eval;
+    BenchCommand bench;
+    inspect.add_to(app);
+    validate.add_to(app);
+    convert.add_to(app);
+    eval.add_to(app);
+    bench.add_to(app);
     try {
         app.parse(argc, argv);
     } catch (const CLI::ParseError& e) {
         return app.exit(e);
     }
     try {
-        if (*inspect) return run_inspect(inspect_path, inspect_json);
-        if (*validate) return run_validate(validate_paths, validate_json);
-        if (*convert) {
-            // Recorded in each asset's metadata: without the output directory and --json, which
-            // do not change the asset, so the same conversion into another directory gives the
-            // same bytes (the file name is already a content hash).
-            for (int i = 0; i < argc; ++i) {
-                // The program by its name only: the same conversion run from another install
-                // or build directory gives the same asset.
-                const std::string a =
-                    i == 0 ? std::filesystem::path(argv[0]).filename().string() : std::string(argv[i]);
-                if (a == "-o" || a == "--output") {
-                    ++i;
-                    continue;
-                }
-                if (a == "--json" || a.rfind("--output=", 0) == 0 ||
-                    (a.size() > 2 && a.rfind("-o", 0) == 0 && a[2] != '-'))
-                    continue;
-                convert_opts.command_line += (convert_opts.command_line.empty() ? "" : " ") + a;
-            }
-            return run_convert(convert_opts, convert_json);
-        }
-        if (*evalc) return run_eval(eval_opts, eval_camera, eval_light, eval_moves, eval_json);
-        if (*bench) {
-            nlohmann::json report;
-            std::string err;
-            if (*bench_train)
-                report = lsnif::converter::bench_train(bench_opts);
-            else if (*bench_infer)
-                report = lsnif::converter::bench_infer(bench_opts);
-            else if (*bench_memory)
-                report = lsnif::converter::bench_memory(scene_bench, err);
-            else if (*bench_rays)
-                report = lsnif::converter::bench_rays(scene_bench, err);
-            else
-                report = lsnif::converter::bench_convert(bench_convert_opts, err);
-            if (report.is_null()) {
-                std::fprintf(stderr, "error: %s\n", err.c_str());
-                return 1;
-            }
-            std::cout << (bench_json ? report.dump(2) + "\n" : lsnif::converter::bench_text(report));
-            return 0;
-        }
+        if (*inspect.sub) return inspect.run();
+        if (*validate.sub) return validate.run();
+        if (*convert.sub) return convert.run(argc, argv);
+        if (*eval.sub) return eval.run();
+        if (*bench.sub) return bench.run();
     } catch (const std::exception& e) {
         std::fprintf(stderr, "error: %s\n", e.what());
         return 1;
