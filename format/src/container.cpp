@@ -241,15 +241,16 @@ Error check_magic(std::span<const std::uint8_t> b) {
     return make_error(LSNIF_ERR_NOT_LSNIF, 0, "not an .lsnif file (signature mismatch)");
 }
 
-Result<Structure> parse_structure(std::span<const std::uint8_t> b) {
-    if (Error e = check_magic(b)) return e;
-    if (b.size() < 12)
-        return make_error(LSNIF_ERR_TRUNCATED, b.size(), "file is %zu bytes, shorter than the 64-byte header",
-                          b.size());
+// The stages of parse_structure, in the order FORMAT.md's checks must run (the first
+// failing rule decides the error a file gets; tests/golden pins every one). Each returns an
+// Error whose status is LSNIF_OK when the rule holds.
+
+// Bytes 8..11: the version. Runs first after the signature: FORMAT.md §2 freezes bytes
+// 0..11 across every version, so nothing whose layout a future major version could change
+// is read before it. Requires b.size() >= 12.
+Error check_version(std::span<const std::uint8_t> b) {
     const std::uint8_t* h = b.data();
     const std::uint16_t major = load_u16(h + 8), minor = load_u16(h + 10);
-    // FORMAT.md §2: bytes 0..11 are frozen across every version, so this check comes
-    // before anything whose layout a future major version could change.
     if (major > LSNIF_VERSION_MAJOR)
         return make_error(LSNIF_ERR_VERSION_NEWER, 8,
                           "format version %u.%u was written by a newer lsnif (this reader reads "
@@ -265,6 +266,15 @@ Result<Structure> parse_structure(std::span<const std::uint8_t> b) {
                           "format version %u.%u was written by a newer lsnif (this reader reads "
                           "up to %u.%u); upgrade lsnif",
                           major, minor, LSNIF_VERSION_MAJOR, LSNIF_VERSION_MINOR);
+    return {};
+}
+
+// The 64-byte header (checksum, sizes, reserved fields) into s.header, and the declared
+// file size against the bytes present. `table_crc` receives the header's checksum of the
+// section table, which check_section_table verifies.
+Error parse_header(std::span<const std::uint8_t> b, Structure& s, std::uint32_t& table_crc) {
+    const std::uint8_t* h = b.data();
+    const std::uint16_t major = load_u16(h + 8), minor = load_u16(h + 10);
     if (b.size() < kHeaderSize)
         return make_error(LSNIF_ERR_TRUNCATED, b.size(), "file is %zu bytes, shorter than the 64-byte header",
                           b.size());
@@ -277,14 +287,13 @@ Result<Structure> parse_structure(std::span<const std::uint8_t> b) {
     const std::uint32_t header_size = load_u32(h + 12);
     if (header_size != kHeaderSize)
         return make_error(LSNIF_ERR_LAYOUT, 12, "header_size is %u, expected %u", header_size, kHeaderSize);
-    Structure s;
     s.header.version_major = major;
     s.header.version_minor = minor;
     s.header.file_size = load_u64(h + 16);
     s.header.table_offset = load_u64(h + 24);
     s.header.section_count = load_u32(h + 32);
     const std::uint32_t entry_size = load_u32(h + 36);
-    const std::uint32_t table_crc = load_u32(h + 40);
+    table_crc = load_u32(h + 40);
     const std::uint32_t flags = load_u32(h + 44);
     if (flags != 0)
         return make_error(LSNIF_ERR_RESERVED, 44, "header flags are %08" PRIx32 ", must be zero in 1.x",
@@ -306,6 +315,12 @@ Result<Structure> parse_structure(std::span<const std::uint8_t> b) {
         return make_error(LSNIF_ERR_LAYOUT, s.header.file_size,
                           "%" PRIu64 " unexpected bytes after the declared end of file (%" PRIu64 " bytes)",
                           std::uint64_t(b.size()) - s.header.file_size, s.header.file_size);
+    return {};
+}
+
+// The section table's place in the file and its checksum.
+Error check_section_table(std::span<const std::uint8_t> b, const Structure& s, std::uint32_t table_crc) {
+    const std::uint8_t* h = b.data();
     const std::uint32_t count = s.header.section_count;
     if (count < 1 || count > kMaxSections)
         return make_error(LSNIF_ERR_LIMIT, 32, "section count %u outside 1..%u", count, kMaxSections);
@@ -322,63 +337,67 @@ Result<Structure> parse_structure(std::span<const std::uint8_t> b) {
         return make_error(LSNIF_ERR_CHECKSUM, table_offset,
                           "section table checksum mismatch (stored %08" PRIx32 ", computed %08" PRIx32 ")",
                           table_crc, actual_table_crc);
+    return {};
+}
 
-    // Regions for the overlap and padding checks: [begin, end).
-    std::vector<std::pair<std::uint64_t, std::uint64_t>> regions{{0, kHeaderSize},
-                                                                 {table_offset, table_offset + table_bytes}};
-    for (std::uint32_t i = 0; i < count; ++i) {
-        const std::uint64_t eo = table_offset + std::uint64_t(i) * kEntrySize;
-        const std::uint8_t* e = h + eo;
-        Entry en{load_u32(e),      load_u32(e + 4),  load_u32(e + 8),
-                 load_u64(e + 16), load_u64(e + 24), load_u64(e + 32),
-                 load_u32(e + 40), load_u32(e + 44), eo};
-        const std::string tag = tag_string(en.tag);
-        if (!tag_printable(en.tag))
-            return make_error(LSNIF_ERR_LAYOUT, eo,
-                              "section %u: tag '%s' is not four printable ASCII characters", i, tag.c_str());
-        for (const Entry& prev : s.entries)
-            if (prev.tag == en.tag)
-                return make_error(LSNIF_ERR_LAYOUT, eo, "section %u: duplicate tag '%s'", i, tag.c_str());
-        if (en.flags & ~std::uint32_t{LSNIF_SECTION_REQUIRED})
-            return make_error(LSNIF_ERR_RESERVED, eo + 4, "section %u ('%s'): unknown flag bits %08" PRIx32,
-                              i, tag.c_str(), en.flags);
-        if (load_u32(e + 12) != 0 || !all_zero(e + 48, 16))
-            return make_error(LSNIF_ERR_RESERVED, eo, "section %u ('%s'): reserved entry fields are not zero",
-                              i, tag.c_str());
-        if (en.compression > LSNIF_COMPRESSION_ZSTD)
-            return make_error(LSNIF_ERR_LAYOUT, eo + 8, "section %u ('%s'): unknown compression method %u", i,
-                              tag.c_str(), en.compression);
-        if (en.raw_size > kMaxSectionRawSize)
-            return make_error(LSNIF_ERR_LIMIT, eo + 32,
-                              "section %u ('%s'): uncompressed size %" PRIu64 " exceeds the limit of %" PRIu64
-                              " bytes",
-                              i, tag.c_str(), en.raw_size, kMaxSectionRawSize);
-        if (en.compression == LSNIF_COMPRESSION_NONE && en.stored_size != en.raw_size)
-            return make_error(LSNIF_ERR_LAYOUT, eo + 24,
-                              "section %u ('%s'): uncompressed section has stored size %" PRIu64
-                              " but raw size %" PRIu64,
-                              i, tag.c_str(), en.stored_size, en.raw_size);
-        if (en.compression == LSNIF_COMPRESSION_ZSTD &&
-            (en.stored_size == 0 || en.stored_size > ZSTD_compressBound(en.raw_size)))
-            return make_error(LSNIF_ERR_LIMIT, eo + 24,
-                              "section %u ('%s'): compressed size %" PRIu64
-                              " impossible for raw size %" PRIu64,
-                              i, tag.c_str(), en.stored_size, en.raw_size);
-        if (en.offset % kAlignment != 0 || en.offset > s.header.file_size ||
-            s.header.file_size - en.offset < en.stored_size)
-            return make_error(LSNIF_ERR_LAYOUT, eo + 16,
-                              "section %u ('%s'): payload (offset %" PRIu64 ", %" PRIu64
-                              " bytes) is misaligned or outside the file (%" PRIu64 " bytes)",
-                              i, tag.c_str(), en.offset, en.stored_size, s.header.file_size);
-        if (!is_known_tag(en.tag) && (en.flags & LSNIF_SECTION_REQUIRED))
-            return make_error(LSNIF_ERR_UNKNOWN_REQUIRED, eo,
-                              "section %u ('%s') is marked required but unknown to this reader "
-                              "(format %u.%u); upgrade lsnif",
-                              i, tag.c_str(), LSNIF_VERSION_MAJOR, LSNIF_VERSION_MINOR);
-        if (en.stored_size) regions.push_back({en.offset, en.offset + en.stored_size});
-        s.entries.push_back(en);
-    }
-    // FORMAT.md §4.3: regions never overlap; every byte outside them is zero padding.
+// Entry i of the section table (at file offset eo) into `en`, checked on its own and
+// against the entries before it (s.entries).
+Error parse_entry(std::span<const std::uint8_t> b, std::uint32_t i, std::uint64_t eo, const Structure& s,
+                  Entry& en) {
+    const std::uint8_t* e = b.data() + eo;
+    en = Entry{load_u32(e),      load_u32(e + 4),  load_u32(e + 8),
+               load_u64(e + 16), load_u64(e + 24), load_u64(e + 32),
+               load_u32(e + 40), load_u32(e + 44), eo};
+    const std::string tag = tag_string(en.tag);
+    if (!tag_printable(en.tag))
+        return make_error(LSNIF_ERR_LAYOUT, eo, "section %u: tag '%s' is not four printable ASCII characters",
+                          i, tag.c_str());
+    for (const Entry& prev : s.entries)
+        if (prev.tag == en.tag)
+            return make_error(LSNIF_ERR_LAYOUT, eo, "section %u: duplicate tag '%s'", i, tag.c_str());
+    if (en.flags & ~std::uint32_t{LSNIF_SECTION_REQUIRED})
+        return make_error(LSNIF_ERR_RESERVED, eo + 4, "section %u ('%s'): unknown flag bits %08" PRIx32, i,
+                          tag.c_str(), en.flags);
+    if (load_u32(e + 12) != 0 || !all_zero(e + 48, 16))
+        return make_error(LSNIF_ERR_RESERVED, eo, "section %u ('%s'): reserved entry fields are not zero", i,
+                          tag.c_str());
+    if (en.compression > LSNIF_COMPRESSION_ZSTD)
+        return make_error(LSNIF_ERR_LAYOUT, eo + 8, "section %u ('%s'): unknown compression method %u", i,
+                          tag.c_str(), en.compression);
+    if (en.raw_size > kMaxSectionRawSize)
+        return make_error(LSNIF_ERR_LIMIT, eo + 32,
+                          "section %u ('%s'): uncompressed size %" PRIu64 " exceeds the limit of %" PRIu64
+                          " bytes",
+                          i, tag.c_str(), en.raw_size, kMaxSectionRawSize);
+    if (en.compression == LSNIF_COMPRESSION_NONE && en.stored_size != en.raw_size)
+        return make_error(LSNIF_ERR_LAYOUT, eo + 24,
+                          "section %u ('%s'): uncompressed section has stored size %" PRIu64
+                          " but raw size %" PRIu64,
+                          i, tag.c_str(), en.stored_size, en.raw_size);
+    if (en.compression == LSNIF_COMPRESSION_ZSTD &&
+        (en.stored_size == 0 || en.stored_size > ZSTD_compressBound(en.raw_size)))
+        return make_error(LSNIF_ERR_LIMIT, eo + 24,
+                          "section %u ('%s'): compressed size %" PRIu64 " impossible for raw size %" PRIu64,
+                          i, tag.c_str(), en.stored_size, en.raw_size);
+    if (en.offset % kAlignment != 0 || en.offset > s.header.file_size ||
+        s.header.file_size - en.offset < en.stored_size)
+        return make_error(LSNIF_ERR_LAYOUT, eo + 16,
+                          "section %u ('%s'): payload (offset %" PRIu64 ", %" PRIu64
+                          " bytes) is misaligned or outside the file (%" PRIu64 " bytes)",
+                          i, tag.c_str(), en.offset, en.stored_size, s.header.file_size);
+    if (!is_known_tag(en.tag) && (en.flags & LSNIF_SECTION_REQUIRED))
+        return make_error(LSNIF_ERR_UNKNOWN_REQUIRED, eo,
+                          "section %u ('%s') is marked required but unknown to this reader "
+                          "(format %u.%u); upgrade lsnif",
+                          i, tag.c_str(), LSNIF_VERSION_MAJOR, LSNIF_VERSION_MINOR);
+    return {};
+}
+
+// FORMAT.md §4.3: the header, the table and the payloads (`regions`, [begin, end)) never
+// overlap, and every byte outside them is zero padding.
+Error check_regions(std::span<const std::uint8_t> b,
+                    std::vector<std::pair<std::uint64_t, std::uint64_t>> regions, std::uint64_t file_size) {
+    const std::uint8_t* h = b.data();
     std::sort(regions.begin(), regions.end());
     std::uint64_t cursor = 0;
     for (const auto& [begin, end] : regions) {
@@ -391,8 +410,32 @@ Result<Structure> parse_structure(std::span<const std::uint8_t> b) {
                               "padding bytes %" PRIu64 "..%" PRIu64 " are not zero", cursor, begin - 1);
         cursor = end;
     }
-    if (!all_zero(h + cursor, s.header.file_size - cursor))
+    if (!all_zero(h + cursor, file_size - cursor))
         return make_error(LSNIF_ERR_RESERVED, cursor, "padding after the last region is not zero");
+    return {};
+}
+
+Result<Structure> parse_structure(std::span<const std::uint8_t> b) {
+    if (Error e = check_magic(b)) return e;
+    if (b.size() < 12)
+        return make_error(LSNIF_ERR_TRUNCATED, b.size(), "file is %zu bytes, shorter than the 64-byte header",
+                          b.size());
+    if (Error e = check_version(b)) return e;
+    Structure s;
+    std::uint32_t table_crc = 0;
+    if (Error e = parse_header(b, s, table_crc)) return e;
+    if (Error e = check_section_table(b, s, table_crc)) return e;
+    const std::uint64_t table_offset = s.header.table_offset;
+    const std::uint64_t table_bytes = std::uint64_t(s.header.section_count) * kEntrySize;
+    std::vector<std::pair<std::uint64_t, std::uint64_t>> regions{{0, kHeaderSize},
+                                                                 {table_offset, table_offset + table_bytes}};
+    for (std::uint32_t i = 0; i < s.header.section_count; ++i) {
+        Entry en{};
+        if (Error e = parse_entry(b, i, table_offset + std::uint64_t(i) * kEntrySize, s, en)) return e;
+        if (en.stored_size) regions.push_back({en.offset, en.offset + en.stored_size});
+        s.entries.push_back(en);
+    }
+    if (Error e = check_regions(b, std::move(regions), s.header.file_size)) return e;
     return s;
 }
 
