@@ -11,6 +11,8 @@
 // input files and never exit: readers return false and fill an error message.
 #pragma once
 
+#include <lsnif/base/random.hpp>
+
 #include <algorithm>
 #include <array>
 #include <cmath>
@@ -91,21 +93,17 @@ inline void append_mesh(TriMesh& mesh, const TriMesh& part) {
 
 // ---- deterministic randomness -----------------------------------------------------------
 
-// splitmix64 (Steele, Lea, Flood 2014; Vigna's reference constants). The first output for
-// seed 0 is 0xE220A8397B1DCDAF.
+// The toolchain's splitmix64 (lsnif/base/random.hpp) with the geometric draws the
+// generators need. Same sequence on every platform, so the generated scenes are the same
+// bytes everywhere.
 class SplitMix64 {
 public:
-    explicit SplitMix64(std::uint64_t seed) : state_(seed) {}
+    explicit SplitMix64(std::uint64_t seed) : core_{seed} {}
 
-    std::uint64_t next() {
-        std::uint64_t z = (state_ += 0x9E3779B97F4A7C15ull);
-        z = (z ^ (z >> 30)) * 0xBF58476D1CE4E5B9ull;
-        z = (z ^ (z >> 27)) * 0x94D049BB133111EBull;
-        return z ^ (z >> 31);
-    }
+    std::uint64_t next() { return core_.next(); }
 
     // Uniform in [0, 1) with 53 random bits.
-    double uniform() { return double(next() >> 11) * 0x1.0p-53; }
+    double uniform() { return core_.u01(); }
 
     // Uniform in [lo, hi).
     double uniform(double lo, double hi) { return lo + (hi - lo) * uniform(); }
@@ -128,7 +126,7 @@ public:
     }
 
 private:
-    std::uint64_t state_;
+    base::SplitMix64 core_;
 };
 
 // ---- boxes ------------------------------------------------------------------------------

@@ -863,7 +863,7 @@ TrainResult Trainer::train(const PreparedSet& samples, const ProgressFn& progres
     const auto t0 = std::chrono::steady_clock::now();
     std::vector<std::uint32_t> batch(cfg_.batch_size);
     // Seeded by the step too, so rounds of train() calls draw fresh batch indices.
-    Rng rng{(cfg_.seed ^ 0xA0761D6478BD642Full) + step_ * 0x9E3779B97F4A7C15ull};
+    Rng rng{(cfg_.seed ^ 0xA0761D6478BD642Full) + step_ * base::kGoldenGamma};
     std::vector<float> losses;
     while (step_ < stop) {
         for (auto& s : batch) s = std::uint32_t(rng.next() % samples.size());

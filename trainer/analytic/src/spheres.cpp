@@ -75,7 +75,7 @@ bool SpheresSource::intersect(const format::Ray& ray, float& t_out, float normal
 
 void SpheresSource::generate(std::uint64_t seed, std::size_t count, std::vector<Sample>& out) {
     out.resize(count);
-    Rng rng{seed * 0x9E3779B97F4A7C15ull + 12345};
+    Rng rng{seed * base::kGoldenGamma + 12345};
     double center[3], half[3], diag = 0;
     for (int i = 0; i < 3; ++i) {
         center[i] = 0.5 * (double(lo_[i]) + hi_[i]);
