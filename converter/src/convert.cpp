@@ -8,6 +8,7 @@
 #include <lsnif/scene/scene.hpp>
 #include <lsnif/trainer/streamed.hpp>
 #include <lsnif/voxelize/voxelize.hpp>
+#include "convert_stages.hpp"
 
 #include <algorithm>
 #include <chrono>
@@ -224,7 +225,7 @@ bool find_preset(const std::string& name, Preset& p) {
     return true;
 }
 
-namespace {
+namespace stages {
 
 // ---- the stages of one run -------------------------------------------------------------
 //
@@ -233,51 +234,6 @@ namespace {
 // and finally writes the manifest. Each stage is a function below; a stage that decides
 // "simple" returns nothing and the mesh is recorded with its reason.
 
-// What a run shares between its meshes.
-struct Run {
-    const ConvertOptions& opt;
-    Preset preset;
-    std::uint32_t threads;
-    fs::path outdir;
-    ConvertProgress progress;
-    void report(const ProgressEvent& e) const {
-        if (progress) progress(e);
-    }
-    bool forced(const std::vector<std::string>& names, const std::string& mesh) const {
-        return std::find(names.begin(), names.end(), mesh) != names.end();
-    }
-};
-
-// A mesh's manifest entry while it moves through the stages.
-struct MeshRecord {
-    json entry;  // id, name, input, counts, geometry hash, instance count
-    std::vector<std::string> reasons;
-    json stats;  // null until classification measured the mesh
-    json timings = json::object();
-
-    json simple(const std::string& why) {
-        reasons.push_back(why);
-        return finish("simple");
-    }
-    json finish(const char* cls) {
-        entry["class"] = cls;
-        entry["reasons"] = reasons;
-        if (!stats.is_null()) entry["stats"] = stats;
-        entry["timings"] = timings;
-        return entry;
-    }
-};
-
-// A mesh that classification kept as a candidate for an LSNIF.
-struct Candidate {
-    voxelize::Box box;
-    format::ModelDesc desc;  // the preset's model, box set, tables sized to the mesh
-    std::unique_ptr<sampling::EmbreeSource> source;
-    bool forced = false;
-};
-
-// The preset with the command line's overrides applied; false (and `error`) for an
-// unknown preset name.
 bool resolve_preset(const ConvertOptions& opt, Preset& preset, std::string& error) {
     if (!find_preset(opt.preset, preset)) {
         std::string names;
@@ -296,8 +252,6 @@ bool resolve_preset(const ConvertOptions& opt, Preset& preset, std::string& erro
     return true;
 }
 
-// Why a box cannot be modelled in single precision (kMinModelExtent..kMaxModelExtent), or
-// an empty string.
 std::string range_problem(const voxelize::Box& box) {
     double extent = 0, coord = 0;
     for (int a = 0; a < 3; ++a) {
@@ -313,10 +267,6 @@ std::string range_problem(const voxelize::Box& box) {
     return why;
 }
 
-// Classify: bounds, float range, Embree's BVH size, the table size that beats it and the
-// geometry statistics. Returns nothing when the mesh stays simple (reason recorded).
-// `forced_complex` (--complex) skips the table sizing. Contract: `rec.stats` is set whenever
-// Embree built the mesh.
 std::optional<Candidate> classify(const Run& run, const scene::Mesh& mesh, bool forced_complex,
                                   MeshRecord& rec) {
     const auto t0 = Clock::now();
@@ -370,7 +320,6 @@ std::optional<Candidate> classify(const Run& run, const scene::Mesh& mesh, bool 
     return c;
 }
 
-// Voxelize: the conservative occupancy grid of the candidate's model.
 std::optional<voxelize::Occupancy> voxelize_mesh(const Run& run, const scene::Mesh& mesh, const Candidate& c,
                                                  MeshRecord& rec) {
     const auto t0 = Clock::now();
@@ -387,8 +336,6 @@ std::optional<voxelize::Occupancy> voxelize_mesh(const Run& run, const scene::Me
     return std::move(*occ);
 }
 
-// The memory rule: an LSNIF must beat the BVH by min_memory_ratio (unless forced). Records
-// the comparison; false when the mesh stays simple (reason recorded).
 bool worth_an_lsnif(const Run& run, const scene::Mesh& mesh, const Candidate& c, MeshRecord& rec) {
     const std::uint64_t bvh = c.source->bvh_bytes(), est = lsnif_bytes_estimate(c.desc);
     const double ratio = double(bvh) / double(est);
@@ -414,8 +361,6 @@ bool worth_an_lsnif(const Run& run, const scene::Mesh& mesh, const Candidate& c,
     return true;
 }
 
-// The asset's content key: geometry and every setting that changes the weights. The file
-// is named by its hash, so an unchanged mesh finds its asset again.
 std::string asset_key(const Run& run, const scene::Mesh& mesh, const format::ModelDesc& desc) {
     const Preset& p = run.preset;
     return scene::geometry_hash(mesh) + "|" + p.name + "|" + std::to_string(run.opt.seed) + "|" +
@@ -425,8 +370,6 @@ std::string asset_key(const Run& run, const scene::Mesh& mesh, const format::Mod
            recipe_key(p, run.threads);
 }
 
-// Reuse: the held-out metrics of an existing asset written for exactly this key, or
-// nothing (absent, unreadable, or another key).
 std::optional<json> reusable_metrics(const fs::path& asset, const std::string& key) {
     std::error_code ec;
     if (!fs::exists(asset, ec)) return std::nullopt;
@@ -440,16 +383,6 @@ std::optional<json> reusable_metrics(const fs::path& asset, const std::string& k
         return std::nullopt;
     return meta["metrics"];
 }
-
-// Sample + train: held-out rays, then the streamed training rounds. The trained model has
-// an empty metadata document until write_asset fills it.
-struct Trained {
-    format::ModelData model;
-    trainer::TrainConfig config;
-    trainer::StreamedResult stream;
-    std::vector<samples::Sample> held_out;
-    std::vector<std::array<float, 3>> held_out_geometric_normals;
-};
 
 Trained sample_and_train(const Run& run, const scene::Mesh& mesh, Candidate& c,
                          const voxelize::Occupancy& occ, MeshRecord& rec) {
@@ -492,8 +425,6 @@ Trained sample_and_train(const Run& run, const scene::Mesh& mesh, Candidate& c,
     return t;
 }
 
-// Gate: held-out metrics of the trained model and the verdict, as the manifest records
-// them ({"held_out_rays", "families", "gate": {"passed", "reasons"?}}).
 json gate(const Run& run, const scene::Mesh& mesh, const Trained& t, MeshRecord& rec) {
     const auto t0 = Clock::now();
     run.report({mesh.name, "evaluate"});
@@ -510,8 +441,6 @@ json gate(const Run& run, const scene::Mesh& mesh, const Trained& t, MeshRecord&
     return metrics;
 }
 
-// The asset's metadata document (schema/lsnif-metadata.schema.json). No wall times: an
-// asset must be reproducible byte for byte for the same input, seed and threads.
 json asset_metadata(const Run& run, const std::string& source, const scene::Mesh& mesh, const Candidate& c,
                     const Trained& t, const json& metrics, const std::string& key) {
     const trainer::TrainConfig& cfg = t.config;
@@ -552,7 +481,6 @@ json asset_metadata(const Run& run, const std::string& source, const scene::Mesh
         {"extensions", {{"lsnif_convert_key", key}}}};
 }
 
-// Write: the asset through a temporary file and a rename. Returns the error, if any.
 std::string write_asset(const Run& run, const scene::Mesh& mesh, Trained& t, const json& metadata,
                         const fs::path& asset, MeshRecord& rec) {
     const auto t0 = Clock::now();
@@ -565,8 +493,6 @@ std::string write_asset(const Run& run, const scene::Mesh& mesh, Trained& t, con
     return e ? e.message : std::string();
 }
 
-// One mesh through every stage: its manifest entry. Errors that concern the run (an asset
-// that could not be written) are appended to `errors`.
 json convert_mesh(const Run& run, const std::string& source, const scene::Mesh& mesh, MeshRecord rec,
                   std::vector<std::string>& errors) {
     if (run.forced(run.opt.force_simple, mesh.name))
@@ -613,7 +539,6 @@ json convert_mesh(const Run& run, const std::string& source, const scene::Mesh& 
     return rec.simple("held-out accuracy below the gate: stays BVH");
 }
 
-// The manifest entry of mesh k of input `in` before any stage ran.
 MeshRecord new_record(const scene::Scene& sc, std::size_t in, std::size_t k, std::size_t id) {
     const scene::Mesh& mesh = sc.meshes[k];
     std::size_t instances = 0;
@@ -630,7 +555,6 @@ MeshRecord new_record(const scene::Scene& sc, std::size_t in, std::size_t k, std
     return rec;
 }
 
-// The manifest document (schema/manifest.schema.json).
 json manifest_json(const Run& run, const json& inputs, const json& meshes, const json& instances) {
     json forced_c = run.opt.force_complex, forced_s = run.opt.force_simple;
     return {
@@ -650,7 +574,6 @@ json manifest_json(const Run& run, const json& inputs, const json& meshes, const
           {"note", "simple meshes are read from their input file (meshes[].input, meshes[].source_mesh)"}}}};
 }
 
-// Writes OUTDIR/manifest.json atomically. Returns the error, if any.
 std::string write_manifest(const fs::path& outdir, const json& manifest) {
     std::error_code ec;
     fs::create_directories(outdir, ec);
@@ -662,7 +585,9 @@ std::string write_manifest(const fs::path& outdir, const json& manifest) {
     return e ? e.message : std::string();
 }
 
-}  // namespace
+}  // namespace stages
+
+using namespace stages;
 
 ConvertResult convert(const ConvertOptions& opt, const ConvertProgress& progress) {
     ConvertResult res;

@@ -1,0 +1,148 @@
+// The stages of `lsnif convert` (convert.cpp), one function each, in pipeline order:
+//   resolve_preset; per mesh: classify -> voxelize_mesh -> worth_an_lsnif -> asset_key ->
+//   (reusable_metrics | sample_and_train -> gate -> asset_metadata -> write_asset);
+//   finally manifest_json -> write_manifest.
+// A stage that decides "simple" returns nothing (or false) and records its reason in the
+// mesh's MeshRecord. Internal to the converter: exposed so that each stage is tested on its
+// own (tests/converter/test_convert_stages.cpp); not installed, not an API.
+#pragma once
+
+#include <lsnif/converter/convert.hpp>
+#include <lsnif/format/container.hpp>
+#include <lsnif/samples/sample.hpp>
+#include <lsnif/sampling/sampling.hpp>
+#include <lsnif/scene/scene.hpp>
+#include <lsnif/trainer/streamed.hpp>
+#include <lsnif/voxelize/voxelize.hpp>
+
+#include <nlohmann/json.hpp>
+
+#include <algorithm>
+#include <array>
+#include <filesystem>
+#include <memory>
+#include <optional>
+#include <string>
+#include <vector>
+
+namespace lsnif::converter::stages {
+
+using nlohmann::json;
+namespace fs = std::filesystem;
+
+// What a run shares between its meshes.
+struct Run {
+    const ConvertOptions& opt;
+    Preset preset;
+    std::uint32_t threads;
+    fs::path outdir;
+    ConvertProgress progress;
+    void report(const ProgressEvent& e) const {
+        if (progress) progress(e);
+    }
+    bool forced(const std::vector<std::string>& names, const std::string& mesh) const {
+        return std::find(names.begin(), names.end(), mesh) != names.end();
+    }
+};
+
+// A mesh's manifest entry while it moves through the stages.
+struct MeshRecord {
+    json entry;  // id, name, input, counts, geometry hash, instance count
+    std::vector<std::string> reasons;
+    json stats;  // null until classification measured the mesh
+    json timings = json::object();
+
+    json simple(const std::string& why) {
+        reasons.push_back(why);
+        return finish("simple");
+    }
+    json finish(const char* cls) {
+        entry["class"] = cls;
+        entry["reasons"] = reasons;
+        if (!stats.is_null()) entry["stats"] = stats;
+        entry["timings"] = timings;
+        return entry;
+    }
+};
+
+// A mesh that classification kept as a candidate for an LSNIF.
+struct Candidate {
+    voxelize::Box box;
+    format::ModelDesc desc;  // the preset's model, box set, tables sized to the mesh
+    std::unique_ptr<sampling::EmbreeSource> source;
+    bool forced = false;
+};
+
+// A trained model with the held-out rays it is measured on.
+struct Trained {
+    format::ModelData model;
+    trainer::TrainConfig config;
+    trainer::StreamedResult stream;
+    std::vector<samples::Sample> held_out;
+    std::vector<std::array<float, 3>> held_out_geometric_normals;
+};
+
+// The preset with the command line's overrides applied; false (and `error`) for an
+// unknown preset name.
+bool resolve_preset(const ConvertOptions& opt, Preset& preset, std::string& error);
+
+// Why a box cannot be modelled in single precision (kMinModelExtent..kMaxModelExtent), or
+// an empty string.
+std::string range_problem(const voxelize::Box& box);
+
+// Classify: bounds, float range, Embree's BVH size, the table size that beats it and the
+// geometry statistics. Returns nothing when the mesh stays simple (reason recorded).
+// `forced_complex` (--complex) skips the table sizing. Contract: `rec.stats` is set whenever
+// Embree built the mesh.
+std::optional<Candidate> classify(const Run& run, const scene::Mesh& mesh, bool forced_complex,
+                                  MeshRecord& rec);
+
+// Voxelize: the conservative occupancy grid of the candidate's model.
+std::optional<voxelize::Occupancy> voxelize_mesh(const Run& run, const scene::Mesh& mesh, const Candidate& c,
+                                                 MeshRecord& rec);
+
+// The memory rule: an LSNIF must beat the BVH by min_memory_ratio (unless forced). Records
+// the comparison; false when the mesh stays simple (reason recorded).
+bool worth_an_lsnif(const Run& run, const scene::Mesh& mesh, const Candidate& c, MeshRecord& rec);
+
+// The asset's content key: geometry and every setting that changes the weights. The file
+// is named by its hash, so an unchanged mesh finds its asset again.
+std::string asset_key(const Run& run, const scene::Mesh& mesh, const format::ModelDesc& desc);
+
+// Reuse: the held-out metrics of an existing asset written for exactly this key, or
+// nothing (absent, unreadable, or another key).
+std::optional<json> reusable_metrics(const fs::path& asset, const std::string& key);
+
+// Sample + train: held-out rays, then the streamed training rounds. The trained model has
+// an empty metadata document until write_asset fills it.
+Trained sample_and_train(const Run& run, const scene::Mesh& mesh, Candidate& c,
+                         const voxelize::Occupancy& occ, MeshRecord& rec);
+
+// Gate: held-out metrics of the trained model and the verdict, as the manifest records
+// them ({"held_out_rays", "families", "gate": {"passed", "reasons"?}}).
+json gate(const Run& run, const scene::Mesh& mesh, const Trained& t, MeshRecord& rec);
+
+// The asset's metadata document (schema/lsnif-metadata.schema.json). No wall times: an
+// asset must be reproducible byte for byte for the same input, seed and threads.
+json asset_metadata(const Run& run, const std::string& source, const scene::Mesh& mesh, const Candidate& c,
+                    const Trained& t, const json& metrics, const std::string& key);
+
+// Write: the asset through a temporary file and a rename. Returns the error, if any.
+std::string write_asset(const Run& run, const scene::Mesh& mesh, Trained& t, const json& metadata,
+                        const fs::path& asset, MeshRecord& rec);
+
+// One mesh through every stage: its manifest entry. Errors that concern the run (an asset
+// that could not be written) are appended to `errors`.
+json convert_mesh(const Run& run, const std::string& source, const scene::Mesh& mesh, MeshRecord rec,
+                  std::vector<std::string>& errors);
+
+// The manifest entry of mesh k of input `in` before any stage ran.
+MeshRecord new_record(const scene::Scene& sc, std::size_t in, std::size_t k, std::size_t id);
+
+// The manifest document (schema/manifest.schema.json).
+json manifest_json(const Run& run, const json& inputs, const json& meshes, const json& instances);
+
+// Writes OUTDIR/manifest.json atomically. Returns the error, if any.
+std::string write_manifest(const fs::path& outdir, const json& manifest);
+
+}  // namespace lsnif::converter::stages

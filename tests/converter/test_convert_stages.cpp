@@ -1,0 +1,237 @@
+// Each stage of `lsnif convert` on its own (converter/src/convert_stages.hpp), on CGAL's
+// ChineseDragon-10kv (real data) and on meshes built here to break one rule at a time. The
+// whole pipeline is tested end to end in test_convert.cpp.
+#include <doctest/doctest.h>
+
+#include "convert_stages.hpp"
+
+#include <cmath>
+#include <fstream>
+#include <limits>
+
+using namespace lsnif;
+using namespace lsnif::converter;
+using namespace lsnif::converter::stages;
+
+namespace {
+
+const std::string kDragon = std::string(LSNIF_TEST_MESH_DIR) + "/ChineseDragon-10kv.off";
+
+fs::path fresh_dir(const std::string& name) {
+    const fs::path p = fs::path(LSNIF_TEST_WORK_DIR) / name;
+    fs::remove_all(p);
+    fs::create_directories(p);
+    return p;
+}
+
+scene::Mesh dragon() {
+    auto r = scene::import_scene(kDragon);
+    REQUIRE_MESSAGE(r.ok(), r.error);
+    REQUIRE(r.scene.meshes.size() == 1);
+    return r.scene.meshes[0];
+}
+
+// A run of `preset` with two threads; `opt` must outlive the Run.
+Run make_run(const ConvertOptions& opt, const fs::path& outdir) {
+    Preset p;
+    std::string error;
+    REQUIRE_MESSAGE(resolve_preset(opt, p, error), error);
+    return Run{opt, p, 2, outdir, {}};
+}
+
+ConvertOptions options(const std::string& preset) {
+    ConvertOptions o;
+    o.preset = preset;
+    o.threads = 2;
+    o.seed = 5;
+    return o;
+}
+
+}  // namespace
+
+TEST_CASE("resolve_preset applies every command-line override, and names the presets it knows") {
+    ConvertOptions o = options("smoke");
+    o.steps = 123;
+    o.batch_size = 256;
+    o.log2_table_size = 11;
+    o.max_points = 5;
+    o.grid_resolution = 16;
+    o.hidden_width = 32;
+    o.gate_min_visibility = 0.5;
+    Preset p;
+    std::string error;
+    REQUIRE(resolve_preset(o, p, error));
+    CHECK(p.name == "smoke");
+    CHECK(p.train.steps == 123);
+    CHECK(p.train.batch_size == 256);
+    CHECK(p.model.log2_table_size == 11);
+    CHECK(p.model.max_points == 5);
+    CHECK(p.model.grid_resolution == 16);
+    for (std::uint32_t w : p.model.hidden_width) CHECK(w == 32);
+    CHECK(p.gate.min_visibility == 0.5);
+
+    o.preset = "turbo";
+    CHECK_FALSE(resolve_preset(o, p, error));
+    CHECK(error.find("unknown preset 'turbo'") == 0);
+    for (const auto& name : preset_names()) CHECK(error.find(name) != std::string::npos);
+}
+
+TEST_CASE("range_problem: single precision models boxes from 1e-15 to 1e15, nothing outside") {
+    CHECK(range_problem({{-1.f, -1.f, -1.f}, {1.f, 1.f, 1.f}}).empty());
+    CHECK(range_problem({{1e6f, 1e6f, 1e6f}, {1e6f + 1.f, 1e6f + 1.f, 1e6f + 1.f}}).empty());
+    CHECK_FALSE(range_problem({{0.f, 0.f, 0.f}, {1e-20f, 1e-20f, 1e-20f}}).empty());
+    CHECK_FALSE(range_problem({{-1e16f, 0.f, 0.f}, {1e16f, 1.f, 1.f}}).empty());
+    CHECK_FALSE(range_problem({{1e20f, 0.f, 0.f}, {1e20f * 1.0001f, 1.f, 1.f}}).empty());
+}
+
+TEST_CASE("classify sizes the hash tables to beat the BVH, unless forced, and measures the mesh") {
+    const scene::Mesh mesh = dragon();
+    const ConvertOptions o = options("default");
+    const Run run = make_run(o, fresh_dir("stages_classify"));
+    MeshRecord rec;
+    const auto c = classify(run, mesh, false, rec);
+    REQUIRE(c.has_value());
+    REQUIRE(c->source);
+    CHECK(c->desc.log2_table_size < run.preset.model.log2_table_size);  // a 10k-vertex mesh: smaller tables
+    CHECK(c->desc.log2_table_size >= run.preset.classify.min_log2_table_size);
+    CHECK(c->desc.box_min == c->box.min);
+    CHECK(rec.stats["bvh_bytes"].get<std::uint64_t>() > 0);
+    CHECK(rec.stats["components"].get<std::size_t>() >= 1);
+    CHECK(rec.stats["area_ratio"].get<double>() > 0);
+    std::size_t outside = 0;  // the padded box strictly holds every vertex
+    for (std::size_t v = 0; v < mesh.vertex_count(); ++v)
+        for (int a = 0; a < 3; ++a)
+            outside +=
+                !(mesh.positions[v * 3 + a] > c->box.min[a] && mesh.positions[v * 3 + a] < c->box.max[a]);
+    CHECK(outside == 0);
+
+    MeshRecord forced_rec;
+    const auto forced = classify(run, mesh, true, forced_rec);
+    REQUIRE(forced.has_value());
+    CHECK(forced->forced);
+    CHECK(forced->desc.log2_table_size == run.preset.model.log2_table_size);
+}
+
+TEST_CASE("classify keeps a mesh it cannot model as BVH, with the reason") {
+    const ConvertOptions o = options("smoke");
+    const Run run = make_run(o, fresh_dir("stages_classify_bad"));
+    scene::Mesh far;  // one triangle at 1e20: outside single precision's modelling range
+    far.name = "far";
+    far.positions = {1e20f, 0, 0, 1e20f * 1.0001f, 0, 0, 1e20f, 1, 0};
+    far.normals = {0, 0, 1, 0, 0, 1, 0, 0, 1};
+    far.indices = {0, 1, 2};
+    MeshRecord rec;
+    CHECK_FALSE(classify(run, far, false, rec).has_value());
+    REQUIRE(rec.reasons.size() == 1);
+    CHECK(rec.reasons[0].find("outside the range LSNIF models in single precision") != std::string::npos);
+
+    scene::Mesh nan = far;  // a non-finite vertex: the box cannot be computed
+    nan.positions[4] = std::numeric_limits<float>::quiet_NaN();
+    MeshRecord nan_rec;
+    CHECK_FALSE(classify(run, nan, false, nan_rec).has_value());
+    REQUIRE(nan_rec.reasons.size() == 1);
+    CHECK(nan_rec.reasons[0].find("cannot bound the mesh") == 0);
+}
+
+TEST_CASE(
+    "voxelize_mesh and worth_an_lsnif: occupancy recorded; the memory rule decides, --complex overrides") {
+    const scene::Mesh mesh = dragon();
+    ConvertOptions o = options("default");
+    Run run = make_run(o, fresh_dir("stages_memory"));
+    MeshRecord rec;
+    const auto c = classify(run, mesh, false, rec);
+    REQUIRE(c.has_value());
+    const auto occ = voxelize_mesh(run, mesh, *c, rec);
+    REQUIRE(occ.has_value());
+    const double fraction = rec.stats["occupied_fraction"].get<double>();
+    CHECK(fraction > 0.01);
+    CHECK(fraction < 0.5);
+    CHECK(occ->count() == std::uint64_t(std::llround(fraction * double(c->desc.voxel_count()))));
+
+    CHECK(worth_an_lsnif(run, mesh, *c, rec));  // sized to beat the BVH by min_memory_ratio
+    run.preset.classify.min_memory_ratio = 1e9;
+    MeshRecord strict;
+    CHECK_FALSE(worth_an_lsnif(run, mesh, *c, strict));
+    REQUIRE(strict.reasons.size() == 2);
+    CHECK(strict.reasons[1].find("below the") != std::string::npos);
+
+    MeshRecord forced_rec;
+    const auto forced = classify(run, mesh, true, forced_rec);
+    REQUIRE(forced.has_value());
+    CHECK(worth_an_lsnif(run, mesh, *forced, forced_rec));
+    CHECK(forced_rec.reasons.back().find("forced complex") == 0);
+}
+
+TEST_CASE("asset_key changes with the geometry and every setting that changes the weights, and only then") {
+    const scene::Mesh mesh = dragon();
+    const ConvertOptions o = options("smoke");
+    const Run run = make_run(o, fresh_dir("stages_key"));
+    format::ModelDesc desc = run.preset.model;
+    const std::string key = asset_key(run, mesh, desc);
+    CHECK(asset_key(run, mesh, desc) == key);
+
+    scene::Mesh moved = mesh;
+    moved.positions[0] += 1e-3f;
+    CHECK(asset_key(run, moved, desc) != key);
+
+    ConvertOptions o2 = o;
+    o2.seed = 6;
+    CHECK(asset_key(make_run(o2, run.outdir), mesh, desc) != key);
+    Run other_threads = make_run(o, run.outdir);
+    other_threads.threads = 1;
+    CHECK(asset_key(other_threads, mesh, desc) != key);
+    ConvertOptions o3 = o;
+    o3.steps = run.preset.train.steps + 1;
+    CHECK(asset_key(make_run(o3, run.outdir), mesh, desc) != key);
+    format::ModelDesc smaller = desc;
+    smaller.log2_table_size -= 1;
+    CHECK(asset_key(run, mesh, smaller) != key);
+    // Where the output goes does not change the weights.
+    CHECK(asset_key(make_run(o, fresh_dir("stages_key_elsewhere")), mesh, desc) == key);
+}
+
+TEST_CASE("reusable_metrics: an asset is reused only when it is intact and was written for the same key") {
+    const fs::path dir = fresh_dir("stages_reuse");
+    ConvertOptions o = options("smoke");
+    o.inputs = {kDragon};
+    o.outdir = dir.string();
+    o.force_complex = {"ChineseDragon-10kv"};
+    o.gate_min_visibility = 0;
+    const ConvertResult r = convert(o);
+    REQUIRE_MESSAGE(r.ok(), (r.errors.empty() ? "" : r.errors[0]));
+    const json& m = r.report["meshes"][0];
+    REQUIRE(m["class"] == "complex");
+    const fs::path asset = dir / m["lsnif"]["file"].get<std::string>();
+    REQUIRE(fs::exists(asset));
+
+    const Run run = make_run(o, dir);
+    MeshRecord rec;
+    const scene::Mesh mesh = dragon();
+    const auto c = classify(run, mesh, true, rec);
+    REQUIRE(c.has_value());
+    const std::string key = asset_key(run, mesh, c->desc);
+    const auto metrics = reusable_metrics(asset, key);
+    REQUIRE(metrics.has_value());
+    CHECK(metrics->contains("gate"));
+    CHECK_FALSE(reusable_metrics(asset, key + "x").has_value());
+    CHECK_FALSE(reusable_metrics(dir / "absent.lsnif", key).has_value());
+
+    const fs::path torn = dir / "torn.lsnif";
+    fs::copy_file(asset, torn);
+    fs::resize_file(torn, fs::file_size(torn) / 2);
+    CHECK_FALSE(reusable_metrics(torn, key).has_value());
+}
+
+TEST_CASE("write_manifest writes the whole document or reports why, never a partial file") {
+    const fs::path dir = fresh_dir("stages_manifest");
+    const json doc = {{"format", "test"}, {"meshes", json::array({1, 2, 3})}};
+    CHECK(write_manifest(dir / "out", doc).empty());
+    std::ifstream f(dir / "out" / "manifest.json");
+    CHECK(json::parse(f) == doc);
+    for (const auto& e : fs::directory_iterator(dir / "out")) CHECK(e.path().filename() == "manifest.json");
+
+    std::ofstream(dir / "file") << "x";  // a file where the output directory should be
+    const std::string error = write_manifest(dir / "file" / "sub", doc);
+    CHECK(error.find((dir / "file" / "sub").string()) == 0);
+    CHECK_FALSE(fs::exists(dir / "file" / "sub"));
+}
