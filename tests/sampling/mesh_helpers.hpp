@@ -1,6 +1,7 @@
-// Test helpers for lsnif::sampling: an OFF reader, an icosphere generator, the padded
-// model box, and brute-force references (Möller–Trumbore 1997 ray/triangle test over all
-// triangles, in double; ray-parity inside test on top of it).
+// Test helpers for lsnif::sampling: an OFF reader, an icosphere generator, area-weighted
+// vertex normals (MeshView requires normals), the padded model box, and brute-force references
+// (Möller–Trumbore 1997 ray/triangle test over all triangles, in double; ray-parity inside test on top of
+// it).
 #pragma once
 
 #include <lsnif/sampling/sampling.hpp>
@@ -22,15 +23,43 @@ namespace lsnif::sampling::testing {
 struct TriMesh {
     std::vector<float> positions;        // xyz per vertex
     std::vector<std::uint32_t> indices;  // 3 per triangle
-    std::vector<float> normals;          // xyz per vertex, or empty
+    std::vector<float> normals;          // xyz per vertex (MeshView requires them)
     std::size_t vertex_count() const { return positions.size() / 3; }
     std::size_t triangle_count() const { return indices.size() / 3; }
     MeshView view() const { return MeshView{positions, indices, normals, {}}; }
 };
 
+// Area-weighted vertex normals, as the converter's importer computes them for meshes
+// without normals (scene::compute_vertex_normals: the normalized sum of the incident
+// faces' (p1 - p0) x (p2 - p0), in double), except that a vertex with no direction gets
+// zero rather than +z (sampling then uses the faceted normal). For meshes that have none.
+inline void compute_normals(TriMesh& m) {
+    std::vector<double> sum(m.positions.size(), 0.0);
+    for (std::size_t t = 0; t < m.triangle_count(); ++t) {
+        const std::uint32_t* v = &m.indices[3 * t];
+        double p[3][3];
+        for (int j = 0; j < 3; ++j)
+            for (int a = 0; a < 3; ++a) p[j][a] = m.positions[3 * std::size_t(v[j]) + std::size_t(a)];
+        const double e1[3] = {p[1][0] - p[0][0], p[1][1] - p[0][1], p[1][2] - p[0][2]};
+        const double e2[3] = {p[2][0] - p[0][0], p[2][1] - p[0][1], p[2][2] - p[0][2]};
+        const double c[3] = {e1[1] * e2[2] - e1[2] * e2[1], e1[2] * e2[0] - e1[0] * e2[2],
+                             e1[0] * e2[1] - e1[1] * e2[0]};  // |c| = 2 x area: area weighting
+        for (int j = 0; j < 3; ++j)
+            for (int a = 0; a < 3; ++a) sum[3 * std::size_t(v[j]) + std::size_t(a)] += c[a];
+    }
+    m.normals.assign(m.positions.size(), 0.0f);
+    for (std::size_t i = 0; i < m.vertex_count(); ++i) {
+        const double* s = &sum[3 * i];
+        const double len = std::sqrt(s[0] * s[0] + s[1] * s[1] + s[2] * s[2]);
+        if (len > 0)
+            for (std::size_t a = 0; a < 3; ++a) m.normals[3 * i + a] = float(s[a] / len);
+    }
+}
+
 // OFF: optional "OFF" keyword (alone or followed by the counts), "nv nf ne", nv lines
 // "x y z ...", nf lines "n i0 .. i(n-1) [colour]"; '#' starts a comment. Polygons become
-// triangle fans around their first vertex. Returns nullopt and sets `error` if malformed.
+// triangle fans around their first vertex; vertex normals are computed (compute_normals).
+// Returns nullopt and sets `error` if malformed.
 inline std::optional<TriMesh> read_off(const std::string& path, std::string& error) {
     std::ifstream in(path);
     if (!in) {
@@ -86,6 +115,7 @@ inline std::optional<TriMesh> read_off(const std::string& path, std::string& err
             for (std::size_t k = 1; k + 1 < n; ++k)
                 mesh.indices.insert(mesh.indices.end(), {poly[0], poly[k], poly[k + 1]});
         }
+        compute_normals(mesh);
         return mesh;
     } catch (const std::exception& e) {
         return fail(std::string("parse error: ") + e.what());
@@ -139,7 +169,7 @@ inline TriMesh icosphere(int levels, std::array<double, 3> c, double r) {
 }
 
 // 1-to-4 midpoint subdivision (shared midpoints, so a closed mesh stays closed; the
-// surface is unchanged, only finer). Normals are dropped (the source computes them).
+// surface is unchanged, only finer). Normals are recomputed (compute_normals).
 inline TriMesh subdivide(const TriMesh& in) {
     TriMesh out;
     out.positions = in.positions;
@@ -157,6 +187,7 @@ inline TriMesh subdivide(const TriMesh& in) {
         const std::uint32_t ab = m(a, b), bc = m(b, c), ca = m(c, a);
         out.indices.insert(out.indices.end(), {a, ab, ca, ab, b, bc, ca, bc, c, ab, bc, ca});
     }
+    compute_normals(out);
     return out;
 }
 

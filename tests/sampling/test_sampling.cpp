@@ -560,6 +560,8 @@ TEST_CASE("interior origins lie outside the closed solid") {
             inside += smp.family == Family::interior && dist_to_center(smp.ray.org) < 0.99;
         CHECK(inside > 150);  // ~half of the 1000 interior origins fall in the ball's volume
         CHECK(src->counters().parity_queries == 0);
+        // An open mesh has no inside; asking is not an error (it used to abort in Embree).
+        CHECK_FALSE(src->inside_solid({float(kCenter[0]), float(kCenter[1]), float(kCenter[2])}));
     }
 }
 
@@ -600,12 +602,12 @@ TEST_CASE("shading normals are unit and close to the analytic sphere normal") {
     CHECK(worst < 1.0);
 }
 
-TEST_CASE("materials, trace() and computed vertex normals") {
+TEST_CASE("materials, trace() and area-weighted vertex normals") {
     TriMesh m = sphere();
+    compute_normals(m);  // area-weighted instead of the analytic ones
     std::vector<std::uint32_t> mats(m.triangle_count());
     for (std::size_t k = 0; k < mats.size(); ++k) mats[k] = std::uint32_t(k % 7);
     MeshView view = m.view();
-    view.normals = {};  // computed (area-weighted) instead
     view.materials = mats;
     std::string err;
     auto src = EmbreeSource::create(view, padded_box(m), {}, err);
@@ -616,7 +618,7 @@ TEST_CASE("materials, trace() and computed vertex normals") {
     for (std::size_t i = 0; i < s.size(); ++i) {
         if (!s[i].hit) continue;
         CHECK(s[i].material == x[i].primitive % 7);
-        // Computed normals of a fine sphere are close to the radial direction.
+        // Area-weighted normals of a fine sphere are close to the radial direction.
         double p[3], pl = 0, dp = 0;
         for (int a = 0; a < 3; ++a) {
             p[a] = s[i].ray.org[a] + double(s[i].t) * s[i].ray.dir[a] - kCenter[std::size_t(a)];
@@ -691,6 +693,8 @@ TEST_CASE("bad input is an error, not a crash") {
         m = good;
         m.normals.resize(6);
         expect_error(m.view(), box, "normals");
+        m.normals.clear();  // required: sampling does not compute them
+        expect_error(m.view(), box, "normals");
         MeshView v = good.view();
         std::vector<std::uint32_t> mats(3);
         v.materials = mats;
@@ -712,6 +716,7 @@ TEST_CASE("bad input is an error, not a crash") {
         TriMesh m;
         m.positions = {0, 0, 0, 1, 1, 1, 2, 2, 2};
         m.indices = {0, 1, 2, 0, 0, 1};
+        compute_normals(m);  // all zero (no face has a direction), which is valid
         Box b{{-1, -1, -1}, {3, 3, 3}};
         expect_error(m.view(), b, "zero total area");
     }

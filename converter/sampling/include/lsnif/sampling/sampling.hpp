@@ -59,8 +59,10 @@ inline constexpr std::uint32_t kNoPrimitive = 0xFFFFFFFFu;
 struct MeshView {
     std::span<const float> positions;        // xyz per vertex (mesh units), all finite
     std::span<const std::uint32_t> indices;  // 3 per triangle, each < vertex count
-    // xyz per vertex, unit shading normals (renormalized after interpolation). Empty:
-    // computed as area-weighted averages of the adjacent faces' geometric normals.
+    // xyz per vertex, required (one per vertex), finite: unit shading normals
+    // (renormalized after interpolation; where they cancel, the faceted normal is used).
+    // Sampling does not compute normals: the scene importer supplies them
+    // (scene::compute_vertex_normals() where a file has none), so there is one definition.
     std::span<const float> normals;
     std::span<const std::uint32_t> materials;  // one per triangle; empty: every triangle 0
 };
@@ -149,11 +151,12 @@ struct GenerationStats {
 
 class EmbreeSource final : public samples::SampleSource {
 public:
-    // Validates the mesh (non-empty, finite, indices in range, inside the box, positive
-    // total area), builds the Embree scene once (RTC_BUILD_QUALITY_HIGH,
+    // Validates the mesh, box and config against the contracts above (non-empty, sizes
+    // consistent, normals one per vertex, finite, indices in range, inside the box,
+    // positive total area), builds the Embree scene once (RTC_BUILD_QUALITY_HIGH,
     // RTC_SCENE_FLAG_ROBUST, plus RTC_SCENE_FLAG_CONTEXT_FILTER_FUNCTION if parity votes
-    // are needed)
-    // and the samplers. Returns null and sets `error` on failure.
+    // are needed) and the samplers. Returns null and sets `error` ("sampling: ...") on
+    // failure.
     static std::unique_ptr<EmbreeSource> create(const MeshView& mesh, const Box& box,
                                                 const SamplingConfig& cfg, std::string& error);
     ~EmbreeSource() override;
@@ -173,7 +176,8 @@ public:
     void trace(std::span<samples::Sample> samples, std::span<SampleExtras> extras = {}) const;
 
     // The family (c) inside test (classification grid, then votes as inside_test() says;
-    // hole caps included); meaningful only when rejects_interior(). Thread-safe.
+    // hole caps included). A mesh that does not reject_interior() has no inside: false for
+    // every point. Thread-safe.
     bool inside_solid(const std::array<float, 3>& p, std::uint64_t seed = 0) const;
 
     // Every undirected edge shared by exactly two triangles (positions welded by exact

@@ -1,0 +1,112 @@
+// The Embree side of construction: the device (with its error and memory-monitor
+// callbacks, which feed last_error(), bvh_bytes() and device_bytes()), the scene flags and
+// build quality, the mesh as geometry 0 and the hole caps as geometry 1 (each under its
+// own ray mask), and the commit whose allocations are the BVH's size. Everything that
+// talks to Embree's construction API lives here, so the rest of the library only traces.
+#include "sampling_internal.hpp"
+
+#include <cstring>
+#include <unordered_map>
+
+namespace lsnif::sampling {
+
+void EmbreeSource::Impl::on_error(void* user, RTCError code, const char* str) {
+    auto* self = static_cast<Impl*>(user);
+    std::lock_guard lock(self->error_mutex);
+    if (!self->errors.empty()) self->errors += "; ";
+    self->errors += "embree error " + std::to_string(int(code)) + ": " + (str ? str : "(no message)");
+}
+
+// Called before every allocation (bytes > 0, post = false) and after every release
+// (bytes < 0, post = true); a refused or failed allocation is undone the same way.
+bool EmbreeSource::Impl::on_memory(void* user, ssize_t bytes, bool /*post*/) {
+    static_cast<Impl*>(user)->monitor_bytes.fetch_add(std::int64_t(bytes), std::memory_order_relaxed);
+    return true;
+}
+
+namespace {
+
+// A triangle geometry with Embree-owned copies of the vertices and indices
+// (rtcSetNewGeometryBuffer pads them for its vector loads), committed and attached to the
+// scene as `id` under `mask`. Returns an error message on failure.
+std::string attach_triangles(EmbreeSource::Impl& m, const std::vector<float>& positions,
+                             const std::vector<std::uint32_t>& indices, unsigned mask, unsigned id) {
+    RTCGeometry geom = rtcNewGeometry(m.device, RTC_GEOMETRY_TYPE_TRIANGLE);
+    if (!geom) return "rtcNewGeometry failed: " + m.error_text();
+    rtcSetGeometryBuildQuality(geom, RTC_BUILD_QUALITY_HIGH);
+    auto* vb = static_cast<float*>(rtcSetNewGeometryBuffer(geom, RTC_BUFFER_TYPE_VERTEX, 0, RTC_FORMAT_FLOAT3,
+                                                           3 * sizeof(float), positions.size() / 3));
+    auto* ib = static_cast<std::uint32_t*>(rtcSetNewGeometryBuffer(
+        geom, RTC_BUFFER_TYPE_INDEX, 0, RTC_FORMAT_UINT3, 3 * sizeof(std::uint32_t), indices.size() / 3));
+    if (!vb || !ib) {
+        rtcReleaseGeometry(geom);
+        return "embree buffer allocation failed: " + m.error_text();
+    }
+    std::memcpy(vb, positions.data(), positions.size() * sizeof(float));
+    std::memcpy(ib, indices.data(), indices.size() * sizeof(std::uint32_t));
+    rtcSetGeometryMask(geom, mask);
+    rtcCommitGeometry(geom);
+    rtcAttachGeometryByID(m.scene, geom, id);
+    rtcReleaseGeometry(geom);
+    return {};
+}
+
+// Geometry 1: the hole caps, seen by inside-test rays only. It holds only the loop
+// vertices, bit-identical to the mesh's, so the shared edges are watertight.
+std::string attach_caps(EmbreeSource::Impl& m) {
+    std::unordered_map<std::uint32_t, std::uint32_t> local;
+    std::vector<std::uint32_t> cap_index(m.caps.size());
+    std::vector<float> cap_pos;
+    for (std::size_t k = 0; k < m.caps.size(); ++k) {
+        auto [it, fresh] = local.try_emplace(m.caps[k], std::uint32_t(local.size()));
+        if (fresh)
+            for (int a = 0; a < 3; ++a)
+                cap_pos.push_back(m.positions[3 * std::size_t(m.caps[k]) + std::size_t(a)]);
+        cap_index[k] = it->second;
+    }
+    return attach_triangles(m, cap_pos, cap_index, kCapMask, 1);
+}
+
+// Device with the error and memory callbacks, and an empty scene with the flags the
+// inside test needs.
+std::string new_device_and_scene(EmbreeSource::Impl& m) {
+    m.device = rtcNewDevice(nullptr);
+    if (!m.device)
+        return "rtcNewDevice failed (embree error " + std::to_string(int(rtcGetDeviceError(nullptr))) + ")";
+    rtcSetDeviceErrorFunction(m.device, &EmbreeSource::Impl::on_error, &m);
+    rtcSetDeviceMemoryMonitorFunction(m.device, &EmbreeSource::Impl::on_memory, &m);
+    m.scene = rtcNewScene(m.device);
+    if (!m.scene) return "rtcNewScene failed: " + m.error_text();
+    // Context filters (parity votes) only where parity votes happen: the flag makes every
+    // traversal check for one.
+    const bool parity_votes = m.parity_ready && !m.oriented;
+    rtcSetSceneFlags(m.scene, RTCSceneFlags(RTC_SCENE_FLAG_ROBUST |
+                                            (parity_votes ? RTC_SCENE_FLAG_CONTEXT_FILTER_FUNCTION : 0)));
+    rtcSetSceneBuildQuality(m.scene, RTC_BUILD_QUALITY_HIGH);
+    return {};
+}
+
+// Builds the BVH; the monitor's growth over the commit is the BVH's size, its total the
+// device's.
+std::string commit_scene(EmbreeSource::Impl& m) {
+    const std::int64_t before = m.monitor_bytes.load();
+    rtcCommitScene(m.scene);
+    const std::int64_t after = m.monitor_bytes.load();
+    if (rtcGetDeviceError(m.device) != RTC_ERROR_NONE || !m.error_text().empty())
+        return "embree scene build failed: " + m.error_text();
+    m.bvh = std::size_t(std::max<std::int64_t>(0, after - before));
+    m.device_total = std::size_t(std::max<std::int64_t>(0, after));
+    return {};
+}
+
+}  // namespace
+
+std::string build_embree_scene(EmbreeSource::Impl& m) {
+    if (std::string why = new_device_and_scene(m); !why.empty()) return why;
+    if (std::string why = attach_triangles(m, m.positions, m.indices, kMeshMask, 0); !why.empty()) return why;
+    if (!m.caps.empty())
+        if (std::string why = attach_caps(m); !why.empty()) return why;
+    return commit_scene(m);
+}
+
+}  // namespace lsnif::sampling
