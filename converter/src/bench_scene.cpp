@@ -29,7 +29,7 @@ using base::seconds_since;
 struct Object {
     std::string name;
     scene::Mesh mesh;
-    sampling::Box box;
+    mesh::Box box;
     lsnif_model* model = nullptr;
     std::uint64_t lsnif_bytes = 0;
     std::uint32_t instances = 0;

@@ -252,7 +252,7 @@ bool resolve_preset(const ConvertOptions& opt, Preset& preset, std::string& erro
     return true;
 }
 
-std::string range_problem(const voxelize::Box& box) {
+std::string range_problem(const mesh::Box& box) {
     double extent = 0, coord = 0;
     for (int a = 0; a < 3; ++a) {
         extent = std::max(extent, double(box.max[a]) - box.min[a]);
@@ -274,8 +274,8 @@ std::optional<Candidate> classify(const Run& run, const scene::Mesh& mesh, bool 
     Candidate c;
     c.forced = forced_complex;
     const ClassifyRule& rule = run.preset.classify;
-    const voxelize::MeshView vview{mesh.positions, mesh.indices};
-    auto box = voxelize::padded_box(vview);
+    const mesh::MeshView view = view_of(mesh);
+    auto box = voxelize::padded_box(view);
     if (!box) {
         rec.reasons.push_back("cannot bound the mesh: " + box.error().message);
         return std::nullopt;
@@ -288,11 +288,10 @@ std::optional<Candidate> classify(const Run& run, const scene::Mesh& mesh, bool 
     c.desc = run.preset.model;
     c.desc.box_min = c.box.min;
     c.desc.box_max = c.box.max;
-    sampling::MeshView sview{mesh.positions, mesh.indices, mesh.normals, mesh.triangle_materials};
     sampling::SamplingConfig scfg;
     scfg.threads = run.threads;
     std::string serr;
-    c.source = sampling::EmbreeSource::create(sview, sampling::Box{c.box.min, c.box.max}, scfg, serr);
+    c.source = sampling::EmbreeSource::create(view, c.box, scfg, serr);
     if (!c.source) {
         rec.reasons.push_back("Embree could not build the mesh: " + serr);
         return std::nullopt;
@@ -326,7 +325,7 @@ std::optional<voxelize::Occupancy> voxelize_mesh(const Run& run, const scene::Me
     run.report({mesh.name, "voxelize"});
     voxelize::Options vopt;
     vopt.threads = run.threads;
-    auto occ = voxelize::voxelize({mesh.positions, mesh.indices}, c.box, c.desc.grid_resolution, vopt);
+    auto occ = voxelize::voxelize(view_of(mesh), c.box, c.desc.grid_resolution, vopt);
     if (!occ) {
         rec.reasons.push_back("voxelization failed: " + occ.error().message);
         return std::nullopt;

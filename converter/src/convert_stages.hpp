@@ -9,6 +9,7 @@
 
 #include <lsnif/converter/convert.hpp>
 #include <lsnif/format/container.hpp>
+#include <lsnif/mesh/mesh.hpp>
 #include <lsnif/samples/sample.hpp>
 #include <lsnif/sampling/sampling.hpp>
 #include <lsnif/scene/scene.hpp>
@@ -65,9 +66,14 @@ struct MeshRecord {
     }
 };
 
+// The view of a scene mesh that every stage takes (borrows `m`'s arrays).
+inline mesh::MeshView view_of(const scene::Mesh& m) {
+    return {m.positions, m.indices, m.normals, m.triangle_materials};
+}
+
 // A mesh that classification kept as a candidate for an LSNIF.
 struct Candidate {
-    voxelize::Box box;
+    mesh::Box box;
     format::ModelDesc desc;  // the preset's model, box set, tables sized to the mesh
     std::unique_ptr<sampling::EmbreeSource> source;
     bool forced = false;
@@ -88,7 +94,7 @@ bool resolve_preset(const ConvertOptions& opt, Preset& preset, std::string& erro
 
 // Why a box cannot be modelled in single precision (kMinModelExtent..kMaxModelExtent), or
 // an empty string.
-std::string range_problem(const voxelize::Box& box);
+std::string range_problem(const mesh::Box& box);
 
 // Classify: bounds, float range, Embree's BVH size, the table size that beats it and the
 // geometry statistics. Returns nothing when the mesh stays simple (reason recorded).

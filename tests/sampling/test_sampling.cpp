@@ -673,9 +673,9 @@ TEST_CASE("bad input is an error, not a crash") {
     SUBCASE("NaN vertex") {
         TriMesh m = good;
         m.positions[7] = std::numeric_limits<float>::quiet_NaN();
-        expect_error(m.view(), box, "non-finite");
+        expect_error(m.view(), box, "vertex 2: coordinate y is NaN");
         m.positions[7] = INFINITY;
-        expect_error(m.view(), box, "non-finite");
+        expect_error(m.view(), box, "vertex 2: coordinate y is infinite");
     }
     SUBCASE("empty mesh") {
         expect_error(MeshView{}, box, "empty mesh");

@@ -1,6 +1,7 @@
 // The one check of EmbreeSource::create()'s input. Everything the later construction
 // stages assume about the caller's mesh, box and configuration (sizes, finiteness, ranges,
-// a positive area) is decided here, in one function, so that no stage re-checks or
+// a positive area) is decided here, in one function (the mesh rules themselves are
+// mesh::check's, shared with voxelize), so that no stage re-checks or
 // half-checks its input and the error a caller gets does not depend on which stage first
 // noticed the problem. The messages are the library's public error texts (tests match
 // words of them), so their wording and order are part of the contract.
@@ -41,13 +42,9 @@ std::string validate_config(const SamplingConfig& cfg) {
 
 std::string validate_input(const MeshView& mesh, const Box& box, const SamplingConfig& cfg) {
     if (mesh.positions.empty() || mesh.indices.empty()) return "empty mesh (no vertices or no triangles)";
-    if (mesh.positions.size() % 3) return "positions size is not a multiple of 3";
-    if (mesh.indices.size() % 3) return "indices size is not a multiple of 3";
+    if (std::string why = mesh::check(mesh, mesh::Normals::required); !why.empty()) return why;
     const std::size_t nv = mesh.positions.size() / 3, nt = mesh.indices.size() / 3;
     if (nv >= 0x80000000u || nt >= 0x80000000u) return "mesh too large (2^31 vertices or triangles)";
-    if (mesh.normals.size() != mesh.positions.size()) return "normals must be one xyz per vertex";
-    if (!mesh.materials.empty() && mesh.materials.size() != nt)
-        return "materials must be empty or one per triangle";
     if (std::string why = validate_config(cfg); !why.empty()) return why;
     for (int a = 0; a < 3; ++a) {
         if (!std::isfinite(box.min[std::size_t(a)]) || !std::isfinite(box.max[std::size_t(a)]))
@@ -57,14 +54,9 @@ std::string validate_input(const MeshView& mesh, const Box& box, const SamplingC
     }
     for (std::size_t i = 0; i < mesh.positions.size(); ++i) {
         const float p = mesh.positions[i];
-        if (!std::isfinite(p)) return "vertex " + std::to_string(i / 3) + " has a non-finite coordinate";
         if (p < box.min[i % 3] || p > box.max[i % 3])
             return "vertex " + std::to_string(i / 3) + " lies outside the box";
     }
-    for (std::size_t i = 0; i < mesh.normals.size(); ++i)
-        if (!std::isfinite(mesh.normals[i])) return "normal " + std::to_string(i / 3) + " is not finite";
-    for (std::size_t i = 0; i < mesh.indices.size(); ++i)
-        if (mesh.indices[i] >= nv) return "triangle " + std::to_string(i / 3) + " has an index out of range";
     const double area = total_area(mesh);
     if (!(area > 0) || !std::isfinite(area)) return "mesh has zero total area";
     return {};

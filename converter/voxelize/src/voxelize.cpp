@@ -291,37 +291,9 @@ bool all_finite(const float* begin, const float* end) {
     return nonfinite == 0;
 }
 
-std::string vertex_name(std::size_t i) {
-    return "vertex " + std::to_string(i);
-}
-
-// Sizes, finiteness of every position, index range; the first problem, as an Error.
-// Branch-free scans first (they vectorize); the search for the first offender runs only
-// on failure.
+// The mesh rules of mesh::check (positions and indices; normals and materials are not read).
 std::optional<Error> check_mesh(const MeshView& mesh) {
-    if (mesh.positions.size() % 3 != 0)
-        return Error{"positions: " + std::to_string(mesh.positions.size()) +
-                     " floats is not a multiple of 3"};
-    if (mesh.indices.size() % 3 != 0)
-        return Error{"indices: " + std::to_string(mesh.indices.size()) + " indices is not a multiple of 3"};
-    if (!all_finite(mesh.positions.data(), mesh.positions.data() + mesh.positions.size())) {
-        for (std::size_t i = 0; i < mesh.positions.size(); ++i) {
-            if (!std::isfinite(mesh.positions[i]))
-                return Error{vertex_name(i / 3) + ": coordinate " + "xyz"[i % 3] + " is " +
-                             (std::isnan(mesh.positions[i]) ? "NaN" : "infinite")};
-        }
-    }
-    std::uint32_t max_index = 0;
-    for (std::uint32_t i : mesh.indices) max_index = std::max(max_index, i);
-    const std::size_t nv = mesh.vertex_count();
-    if (!mesh.indices.empty() && std::uint64_t(max_index) >= nv) {
-        for (std::size_t i = 0; i < mesh.indices.size(); ++i) {
-            if (mesh.indices[i] >= nv)
-                return Error{"triangle " + std::to_string(i / 3) + ": index " +
-                             std::to_string(mesh.indices[i]) + " is out of range (" + std::to_string(nv) +
-                             " vertices)"};
-        }
-    }
+    if (std::string why = mesh::check({mesh.positions, mesh.indices}); !why.empty()) return Error{why};
     return std::nullopt;
 }
 

@@ -40,6 +40,7 @@
 // rtcSetDeviceErrorFunction into last_error().
 #pragma once
 
+#include <lsnif/mesh/mesh.hpp>
 #include <lsnif/samples/sample.hpp>
 
 #include <array>
@@ -54,23 +55,15 @@ namespace lsnif::sampling {
 
 inline constexpr std::uint32_t kNoPrimitive = 0xFFFFFFFFu;
 
-// A triangle mesh as plain arrays (not copied beyond what Embree and the samplers need;
-// the spans only have to live during create()).
-struct MeshView {
-    std::span<const float> positions;        // xyz per vertex (mesh units), all finite
-    std::span<const std::uint32_t> indices;  // 3 per triangle, each < vertex count
-    // xyz per vertex, required (one per vertex), finite: unit shading normals
-    // (renormalized after interpolation; where they cancel, the faceted normal is used).
-    // Sampling does not compute normals: the scene importer supplies them
-    // (scene::compute_vertex_normals() where a file has none), so there is one definition.
-    std::span<const float> normals;
-    std::span<const std::uint32_t> materials;  // one per triangle; empty: every triangle 0
-};
-
-// The model box (docs/architecture.md §3: the mesh AABB, padded). Every vertex must lie inside it.
-struct Box {
-    std::array<float, 3> min{}, max{};
-};
+// The converter's one mesh view and box (lsnif/mesh/mesh.hpp). The spans only have to live
+// during create() (what Embree and the samplers need is copied). Sampling requires the
+// normals (unit shading normals, renormalized after interpolation; where they cancel, the
+// faceted normal is used) and does not compute them: the scene importer supplies them
+// (scene::compute_vertex_normals() where a file has none), so there is one definition.
+// The box is the model box (docs/architecture.md §3: the mesh AABB, padded); every vertex
+// must lie inside it.
+using MeshView = mesh::MeshView;
+using Box = mesh::Box;
 
 struct SamplingConfig {
     std::uint32_t threads = 0;      // worker threads for generate(); 0 = hardware threads

@@ -33,6 +33,7 @@
 #pragma once
 
 #include <lsnif/base/result.hpp>
+#include <lsnif/mesh/mesh.hpp>
 
 #include <array>
 #include <cstddef>
@@ -58,23 +59,11 @@ struct Error {
 template <class T>
 using Result = base::Result<T, Error>;
 
-// A triangle mesh, borrowed (not owned; must outlive the call).
-//   positions: x, y, z of each vertex, object space, 3 floats per vertex; all finite.
-//   indices:   3 vertex indices per triangle, each < positions.size() / 3.
-// Winding and orientation do not matter; degenerate triangles are allowed.
-struct MeshView {
-    std::span<const float> positions;
-    std::span<const std::uint32_t> indices;
-    std::size_t vertex_count() const { return positions.size() / 3; }
-    std::size_t triangle_count() const { return indices.size() / 3; }
-};
-
-// An axis-aligned box in object space, as stored in the descriptor (FORMAT.md §6.1):
-// finite, min[a] < max[a] on every axis.
-struct Box {
-    std::array<float, 3> min{};
-    std::array<float, 3> max{};
-};
+// The converter's one mesh view and box (lsnif/mesh/mesh.hpp). Voxelization reads positions
+// and indices only; winding and orientation do not matter; degenerate triangles are
+// allowed. A Box, as stored in the descriptor (FORMAT.md §6.1): finite, min[a] < max[a].
+using MeshView = mesh::MeshView;
+using Box = mesh::Box;
 
 // Options of padded_box(). Both are fractions of L, the largest extent of the mesh's AABB.
 struct BoxOptions {
