@@ -383,6 +383,15 @@ std::optional<json> reusable_metrics(const fs::path& asset, const std::string& k
     return meta["metrics"];
 }
 
+json validation_point(std::uint32_t step, const format::ModelData& model,
+                      std::span<const samples::Sample> rays, std::uint32_t threads) {
+    const samples::Metrics m = samples::held_out_metrics(format::make_runtime(model), rays, threads);
+    return {{"step", step},
+            {"visibility", m.pooled.visibility_accuracy},
+            {"distance_pct", m.pooled.distance_median_pct},
+            {"normal_deg", m.pooled.normal_median_deg}};
+}
+
 Trained sample_and_train(const Run& run, const scene::Mesh& mesh, Candidate& c,
                          const voxelize::Occupancy& occ, MeshRecord& rec) {
     Trained t;
@@ -393,6 +402,9 @@ Trained sample_and_train(const Run& run, const scene::Mesh& mesh, Candidate& c,
     t.held_out_geometric_normals.resize(extras.size());
     for (std::size_t i = 0; i < extras.size(); ++i)
         t.held_out_geometric_normals[i] = extras[i].geometric_normal;
+
+    std::vector<samples::Sample> validation;
+    c.source->generate(run.opt.seed * 2 + 1 + 0x27d4eb2full, run.preset.validation_rays, validation);
     const double held_out_seconds = seconds_since(t0);
 
     t.config = run.preset.train;
@@ -408,7 +420,17 @@ Trained sample_and_train(const Run& run, const scene::Mesh& mesh, Candidate& c,
         return fnv1a64("train|" + std::to_string(seed) + "|" + std::to_string(r));
     };
     t0 = Clock::now();
+    const std::uint32_t checks = run.preset.validation_checks;
+    std::uint32_t next_check = 1;  // check k runs once k * steps / checks steps are done
+    double validation_seconds = 0;
     t.stream = trainer::train_streamed(tr, *c.source, plan, [&](const trainer::Progress& p) {
+        if (!validation.empty() && next_check <= checks &&
+            std::uint64_t(p.step) * checks >= std::uint64_t(next_check) * p.steps) {
+            ++next_check;
+            const auto tv = Clock::now();
+            t.validation.push_back(validation_point(p.step, tr.export_model("{}"), validation, run.threads));
+            validation_seconds += seconds_since(tv);
+        }
         const double elapsed = seconds_since(t0);
         run.report({mesh.name, "train", p.step, p.steps, p.loss,
                     p.step ? elapsed / p.step * (p.steps - p.step) : 0.0});
@@ -419,7 +441,8 @@ Trained sample_and_train(const Run& run, const scene::Mesh& mesh, Candidate& c,
     rec.stats["training_rays"] = s.rays_drawn;
     rec.timings["sample"] = held_out_seconds + s.generate_seconds;
     rec.timings["prepare"] = s.prepare_seconds;
-    rec.timings["train"] = s.train.seconds;
+    rec.timings["train"] = s.train.seconds - validation_seconds;
+    rec.timings["validate"] = validation_seconds;
     t.model = tr.export_model("{}");
     return t;
 }
@@ -517,6 +540,7 @@ json convert_mesh(const Run& run, const std::string& source, const scene::Mesh& 
         reused = true;
     } else {
         Trained t = sample_and_train(run, mesh, *c, *occ, rec);
+        rec.entry["validation"] = t.validation;
         metrics = gate(run, mesh, t, rec);
         if (metrics["gate"]["passed"].get<bool>()) {
             const std::string err =

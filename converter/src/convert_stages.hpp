@@ -86,7 +86,13 @@ struct Trained {
     trainer::StreamedResult stream;
     std::vector<samples::Sample> held_out;
     std::vector<std::array<float, 3>> held_out_geometric_normals;
+    json validation = json::array();  // [{"step", "visibility", "distance_pct", "normal_deg"}]
 };
+
+// The validation point of a model at `step`: pooled metrics of `rays` through the reader's
+// forward pass (format::intersect on the fp16 export), as the manifest records it.
+json validation_point(std::uint32_t step, const format::ModelData& model,
+                      std::span<const samples::Sample> rays, std::uint32_t threads);
 
 // The preset with the command line's overrides applied; false (and `error`) for an
 // unknown preset name.

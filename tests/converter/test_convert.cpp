@@ -75,6 +75,19 @@ TEST_CASE("convert a real mesh: asset, metadata, manifest, reuse") {
         CHECK(m["metrics"]["families"][f]["rays"].get<std::uint64_t>() > 100);
         CHECK(m["metrics"]["families"][f]["visibility_accuracy"].get<double>() > 0.6);
     }
+    // The validation curve: the smoke preset's checks at evenly spaced steps, up to the last,
+    // on rays apart from the held-out ones; a trained model ends better than it started.
+    Preset smoke_preset;
+    REQUIRE(find_preset("smoke", smoke_preset));
+    const json& curve = m["validation"];
+    REQUIRE(curve.size() == smoke_preset.validation_checks);
+    for (std::size_t k = 0; k < curve.size(); ++k)
+        CHECK(curve[k]["step"].get<std::uint32_t>() ==
+              (k + 1) * smoke_preset.train.steps / smoke_preset.validation_checks);
+    CHECK(curve.back()["visibility"].get<double>() > curve.front()["visibility"].get<double>());
+    CHECK(curve.back()["visibility"].get<double>() ==
+          doctest::Approx(m["metrics"]["families"]["pooled"]["visibility_accuracy"].get<double>())
+              .epsilon(0.05));
     CHECK(manifest["instances"].size() == 1);
     // Only the manifest and the asset: no temporaries left behind.
     CHECK(std::distance(fs::directory_iterator(out), fs::directory_iterator{}) == 2);
@@ -84,6 +97,7 @@ TEST_CASE("convert a real mesh: asset, metadata, manifest, reuse") {
     const ConvertResult again = convert(smoke({kDragon}, out));
     REQUIRE(again.ok());
     CHECK(again.manifest["meshes"][0]["lsnif"]["reused"] == true);
+    CHECK_FALSE(again.manifest["meshes"][0].contains("validation"));  // nothing was trained
     CHECK(fs::last_write_time(asset) == before);
 
     // Same input, seed and thread count converted from scratch into another directory: the

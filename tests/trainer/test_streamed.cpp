@@ -106,3 +106,24 @@ TEST_CASE("train_streamed never runs more rounds than steps, and clamps a round 
     CHECK(s2.rays_per_round == 300);
     CHECK(src2.draws == std::map<std::uint64_t, std::size_t>{{0, 300}});
 }
+
+TEST_CASE("train_streamed stops when the progress callback says so, and draws no further round") {
+    const format::ModelDesc d = tiny_desc();
+    StreamPlan plan;
+    plan.total_rays = 5000;
+    plan.rays_per_round = 1000;  // five rounds of six steps
+    plan.window_rounds = 2;
+    plan.round_seed = [](std::uint64_t r) { return 100 + r; };
+    CountingSource src(d);
+    Trainer tr(d, src.occupancy(d), small_config());
+    const StreamedResult s = train_streamed(tr, src, plan, [](const Progress& p) { return p.step < 8; });
+    CHECK(s.stopped);
+    CHECK(tr.step_count() == 8);  // the step that said "stop" is the last one run
+    CHECK(s.train.steps == 8);
+    CHECK(src.draws == std::map<std::uint64_t, std::size_t>{{100, 1000}, {101, 1000}});
+
+    CountingSource all(d);
+    Trainer full(d, all.occupancy(d), small_config());
+    CHECK_FALSE(train_streamed(full, all, plan, [](const Progress&) { return true; }).stopped);
+    CHECK(full.step_count() == 30);
+}

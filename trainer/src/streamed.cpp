@@ -66,6 +66,10 @@ StreamedResult train_streamed(Trainer& trainer, SampleSource& source, const Stre
 
         const auto until = std::uint32_t(r + 1 == out.rounds ? steps : steps * (r + 1) / out.rounds);
         accumulate(out.train, trainer.train(pool, progress, until));
+        if (!out.train.diverged && trainer.step_count() < until) {
+            out.stopped = true;
+            break;
+        }
     }
     return out;
 }

@@ -64,6 +64,12 @@ struct Preset {
     std::uint64_t train_chunk_rays = 1u << 20;  // rays per round
     std::uint32_t train_window_chunks = 2;      // chunks a step samples from
     std::uint64_t eval_rays = 1u << 16;
+    // Validation during training (docs/model.md "Validation curve"): `validation_rays` rays of
+    // the three families, drawn apart from the training and held-out rays, are measured
+    // through the reader's forward pass `validation_checks` times at evenly spaced steps.
+    // The curve is recorded in the manifest; the held-out set stays untouched until the gate.
+    std::uint64_t validation_rays = 1u << 13;
+    std::uint32_t validation_checks = 10;
     ClassifyRule classify;
     Gate gate;
 };

@@ -29,10 +29,12 @@ struct StreamedResult {
     double entry_points = 0;           // occupied entry points over the reaching rays
     double generate_seconds = 0;       // in source.generate
     double prepare_seconds = 0;        // computing features and maintaining the window
+    bool stopped = false;              // the progress callback asked to stop before the last step
 };
 
-// Runs trainer.config().steps steps in rounds. Stops early only when training diverged
-// beyond recovery (result.train.diverged). Deterministic for the trainer's seed and
+// Runs trainer.config().steps steps in rounds. Stops early when training diverged beyond
+// recovery (result.train.diverged) or when `progress` returns false (result.stopped; no
+// further round is drawn). Deterministic for the trainer's seed and
 // thread count, the plan and a deterministic source.
 StreamedResult train_streamed(Trainer& trainer, SampleSource& source, const StreamPlan& plan,
                               const ProgressFn& progress = {});
