@@ -154,6 +154,32 @@ std::vector<std::string> gate_failures(const samples::Metrics& m, const Gate& g)
     return fails;
 }
 
+std::vector<std::string> early_abort_reasons(const json& point, std::uint64_t samples, const Gate& g,
+                                             const EarlyAbort& rule) {
+    std::vector<std::string> why;
+    if (samples < rule.min_samples) return why;
+    char buf[200];
+    const double vis = point.value("visibility", 0.0);
+    if (vis + rule.visibility_headroom < g.min_visibility) {
+        std::snprintf(buf, sizeof buf, "validation visibility %.1f %% cannot reach the gate's %.1f %%",
+                      100 * vis, 100 * g.min_visibility);
+        why.push_back(buf);
+    }
+    const double normal = point.value("normal_deg", 180.0);
+    if (normal - rule.normal_headroom_deg > g.max_normal_median_deg) {
+        std::snprintf(buf, sizeof buf, "validation normal error %.1f deg cannot reach the gate's %.1f deg",
+                      normal, g.max_normal_median_deg);
+        why.push_back(buf);
+    }
+    const double dist = point.value("distance_pct", 100.0);
+    if (dist * rule.distance_factor > g.max_distance_median_pct) {
+        std::snprintf(buf, sizeof buf, "validation distance error %.2f %% cannot reach the gate's %.2f %%",
+                      dist, g.max_distance_median_pct);
+        why.push_back(buf);
+    }
+    return why;
+}
+
 json metrics_json(const samples::Metrics& m) {
     return {{"outside", family_json(m.family[0])},
             {"surface", family_json(m.family[1])},
@@ -430,6 +456,13 @@ Trained sample_and_train(const Run& run, const scene::Mesh& mesh, Candidate& c,
             const auto tv = Clock::now();
             t.validation.push_back(validation_point(p.step, tr.export_model("{}"), validation, run.threads));
             validation_seconds += seconds_since(tv);
+            t.abandoned =
+                early_abort_reasons(t.validation.back(), std::uint64_t(p.step) * t.config.batch_size,
+                                    run.preset.gate, run.preset.early_abort);
+            if (!t.abandoned.empty()) {
+                t.abandoned_at = p.step;
+                return false;
+            }
         }
         const double elapsed = seconds_since(t0);
         run.report({mesh.name, "train", p.step, p.steps, p.loss,
@@ -456,6 +489,9 @@ json gate(const Run& run, const scene::Mesh& mesh, const Trained& t, MeshRecord&
     json metrics = {{"held_out_rays", t.held_out.size()}, {"families", metrics_json(m)}};
     std::vector<std::string> reasons = gate_failures(m, run.preset.gate);
     if (t.stream.train.diverged) reasons.push_back(t.stream.train.message);
+    for (const std::string& why : t.abandoned)
+        reasons.push_back("training given up at step " + std::to_string(t.abandoned_at) + " of " +
+                          std::to_string(t.config.steps) + ": " + why);
     json verdict = {{"passed", reasons.empty()}};
     if (!reasons.empty()) verdict["reasons"] = reasons;
     metrics["gate"] = verdict;
@@ -535,12 +571,14 @@ json convert_mesh(const Run& run, const std::string& source, const scene::Mesh& 
     const fs::path asset = run.outdir / file;
     json metrics;
     bool reused = false;
+    bool abandoned = false;
     if (auto previous = reusable_metrics(asset, key)) {
         metrics = std::move(*previous);
         reused = true;
     } else {
         Trained t = sample_and_train(run, mesh, *c, *occ, rec);
         rec.entry["validation"] = t.validation;
+        abandoned = !t.abandoned.empty();
         metrics = gate(run, mesh, t, rec);
         if (metrics["gate"]["passed"].get<bool>()) {
             const std::string err =
@@ -559,7 +597,8 @@ json convert_mesh(const Run& run, const std::string& source, const scene::Mesh& 
     }
     for (const auto& r : metrics["gate"].value("reasons", std::vector<std::string>{}))
         rec.reasons.push_back("gate: " + r);
-    return rec.simple("held-out accuracy below the gate: stays BVH");
+    return rec.simple(abandoned ? "decided early from the validation curve: stays BVH"
+                                : "held-out accuracy below the gate: stays BVH");
 }
 
 MeshRecord new_record(const scene::Scene& sc, std::size_t in, std::size_t k, std::size_t id) {

@@ -87,6 +87,9 @@ struct Trained {
     std::vector<samples::Sample> held_out;
     std::vector<std::array<float, 3>> held_out_geometric_normals;
     json validation = json::array();  // [{"step", "visibility", "distance_pct", "normal_deg"}]
+    // Why training was given up at step `abandoned_at` (EarlyAbort); empty when it ran to the end.
+    std::vector<std::string> abandoned;
+    std::uint32_t abandoned_at = 0;
 };
 
 // The validation point of a model at `step`: pooled metrics of `rays` through the reader's

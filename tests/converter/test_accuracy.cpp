@@ -11,6 +11,7 @@
 
 #include <lsnif/converter/convert.hpp>
 
+#include <cstdlib>
 #include <filesystem>
 #include <string>
 
@@ -55,6 +56,7 @@ void check_targets(const nlohmann::json& mesh) {
     // network never trains on.
     CHECK(p["geometric_normal_error_median_deg"].get<double>() > 0.0);
     CHECK(mesh["class"] == "complex");
+    CHECK(mesh["validation"].size() == 10);  // trained to the end: never given up early
 }
 
 }  // namespace
@@ -65,4 +67,36 @@ TEST_CASE("default preset meets the accuracy targets on CGAL's Chinese dragon") 
 
 TEST_CASE("default preset meets the accuracy targets on CGAL's armadillo") {
     check_targets(convert_default("armadillo.off", "armadillo"));
+}
+
+// Deciding early (docs/model.md "Deciding early"): the hairball of the hard-geometry suite
+// never reaches the gate (78.9 % after the full budget), and the validation curve shows it
+// at the first check that may decide, a tenth of the default budget.
+TEST_CASE("default preset gives up on the hairball after a tenth of its training budget") {
+    const fs::path dir = fs::path(LSNIF_TEST_WORK_DIR) / "accuracy_hairball";
+    fs::remove_all(dir);
+    fs::create_directories(dir);
+    const fs::path glb = dir / "hairball.glb";
+    const std::string cmd =
+        std::string(LSNIF_MAKE_SCENE_EXE) + " --out " + glb.string() + " --hard-case hairball";
+    REQUIRE(std::system(cmd.c_str()) == 0);
+    ConvertOptions opt;
+    opt.inputs = {glb.string()};
+    opt.outdir = (dir / "out").string();
+    opt.preset = "default";
+    opt.seed = 1;
+    opt.force_complex = {"hairball"};
+    const ConvertResult r = lsnif::converter::convert(opt);
+    REQUIRE(r.ok());
+    const auto& mesh = r.manifest["meshes"][0];
+    MESSAGE("hairball: " << mesh["reasons"].dump() << " timings " << mesh["timings"].dump());
+    CHECK(mesh["class"] == "simple");
+    REQUIRE(mesh["validation"].size() == 1);
+    CHECK(mesh["validation"][0]["step"] == 240);
+    CHECK(mesh["reasons"].back() == "decided early from the validation curve: stays BVH");
+    bool given_up = false;
+    for (const auto& why : mesh["metrics"]["gate"]["reasons"])
+        given_up =
+            given_up || why.get<std::string>().rfind("training given up at step 240 of 2400: ", 0) == 0;
+    CHECK(given_up);
 }

@@ -278,3 +278,29 @@ TEST_CASE("the gate: each rule fails on its own, and an unmeasured family is a f
     one([](auto& m) { m.family[0].rays = 40; }, "outside rays reaching the network: 40 < 100");
     one([](auto& m) { m.family[2].rays = 0; }, "interior rays reaching the network: 0 < 100");
 }
+
+TEST_CASE("giving up early: each rule on its own, and never before the curve can be judged") {
+    const Gate gate;  // 95 %, 2 % of the diagonal, 30 deg
+    const EarlyAbort rule;
+    // The dragon's first default-preset check (docs/model.md "Deciding early"): trains on.
+    const json dragon = {{"visibility", 0.9443}, {"distance_pct", 1.45}, {"normal_deg", 24.3}};
+    CHECK(early_abort_reasons(dragon, 240u * 8192u, gate, rule).empty());
+    auto one = [&](json point, const char* expected) {
+        const auto why = early_abort_reasons(point, rule.min_samples, gate, rule);
+        CAPTURE(expected);
+        REQUIRE(why.size() == 1);
+        CHECK(why[0] == expected);
+        // The same point before min_samples training samples: too early to judge.
+        CHECK(early_abort_reasons(point, rule.min_samples - 1, gate, rule).empty());
+    };
+    one({{"visibility", 0.8999}, {"distance_pct", 1.0}, {"normal_deg", 20.0}},
+        "validation visibility 90.0 % cannot reach the gate's 95.0 %");
+    one({{"visibility", 0.96}, {"distance_pct", 1.0}, {"normal_deg", 50.5}},
+        "validation normal error 50.5 deg cannot reach the gate's 30.0 deg");
+    one({{"visibility", 0.96}, {"distance_pct", 6.0}, {"normal_deg", 20.0}},
+        "validation distance error 6.00 % cannot reach the gate's 2.00 %");
+    // Just inside the headrooms: still reachable.
+    CHECK(early_abort_reasons({{"visibility", 0.901}, {"distance_pct", 5.7}, {"normal_deg", 49.9}},
+                              rule.min_samples, gate, rule)
+              .empty());
+}
