@@ -154,6 +154,62 @@ std::vector<std::string> gate_failures(const samples::Metrics& m, const Gate& g)
     return fails;
 }
 
+bool parse_target(const std::string& text, Target& target, std::string& error) {
+    double v[3];
+    std::size_t pos = 0;
+    for (int i = 0; i < 3; ++i) {
+        const std::size_t end = text.find(',', pos);
+        if ((end == std::string::npos) != (i == 2)) {
+            error = "expected VIS,DIST,NORMAL (three numbers, e.g. 97,1.0,15)";
+            return false;
+        }
+        const std::string part = text.substr(pos, end == std::string::npos ? std::string::npos : end - pos);
+        char* stop = nullptr;
+        v[i] = std::strtod(part.c_str(), &stop);
+        if (part.empty() || *stop != '\0' || !std::isfinite(v[i])) {
+            error = "'" + part + "' is not a number (expected VIS,DIST,NORMAL, e.g. 97,1.0,15)";
+            return false;
+        }
+        pos = end + 1;
+    }
+    char why[160] = "";
+    if (!(v[0] > 0 && v[0] <= 100))
+        std::snprintf(why, sizeof why, "visibility %g %% is outside (0, 100]", v[0]);
+    else if (!(v[1] > 0 && v[1] <= 100))
+        std::snprintf(why, sizeof why, "distance error %g %% of the diagonal is outside (0, 100]", v[1]);
+    else if (!(v[2] > 0 && v[2] <= 180))
+        std::snprintf(why, sizeof why, "normal error %g degrees is outside (0, 180]", v[2]);
+    if (why[0]) {
+        error = why;
+        return false;
+    }
+    target = {v[0] / 100.0, v[1], v[2]};
+    return true;
+}
+
+std::vector<std::string> target_misses(const json& families, const Target& t) {
+    std::vector<std::string> misses;
+    const json& p = families.at("pooled");
+    char buf[160];
+    const double vis = p.value("visibility_accuracy", 0.0), dist = p.value("distance_error_median_pct", 0.0),
+                 normal = p.value("normal_error_median_deg", 0.0);
+    if (vis < t.visibility) {
+        std::snprintf(buf, sizeof buf, "visibility %.2f %% < target %.2f %%", 100 * vis, 100 * t.visibility);
+        misses.push_back(buf);
+    }
+    if (dist > t.distance_pct) {
+        std::snprintf(buf, sizeof buf, "median distance error %.3g %% > target %.3g %%", dist,
+                      t.distance_pct);
+        misses.push_back(buf);
+    }
+    if (normal > t.normal_deg) {
+        std::snprintf(buf, sizeof buf, "median normal error %.3g deg > target %.3g deg", normal,
+                      t.normal_deg);
+        misses.push_back(buf);
+    }
+    return misses;
+}
+
 std::vector<std::string> early_abort_reasons(const json& point, std::uint64_t samples, const Gate& g,
                                              const EarlyAbort& rule) {
     std::vector<std::string> why;
@@ -551,6 +607,15 @@ std::string write_asset(const Run& run, const scene::Mesh& mesh, Trained& t, con
     return e ? e.message : std::string();
 }
 
+json target_json(const Target& t, const std::vector<std::string>& misses) {
+    json j = {{"visibility", t.visibility},
+              {"distance_pct", t.distance_pct},
+              {"normal_deg", t.normal_deg},
+              {"met", misses.empty()}};
+    if (!misses.empty()) j["misses"] = misses;
+    return j;
+}
+
 json convert_mesh(const Run& run, const std::string& source, const scene::Mesh& mesh, MeshRecord rec,
                   std::vector<std::string>& errors) {
     if (run.forced(run.opt.force_simple, mesh.name))
@@ -591,6 +656,7 @@ json convert_mesh(const Run& run, const std::string& source, const scene::Mesh& 
     }
     rec.entry["metrics"] = metrics;
     if (metrics["gate"]["passed"].get<bool>()) {
+        rec.entry["target"] = target_json(run.opt.target, target_misses(metrics["families"], run.opt.target));
         std::error_code ec;
         rec.entry["lsnif"] = {{"file", file}, {"bytes", fs::file_size(asset, ec)}, {"reused", reused}};
         return rec.finish("complex");
@@ -627,7 +693,11 @@ json manifest_json(const Run& run, const json& inputs, const json& meshes, const
           {"seed", run.opt.seed},
           {"threads", run.threads},
           {"forced_complex", forced_c},
-          {"forced_simple", forced_s}}},
+          {"forced_simple", forced_s},
+          {"target",
+           {{"visibility", run.opt.target.visibility},
+            {"distance_pct", run.opt.target.distance_pct},
+            {"normal_deg", run.opt.target.normal_deg}}}}},
         {"inputs", inputs},
         {"meshes", meshes},
         {"instances", instances},
@@ -728,6 +798,9 @@ std::string convert_text(const ConvertResult& r) {
                 p["normal_error_median_deg"].get<double>(),
                 m["lsnif"]["reused"].get<bool>() ? " (reused)" : "");
             s += buf;
+            if (m.contains("target") && !m["target"]["met"].get<bool>())
+                s +=
+                    "\n           target missed, gate passed: " + m["target"]["misses"][0].get<std::string>();
             const json& fam = m["metrics"]["families"];
             for (const char* f : {"outside", "surface", "interior"}) {
                 std::snprintf(buf, sizeof buf,

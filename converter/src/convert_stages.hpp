@@ -146,6 +146,10 @@ json asset_metadata(const Run& run, const std::string& source, const scene::Mesh
 std::string write_asset(const Run& run, const scene::Mesh& mesh, Trained& t, const json& metadata,
                         const fs::path& asset, MeshRecord& rec);
 
+// The manifest's verdict on the target for one shipped asset: the target and whether it
+// was met ({"visibility", "distance_pct", "normal_deg", "met", "misses"?}).
+json target_json(const Target& target, const std::vector<std::string>& misses);
+
 // One mesh through every stage: its manifest entry. Errors that concern the run (an asset
 // that could not be written) are appended to `errors`.
 json convert_mesh(const Run& run, const std::string& source, const scene::Mesh& mesh, MeshRecord rec,

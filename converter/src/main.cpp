@@ -235,6 +235,7 @@ std::string recorded_command_line(int argc, char** argv) {
 struct ConvertCommand {
     CLI::App* sub = nullptr;
     lsnif::converter::ConvertOptions opt;
+    std::string target;
     bool json = false;
     void add_to(CLI::App& app) {
         sub = app.add_subcommand(
@@ -262,10 +263,19 @@ struct ConvertCommand {
             ->check(CLI::Range(4u, 256u));
         sub->add_option("--hidden", opt.hidden_width, "Override the hidden layers' width")
             ->check(CLI::Range(16u, 512u));
+        sub->add_option(
+            "--target", target,
+            "Accuracy asked of every asset: VIS,DIST,NORMAL (held-out visibility %, median distance "
+            "error % of the diagonal, median normal error in degrees; default 97,1.0,15)");
         sub->add_flag("--dry-run", opt.dry_run,
                       "Import and classify only: print the plan (class, reasons, model size), write nothing");
     }
     int run(int argc, char** argv) {
+        std::string error;
+        if (!target.empty() && !lsnif::converter::parse_target(target, opt.target, error)) {
+            std::fprintf(stderr, "error: --target '%s': %s\n", target.c_str(), error.c_str());
+            return 2;
+        }
         opt.command_line = recorded_command_line(argc, argv);
         return run_convert(opt, json);
     }

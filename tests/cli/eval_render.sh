@@ -42,6 +42,13 @@ PY
 [[ $rc == 2 ]] || bad "bad --camera exit $rc"
 grep -q "^error: --camera" "$work/err" || bad "bad --camera message: $(cat "$work/err")"
 [[ ! -e $work/img3 ]] || bad "bad --camera still rendered"
+# Bad --target values: usage errors (exit 2) naming the option, no output directory.
+for t in 120,1,15 97,-1,15 97,1,200 97,1 x,1,15 97,1,15,3; do
+  "$lsnif" convert "$mesh" -o "$work/target_$t" --preset smoke --target "$t" 2>"$work/err"; rc=$?
+  [[ $rc == 2 ]] || bad "--target $t: exit $rc"
+  grep -q "^error: --target '$t'" "$work/err" || bad "--target $t message: $(cat "$work/err")"
+  [[ ! -e $work/target_$t ]] || bad "--target $t still wrote output"
+done
 # Missing conversion: exit 1 naming manifest.json.
 "$lsnif" eval "$work/nothing" 2>"$work/err"; rc=$?
 [[ $rc == 1 ]] && grep -q "manifest.json" "$work/err" || bad "missing OUTDIR: exit $rc, $(cat "$work/err")"

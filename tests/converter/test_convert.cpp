@@ -92,12 +92,25 @@ TEST_CASE("convert a real mesh: asset, metadata, manifest, reuse") {
     // Only the manifest and the asset: no temporaries left behind.
     CHECK(std::distance(fs::directory_iterator(out), fs::directory_iterator{}) == 2);
 
-    // Unchanged input and options: the asset is reused, byte for byte.
+    // The default target (97 %, 1 %, 15 deg) is beyond a smoke model: shipped through the
+    // gate, with the target's misses named.
+    CHECK(manifest["settings"]["target"]["visibility"] == 0.97);
+    REQUIRE(m.contains("target"));
+    CHECK(m["target"]["met"] == false);
+    CHECK(m["target"]["misses"].size() >= 1);
+
+    // Unchanged input and options: the asset is reused, byte for byte. A lenient target
+    // (it does not change the weights) is met by the same asset.
     const auto before = fs::last_write_time(asset);
-    const ConvertResult again = convert(smoke({kDragon}, out));
+    ConvertOptions lenient = smoke({kDragon}, out);
+    std::string target_error;
+    REQUIRE(parse_target("50,50,90", lenient.target, target_error));
+    const ConvertResult again = convert(lenient);
     REQUIRE(again.ok());
     CHECK(again.manifest["meshes"][0]["lsnif"]["reused"] == true);
     CHECK_FALSE(again.manifest["meshes"][0].contains("validation"));  // nothing was trained
+    CHECK(again.manifest["meshes"][0]["target"]["met"] == true);
+    CHECK_FALSE(again.manifest["meshes"][0]["target"].contains("misses"));
     CHECK(fs::last_write_time(asset) == before);
 
     // Same input, seed and thread count converted from scratch into another directory: the
@@ -303,4 +316,39 @@ TEST_CASE("giving up early: each rule on its own, and never before the curve can
     CHECK(early_abort_reasons({{"visibility", 0.901}, {"distance_pct", 5.7}, {"normal_deg", 49.9}},
                               rule.min_samples, gate, rule)
               .empty());
+}
+
+TEST_CASE("--target: parsed as VIS,DIST,NORMAL, bad values named, misses listed rule by rule") {
+    Target t;
+    std::string error;
+    REQUIRE(parse_target("98.5,0.6,8", t, error));
+    CHECK(t.visibility == doctest::Approx(0.985));
+    CHECK(t.distance_pct == 0.6);
+    CHECK(t.normal_deg == 8.0);
+    auto bad = [&](const char* text, const char* expected) {
+        Target untouched;
+        std::string why;
+        CAPTURE(text);
+        CHECK_FALSE(parse_target(text, untouched, why));
+        CHECK(why.find(expected) != std::string::npos);
+        CHECK(untouched.visibility == 0.97);  // nothing half-parsed
+    };
+    bad("120,1,15", "visibility 120 % is outside (0, 100]");
+    bad("0,1,15", "visibility 0 % is outside");
+    bad("97,0,15", "distance error 0 % of the diagonal is outside");
+    bad("97,1,181", "normal error 181 degrees is outside");
+    bad("97,1", "expected VIS,DIST,NORMAL");
+    bad("97,1,15,4", "expected VIS,DIST,NORMAL");
+    bad("97,,15", "'' is not a number");
+    bad("97,1,nan", "'nan' is not a number");
+
+    const json families = {{"pooled",
+                            {{"visibility_accuracy", 0.965},
+                             {"distance_error_median_pct", 1.2},
+                             {"normal_error_median_deg", 14.0}}}};
+    const auto misses = target_misses(families, Target{});
+    REQUIRE(misses.size() == 2);
+    CHECK(misses[0] == "visibility 96.50 % < target 97.00 %");
+    CHECK(misses[1] == "median distance error 1.2 % > target 1 %");
+    CHECK(target_misses(families, Target{0.96, 1.5, 20}).empty());
 }
