@@ -12,6 +12,7 @@
 #pragma once
 
 #include <lsnif/base/random.hpp>
+#include <lsnif/base/vec3.hpp>
 
 #include <algorithm>
 #include <array>
@@ -29,32 +30,7 @@ namespace lsnif::examples {
 
 // ---- small vector math ---------------------------------------------------------------
 
-struct Vec3 {
-    double x = 0, y = 0, z = 0;
-};
-
-inline Vec3 operator+(Vec3 a, Vec3 b) {
-    return {a.x + b.x, a.y + b.y, a.z + b.z};
-}
-inline Vec3 operator-(Vec3 a, Vec3 b) {
-    return {a.x - b.x, a.y - b.y, a.z - b.z};
-}
-inline Vec3 operator*(double s, Vec3 a) {
-    return {s * a.x, s * a.y, s * a.z};
-}
-inline double dot(Vec3 a, Vec3 b) {
-    return a.x * b.x + a.y * b.y + a.z * b.z;
-}
-inline Vec3 cross(Vec3 a, Vec3 b) {
-    return {a.y * b.z - a.z * b.y, a.z * b.x - a.x * b.z, a.x * b.y - a.y * b.x};
-}
-inline double length(Vec3 a) {
-    return std::sqrt(dot(a, a));
-}
-// a / |a|; requires |a| > 0.
-inline Vec3 normalize(Vec3 a) {
-    return (1.0 / length(a)) * a;
-}
+using Vec3 = base::Vec3d;  // lsnif/base/vec3.hpp: +, -, scalar *, dot, cross, length, normalize
 
 // ---- triangle mesh ----------------------------------------------------------------------
 

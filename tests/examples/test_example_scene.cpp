@@ -366,13 +366,13 @@ double signed_volume(const ex::TriMesh& m) {
     for (std::size_t t = 0; t < m.triangle_count(); ++t) {
         const ex::Vec3 a = m.positions[m.indices[3 * t]], b = m.positions[m.indices[3 * t + 1]],
                        c = m.positions[m.indices[3 * t + 2]];
-        v += ex::dot(a, ex::cross(b, c)) / 6.0;
+        v += lsnif::base::dot(a, lsnif::base::cross(b, c)) / 6.0;
     }
     return v;
 }
 
 bool near(ex::Vec3 a, ex::Vec3 b, double eps = 1e-12) {
-    return ex::length(a - b) <= eps;
+    return lsnif::base::length(a - b) <= eps;
 }
 
 }  // namespace
@@ -424,8 +424,8 @@ TEST_CASE("hairball tubes are closed, outward, counted and inside the ball") {
         CHECK(signed_volume(tube) > 0.5 * hexagon_area * 9 * p.step * p.ball_radius * p.shell_inner);
     }
     for (const ex::Vec3& v : hair.positions) {
-        REQUIRE(ex::length(v) <= p.ball_radius + p.tube_radius + 1e-12);
-        REQUIRE(ex::length(v) >= p.ball_radius * p.shell_inner - p.tube_radius - 1e-12);
+        REQUIRE(lsnif::base::length(v) <= p.ball_radius + p.tube_radius + 1e-12);
+        REQUIRE(lsnif::base::length(v) >= p.ball_radius * p.shell_inner - p.tube_radius - 1e-12);
     }
     // Same parameters, same mesh; another seed, another mesh.
     const ex::TriMesh again = ex::make_hairball(p);
@@ -480,7 +480,7 @@ TEST_CASE("Loop subdivision uses the boundary rules on open meshes") {
     for (std::size_t t = 0; t < 4; ++t) {
         const ex::Vec3 a = s.positions[s.indices[3 * t]], b = s.positions[s.indices[3 * t + 1]],
                        c = s.positions[s.indices[3 * t + 2]];
-        CHECK(ex::cross(b - a, c - a).z > 0);
+        CHECK(lsnif::base::cross(b - a, c - a).z > 0);
     }
 }
 

@@ -10,6 +10,7 @@
 
 #include <lsnif/base/parallel.hpp>
 #include <lsnif/base/random.hpp>
+#include <lsnif/base/vec3.hpp>
 #include <lsnif/sampling/sampling.hpp>
 
 #include <embree3/rtcore.h>
@@ -77,27 +78,7 @@ inline Rng ray_rng(std::uint64_t seed, std::uint64_t index) {
 
 // ---- small vector helpers (double precision for sample construction) ---------------------
 
-struct V3 {
-    double x, y, z;
-};
-inline V3 operator+(V3 a, V3 b) {
-    return {a.x + b.x, a.y + b.y, a.z + b.z};
-}
-inline V3 operator-(V3 a, V3 b) {
-    return {a.x - b.x, a.y - b.y, a.z - b.z};
-}
-inline V3 operator*(double s, V3 a) {
-    return {s * a.x, s * a.y, s * a.z};
-}
-inline double dot(V3 a, V3 b) {
-    return a.x * b.x + a.y * b.y + a.z * b.z;
-}
-inline V3 cross(V3 a, V3 b) {
-    return {a.y * b.z - a.z * b.y, a.z * b.x - a.x * b.z, a.x * b.y - a.y * b.x};
-}
-inline double length(V3 a) {
-    return std::sqrt(dot(a, a));
-}
+using V3 = base::Vec3d;  // lsnif/base/vec3.hpp: +, -, scalar *, dot, cross, length
 
 // Uniform point (x, y) of the open unit disk, q = x^2 + y^2, by rejection from the
 // square (acceptance pi/4). Two candidates per round, the first one inside wins: the

@@ -113,7 +113,7 @@ bool cap_holes(EmbreeSource::Impl& m, const std::vector<Edge>& odd, bool directe
                 lo3[a] = std::min(lo3[a], double(m.positions[3 * std::size_t(path[k]) + std::size_t(a)]));
                 hi3[a] = std::max(hi3[a], double(m.positions[3 * std::size_t(path[k]) + std::size_t(a)]));
             }
-        const double ext = length({hi3[0] - lo3[0], hi3[1] - lo3[1], hi3[2] - lo3[2]});
+        const double ext = length(V3{hi3[0] - lo3[0], hi3[1] - lo3[1], hi3[2] - lo3[2]});
         if (!(ext <= max_extent)) small = false;
         for (std::size_t k = from + 1; k + 1 < path.size(); ++k)
             caps.insert(caps.end(), {path[from], path[k], path[k + 1]});
