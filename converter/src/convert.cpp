@@ -356,8 +356,8 @@ std::optional<Candidate> classify(const Run& run, const scene::Mesh& mesh, bool 
     Candidate c;
     c.forced = forced_complex;
     const ClassifyRule& rule = run.preset.classify;
-    const mesh::MeshView view = view_of(mesh);
-    auto box = voxelize::padded_box(view);
+    c.view = view_of(mesh);
+    auto box = voxelize::padded_box(c.view);
     if (!box) {
         rec.reasons.push_back("cannot bound the mesh: " + box.error().message);
         return std::nullopt;
@@ -373,7 +373,7 @@ std::optional<Candidate> classify(const Run& run, const scene::Mesh& mesh, bool 
     sampling::SamplingConfig scfg;
     scfg.threads = run.threads;
     std::string serr;
-    c.source = sampling::EmbreeSource::create(view, c.box, scfg, serr);
+    c.source = sampling::EmbreeSource::create(c.view, c.box, scfg, serr);
     if (!c.source) {
         rec.reasons.push_back("Embree could not build the mesh: " + serr);
         return std::nullopt;
@@ -407,7 +407,7 @@ std::optional<voxelize::Occupancy> voxelize_mesh(const Run& run, const scene::Me
     run.report({mesh.name, "voxelize"});
     voxelize::Options vopt;
     vopt.threads = run.threads;
-    auto occ = voxelize::voxelize(view_of(mesh), c.box, c.desc.grid_resolution, vopt);
+    auto occ = voxelize::voxelize(c.view, c.box, c.desc.grid_resolution, vopt);
     if (!occ) {
         rec.reasons.push_back("voxelization failed: " + occ.error().message);
         return std::nullopt;
@@ -607,11 +607,14 @@ std::string write_asset(const Run& run, const scene::Mesh& mesh, Trained& t, con
     return e ? e.message : std::string();
 }
 
+// The target as the manifest's settings record it.
+json target_settings(const Target& t) {
+    return {{"visibility", t.visibility}, {"distance_pct", t.distance_pct}, {"normal_deg", t.normal_deg}};
+}
+
 json target_json(const Target& t, const std::vector<std::string>& misses) {
-    json j = {{"visibility", t.visibility},
-              {"distance_pct", t.distance_pct},
-              {"normal_deg", t.normal_deg},
-              {"met", misses.empty()}};
+    json j = target_settings(t);
+    j["met"] = misses.empty();
     if (!misses.empty()) j["misses"] = misses;
     return j;
 }
@@ -694,10 +697,7 @@ json manifest_json(const Run& run, const json& inputs, const json& meshes, const
           {"threads", run.threads},
           {"forced_complex", forced_c},
           {"forced_simple", forced_s},
-          {"target",
-           {{"visibility", run.opt.target.visibility},
-            {"distance_pct", run.opt.target.distance_pct},
-            {"normal_deg", run.opt.target.normal_deg}}}}},
+          {"target", target_settings(run.opt.target)}}},
         {"inputs", inputs},
         {"meshes", meshes},
         {"instances", instances},

@@ -73,6 +73,7 @@ inline mesh::MeshView view_of(const scene::Mesh& m) {
 
 // A mesh that classification kept as a candidate for an LSNIF.
 struct Candidate {
+    mesh::MeshView view;  // of the scene mesh (view_of), the one every later stage reads
     mesh::Box box;
     format::ModelDesc desc;  // the preset's model, box set, tables sized to the mesh
     std::unique_ptr<sampling::EmbreeSource> source;

@@ -546,7 +546,7 @@ View make_view(const EvalOptions& opt, const std::array<float, 6>& world) {
 // Primary visibility from the real meshes through Embree (standing in for a rasterized
 // G-buffer): position, camera-facing shading normal, instance and secondary-ray offset of
 // every pixel.
-GBuffer render_primary(const EvalScene& scene, const std::vector<std::array<float, 6>>& instance_boxes,
+GBuffer render_primary(const EvalScene& scene, const std::vector<EvalScene::Impl::Instance>& instances,
                        const View& v, std::uint32_t threads) {
     const std::uint32_t W = v.W, H = v.H;
     GBuffer gb;
@@ -575,7 +575,7 @@ GBuffer render_primary(const EvalScene& scene, const std::vector<std::array<floa
             gb.inst[i] = hits[x].instance;
             // Same offset rule as the training family (b) rays (sampling.hpp): a fraction of
             // the object's diagonal plus a relative term for far-from-origin geometry.
-            const auto& b = instance_boxes[hits[x].instance];
+            const auto& b = instances[hits[x].instance].box;
             const float m = std::max({std::fabs(gb.p[i][0]), std::fabs(gb.p[i][1]), std::fabs(gb.p[i][2])});
             gb.eps[i] = 1e-4f * length(Vec3{b[3] - b[0], b[4] - b[1], b[5] - b[2]}) + 1e-5f * m;
         }
@@ -629,11 +629,11 @@ void make_row_rays(const GBuffer& gb, const View& v, const EvalOptions& opt, std
 
 // Shades pixel k of a row from its traced secondary rays: Lambert with shadow, the open
 // fraction of AO rays, and the mirror bounce (the hit object's Lambert, or the sky).
-void shade_pixel(const GBuffer& gb, const View& v, const std::vector<std::uint32_t>& mesh_of_instance,
+void shade_pixel(const GBuffer& gb, const View& v, const std::vector<EvalScene::Impl::Instance>& instances,
                  const RowRays& rr, std::size_t k, std::size_t i, std::uint32_t S,
                  const std::vector<std::uint8_t>& shadow_occ, const std::vector<std::uint8_t>& ao_occ,
                  const TraceHit& h, EffectImages& out) {
-    const Vec3 base = albedo(mesh_of_instance[gb.inst[i]]);
+    const Vec3 base = albedo(instances[gb.inst[i]].mesh);
     const Vec3 ldir = normalize(v.light - gb.p[i]);
     const float lambert = std::max(0.0f, dot(gb.n[i], ldir));
     const Vec3 sh = base * (0.12f + 0.88f * lambert * (shadow_occ[k] ? 0.0f : 1.0f));
@@ -647,7 +647,7 @@ void shade_pixel(const GBuffer& gb, const View& v, const std::vector<std::uint32
         const Vec3 hp = Vec3{refl.org[0], refl.org[1], refl.org[2]} + rd * h.t;
         Vec3 hn = h.normal;
         if (dot(hn, rd) > 0.0f) hn = hn * -1.0f;
-        rc = albedo(mesh_of_instance[h.instance]) *
+        rc = albedo(instances[h.instance].mesh) *
              (0.2f + 0.8f * std::max(0.0f, dot(hn, normalize(v.light - hp))));
     } else {
         rc = sky(rd);
@@ -658,7 +658,7 @@ void shade_pixel(const GBuffer& gb, const View& v, const std::vector<std::uint32
 }
 
 // The three effect images with one tracer (`hybrid`: LSNIF reader for complex meshes).
-EffectImages render_secondary(const EvalScene& scene, const std::vector<std::uint32_t>& mesh_of_instance,
+EffectImages render_secondary(const EvalScene& scene, const std::vector<EvalScene::Impl::Instance>& instances,
                               const GBuffer& gb, const View& v, const EvalOptions& opt, bool hybrid,
                               std::uint32_t threads) {
     const std::uint32_t W = v.W, S = std::max(1u, opt.ao_samples);
@@ -679,8 +679,7 @@ EffectImages render_secondary(const EvalScene& scene, const std::vector<std::uin
             for (int e = 0; e < kEffects; ++e)
                 for (int c = 0; c < 3; ++c) out.rgb[e][(y * W + x) * 3 + c] = kBackground[c];
         for (std::size_t k = 0; k < rr.px.size(); ++k)
-            shade_pixel(gb, v, mesh_of_instance, rr, k, y * W + rr.px[k], S, shadow_occ, ao_occ, refl_hit[k],
-                        out);
+            shade_pixel(gb, v, instances, rr, k, y * W + rr.px[k], S, shadow_occ, ao_occ, refl_hit[k], out);
     });
     for (double s : per_thread) out.trace_seconds += s;
     return out;
@@ -769,15 +768,12 @@ EvalResult render_and_compare(const EvalOptions& opt) {
     }
     const std::uint32_t threads = base::resolve_threads(opt.threads);
     const View view = make_view(opt, im.world);
-    std::vector<std::array<float, 6>> instance_boxes;
-    std::vector<std::uint32_t> mesh_of_instance;
-    for (const auto& in : im.instances) instance_boxes.push_back(in.box), mesh_of_instance.push_back(in.mesh);
 
     const auto t0 = std::chrono::steady_clock::now();
-    const GBuffer gb = render_primary(*scene, instance_boxes, view, threads);
+    const GBuffer gb = render_primary(*scene, im.instances, view, threads);
     const double primary_seconds = seconds_since(t0);
-    const EffectImages reference = render_secondary(*scene, mesh_of_instance, gb, view, opt, false, threads);
-    const EffectImages hybrid = render_secondary(*scene, mesh_of_instance, gb, view, opt, true, threads);
+    const EffectImages reference = render_secondary(*scene, im.instances, gb, view, opt, false, threads);
+    const EffectImages hybrid = render_secondary(*scene, im.instances, gb, view, opt, true, threads);
 
     const fs::path images = opt.images_dir.empty() ? fs::path(opt.outdir) / "eval" : fs::path(opt.images_dir);
     if (opt.write_images) {
