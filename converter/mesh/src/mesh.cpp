@@ -8,20 +8,18 @@ namespace lsnif::mesh {
 
 namespace {
 
-// True iff every float of the span is finite: branch-free, so it vectorizes; the search for
-// the first offender runs only when it fails.
-bool all_finite(std::span<const float> v) {
-    std::uint32_t nonfinite = 0;
-    for (float f : v) nonfinite |= (std::bit_cast<std::uint32_t>(f) & 0x7F800000u) == 0x7F800000u;
-    return nonfinite == 0;
-}
-
 std::string non_finite(const char* what, std::size_t i, float value) {
     return std::string(what) + " " + std::to_string(i / 3) + ": coordinate " + "xyz"[i % 3] + " is " +
            (std::isnan(value) ? "NaN" : "infinite");
 }
 
 }  // namespace
+
+bool all_finite(std::span<const float> v) {
+    std::uint32_t nonfinite = 0;
+    for (float f : v) nonfinite |= (std::bit_cast<std::uint32_t>(f) & 0x7F800000u) == 0x7F800000u;
+    return nonfinite == 0;
+}
 
 std::string check(const MeshView& mesh, Normals normals) {
     if (mesh.positions.size() % 3 != 0)

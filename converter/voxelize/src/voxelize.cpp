@@ -283,14 +283,6 @@ bool mark_range(const MeshView& mesh, const GridMap& map, std::size_t begin, std
     return ok;
 }
 
-// True iff every float of [begin, end) is finite (branch-free, vectorizes).
-bool all_finite(const float* begin, const float* end) {
-    std::uint32_t nonfinite = 0;
-    for (const float* f = begin; f != end; ++f)
-        nonfinite |= (std::bit_cast<std::uint32_t>(*f) & 0x7F800000u) == 0x7F800000u;
-    return nonfinite == 0;
-}
-
 // The mesh rules of mesh::check (positions and indices; normals and materials are not read).
 std::optional<Error> check_mesh(const MeshView& mesh) {
     if (std::string why = mesh::check({mesh.positions, mesh.indices}); !why.empty()) return Error{why};
@@ -358,7 +350,7 @@ Result<Occupancy> voxelize_impl(const MeshView& mesh, const Box& box, std::uint3
             const std::size_t begin = next_float.fetch_add(kFloatChunk, std::memory_order_relaxed);
             if (begin >= floats) break;
             const float* p = mesh.positions.data();
-            ok &= all_finite(p + begin, p + std::min(begin + kFloatChunk, floats));
+            ok &= mesh::all_finite({p + begin, p + std::min(begin + kFloatChunk, floats)});
         }
         for (;;) {
             const std::size_t begin = next_triangle.fetch_add(kChunk, std::memory_order_relaxed);

@@ -35,6 +35,11 @@ struct Box {
     std::array<float, 3> max{};
 };
 
+// True iff every float of `v` is finite. Branch-free, so it vectorizes: the scan callers
+// run over whole position arrays (or chunks of them, as voxelize's workers do) before
+// looking for the first offender.
+bool all_finite(std::span<const float> v);
+
 enum class Normals : std::uint8_t { optional, required };
 
 // The first problem of a view, as one line naming the offending vertex, triangle or array,
