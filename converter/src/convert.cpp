@@ -236,6 +236,39 @@ std::vector<std::string> early_abort_reasons(const json& point, std::uint64_t sa
     return why;
 }
 
+Target effective_target(const Target& t, const Gate& g) {
+    return {std::max(t.visibility, g.min_visibility), std::min(t.distance_pct, g.max_distance_median_pct),
+            std::min(t.normal_deg, g.max_normal_median_deg)};
+}
+
+bool meets_target_with_margin(const json& point, const Target& t, const TargetStop& rule) {
+    return point.value("visibility", 0.0) >= t.visibility + rule.visibility_margin &&
+           point.value("distance_pct", 100.0) <= t.distance_pct * rule.distance_factor &&
+           point.value("normal_deg", 180.0) <= t.normal_deg - rule.normal_margin_deg;
+}
+
+std::string falls_behind(const json& point, std::uint32_t step, const json& larger, const Target& target,
+                         const TargetStop& stop, const Sizing& rule) {
+    // The larger rung's visibility at the last check at or before `step`, and the most it
+    // gained from there on.
+    const json* at = nullptr;
+    for (const json& q : larger)
+        if (q.value("step", 0u) <= step) at = &q;
+    if (!at || larger.back().value("step", 0u) < step) return {};
+    double best = 0;
+    for (const json& q : larger)
+        if (q.value("step", 0u) >= at->value("step", 0u)) best = std::max(best, q.value("visibility", 0.0));
+    const double gain = best - at->value("visibility", 0.0);
+    const double vis = point.value("visibility", 0.0), needed = target.visibility + stop.visibility_margin;
+    if (vis + gain + rule.curve_slack >= needed) return {};
+    char buf[240];
+    std::snprintf(buf, sizeof buf,
+                  "validation visibility %.2f %% at step %u; the larger model gained %.2f points after that "
+                  "step, short of the %.2f %% needed",
+                  100 * vis, step, 100 * gain, 100 * needed);
+    return buf;
+}
+
 json metrics_json(const samples::Metrics& m) {
     return {{"outside", family_json(m.family[0])},
             {"surface", family_json(m.family[1])},
@@ -256,6 +289,20 @@ static std::string recipe_key(const Preset& p, std::uint32_t threads) {
         c.loss.distance, c.loss.normal, c.loss.material, c.grid_adam.lr, c.grid_adam.beta1, c.grid_adam.beta2,
         c.grid_adam.eps, c.mlp_adam.lr, c.mlp_adam.beta1, c.mlp_adam.beta2, c.mlp_adam.eps, c.mlp_adam.l2,
         c.decay_start, c.final_lr_fraction, c.huber_delta, c.grad_clip_norm);
+    return buf;
+}
+
+// The rules that may end training early: the target with its stop margins and the abort
+// rule. Part of the asset key, since they decide how many steps the weights saw.
+static std::string stop_key(const Target& t, const Preset& p) {
+    const TargetStop& s = p.target_stop;
+    const EarlyAbort& a = p.early_abort;
+    char buf[256];
+    std::snprintf(buf, sizeof buf, "target%g,%g,%g|stop%u,%g,%g,%g|abort%llu,%g,%g,%g|checks%u,%llu",
+                  t.visibility, t.distance_pct, t.normal_deg, s.consecutive, s.visibility_margin,
+                  s.distance_factor, s.normal_margin_deg, (unsigned long long)a.min_samples,
+                  a.visibility_headroom, a.normal_headroom_deg, a.distance_factor, p.validation_checks,
+                  (unsigned long long)p.validation_rays);
     return buf;
 }
 
@@ -448,7 +495,7 @@ std::string asset_key(const Run& run, const scene::Mesh& mesh, const format::Mod
            std::to_string(p.train.steps) + "|" + std::to_string(p.train.batch_size) + "|" +
            std::to_string(p.train_rays) + "/" + std::to_string(p.train_chunk_rays) + "/" +
            std::to_string(p.train_window_chunks) + "|" + model_json(desc).dump() + "|" +
-           recipe_key(p, run.threads);
+           recipe_key(p, run.threads) + "|" + stop_key(run.opt.target, p);
 }
 
 std::optional<json> reusable_metrics(const fs::path& asset, const std::string& key) {
@@ -474,75 +521,100 @@ json validation_point(std::uint32_t step, const format::ModelData& model,
             {"normal_deg", m.pooled.normal_median_deg}};
 }
 
-Trained sample_and_train(const Run& run, const scene::Mesh& mesh, Candidate& c,
-                         const voxelize::Occupancy& occ, MeshRecord& rec) {
-    Trained t;
-    auto t0 = Clock::now();
+MeasureRays draw_measure_rays(const Run& run, const scene::Mesh& mesh, Candidate& c, MeshRecord& rec) {
+    const auto t0 = Clock::now();
     run.report({mesh.name, "sample"});
+    MeasureRays rays;
     std::vector<sampling::SampleExtras> extras;
-    c.source->generate(run.opt.seed * 2 + 1 + 0x5bd1e995ull, run.preset.eval_rays, t.held_out, &extras);
-    t.held_out_geometric_normals.resize(extras.size());
+    c.source->generate(run.opt.seed * 2 + 1 + 0x5bd1e995ull, run.preset.eval_rays, rays.held_out, &extras);
+    rays.held_out_geometric_normals.resize(extras.size());
     for (std::size_t i = 0; i < extras.size(); ++i)
-        t.held_out_geometric_normals[i] = extras[i].geometric_normal;
+        rays.held_out_geometric_normals[i] = extras[i].geometric_normal;
+    c.source->generate(run.opt.seed * 2 + 1 + 0x27d4eb2full, run.preset.validation_rays, rays.validation);
+    rec.add_seconds("sample", seconds_since(t0));
+    return rays;
+}
 
-    std::vector<samples::Sample> validation;
-    c.source->generate(run.opt.seed * 2 + 1 + 0x27d4eb2full, run.preset.validation_rays, validation);
-    const double held_out_seconds = seconds_since(t0);
-
+Trained train_rung(const Run& run, const scene::Mesh& mesh, Candidate& c, const format::ModelDesc& desc,
+                   const voxelize::Occupancy& occ, const MeasureRays& rays, std::uint32_t steps,
+                   const json& larger, MeshRecord& rec) {
+    const auto t0 = Clock::now();
+    Trained t;
     t.config = run.preset.train;
+    t.config.steps = steps;
     t.config.threads = run.threads;
     t.config.seed = run.opt.seed;
-    trainer::Trainer tr(c.desc, occ.bits, t.config);
+    trainer::Trainer tr(desc, occ.bits, t.config);
+    // Rays in proportion to the steps: a rung trained on part of the budget sees the same
+    // rays per step as the full schedule.
+    const Preset& p = run.preset;
     trainer::StreamPlan plan;
-    plan.total_rays = run.preset.train_rays;
-    plan.rays_per_round = run.preset.train_chunk_rays;
-    plan.window_rounds = run.preset.train_window_chunks;
+    plan.total_rays = std::max<std::uint64_t>(1, p.train_rays * steps / std::max(1u, p.train.steps));
+    plan.rays_per_round = p.train_chunk_rays;
+    plan.window_rounds = p.train_window_chunks;
     const std::uint64_t seed = run.opt.seed;
     plan.round_seed = [seed](std::uint64_t r) {
         return fnv1a64("train|" + std::to_string(seed) + "|" + std::to_string(r));
     };
-    t0 = Clock::now();
-    const std::uint32_t checks = run.preset.validation_checks;
+    const std::uint32_t checks = p.validation_checks;
     std::uint32_t next_check = 1;  // check k runs once k * steps / checks steps are done
+    std::uint32_t met_in_a_row = 0;
     double validation_seconds = 0;
-    t.stream = trainer::train_streamed(tr, *c.source, plan, [&](const trainer::Progress& p) {
-        if (!validation.empty() && next_check <= checks &&
-            std::uint64_t(p.step) * checks >= std::uint64_t(next_check) * p.steps) {
+    // At each validation check: give up when the gate is out of reach or a smaller rung
+    // cannot catch up; stop when the target is met (TargetStop).
+    const Target aim = effective_target(run.opt.target, p.gate);
+    auto decide = [&](std::uint32_t step, std::uint32_t of) {
+        const json& point = t.validation.back();
+        t.abandoned =
+            early_abort_reasons(point, std::uint64_t(step) * t.config.batch_size, p.gate, p.early_abort);
+        if (!t.abandoned.empty()) {
+            t.abandoned_at = step;
+            return false;
+        }
+        t.fell_behind = falls_behind(point, step, larger, aim, p.target_stop, p.sizing);
+        if (!t.fell_behind.empty()) return false;
+        met_in_a_row = meets_target_with_margin(point, aim, p.target_stop) ? met_in_a_row + 1 : 0;
+        if (met_in_a_row >= p.target_stop.consecutive && step < of) {
+            t.target_met_at = step;
+            return false;
+        }
+        return true;
+    };
+    t.stream = trainer::train_streamed(tr, *c.source, plan, [&](const trainer::Progress& pr) {
+        if (!rays.validation.empty() && next_check <= checks &&
+            std::uint64_t(pr.step) * checks >= std::uint64_t(next_check) * pr.steps) {
             ++next_check;
             const auto tv = Clock::now();
-            t.validation.push_back(validation_point(p.step, tr.export_model("{}"), validation, run.threads));
+            t.validation.push_back(
+                validation_point(pr.step, tr.export_model("{}"), rays.validation, run.threads));
             validation_seconds += seconds_since(tv);
-            t.abandoned =
-                early_abort_reasons(t.validation.back(), std::uint64_t(p.step) * t.config.batch_size,
-                                    run.preset.gate, run.preset.early_abort);
-            if (!t.abandoned.empty()) {
-                t.abandoned_at = p.step;
-                return false;
-            }
+            if (!decide(pr.step, pr.steps)) return false;
         }
         const double elapsed = seconds_since(t0);
-        run.report({mesh.name, "train", p.step, p.steps, p.loss,
-                    p.step ? elapsed / p.step * (p.steps - p.step) : 0.0});
+        run.report({mesh.name, "train", pr.step, pr.steps, pr.loss,
+                    pr.step ? elapsed / pr.step * (pr.steps - pr.step) : 0.0});
         return true;
     });
-    const trainer::StreamedResult& s = t.stream;
-    rec.stats["mean_occupied_per_ray"] = s.rays_reaching ? s.entry_points / double(s.rays_reaching) : 0.0;
-    rec.stats["training_rays"] = s.rays_drawn;
-    rec.timings["sample"] = held_out_seconds + s.generate_seconds;
-    rec.timings["prepare"] = s.prepare_seconds;
-    rec.timings["train"] = s.train.seconds - validation_seconds;
-    rec.timings["validate"] = validation_seconds;
+    const trainer::StreamedResult& st = t.stream;
+    rec.stats["mean_occupied_per_ray"] = st.rays_reaching ? st.entry_points / double(st.rays_reaching) : 0.0;
+    rec.stats["training_rays"] = rec.stats.value("training_rays", std::uint64_t(0)) + st.rays_drawn;
+    rec.add_seconds("sample", st.generate_seconds);
+    rec.add_seconds("prepare", st.prepare_seconds);
+    rec.add_seconds("train", st.train.seconds - validation_seconds);
+    rec.add_seconds("validate", validation_seconds);
     t.model = tr.export_model("{}");
+    t.seconds = seconds_since(t0);
     return t;
 }
 
-json gate(const Run& run, const scene::Mesh& mesh, const Trained& t, MeshRecord& rec) {
+json gate(const Run& run, const scene::Mesh& mesh, const Trained& t, const MeasureRays& rays,
+          MeshRecord& rec) {
     const auto t0 = Clock::now();
     run.report({mesh.name, "evaluate"});
     const format::Runtime rt = format::make_runtime(t.model);
     const samples::Metrics m =
-        samples::held_out_metrics(rt, t.held_out, run.threads, t.held_out_geometric_normals);
-    json metrics = {{"held_out_rays", t.held_out.size()}, {"families", metrics_json(m)}};
+        samples::held_out_metrics(rt, rays.held_out, run.threads, rays.held_out_geometric_normals);
+    json metrics = {{"held_out_rays", rays.held_out.size()}, {"families", metrics_json(m)}};
     std::vector<std::string> reasons = gate_failures(m, run.preset.gate);
     if (t.stream.train.diverged) reasons.push_back(t.stream.train.message);
     for (const std::string& why : t.abandoned)
@@ -551,8 +623,85 @@ json gate(const Run& run, const scene::Mesh& mesh, const Trained& t, MeshRecord&
     json verdict = {{"passed", reasons.empty()}};
     if (!reasons.empty()) verdict["reasons"] = reasons;
     metrics["gate"] = verdict;
-    rec.timings["evaluate"] = seconds_since(t0);
+    rec.add_seconds("evaluate", seconds_since(t0));
     return metrics;
+}
+
+json candidate_json(const Trained& t, const json& metrics, std::uint64_t bytes, bool target_met) {
+    const format::ModelDesc& d = t.model.desc;
+    const json& p = metrics["families"]["pooled"];
+    json j = {{"log2_table_size", d.log2_table_size},
+              {"hidden_width", d.hidden_width},
+              {"grid", "fp16"},
+              {"bytes", bytes},
+              {"steps", t.stream.train.steps},
+              {"steps_planned", t.config.steps},
+              {"seconds", t.seconds},
+              {"held_out",
+               {{"visibility", p["visibility_accuracy"]},
+                {"distance_pct", p["distance_error_median_pct"]},
+                {"normal_deg", p["normal_error_median_deg"]}}},
+              {"gate_passed", metrics["gate"]["passed"]},
+              {"target_met", target_met},
+              {"validation", t.validation}};
+    if (t.target_met_at) j["stopped"] = "the validation curve met the target";
+    if (!t.abandoned.empty()) j["stopped"] = "given up: " + t.abandoned.front();
+    if (!t.fell_behind.empty()) j["stopped"] = "given up: " + t.fell_behind;
+    return j;
+}
+
+Sized size_to_target(const Run& run, const scene::Mesh& mesh, Candidate& c, const voxelize::Occupancy& occ,
+                     const MeasureRays& rays, MeshRecord& rec) {
+    Sized sized;
+    const Preset& p = run.preset;
+    format::ModelDesc desc = c.desc;
+    std::uint32_t budget = p.train.steps;  // steps left to all rungs
+    for (;;) {
+        const json& larger = sized.rungs.empty() ? json::array() : sized.rungs.back().validation;
+        Trained t = train_rung(run, mesh, c, desc, occ, rays, budget, larger, rec);
+        json metrics = gate(run, mesh, t, rays, rec);
+        const bool met = metrics["gate"]["passed"].get<bool>() &&
+                         target_misses(metrics["families"], run.opt.target).empty();
+        auto bytes = format::serialize(t.model);
+        sized.candidates.push_back(candidate_json(t, metrics, bytes ? bytes->size() : 0, met));
+        const std::uint32_t used = t.stream.train.steps;
+        budget -= std::min(budget, used);
+        sized.rungs.push_back(std::move(t));
+        sized.metrics.push_back(std::move(metrics));
+        // A smaller rung is worth a try only after this one met the target, and only with
+        // at least as many steps as this one needed: a smaller model does not learn faster.
+        if (!met || c.forced || !p.sizing.explore_smaller || budget < used ||
+            desc.log2_table_size <= p.classify.min_log2_table_size)
+            break;
+        --desc.log2_table_size;
+    }
+    choose_candidate(sized);
+    return sized;
+}
+
+void choose_candidate(Sized& sized) {
+    const std::size_t n = sized.rungs.size();
+    for (std::size_t i = 0; i < n; ++i)
+        if (sized.candidates[i]["target_met"].get<bool>())
+            sized.chosen = i;  // rungs shrink: the last is the smallest
+    if (sized.chosen) {
+        sized.why = "the smallest of " + std::to_string(n) + " candidate" + (n > 1 ? "s" : "") +
+                    " that meets the target";
+    } else if (sized.metrics[0]["gate"]["passed"].get<bool>()) {
+        sized.chosen = 0;
+        sized.why = "no candidate meets the target; the largest passes the gate";
+    }
+    for (std::size_t i = 0; i < n; ++i) {
+        json& cand = sized.candidates[i];
+        if (sized.chosen == i)
+            cand["outcome"] = "chosen: " + sized.why;
+        else if (!sized.metrics[i]["gate"]["passed"].get<bool>())
+            cand["outcome"] = "fails the gate";
+        else if (cand["target_met"].get<bool>())
+            cand["outcome"] = "meets the target, but a smaller candidate does too";
+        else
+            cand["outcome"] = "misses the target";
+    }
 }
 
 json asset_metadata(const Run& run, const std::string& source, const scene::Mesh& mesh, const Candidate& c,
@@ -571,7 +720,7 @@ json asset_metadata(const Run& run, const std::string& source, const scene::Mesh
           {"triangle_count", mesh.triangle_count()},
           {"vertex_count", mesh.vertex_count()},
           {"closed", c.source->is_closed()}}},
-        {"model", model_json(c.desc)},
+        {"model", model_json(t.model.desc)},
         {"training",
          {{"seed", run.opt.seed},
           {"threads", run.threads},
@@ -595,16 +744,30 @@ json asset_metadata(const Run& run, const std::string& source, const scene::Mesh
         {"extensions", {{"lsnif_convert_key", key}}}};
 }
 
-std::string write_asset(const Run& run, const scene::Mesh& mesh, Trained& t, const json& metadata,
+format::Result<std::vector<std::uint8_t>> encode_asset(Trained& t, const json& metadata) {
+    t.model.metadata_json = metadata.dump(2);
+    return format::serialize(t.model);
+}
+
+std::string write_asset(const Run& run, const scene::Mesh& mesh, std::span<const std::uint8_t> bytes,
                         const fs::path& asset, MeshRecord& rec) {
     const auto t0 = Clock::now();
     run.report({mesh.name, "write"});
-    t.model.metadata_json = metadata.dump(2);
     std::error_code ec;
     fs::create_directories(run.outdir, ec);
-    const format::Error e = format::write_file(asset.string(), t.model);
-    rec.timings["write"] = seconds_since(t0);
+    const format::Error e = format::write_bytes_atomically(asset.string(), bytes);
+    rec.add_seconds("write", seconds_since(t0));
     return e ? e.message : std::string();
+}
+
+std::string memory_rule_failure(const Run& run, const Candidate& c, std::uint64_t asset_bytes) {
+    const double ratio = double(c.source->bvh_bytes()) / double(std::max<std::uint64_t>(1, asset_bytes));
+    if (c.forced || ratio >= run.preset.classify.min_memory_ratio) return {};
+    char why[200];
+    std::snprintf(why, sizeof why,
+                  "the chosen asset (%" PRIu64 " bytes) is only %.2fx smaller than the BVH (%.2fx needed)",
+                  asset_bytes, ratio, run.preset.classify.min_memory_ratio);
+    return why;
 }
 
 // The target as the manifest's settings record it.
@@ -637,33 +800,51 @@ json convert_mesh(const Run& run, const std::string& source, const scene::Mesh& 
     const std::string key = asset_key(run, mesh, c->desc);
     const std::string file = hex16(fnv1a64(key)) + ".lsnif";
     const fs::path asset = run.outdir / file;
-    json metrics;
-    bool reused = false;
-    bool abandoned = false;
-    if (auto previous = reusable_metrics(asset, key)) {
-        metrics = std::move(*previous);
-        reused = true;
-    } else {
-        Trained t = sample_and_train(run, mesh, *c, *occ, rec);
-        rec.entry["validation"] = t.validation;
-        abandoned = !t.abandoned.empty();
-        metrics = gate(run, mesh, t, rec);
-        if (metrics["gate"]["passed"].get<bool>()) {
-            const std::string err =
-                write_asset(run, mesh, t, asset_metadata(run, source, mesh, *c, t, metrics, key), asset, rec);
-            if (!err.empty()) {
-                errors.push_back(source + ": mesh '" + mesh.name + "': " + err);
-                metrics["gate"]["passed"] = false;  // not shipped; the manifest must not point at it
-            }
-        }
+    if (auto previous = reusable_metrics(asset, key))
+        return shipped(run, std::move(*previous), file, asset, true, rec);
+
+    const MeasureRays rays = draw_measure_rays(run, mesh, *c, rec);
+    Sized sized = size_to_target(run, mesh, *c, *occ, rays, rec);
+    rec.entry["candidates"] = sized.candidates;
+    const std::size_t shown = sized.chosen.value_or(0);  // the chosen rung, or the largest tried
+    Trained& t = sized.rungs[shown];
+    const json& metrics = sized.metrics[shown];
+    rec.entry["validation"] = t.validation;
+    if (t.target_met_at)
+        rec.entry["stopped_early"] = {{"step", t.target_met_at},
+                                      {"steps", t.config.steps},
+                                      {"reason", "validation curve met the target"}};
+    if (!sized.chosen) return below_gate(metrics, !t.abandoned.empty(), rec);
+    if (shown > 0)
+        rec.reasons.push_back("hash tables sized to 2^" + std::to_string(t.model.desc.log2_table_size) +
+                              " rows: " + sized.why);
+    auto bytes = encode_asset(t, asset_metadata(run, source, mesh, *c, t, metrics, key));
+    if (!bytes) {
+        errors.push_back(source + ": mesh '" + mesh.name + "': " + bytes.error().message);
+        return rec.simple("the asset could not be encoded: " + bytes.error().message);
     }
+    if (std::string why = memory_rule_failure(run, *c, bytes->size()); !why.empty()) {
+        rec.entry["metrics"] = metrics;
+        return rec.simple(why);
+    }
+    if (std::string err = write_asset(run, mesh, *bytes, asset, rec); !err.empty()) {
+        errors.push_back(source + ": mesh '" + mesh.name + "': " + err);
+        return rec.simple("the asset could not be written: " + err);
+    }
+    return shipped(run, metrics, file, asset, false, rec);
+}
+
+json shipped(const Run& run, json metrics, const std::string& file, const fs::path& asset, bool reused,
+             MeshRecord& rec) {
+    rec.entry["target"] = target_json(run.opt.target, target_misses(metrics["families"], run.opt.target));
+    rec.entry["metrics"] = std::move(metrics);
+    std::error_code ec;
+    rec.entry["lsnif"] = {{"file", file}, {"bytes", fs::file_size(asset, ec)}, {"reused", reused}};
+    return rec.finish("complex");
+}
+
+json below_gate(const json& metrics, bool abandoned, MeshRecord& rec) {
     rec.entry["metrics"] = metrics;
-    if (metrics["gate"]["passed"].get<bool>()) {
-        rec.entry["target"] = target_json(run.opt.target, target_misses(metrics["families"], run.opt.target));
-        std::error_code ec;
-        rec.entry["lsnif"] = {{"file", file}, {"bytes", fs::file_size(asset, ec)}, {"reused", reused}};
-        return rec.finish("complex");
-    }
     for (const auto& r : metrics["gate"].value("reasons", std::vector<std::string>{}))
         rec.reasons.push_back("gate: " + r);
     return rec.simple(abandoned ? "decided early from the validation curve: stays BVH"
@@ -723,12 +904,13 @@ using namespace stages;
 
 ConvertResult convert(const ConvertOptions& opt, const ConvertProgress& progress) {
     ConvertResult res;
-    Run run{opt, {}, base::resolve_threads(opt.threads), opt.outdir, progress};
+    Preset preset;
     std::string error;
-    if (!resolve_preset(opt, run.preset, error)) {
+    if (!resolve_preset(opt, preset, error)) {
         res.errors.push_back(error);
         return res;
     }
+    const Run run{opt, std::move(preset), base::resolve_threads(opt.threads), opt.outdir, progress};
     json inputs = json::array(), meshes = json::array(), instances = json::array();
     std::size_t ok_inputs = 0, next_id = 0;
     double import_seconds = 0;
@@ -801,6 +983,13 @@ std::string convert_text(const ConvertResult& r) {
             if (m.contains("target") && !m["target"]["met"].get<bool>())
                 s +=
                     "\n           target missed, gate passed: " + m["target"]["misses"][0].get<std::string>();
+            if (m.contains("stopped_early")) {
+                std::snprintf(buf, sizeof buf,
+                              "\n           trained %u of %u steps: the validation curve met the target",
+                              m["stopped_early"]["step"].get<unsigned>(),
+                              m["stopped_early"]["steps"].get<unsigned>());
+                s += buf;
+            }
             const json& fam = m["metrics"]["families"];
             for (const char* f : {"outside", "surface", "interior"}) {
                 std::snprintf(buf, sizeof buf,

@@ -1,7 +1,8 @@
 // The stages of `lsnif convert` (convert.cpp), one function each, in pipeline order:
 //   resolve_preset; per mesh: classify -> voxelize_mesh -> worth_an_lsnif -> asset_key ->
-//   (reusable_metrics | sample_and_train -> gate -> asset_metadata -> write_asset);
-//   finally manifest_json -> write_manifest.
+//   (reusable_metrics -> shipped | draw_measure_rays -> size_to_target [train_rung -> gate
+//   per rung, choose_candidate] -> asset_metadata -> encode_asset -> memory_rule_failure ->
+//   write_asset -> shipped); finally manifest_json -> write_manifest.
 // A stage that decides "simple" returns nothing (or false) and records its reason in the
 // mesh's MeshRecord. Internal to the converter: exposed so that each stage is tested on its
 // own (tests/converter/test_convert_stages.cpp); not installed, not an API.
@@ -53,6 +54,9 @@ struct MeshRecord {
     json stats;  // null until classification measured the mesh
     json timings = json::object();
 
+    void add_seconds(const char* stage, double seconds) {
+        timings[stage] = timings.value(stage, 0.0) + seconds;
+    }
     json simple(const std::string& why) {
         reasons.push_back(why);
         return finish("simple");
@@ -80,17 +84,39 @@ struct Candidate {
     bool forced = false;
 };
 
-// A trained model with the held-out rays it is measured on.
-struct Trained {
-    format::ModelData model;
-    trainer::TrainConfig config;
-    trainer::StreamedResult stream;
+// The rays a mesh's models are measured on, drawn once and shared by every rung of the
+// ladder: held-out rays (the gate and the target) and validation rays (the curve that
+// decides during training). Both apart from the training rays.
+struct MeasureRays {
     std::vector<samples::Sample> held_out;
     std::vector<std::array<float, 3>> held_out_geometric_normals;
+    std::vector<samples::Sample> validation;
+};
+
+// One rung of the ladder, trained.
+struct Trained {
+    format::ModelData model;  // model.desc is the rung's
+    trainer::TrainConfig config;
+    trainer::StreamedResult stream;
     json validation = json::array();  // [{"step", "visibility", "distance_pct", "normal_deg"}]
     // Why training was given up at step `abandoned_at` (EarlyAbort); empty when it ran to the end.
     std::vector<std::string> abandoned;
     std::uint32_t abandoned_at = 0;
+    // The step at which training stopped because the validation curve met the target
+    // (TargetStop); 0 when it did not.
+    std::uint32_t target_met_at = 0;
+    // Why a smaller rung was given up against the larger rung's curve (falls_behind).
+    std::string fell_behind;
+    double seconds = 0;  // wall time of this rung: drawing, preparing, training, validating
+};
+
+// Every rung tried for a mesh, largest first, with the held-out metrics of each (gate()).
+struct Sized {
+    std::vector<Trained> rungs;
+    std::vector<json> metrics;
+    json candidates = json::array();    // the manifest's "candidates", one per rung
+    std::optional<std::size_t> chosen;  // into rungs; none when no rung may ship
+    std::string why;                    // why `chosen` won
 };
 
 // The validation point of a model at `step`: pooled metrics of `rays` through the reader's
@@ -129,23 +155,58 @@ std::string asset_key(const Run& run, const scene::Mesh& mesh, const format::Mod
 // nothing (absent, unreadable, or another key).
 std::optional<json> reusable_metrics(const fs::path& asset, const std::string& key);
 
-// Sample + train: held-out rays, then the streamed training rounds. The trained model has
-// an empty metadata document until write_asset fills it.
-Trained sample_and_train(const Run& run, const scene::Mesh& mesh, Candidate& c,
-                         const voxelize::Occupancy& occ, MeshRecord& rec);
+// Draws the held-out and validation rays (seeded by the run's seed, not by the rung).
+MeasureRays draw_measure_rays(const Run& run, const scene::Mesh& mesh, Candidate& c, MeshRecord& rec);
+
+// Trains `desc` (a rung: the candidate's model with another table size) for at most `steps`
+// steps on streamed rays, checking the validation curve `validation_checks` times: it gives
+// up when the gate is out of reach (EarlyAbort) or when, as a smaller rung, it falls behind
+// `larger` (the previous rung's curve; empty for the first), and stops once the target is
+// met (TargetStop). Timings accumulate in `rec`.
+Trained train_rung(const Run& run, const scene::Mesh& mesh, Candidate& c, const format::ModelDesc& desc,
+                   const voxelize::Occupancy& occ, const MeasureRays& rays, std::uint32_t steps,
+                   const json& larger, MeshRecord& rec);
 
 // Gate: held-out metrics of the trained model and the verdict, as the manifest records
 // them ({"held_out_rays", "families", "gate": {"passed", "reasons"?}}).
-json gate(const Run& run, const scene::Mesh& mesh, const Trained& t, MeshRecord& rec);
+json gate(const Run& run, const scene::Mesh& mesh, const Trained& t, const MeasureRays& rays,
+          MeshRecord& rec);
+
+// The manifest's record of one rung: size, bytes (`bytes`: the serialized model without
+// metadata), steps, seconds, held-out metrics, verdicts, curve and why training stopped.
+json candidate_json(const Trained& t, const json& metrics, std::uint64_t bytes, bool target_met);
+
+// The ladder (Sizing): trains c.desc, then each smaller table size while the previous one
+// met the target and the preset's step budget has at least as many steps left as it used.
+Sized size_to_target(const Run& run, const scene::Mesh& mesh, Candidate& c, const voxelize::Occupancy& occ,
+                     const MeasureRays& rays, MeshRecord& rec);
+
+// Picks the smallest rung that meets the target; else the largest if it passes the gate;
+// else none. Writes every candidate's "outcome".
+void choose_candidate(Sized& sized);
 
 // The asset's metadata document (schema/lsnif-metadata.schema.json). No wall times: an
 // asset must be reproducible byte for byte for the same input, seed and threads.
 json asset_metadata(const Run& run, const std::string& source, const scene::Mesh& mesh, const Candidate& c,
                     const Trained& t, const json& metrics, const std::string& key);
 
-// Write: the asset through a temporary file and a rename. Returns the error, if any.
-std::string write_asset(const Run& run, const scene::Mesh& mesh, Trained& t, const json& metadata,
+// The asset's bytes: `metadata` stored into the model, then serialized.
+format::Result<std::vector<std::uint8_t>> encode_asset(Trained& t, const json& metadata);
+
+// Write: the bytes through a temporary file and a rename. Returns the error, if any.
+std::string write_asset(const Run& run, const scene::Mesh& mesh, std::span<const std::uint8_t> bytes,
                         const fs::path& asset, MeshRecord& rec);
+
+// The memory rule on the asset actually chosen: why it does not beat the BVH by
+// ClassifyRule::min_memory_ratio, or an empty string (also for a forced mesh).
+std::string memory_rule_failure(const Run& run, const Candidate& c, std::uint64_t asset_bytes);
+
+// The entry of a mesh whose asset ships (just written, or reused).
+json shipped(const Run& run, json metrics, const std::string& file, const fs::path& asset, bool reused,
+             MeshRecord& rec);
+
+// The entry of a mesh none of whose rungs passes the gate.
+json below_gate(const json& metrics, bool abandoned, MeshRecord& rec);
 
 // The manifest's verdict on the target for one shipped asset: the target and whether it
 // was met ({"visibility", "distance_pct", "normal_deg", "met", "misses"?}).

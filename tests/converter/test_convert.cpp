@@ -99,19 +99,40 @@ TEST_CASE("convert a real mesh: asset, metadata, manifest, reuse") {
     CHECK(m["target"]["met"] == false);
     CHECK(m["target"]["misses"].size() >= 1);
 
-    // Unchanged input and options: the asset is reused, byte for byte. A lenient target
-    // (it does not change the weights) is met by the same asset.
+    // Unchanged input and options: the asset is reused, byte for byte.
     const auto before = fs::last_write_time(asset);
-    ConvertOptions lenient = smoke({kDragon}, out);
-    std::string target_error;
-    REQUIRE(parse_target("50,50,90", lenient.target, target_error));
-    const ConvertResult again = convert(lenient);
+    const ConvertResult again = convert(smoke({kDragon}, out));
     REQUIRE(again.ok());
     CHECK(again.manifest["meshes"][0]["lsnif"]["reused"] == true);
     CHECK_FALSE(again.manifest["meshes"][0].contains("validation"));  // nothing was trained
-    CHECK(again.manifest["meshes"][0]["target"]["met"] == true);
-    CHECK_FALSE(again.manifest["meshes"][0]["target"].contains("misses"));
+    CHECK(again.manifest["meshes"][0]["target"]["met"] == false);
     CHECK(fs::last_write_time(asset) == before);
+
+    // A lenient target (and gate: training aims at the stricter of the two) changes the
+    // weights: training stops at the second validation check, the first two that meet it
+    // (TargetStop), so it is a new asset, and it meets the target.
+    ConvertOptions lenient = smoke({kDragon}, out);
+    lenient.gate_min_visibility = 0.5;
+    std::string target_error;
+    REQUIRE(parse_target("50,50,90", lenient.target, target_error));
+    const ConvertResult early = convert(lenient);
+    REQUIRE(early.ok());
+    const json& e = early.manifest["meshes"][0];
+    CHECK_MESSAGE(violations(manifest_schema(), early.manifest).empty(),
+                  violations(manifest_schema(), early.manifest));
+    CHECK(e["lsnif"]["reused"] == false);
+    CHECK(e["lsnif"]["file"] != m["lsnif"]["file"]);
+    const std::uint32_t check_every = smoke_preset.train.steps / smoke_preset.validation_checks;
+    REQUIRE(e.contains("stopped_early"));
+    CHECK(e["stopped_early"]["step"] == 2 * check_every);
+    CHECK(e["stopped_early"]["steps"] == smoke_preset.train.steps);
+    CHECK(e["validation"].size() == 2);
+    CHECK(e["target"]["met"] == true);
+    CHECK_FALSE(e["target"].contains("misses"));
+    const std::string trained = "trained " + std::to_string(2 * check_every) + " of " +
+                                std::to_string(smoke_preset.train.steps) +
+                                " steps: the validation curve met the target";
+    CHECK_MESSAGE(convert_text(early).find(trained) != std::string::npos, convert_text(early));
 
     // Same input, seed and thread count converted from scratch into another directory: the
     // same file name and the same bytes (no wall time or output path inside the asset).
@@ -351,4 +372,30 @@ TEST_CASE("--target: parsed as VIS,DIST,NORMAL, bad values named, misses listed 
     CHECK(misses[0] == "visibility 96.50 % < target 97.00 %");
     CHECK(misses[1] == "median distance error 1.2 % > target 1 %");
     CHECK(target_misses(families, Target{0.96, 1.5, 20}).empty());
+}
+
+TEST_CASE("stopping at the target: every rule needs its margin for the validation set's noise") {
+    const Target target;  // 97 %, 1 % of the diagonal, 15 deg
+    const TargetStop rule;
+    // The blob's default-preset checks at steps 720 and 960 (docs/model.md "Deciding early").
+    CHECK(meets_target_with_margin({{"visibility", 0.9741}, {"distance_pct", 0.84}, {"normal_deg", 10.6}},
+                                   target, rule));
+    CHECK(meets_target_with_margin({{"visibility", 0.9752}, {"distance_pct", 0.808}, {"normal_deg", 9.9}},
+                                   target, rule));
+    // The dragon at 1680 steps meets the bare target but not its margin: trains on.
+    CHECK_FALSE(meets_target_with_margin(
+        {{"visibility", 0.9714}, {"distance_pct", 0.879}, {"normal_deg", 13.6}}, target, rule));
+    const json good = {{"visibility", 0.975}, {"distance_pct", 0.8}, {"normal_deg", 10.0}};
+    auto with = [&](const char* key, double v) {
+        json p = good;
+        p[key] = v;
+        return meets_target_with_margin(p, target, rule);
+    };
+    CHECK(with("visibility", 0.9731));
+    CHECK_FALSE(with("visibility", 0.9729));
+    CHECK(with("distance_pct", 0.9));
+    CHECK_FALSE(with("distance_pct", 0.901));
+    CHECK(with("normal_deg", 14.0));
+    CHECK_FALSE(with("normal_deg", 14.01));
+    CHECK_FALSE(meets_target_with_margin(json::object(), target, rule));  // nothing measured: never met
 }

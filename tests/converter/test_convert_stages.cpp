@@ -235,3 +235,109 @@ TEST_CASE("write_manifest writes the whole document or reports why, never a part
     CHECK(error.find((dir / "file" / "sub").string()) == 0);
     CHECK_FALSE(fs::exists(dir / "file" / "sub"));
 }
+
+namespace {
+
+// Classify, voxelize and draw the measuring rays of the dragon for `run`, forced or not.
+struct Prepared {
+    Candidate c;
+    voxelize::Occupancy occ;
+    MeasureRays rays;
+};
+Prepared prepare(const Run& run, const scene::Mesh& mesh, MeshRecord& rec) {
+    auto c = classify(run, mesh, false, rec);
+    REQUIRE(c.has_value());
+    auto occ = voxelize_mesh(run, mesh, *c, rec);
+    REQUIRE(occ.has_value());
+    MeasureRays rays = draw_measure_rays(run, mesh, *c, rec);
+    return {std::move(*c), std::move(*occ), std::move(rays)};
+}
+
+}  // namespace
+
+TEST_CASE("size_to_target walks down the ladder while each size meets the target, within one budget") {
+    const scene::Mesh mesh = dragon();
+    ConvertOptions o = options("smoke");
+    std::string error;
+    REQUIRE(parse_target("50,50,90", o.target, error));  // met at the first checks of every size
+    Run run = make_run(o, fresh_dir("stages_ladder"));
+    run.preset.classify.min_log2_table_size = 10;  // the smoke model's 2^12 rows, then 2^11 and 2^10
+    run.preset.gate = {0.5, 0.3, 50.0, 90.0};      // training aims at the stricter of target and gate
+    MeshRecord rec;
+    Prepared p = prepare(run, mesh, rec);
+    REQUIRE(p.c.desc.log2_table_size == 12);
+    const Sized sized = size_to_target(run, mesh, p.c, p.occ, p.rays, rec);
+    REQUIRE_MESSAGE(sized.rungs.size() == 3, sized.candidates.dump());
+    std::uint32_t budget = run.preset.train.steps, steps_trained = 0;
+    for (std::size_t i = 0; i < 3; ++i) {
+        const json& cand = sized.candidates[i];
+        CAPTURE(cand.dump());
+        CHECK(cand["log2_table_size"] == 12 - i);
+        CHECK(sized.rungs[i].model.desc.log2_table_size == 12 - i);
+        CHECK(cand["target_met"] == true);
+        // TargetStop: two checks in a row; check k of a rung comes at the first step at or
+        // past k tenths of its own budget.
+        const std::uint32_t checks = run.preset.validation_checks;
+        CHECK(cand["steps"] == (2 * budget + checks - 1) / checks);
+        CHECK(cand["steps_planned"] == budget);  // what the larger sizes left of the budget
+        CHECK(cand["stopped"] == "the validation curve met the target");
+        if (i > 0)
+            CHECK(cand["bytes"].get<std::uint64_t>() < sized.candidates[i - 1]["bytes"].get<std::uint64_t>());
+        budget -= cand["steps"].get<std::uint32_t>();
+        steps_trained += cand["steps"].get<std::uint32_t>();
+    }
+    CHECK(steps_trained <= run.preset.train.steps);
+    REQUIRE(sized.chosen == 2u);  // the smallest that meets the target
+    CHECK(sized.candidates[2]["outcome"] == "chosen: the smallest of 3 candidates that meets the target");
+    CHECK(sized.candidates[0]["outcome"] == "meets the target, but a smaller candidate does too");
+}
+
+TEST_CASE(
+    "size_to_target: a target no size meets ships the largest through the gate, and tries nothing smaller") {
+    const scene::Mesh mesh = dragon();
+    ConvertOptions o = options("smoke");
+    std::string error;
+    REQUIRE(parse_target("99.9,0.01,1", o.target, error));
+    Run run = make_run(o, fresh_dir("stages_ladder_missed"));
+    run.preset.classify.min_log2_table_size = 10;
+    MeshRecord rec;
+    Prepared p = prepare(run, mesh, rec);
+    const Sized sized = size_to_target(run, mesh, p.c, p.occ, p.rays, rec);
+    REQUIRE(sized.rungs.size() == 1);
+    CHECK(sized.candidates[0]["target_met"] == false);
+    CHECK(sized.candidates[0]["steps"] == run.preset.train.steps);  // nothing stopped it
+    REQUIRE(sized.chosen == 0u);
+    CHECK(sized.why == "no candidate meets the target; the largest passes the gate");
+
+    // Below the gate too: nothing ships.
+    run.preset.gate.min_visibility = 0.9999;
+    const Sized none = size_to_target(run, mesh, p.c, p.occ, p.rays, rec);
+    CHECK_FALSE(none.chosen.has_value());
+    CHECK(none.candidates[0]["outcome"] == "fails the gate");
+}
+
+TEST_CASE("falls_behind: a smaller size is given up when the larger one's later gain cannot close its gap") {
+    const Target target;    // 97 %
+    const TargetStop stop;  // +0.3 points
+    const Sizing rule;      // 0.5 points of slack
+    // The blob's default-preset curve at 2^17 rows (docs/model.md "Sizing to the target").
+    const json larger = json::array({{{"step", 240}, {"visibility", 0.9573}},
+                                     {{"step", 480}, {"visibility", 0.9689}},
+                                     {{"step", 720}, {"visibility", 0.9741}},
+                                     {{"step", 960}, {"visibility", 0.9752}}});
+    auto at = [&](std::uint32_t step, double vis) {
+        return falls_behind({{"visibility", vis}}, step, larger, target, stop, rule);
+    };
+    // At step 240 the larger gained 1.79 points afterwards: 95.0 + 1.79 + 0.5 < 97.3.
+    CHECK(at(240, 0.950) ==
+          "validation visibility 95.00 % at step 240; the larger model gained 1.79 points after that step, "
+          "short "
+          "of the 97.30 % needed");
+    CHECK(at(240, 0.9505).empty());       // 95.05 + 1.79 + 0.5 >= 97.3
+    CHECK_FALSE(at(720, 0.966).empty());  // gain 0.11 after 720
+    CHECK(at(720, 0.9675).empty());
+    CHECK(at(1200, 0.90).empty());  // beyond the larger curve: not judged
+    CHECK(at(100, 0.50).empty());   // before its first check: not judged
+    CHECK(falls_behind({{"visibility", 0.5}}, 240, json::array(), target, stop, rule)
+              .empty());  // the first rung
+}

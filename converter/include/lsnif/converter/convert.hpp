@@ -73,6 +73,33 @@ struct EarlyAbort {
     double distance_factor = 0.35;        // final / checked median: measured at least 0.46
 };
 
+// Stopping when the target is met (docs/model.md "Deciding early"): training ends at a
+// validation check when this check and the `consecutive - 1` checks before it all meet the
+// target with margins for the noise of the validation set (2^13 rays: about +-0.25 points of
+// visibility between seeds), so that the held-out measure of the shipped model meets it too.
+// Training an object further than its target only spends time: a user who wants more asks
+// for more with --target.
+struct TargetStop {
+    std::uint32_t consecutive = 2;     // checks in a row: one good check may be noise
+    double visibility_margin = 0.003;  // validation visibility >= target + margin
+    double distance_factor = 0.9;      // validation median distance <= factor x target
+    double normal_margin_deg = 1.0;    // validation median normal <= target - margin
+};
+
+// Sizing to the target (docs/model.md "Sizing to the target"): the ladder is the preset's
+// table size 2^log2_table_size halved down to 2^ClassifyRule::min_log2_table_size. A mesh's
+// first rung is the largest that passes the memory rule; when it meets the target, the next
+// smaller rung is trained from the steps left of the preset's budget, and so on while each
+// smaller rung meets the target. The smallest asset that meets the target ships; so sizing
+// never trains more steps than the fixed model did.
+struct Sizing {
+    bool explore_smaller = true;  // false: train the first rung only (the pre-#12 behaviour)
+    // A smaller rung is given up at a validation check when its visibility, plus the most
+    // the larger rung's curve gained after the same step, plus this slack, stays below the
+    // visibility that TargetStop asks for: it would not catch up within its budget.
+    double curve_slack = 0.005;
+};
+
 // Box extents (largest axis of the padded box, in the mesh's units) that LSNIF models in
 // single precision: squared distances and dot products of box-sized vectors stay inside
 // float's normal range (~1e-38 .. 3e38) with margin. A mesh outside stays BVH, with the
@@ -101,6 +128,8 @@ struct Preset {
     ClassifyRule classify;
     Gate gate;
     EarlyAbort early_abort;
+    TargetStop target_stop;
+    Sizing sizing;
 };
 // "default" (v1 model), "fast", "quality" (same model, more or fewer training steps) and
 // "smoke" (a tiny model for pipeline checks).
@@ -160,6 +189,21 @@ std::vector<std::string> target_misses(const nlohmann::json& families, const Tar
 // (or when fewer than rule.min_samples samples were seen).
 std::vector<std::string> early_abort_reasons(const nlohmann::json& point, std::uint64_t samples,
                                              const Gate& gate, const EarlyAbort& rule);
+
+// The target training aims at: `target`, made at least as strict as `gate` on each pooled
+// rule, since a model that meets a lenient target below the gate still may not ship.
+Target effective_target(const Target& target, const Gate& gate);
+
+// Whether a validation point (pooled "visibility", "distance_pct", "normal_deg") meets
+// `target` with the margins of `rule`.
+bool meets_target_with_margin(const nlohmann::json& point, const Target& target, const TargetStop& rule);
+
+// Why a smaller rung, at a validation point (pooled "visibility", ...) after `step` steps,
+// cannot catch up with the target given the larger rung's validation curve `larger` (the
+// manifest's [{"step", "visibility", ...}]); empty when it may. Only steps within the
+// larger curve are judged.
+std::string falls_behind(const nlohmann::json& point, std::uint32_t step, const nlohmann::json& larger,
+                         const Target& target, const TargetStop& stop, const Sizing& rule);
 
 // Human-readable summary of a report (what `lsnif convert` prints).
 std::string convert_text(const ConvertResult& result);
