@@ -670,7 +670,7 @@ Sized size_to_target(const Run& run, const scene::Mesh& mesh, Candidate& c, cons
         sized.metrics.push_back(std::move(metrics));
         // A smaller rung is worth a try only after this one met the target, and only with
         // at least as many steps as this one needed: a smaller model does not learn faster.
-        if (!met || c.forced || !p.sizing.explore_smaller || budget < used ||
+        if (!met || !p.sizing.explore_smaller || budget < used ||
             desc.log2_table_size <= p.classify.min_log2_table_size)
             break;
         --desc.log2_table_size;

@@ -23,8 +23,8 @@ namespace lsnif::converter {
 // Model sizing ("never model more than a scene needs"): the preset's hash-table size
 // 2^log2_table_size is the largest a mesh gets. It is halved while the .lsnif would not beat
 // the BVH by min_memory_ratio, down to 2^min_log2_table_size; a mesh that still does not
-// benefit stays BVH. `--complex NAME` skips both the sizing and the memory rule and uses the
-// preset's model as is.
+// benefit stays BVH. `--complex NAME` skips this sizing and the memory rule: the mesh starts
+// at the preset's model, and only the target (Sizing) makes it smaller.
 struct ClassifyRule {
     std::uint64_t min_triangles = 2000;  // fewer: the BVH is tiny and exact; keep it
     // An approximation must at least halve the memory of what it replaces: a 10-30 % saving is
