@@ -122,6 +122,15 @@ TEST_CASE("train_streamed stops when the progress callback says so, and draws no
     CHECK(s.train.steps == 8);
     CHECK(src.draws == std::map<std::uint64_t, std::size_t>{{100, 1000}, {101, 1000}});
 
+    // A stop asked at a round's last step (step 12 ends round two) is a stop too: no third
+    // round is drawn or trained.
+    CountingSource edge(d);
+    Trainer at_edge(d, edge.occupancy(d), small_config());
+    const StreamedResult e = train_streamed(at_edge, edge, plan, [](const Progress& p) { return p.step < 12; });
+    CHECK(e.stopped);
+    CHECK(at_edge.step_count() == 12);
+    CHECK(edge.draws == std::map<std::uint64_t, std::size_t>{{100, 1000}, {101, 1000}});
+
     CountingSource all(d);
     Trainer full(d, all.occupancy(d), small_config());
     CHECK_FALSE(train_streamed(full, all, plan, [](const Progress&) { return true; }).stopped);

@@ -22,6 +22,7 @@ void accumulate(TrainResult& total, const TrainResult& part) {
     total.rollbacks = part.rollbacks;
     total.final_loss = part.final_loss;
     total.diverged = part.diverged;
+    total.stopped = part.stopped;
     if (!part.message.empty()) total.message = part.message;
 }
 
@@ -66,7 +67,9 @@ StreamedResult train_streamed(Trainer& trainer, SampleSource& source, const Stre
 
         const auto until = std::uint32_t(r + 1 == out.rounds ? steps : steps * (r + 1) / out.rounds);
         accumulate(out.train, trainer.train(pool, progress, until));
-        if (!out.train.diverged && trainer.step_count() < until) {
+        // A stop asked at the round's last step counts too: the step count alone cannot
+        // tell it from a round that simply ended.
+        if (!out.train.diverged && (out.train.stopped || trainer.step_count() < until)) {
             out.stopped = true;
             break;
         }

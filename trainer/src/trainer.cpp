@@ -881,7 +881,10 @@ TrainResult Trainer::train(const PreparedSet& samples, const ProgressFn& progres
         losses.push_back(loss);
         if (progress) {
             const double secs = base::seconds_since(t0);
-            if (!progress({std::uint32_t(step_), cfg_.steps, loss, lr_scale_ * schedule(step_), secs})) break;
+            if (!progress({std::uint32_t(step_), cfg_.steps, loss, lr_scale_ * schedule(step_), secs})) {
+                res.stopped = true;
+                break;
+            }
         }
     }
     res.steps = std::uint32_t(step_);

@@ -94,6 +94,7 @@ struct TrainResult {
     float final_loss = 0;  // mean loss over the last 5% of steps
     std::uint32_t rollbacks = 0;
     bool diverged = false;  // gave up after max_rollbacks; the last good snapshot is kept
+    bool stopped = false;   // the progress callback returned false (at any step, the last included)
     std::string message;
 };
 
