@@ -27,7 +27,40 @@ const char* distance_encoding_name(std::uint32_t e) {
     return e == LSNIF_DISTANCE_SEGMENT ? "segment" : "first_entry_diagonal";
 }
 
-json info_json(const lsnif_info& info) {
+const char* grid_encoding_name(std::uint32_t e) {
+    return e == LSNIF_GRID_U8_AFFINE ? "u8_affine" : e == LSNIF_GRID_FP16 ? "fp16" : "unknown";
+}
+
+// The grid encoding and, for a quantized grid, each level's dequantization pair
+// (FORMAT.md §6.4.1) as the C API hands it to a GPU uploader.
+json grid_json(const lsnif_model* model, const lsnif_info& info) {
+    json g = {{"encoding", grid_encoding_name(info.grid_encoding)}};
+    if (info.grid_encoding != LSNIF_GRID_U8_AFFINE) return g;
+    json levels = json::array();
+    for (std::uint32_t l = 0; l < info.level_count; ++l) {
+        lsnif_array a{};
+        if (lsnif_get_array(model, LSNIF_ARRAY_GRID_DEQUANT, l, &a) != LSNIF_OK) break;
+        const float* p = static_cast<const float*>(a.data);
+        levels.push_back({{"scale", p[0]}, {"offset", p[1]}});
+    }
+    g["levels"] = levels;
+    return g;
+}
+
+std::string grid_text(const json& g) {
+    std::string out = g["encoding"].get<std::string>();
+    if (!g.contains("levels")) return out;
+    for (std::size_t l = 0; l < g["levels"].size(); ++l) {
+        char buf[96];
+        // %.9g round-trips a float exactly.
+        std::snprintf(buf, sizeof buf, "%s level %zu scale %.9g offset %.9g", l ? ";" : ":", l,
+                      g["levels"][l]["scale"].get<double>(), g["levels"][l]["offset"].get<double>());
+        out += buf;
+    }
+    return out;
+}
+
+json info_json(const lsnif_model* model, const lsnif_info& info) {
     json levels = json::array();
     for (std::uint32_t l = 0; l < info.level_count; ++l)
         levels.push_back({{"resolution", info.level_resolution[l]},
@@ -47,6 +80,7 @@ json info_json(const lsnif_info& info) {
         {"hash_primes", {info.hash_primes[0], info.hash_primes[1], info.hash_primes[2]}},
         {"input_width", info.input_width},
         {"hidden_widths", hidden},
+        {"grid", grid_json(model, info)},
         {"output_count", info.output_count},
         {"material_count", info.material_count},
         {"activation", "relu"},
@@ -115,7 +149,7 @@ std::vector<std::string> metadata_consistency(const json& meta, const lsnif_info
 }
 
 ValidationReport validate_bytes(std::span<const std::uint8_t> bytes, const std::string& name) {
-    ValidationReport r{name, {}};
+    ValidationReport r{name, {}, {}, {}};
     lsnif_error err{};
     lsnif_header_info header{};
     std::vector<lsnif_section_info> sections(64);
@@ -148,6 +182,8 @@ ValidationReport validate_bytes(std::span<const std::uint8_t> bytes, const std::
     ModelPtr model(raw);
     lsnif_info info{};
     lsnif_get_info(model.get(), &info);
+    r.version = std::to_string(info.version_major) + "." + std::to_string(info.version_minor);
+    r.grid = grid_json(model.get(), info);
     std::size_t len = 0;
     const char* text = lsnif_metadata(model.get(), &len);
     json meta;
@@ -169,9 +205,9 @@ ValidationReport validate_bytes(std::span<const std::uint8_t> bytes, const std::
 
 ValidationReport validate_file(const std::string& path) {
     std::ifstream f(path, std::ios::binary);
-    if (!f) return {path, {{lsnif_status_string(LSNIF_ERR_IO), UINT64_MAX, "cannot open the file"}}};
+    if (!f) return {path, {{lsnif_status_string(LSNIF_ERR_IO), UINT64_MAX, "cannot open the file"}}, {}, {}};
     std::vector<std::uint8_t> bytes((std::istreambuf_iterator<char>(f)), std::istreambuf_iterator<char>());
-    if (f.bad()) return {path, {{lsnif_status_string(LSNIF_ERR_IO), UINT64_MAX, "read error"}}};
+    if (f.bad()) return {path, {{lsnif_status_string(LSNIF_ERR_IO), UINT64_MAX, "read error"}}, {}, {}};
     return validate_bytes(bytes, path);
 }
 
@@ -182,11 +218,20 @@ json ValidationReport::to_json() const {
         if (p.offset != UINT64_MAX) j["offset"] = p.offset;
         probs.push_back(j);
     }
-    return {{"path", path}, {"valid", valid()}, {"problems", probs}};
+    json j = {{"path", path}, {"valid", valid()}, {"problems", probs}};
+    if (!version.empty()) j["version"] = version;
+    if (!grid.is_null()) j["grid"] = grid;
+    return j;
 }
 
 std::string ValidationReport::to_text() const {
-    if (valid()) return path + ": ok\n";
+    if (valid()) {
+        // The verdict line stays "PATH: ok" (scripts match it); a quantized grid adds one
+        // indented line with its dequantization pairs.
+        if (grid.is_object() && grid.contains("levels"))
+            return path + ": ok\n  format " + version + ", grid " + grid_text(grid) + "\n";
+        return path + ": ok\n";
+    }
     std::string out;
     for (const Problem& p : problems) {
         out += path + ": error: " + p.message;
@@ -240,7 +285,7 @@ json inspect_bytes(std::span<const std::uint8_t> bytes, const std::string& name)
     ModelPtr model(raw);
     lsnif_info info{};
     lsnif_get_info(model.get(), &info);
-    report["model"] = info_json(info);
+    report["model"] = info_json(model.get(), info);
     std::size_t len = 0;
     const char* text = lsnif_metadata(model.get(), &len);
     try {
@@ -284,6 +329,7 @@ std::string inspect_text(const json& r) {
         for (const json& w : m["hidden_widths"]) o << " -> " << w;
         o << " -> " << m["output_count"] << " (ReLU), distance " << m["distance_encoding"].get<std::string>()
           << "\n";
+        o << "  grid: " << grid_text(m["grid"]) << "\n";
         o.precision(6);
         o << std::defaultfloat << "  box: " << m["box_min"].dump() << " .. " << m["box_max"].dump() << "\n";
         o << "  parameters: " << m["parameter_count"] << " (" << fmt_bytes(m["decoded_bytes"])

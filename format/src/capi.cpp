@@ -163,16 +163,18 @@ lsnif_status lsnif_get_info(const lsnif_model* model, lsnif_info* out) {
     info.distance_encoding = d.distance_encoding;
     std::copy(d.box_min.begin(), d.box_min.end(), info.box_min);
     std::copy(d.box_max.begin(), d.box_max.end(), info.box_max);
+    info.grid_encoding = std::uint32_t(d.grid_encoding);
     info.parameter_count = d.parameter_count();
     std::uint64_t occupied = 0;
     for (std::uint8_t byte : model->data.occupancy) occupied += std::uint64_t(__builtin_popcount(byte));
     info.occupied_voxels = occupied;
     info.file_size = model->file_size;
-    // fp16 arrays as stored plus the fp32 copies the CPU forward pass runs on.
-    std::uint64_t runtime_bytes = 0;
-    for (const auto& g : model->runtime.grid) runtime_bytes += g.size() * 2;
+    // The arrays as stored (a quantized grid stays u8) plus the runtime's copies: padded
+    // feature tables in the same element type and the fp32 network.
+    std::uint64_t runtime_bytes = model->runtime.grid_bytes();
     for (const auto& w : model->runtime.net.wt) runtime_bytes += w.size() * 4;
-    info.decoded_bytes = model->data.occupancy.size() * 2 + d.parameter_count() * 2 +
+    const std::uint64_t mlp_values = d.parameter_count() - d.grid_value_count();
+    info.decoded_bytes = model->data.occupancy.size() * 2 + d.grid_raw_size() + mlp_values * 2 +
                          model->data.metadata_json.size() + runtime_bytes;
     *out = info;
     return LSNIF_OK;
@@ -208,12 +210,28 @@ lsnif_status lsnif_get_array(const lsnif_model* model, lsnif_array_kind kind, ui
             break;
         case LSNIF_ARRAY_GRID_LEVEL:
             if (index >= d.level_count()) return LSNIF_ERR_INVALID_ARGUMENT;
-            a.data = m.grid[index].data();
-            a.bytes = m.grid[index].size() * 2;
-            a.dtype = LSNIF_DTYPE_FLOAT16;
+            if (d.grid_encoding == lsnif::format::GridEncoding::u8_affine) {
+                a.data = m.grid_u8[index].data();
+                a.bytes = m.grid_u8[index].size();
+                a.dtype = LSNIF_DTYPE_UINT8;
+            } else {
+                a.data = m.grid[index].data();
+                a.bytes = m.grid[index].size() * 2;
+                a.dtype = LSNIF_DTYPE_FLOAT16;
+            }
             a.rank = 2;
             a.dims[0] = d.level_entries(index);
             a.dims[1] = d.features_per_level;
+            break;
+        case LSNIF_ARRAY_GRID_DEQUANT:
+            // Only quantized grids have a dequantization pair (FORMAT.md §6.4.1).
+            if (index >= d.level_count() || d.grid_encoding != lsnif::format::GridEncoding::u8_affine)
+                return LSNIF_ERR_INVALID_ARGUMENT;
+            a.data = &m.grid_affine[index];  // {scale, offset}: LevelAffine is two packed floats
+            a.bytes = 2 * sizeof(float);
+            a.dtype = LSNIF_DTYPE_FLOAT32;
+            a.rank = 1;
+            a.dims[0] = 2;
             break;
         case LSNIF_ARRAY_LAYER_WEIGHTS:
         case LSNIF_ARRAY_LAYER_BIAS: {
@@ -287,6 +305,14 @@ lsnif_status lsnif_intersect_instance(const lsnif_model* model, const float m[12
 
 }  // extern "C"
 
+static_assert(sizeof(lsnif::format::LevelAffine) == 2 * sizeof(float) &&
+              offsetof(lsnif::format::LevelAffine, offset) == sizeof(float));
+// ABI of lsnif_info as of 1.0 (x86-64 / AArch64 LP64): grid_encoding (1.1) fills the
+// alignment gap after box_max, so the size and every older field's offset are unchanged.
+static_assert(sizeof(void*) != 8 ||
+              (sizeof(lsnif_info) == 280 && offsetof(lsnif_info, box_max) == 232 &&
+               offsetof(lsnif_info, grid_encoding) == 244 && offsetof(lsnif_info, parameter_count) == 248 &&
+               offsetof(lsnif_info, decoded_bytes) == 272));
 static_assert(sizeof(lsnif_ray) == sizeof(lsnif::format::Ray) &&
               offsetof(lsnif_ray, dir) == offsetof(lsnif::format::Ray, dir) &&
               offsetof(lsnif_ray, tmax) == offsetof(lsnif::format::Ray, tmax));

@@ -3,6 +3,7 @@
 // after bounding each operand, so no sum or product can wrap.
 #include <lsnif/format/container.hpp>
 #include <lsnif/format/half.hpp>
+#include <lsnif/format/quantize.hpp>
 
 #include "bytes.hpp"
 
@@ -132,10 +133,15 @@ std::vector<std::uint8_t> encode_desc(const ModelDesc& d) {
     for (int i = 0; i < 3; ++i) store_u32(p + 108 + 4 * i, d.hash_primes[i]);
     for (int i = 0; i < 3; ++i) store_f32(p + 120 + 4 * i, d.box_min[i]);
     for (int i = 0; i < 3; ++i) store_f32(p + 132 + 4 * i, d.box_max[i]);
+    // 0 for fp16, so an fp16 descriptor is byte-identical to a 1.0 one.
+    store_u32(p + 144, std::uint32_t(d.grid_encoding));
     return b;
 }
 
-Result<ModelDesc> decode_desc(const std::vector<std::uint8_t>& b, std::uint64_t file_offset) {
+// `minor` is the file's header minor version: it decides what bytes 144..255 may hold
+// (FORMAT.md §6.2, §7.2 E4.6/E4.6a).
+Result<ModelDesc> decode_desc(const std::vector<std::uint8_t>& b, std::uint64_t file_offset,
+                              std::uint16_t minor) {
     if (b.size() != kDescriptorSize)
         return make_error(LSNIF_ERR_MODEL, file_offset, "MODL section: size %zu, expected exactly %u bytes",
                           b.size(), kDescriptorSize);
@@ -186,9 +192,21 @@ Result<ModelDesc> decode_desc(const std::vector<std::uint8_t>& b, std::uint64_t 
     for (int i = 0; i < 3; ++i) d.hash_primes[i] = load_u32(p + 108 + 4 * i);
     for (int i = 0; i < 3; ++i) d.box_min[i] = load_f32(p + 120 + 4 * i);
     for (int i = 0; i < 3; ++i) d.box_max[i] = load_f32(p + 132 + 4 * i);
-    if (!all_zero(p + 144, kDescriptorSize - 144))
-        return make_error(LSNIF_ERR_RESERVED, file_offset,
-                          "MODL section: reserved bytes 144..255 are not zero");
+    if (minor < kMinorVersionQuantized) {
+        // 1.0: grid_encoding does not exist yet; the bytes are reserved as they always were.
+        if (!all_zero(p + 144, kDescriptorSize - 144))
+            return make_error(LSNIF_ERR_RESERVED, file_offset,
+                              "MODL section: reserved bytes 144..255 are not zero");
+    } else {
+        if (!all_zero(p + 148, kDescriptorSize - 148))
+            return make_error(LSNIF_ERR_RESERVED, file_offset,
+                              "MODL section: reserved bytes 148..255 are not zero");
+        const std::uint32_t enc = load_u32(p + 144);
+        if (enc > LSNIF_GRID_U8_AFFINE)
+            return make_error(LSNIF_ERR_MODEL, file_offset,
+                              "MODL section: grid_encoding %u unknown (0 = fp16, 1 = u8 affine)", enc);
+        d.grid_encoding = GridEncoding(enc);
+    }
     if (Error e = validate_desc(d)) {
         e.offset = file_offset;
         e.message = "MODL section: " + e.message;
@@ -525,9 +543,7 @@ auto guard(F&& f) -> decltype(f()) {
 }
 
 std::uint64_t grid_bytes(const ModelDesc& d) {
-    std::uint64_t n = 0;
-    for (std::uint32_t l = 0; l < d.level_count(); ++l) n += d.level_entries(l) * d.features_per_level;
-    return n * 2;
+    return d.grid_raw_size();
 }
 
 std::uint64_t mlp_bytes(const ModelDesc& d) {
@@ -593,8 +609,22 @@ std::pair<std::uint32_t, std::uint32_t> ModelDesc::layer_shape(std::uint32_t lay
     return {out, in};
 }
 
+std::uint64_t ModelDesc::grid_value_count() const {
+    std::uint64_t n = 0;
+    for (std::uint32_t l = 0; l < level_count(); ++l) n += level_entries(l) * features_per_level;
+    return n;
+}
+
+std::uint64_t ModelDesc::grid_raw_size() const {
+    // FORMAT.md §6.4 / §6.4.1. Both terms are bounded (<= 2^24 entries x 8 features x 8
+    // levels), so nothing wraps even before validate_desc has checked the result.
+    if (grid_encoding == GridEncoding::u8_affine)
+        return 8 * std::uint64_t(level_count()) + grid_value_count();
+    return 2 * grid_value_count();
+}
+
 std::uint64_t ModelDesc::parameter_count() const {
-    return grid_bytes(*this) / 2 + mlp_bytes(*this) / 2;
+    return grid_value_count() + mlp_bytes(*this) / 2;
 }
 
 Error validate_desc(const ModelDesc& d) {
@@ -626,6 +656,8 @@ Error validate_desc(const ModelDesc& d) {
     if (d.activation != 0) return bad("activation %u unknown (0 = ReLU)", d.activation);
     if (d.distance_encoding > LSNIF_DISTANCE_FIRST_ENTRY_DIAGONAL)
         return bad("distance_encoding %u unknown", d.distance_encoding);
+    if (std::uint32_t(d.grid_encoding) > LSNIF_GRID_U8_AFFINE)
+        return bad("grid_encoding %u unknown", std::uint32_t(d.grid_encoding));
     for (int i = 0; i < 3; ++i) {
         if (!std::isfinite(d.box_min[i]) || !std::isfinite(d.box_max[i]))
             return Error{LSNIF_ERR_NONFINITE, UINT64_MAX, "box has a NaN or infinite coordinate"};
@@ -645,8 +677,15 @@ Result<ModelData> make_empty_model(const ModelDesc& desc) {
         ModelData m;
         m.desc = desc;
         m.occupancy.assign(occupancy_bytes(desc), 0);
-        for (std::uint32_t l = 0; l < desc.level_count(); ++l)
-            m.grid.emplace_back(desc.level_entries(l) * desc.features_per_level, 0);
+        const bool quantized = desc.grid_encoding == GridEncoding::u8_affine;
+        for (std::uint32_t l = 0; l < desc.level_count(); ++l) {
+            const std::uint64_t values = desc.level_entries(l) * desc.features_per_level;
+            if (quantized)
+                m.grid_u8.emplace_back(values, 0), m.grid_affine.push_back({});
+            else
+                m.grid.emplace_back(values, 0);
+        }
+        m.version_minor = desc.minor_version();
         for (std::uint32_t k = 0; k < desc.layer_count(); ++k) {
             const auto [o, i] = desc.layer_shape(k);
             m.weights.emplace_back(std::size_t(o) * i, 0);
@@ -657,6 +696,57 @@ Result<ModelData> make_empty_model(const ModelDesc& desc) {
     });
 }
 
+namespace {
+
+// The grid arrays against the descriptor, then their content (FORMAT.md §7.2 E10), level
+// 0 first. Exactly the representation desc.grid_encoding names may be filled.
+Error validate_grid(const ModelData& m) {
+    const ModelDesc& d = m.desc;
+    const bool quantized = d.grid_encoding == GridEncoding::u8_affine;
+    const std::size_t levels = quantized ? m.grid_u8.size() : m.grid.size();
+    if (levels != d.level_count() || (quantized && m.grid_affine.size() != d.level_count()))
+        return make_error(LSNIF_ERR_MODEL, UINT64_MAX, "%zu grid levels, expected %u", levels,
+                          d.level_count());
+    if (quantized ? !m.grid.empty() : (!m.grid_u8.empty() || !m.grid_affine.empty()))
+        return make_error(LSNIF_ERR_MODEL, UINT64_MAX,
+                          "grid arrays of another encoding than grid_encoding %u",
+                          std::uint32_t(d.grid_encoding));
+    for (std::uint32_t l = 0; l < d.level_count(); ++l) {
+        const std::uint64_t want = d.level_entries(l) * d.features_per_level;
+        const std::size_t have = quantized ? m.grid_u8[l].size() : m.grid[l].size();
+        if (have != want)
+            return make_error(LSNIF_ERR_MODEL, UINT64_MAX, "grid level %u has %zu values, expected %llu", l,
+                              have, (unsigned long long)want);
+        if (quantized) {
+            // FORMAT.md §6.4.1: with finite scale >= 0 the dequantization is monotone in q,
+            // so finite results at q = 0 and q = 255 make every byte's value finite.
+            const LevelAffine a = m.grid_affine[l];
+            if (!std::isfinite(a.scale) || !std::isfinite(a.offset))
+                return make_error(LSNIF_ERR_NONFINITE, UINT64_MAX,
+                                  "grid level %u: scale %g or offset %g is not finite", l, double(a.scale),
+                                  double(a.offset));
+            if (!(a.scale >= 0.0f))
+                return make_error(LSNIF_ERR_MODEL, UINT64_MAX, "grid level %u: scale %g is negative", l,
+                                  double(a.scale));
+            if (!std::isfinite(dequantize_u8(0, a.scale, a.offset)) ||
+                !std::isfinite(dequantize_u8(255, a.scale, a.offset)))
+                return make_error(
+                    LSNIF_ERR_NONFINITE, UINT64_MAX,
+                    "grid level %u: dequantized value of byte 255 (scale %g, offset %g) is not finite", l,
+                    double(a.scale), double(a.offset));
+            continue;
+        }
+        for (std::size_t i = 0; i < m.grid[l].size(); ++i)
+            if (!half_is_finite(m.grid[l][i]))
+                return make_error(LSNIF_ERR_NONFINITE, UINT64_MAX,
+                                  "grid level %u entry %zu feature %zu is not finite", l,
+                                  i / d.features_per_level, i % d.features_per_level);
+    }
+    return {};
+}
+
+}  // namespace
+
 Error validate_model(const ModelData& m) {
     if (Error e = validate_desc(m.desc)) return e;
     const ModelDesc& d = m.desc;
@@ -666,20 +756,7 @@ Error validate_model(const ModelData& m) {
     const std::uint64_t bits = d.voxel_count();
     if (bits % 8 && (m.occupancy.back() >> (bits % 8)))
         return make_error(LSNIF_ERR_RESERVED, UINT64_MAX, "unused trailing occupancy bits are not zero");
-    if (m.grid.size() != d.level_count())
-        return make_error(LSNIF_ERR_MODEL, UINT64_MAX, "%zu grid levels, expected %u", m.grid.size(),
-                          d.level_count());
-    for (std::uint32_t l = 0; l < d.level_count(); ++l) {
-        if (m.grid[l].size() != d.level_entries(l) * d.features_per_level)
-            return make_error(LSNIF_ERR_MODEL, UINT64_MAX, "grid level %u has %zu values, expected %llu", l,
-                              m.grid[l].size(),
-                              (unsigned long long)(d.level_entries(l) * d.features_per_level));
-        for (std::size_t i = 0; i < m.grid[l].size(); ++i)
-            if (!half_is_finite(m.grid[l][i]))
-                return make_error(LSNIF_ERR_NONFINITE, UINT64_MAX,
-                                  "grid level %u entry %zu feature %zu is not finite", l,
-                                  i / d.features_per_level, i % d.features_per_level);
-    }
+    if (Error e = validate_grid(m)) return e;
     if (m.weights.size() != d.layer_count() || m.biases.size() != d.layer_count())
         return make_error(LSNIF_ERR_MODEL, UINT64_MAX, "MLP has %zu weight / %zu bias arrays, expected %u",
                           m.weights.size(), m.biases.size(), d.layer_count());
@@ -729,7 +806,17 @@ std::vector<RawSection> model_sections(const ModelData& m) {
         for (std::size_t i = 0; i < v.size(); ++i) store_u16(out.data() + at + 2 * i, v[i]);
     };
     RawSection grid{kTagGrid, LSNIF_SECTION_REQUIRED, {}};
-    for (const auto& level : m.grid) append_halves(grid.raw, level);
+    if (m.desc.grid_encoding == GridEncoding::u8_affine) {
+        // FORMAT.md §6.4.1: all (scale, offset) pairs first, then the bytes of every level.
+        grid.raw.resize(8 * m.grid_affine.size());
+        for (std::size_t l = 0; l < m.grid_affine.size(); ++l) {
+            store_f32(grid.raw.data() + 8 * l, m.grid_affine[l].scale);
+            store_f32(grid.raw.data() + 8 * l + 4, m.grid_affine[l].offset);
+        }
+        for (const auto& level : m.grid_u8) grid.raw.insert(grid.raw.end(), level.begin(), level.end());
+    } else {
+        for (const auto& level : m.grid) append_halves(grid.raw, level);
+    }
     secs.push_back(std::move(grid));
     RawSection mlp{kTagMlp, LSNIF_SECTION_REQUIRED, {}};
     for (std::size_t k = 0; k < m.weights.size() && k < m.biases.size(); ++k) {
@@ -814,11 +901,6 @@ Result<std::vector<std::uint8_t>> assemble(const std::vector<RawSection>& secs, 
 
 Result<std::vector<std::uint8_t>> serialize(const ModelData& m, const WriteOptions& options) {
     if (Error e = validate_model(m)) return e;
-    if (m.version_major != LSNIF_VERSION_MAJOR || m.version_minor > LSNIF_VERSION_MINOR)
-        return make_error(LSNIF_ERR_INVALID_ARGUMENT, UINT64_MAX,
-                          "cannot write format version %u.%u (this writer produces %u.0 to %u.%u)",
-                          m.version_major, m.version_minor, LSNIF_VERSION_MAJOR, LSNIF_VERSION_MAJOR,
-                          LSNIF_VERSION_MINOR);
     return guard([&]() -> Result<std::vector<std::uint8_t>> {
         std::vector<RawSection> secs = model_sections(m);
         for (const ExtraSection& x : options.extra_sections) {
@@ -828,7 +910,9 @@ Result<std::vector<std::uint8_t>> serialize(const ModelData& m, const WriteOptio
                                   tag_string(x.tag).c_str());
             secs.push_back({x.tag, x.required ? LSNIF_SECTION_REQUIRED : 0u, x.payload});
         }
-        return assemble(secs, options.zstd_level, m.version_major, m.version_minor);
+        // FORMAT.md §2.4: the lowest version that can express the model, whatever version
+        // m was read from, so fp16 models stay 1.0 files (byte-identical to a 1.0 writer's).
+        return assemble(secs, options.zstd_level, LSNIF_VERSION_MAJOR, m.desc.minor_version());
     });
 }
 
@@ -952,7 +1036,7 @@ Result<ModelData> read_model(std::span<const std::uint8_t> bytes) {
                               kDescriptorSize);
         std::vector<std::uint8_t> desc_bytes(kDescriptorSize);
         if (Error e = decode_payload(bytes, me, desc_bytes.data())) return e;
-        auto desc = decode_desc(desc_bytes, me.offset);
+        auto desc = decode_desc(desc_bytes, me.offset, s.header.version_minor);
         if (!desc) return desc.error();
         const ModelDesc& d = desc.value();
 
@@ -1001,8 +1085,20 @@ Result<ModelData> read_model(std::span<const std::uint8_t> bytes) {
             at += 2 * n;
             return v;
         };
-        for (std::uint32_t l = 0; l < d.level_count(); ++l)
-            m.grid.push_back(take(d.level_entries(l) * d.features_per_level));
+        if (d.grid_encoding == GridEncoding::u8_affine) {
+            // FORMAT.md §6.4.1; sizes were checked against the descriptor (E5).
+            for (std::uint32_t l = 0; l < d.level_count(); ++l)
+                m.grid_affine.push_back({load_f32(buf.data() + 8 * l), load_f32(buf.data() + 8 * l + 4)});
+            at = 8 * std::size_t(d.level_count());
+            for (std::uint32_t l = 0; l < d.level_count(); ++l) {
+                const std::size_t n = d.level_entries(l) * d.features_per_level;
+                m.grid_u8.emplace_back(buf.begin() + at, buf.begin() + at + n);
+                at += n;
+            }
+        } else {
+            for (std::uint32_t l = 0; l < d.level_count(); ++l)
+                m.grid.push_back(take(d.level_entries(l) * d.features_per_level));
+        }
         const Entry& we = *find_entry(s, kTagMlp);
         if (Error e = read_halves(we, buf)) return e;
         at = 0;

@@ -4,6 +4,7 @@
 // Fujieda et al. (I3D 2025).
 #include <lsnif/format/forward.hpp>
 #include <lsnif/format/half.hpp>
+#include <lsnif/format/quantize.hpp>
 
 #include <algorithm>
 #include <cmath>
@@ -292,16 +293,31 @@ inline float load_feature(const std::uint16_t* p) {
 #endif
 }
 
+// u8 features: the normative fma of FORMAT.md §6.4.1, so this scalar code, any
+// vectorization the compiler makes of it, and the f32 table a test dequantizes up front
+// all see the same floats.
+struct U8Loader {
+    float scale, offset;
+    float operator()(const std::uint8_t* p) const { return dequantize_u8(*p, scale, offset); }
+};
+struct PlainLoader {
+    template <class T>
+    float operator()(const T* p) const {
+        return load_feature(p);
+    }
+};
+
 // Interpolates one level from precomputed corners.
-template <class T>
-void accumulate_level(const Corners& c, const T* table, std::uint32_t stride, std::uint32_t F, float* dst) {
+template <class T, class Load>
+void accumulate_level(const Corners& c, const T* table, std::uint32_t stride, std::uint32_t F, Load load,
+                      float* dst) {
     if (F == 3) {  // the v1 layout, unrolled
         float a0 = 0, a1 = 0, a2 = 0;
         for (std::uint32_t k = 0; k < c.n; ++k) {
             const T* src = table + std::size_t(c.index[k]) * stride;
-            a0 += c.weight[k] * load_feature(src);
-            a1 += c.weight[k] * load_feature(src + 1);
-            a2 += c.weight[k] * load_feature(src + 2);
+            a0 += c.weight[k] * load(src);
+            a1 += c.weight[k] * load(src + 1);
+            a2 += c.weight[k] * load(src + 2);
         }
         dst[0] = a0, dst[1] = a1, dst[2] = a2;
         return;
@@ -309,8 +325,12 @@ void accumulate_level(const Corners& c, const T* table, std::uint32_t stride, st
     for (std::uint32_t f = 0; f < F; ++f) dst[f] = 0.0f;
     for (std::uint32_t k = 0; k < c.n; ++k) {
         const T* src = table + std::size_t(c.index[k]) * stride;
-        for (std::uint32_t f = 0; f < F; ++f) dst[f] += c.weight[k] * load_feature(src + f);
+        for (std::uint32_t f = 0; f < F; ++f) dst[f] += c.weight[k] * load(src + f);
     }
+}
+
+std::size_t element_size(GridElement e) {
+    return e == GridElement::f32 ? 4 : e == GridElement::f16 ? 2 : 1;
 }
 
 }  // namespace
@@ -326,7 +346,7 @@ void encode_points(const Geometry& geo, const GridView* grid, const RayPoints& p
         for (std::uint32_t l = 0; l < L; ++l) {
             Corners& c = corners[std::size_t(h) * L + l];
             level_corners(geo, geo.levels[l], pts.g[h], c);
-            const std::size_t elem = grid[l].half ? 2 : 4;
+            const std::size_t elem = element_size(grid[l].element);
             const char* base = static_cast<const char*>(grid[l].data);
             for (std::uint32_t k = 0; k < c.n; ++k)
                 __builtin_prefetch(base + std::size_t(c.index[k]) * grid[l].stride * elem);
@@ -335,10 +355,20 @@ void encode_points(const Geometry& geo, const GridView* grid, const RayPoints& p
         for (std::uint32_t l = 0; l < L; ++l) {
             const Corners& c = corners[std::size_t(h) * L + l];
             float* dst = row + (std::size_t(h) * L + l) * F;
-            if (grid[l].half)
-                accumulate_level(c, static_cast<const std::uint16_t*>(grid[l].data), grid[l].stride, F, dst);
-            else
-                accumulate_level(c, static_cast<const float*>(grid[l].data), grid[l].stride, F, dst);
+            const GridView& g = grid[l];
+            switch (g.element) {
+                case GridElement::f16:
+                    accumulate_level(c, static_cast<const std::uint16_t*>(g.data), g.stride, F, PlainLoader{},
+                                     dst);
+                    break;
+                case GridElement::f32:
+                    accumulate_level(c, static_cast<const float*>(g.data), g.stride, F, PlainLoader{}, dst);
+                    break;
+                case GridElement::u8:
+                    accumulate_level(c, static_cast<const std::uint8_t*>(g.data), g.stride, F,
+                                     U8Loader{g.scale, g.offset}, dst);
+                    break;
+            }
         }
     std::memset(row + std::size_t(pts.count) * L * F, 0,
                 sizeof(float) * (std::size_t(geo.H) - pts.count) * L * F);
@@ -509,20 +539,36 @@ Runtime make_runtime(const ModelData& m) {
     rt.occupancy = OccupancyGrid(m.desc.grid_resolution, m.occupancy);
     const std::uint32_t F = m.desc.features_per_level;
     rt.grid_stride = (F + 3u) & ~3u;
-    for (const auto& level : m.grid) {
-        const std::size_t entries = level.size() / F;
-        rt.grid.emplace_back(entries * rt.grid_stride, 0);
-        for (std::size_t e = 0; e < entries; ++e)
-            for (std::uint32_t f = 0; f < F; ++f) rt.grid.back()[e * rt.grid_stride + f] = level[e * F + f];
-    }
+    // Both encodings keep their stored element type, padded to grid_stride per entry.
+    auto pad_levels = [&](const auto& levels, auto& out) {
+        for (const auto& level : levels) {
+            const std::size_t entries = level.size() / F;
+            out.emplace_back(entries * rt.grid_stride, 0);
+            for (std::size_t e = 0; e < entries; ++e)
+                for (std::uint32_t f = 0; f < F; ++f) out.back()[e * rt.grid_stride + f] = level[e * F + f];
+        }
+    };
+    pad_levels(m.grid, rt.grid);
+    pad_levels(m.grid_u8, rt.grid_u8);
+    rt.grid_affine = m.grid_affine;
     rt.net = make_network(m);
     return rt;
 }
 
 std::vector<GridView> Runtime::grid_views() const {
     std::vector<GridView> v;
-    for (const auto& g : grid) v.push_back({g.data(), grid_stride, true});
+    for (const auto& g : grid) v.push_back({g.data(), grid_stride, GridElement::f16});
+    for (std::size_t l = 0; l < grid_u8.size(); ++l)
+        v.push_back(
+            {grid_u8[l].data(), grid_stride, GridElement::u8, grid_affine[l].scale, grid_affine[l].offset});
     return v;
+}
+
+std::uint64_t Runtime::grid_bytes() const {
+    std::uint64_t n = 8 * std::uint64_t(grid_affine.size());
+    for (const auto& g : grid) n += 2 * std::uint64_t(g.size());
+    for (const auto& g : grid_u8) n += g.size();
+    return n;
 }
 
 IntersectStats intersect(const Runtime& rt, std::span<const Ray> rays, std::span<Hit> hits) {

@@ -29,6 +29,9 @@ extern "C" int LLVMFuzzerTestOneInput(const std::uint8_t* data, std::size_t size
             lsnif_array a;
             if (lsnif_get_array(model, LSNIF_ARRAY_GRID_LEVEL, l, &a) == LSNIF_OK && a.bytes)
                 sink = sink + static_cast<const std::uint8_t*>(a.data)[a.bytes - 1];
+            // Quantized grids (1.1) also hand out their {scale, offset} pair.
+            if (lsnif_get_array(model, LSNIF_ARRAY_GRID_DEQUANT, l, &a) == LSNIF_OK && a.bytes)
+                sink = sink + static_cast<const std::uint8_t*>(a.data)[a.bytes - 1];
         }
         (void)sink;
         lsnif_close(model);

@@ -6,6 +6,7 @@
 // as NAME.expected and checked by the converter tests.
 #include <lsnif/format/container.hpp>
 #include <lsnif/format/half.hpp>
+#include <lsnif/format/quantize.hpp>
 
 #include <cmath>
 #include <cstdio>
@@ -189,6 +190,19 @@ int main(int argc, char** argv) {
     v1.box_max = {0.5f, 1.25f, 0.25f};
     write(out / "valid" / "v1_default.lsnif", bytes_of(serialize(make_model(v1, "v1-default", 3, true))));
 
+    // Version 1.1 (FORMAT.md §2.4): a quantized grid, which the writer marks 1.1 ...
+    auto quantized = quantize_model(make_model(tiny_desc(), "tiny-u8", 5));
+    if (!quantized) {
+        std::fprintf(stderr, "gen_golden: %s\n", quantized.error().message.c_str());
+        return 1;
+    }
+    const ModelData tiny_u8 = std::move(quantized.value());
+    const auto tiny_u8_bytes = bytes_of(serialize(tiny_u8));
+    write(out / "valid" / "quantized_u8.lsnif", tiny_u8_bytes);
+    // ... and an fp16 grid in a 1.1 header (grid_encoding 0): valid, although the reference
+    // writer would have written it as 1.0. Pins that a 1.1 reader keeps the zero meaning.
+    write(out / "valid" / "v1_1_fp16.lsnif", bytes_of(assemble(model_sections(tiny), 19, 1, 1)));
+
     // ---- invalid: each breaks exactly one rule ------------------------------------------
     auto inv = [&](const char* name, std::vector<std::uint8_t> b) { write(out / "invalid" / name, b); };
     {
@@ -225,7 +239,7 @@ int main(int argc, char** argv) {
     }
     {
         auto b = tiny_bytes;
-        b[10] = 1;
+        b[10] = 2;  // 1.2: one past the reference reader's 1.1
         reseal(b);
         inv("newer_minor.lsnif", b);
     }
@@ -338,6 +352,39 @@ int main(int argc, char** argv) {
         secs[1].raw[200] = 1;  // descriptor reserved area
         inv("descriptor_reserved.lsnif", bytes_of(assemble(secs, 19)));
     }
+    {
+        auto secs = model_sections(tiny);
+        secs[1].raw[144] = 1;  // grid_encoding 1 in a 1.0 file: still reserved there
+        inv("grid_encoding_in_v1_0.lsnif", bytes_of(assemble(secs, 19)));
+    }
+    // 1.1 descriptor and quantized GRID rules (FORMAT.md §6.2, §6.4.1, §7.2 E4.6a, E5, E10).
+    auto inv_u8 = [&](const char* name, const std::vector<RawSection>& secs) {
+        inv(name, bytes_of(assemble(secs, 0, 1, kMinorVersionQuantized)));
+    };
+    {
+        auto secs = model_sections(tiny_u8);
+        secs[1].raw[144] = 2;  // grid_encoding 2: not defined
+        inv_u8("grid_encoding_unknown.lsnif", secs);
+    }
+    {
+        auto secs = model_sections(tiny_u8);
+        secs[1].raw[148] = 1;  // first byte still reserved in 1.1
+        inv_u8("descriptor_reserved_v1_1.lsnif", secs);
+    }
+    {
+        auto secs = model_sections(tiny_u8);
+        secs[3].raw = model_sections(tiny)[3].raw;  // fp16-sized GRID under grid_encoding 1
+        inv_u8("quantized_grid_size_mismatch.lsnif", secs);
+    }
+    auto with_affine = [&](const char* name, float scale, float offset) {
+        ModelData m = tiny_u8;
+        m.grid_affine[0] = {scale, offset};
+        inv_u8(name, model_sections(m));
+    };
+    with_affine("negative_scale.lsnif", -1e-6f, 0.0f);
+    with_affine("nan_scale.lsnif", std::nanf(""), 0.0f);
+    with_affine("inf_offset.lsnif", 1e-6f, INFINITY);
+    with_affine("dequantized_overflow.lsnif", 1e37f, 3e38f);  // 255 * 1e37 + 3e38 > FLT_MAX
     {
         ModelData m = tiny;
         m.desc.box_max[1] = m.desc.box_min[1];  // flat box written without the writer's checks

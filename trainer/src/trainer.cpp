@@ -304,7 +304,7 @@ std::vector<float> Trainer::predict_raw(std::span<const Sample> batch) {
     Impl& im = *impl_;
     im.net = format::make_network(desc_, w_, b_);
     std::vector<format::GridView> gp;
-    for (auto& g : grid_) gp.push_back({g.data(), geo_.F, false});
+    for (auto& g : grid_) gp.push_back({g.data(), geo_.F, format::GridElement::f32});
     const std::uint32_t outs = desc_.output_count();
     std::vector<float> out(batch.size() * outs);
     Work& w = im.work[0];
@@ -659,7 +659,7 @@ LossParts Trainer::loss_and_gradients(const PreparedSet& set, std::span<const st
     const bool bf16 = precision_ == MlpPrecision::bf16;
     im.stage_weights(desc_, w_, bf16);
     std::vector<format::GridView> gp;
-    for (auto& g : grid_) gp.push_back({g.data(), geo_.F, false});
+    for (auto& g : grid_) gp.push_back({g.data(), geo_.F, format::GridElement::f32});
 
     const std::size_t B = batch.size();
     std::size_t hits = 0;

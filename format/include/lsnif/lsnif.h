@@ -42,9 +42,11 @@ extern "C" {
 #endif
 
 /* Container version this reader implements. It reads any file of the same major
- * version whose minor version is <= LSNIF_VERSION_MINOR. */
+ * version whose minor version is <= LSNIF_VERSION_MINOR. Writers of this library write
+ * the lowest version that can express a model (FORMAT.md §2.4): 1.0 for fp16 grids,
+ * 1.1 only for quantized ones. */
 #define LSNIF_VERSION_MAJOR 1
-#define LSNIF_VERSION_MINOR 0
+#define LSNIF_VERSION_MINOR 1
 
 /* Hard limits of the v1 model descriptor (FORMAT.md §5). */
 #define LSNIF_MAX_LEVELS 8
@@ -148,6 +150,15 @@ typedef enum lsnif_distance_encoding {
     LSNIF_DISTANCE_FIRST_ENTRY_DIAGONAL = 1
 } lsnif_distance_encoding;
 
+/* How the hash-grid features are stored (MODL grid_encoding, FORMAT.md §6.2, §6.4). */
+typedef enum lsnif_grid_encoding {
+    /* IEEE binary16 per feature: the only encoding of 1.0 files */
+    LSNIF_GRID_FP16 = 0,
+    /* one byte q per feature and per level l a pair (scale_l, offset_l) of f32; the value is
+     * fmaf(q, scale_l, offset_l), rounded once (FORMAT.md §6.4.1). Needs version 1.1. */
+    LSNIF_GRID_U8_AFFINE = 1
+} lsnif_grid_encoding;
+
 typedef struct lsnif_info {
     uint16_t version_major;
     uint16_t version_minor;
@@ -169,10 +180,17 @@ typedef struct lsnif_info {
     uint32_t distance_encoding; /* lsnif_distance_encoding */
     float box_min[3];           /* object-space bounds the grid spans */
     float box_max[3];
+    /* lsnif_grid_encoding (added in 1.1). It sits in what was the 4-byte alignment gap
+     * between box_max and parameter_count, so sizeof(lsnif_info) and every other offset
+     * are unchanged: programs built against the 1.0 header keep working with this
+     * library (they never read the gap), and an older library leaves it zero, which is
+     * LSNIF_GRID_FP16, the only encoding it can open. Appending it at the end would have
+     * grown the struct and let a newer library write past an older caller's copy. */
+    uint32_t grid_encoding;
     uint64_t parameter_count; /* hash-table features + MLP weights and biases */
     uint64_t occupied_voxels;
     uint64_t file_size;
-    uint64_t decoded_bytes; /* memory held by the handle for model arrays */
+    uint64_t decoded_bytes; /* memory held by the handle for model arrays (u8 grids stay u8) */
 } lsnif_info;
 
 /* Opens a model from memory. The bytes are copied/decoded: `data` may be freed
@@ -198,15 +216,23 @@ LSNIF_API const char* lsnif_metadata(const lsnif_model* model, size_t* length);
 /* ---- Raw arrays for GPU upload ----------------------------------------------- */
 
 typedef enum lsnif_array_kind {
-    LSNIF_ARRAY_OCCUPANCY = 0,     /* bits; index 0 only */
-    LSNIF_ARRAY_GRID_LEVEL = 1,    /* fp16 [entries][F]; index = level */
+    LSNIF_ARRAY_OCCUPANCY = 0, /* bits; index 0 only */
+    /* [entries][F]; index = level. dtype FLOAT16 for an fp16 grid, UINT8 (the raw bytes q)
+     * for a quantized one: dequantize with LSNIF_ARRAY_GRID_DEQUANT of the same level. */
+    LSNIF_ARRAY_GRID_LEVEL = 1,
     LSNIF_ARRAY_LAYER_WEIGHTS = 2, /* fp16 [out][in] row-major; index = layer */
-    LSNIF_ARRAY_LAYER_BIAS = 3     /* fp16 [out]; index = layer */
+    LSNIF_ARRAY_LAYER_BIAS = 3,    /* fp16 [out]; index = layer */
+    /* FLOAT32 [2] = {scale, offset} of level `index` of a quantized grid: feature value =
+     * fmaf(q, scale, offset), one rounding (FORMAT.md §6.4.1). LSNIF_ERR_INVALID_ARGUMENT
+     * for an fp16 grid (check lsnif_info.grid_encoding). Added in 1.1. */
+    LSNIF_ARRAY_GRID_DEQUANT = 4
 } lsnif_array_kind;
 
 typedef enum lsnif_dtype {
-    LSNIF_DTYPE_BITS = 0,   /* packed bits, LSB first, voxel x + V*(y + V*z) */
-    LSNIF_DTYPE_FLOAT16 = 1 /* IEEE 754 binary16, little-endian */
+    LSNIF_DTYPE_BITS = 0,    /* packed bits, LSB first, voxel x + V*(y + V*z) */
+    LSNIF_DTYPE_FLOAT16 = 1, /* IEEE 754 binary16, little-endian */
+    LSNIF_DTYPE_UINT8 = 2,   /* unsigned bytes (quantized grid features; added in 1.1) */
+    LSNIF_DTYPE_FLOAT32 = 3  /* IEEE 754 binary32, host order (dequantization pairs; added in 1.1) */
 } lsnif_dtype;
 
 typedef struct lsnif_array {

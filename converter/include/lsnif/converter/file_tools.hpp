@@ -23,9 +23,14 @@ struct Problem {
 struct ValidationReport {
     std::string path;
     std::vector<Problem> problems;
+    // Filled when the reader opened the file: "MAJOR.MINOR" and the grid encoding, with
+    // each level's {scale, offset} for a quantized grid (FORMAT.md §6.4.1).
+    std::string version;
+    nlohmann::json grid;
     bool valid() const { return problems.empty(); }
     nlohmann::json to_json() const;
-    // One line per problem: "PATH: error: MESSAGE", or "PATH: ok".
+    // One line per problem: "PATH: error: MESSAGE", or "PATH: ok" (for a quantized grid
+    // followed by "  format 1.1, grid u8_affine: level 0 scale S offset O; ...").
     std::string to_text() const;
 };
 

@@ -43,7 +43,7 @@ constexpr std::uint32_t make_tag(const char (&s)[5]) {
 inline constexpr std::uint32_t kTagMeta = make_tag("META");   // JSON metadata
 inline constexpr std::uint32_t kTagModel = make_tag("MODL");  // binary model descriptor
 inline constexpr std::uint32_t kTagOccupancy = make_tag("OCCU");
-inline constexpr std::uint32_t kTagGrid = make_tag("GRID");  // hash-grid tables, fp16
+inline constexpr std::uint32_t kTagGrid = make_tag("GRID");  // hash-grid tables (fp16 or u8, §6.4)
 inline constexpr std::uint32_t kTagMlp = make_tag("MLPW");   // MLP weights, fp16
 
 std::string tag_string(std::uint32_t tag);  // printable, non-ASCII bytes as \xNN
@@ -57,6 +57,17 @@ inline constexpr std::uint32_t kMaxLog2TableSize = 24;
 inline constexpr std::uint32_t kMaxLevelResolution = 4096;
 inline constexpr std::uint32_t kMaxHiddenWidth = 1024;
 inline constexpr std::uint32_t kMaxMaterials = 4096;
+
+// ---- FORMAT.md §2.4, §6.2: grid encodings and the version that introduced them --------
+// MODL grid_encoding (descriptor offset 144). The values are LSNIF_GRID_* of lsnif.h.
+enum class GridEncoding : std::uint32_t {
+    fp16 = LSNIF_GRID_FP16,           // v1.0 layout: binary16 per feature
+    u8_affine = LSNIF_GRID_U8_AFFINE  // v1.1: u8 per feature, per-level (scale, offset)
+};
+// The minor version a writer puts in the header: the lowest one that can express the
+// model (FORMAT.md §2.4), so fp16 assets stay 1.0 files that 1.0 readers open.
+inline constexpr std::uint16_t kMinorVersionFp16 = 0;
+inline constexpr std::uint16_t kMinorVersionQuantized = 1;
 
 // One output row of the network (FORMAT.md §6.5), by index: the visibility logit, the
 // encoded distance (FORMAT.md §6.2 distance_encoding), the three components of the
@@ -84,6 +95,8 @@ struct ModelDesc {
     std::uint32_t distance_encoding = LSNIF_DISTANCE_FIRST_ENTRY_DIAGONAL;
     std::array<float, 3> box_min{0.f, 0.f, 0.f};
     std::array<float, 3> box_max{1.f, 1.f, 1.f};
+    // How GRID stores the features (FORMAT.md §6.4). fp16 keeps the file at version 1.0.
+    GridEncoding grid_encoding = GridEncoding::fp16;
 
     std::uint32_t level_count() const { return std::uint32_t(level_resolution.size()); }
     std::uint32_t input_width() const { return max_points * level_count() * features_per_level; }
@@ -96,8 +109,19 @@ struct ModelDesc {
         return std::uint64_t(grid_resolution) * grid_resolution * grid_resolution;
     }
     std::uint32_t layer_count() const { return std::uint32_t(hidden_width.size()) + 1; }
+    // Feature values of all levels: F * sum_l entries_l (whatever the encoding).
+    std::uint64_t grid_value_count() const;
+    // Raw size of the GRID section (FORMAT.md §6.4): 2 bytes per value for fp16;
+    // 8 * L bytes of (scale, offset) pairs plus 1 byte per value for u8_affine.
+    std::uint64_t grid_raw_size() const;
+    // Header minor version the writer uses for this descriptor (FORMAT.md §2.4).
+    std::uint16_t minor_version() const {
+        return grid_encoding == GridEncoding::fp16 ? kMinorVersionFp16 : kMinorVersionQuantized;
+    }
     // (out, in) of MLP layer k, hidden layers first, output layer last.
     std::pair<std::uint32_t, std::uint32_t> layer_shape(std::uint32_t layer) const;
+    // Hash-table feature values + MLP weights and biases (per-level scale/offset pairs of
+    // a quantized grid are not counted: the count does not depend on the encoding).
     std::uint64_t parameter_count() const;
 };
 
@@ -114,24 +138,43 @@ using Result = base::Result<T, Error>;
 // Checks ranges and internal consistency of a descriptor (FORMAT.md §5).
 Error validate_desc(const ModelDesc& desc);
 
+// Dequantization pair of one level of a u8_affine grid (FORMAT.md §6.4.1). Laid out as
+// the two f32 the C API hands out for LSNIF_ARRAY_GRID_DEQUANT.
+struct LevelAffine {
+    float scale = 0.0f;  // >= 0 and finite; 0 makes the level constant (= offset)
+    float offset = 0.0f;
+};
+
 // A complete model in memory: what the writer takes and the reader produces.
-// Weight arrays are fp16 bit patterns in the layout of FORMAT.md §6.
+// Weight arrays are fp16 bit patterns in the layout of FORMAT.md §6. The grid is held in
+// exactly one representation, the one desc.grid_encoding names; the other stays empty
+// (validate_model checks it):
+//   fp16:      grid[l] = entries_l * F binary16 patterns;
+//   u8_affine: grid_u8[l] = entries_l * F bytes q, grid_affine[l] = (scale, offset), value
+//              = dequantize_u8(q, scale, offset) of <lsnif/format/quantize.hpp>.
 struct ModelData {
     ModelDesc desc;
     std::string metadata_json;
     std::vector<std::uint8_t> occupancy;              // ceil(V^3 / 8) bytes
-    std::vector<std::vector<std::uint16_t>> grid;     // per level: entries * F
+    std::vector<std::vector<std::uint16_t>> grid;     // fp16: per level, entries * F
+    std::vector<std::vector<std::uint8_t>> grid_u8;   // u8_affine: per level, entries * F
+    std::vector<LevelAffine> grid_affine;             // u8_affine: per level
     std::vector<std::vector<std::uint16_t>> weights;  // per layer: out * in
     std::vector<std::vector<std::uint16_t>> biases;   // per layer: out
+    // The version of the file read_model() read. serialize() ignores both and writes the
+    // lowest version that can express the model (desc.minor_version(), FORMAT.md §2.4).
     std::uint16_t version_major = LSNIF_VERSION_MAJOR;
-    std::uint16_t version_minor = LSNIF_VERSION_MINOR;
+    std::uint16_t version_minor = kMinorVersionFp16;
 };
 
-// Allocates zeroed arrays of the right sizes for `desc` (occupancy all empty).
+// Allocates zeroed arrays of the right sizes for `desc` (occupancy all empty; a
+// quantized grid gets zero bytes and (scale, offset) = (0, 0)).
 Result<ModelData> make_empty_model(const ModelDesc& desc);
 
 // Checks array sizes against the descriptor, that weights are finite and that unused
-// occupancy bits are zero.
+// occupancy bits are zero; for a quantized grid, the per-level checks of FORMAT.md §6.4.1
+// (finite scale and offset, scale >= 0, finite dequantized 0 and 255) instead of the
+// fp16 finiteness check.
 Error validate_model(const ModelData& model);
 
 // Extra section for writers that need to add optional data (and for tests that check
@@ -165,15 +208,17 @@ struct RawSection {
     std::vector<std::uint8_t> raw;
 };
 
-// The v1 sections of a model, as serialize() lays them out (no validation).
+// The v1 sections of a model, as serialize() lays them out (no validation). The GRID
+// layout follows desc.grid_encoding.
 std::vector<RawSection> model_sections(const ModelData& model);
 std::vector<std::uint8_t> encode_descriptor(const ModelDesc& desc);
 
 // Assembles header, table and payloads exactly as serialize() does, without checking
-// the sections' content. zstd_level 0 stores every section uncompressed.
+// the sections' content. zstd_level 0 stores every section uncompressed. The version
+// written is major.minor (default 1.0: pass kMinorVersionQuantized for quantized grids).
 Result<std::vector<std::uint8_t>> assemble(const std::vector<RawSection>& sections, int zstd_level,
                                            std::uint16_t major = LSNIF_VERSION_MAJOR,
-                                           std::uint16_t minor = LSNIF_VERSION_MINOR);
+                                           std::uint16_t minor = kMinorVersionFp16);
 
 // Full verification and decode (what lsnif_open_memory does).
 Result<ModelData> read_model(std::span<const std::uint8_t> bytes);

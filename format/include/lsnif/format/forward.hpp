@@ -125,14 +125,24 @@ struct Corners {
 };
 void level_corners(const Geometry& geo, const LevelInfo& lv, const float g[3], Corners& out);
 
+// Element type of a GridView.
+enum class GridElement : std::uint8_t {
+    f32,  // float: the trainer's master copy
+    f16,  // IEEE binary16 bit patterns: the reader's runtime for fp16 grids
+    u8    // bytes q, value dequantize_u8(q, scale, offset) (FORMAT.md §6.4.1)
+};
+
 // One level's feature table as the encoder reads it: entry e's F features start at
 // element e * stride. fp16 tables (the reader's runtime: half the memory, so both v1
-// levels stay in L2) and fp32 tables (the trainer's master copy) give identical results
-// for identical values, since fp16 -> fp32 is exact and the arithmetic is fp32 either way.
+// levels stay in L2), u8 tables (a quarter) and fp32 tables (the trainer's master copy)
+// give identical results for identical values: fp16 -> fp32 is exact, the u8 value is
+// one correctly rounded fma, and the interpolation arithmetic is fp32 in all three.
 struct GridView {
     const void* data;
     std::uint32_t stride;  // elements per entry (>= F)
-    bool half;             // elements are IEEE binary16 bit patterns, else float
+    GridElement element;
+    float scale = 0.0f;   // u8 only: the level's dequantization pair
+    float offset = 0.0f;  // u8 only
 };
 
 // Encodes the points of one ray into `row` (input_width floats: slot-major, then level,
@@ -187,15 +197,20 @@ inline float encode_distance(const Geometry& geo, const RayPoints& pts, float di
 
 // ---- the whole pass ------------------------------------------------------------------------
 
-// Decoded, inference-ready model: fp32 tables and network. Immutable once built, so any
-// number of threads may call intersect() on it concurrently.
+// Decoded, inference-ready model: feature tables in their stored precision (fp16 or u8,
+// dequantized on the gather) and an fp32 network. Immutable once built, so any number of
+// threads may call intersect() on it concurrently.
 struct Runtime {
     Geometry geo;
     OccupancyGrid occupancy;
-    std::vector<std::vector<std::uint16_t>> grid;  // per level, fp16, entries * grid_stride
-    std::uint32_t grid_stride = 0;                 // F rounded up to 4: one aligned load per entry
+    std::vector<std::vector<std::uint16_t>> grid;    // fp16 grids: per level, entries * grid_stride
+    std::vector<std::vector<std::uint8_t>> grid_u8;  // u8_affine grids: per level, entries * grid_stride
+    std::vector<LevelAffine> grid_affine;            // u8_affine grids: per level
+    std::uint32_t grid_stride = 0;                   // F rounded up to 4: one aligned load per entry
     Network net;
     std::vector<GridView> grid_views() const;
+    // Bytes held by the feature tables (what the encoding saves at run time).
+    std::uint64_t grid_bytes() const;
 };
 Runtime make_runtime(const ModelData& model);
 
