@@ -3,6 +3,7 @@
 #include <lsnif/converter/convert.hpp>
 #include <lsnif/converter/manifest.hpp>
 #include <lsnif/format/forward.hpp>
+#include <lsnif/format/quantize.hpp>
 #include <lsnif/samples/held_out.hpp>
 #include <lsnif/sampling/sampling.hpp>
 #include <lsnif/scene/scene.hpp>
@@ -86,8 +87,21 @@ double surface_area(const scene::Mesh& m) {
 
 // Raw bytes a model of these dimensions occupies in a .lsnif (before compression, which
 // barely shrinks trained fp16 weights): header, table, occupancy, tables, MLP, metadata.
-std::uint64_t lsnif_bytes_estimate(const format::ModelDesc& d) {
-    return 64 + 64 * 5 + (d.voxel_count() + 7) / 8 + d.parameter_count() * 2 + 2048;
+// Upper bound of an asset's bytes for `d` with its grid stored as `encoding`: header,
+// table, occupancy, grid and fp16 MLP uncompressed, plus 2 KiB of metadata.
+std::uint64_t lsnif_bytes_estimate(format::ModelDesc d, format::GridEncoding encoding) {
+    d.grid_encoding = encoding;
+    const std::uint64_t mlp_values = d.parameter_count() - d.grid_value_count();
+    return 64 + 64 * 5 + (d.voxel_count() + 7) / 8 + d.grid_raw_size() + mlp_values * 2 + 2048;
+}
+
+// The smallest grid encoding the preset may ship.
+format::GridEncoding smallest_encoding(const Preset& p) {
+    return p.sizing.quantize ? format::GridEncoding::u8_affine : format::GridEncoding::fp16;
+}
+
+const char* grid_encoding_name(format::GridEncoding e) {
+    return e == format::GridEncoding::u8_affine ? "u8_affine" : "fp16";
 }
 
 std::string gate_reason(const char* what, double value, const char* op, double limit, const char* unit) {
@@ -124,6 +138,7 @@ json model_json(const format::ModelDesc& d) {
             {"material_count", d.material_count},
             {"activation", "relu"},
             {"distance_encoding", distance_encoding_name(d.distance_encoding)},
+            {"grid_encoding", grid_encoding_name(d.grid_encoding)},
             {"normal", "shading"},
             {"parameter_count", d.parameter_count()}};
 }
@@ -430,7 +445,8 @@ std::optional<Candidate> classify(const Run& run, const scene::Mesh& mesh, bool 
     // the BVH. Levels dense at the preset size stay dense (fewer rows than T).
     if (!c.forced)
         while (c.desc.log2_table_size > rule.min_log2_table_size &&
-               double(bvh) < rule.min_memory_ratio * double(lsnif_bytes_estimate(c.desc)))
+               double(bvh) < rule.min_memory_ratio *
+                                 double(lsnif_bytes_estimate(c.desc, smallest_encoding(run.preset))))
             --c.desc.log2_table_size;
     const double ext[3] = {double(c.box.max[0]) - c.box.min[0], double(c.box.max[1]) - c.box.min[1],
                            double(c.box.max[2]) - c.box.min[2]};
@@ -443,7 +459,7 @@ std::optional<Candidate> classify(const Run& run, const scene::Mesh& mesh, bool 
                  {"solid", c.source->rejects_interior()},
                  {"log2_table_size", c.desc.log2_table_size},
                  {"bvh_bytes", bvh},
-                 {"lsnif_bytes_estimate", lsnif_bytes_estimate(c.desc)}};
+                 {"lsnif_bytes_estimate", lsnif_bytes_estimate(c.desc, smallest_encoding(run.preset))}};
     rec.timings["classify"] = seconds_since(t0);
     return c;
 }
@@ -465,7 +481,8 @@ std::optional<voxelize::Occupancy> voxelize_mesh(const Run& run, const scene::Me
 }
 
 bool worth_an_lsnif(const Run& run, const scene::Mesh& mesh, const Candidate& c, MeshRecord& rec) {
-    const std::uint64_t bvh = c.source->bvh_bytes(), est = lsnif_bytes_estimate(c.desc);
+    const std::uint64_t bvh = c.source->bvh_bytes(),
+                        est = lsnif_bytes_estimate(c.desc, smallest_encoding(run.preset));
     const double ratio = double(bvh) / double(est);
     const ClassifyRule& rule = run.preset.classify;
     char why[200];
@@ -607,11 +624,11 @@ Trained train_rung(const Run& run, const scene::Mesh& mesh, Candidate& c, const 
     return t;
 }
 
-json gate(const Run& run, const scene::Mesh& mesh, const Trained& t, const MeasureRays& rays,
-          MeshRecord& rec) {
+json gate(const Run& run, const scene::Mesh& mesh, const format::ModelData& model, const Trained& t,
+          const MeasureRays& rays, MeshRecord& rec) {
     const auto t0 = Clock::now();
     run.report({mesh.name, "evaluate"});
-    const format::Runtime rt = format::make_runtime(t.model);
+    const format::Runtime rt = format::make_runtime(model);
     const samples::Metrics m =
         samples::held_out_metrics(rt, rays.held_out, run.threads, rays.held_out_geometric_normals);
     json metrics = {{"held_out_rays", rays.held_out.size()}, {"families", metrics_json(m)}};
@@ -627,27 +644,46 @@ json gate(const Run& run, const scene::Mesh& mesh, const Trained& t, const Measu
     return metrics;
 }
 
-json candidate_json(const Trained& t, const json& metrics, std::uint64_t bytes, bool target_met) {
-    const format::ModelDesc& d = t.model.desc;
-    const json& p = metrics["families"]["pooled"];
+json candidate_json(const Option& o, const Trained& t) {
+    const format::ModelDesc& d = o.model.desc;
+    const json& p = o.metrics["families"]["pooled"];
     json j = {{"log2_table_size", d.log2_table_size},
               {"hidden_width", d.hidden_width},
-              {"grid", "fp16"},
-              {"bytes", bytes},
+              {"grid", grid_encoding_name(d.grid_encoding)},
+              {"bytes", o.bytes},
               {"steps", t.stream.train.steps},
               {"steps_planned", t.config.steps},
-              {"seconds", t.seconds},
+              {"seconds", o.seconds},
               {"held_out",
                {{"visibility", p["visibility_accuracy"]},
                 {"distance_pct", p["distance_error_median_pct"]},
                 {"normal_deg", p["normal_error_median_deg"]}}},
-              {"gate_passed", metrics["gate"]["passed"]},
-              {"target_met", target_met},
-              {"validation", t.validation}};
+              {"gate_passed", o.metrics["gate"]["passed"]},
+              {"target_met", o.target_met},
+              {"memory_rule_passed", o.memory_ok},
+              {"outcome", o.outcome}};
+    // The curve is the training's: recorded once, with the rung's fp16 export.
+    if (d.grid_encoding == format::GridEncoding::fp16) j["validation"] = t.validation;
     if (t.target_met_at) j["stopped"] = "the validation curve met the target";
     if (!t.abandoned.empty()) j["stopped"] = "given up: " + t.abandoned.front();
     if (!t.fell_behind.empty()) j["stopped"] = "given up: " + t.fell_behind;
     return j;
+}
+
+Option measure_option(const Run& run, const scene::Mesh& mesh, const Candidate& c, std::size_t rung,
+                      format::ModelData model, const Trained& t, const MeasureRays& rays, MeshRecord& rec) {
+    const auto t0 = Clock::now();
+    Option o;
+    o.rung = rung;
+    o.model = std::move(model);
+    o.metrics = gate(run, mesh, o.model, t, rays, rec);
+    o.target_met = o.metrics["gate"]["passed"].get<bool>() &&
+                   target_misses(o.metrics["families"], run.opt.target).empty();
+    auto bytes = format::serialize(o.model);
+    o.bytes = bytes ? bytes->size() : 0;
+    o.memory_ok = bytes && memory_rule_failure(run, c, o.bytes).empty();
+    o.seconds = seconds_since(t0);
+    return o;
 }
 
 Sized size_to_target(const Run& run, const scene::Mesh& mesh, Candidate& c, const voxelize::Occupancy& occ,
@@ -657,17 +693,25 @@ Sized size_to_target(const Run& run, const scene::Mesh& mesh, Candidate& c, cons
     format::ModelDesc desc = c.desc;
     std::uint32_t budget = p.train.steps;  // steps left to all rungs
     for (;;) {
-        const json& larger = sized.rungs.empty() ? json::array() : sized.rungs.back().validation;
-        Trained t = train_rung(run, mesh, c, desc, occ, rays, budget, larger, rec);
-        json metrics = gate(run, mesh, t, rays, rec);
-        const bool met = metrics["gate"]["passed"].get<bool>() &&
-                         target_misses(metrics["families"], run.opt.target).empty();
-        auto bytes = format::serialize(t.model);
-        sized.candidates.push_back(candidate_json(t, metrics, bytes ? bytes->size() : 0, met));
+        const json larger = sized.rungs.empty() ? json::array() : sized.rungs.back().validation;
+        sized.rungs.push_back(train_rung(run, mesh, c, desc, occ, rays, budget, larger, rec));
+        const std::size_t rung = sized.rungs.size() - 1;
+        const Trained& t = sized.rungs[rung];
+        bool met = false;
+        for (const format::GridEncoding e : rung_encodings(p)) {
+            format::ModelData model = t.model;
+            if (e == format::GridEncoding::u8_affine) {
+                auto quantized = format::quantize_model(t.model);
+                if (!quantized) continue;  // cannot happen for a valid fp16 export; then fp16 only
+                model = std::move(*quantized);
+            }
+            Option o = measure_option(run, mesh, c, rung, std::move(model), t, rays, rec);
+            if (e == format::GridEncoding::fp16) o.seconds += t.seconds;  // the training is the fp16 option's
+            met = met || o.target_met;
+            sized.options.push_back(std::move(o));
+        }
         const std::uint32_t used = t.stream.train.steps;
         budget -= std::min(budget, used);
-        sized.rungs.push_back(std::move(t));
-        sized.metrics.push_back(std::move(metrics));
         // A smaller rung is worth a try only after this one met the target, and only with
         // at least as many steps as this one needed: a smaller model does not learn faster.
         if (!met || !p.sizing.explore_smaller || budget < used ||
@@ -675,37 +719,50 @@ Sized size_to_target(const Run& run, const scene::Mesh& mesh, Candidate& c, cons
             break;
         --desc.log2_table_size;
     }
-    choose_candidate(sized);
+    choose_option(sized);
+    for (const Option& o : sized.options) sized.candidates.push_back(candidate_json(o, sized.rungs[o.rung]));
     return sized;
 }
 
-void choose_candidate(Sized& sized) {
-    const std::size_t n = sized.rungs.size();
+std::vector<format::GridEncoding> rung_encodings(const Preset& p) {
+    if (p.sizing.quantize) return {format::GridEncoding::fp16, format::GridEncoding::u8_affine};
+    return {format::GridEncoding::fp16};
+}
+
+void choose_option(Sized& sized) {
+    const std::size_t n = sized.options.size();
+    auto smaller = [&](std::size_t i) {
+        return !sized.chosen || sized.options[i].bytes < sized.options[*sized.chosen].bytes;
+    };
+    auto passes = [&](const Option& o) { return o.memory_ok && o.metrics["gate"]["passed"].get<bool>(); };
     for (std::size_t i = 0; i < n; ++i)
-        if (sized.candidates[i]["target_met"].get<bool>())
-            sized.chosen = i;  // rungs shrink: the last is the smallest
+        if (passes(sized.options[i]) && sized.options[i].target_met && smaller(i)) sized.chosen = i;
     if (sized.chosen) {
-        sized.why = "the smallest of " + std::to_string(n) + " candidate" + (n > 1 ? "s" : "") +
-                    " that meets the target";
-    } else if (sized.metrics[0]["gate"]["passed"].get<bool>()) {
-        sized.chosen = 0;
-        sized.why = "no candidate meets the target; the largest passes the gate";
+        sized.why = "the smallest of " + std::to_string(n) + " candidates that meets the target";
+    } else {
+        // No option meets the target: the most accurate model, the first rung's, ships if
+        // it passes the gate, in its smallest encoding that does.
+        for (std::size_t i = 0; i < n; ++i)
+            if (sized.options[i].rung == 0 && passes(sized.options[i]) && smaller(i)) sized.chosen = i;
+        if (sized.chosen) sized.why = "no candidate meets the target; the largest passes the gate";
     }
     for (std::size_t i = 0; i < n; ++i) {
-        json& cand = sized.candidates[i];
+        Option& o = sized.options[i];
         if (sized.chosen == i)
-            cand["outcome"] = "chosen: " + sized.why;
-        else if (!sized.metrics[i]["gate"]["passed"].get<bool>())
-            cand["outcome"] = "fails the gate";
-        else if (cand["target_met"].get<bool>())
-            cand["outcome"] = "meets the target, but a smaller candidate does too";
+            o.outcome = "chosen: " + sized.why;
+        else if (!o.metrics["gate"]["passed"].get<bool>())
+            o.outcome = "fails the gate";
+        else if (!o.memory_ok)
+            o.outcome = "fails the memory rule";
+        else if (o.target_met)
+            o.outcome = "meets the target, but a smaller candidate does too";
         else
-            cand["outcome"] = "misses the target";
+            o.outcome = "misses the target";
     }
 }
 
 json asset_metadata(const Run& run, const std::string& source, const scene::Mesh& mesh, const Candidate& c,
-                    const Trained& t, const json& metrics, const std::string& key) {
+                    const Option& o, const Trained& t, const std::string& key) {
     const trainer::TrainConfig& cfg = t.config;
     const trainer::TrainResult& tres = t.stream.train;
     return {
@@ -720,7 +777,7 @@ json asset_metadata(const Run& run, const std::string& source, const scene::Mesh
           {"triangle_count", mesh.triangle_count()},
           {"vertex_count", mesh.vertex_count()},
           {"closed", c.source->is_closed()}}},
-        {"model", model_json(t.model.desc)},
+        {"model", model_json(o.model.desc)},
         {"training",
          {{"seed", run.opt.seed},
           {"threads", run.threads},
@@ -740,13 +797,19 @@ json asset_metadata(const Run& run, const std::string& source, const scene::Mesh
           {"final_loss", std::isfinite(tres.final_loss) ? tres.final_loss : 0.0f},
           {"preset", run.preset.name},
           {"divergence_rollbacks", tres.rollbacks}}},
-        {"metrics", metrics},
+        {"metrics", o.metrics},
         {"extensions", {{"lsnif_convert_key", key}}}};
 }
 
-format::Result<std::vector<std::uint8_t>> encode_asset(Trained& t, const json& metadata) {
-    t.model.metadata_json = metadata.dump(2);
-    return format::serialize(t.model);
+format::Result<std::vector<std::uint8_t>> encode_asset(Option& o, const json& metadata) {
+    o.model.metadata_json = metadata.dump(2);
+    return format::serialize(o.model);
+}
+
+std::string option_summary(const Option& o) {
+    const format::ModelDesc& d = o.model.desc;
+    return "2^" + std::to_string(d.log2_table_size) + " rows, " + grid_encoding_name(d.grid_encoding) +
+           " grid, " + std::to_string(o.bytes) + " bytes";
 }
 
 std::string write_asset(const Run& run, const scene::Mesh& mesh, std::span<const std::uint8_t> bytes,
@@ -806,19 +869,18 @@ json convert_mesh(const Run& run, const std::string& source, const scene::Mesh& 
     const MeasureRays rays = draw_measure_rays(run, mesh, *c, rec);
     Sized sized = size_to_target(run, mesh, *c, *occ, rays, rec);
     rec.entry["candidates"] = sized.candidates;
-    const std::size_t shown = sized.chosen.value_or(0);  // the chosen rung, or the largest tried
-    Trained& t = sized.rungs[shown];
-    const json& metrics = sized.metrics[shown];
+    // The chosen option, or the first rung's fp16 model when none may ship.
+    Option& o = sized.options[sized.chosen.value_or(0)];
+    const Trained& t = sized.rungs[o.rung];
+    const json& metrics = o.metrics;
     rec.entry["validation"] = t.validation;
     if (t.target_met_at)
         rec.entry["stopped_early"] = {{"step", t.target_met_at},
                                       {"steps", t.config.steps},
                                       {"reason", "validation curve met the target"}};
     if (!sized.chosen) return below_gate(metrics, !t.abandoned.empty(), rec);
-    if (shown > 0)
-        rec.reasons.push_back("hash tables sized to 2^" + std::to_string(t.model.desc.log2_table_size) +
-                              " rows: " + sized.why);
-    auto bytes = encode_asset(t, asset_metadata(run, source, mesh, *c, t, metrics, key));
+    rec.reasons.push_back(option_summary(o) + ": " + sized.why);
+    auto bytes = encode_asset(o, asset_metadata(run, source, mesh, *c, o, t, key));
     if (!bytes) {
         errors.push_back(source + ": mesh '" + mesh.name + "': " + bytes.error().message);
         return rec.simple("the asset could not be encoded: " + bytes.error().message);

@@ -1,7 +1,7 @@
 // The stages of `lsnif convert` (convert.cpp), one function each, in pipeline order:
 //   resolve_preset; per mesh: classify -> voxelize_mesh -> worth_an_lsnif -> asset_key ->
 //   (reusable_metrics -> shipped | draw_measure_rays -> size_to_target [train_rung -> gate
-//   per rung, choose_candidate] -> asset_metadata -> encode_asset -> memory_rule_failure ->
+//   per rung, choose_option] -> asset_metadata -> encode_asset -> memory_rule_failure ->
 //   write_asset -> shipped); finally manifest_json -> write_manifest.
 // A stage that decides "simple" returns nothing (or false) and records its reason in the
 // mesh's MeshRecord. Internal to the converter: exposed so that each stage is tested on its
@@ -110,12 +110,24 @@ struct Trained {
     double seconds = 0;  // wall time of this rung: drawing, preparing, training, validating
 };
 
-// Every rung tried for a mesh, largest first, with the held-out metrics of each (gate()).
+// A model that may ship: a trained rung's fp16 export, or its 8-bit quantization.
+struct Option {
+    std::size_t rung = 0;     // into Sized::rungs: the training it comes from
+    format::ModelData model;  // metadata filled only for the chosen one (encode_asset)
+    json metrics;             // gate() on the held-out rays
+    std::uint64_t bytes = 0;  // serialized without metadata
+    bool target_met = false;  // passes the gate and meets --target on held-out rays
+    bool memory_ok = false;   // beats the BVH by ClassifyRule::min_memory_ratio (or forced)
+    double seconds = 0;       // measuring (and, for the fp16 option, training) it
+    std::string outcome;      // chosen and why, or why not (choose_option)
+};
+
+// Every rung tried for a mesh, largest first, and every option they gave.
 struct Sized {
     std::vector<Trained> rungs;
-    std::vector<json> metrics;
-    json candidates = json::array();    // the manifest's "candidates", one per rung
-    std::optional<std::size_t> chosen;  // into rungs; none when no rung may ship
+    std::vector<Option> options;        // per rung: fp16, then u8_affine (Sizing::quantize)
+    json candidates = json::array();    // the manifest's "candidates", one per option
+    std::optional<std::size_t> chosen;  // into options; none when nothing may ship
     std::string why;                    // why `chosen` won
 };
 
@@ -169,29 +181,42 @@ Trained train_rung(const Run& run, const scene::Mesh& mesh, Candidate& c, const 
 
 // Gate: held-out metrics of the trained model and the verdict, as the manifest records
 // them ({"held_out_rays", "families", "gate": {"passed", "reasons"?}}).
-json gate(const Run& run, const scene::Mesh& mesh, const Trained& t, const MeasureRays& rays,
-          MeshRecord& rec);
+// `model` is `t`'s fp16 export or its quantization; `t` supplies the training verdicts.
+json gate(const Run& run, const scene::Mesh& mesh, const format::ModelData& model, const Trained& t,
+          const MeasureRays& rays, MeshRecord& rec);
 
-// The manifest's record of one rung: size, bytes (`bytes`: the serialized model without
-// metadata), steps, seconds, held-out metrics, verdicts, curve and why training stopped.
-json candidate_json(const Trained& t, const json& metrics, std::uint64_t bytes, bool target_met);
+// The manifest's record of one option: size, encoding, bytes, steps, seconds, held-out
+// metrics, verdicts, outcome, why training stopped and (fp16 option) the rung's curve.
+json candidate_json(const Option& o, const Trained& t);
+
+// Measures `model` (from rung `rung`, trained as `t`) as an option: held-out metrics, the
+// target, serialized bytes and the memory rule.
+Option measure_option(const Run& run, const scene::Mesh& mesh, const Candidate& c, std::size_t rung,
+                      format::ModelData model, const Trained& t, const MeasureRays& rays, MeshRecord& rec);
+
+// The grid encodings each rung is measured in: fp16, and u8_affine when Sizing::quantize.
+std::vector<format::GridEncoding> rung_encodings(const Preset& p);
+
+// "2^17 rows, u8_affine grid, 855000 bytes": the option in the mesh's reasons.
+std::string option_summary(const Option& o);
 
 // The ladder (Sizing): trains c.desc, then each smaller table size while the previous one
 // met the target and the preset's step budget has at least as many steps left as it used.
 Sized size_to_target(const Run& run, const scene::Mesh& mesh, Candidate& c, const voxelize::Occupancy& occ,
                      const MeasureRays& rays, MeshRecord& rec);
 
-// Picks the smallest rung that meets the target; else the largest if it passes the gate;
-// else none. Writes every candidate's "outcome".
-void choose_candidate(Sized& sized);
+// Picks the smallest option (bytes) that passes the gate and the memory rule and meets the
+// target; else the first rung's smallest option that passes both; else none. Writes every
+// option's outcome.
+void choose_option(Sized& sized);
 
 // The asset's metadata document (schema/lsnif-metadata.schema.json). No wall times: an
 // asset must be reproducible byte for byte for the same input, seed and threads.
 json asset_metadata(const Run& run, const std::string& source, const scene::Mesh& mesh, const Candidate& c,
-                    const Trained& t, const json& metrics, const std::string& key);
+                    const Option& o, const Trained& t, const std::string& key);
 
 // The asset's bytes: `metadata` stored into the model, then serialized.
-format::Result<std::vector<std::uint8_t>> encode_asset(Trained& t, const json& metadata);
+format::Result<std::vector<std::uint8_t>> encode_asset(Option& o, const json& metadata);
 
 // Write: the bytes through a temporary file and a rename. Returns the error, if any.
 std::string write_asset(const Run& run, const scene::Mesh& mesh, std::span<const std::uint8_t> bytes,

@@ -127,6 +127,7 @@ std::vector<std::string> metadata_consistency(const json& meta, const lsnif_info
             {"material_count", info.material_count},
             {"activation", "relu"},
             {"distance_encoding", distance_encoding_name(info.distance_encoding)},
+            {"grid_encoding", grid_encoding_name(info.grid_encoding)},
             {"parameter_count", info.parameter_count}};
         for (const auto& [key, want] : fields)
             if (m->contains(key)) check(std::string("model.") + key, (*m)[key], want);

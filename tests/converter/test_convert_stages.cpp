@@ -268,27 +268,42 @@ TEST_CASE("size_to_target walks down the ladder while each size meets the target
     REQUIRE(p.c.desc.log2_table_size == 12);
     const Sized sized = size_to_target(run, mesh, p.c, p.occ, p.rays, rec);
     REQUIRE_MESSAGE(sized.rungs.size() == 3, sized.candidates.dump());
+    REQUIRE(sized.options.size() == 6);  // each size in fp16 and 8-bit
+    REQUIRE(sized.candidates.size() == 6);
     std::uint32_t budget = run.preset.train.steps, steps_trained = 0;
     for (std::size_t i = 0; i < 3; ++i) {
-        const json& cand = sized.candidates[i];
-        CAPTURE(cand.dump());
-        CHECK(cand["log2_table_size"] == 12 - i);
-        CHECK(sized.rungs[i].model.desc.log2_table_size == 12 - i);
-        CHECK(cand["target_met"] == true);
+        const json& fp16 = sized.candidates[2 * i];
+        const json& u8 = sized.candidates[2 * i + 1];
+        CAPTURE(fp16.dump());
+        CHECK(fp16["log2_table_size"] == 12 - i);
+        CHECK(u8["log2_table_size"] == 12 - i);
+        CHECK(fp16["grid"] == "fp16");
+        CHECK(u8["grid"] == "u8_affine");
+        CHECK(sized.options[2 * i + 1].model.desc.grid_encoding == format::GridEncoding::u8_affine);
+        CHECK(u8["bytes"].get<std::uint64_t>() < fp16["bytes"].get<std::uint64_t>());
+        CHECK(fp16.contains("validation"));  // the training's curve, once per size
+        CHECK_FALSE(u8.contains("validation"));
+        CHECK(fp16["target_met"] == true);
         // TargetStop: two checks in a row; check k of a rung comes at the first step at or
         // past k tenths of its own budget.
         const std::uint32_t checks = run.preset.validation_checks;
-        CHECK(cand["steps"] == (2 * budget + checks - 1) / checks);
-        CHECK(cand["steps_planned"] == budget);  // what the larger sizes left of the budget
-        CHECK(cand["stopped"] == "the validation curve met the target");
+        CHECK(fp16["steps"] == (2 * budget + checks - 1) / checks);
+        CHECK(fp16["steps_planned"] == budget);  // what the larger sizes left of the budget
+        CHECK(fp16["stopped"] == "the validation curve met the target");
         if (i > 0)
-            CHECK(cand["bytes"].get<std::uint64_t>() < sized.candidates[i - 1]["bytes"].get<std::uint64_t>());
-        budget -= cand["steps"].get<std::uint32_t>();
-        steps_trained += cand["steps"].get<std::uint32_t>();
+            CHECK(fp16["bytes"].get<std::uint64_t>() <
+                  sized.candidates[2 * i - 2]["bytes"].get<std::uint64_t>());
+        budget -= fp16["steps"].get<std::uint32_t>();
+        steps_trained += fp16["steps"].get<std::uint32_t>();
     }
     CHECK(steps_trained <= run.preset.train.steps);
-    REQUIRE(sized.chosen == 2u);  // the smallest that meets the target
-    CHECK(sized.candidates[2]["outcome"] == "chosen: the smallest of 3 candidates that meets the target");
+    // The smallest that meets the target: the 8-bit 2^10 model, if quantization kept it
+    // at the target, else the fp16 one.
+    REQUIRE(sized.chosen.has_value());
+    const std::size_t expected = sized.options[5].target_met ? 5 : 4;
+    CHECK(*sized.chosen == expected);
+    CHECK(sized.candidates[expected]["outcome"] ==
+          "chosen: the smallest of 6 candidates that meets the target");
     CHECK(sized.candidates[0]["outcome"] == "meets the target, but a smaller candidate does too");
 }
 
@@ -304,9 +319,12 @@ TEST_CASE(
     Prepared p = prepare(run, mesh, rec);
     const Sized sized = size_to_target(run, mesh, p.c, p.occ, p.rays, rec);
     REQUIRE(sized.rungs.size() == 1);
+    REQUIRE(sized.options.size() == 2);
     CHECK(sized.candidates[0]["target_met"] == false);
     CHECK(sized.candidates[0]["steps"] == run.preset.train.steps);  // nothing stopped it
-    REQUIRE(sized.chosen == 0u);
+    // The largest size, in its smaller encoding when that passes the gate.
+    REQUIRE(sized.chosen.has_value());
+    CHECK(*sized.chosen == (sized.candidates[1]["gate_passed"].get<bool>() ? 1u : 0u));
     CHECK(sized.why == "no candidate meets the target; the largest passes the gate");
 
     // Below the gate too: nothing ships.

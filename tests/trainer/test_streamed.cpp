@@ -126,7 +126,8 @@ TEST_CASE("train_streamed stops when the progress callback says so, and draws no
     // round is drawn or trained.
     CountingSource edge(d);
     Trainer at_edge(d, edge.occupancy(d), small_config());
-    const StreamedResult e = train_streamed(at_edge, edge, plan, [](const Progress& p) { return p.step < 12; });
+    const StreamedResult e =
+        train_streamed(at_edge, edge, plan, [](const Progress& p) { return p.step < 12; });
     CHECK(e.stopped);
     CHECK(at_edge.step_count() == 12);
     CHECK(edge.draws == std::map<std::uint64_t, std::size_t>{{100, 1000}, {101, 1000}});

@@ -94,6 +94,9 @@ struct TargetStop {
 // never trains more steps than the fixed model did.
 struct Sizing {
     bool explore_smaller = true;  // false: train the first rung only (the pre-#12 behaviour)
+    // Also measure every rung with its hash-grid features quantized to 8 bits (FORMAT.md
+    // §6.4.1): the grid's bytes halve, and the option ships when it still meets the target.
+    bool quantize = true;
     // A smaller rung is given up at a validation check when its visibility, plus the most
     // the larger rung's curve gained after the same step, plus this slack, stays below the
     // visibility that TargetStop asks for: it would not catch up within its budget.
