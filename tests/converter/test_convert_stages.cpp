@@ -86,7 +86,8 @@ TEST_CASE("range_problem: single precision models boxes from 1e-15 to 1e15, noth
 
 TEST_CASE("classify sizes the hash tables to beat the BVH, unless forced, and measures the mesh") {
     const scene::Mesh mesh = dragon();
-    const ConvertOptions o = options("default");
+    ConvertOptions o = options("default");
+    o.log2_table_size = 18;  // the 8-bit 2^18 model's estimate is more than half the dragon's BVH
     const Run run = make_run(o, fresh_dir("stages_classify"));
     MeshRecord rec;
     const auto c = classify(run, mesh, false, rec);
@@ -337,7 +338,7 @@ TEST_CASE(
 TEST_CASE("falls_behind: a smaller size is given up when the larger one's later gain cannot close its gap") {
     const Target target;    // 97 %
     const TargetStop stop;  // +0.3 points
-    const Sizing rule;      // 0.5 points of slack
+    const Sizing rule;      // 1 point of slack
     // The blob's default-preset curve at 2^17 rows (docs/model.md "Sizing to the target").
     const json larger = json::array({{{"step", 240}, {"visibility", 0.9573}},
                                      {{"step", 480}, {"visibility", 0.9689}},
@@ -346,14 +347,15 @@ TEST_CASE("falls_behind: a smaller size is given up when the larger one's later 
     auto at = [&](std::uint32_t step, double vis) {
         return falls_behind({{"visibility", vis}}, step, larger, target, stop, rule);
     };
-    // At step 240 the larger gained 1.79 points afterwards: 95.0 + 1.79 + 0.5 < 97.3.
-    CHECK(at(240, 0.950) ==
-          "validation visibility 95.00 % at step 240; the larger model gained 1.79 points after that step, "
+    // At step 240 the larger gained 1.79 points afterwards: 94.4 + 1.79 + 1 < 97.3.
+    CHECK(at(240, 0.944) ==
+          "validation visibility 94.40 % at step 240; the larger model gained 1.79 points after that step, "
           "short "
           "of the 97.30 % needed");
-    CHECK(at(240, 0.9505).empty());       // 95.05 + 1.79 + 0.5 >= 97.3
-    CHECK_FALSE(at(720, 0.966).empty());  // gain 0.11 after 720
-    CHECK(at(720, 0.9675).empty());
+    CHECK(at(240, 0.9455).empty());       // 94.55 + 1.79 + 1 >= 97.3
+    CHECK(at(288, 0.9473).empty());       // the blob's 2^16 rung at step 288: it went on to meet the target
+    CHECK_FALSE(at(720, 0.961).empty());  // gain 0.11 after 720
+    CHECK(at(720, 0.9625).empty());
     CHECK(at(1200, 0.90).empty());  // beyond the larger curve: not judged
     CHECK(at(100, 0.50).empty());   // before its first check: not judged
     CHECK(falls_behind({{"visibility", 0.5}}, 240, json::array(), target, stop, rule)
