@@ -705,19 +705,12 @@ Sized size_to_target(const Run& run, const scene::Mesh& mesh, Candidate& c, cons
         sized.rungs.push_back(train_rung(run, mesh, c, desc, occ, rays, budget, larger, rec));
         const std::size_t rung = sized.rungs.size() - 1;
         const Trained& t = sized.rungs[rung];
+        const std::size_t first = sized.options.size();
+        add_options(run, mesh, c, rung, rays, sized, rec);
         bool met = false, fits = false;  // some option meets the target / beats the BVH
-        for (const format::GridEncoding e : rung_encodings(p)) {
-            format::ModelData model = t.model;
-            if (e == format::GridEncoding::u8_affine) {
-                auto quantized = format::quantize_model(t.model);
-                if (!quantized) continue;  // cannot happen for a valid fp16 export; then fp16 only
-                model = std::move(*quantized);
-            }
-            Option o = measure_option(run, mesh, c, rung, std::move(model), t, rays, rec);
-            if (e == format::GridEncoding::fp16) o.seconds += t.seconds;  // the training is the fp16 option's
-            met = met || o.target_met;
-            fits = fits || o.memory_ok;
-            sized.options.push_back(std::move(o));
+        for (std::size_t i = first; i < sized.options.size(); ++i) {
+            met = met || sized.options[i].target_met;
+            fits = fits || sized.options[i].memory_ok;
         }
         const std::uint32_t used = t.stream.train.steps;
         budget -= std::min(budget, used);
@@ -732,6 +725,22 @@ Sized size_to_target(const Run& run, const scene::Mesh& mesh, Candidate& c, cons
     choose_option(sized);
     for (const Option& o : sized.options) sized.candidates.push_back(candidate_json(o, sized.rungs[o.rung]));
     return sized;
+}
+
+void add_options(const Run& run, const scene::Mesh& mesh, const Candidate& c, std::size_t rung,
+                 const MeasureRays& rays, Sized& sized, MeshRecord& rec) {
+    const Trained& t = sized.rungs[rung];
+    for (const format::GridEncoding e : rung_encodings(run.preset)) {
+        format::ModelData model = t.model;
+        if (e == format::GridEncoding::u8_affine) {
+            auto quantized = format::quantize_model(t.model);
+            if (!quantized) continue;  // cannot happen for a valid fp16 export; then fp16 only
+            model = std::move(*quantized);
+        }
+        Option o = measure_option(run, mesh, c, rung, std::move(model), t, rays, rec);
+        if (e == format::GridEncoding::fp16) o.seconds += t.seconds;  // the training is the fp16 option's
+        sized.options.push_back(std::move(o));
+    }
 }
 
 std::vector<format::GridEncoding> rung_encodings(const Preset& p) {

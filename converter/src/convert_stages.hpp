@@ -194,6 +194,11 @@ json candidate_json(const Option& o, const Trained& t);
 Option measure_option(const Run& run, const scene::Mesh& mesh, const Candidate& c, std::size_t rung,
                       format::ModelData model, const Trained& t, const MeasureRays& rays, MeshRecord& rec);
 
+// Measures rung `rung` of `sized` in every encoding of rung_encodings() and appends the
+// options to sized.options.
+void add_options(const Run& run, const scene::Mesh& mesh, const Candidate& c, std::size_t rung,
+                 const MeasureRays& rays, Sized& sized, MeshRecord& rec);
+
 // The grid encodings each rung is measured in: fp16, and u8_affine when Sizing::quantize.
 std::vector<format::GridEncoding> rung_encodings(const Preset& p);
 
