@@ -315,17 +315,21 @@ static std::string recipe_key(const Preset& p, std::uint32_t threads) {
     return buf;
 }
 
-// The rules that may end training early: the target with its stop margins and the abort
-// rule. Part of the asset key, since they decide how many steps the weights saw.
+// The rules that decide which weights ship: the target with its stop margins, the abort
+// rule, the validation checks and the sizing ladder. Part of the asset key, since they decide
+// how many steps the weights saw and which size and encoding was kept.
 static std::string stop_key(const Target& t, const Preset& p) {
     const TargetStop& s = p.target_stop;
     const EarlyAbort& a = p.early_abort;
-    char buf[256];
-    std::snprintf(buf, sizeof buf, "target%g,%g,%g|stop%u,%g,%g,%g|abort%llu,%g,%g,%g|checks%u,%llu",
+    const Sizing& z = p.sizing;
+    char buf[320];
+    std::snprintf(buf, sizeof buf,
+                  "target%g,%g,%g|stop%u,%g,%g,%g|abort%llu,%g,%g,%g|checks%u,%llu|sizing%d,%d,%g,%u,%g",
                   t.visibility, t.distance_pct, t.normal_deg, s.consecutive, s.visibility_margin,
                   s.distance_factor, s.normal_margin_deg, (unsigned long long)a.min_samples,
                   a.visibility_headroom, a.normal_headroom_deg, a.distance_factor, p.validation_checks,
-                  (unsigned long long)p.validation_rays);
+                  (unsigned long long)p.validation_rays, int(z.explore_smaller), int(z.quantize),
+                  z.curve_slack, p.classify.min_log2_table_size, p.classify.min_memory_ratio);
     return buf;
 }
 
@@ -401,6 +405,11 @@ bool resolve_preset(const ConvertOptions& opt, Preset& preset, std::string& erro
     if (opt.grid_resolution > 0) preset.model.grid_resolution = opt.grid_resolution;
     if (opt.hidden_width > 0)
         for (auto& w : preset.model.hidden_width) w = opt.hidden_width;
+    if (opt.fixed_model) {
+        preset.sizing.explore_smaller = false;
+        preset.sizing.quantize = false;
+        preset.target_stop.consecutive = 0;
+    }
     return true;
 }
 
@@ -599,7 +608,7 @@ Trained train_rung(const Run& run, const scene::Mesh& mesh, Candidate& c, const 
         t.fell_behind = falls_behind(point, step, larger, aim, p.target_stop, p.sizing);
         if (!t.fell_behind.empty()) return false;
         met_in_a_row = meets_target_with_margin(point, aim, p.target_stop) ? met_in_a_row + 1 : 0;
-        if (met_in_a_row >= p.target_stop.consecutive && step < of) {
+        if (p.target_stop.consecutive && met_in_a_row >= p.target_stop.consecutive && step < of) {
             t.target_met_at = step;
             return false;
         }

@@ -267,6 +267,9 @@ struct ConvertCommand {
             "--target", target,
             "Accuracy asked of every asset: VIS,DIST,NORMAL (held-out visibility %, median distance "
             "error % of the diagonal, median normal error in degrees; default 97,1.0,15)");
+        sub->add_flag("--fixed-model", opt.fixed_model,
+                      "Train the preset's model (after the memory rule) for the whole budget: no smaller "
+                      "sizes, no 8-bit option, no stop at the target (for sweeps and comparisons)");
         sub->add_flag("--dry-run", opt.dry_run,
                       "Import and classify only: print the plan (class, reasons, model size), write nothing");
     }

@@ -219,11 +219,23 @@ TEST_CASE("the model is sized to the mesh: tables shrink until the asset beats t
 TEST_CASE("2CylinderEngine converts: all meshes and 67 instances in the manifest") {
     const fs::path out = fresh_dir("engine");
     ConvertOptions o = smoke({kEngine}, out);
-    o.preset = "default";  // its meshes are small: classification keeps them all BVH, no training
+    o.preset = "default";
+    // The plan: its 7-11k-triangle parts would save 1.1-1.8x memory as fp16 assets, but 2x
+    // and more in 8 bits, so some are candidates now. Converting them takes minutes and keeps
+    // them BVH (held-out visibility 94.4-94.8 %, below the gate: BENCHMARKS.md "Sizing to the
+    // target"), so this test forces every mesh simple after the plan.
+    o.dry_run = true;
+    const ConvertResult plan = convert(o);
+    REQUIRE_MESSAGE(plan.ok(), (plan.errors.empty() ? "" : plan.errors[0]));
+    std::size_t candidates = 0;
+    for (const auto& m : plan.report["meshes"]) {
+        candidates += m["class"] == "complex";
+        o.force_simple.push_back(m["name"].get<std::string>());
+    }
+    CHECK(candidates >= 1);
+    o.dry_run = false;
     const ConvertResult r = convert(o);
     REQUIRE_MESSAGE(r.ok(), (r.errors.empty() ? "" : r.errors[0]));
-    // Its largest parts (7-11k triangles) would save 1.1-1.8x memory at best: below the
-    // rule's 2x, so nothing is approximated (and nothing is trained in this test).
     for (const auto& m : r.manifest["meshes"]) CHECK_MESSAGE(m["class"] == "simple", m["name"]);
     CHECK(violations(manifest_schema(), r.manifest).empty());
     CHECK(r.manifest["instances"].size() == 67);

@@ -69,6 +69,15 @@ TEST_CASE("resolve_preset applies every command-line override, and names the pre
     CHECK(p.model.grid_resolution == 16);
     for (std::uint32_t w : p.model.hidden_width) CHECK(w == 32);
     CHECK(p.gate.min_visibility == 0.5);
+    // The default preset sizes to the target; --fixed-model trains one model to the end.
+    CHECK(p.sizing.explore_smaller);
+    CHECK(p.sizing.quantize);
+    CHECK(p.target_stop.consecutive > 0);
+    o.fixed_model = true;
+    REQUIRE(resolve_preset(o, p, error));
+    CHECK_FALSE(p.sizing.explore_smaller);
+    CHECK_FALSE(p.sizing.quantize);
+    CHECK(p.target_stop.consecutive == 0);
 
     o.preset = "turbo";
     CHECK_FALSE(resolve_preset(o, p, error));
@@ -187,6 +196,13 @@ TEST_CASE("asset_key changes with the geometry and every setting that changes th
     format::ModelDesc smaller = desc;
     smaller.log2_table_size -= 1;
     CHECK(asset_key(run, mesh, smaller) != key);
+    // The target and the sizing rules decide which steps and which size ship.
+    ConvertOptions o4 = o;
+    o4.target.visibility = 0.98;
+    CHECK(asset_key(make_run(o4, run.outdir), mesh, desc) != key);
+    ConvertOptions o5 = o;
+    o5.fixed_model = true;
+    CHECK(asset_key(make_run(o5, run.outdir), mesh, desc) != key);
     // Where the output goes does not change the weights.
     CHECK(asset_key(make_run(o, fresh_dir("stages_key_elsewhere")), mesh, desc) == key);
 }
@@ -306,6 +322,18 @@ TEST_CASE("size_to_target walks down the ladder while each size meets the target
     CHECK(sized.candidates[expected]["outcome"] ==
           "chosen: the smallest of 6 candidates that meets the target");
     CHECK(sized.candidates[0]["outcome"] == "meets the target, but a smaller candidate does too");
+
+    // --fixed-model: the preset's model, fp16, trained to the end of the budget.
+    ConvertOptions fixed_opt = o;
+    fixed_opt.fixed_model = true;
+    Run fixed = make_run(fixed_opt, run.outdir);
+    fixed.preset.classify.min_log2_table_size = 10;
+    fixed.preset.gate = run.preset.gate;
+    const Sized one = size_to_target(fixed, mesh, p.c, p.occ, p.rays, rec);
+    REQUIRE(one.options.size() == 1);
+    CHECK(one.candidates[0]["grid"] == "fp16");
+    CHECK(one.candidates[0]["steps"] == fixed.preset.train.steps);
+    CHECK(one.chosen == 0u);
 }
 
 TEST_CASE(

@@ -1,6 +1,8 @@
 // `lsnif validate` / `lsnif inspect` logic and the JSON Schema validator.
 #include <doctest/doctest.h>
 
+#include "../test_data.hpp"
+
 #include <lsnif/converter/file_tools.hpp>
 #include <lsnif/converter/json_schema.hpp>
 
@@ -11,12 +13,9 @@ using namespace lsnif::converter;
 using nlohmann::json;
 namespace fs = std::filesystem;
 
+using lsnif::test::load;
+
 namespace {
-std::vector<std::uint8_t> load(const fs::path& p) {
-    std::ifstream f(p, std::ios::binary);
-    REQUIRE_MESSAGE(f.good(), "cannot open " << p);
-    return {std::istreambuf_iterator<char>(f), std::istreambuf_iterator<char>()};
-}
 std::string load_text(const fs::path& p) {
     auto b = load(p);
     return {b.begin(), b.end()};

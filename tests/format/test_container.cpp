@@ -1,6 +1,8 @@
 // Container reader/writer: round trips, checksums, fp16, and rejection of damaged input.
 #include <doctest/doctest.h>
 
+#include "../test_data.hpp"
+
 #include <lsnif/lsnif.h>
 #include <lsnif/format/container.hpp>
 #include <lsnif/format/half.hpp>
@@ -16,13 +18,9 @@
 using namespace lsnif::format;
 namespace fs = std::filesystem;
 
-namespace {
+using lsnif::test::load;
 
-std::vector<std::uint8_t> load(const fs::path& p) {
-    std::ifstream f(p, std::ios::binary);
-    REQUIRE_MESSAGE(f.good(), "cannot open " << p);
-    return {std::istreambuf_iterator<char>(f), std::istreambuf_iterator<char>()};
-}
+namespace {
 
 fs::path data_dir() {
     return fs::path(LSNIF_TEST_DATA_DIR);

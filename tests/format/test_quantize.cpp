@@ -3,6 +3,8 @@
 // bit-exactness of the reader's forward pass against an f32 table dequantized up front.
 #include <doctest/doctest.h>
 
+#include "../test_data.hpp"
+
 #include <lsnif/lsnif.h>
 #include <lsnif/format/container.hpp>
 #include <lsnif/format/forward.hpp>
@@ -20,13 +22,9 @@
 using namespace lsnif::format;
 namespace fs = std::filesystem;
 
-namespace {
+using lsnif::test::load;
 
-std::vector<std::uint8_t> load(const fs::path& p) {
-    std::ifstream f(p, std::ios::binary);
-    REQUIRE_MESSAGE(f.good(), "cannot open " << p);
-    return {std::istreambuf_iterator<char>(f), std::istreambuf_iterator<char>()};
-}
+namespace {
 
 fs::path data_dir() {
     return fs::path(LSNIF_TEST_DATA_DIR);

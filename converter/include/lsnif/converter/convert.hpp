@@ -80,7 +80,7 @@ struct EarlyAbort {
 // Training an object further than its target only spends time: a user who wants more asks
 // for more with --target.
 struct TargetStop {
-    std::uint32_t consecutive = 2;     // checks in a row: one good check may be noise
+    std::uint32_t consecutive = 2;     // checks in a row: one good check may be noise; 0: never stop
     double visibility_margin = 0.003;  // validation visibility >= target + margin
     double distance_factor = 0.9;      // validation median distance <= factor x target
     double normal_margin_deg = 1.0;    // validation median normal <= target - margin
@@ -155,7 +155,10 @@ struct ConvertOptions {
     std::uint32_t steps = 0;          // > 0 overrides the preset's training steps
     std::uint32_t batch_size = 0;     // > 0 overrides the preset's batch size
     bool dry_run = false;             // import and classify only; report the plan, write nothing
-    Target target;                    // --target: judged and reported per shipped asset
+    // Train one model per mesh for the preset's whole budget, as before sizing existed: no
+    // smaller rungs, no 8-bit option, no TargetStop (EarlyAbort and the gate still apply).
+    bool fixed_model = false;
+    Target target;  // --target: judged and reported per shipped asset
     // Model overrides (0 = the preset's value), for sweeps such as scripts/tradeoff. A
     // changed table size is the largest the per-mesh sizing may choose.
     std::uint32_t log2_table_size = 0;  // T = 2^n rows per hashed level
