@@ -1,5 +1,5 @@
 // Reading the repository's test data (tests/data, LSNIF_TEST_DATA_DIR) from doctest cases:
-// one helper for every test executable that reads golden files.
+// one helper of each kind for every test executable that reads golden files.
 #pragma once
 
 #include <doctest/doctest.h>
@@ -18,5 +18,12 @@ inline std::vector<std::uint8_t> load(const std::filesystem::path& p) {
     REQUIRE_MESSAGE(f.good(), "cannot open " << p);
     return {std::istreambuf_iterator<char>(f), std::istreambuf_iterator<char>()};
 }
+
+#ifdef LSNIF_TEST_DATA_DIR
+// The repository's tests/data directory, as the build passes it to the test.
+inline std::filesystem::path data_dir() {
+    return std::filesystem::path(LSNIF_TEST_DATA_DIR);
+}
+#endif
 
 }  // namespace lsnif::test

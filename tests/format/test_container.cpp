@@ -18,13 +18,10 @@
 using namespace lsnif::format;
 namespace fs = std::filesystem;
 
+using lsnif::test::data_dir;
 using lsnif::test::load;
 
 namespace {
-
-fs::path data_dir() {
-    return fs::path(LSNIF_TEST_DATA_DIR);
-}
 
 ModelData random_model(const ModelDesc& d, std::uint32_t seed) {
     auto r = make_empty_model(d);

@@ -22,13 +22,10 @@
 using namespace lsnif::format;
 namespace fs = std::filesystem;
 
+using lsnif::test::data_dir;
 using lsnif::test::load;
 
 namespace {
-
-fs::path data_dir() {
-    return fs::path(LSNIF_TEST_DATA_DIR);
-}
 
 // A model whose features, weights and sphere-shell occupancy make the network's output
 // vary along rays, so a few thousand rays give both hits and misses.
