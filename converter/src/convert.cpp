@@ -1,6 +1,7 @@
 // `lsnif convert`; see convert.hpp for the contracts.
 #include <lsnif/base/clock.hpp>
 #include <lsnif/converter/convert.hpp>
+#include <lsnif/converter/file_tools.hpp>
 #include <lsnif/converter/manifest.hpp>
 #include <lsnif/format/forward.hpp>
 #include <lsnif/format/quantize.hpp>
@@ -85,8 +86,6 @@ double surface_area(const scene::Mesh& m) {
     return area;
 }
 
-// Raw bytes a model of these dimensions occupies in a .lsnif (before compression, which
-// barely shrinks trained fp16 weights): header, table, occupancy, tables, MLP, metadata.
 // Estimate of an asset's bytes for `d` with its grid stored as `encoding`, before training:
 // header, table, occupancy and fp16 MLP uncompressed, 2 KiB of metadata, and the grid -
 // uncompressed for fp16 (zstd gains under 10 % on it), divided by kU8GridCompression for
@@ -108,10 +107,6 @@ format::GridEncoding smallest_encoding(const Preset& p) {
     return p.sizing.quantize ? format::GridEncoding::u8_affine : format::GridEncoding::fp16;
 }
 
-const char* grid_encoding_name(format::GridEncoding e) {
-    return e == format::GridEncoding::u8_affine ? "u8_affine" : "fp16";
-}
-
 std::string gate_reason(const char* what, double value, const char* op, double limit, const char* unit) {
     char buf[160];
     std::snprintf(buf, sizeof buf, "held-out %s %.4g%s %s gate %.4g%s", what, value, unit, op, limit, unit);
@@ -131,10 +126,6 @@ json family_json(const samples::FamilyMetrics& f) {
             {"culled_fraction", f.culled_fraction}};
 }
 
-const char* distance_encoding_name(std::uint32_t e) {
-    return e == LSNIF_DISTANCE_SEGMENT ? "segment" : "first_entry_diagonal";
-}
-
 json model_json(const format::ModelDesc& d) {
     return {{"grid_resolution", d.grid_resolution},
             {"max_points", d.max_points},
@@ -146,7 +137,7 @@ json model_json(const format::ModelDesc& d) {
             {"material_count", d.material_count},
             {"activation", "relu"},
             {"distance_encoding", distance_encoding_name(d.distance_encoding)},
-            {"grid_encoding", grid_encoding_name(d.grid_encoding)},
+            {"grid_encoding", grid_encoding_name(std::uint32_t(d.grid_encoding))},
             {"normal", "shading"},
             {"parameter_count", d.parameter_count()}};
 }
@@ -666,7 +657,7 @@ json candidate_json(const Option& o, const Trained& t) {
     const json& p = o.metrics["families"]["pooled"];
     json j = {{"log2_table_size", d.log2_table_size},
               {"hidden_width", d.hidden_width},
-              {"grid", grid_encoding_name(d.grid_encoding)},
+              {"grid", grid_encoding_name(std::uint32_t(d.grid_encoding))},
               {"bytes", o.bytes},
               {"steps", t.stream.train.steps},
               {"steps_planned", t.config.steps},
@@ -726,7 +717,7 @@ Sized size_to_target(const Run& run, const scene::Mesh& mesh, Candidate& c, cons
         // A smaller rung is worth a try only after this one met the target (or could not
         // beat the BVH, the estimate having been too hopeful), and only with at least as many
         // steps as this one needed: a smaller model does not learn faster.
-        if (!(met || !fits) || !p.sizing.explore_smaller || budget < used ||
+        if ((!met && fits) || !p.sizing.explore_smaller || budget < used ||
             desc.log2_table_size <= p.classify.min_log2_table_size)
             break;
         --desc.log2_table_size;
@@ -836,8 +827,9 @@ format::Result<std::vector<std::uint8_t>> encode_asset(Option& o, const json& me
 
 std::string option_summary(const Option& o) {
     const format::ModelDesc& d = o.model.desc;
-    return "2^" + std::to_string(d.log2_table_size) + " rows, " + grid_encoding_name(d.grid_encoding) +
-           " grid, " + std::to_string(o.bytes) + " bytes";
+    return "2^" + std::to_string(d.log2_table_size) + " rows, " +
+           grid_encoding_name(std::uint32_t(d.grid_encoding)) + " grid, " + std::to_string(o.bytes) +
+           " bytes";
 }
 
 std::string write_asset(const Run& run, const scene::Mesh& mesh, std::span<const std::uint8_t> bytes,

@@ -23,14 +23,6 @@ Problem problem_from(const lsnif_error& e) {
     return {lsnif_status_string(e.status), e.offset, e.message};
 }
 
-const char* distance_encoding_name(std::uint32_t e) {
-    return e == LSNIF_DISTANCE_SEGMENT ? "segment" : "first_entry_diagonal";
-}
-
-const char* grid_encoding_name(std::uint32_t e) {
-    return e == LSNIF_GRID_U8_AFFINE ? "u8_affine" : e == LSNIF_GRID_FP16 ? "fp16" : "unknown";
-}
-
 // The grid encoding and, for a quantized grid, each level's dequantization pair
 // (FORMAT.md §6.4.1) as the C API hands it to a GPU uploader.
 json grid_json(const lsnif_model* model, const lsnif_info& info) {
@@ -103,6 +95,14 @@ std::string fmt_bytes(std::uint64_t n) {
 }
 
 }  // namespace
+
+const char* distance_encoding_name(std::uint32_t e) {
+    return e == LSNIF_DISTANCE_SEGMENT ? "segment" : "first_entry_diagonal";
+}
+
+const char* grid_encoding_name(std::uint32_t e) {
+    return e == LSNIF_GRID_U8_AFFINE ? "u8_affine" : e == LSNIF_GRID_FP16 ? "fp16" : "unknown";
+}
 
 std::vector<std::string> metadata_consistency(const json& meta, const lsnif_info& info) {
     std::vector<std::string> out;
