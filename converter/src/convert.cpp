@@ -14,9 +14,12 @@
 
 #include <algorithm>
 #include <chrono>
+#include <cctype>
+#include <charconv>
 #include <cinttypes>
 #include <cmath>
 #include <cstdio>
+#include <deque>
 #include <filesystem>
 #include <lsnif/base/parallel.hpp>
 #include <memory>
@@ -198,6 +201,45 @@ bool parse_target(const std::string& text, Target& target, std::string& error) {
         return false;
     }
     target = {v[0] / 100.0, v[1], v[2]};
+    return true;
+}
+
+bool parse_byte_size(const std::string& text, std::uint64_t& bytes, std::string& error) {
+    std::size_t digits = 0;
+    while (digits < text.size() && (std::isdigit(static_cast<unsigned char>(text[digits])) || text[digits] == '.'))
+        ++digits;
+    double value = 0;
+    const std::string number = text.substr(0, digits);
+    const auto [end, ec] = std::from_chars(number.data(), number.data() + number.size(), value);
+    if (number.empty() || ec != std::errc() || end != number.data() + number.size()) {
+        error = "expected a byte count such as 1500000, 512K, 64MiB or 1.5G";
+        return false;
+    }
+    std::string unit;
+    for (char ch : text.substr(digits)) unit += char(std::tolower(static_cast<unsigned char>(ch)));
+    double scale = 1;
+    if (!unit.empty() && std::string("kmgt").find(unit[0]) != std::string::npos) {
+        for (char u : std::string("kmgt")) {
+            scale *= 1024;
+            if (u == unit[0]) break;
+        }
+        unit.erase(0, 1);
+        if (unit == "ib") unit = "b";
+    }
+    if (!unit.empty() && unit != "b") {
+        error = "unknown unit '" + text.substr(digits) + "' (use K, M, G or T: powers of 1024)";
+        return false;
+    }
+    const double total = std::floor(value * scale);
+    if (!(total >= 1)) {
+        error = "the budget must be at least 1 byte";
+        return false;
+    }
+    if (total > 9.2e18) {
+        error = "more than 2^63 bytes";
+        return false;
+    }
+    bytes = std::uint64_t(total);
     return true;
 }
 
@@ -865,29 +907,62 @@ json target_json(const Target& t, const std::vector<std::string>& misses) {
     return j;
 }
 
-json convert_mesh(const Run& run, const std::string& source, const scene::Mesh& mesh, MeshRecord rec,
-                  std::vector<std::string>& errors) {
-    if (run.forced(run.opt.force_simple, mesh.name))
-        return rec.simple("forced simple by --simple " + mesh.name);
+// The classification half of plan_mesh: the entry of a mesh that stays BVH, or null for
+// a candidate (p.candidate and p.occupancy set).
+json plan_decision(const Run& run, const scene::Mesh& mesh, Planned& p) {
+    MeshRecord& rec = p.rec;
+    if (run.forced(run.opt.force_simple, mesh.name)) return rec.simple("forced simple by --simple " + mesh.name);
     const ClassifyRule& rule = run.preset.classify;
     const bool forced_complex = run.forced(run.opt.force_complex, mesh.name);
     if (mesh.triangle_count() < rule.min_triangles && !forced_complex)
         return rec.simple(std::to_string(mesh.triangle_count()) + " triangles < " +
                           std::to_string(rule.min_triangles) + ": a BVH is small and exact");
-    std::optional<Candidate> c = classify(run, mesh, forced_complex, rec);
-    if (!c) return rec.finish("simple");
-    const std::optional<voxelize::Occupancy> occ = voxelize_mesh(run, mesh, *c, rec);
-    if (!occ || !worth_an_lsnif(run, mesh, *c, rec)) return rec.finish("simple");
+    p.candidate = classify(run, mesh, forced_complex, rec);
+    if (!p.candidate) return rec.finish("simple");
+    p.occupancy = voxelize_mesh(run, mesh, *p.candidate, rec);
+    if (!p.occupancy || !worth_an_lsnif(run, mesh, *p.candidate, rec)) return rec.finish("simple");
+    return nullptr;
+}
+
+Planned plan_mesh(const Run& run, const std::string& source, const scene::Mesh& mesh, MeshRecord rec,
+                  std::vector<std::string>& warnings) {
+    Planned p;
+    p.mesh = &mesh;
+    p.source = source;
+    p.rec = std::move(rec);
+    p.decided = plan_decision(run, mesh, p);
+    if (p.candidate && p.candidate->source) {
+        p.bvh_bytes = p.candidate->source->bvh_bytes();
+    } else {
+        std::string error;
+        if (auto bytes = sampling::measure_bvh_bytes(view_of(mesh), error))
+            p.bvh_bytes = *bytes;
+        else
+            warnings.push_back(source + ": mesh '" + mesh.name + "': its BVH could not be measured (counted as 0 bytes): " + error);
+    }
+    if (p.decided.is_null()) {
+        p.estimate = lsnif_bytes_estimate(p.candidate->desc, smallest_encoding(run.preset));
+    } else {
+        p.candidate.reset();  // a mesh that stays BVH needs no Embree scene any more
+        p.occupancy.reset();
+    }
+    return p;
+}
+
+json convert_candidate(const Run& run, Planned& p, std::vector<std::string>& errors) {
+    const scene::Mesh& mesh = *p.mesh;
+    const std::string& source = p.source;
+    MeshRecord& rec = p.rec;
+    Candidate& c = *p.candidate;
     if (run.opt.dry_run) return rec.finish("complex");  // the plan only: no sampling, training or files
 
-    const std::string key = asset_key(run, mesh, c->desc);
+    const std::string key = asset_key(run, mesh, c.desc);
     const std::string file = hex16(fnv1a64(key)) + ".lsnif";
     const fs::path asset = run.outdir / file;
-    if (auto previous = reusable_metrics(asset, key))
-        return shipped(run, std::move(*previous), file, asset, true, rec);
+    if (auto previous = reusable_metrics(asset, key)) return shipped(run, std::move(*previous), file, asset, true, rec);
 
-    const MeasureRays rays = draw_measure_rays(run, mesh, *c, rec);
-    Sized sized = size_to_target(run, mesh, *c, *occ, rays, rec);
+    const MeasureRays rays = draw_measure_rays(run, mesh, c, rec);
+    Sized sized = size_to_target(run, mesh, c, *p.occupancy, rays, rec);
     rec.entry["candidates"] = sized.candidates;
     // The chosen option, or the first rung's fp16 model when none may ship.
     Option& o = sized.options[sized.chosen.value_or(0)];
@@ -900,12 +975,12 @@ json convert_mesh(const Run& run, const std::string& source, const scene::Mesh& 
                                       {"reason", "validation curve met the target"}};
     if (!sized.chosen) return below_gate(metrics, !t.abandoned.empty(), rec);
     rec.reasons.push_back(option_summary(o) + ": " + sized.why);
-    auto bytes = encode_asset(o, asset_metadata(run, source, mesh, *c, o, t, key));
+    auto bytes = encode_asset(o, asset_metadata(run, source, mesh, c, o, t, key));
     if (!bytes) {
         errors.push_back(source + ": mesh '" + mesh.name + "': " + bytes.error().message);
         return rec.simple("the asset could not be encoded: " + bytes.error().message);
     }
-    if (std::string why = memory_rule_failure(run, *c, bytes->size()); !why.empty()) {
+    if (std::string why = memory_rule_failure(run, c, bytes->size()); !why.empty()) {
         rec.entry["metrics"] = metrics;
         return rec.simple(why);
     }
@@ -914,6 +989,78 @@ json convert_mesh(const Run& run, const std::string& source, const scene::Mesh& 
         return rec.simple("the asset could not be written: " + err);
     }
     return shipped(run, metrics, file, asset, false, rec);
+}
+
+// Estimated BVH bytes saved per asset byte: the budget's conversion order.
+double saving_per_byte(const Planned& p) {
+    return (double(p.bvh_bytes) - double(p.estimate)) / double(std::max<std::uint64_t>(1, p.estimate));
+}
+
+std::vector<std::size_t> conversion_order(const std::vector<Planned>& planned, bool budgeted) {
+    std::vector<std::size_t> order;
+    for (std::size_t i = 0; i < planned.size(); ++i)
+        if (planned[i].decided.is_null()) order.push_back(i);
+    if (budgeted)
+        std::stable_sort(order.begin(), order.end(), [&](std::size_t a, std::size_t b) {
+            if (planned[a].forced() != planned[b].forced()) return planned[a].forced();
+            return saving_per_byte(planned[a]) > saving_per_byte(planned[b]);
+        });
+    return order;
+}
+
+std::uint64_t bytes_after(const Planned& p, const json& entry) {
+    if (entry.value("class", "") != "complex") return p.bvh_bytes;
+    if (entry.contains("lsnif")) return entry["lsnif"]["bytes"].get<std::uint64_t>();
+    return p.estimate;  // a dry run's plan
+}
+
+// Why a candidate stays BVH when the scene already fits the budget.
+std::string fits_without_it(std::uint64_t total, std::uint64_t budget) {
+    return "the scene fits the memory budget without it (" + std::to_string(total) + " of " +
+           std::to_string(budget) + " bytes with this mesh as BVH)";
+}
+
+std::vector<json> convert_meshes(const Run& run, std::vector<Planned>& planned, std::vector<std::string>& errors) {
+    std::vector<json> entries(planned.size());
+    std::vector<std::uint64_t> after(planned.size());
+    for (std::size_t i = 0; i < planned.size(); ++i) {
+        after[i] = planned[i].bvh_bytes;
+        if (!planned[i].decided.is_null()) entries[i] = planned[i].decided;
+    }
+    const std::uint64_t budget = run.opt.memory_budget;
+    for (std::size_t i : conversion_order(planned, budget > 0)) {
+        Planned& p = planned[i];
+        const std::uint64_t total = std::accumulate(after.begin(), after.end(), std::uint64_t(0));
+        if (budget > 0 && total <= budget && !p.forced()) {
+            entries[i] = p.rec.simple(fits_without_it(total, budget));
+        } else {
+            entries[i] = convert_candidate(run, p, errors);
+            after[i] = bytes_after(p, entries[i]);
+        }
+        p.candidate.reset();  // its Embree scene (the largest thing a candidate holds)
+        p.occupancy.reset();
+    }
+    for (std::size_t i = 0; i < planned.size(); ++i) {
+        json memory = {{"before", planned[i].bvh_bytes}, {"after", after[i]}};
+        if (run.opt.dry_run && entries[i]["class"] == "complex") memory["estimated"] = true;
+        entries[i]["memory"] = memory;
+    }
+    return entries;
+}
+
+json scene_memory(const Run& run, const std::vector<json>& entries) {
+    std::uint64_t before = 0, after = 0;
+    for (const json& e : entries) {
+        before += e["memory"]["before"].get<std::uint64_t>();
+        after += e["memory"]["after"].get<std::uint64_t>();
+    }
+    json j = {{"before", before}, {"after", after}};
+    if (run.opt.memory_budget > 0) {
+        j["budget"] = run.opt.memory_budget;
+        j["fits"] = after <= run.opt.memory_budget;
+    }
+    if (run.opt.dry_run) j["estimated"] = true;
+    return j;
 }
 
 json shipped(const Run& run, json metrics, const std::string& file, const fs::path& asset, bool reused,
@@ -949,9 +1096,10 @@ MeshRecord new_record(const scene::Scene& sc, std::size_t in, std::size_t k, std
     return rec;
 }
 
-json manifest_json(const Run& run, const json& inputs, const json& meshes, const json& instances) {
+json manifest_json(const Run& run, const json& inputs, const json& meshes, const json& instances,
+                   const json& memory) {
     json forced_c = run.opt.force_complex, forced_s = run.opt.force_simple;
-    return {
+    json manifest = {
         {"format", kManifestFormat},
         {"tool", {{"name", "lsnif"}, {"version", LSNIF_VERSION_STRING}}},
         {"settings",
@@ -966,7 +1114,10 @@ json manifest_json(const Run& run, const json& inputs, const json& meshes, const
         {"instances", instances},
         {"simple_geometry",
          {{"location", "inputs"},
-          {"note", "simple meshes are read from their input file (meshes[].input, meshes[].source_mesh)"}}}};
+          {"note", "simple meshes are read from their input file (meshes[].input, meshes[].source_mesh)"}}},
+        {"scene_memory", memory}};
+    if (run.opt.memory_budget > 0) manifest["settings"]["memory_budget"] = run.opt.memory_budget;
+    return manifest;
 }
 
 std::string write_manifest(const fs::path& outdir, const json& manifest) {
@@ -993,8 +1144,10 @@ ConvertResult convert(const ConvertOptions& opt, const ConvertProgress& progress
         return res;
     }
     const Run run{opt, std::move(preset), base::resolve_threads(opt.threads), opt.outdir, progress};
-    json inputs = json::array(), meshes = json::array(), instances = json::array();
-    std::size_t ok_inputs = 0, next_id = 0;
+    json inputs = json::array(), instances = json::array();
+    std::deque<scene::Scene> scenes;  // every input stays imported: candidates borrow their meshes
+    std::vector<Planned> planned;
+    std::size_t ok_inputs = 0;
     double import_seconds = 0;
     for (std::size_t in = 0; in < opt.inputs.size(); ++in) {
         const std::string& path = opt.inputs[in];
@@ -1011,36 +1164,63 @@ ConvertResult convert(const ConvertOptions& opt, const ConvertProgress& progress
             continue;
         }
         ++ok_inputs;
-        const scene::Scene& sc = imported.scene;
+        const scene::Scene& sc = scenes.emplace_back(std::move(imported.scene));
         in_json["status"] = "ok";
         if (!sc.warnings.empty()) {
             in_json["warnings"] = sc.warnings;
             for (const auto& w : sc.warnings) res.warnings.push_back(path + ": " + w);
         }
         inputs.push_back(in_json);
-        const std::size_t first_id = next_id;
+        const std::size_t first_id = planned.size();
         for (std::size_t k = 0; k < sc.meshes.size(); ++k)
-            meshes.push_back(
-                convert_mesh(run, path, sc.meshes[k], new_record(sc, in, k, next_id++), res.errors));
+            planned.push_back(
+                plan_mesh(run, path, sc.meshes[k], new_record(sc, in, k, planned.size()), res.warnings));
         for (const auto& i : sc.instances)
             instances.push_back({{"mesh", first_id + i.mesh},
                                  {"name", i.node_name},
                                  {"transform", std::vector<float>(i.transform.begin(), i.transform.end())}});
     }
+    const std::vector<json> entries = convert_meshes(run, planned, res.errors);
+    const json meshes = entries, memory = scene_memory(run, entries);
+    if (memory.contains("fits") && !memory["fits"].get<bool>())
+        res.warnings.push_back("the scene needs " + std::to_string(memory["after"].get<std::uint64_t>()) +
+                               " bytes, over the memory budget of " + std::to_string(opt.memory_budget) +
+                               " bytes, with every candidate that passed converted");
 
     res.report = {{"inputs", inputs},
                   {"meshes", meshes},
                   {"instances", instances.size()},
+                  {"scene_memory", memory},
                   {"errors", res.errors},
                   {"warnings", res.warnings}};
     res.report["timings"] = {{"import", import_seconds}};  // per-mesh stages are in meshes[].timings
     if (opt.dry_run) res.report["dry_run"] = true;
     if (ok_inputs == 0 || opt.dry_run) return res;  // nothing converted, or a plan: leave OUTDIR untouched
 
-    res.manifest = manifest_json(run, inputs, meshes, instances);
+    res.manifest = manifest_json(run, inputs, meshes, instances, memory);
     if (std::string e = write_manifest(run.outdir, res.manifest); !e.empty()) res.errors.push_back(e);
     res.report["manifest"] = (run.outdir / "manifest.json").string();
     return res;
+}
+
+// "812 B", "406.2 KiB", "84.1 MiB", "1.20 GiB": a byte count as the text report shows it.
+std::string human_bytes(std::uint64_t bytes) {
+    char buf[32];
+    if (bytes < 1024)
+        std::snprintf(buf, sizeof buf, "%" PRIu64 " B", bytes);
+    else if (bytes < (1u << 20))
+        std::snprintf(buf, sizeof buf, "%.1f KiB", double(bytes) / 1024);
+    else if (bytes < (1u << 30))
+        std::snprintf(buf, sizeof buf, "%.1f MiB", double(bytes) / (1u << 20));
+    else
+        std::snprintf(buf, sizeof buf, "%.2f GiB", double(bytes) / (1u << 30));
+    return buf;
+}
+
+// "BVH 84.1 MiB -> 406.2 KiB": a mesh's or the scene's memory before and after conversion.
+std::string memory_text(const json& memory) {
+    const std::uint64_t before = memory["before"].get<std::uint64_t>(), after = memory["after"].get<std::uint64_t>();
+    return human_bytes(before) + " -> " + human_bytes(after) + (memory.value("estimated", false) ? " (est.)" : "");
 }
 
 std::string convert_text(const ConvertResult& r) {
@@ -1048,16 +1228,17 @@ std::string convert_text(const ConvertResult& r) {
     char buf[512];
     if (!r.report.contains("meshes")) return s;
     for (const json& m : r.report["meshes"]) {
-        std::snprintf(buf, sizeof buf, "%-8s %-24s %9" PRIu64 " tris  x%-3" PRIu64,
+        std::snprintf(buf, sizeof buf, "%-8s %-24s %9" PRIu64 " tris  x%-3" PRIu64 "  %-28s",
                       m["class"].get<std::string>().c_str(),
                       m["name"].get<std::string>().substr(0, 24).c_str(), m["triangles"].get<std::uint64_t>(),
-                      m.value("instances", std::uint64_t(0)));
+                      m.value("instances", std::uint64_t(0)),
+                      m.contains("memory") ? memory_text(m["memory"]).c_str() : "");
         s += buf;
         if (m.contains("lsnif")) {
             const json& p = m["metrics"]["families"]["pooled"];
             std::snprintf(
-                buf, sizeof buf, "  %s %6.1f KiB  vis %.2f%%  dist %.3f%%  normal %.1f deg%s",
-                m["lsnif"]["file"].get<std::string>().c_str(), m["lsnif"]["bytes"].get<double>() / 1024,
+                buf, sizeof buf, "  %s  vis %.2f%%  dist %.3f%%  normal %.1f deg%s",
+                m["lsnif"]["file"].get<std::string>().c_str(),
                 100 * p["visibility_accuracy"].get<double>(), p["distance_error_median_pct"].get<double>(),
                 p["normal_error_median_deg"].get<double>(),
                 m["lsnif"]["reused"].get<bool>() ? " (reused)" : "");
@@ -1093,6 +1274,14 @@ std::string convert_text(const ConvertResult& r) {
     std::snprintf(buf, sizeof buf, "%zu meshes, %" PRIu64 " instances\n", r.report["meshes"].size(),
                   r.report["instances"].get<std::uint64_t>());
     s += buf;
+    if (r.report.contains("scene_memory")) {
+        const json& mem = r.report["scene_memory"];
+        s += "scene memory (each mesh once): " + memory_text(mem);
+        if (mem.contains("budget"))
+            s += std::string(", budget ") + human_bytes(mem["budget"].get<std::uint64_t>()) +
+                 (mem["fits"].get<bool>() ? ": fits" : ": over budget");
+        s += "\n";
+    }
     if (r.report.contains("manifest")) s += "manifest: " + r.report["manifest"].get<std::string>() + "\n";
     if (r.report.value("dry_run", false)) s += "dry run: nothing written\n";
     return s;

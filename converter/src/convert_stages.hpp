@@ -1,8 +1,10 @@
 // The stages of `lsnif convert` (convert.cpp), one function each, in pipeline order:
-//   resolve_preset; per mesh: classify -> voxelize_mesh -> worth_an_lsnif -> asset_key ->
-//   (reusable_metrics -> shipped | draw_measure_rays -> size_to_target [train_rung -> gate
-//   per rung, choose_option] -> asset_metadata -> encode_asset -> memory_rule_failure ->
-//   write_asset -> shipped); finally manifest_json -> write_manifest.
+//   resolve_preset; per mesh, plan_mesh: classify -> voxelize_mesh -> worth_an_lsnif and the
+//   BVH's bytes; then convert_meshes, per candidate in conversion_order() until the memory
+//   budget is met, convert_candidate: asset_key -> (reusable_metrics -> shipped |
+//   draw_measure_rays -> size_to_target [train_rung -> gate per rung, choose_option] ->
+//   asset_metadata -> encode_asset -> memory_rule_failure -> write_asset -> shipped);
+//   finally scene_memory, manifest_json -> write_manifest.
 // A stage that decides "simple" returns nothing (or false) and records its reason in the
 // mesh's MeshRecord. Internal to the converter: exposed so that each stage is tested on its
 // own (tests/converter/test_convert_stages.cpp); not installed, not an API.
@@ -242,16 +244,58 @@ json below_gate(const json& metrics, bool abandoned, MeshRecord& rec);
 // was met ({"visibility", "distance_pct", "normal_deg", "met", "misses"?}).
 json target_json(const Target& target, const std::vector<std::string>& misses);
 
-// One mesh through every stage: its manifest entry. Errors that concern the run (an asset
-// that could not be written) are appended to `errors`.
-json convert_mesh(const Run& run, const std::string& source, const scene::Mesh& mesh, MeshRecord rec,
-                  std::vector<std::string>& errors);
+// A mesh after classification (plan_mesh): decided (it stays BVH; `decided` is its final
+// manifest entry) or a candidate that convert_candidate may still turn into an LSNIF. The
+// scene's memory is counted from these before anything is trained (scene_memory).
+struct Planned {
+    const scene::Mesh* mesh = nullptr;  // borrowed from the imported scene, alive for the run
+    std::string source;                 // the input file, as given
+    MeshRecord rec;
+    std::optional<Candidate> candidate;  // a candidate's model and Embree scene
+    std::optional<voxelize::Occupancy> occupancy;
+    json decided;                  // the entry of a mesh that stays BVH; null for a candidate
+    std::uint64_t bvh_bytes = 0;   // the mesh's own BVH: what it costs while it stays BVH
+    std::uint64_t estimate = 0;    // a candidate's estimated asset bytes (lsnif_bytes_estimate)
+    bool forced() const { return candidate && candidate->forced; }
+};
+
+// Classification of one mesh (--simple, triangle count, classify, voxelize_mesh,
+// worth_an_lsnif) and the bytes of its BVH. A mesh whose BVH cannot be measured counts 0
+// bytes, with a warning appended to `warnings`.
+Planned plan_mesh(const Run& run, const std::string& source, const scene::Mesh& mesh, MeshRecord rec,
+                  std::vector<std::string>& warnings);
+
+// A candidate through the remaining stages (reuse, sizing, gate, encoding, memory rule,
+// writing): its manifest entry. In a dry run, the entry of the plan ("complex"). Errors that
+// concern the run (an asset that could not be written) are appended to `errors`.
+json convert_candidate(const Run& run, Planned& p, std::vector<std::string>& errors);
+
+// Order in which candidates (indices into `planned`) are converted: the scene's order, or
+// with a memory budget, forced meshes first, then by estimated BVH bytes saved per asset
+// byte, highest first (ties in scene order).
+std::vector<std::size_t> conversion_order(const std::vector<Planned>& planned, bool budgeted);
+
+// The bytes a mesh costs once its entry is decided: its asset's when it became an LSNIF
+// (the estimate in a dry run), else its BVH's.
+std::uint64_t bytes_after(const Planned& p, const json& entry);
+
+// Every mesh's manifest entry (indexed like `planned`) with its "memory" {before, after}:
+// candidates converted in conversion_order() until the scene's total (every mesh once,
+// instances share it) fits run.opt.memory_budget; the ones left stay BVH with the reason.
+// Without a budget every candidate is converted. Releases each candidate's Embree scene
+// once it is done.
+std::vector<json> convert_meshes(const Run& run, std::vector<Planned>& planned, std::vector<std::string>& errors);
+
+// The scene's memory from the entries' "memory": {"before", "after"} in bytes, and with a
+// budget {"budget", "fits"}; "estimated" in a dry run.
+json scene_memory(const Run& run, const std::vector<json>& entries);
 
 // The manifest entry of mesh k of input `in` before any stage ran.
 MeshRecord new_record(const scene::Scene& sc, std::size_t in, std::size_t k, std::size_t id);
 
 // The manifest document (schema/manifest.schema.json).
-json manifest_json(const Run& run, const json& inputs, const json& meshes, const json& instances);
+json manifest_json(const Run& run, const json& inputs, const json& meshes, const json& instances,
+                   const json& memory);
 
 // Writes OUTDIR/manifest.json atomically. Returns the error, if any.
 std::string write_manifest(const fs::path& outdir, const json& manifest);

@@ -235,7 +235,7 @@ std::string recorded_command_line(int argc, char** argv) {
 struct ConvertCommand {
     CLI::App* sub = nullptr;
     lsnif::converter::ConvertOptions opt;
-    std::string target;
+    std::string target, memory_budget;
     bool json = false;
     void add_to(CLI::App& app) {
         sub = app.add_subcommand(
@@ -267,6 +267,10 @@ struct ConvertCommand {
             "--target", target,
             "Accuracy asked of every asset: VIS,DIST,NORMAL (held-out visibility %, median distance "
             "error % of the diagonal, median normal error in degrees; default 97,1.0,15)");
+        sub->add_option("--memory-budget", memory_budget,
+                        "Scene memory to fit, in bytes (K, M, G: powers of 1024): candidates are converted "
+                        "in order of BVH bytes saved per asset byte until the scene (BVHs + assets, each "
+                        "mesh once) fits; the rest stay BVH");
         sub->add_flag("--fixed-model", opt.fixed_model,
                       "Train the preset's model (after the memory rule) for the whole budget: no smaller "
                       "sizes, no 8-bit option, no stop at the target (for sweeps and comparisons)");
@@ -277,6 +281,11 @@ struct ConvertCommand {
         std::string error;
         if (!target.empty() && !lsnif::converter::parse_target(target, opt.target, error)) {
             std::fprintf(stderr, "error: --target '%s': %s\n", target.c_str(), error.c_str());
+            return 2;
+        }
+        if (sub->count("--memory-budget") > 0 &&
+            !lsnif::converter::parse_byte_size(memory_budget, opt.memory_budget, error)) {
+            std::fprintf(stderr, "error: --memory-budget '%s': %s\n", memory_budget.c_str(), error.c_str());
             return 2;
         }
         opt.command_line = recorded_command_line(argc, argv);

@@ -49,6 +49,24 @@ for t in 120,1,15 97,-1,15 97,1,200 97,1 x,1,15 97,1,15,3; do
   grep -q "^error: --target '$t'" "$work/err" || bad "--target $t message: $(cat "$work/err")"
   [[ ! -e $work/target_$t ]] || bad "--target $t still wrote output"
 done
+# Bad --memory-budget values: usage errors (exit 2) naming the option, no output directory.
+for b in 0 -5 abc 12x 1.5.2 '' 99999999999T; do
+  "$lsnif" convert "$mesh" -o "$work/budget_bad" --preset smoke --memory-budget "$b" 2>"$work/err"; rc=$?
+  [[ $rc == 2 ]] || bad "--memory-budget '$b': exit $rc"
+  grep -q "^error: --memory-budget '$b'" "$work/err" || bad "--memory-budget '$b' message: $(cat "$work/err")"
+  [[ ! -e $work/budget_bad ]] || bad "--memory-budget '$b' still wrote output"
+done
+# A budget the dragon's BVH already fits: nothing converted, the report shows the scene's
+# memory, exit 0. A budget it cannot reach: a warning, still exit 0.
+"$lsnif" convert "$mesh" -o "$work/budget_fits" --preset smoke --memory-budget 1G >"$work/out" 2>"$work/err" \
+  || bad "--memory-budget 1G: exit $?"
+grep -q "fits the memory budget without it" "$work/out" || bad "--memory-budget 1G report: $(cat "$work/out")"
+grep -q "^scene memory (each mesh once): .* budget 1.00 GiB: fits" "$work/out" || bad "scene memory line: $(cat "$work/out")"
+ls "$work/budget_fits"/*.lsnif >/dev/null 2>&1 && bad "--memory-budget 1G converted the dragon"
+"$lsnif" convert "$mesh" -o "$work/budget_over" --preset smoke --complex ChineseDragon-10kv --memory-budget 1K \
+  --dry-run >"$work/out" 2>"$work/err" || bad "--memory-budget 1K: exit $?"
+grep -q "^warning: the scene needs .* over the memory budget of 1024 bytes" "$work/err" \
+  || bad "--memory-budget 1K warning: $(cat "$work/err")"
 # Missing conversion: exit 1 naming manifest.json.
 "$lsnif" eval "$work/nothing" 2>"$work/err"; rc=$?
 [[ $rc == 1 ]] && grep -q "manifest.json" "$work/err" || bad "missing OUTDIR: exit $rc, $(cat "$work/err")"

@@ -216,6 +216,124 @@ TEST_CASE("the model is sized to the mesh: tables shrink until the asset beats t
     CHECK(f.report["meshes"][0]["stats"]["log2_table_size"] == 18);
 }
 
+namespace {
+
+// The scene's memory must be the sum of its meshes' (each once), and a mesh's "after" its
+// asset's bytes when complex, its BVH's otherwise.
+void check_memory_accounting(const json& report) {
+    std::uint64_t before = 0, after = 0;
+    for (const json& m : report["meshes"]) {
+        INFO(m["name"]);
+        const json& mem = m["memory"];
+        CHECK(mem["before"].get<std::uint64_t>() > 0);  // measured for every mesh, simple ones too
+        if (m.contains("stats")) CHECK(mem["before"] == m["stats"]["bvh_bytes"]);
+        if (m["class"] == "simple") CHECK(mem["after"] == mem["before"]);
+        if (m.contains("lsnif")) CHECK(mem["after"] == m["lsnif"]["bytes"]);
+        before += mem["before"].get<std::uint64_t>();
+        after += mem["after"].get<std::uint64_t>();
+    }
+    CHECK(report["scene_memory"]["before"] == before);
+    CHECK(report["scene_memory"]["after"] == after);
+}
+
+// Estimated BVH bytes saved per asset byte, from a planned mesh's stats.
+double saving_per_byte(const json& m) {
+    const double bvh = m["stats"]["bvh_bytes"].get<double>(), est = m["stats"]["lsnif_bytes_estimate"].get<double>();
+    return (bvh - est) / est;
+}
+
+bool has_reason(const json& m, const std::string& text) {
+    for (const auto& r : m["reasons"])
+        if (r.get<std::string>().find(text) != std::string::npos) return true;
+    return false;
+}
+
+}  // namespace
+
+TEST_CASE("--memory-budget (dry run): most bytes saved per asset byte first, until the scene fits") {
+    const fs::path out = fresh_dir("budget_plan");
+    ConvertOptions o = smoke({kDragon, std::string(LSNIF_TEST_MESH_DIR) + "/armadillo.off"}, out);
+    o.preset = "default";
+    o.dry_run = true;
+    const ConvertResult all = convert(o);
+    REQUIRE_MESSAGE(all.ok(), (all.errors.empty() ? "" : all.errors[0]));
+    check_memory_accounting(all.report);
+    const json& plan = all.report["meshes"];
+    REQUIRE(plan.size() == 2);
+    for (const json& m : plan) REQUIRE(m["class"] == "complex");
+    CHECK_FALSE(all.report["scene_memory"].contains("budget"));
+    CHECK(all.report["scene_memory"]["estimated"] == true);
+    const std::uint64_t before = all.report["scene_memory"]["before"].get<std::uint64_t>();
+    const std::size_t first = saving_per_byte(plan[0]) > saving_per_byte(plan[1]) ? 0 : 1;
+
+    // Just under the scene's BVHs: converting the best saver is enough; the other stays BVH.
+    o.memory_budget = before - 1;
+    const ConvertResult one = convert(o);
+    REQUIRE(one.ok());
+    check_memory_accounting(one.report);
+    const json& m = one.report["meshes"];
+    CHECK(m[first]["class"] == "complex");
+    CHECK(m[1 - first]["class"] == "simple");
+    CHECK(has_reason(m[1 - first], "fits the memory budget without it"));
+    CHECK(one.report["scene_memory"]["budget"] == before - 1);
+    CHECK(one.report["scene_memory"]["fits"] == true);
+    CHECK(one.warnings.empty());
+
+    // A budget the BVHs already fit: nothing converted.
+    o.memory_budget = before;
+    const ConvertResult none = convert(o);
+    REQUIRE(none.ok());
+    for (const json& n : none.report["meshes"]) CHECK(n["class"] == "simple");
+    CHECK(none.report["scene_memory"]["after"] == before);
+    // ... unless forced: --complex converts whatever the budget.
+    o.force_complex = {plan[1 - first]["name"].get<std::string>()};
+    const ConvertResult forced = convert(o);
+    REQUIRE(forced.ok());
+    CHECK(forced.report["meshes"][1 - first]["class"] == "complex");
+    CHECK(forced.report["meshes"][first]["class"] == "simple");
+    o.force_complex.clear();
+
+    // A budget no conversion reaches: everything converted, a warning, not an error.
+    o.memory_budget = 1000;
+    const ConvertResult over = convert(o);
+    REQUIRE(over.ok());
+    for (const json& n : over.report["meshes"]) CHECK(n["class"] == "complex");
+    CHECK(over.report["scene_memory"]["fits"] == false);
+    REQUIRE(over.warnings.size() == 1);
+    CHECK(over.warnings[0].find("over the memory budget of 1000 bytes") != std::string::npos);
+}
+
+TEST_CASE("--memory-budget: the manifest records the budget and the scene's real bytes") {
+    const fs::path out = fresh_dir("budget_real");
+    ConvertOptions o = smoke({kDragon, std::string(LSNIF_TEST_MESH_DIR) + "/armadillo.off"}, out);
+    o.dry_run = true;
+    const ConvertResult plan = convert(o);
+    REQUIRE(plan.ok());
+    const std::uint64_t before = plan.report["scene_memory"]["before"].get<std::uint64_t>();
+    o.dry_run = false;
+    o.memory_budget = before - 1;
+    const ConvertResult r = convert(o);
+    REQUIRE_MESSAGE(r.ok(), (r.errors.empty() ? "" : r.errors[0]));
+    CHECK_MESSAGE(violations(manifest_schema(), r.manifest).empty(), violations(manifest_schema(), r.manifest));
+    check_memory_accounting(r.manifest);
+    CHECK(r.manifest["settings"]["memory_budget"] == before - 1);
+    CHECK(r.manifest["scene_memory"] == r.report["scene_memory"]);
+    CHECK_FALSE(r.manifest["scene_memory"].contains("estimated"));
+    // One mesh converted (the first in the budget's order), the other left as BVH: one asset.
+    std::size_t assets = 0, left = 0;
+    for (const json& m : r.manifest["meshes"]) {
+        if (m.contains("lsnif")) {
+            ++assets;
+            CHECK(m["memory"]["after"] == fs::file_size(out / m["lsnif"]["file"].get<std::string>()));
+        }
+        left += has_reason(m, "fits the memory budget without it");
+    }
+    CHECK(assets == 1);
+    CHECK(left == 1);
+    CHECK(r.manifest["scene_memory"]["fits"] == true);
+    CHECK(std::distance(fs::directory_iterator(out), fs::directory_iterator{}) == 2);  // manifest + asset
+}
+
 TEST_CASE("2CylinderEngine converts: all meshes and 67 instances in the manifest") {
     const fs::path out = fresh_dir("engine");
     ConvertOptions o = smoke({kEngine}, out);
@@ -240,6 +358,9 @@ TEST_CASE("2CylinderEngine converts: all meshes and 67 instances in the manifest
     CHECK(violations(manifest_schema(), r.manifest).empty());
     CHECK(r.manifest["instances"].size() == 67);
     CHECK(r.manifest["meshes"].size() == 29);
+    // Every mesh's BVH counted once, however many instances it has.
+    check_memory_accounting(r.manifest);
+    CHECK(r.manifest["scene_memory"]["after"] == r.manifest["scene_memory"]["before"]);
     for (const auto& inst : r.manifest["instances"]) {
         CHECK(inst["transform"].size() == 12);
         CHECK(inst["mesh"].get<std::size_t>() < 29);

@@ -109,4 +109,23 @@ std::string build_embree_scene(EmbreeSource::Impl& m) {
     return commit_scene(m);
 }
 
+std::optional<std::size_t> measure_bvh_bytes(const MeshView& mesh, std::string& error) {
+    const std::size_t vertices = mesh.vertex_count();
+    for (std::uint32_t i : mesh.indices)
+        if (i >= vertices) {
+            error = "sampling: vertex index " + std::to_string(i) + " out of range (" +
+                    std::to_string(vertices) + " vertices)";
+            return std::nullopt;
+        }
+    if (mesh.triangle_count() == 0) return 0;  // nothing to build
+    EmbreeSource::Impl m;
+    m.positions.assign(mesh.positions.begin(), mesh.positions.end());
+    m.indices.assign(mesh.indices.begin(), mesh.indices.end());
+    if (std::string why = build_embree_scene(m); !why.empty()) {
+        error = "sampling: " + why;
+        return std::nullopt;
+    }
+    return m.bvh;
+}
+
 }  // namespace lsnif::sampling

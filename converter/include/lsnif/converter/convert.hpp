@@ -61,6 +61,12 @@ struct Target {
 // DIST outside (0, 100], NORMAL outside (0, 180].
 bool parse_target(const std::string& text, Target& target, std::string& error);
 
+// A byte count such as "1500000", "512K", "64MiB" or "1.5G" into `bytes` (K, M, G, T are
+// powers of 1024; an optional "B" or "iB" after them; case-insensitive). False with a
+// one-line `error` for anything else: empty, negative, zero, not a number, trailing text,
+// or more than 2^63 bytes.
+bool parse_byte_size(const std::string& text, std::uint64_t& bytes, std::string& error);
+
 // Giving up early (docs/model.md "Deciding early"): at a validation check, once training
 // has seen at least `min_samples` samples, an object is abandoned (it stays BVH) when even
 // the largest improvement measured from such a point to the end of training could not
@@ -159,6 +165,11 @@ struct ConvertOptions {
     // smaller rungs, no 8-bit option, no TargetStop (EarlyAbort and the gate still apply).
     bool fixed_model = false;
     Target target;  // --target: judged and reported per shipped asset
+    // --memory-budget: the scene's memory in bytes (every mesh once: BVHs of the meshes that
+    // stay BVH plus LSNIF assets) that conversion aims at; candidates are converted in order
+    // of BVH bytes saved per asset byte until the scene fits, the rest stay BVH. 0 = none:
+    // every candidate is converted. Missing it is a warning, not an error.
+    std::uint64_t memory_budget = 0;
     // Model overrides (0 = the preset's value), for sweeps such as scripts/tradeoff. A
     // changed table size is the largest the per-mesh sizing may choose.
     std::uint32_t log2_table_size = 0;  // T = 2^n rows per hashed level

@@ -47,6 +47,7 @@
 #include <cstddef>
 #include <cstdint>
 #include <memory>
+#include <optional>
 #include <span>
 #include <string>
 #include <vector>
@@ -205,6 +206,13 @@ private:
     std::unique_ptr<Impl> impl_;
     friend GenerationStats measure_throughput(EmbreeSource&, std::uint64_t, std::size_t, std::uint32_t);
 };
+
+// Bytes of the BVH Embree builds for `mesh` alone, with EmbreeSource's scene flags and build
+// quality (net device allocations during the commit, as EmbreeSource::bvh_bytes() counts
+// them, without hole caps): what a renderer's bottom-level BVH for a mesh that stays BVH
+// costs. Any mesh with indices in range, including an empty one. Returns nullopt and sets
+// `error` ("sampling: ...") on failure.
+std::optional<std::size_t> measure_bvh_bytes(const MeshView& mesh, std::string& error);
 
 // Times generate(seed, count) against a plain parallel rtcIntersect1 loop over the same
 // rays, both with src.threads() threads and the same dynamic 1024-ray chunks; `repeats`
