@@ -218,11 +218,9 @@ bool parse_byte_size(const std::string& text, std::uint64_t& bytes, std::string&
     std::string unit;
     for (char ch : text.substr(digits)) unit += char(std::tolower(static_cast<unsigned char>(ch)));
     double scale = 1;
-    if (!unit.empty() && std::string("kmgt").find(unit[0]) != std::string::npos) {
-        for (char u : std::string("kmgt")) {
-            scale *= 1024;
-            if (u == unit[0]) break;
-        }
+    const std::string prefixes = "kmgt";  // 1024^1 .. 1024^4
+    if (const std::size_t k = unit.empty() ? std::string::npos : prefixes.find(unit[0]); k != std::string::npos) {
+        scale = std::ldexp(1.0, 10 * int(k + 1));
         unit.erase(0, 1);
         if (unit == "ib") unit = "b";
     }
@@ -232,7 +230,7 @@ bool parse_byte_size(const std::string& text, std::uint64_t& bytes, std::string&
     }
     const double total = std::floor(value * scale);
     if (!(total >= 1)) {
-        error = "the budget must be at least 1 byte";
+        error = "must be at least 1 byte";
         return false;
     }
     if (total > 9.2e18) {
@@ -1048,6 +1046,17 @@ std::vector<json> convert_meshes(const Run& run, std::vector<Planned>& planned, 
     return entries;
 }
 
+std::string unreachable_budget(const Run& run, const std::vector<Planned>& planned) {
+    std::uint64_t fixed = 0;
+    for (const Planned& p : planned)
+        if (!p.decided.is_null()) fixed += p.bvh_bytes;
+    if (run.opt.memory_budget == 0 || run.opt.memory_budget >= fixed) return {};
+    return "--memory-budget " + std::to_string(run.opt.memory_budget) +
+           " bytes is below the BVHs of the meshes that stay BVH in any case (" + std::to_string(fixed) +
+           " bytes: fewer triangles than the classifier converts, --simple, or no memory benefit): no "
+           "conversion can meet it";
+}
+
 json scene_memory(const Run& run, const std::vector<json>& entries) {
     std::uint64_t before = 0, after = 0;
     for (const json& e : entries) {
@@ -1179,6 +1188,11 @@ ConvertResult convert(const ConvertOptions& opt, const ConvertProgress& progress
             instances.push_back({{"mesh", first_id + i.mesh},
                                  {"name", i.node_name},
                                  {"transform", std::vector<float>(i.transform.begin(), i.transform.end())}});
+    }
+    if (std::string why = unreachable_budget(run, planned); !why.empty()) {
+        res.errors.push_back(why);
+        res.usage_error = true;
+        return res;  // nothing trained, nothing written
     }
     const std::vector<json> entries = convert_meshes(run, planned, res.errors);
     const json meshes = entries, memory = scene_memory(run, entries);

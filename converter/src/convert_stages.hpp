@@ -286,6 +286,10 @@ std::uint64_t bytes_after(const Planned& p, const json& entry);
 // once it is done.
 std::vector<json> convert_meshes(const Run& run, std::vector<Planned>& planned, std::vector<std::string>& errors);
 
+// Why run.opt.memory_budget cannot be met whatever is converted: it is below the BVH bytes
+// of the meshes that are not candidates. Empty when it can (or when there is no budget).
+std::string unreachable_budget(const Run& run, const std::vector<Planned>& planned);
+
 // The scene's memory from the entries' "memory": {"before", "after"} in bytes, and with a
 // budget {"budget", "fits"}; "estimated" in a dry run.
 json scene_memory(const Run& run, const std::vector<json>& entries);

@@ -176,6 +176,10 @@ int run_convert(lsnif::converter::ConvertOptions opt, bool as_json) {
     const auto r =
         lsnif::converter::convert(opt, [&](const lsnif::converter::ProgressEvent& e) { printer(e); });
     for (const auto& w : r.warnings) std::fprintf(stderr, "warning: %s\n", w.c_str());
+    if (r.usage_error) {
+        for (const auto& e : r.errors) std::fprintf(stderr, "error: %s\n", e.c_str());
+        return 2;
+    }
     if (as_json)
         std::cout << r.report.dump(2) << "\n";
     else

@@ -67,6 +67,12 @@ ls "$work/budget_fits"/*.lsnif >/dev/null 2>&1 && bad "--memory-budget 1G conver
   --dry-run >"$work/out" 2>"$work/err" || bad "--memory-budget 1K: exit $?"
 grep -q "^warning: the scene needs .* over the memory budget of 1024 bytes" "$work/err" \
   || bad "--memory-budget 1K warning: $(cat "$work/err")"
+# A budget below what stays BVH in any case (here the dragon, forced simple): exit 2.
+"$lsnif" convert "$mesh" -o "$work/budget_low" --preset smoke --simple ChineseDragon-10kv --memory-budget 1K \
+  >"$work/out" 2>"$work/err"; rc=$?
+[[ $rc == 2 ]] || bad "--memory-budget below the simple geometry: exit $rc"
+grep -q "^error: --memory-budget 1024 bytes is below the BVHs" "$work/err" || bad "low budget message: $(cat "$work/err")"
+[[ ! -e $work/budget_low ]] || bad "low budget still wrote output"
 # Missing conversion: exit 1 naming manifest.json.
 "$lsnif" eval "$work/nothing" 2>"$work/err"; rc=$?
 [[ $rc == 1 ]] && grep -q "manifest.json" "$work/err" || bad "missing OUTDIR: exit $rc, $(cat "$work/err")"

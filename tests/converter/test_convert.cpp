@@ -250,6 +250,26 @@ bool has_reason(const json& m, const std::string& text) {
 
 }  // namespace
 
+TEST_CASE("--memory-budget values: bytes with binary prefixes, bad values named") {
+    std::uint64_t b = 0;
+    std::string error;
+    const std::pair<const char*, std::uint64_t> good[] = {{"1500000", 1500000},   {"512K", 512u << 10},
+                                                          {"64MiB", 64ull << 20}, {"1.5G", 3ull << 29},
+                                                          {"2tb", 2ull << 40},    {"10B", 10}};
+    for (const auto& [text, bytes] : good) {
+        INFO(text);
+        REQUIRE(parse_byte_size(text, b, error));
+        CHECK(b == bytes);
+    }
+    for (const char* text : {"", "0", "0.4", "-5", "abc", "12x", "1.5.2", "K", "5 M", "1e9", "99999999999T"}) {
+        INFO(text);
+        b = 7;
+        CHECK_FALSE(parse_byte_size(text, b, error));
+        CHECK_FALSE(error.empty());
+        CHECK(b == 7);
+    }
+}
+
 TEST_CASE("--memory-budget (dry run): most bytes saved per asset byte first, until the scene fits") {
     const fs::path out = fresh_dir("budget_plan");
     ConvertOptions o = smoke({kDragon, std::string(LSNIF_TEST_MESH_DIR) + "/armadillo.off"}, out);
@@ -351,6 +371,24 @@ TEST_CASE("2CylinderEngine converts: all meshes and 67 instances in the manifest
         o.force_simple.push_back(m["name"].get<std::string>());
     }
     CHECK(candidates >= 1);
+    // A budget below the BVHs of the meshes that stay BVH in any case: a usage error
+    // before anything is trained or written.
+    std::uint64_t simple_bytes = 0;
+    for (const auto& m : plan.report["meshes"])
+        if (m["class"] == "simple") simple_bytes += m["memory"]["before"].get<std::uint64_t>();
+    REQUIRE(simple_bytes > 0);
+    // (Embree's multi-threaded builder varies a BVH's bytes a little from build to build.)
+    ConvertOptions budgeted = o;
+    budgeted.force_simple.clear();
+    budgeted.memory_budget = simple_bytes / 2;
+    const ConvertResult unreachable = convert(budgeted);
+    CHECK(unreachable.usage_error);
+    REQUIRE(unreachable.errors.size() == 1);
+    CHECK(unreachable.errors[0].find("below the BVHs of the meshes that stay BVH") != std::string::npos);
+    budgeted.memory_budget = simple_bytes * 2;  // reachable: a plan
+    const ConvertResult reachable = convert(budgeted);
+    CHECK_FALSE(reachable.usage_error);
+    CHECK(reachable.ok());
     o.dry_run = false;
     const ConvertResult r = convert(o);
     REQUIRE_MESSAGE(r.ok(), (r.errors.empty() ? "" : r.errors[0]));

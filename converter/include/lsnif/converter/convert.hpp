@@ -168,7 +168,8 @@ struct ConvertOptions {
     // --memory-budget: the scene's memory in bytes (every mesh once: BVHs of the meshes that
     // stay BVH plus LSNIF assets) that conversion aims at; candidates are converted in order
     // of BVH bytes saved per asset byte until the scene fits, the rest stay BVH. 0 = none:
-    // every candidate is converted. Missing it is a warning, not an error.
+    // every candidate is converted. Missing it because candidates did not ship is a warning;
+    // a budget below the meshes that stay BVH in any case is a usage error.
     std::uint64_t memory_budget = 0;
     // Model overrides (0 = the preset's value), for sweeps such as scripts/tradeoff. A
     // changed table size is the largest the per-mesh sizing may choose.
@@ -193,6 +194,10 @@ struct ConvertResult {
     nlohmann::json report;            // machine-readable report (--json)
     std::vector<std::string> errors;  // "FILE: problem", one per failed input
     std::vector<std::string> warnings;
+    // The options cannot be met whatever conversion does (a --memory-budget below the bytes
+    // of the meshes that stay BVH in any case): `errors` says why, nothing was written, and
+    // the CLI exits 2 as for any other usage error.
+    bool usage_error = false;
     bool ok() const { return errors.empty(); }
 };
 
