@@ -13,9 +13,9 @@
 #include "convert_stages.hpp"
 
 #include <algorithm>
-#include <chrono>
 #include <cctype>
 #include <charconv>
+#include <chrono>
 #include <cinttypes>
 #include <cmath>
 #include <cstdio>
@@ -206,7 +206,8 @@ bool parse_target(const std::string& text, Target& target, std::string& error) {
 
 bool parse_byte_size(const std::string& text, std::uint64_t& bytes, std::string& error) {
     std::size_t digits = 0;
-    while (digits < text.size() && (std::isdigit(static_cast<unsigned char>(text[digits])) || text[digits] == '.'))
+    while (digits < text.size() &&
+           (std::isdigit(static_cast<unsigned char>(text[digits])) || text[digits] == '.'))
         ++digits;
     double value = 0;
     const std::string number = text.substr(0, digits);
@@ -219,7 +220,8 @@ bool parse_byte_size(const std::string& text, std::uint64_t& bytes, std::string&
     for (char ch : text.substr(digits)) unit += char(std::tolower(static_cast<unsigned char>(ch)));
     double scale = 1;
     const std::string prefixes = "kmgt";  // 1024^1 .. 1024^4
-    if (const std::size_t k = unit.empty() ? std::string::npos : prefixes.find(unit[0]); k != std::string::npos) {
+    if (const std::size_t k = unit.empty() ? std::string::npos : prefixes.find(unit[0]);
+        k != std::string::npos) {
         scale = std::ldexp(1.0, 10 * int(k + 1));
         unit.erase(0, 1);
         if (unit == "ib") unit = "b";
@@ -909,7 +911,8 @@ json target_json(const Target& t, const std::vector<std::string>& misses) {
 // a candidate (p.candidate and p.occupancy set).
 json plan_decision(const Run& run, const scene::Mesh& mesh, Planned& p) {
     MeshRecord& rec = p.rec;
-    if (run.forced(run.opt.force_simple, mesh.name)) return rec.simple("forced simple by --simple " + mesh.name);
+    if (run.forced(run.opt.force_simple, mesh.name))
+        return rec.simple("forced simple by --simple " + mesh.name);
     const ClassifyRule& rule = run.preset.classify;
     const bool forced_complex = run.forced(run.opt.force_complex, mesh.name);
     if (mesh.triangle_count() < rule.min_triangles && !forced_complex)
@@ -936,7 +939,8 @@ Planned plan_mesh(const Run& run, const std::string& source, const scene::Mesh& 
         if (auto bytes = sampling::measure_bvh_bytes(view_of(mesh), error))
             p.bvh_bytes = *bytes;
         else
-            warnings.push_back(source + ": mesh '" + mesh.name + "': its BVH could not be measured (counted as 0 bytes): " + error);
+            warnings.push_back(source + ": mesh '" + mesh.name +
+                               "': its BVH could not be measured (counted as 0 bytes): " + error);
     }
     if (p.decided.is_null()) {
         p.estimate = lsnif_bytes_estimate(p.candidate->desc, smallest_encoding(run.preset));
@@ -957,7 +961,8 @@ json convert_candidate(const Run& run, Planned& p, std::vector<std::string>& err
     const std::string key = asset_key(run, mesh, c.desc);
     const std::string file = hex16(fnv1a64(key)) + ".lsnif";
     const fs::path asset = run.outdir / file;
-    if (auto previous = reusable_metrics(asset, key)) return shipped(run, std::move(*previous), file, asset, true, rec);
+    if (auto previous = reusable_metrics(asset, key))
+        return shipped(run, std::move(*previous), file, asset, true, rec);
 
     const MeasureRays rays = draw_measure_rays(run, mesh, c, rec);
     Sized sized = size_to_target(run, mesh, c, *p.occupancy, rays, rec);
@@ -1018,7 +1023,8 @@ std::string fits_without_it(std::uint64_t total, std::uint64_t budget) {
            std::to_string(budget) + " bytes with this mesh as BVH)";
 }
 
-std::vector<json> convert_meshes(const Run& run, std::vector<Planned>& planned, std::vector<std::string>& errors) {
+std::vector<json> convert_meshes(const Run& run, std::vector<Planned>& planned,
+                                 std::vector<std::string>& errors) {
     std::vector<json> entries(planned.size());
     std::vector<std::uint64_t> after(planned.size());
     for (std::size_t i = 0; i < planned.size(); ++i) {
@@ -1201,12 +1207,8 @@ ConvertResult convert(const ConvertOptions& opt, const ConvertProgress& progress
                                " bytes, over the memory budget of " + std::to_string(opt.memory_budget) +
                                " bytes, with every candidate that passed converted");
 
-    res.report = {{"inputs", inputs},
-                  {"meshes", meshes},
-                  {"instances", instances.size()},
-                  {"scene_memory", memory},
-                  {"errors", res.errors},
-                  {"warnings", res.warnings}};
+    res.report = {{"inputs", inputs},       {"meshes", meshes},     {"instances", instances.size()},
+                  {"scene_memory", memory}, {"errors", res.errors}, {"warnings", res.warnings}};
     res.report["timings"] = {{"import", import_seconds}};  // per-mesh stages are in meshes[].timings
     if (opt.dry_run) res.report["dry_run"] = true;
     if (ok_inputs == 0 || opt.dry_run) return res;  // nothing converted, or a plan: leave OUTDIR untouched
@@ -1233,8 +1235,10 @@ std::string human_bytes(std::uint64_t bytes) {
 
 // "BVH 84.1 MiB -> 406.2 KiB": a mesh's or the scene's memory before and after conversion.
 std::string memory_text(const json& memory) {
-    const std::uint64_t before = memory["before"].get<std::uint64_t>(), after = memory["after"].get<std::uint64_t>();
-    return human_bytes(before) + " -> " + human_bytes(after) + (memory.value("estimated", false) ? " (est.)" : "");
+    const std::uint64_t before = memory["before"].get<std::uint64_t>(),
+                        after = memory["after"].get<std::uint64_t>();
+    return human_bytes(before) + " -> " + human_bytes(after) +
+           (memory.value("estimated", false) ? " (est.)" : "");
 }
 
 std::string convert_text(const ConvertResult& r) {
@@ -1252,9 +1256,8 @@ std::string convert_text(const ConvertResult& r) {
             const json& p = m["metrics"]["families"]["pooled"];
             std::snprintf(
                 buf, sizeof buf, "  %s  vis %.2f%%  dist %.3f%%  normal %.1f deg%s",
-                m["lsnif"]["file"].get<std::string>().c_str(),
-                100 * p["visibility_accuracy"].get<double>(), p["distance_error_median_pct"].get<double>(),
-                p["normal_error_median_deg"].get<double>(),
+                m["lsnif"]["file"].get<std::string>().c_str(), 100 * p["visibility_accuracy"].get<double>(),
+                p["distance_error_median_pct"].get<double>(), p["normal_error_median_deg"].get<double>(),
                 m["lsnif"]["reused"].get<bool>() ? " (reused)" : "");
             s += buf;
             if (m.contains("target") && !m["target"]["met"].get<bool>())

@@ -253,9 +253,9 @@ struct Planned {
     MeshRecord rec;
     std::optional<Candidate> candidate;  // a candidate's model and Embree scene
     std::optional<voxelize::Occupancy> occupancy;
-    json decided;                  // the entry of a mesh that stays BVH; null for a candidate
-    std::uint64_t bvh_bytes = 0;   // the mesh's own BVH: what it costs while it stays BVH
-    std::uint64_t estimate = 0;    // a candidate's estimated asset bytes (lsnif_bytes_estimate)
+    json decided;                 // the entry of a mesh that stays BVH; null for a candidate
+    std::uint64_t bvh_bytes = 0;  // the mesh's own BVH: what it costs while it stays BVH
+    std::uint64_t estimate = 0;   // a candidate's estimated asset bytes (lsnif_bytes_estimate)
     bool forced() const { return candidate && candidate->forced; }
 };
 
@@ -284,7 +284,8 @@ std::uint64_t bytes_after(const Planned& p, const json& entry);
 // instances share it) fits run.opt.memory_budget; the ones left stay BVH with the reason.
 // Without a budget every candidate is converted. Releases each candidate's Embree scene
 // once it is done.
-std::vector<json> convert_meshes(const Run& run, std::vector<Planned>& planned, std::vector<std::string>& errors);
+std::vector<json> convert_meshes(const Run& run, std::vector<Planned>& planned,
+                                 std::vector<std::string>& errors);
 
 // Why run.opt.memory_budget cannot be met whatever is converted: it is below the BVH bytes
 // of the meshes that are not candidates. Empty when it can (or when there is no budget).

@@ -59,8 +59,8 @@ void check_targets(const nlohmann::json& mesh) {
     CHECK(mesh["class"] == "complex");
     CHECK(mesh["target"]["met"] == true);  // the shipped asset, not only the best candidate
     REQUIRE(mesh.contains("lsnif"));
-    MESSAGE("shipped " << mesh["lsnif"]["bytes"] << " bytes for a " << mesh["memory"]["before"] << "-byte BVH; "
-                       << mesh["reasons"].back());
+    MESSAGE("shipped " << mesh["lsnif"]["bytes"] << " bytes for a " << mesh["memory"]["before"]
+                       << "-byte BVH; " << mesh["reasons"].back());
     // Never given up: trained to the end, or stopped once the validation curve met the target.
     if (mesh.contains("stopped_early"))
         CHECK(mesh["validation"].back()["step"] == mesh["stopped_early"]["step"]);

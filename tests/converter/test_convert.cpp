@@ -238,7 +238,8 @@ void check_memory_accounting(const json& report) {
 
 // Estimated BVH bytes saved per asset byte, from a planned mesh's stats.
 double saving_per_byte(const json& m) {
-    const double bvh = m["stats"]["bvh_bytes"].get<double>(), est = m["stats"]["lsnif_bytes_estimate"].get<double>();
+    const double bvh = m["stats"]["bvh_bytes"].get<double>(),
+                 est = m["stats"]["lsnif_bytes_estimate"].get<double>();
     return (bvh - est) / est;
 }
 
@@ -261,7 +262,8 @@ TEST_CASE("--memory-budget values: bytes with binary prefixes, bad values named"
         REQUIRE(parse_byte_size(text, b, error));
         CHECK(b == bytes);
     }
-    for (const char* text : {"", "0", "0.4", "-5", "abc", "12x", "1.5.2", "K", "5 M", "1e9", "99999999999T"}) {
+    for (const char* text :
+         {"", "0", "0.4", "-5", "abc", "12x", "1.5.2", "K", "5 M", "1e9", "99999999999T"}) {
         INFO(text);
         b = 7;
         CHECK_FALSE(parse_byte_size(text, b, error));
@@ -334,7 +336,8 @@ TEST_CASE("--memory-budget: the manifest records the budget and the scene's real
     o.memory_budget = before - 1;
     const ConvertResult r = convert(o);
     REQUIRE_MESSAGE(r.ok(), (r.errors.empty() ? "" : r.errors[0]));
-    CHECK_MESSAGE(violations(manifest_schema(), r.manifest).empty(), violations(manifest_schema(), r.manifest));
+    CHECK_MESSAGE(violations(manifest_schema(), r.manifest).empty(),
+                  violations(manifest_schema(), r.manifest));
     check_memory_accounting(r.manifest);
     CHECK(r.manifest["settings"]["memory_budget"] == before - 1);
     CHECK(r.manifest["scene_memory"] == r.report["scene_memory"]);
