@@ -1,5 +1,6 @@
 // `lsnif convert`; see convert.hpp for the contracts.
 #include <lsnif/base/clock.hpp>
+#include <lsnif/cache/cache.hpp>
 #include <lsnif/converter/convert.hpp>
 #include <lsnif/converter/file_tools.hpp>
 #include <lsnif/converter/manifest.hpp>
@@ -13,6 +14,7 @@
 #include "convert_stages.hpp"
 
 #include <algorithm>
+#include <bit>
 #include <cctype>
 #include <charconv>
 #include <chrono>
@@ -994,6 +996,131 @@ json convert_candidate(const Run& run, Planned& p, std::vector<std::string>& err
     return shipped(run, metrics, file, asset, false, rec);
 }
 
+// The gate's rules, for cache keys: they decide which option ships.
+std::string gate_key(const Gate& g) {
+    char buf[160];
+    std::snprintf(buf, sizeof buf, "gate%g,%g,%g,%g,%llu", g.min_visibility, g.min_family_visibility,
+                  g.max_distance_median_pct, g.max_normal_median_deg, (unsigned long long)g.min_family_rays);
+    return buf;
+}
+
+template <class T>
+void hash_array(cache::Sha256& h, const std::vector<T>& v) {
+    const std::uint64_t n = v.size();
+    h.update({reinterpret_cast<const std::uint8_t*>(&n), sizeof n});
+    h.update({reinterpret_cast<const std::uint8_t*>(v.data()), v.size() * sizeof(T)});
+}
+
+std::string cache_key(const Run& run, const Planned& p) {
+    static_assert(std::endian::native == std::endian::little, "cache keys hash little-endian arrays");
+    const scene::Mesh& m = *p.mesh;
+    cache::Sha256 h;
+    h.update("lsnif-convert-result/1\n").update(build_identity()).update("\n");
+    h.update(asset_key(run, m, p.candidate->desc))
+        .update("\n")
+        .update(gate_key(run.preset.gate))
+        .update("\n");
+    h.update(p.forced() ? "forced\n" : "automatic\n")
+        .update(p.source)
+        .update("\n")
+        .update(m.name)
+        .update("\n");
+    hash_array(h, m.positions);
+    hash_array(h, m.indices);
+    hash_array(h, m.normals);
+    hash_array(h, m.triangle_materials);
+    return h.hex();
+}
+
+// Fields of a manifest entry that belong to the scene the mesh is in, not to its result.
+constexpr const char* kSceneFields[] = {"id", "name", "input", "source_mesh", "instances"};
+
+// Why a stored record cannot be restored; empty when it can. The entry's own checksum
+// already caught damage: this catches an entry written by a tool that stored something else.
+std::string record_problem(const json& record, const cache::Entry& entry) {
+    if (!record.is_object() || !record.contains("class") || !record["class"].is_string())
+        return "the record is not a mesh entry";
+    if (record.contains("lsnif")) {
+        const std::string file = record["lsnif"].value("file", "");
+        if (file.empty() || file.find('/') != std::string::npos || file.find("..") != std::string::npos)
+            return "the record names no usable asset file";
+        if (entry.payload.empty()) return "the record names an asset but the entry holds none";
+    }
+    return {};
+}
+
+// A stored result as this scene's entry: its asset written into OUTDIR, the scene's own
+// fields put back. False (and `error`) when the asset cannot be written.
+bool restore_cached(const Run& run, Planned& p, json& record, const cache::Entry& entry, std::string& error) {
+    if (record.contains("lsnif")) {
+        error = write_asset(run, *p.mesh, entry.payload,
+                            run.outdir / record["lsnif"]["file"].get<std::string>(), p.rec);
+        if (!error.empty()) return false;
+        record["lsnif"]["reused"] = true;
+    }
+    for (const char* f : kSceneFields) record[f] = p.rec.entry[f];
+    // The stored measurement, so that every run this entry serves reports the same bytes.
+    if (record.contains("stats") && record["stats"].contains("bvh_bytes"))
+        p.bvh_bytes = record["stats"]["bvh_bytes"].get<std::uint64_t>();
+    return true;
+}
+
+// The entry to store for a result just converted: the record without the scene's fields,
+// the asset's bytes as written. Empty record when the asset cannot be read back.
+cache::Entry entry_to_store(const Run& run, const json& result, std::string& problem) {
+    cache::Entry entry;
+    json record = result;
+    for (const char* f : kSceneFields) record.erase(f);
+    if (record.contains("lsnif")) {
+        record["lsnif"]["reused"] = false;
+        auto bytes =
+            format::read_file_bytes((run.outdir / record["lsnif"]["file"].get<std::string>()).string());
+        if (!bytes) {
+            problem = bytes.error().message;
+            return {};
+        }
+        entry.payload = std::move(*bytes);
+    }
+    entry.record = record.dump();
+    return entry;
+}
+
+json convert_cached(const Run& run, Planned& p, std::vector<std::string>& errors,
+                    std::vector<std::string>& warnings, CacheCounts& counts) {
+    if (!run.cache || run.opt.dry_run) return convert_candidate(run, p, errors);
+    const std::string key = cache_key(run, p);
+    const cache::Lookup found = run.cache->get(key);
+    if (found.status == cache::Status::corrupt) {
+        ++counts.corrupt;
+        warnings.push_back("corrupt cache entry, converting again: " + found.problem);
+    } else if (found.status == cache::Status::hit) {
+        json record = json::parse(found.entry.record, nullptr, false);
+        std::string why = record_problem(record, found.entry);
+        if (why.empty()) {
+            if (!restore_cached(run, p, record, found.entry, why)) {
+                errors.push_back(p.source + ": mesh '" + p.mesh->name + "': " + why);
+                return p.rec.simple("the asset could not be written: " + why);
+            }
+            ++counts.hits;
+            return record;
+        }
+        ++counts.corrupt;
+        warnings.push_back("unusable cache entry, converting again: " + run.cache->entry_path(key).string() +
+                           ": " + why);
+    }
+    const std::size_t errors_before = errors.size();
+    json result = convert_candidate(run, p, errors);
+    if (errors.size() != errors_before) return result;  // a failed write is not a result to keep
+    std::string problem;
+    const cache::Entry entry = entry_to_store(run, result, problem);
+    auto stored = problem.empty() ? run.cache->put(key, entry) : cache::Result<void>(cache::Error{problem});
+    if (!stored)
+        warnings.push_back("not cached: " + stored.error().message);
+    else
+        ++counts.stored;
+    return result;
+}
+
 // Estimated BVH bytes saved per asset byte: the budget's conversion order.
 double saving_per_byte(const Planned& p) {
     return (double(p.bvh_bytes) - double(p.estimate)) / double(std::max<std::uint64_t>(1, p.estimate));
@@ -1024,7 +1151,8 @@ std::string fits_without_it(std::uint64_t total, std::uint64_t budget) {
 }
 
 std::vector<json> convert_meshes(const Run& run, std::vector<Planned>& planned,
-                                 std::vector<std::string>& errors) {
+                                 std::vector<std::string>& errors, std::vector<std::string>& warnings,
+                                 CacheCounts& counts) {
     std::vector<json> entries(planned.size());
     std::vector<std::uint64_t> after(planned.size());
     for (std::size_t i = 0; i < planned.size(); ++i) {
@@ -1038,7 +1166,7 @@ std::vector<json> convert_meshes(const Run& run, std::vector<Planned>& planned,
         if (budget > 0 && total <= budget && !p.forced()) {
             entries[i] = p.rec.simple(fits_without_it(total, budget));
         } else {
-            entries[i] = convert_candidate(run, p, errors);
+            entries[i] = convert_cached(run, p, errors, warnings, counts);
             after[i] = bytes_after(p, entries[i]);
         }
         p.candidate.reset();  // its Embree scene (the largest thing a candidate holds)
@@ -1158,7 +1286,16 @@ ConvertResult convert(const ConvertOptions& opt, const ConvertProgress& progress
         res.errors.push_back(error);
         return res;
     }
-    const Run run{opt, std::move(preset), base::resolve_threads(opt.threads), opt.outdir, progress};
+    std::shared_ptr<const cache::Store> store;
+    if (!opt.cache_dir.empty() && !opt.dry_run) {
+        auto opened = cache::Store::open(opt.cache_dir);
+        if (!opened) {
+            res.errors.push_back(opened.error().message);
+            return res;
+        }
+        store = std::make_shared<const cache::Store>(std::move(*opened));
+    }
+    const Run run{opt, std::move(preset), base::resolve_threads(opt.threads), opt.outdir, progress, store};
     json inputs = json::array(), instances = json::array();
     std::deque<scene::Scene> scenes;  // every input stays imported: candidates borrow their meshes
     std::vector<Planned> planned;
@@ -1200,7 +1337,8 @@ ConvertResult convert(const ConvertOptions& opt, const ConvertProgress& progress
         res.usage_error = true;
         return res;  // nothing trained, nothing written
     }
-    const std::vector<json> entries = convert_meshes(run, planned, res.errors);
+    CacheCounts cache_counts;
+    const std::vector<json> entries = convert_meshes(run, planned, res.errors, res.warnings, cache_counts);
     const json meshes = entries, memory = scene_memory(run, entries);
     if (memory.contains("fits") && !memory["fits"].get<bool>())
         res.warnings.push_back("the scene needs " + std::to_string(memory["after"].get<std::uint64_t>()) +
@@ -1211,6 +1349,11 @@ ConvertResult convert(const ConvertOptions& opt, const ConvertProgress& progress
                   {"scene_memory", memory}, {"errors", res.errors}, {"warnings", res.warnings}};
     res.report["timings"] = {{"import", import_seconds}};  // per-mesh stages are in meshes[].timings
     if (opt.dry_run) res.report["dry_run"] = true;
+    if (store)
+        res.report["cache"] = {{"directory", opt.cache_dir},
+                               {"hits", cache_counts.hits},
+                               {"stored", cache_counts.stored},
+                               {"corrupt", cache_counts.corrupt}};
     if (ok_inputs == 0 || opt.dry_run) return res;  // nothing converted, or a plan: leave OUTDIR untouched
 
     res.manifest = manifest_json(run, inputs, meshes, instances, memory);

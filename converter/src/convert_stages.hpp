@@ -29,6 +29,10 @@
 #include <string>
 #include <vector>
 
+namespace lsnif::cache {
+class Store;
+}
+
 namespace lsnif::converter::stages {
 
 using nlohmann::json;
@@ -41,6 +45,7 @@ struct Run {
     std::uint32_t threads;
     fs::path outdir;
     ConvertProgress progress;
+    std::shared_ptr<const cache::Store> cache;  // --cache; null without
     void report(const ProgressEvent& e) const {
         if (progress) progress(e);
     }
@@ -270,6 +275,23 @@ Planned plan_mesh(const Run& run, const std::string& source, const scene::Mesh& 
 // concern the run (an asset that could not be written) are appended to `errors`.
 json convert_candidate(const Run& run, Planned& p, std::vector<std::string>& errors);
 
+// What the cache did in a run (the report's "cache").
+struct CacheCounts {
+    std::size_t hits = 0, stored = 0, corrupt = 0;
+};
+
+// The cache key of a candidate's result (docs/pipeline.md "Cache keys"): SHA-256 over the
+// build identity, every setting that changes the result (asset_key's, the gate, whether the
+// mesh was forced, the source and mesh name its asset's metadata records) and the mesh's
+// geometry (positions, indices, shading normals, triangle materials).
+std::string cache_key(const Run& run, const Planned& p);
+
+// convert_candidate through run.cache: a hit restores the stored entry (and writes its
+// asset into OUTDIR); a miss converts and stores the result; a corrupt entry is reported in
+// `warnings`, converted again and replaced. Without a cache, convert_candidate.
+json convert_cached(const Run& run, Planned& p, std::vector<std::string>& errors,
+                    std::vector<std::string>& warnings, CacheCounts& counts);
+
 // Order in which candidates (indices into `planned`) are converted: the scene's order, or
 // with a memory budget, forced meshes first, then by estimated BVH bytes saved per asset
 // byte, highest first (ties in scene order).
@@ -285,7 +307,8 @@ std::uint64_t bytes_after(const Planned& p, const json& entry);
 // Without a budget every candidate is converted. Releases each candidate's Embree scene
 // once it is done.
 std::vector<json> convert_meshes(const Run& run, std::vector<Planned>& planned,
-                                 std::vector<std::string>& errors);
+                                 std::vector<std::string>& errors, std::vector<std::string>& warnings,
+                                 CacheCounts& counts);
 
 // Why run.opt.memory_budget cannot be met whatever is converted: it is below the BVH bytes
 // of the meshes that are not candidates. Empty when it can (or when there is no budget).

@@ -275,6 +275,9 @@ struct ConvertCommand {
                         "Scene memory to fit, in bytes (K, M, G: powers of 1024): candidates are converted "
                         "in order of BVH bytes saved per asset byte until the scene (BVHs + assets, each "
                         "mesh once) fits; the rest stay BVH");
+        sub->add_option("--cache", opt.cache_dir,
+                        "Content-addressed cache of conversion results shared between runs, processes "
+                        "and machines (created if absent)");
         sub->add_flag("--fixed-model", opt.fixed_model,
                       "Train the preset's model (after the memory rule) for the whole budget: no smaller "
                       "sizes, no 8-bit option, no stop at the target (for sweeps and comparisons)");

@@ -121,7 +121,8 @@ TEST_CASE("truncated, torn, altered and misplaced entries are detected, removed 
                 .ok());
     std::vector<char> torn = good;
     const std::vector<char> other = file_bytes(store.entry_path(k_other));
-    std::copy(other.begin() + std::ptrdiff_t(good.size() / 2), other.end(), torn.begin() + std::ptrdiff_t(good.size() / 2));
+    std::copy(other.begin() + std::ptrdiff_t(good.size() / 2), other.end(),
+              torn.begin() + std::ptrdiff_t(good.size() / 2));
     damages.push_back({"torn", torn, "checksum"});
     // An intact entry copied under another key's name.
     damages.push_back({"misplaced", other, "wrong key"});
@@ -153,13 +154,15 @@ TEST_CASE("processes writing and reading one key at the same time never see a mi
         if (pid == 0) {
             int bad = 0;
             for (int r = 0; r < kRounds; ++r) {
-                const Entry e = entry_of("{\"writer\":" + std::to_string(w) + "}", 200000 + std::size_t(w), std::uint8_t(w));
+                const Entry e = entry_of("{\"writer\":" + std::to_string(w) + "}", 200000 + std::size_t(w),
+                                         std::uint8_t(w));
                 if (!store.put(k, e).ok()) ++bad;
                 const Lookup l = store.get(k);
                 if (l.status == Status::corrupt) ++bad;
                 if (l.status == Status::hit) {
                     const int who = l.entry.record[10] - '0';
-                    if (who < 0 || who >= kWriters || l.entry != entry_of(l.entry.record, 200000 + std::size_t(who), std::uint8_t(who)))
+                    if (who < 0 || who >= kWriters ||
+                        l.entry != entry_of(l.entry.record, 200000 + std::size_t(who), std::uint8_t(who)))
                         ++bad;
                 }
             }

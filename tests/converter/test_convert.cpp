@@ -357,6 +357,74 @@ TEST_CASE("--memory-budget: the manifest records the budget and the scene's real
     CHECK(std::distance(fs::directory_iterator(out), fs::directory_iterator{}) == 2);  // manifest + asset
 }
 
+TEST_CASE("--cache: a warm run converts nothing; damaged entries are rebuilt; settings change the key") {
+    const fs::path cache = fresh_dir("cache_store");
+    const std::vector<std::string> inputs = {kDragon, std::string(LSNIF_TEST_MESH_DIR) + "/armadillo.off"};
+    ConvertOptions o = smoke(inputs, fresh_dir("cache_cold"));
+    o.cache_dir = cache.string();
+    const ConvertResult cold = convert(o);
+    REQUIRE_MESSAGE(cold.ok(), (cold.errors.empty() ? "" : cold.errors[0]));
+    CHECK(cold.report["cache"]["stored"] == 2);
+    CHECK(cold.report["cache"]["hits"] == 0);
+
+    o.outdir = fresh_dir("cache_warm").string();
+    const ConvertResult warm = convert(o);
+    REQUIRE(warm.ok());
+    CHECK(warm.report["cache"]["hits"] == 2);
+    CHECK(warm.report["cache"]["stored"] == 0);
+    CHECK(warm.warnings.empty());
+    // The same manifest but for "reused", and the same asset bytes.
+    json a = cold.manifest, b = warm.manifest;
+    for (std::size_t i = 0; i < 2; ++i) {
+        REQUIRE(a["meshes"][i].contains("lsnif"));
+        CHECK(b["meshes"][i]["lsnif"]["reused"] == true);
+        const std::string file = a["meshes"][i]["lsnif"]["file"];
+        CHECK(read_bytes(fs::path(o.outdir) / file) ==
+              read_bytes(fs::path(cold.report["manifest"].get<std::string>()).parent_path() / file));
+        a["meshes"][i]["lsnif"].erase("reused");
+        b["meshes"][i]["lsnif"].erase("reused");
+    }
+    CHECK(a == b);
+
+    // Damage both entries: one bit flipped in one, the other truncated. Both are reported,
+    // converted again and stored again; the result is the same.
+    std::vector<fs::path> entries;
+    for (const auto& f : fs::recursive_directory_iterator(cache))
+        if (f.path().extension() == ".entry") entries.push_back(f.path());
+    REQUIRE(entries.size() == 2);
+    {
+        std::fstream f(entries[0], std::ios::in | std::ios::out | std::ios::binary);
+        f.seekg(200);
+        char c = 0;
+        f.get(c);
+        f.seekp(200);
+        f.put(char(c ^ 1));
+    }
+    fs::resize_file(entries[1], fs::file_size(entries[1]) / 2);
+    o.outdir = fresh_dir("cache_damaged").string();
+    const ConvertResult damaged = convert(o);
+    REQUIRE(damaged.ok());
+    CHECK(damaged.report["cache"]["corrupt"] == 2);
+    CHECK(damaged.report["cache"]["stored"] == 2);
+    REQUIRE(damaged.warnings.size() == 2);
+    for (const auto& w : damaged.warnings) CHECK_MESSAGE(w.find("corrupt cache entry") == 0, w);
+    for (std::size_t i = 0; i < 2; ++i) {
+        const std::string file = a["meshes"][i]["lsnif"]["file"];
+        CHECK(read_bytes(fs::path(o.outdir) / file) ==
+              read_bytes(fs::path(cold.report["manifest"].get<std::string>()).parent_path() / file));
+    }
+    o.outdir = fresh_dir("cache_after").string();
+    CHECK(convert(o).report["cache"]["hits"] == 2);
+
+    // Another seed is another result: nothing found.
+    o.seed = 8;
+    o.outdir = fresh_dir("cache_seed").string();
+    const ConvertResult other = convert(o);
+    REQUIRE(other.ok());
+    CHECK(other.report["cache"]["hits"] == 0);
+    CHECK(other.report["cache"]["stored"] == 2);
+}
+
 TEST_CASE("2CylinderEngine converts: all meshes and 67 instances in the manifest") {
     const fs::path out = fresh_dir("engine");
     ConvertOptions o = smoke({kEngine}, out);

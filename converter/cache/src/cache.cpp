@@ -78,7 +78,8 @@ Result<std::vector<std::uint8_t>> read_all(const fs::path& path) {
     std::error_code ec;
     const auto size = fs::file_size(path, ec);
     if (ec) return Error{path.string() + ": " + ec.message()};
-    if (size > kMaxEntrySize) return Error{path.string() + ": larger than " + std::to_string(kMaxEntrySize) + " bytes"};
+    if (size > kMaxEntrySize)
+        return Error{path.string() + ": larger than " + std::to_string(kMaxEntrySize) + " bytes"};
     std::ifstream f(path, std::ios::binary);
     if (!f) return Error{path.string() + ": cannot open"};
     std::vector<std::uint8_t> bytes{std::istreambuf_iterator<char>(f), std::istreambuf_iterator<char>()};
@@ -99,7 +100,8 @@ std::string entry_problem(std::span<const std::uint8_t> bytes, std::string_view 
                ") do not match the file's " + std::to_string(bytes.size()) + " bytes (truncated or torn)";
     const auto sum = entry_checksum(key, bytes.data() + 8, bytes.subspan(kEntryHeaderSize, r),
                                     bytes.subspan(kEntryHeaderSize + r, p));
-    if (std::memcmp(sum.data(), bytes.data() + 24, sum.size()) != 0) return "checksum mismatch (altered or torn)";
+    if (std::memcmp(sum.data(), bytes.data() + 24, sum.size()) != 0)
+        return "checksum mismatch (altered or torn)";
     return {};
 }
 

@@ -161,6 +161,9 @@ struct ConvertOptions {
     std::uint32_t steps = 0;          // > 0 overrides the preset's training steps
     std::uint32_t batch_size = 0;     // > 0 overrides the preset's batch size
     bool dry_run = false;             // import and classify only; report the plan, write nothing
+    // --cache DIR: a content-addressed store (lsnif::cache) of every candidate's result,
+    // shared between runs, processes and machines; empty = none (docs/pipeline.md).
+    std::string cache_dir;
     // Train one model per mesh for the preset's whole budget, as before sizing existed: no
     // smaller rungs, no 8-bit option, no TargetStop (EarlyAbort and the gate still apply).
     bool fixed_model = false;
@@ -229,6 +232,12 @@ bool meets_target_with_margin(const nlohmann::json& point, const Target& target,
 // larger curve are judged.
 std::string falls_behind(const nlohmann::json& point, std::uint32_t step, const nlohmann::json& larger,
                          const Target& target, const TargetStop& stop, const Sizing& rule);
+
+// The identity of the running code: SHA-256 over the digests of the executable and every
+// shared library mapped executable into the process, and the tool's version. Any change of
+// source, compiler, flags, -march or Debian library gives another identity; computed once per
+// process (a few hundred milliseconds: it reads those files). Part of every cache key.
+const std::string& build_identity();
 
 // Human-readable summary of a report (what `lsnif convert` prints).
 std::string convert_text(const ConvertResult& result);
