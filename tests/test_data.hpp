@@ -1,4 +1,5 @@
-// Reading the repository's test data (tests/data, LSNIF_TEST_DATA_DIR) from doctest cases:
+// Test helpers shared by every test executable: reading files and the repository's test data
+// (tests/data, LSNIF_TEST_DATA_DIR), and fresh work directories:
 // one helper of each kind for every test executable that reads golden files.
 #pragma once
 
@@ -8,6 +9,7 @@
 #include <filesystem>
 #include <fstream>
 #include <iterator>
+#include <string>
 #include <vector>
 
 namespace lsnif::test {
@@ -17,6 +19,16 @@ inline std::vector<std::uint8_t> load(const std::filesystem::path& p) {
     std::ifstream f(p, std::ios::binary);
     REQUIRE_MESSAGE(f.good(), "cannot open " << p);
     return {std::istreambuf_iterator<char>(f), std::istreambuf_iterator<char>()};
+}
+
+// ROOT/NAME with everything under it removed; created again as an empty directory when
+// `create`, else left absent (for a test that expects a tool to create it).
+inline std::filesystem::path fresh_dir(const std::filesystem::path& root, const std::string& name,
+                                       bool create = true) {
+    const std::filesystem::path dir = root / name;
+    std::filesystem::remove_all(dir);
+    if (create) std::filesystem::create_directories(dir);
+    return dir;
 }
 
 #ifdef LSNIF_TEST_DATA_DIR

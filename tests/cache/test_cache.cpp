@@ -1,6 +1,7 @@
 #include <doctest/doctest.h>
 
 #include <lsnif/cache/cache.hpp>
+#include "../test_data.hpp"
 
 #include <sys/wait.h>
 #include <unistd.h>
@@ -16,9 +17,7 @@ namespace fs = std::filesystem;
 namespace {
 
 fs::path fresh_dir(const std::string& name) {
-    const fs::path p = fs::path(LSNIF_CACHE_WORK_DIR) / name;
-    fs::remove_all(p);
-    return p;
+    return lsnif::test::fresh_dir(LSNIF_CACHE_WORK_DIR, name, false);  // Store::open creates it
 }
 
 std::string key_of(const std::string& text) {

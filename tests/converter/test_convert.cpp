@@ -2,6 +2,7 @@
 // Uses the "smoke" preset (small model, seconds of training) to exercise every stage; the
 // accuracy of the default preset is measured by scripts and recorded in BENCHMARKS.md.
 #include <doctest/doctest.h>
+#include "../test_data.hpp"
 
 #include <lsnif/converter/convert.hpp>
 #include <lsnif/converter/file_tools.hpp>
@@ -23,9 +24,7 @@ const std::string kDragon = std::string(LSNIF_TEST_MESH_DIR) + "/ChineseDragon-1
 const std::string kEngine = "/usr/share/assimp/models/glTF2/2CylinderEngine-glTF-Binary/2CylinderEngine.glb";
 
 fs::path fresh_dir(const std::string& name) {
-    const fs::path p = fs::path(LSNIF_TEST_WORK_DIR) / name;
-    fs::remove_all(p);
-    return p;
+    return lsnif::test::fresh_dir(LSNIF_TEST_WORK_DIR, name, false);  // convert creates OUTDIR
 }
 
 ConvertOptions smoke(const std::vector<std::string>& inputs, const fs::path& out) {

@@ -2,6 +2,7 @@
 // ChineseDragon-10kv (real data) and on meshes built here to break one rule at a time. The
 // whole pipeline is tested end to end in test_convert.cpp.
 #include <doctest/doctest.h>
+#include "../test_data.hpp"
 
 #include "convert_stages.hpp"
 
@@ -18,10 +19,7 @@ namespace {
 const std::string kDragon = std::string(LSNIF_TEST_MESH_DIR) + "/ChineseDragon-10kv.off";
 
 fs::path fresh_dir(const std::string& name) {
-    const fs::path p = fs::path(LSNIF_TEST_WORK_DIR) / name;
-    fs::remove_all(p);
-    fs::create_directories(p);
-    return p;
+    return lsnif::test::fresh_dir(LSNIF_TEST_WORK_DIR, name);
 }
 
 scene::Mesh dragon() {

@@ -7,6 +7,7 @@
 
 #include <doctest/doctest.h>
 #include <nlohmann/json.hpp>
+#include "../test_data.hpp"
 
 #include <sys/wait.h>
 
@@ -36,10 +37,7 @@ const fs::path kBuiltScene = LSNIF_EXAMPLE_SCENE_GLB;
 const fs::path kWorkDir = LSNIF_EXAMPLE_WORK_DIR;
 
 fs::path fresh_dir(const std::string& name) {
-    const fs::path dir = kWorkDir / name;
-    fs::remove_all(dir);
-    fs::create_directories(dir);
-    return dir;
+    return lsnif::test::fresh_dir(kWorkDir, name);
 }
 
 std::vector<std::uint8_t> read_bytes(const fs::path& path) {

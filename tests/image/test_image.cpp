@@ -6,6 +6,7 @@
 #include "png_decode.hpp"
 
 #include <doctest/doctest.h>
+#include "../test_data.hpp"
 
 #include <array>
 #include <cmath>
@@ -24,10 +25,7 @@ namespace {
 
 // A fresh, empty directory for one test case.
 fs::path work_dir(const std::string& name) {
-    const fs::path dir = fs::path(LSNIF_IMAGE_WORK_DIR) / name;
-    fs::remove_all(dir);
-    fs::create_directories(dir);
-    return dir;
+    return lsnif::test::fresh_dir(LSNIF_IMAGE_WORK_DIR, name);
 }
 
 std::vector<std::string> entries(const fs::path& dir) {

@@ -8,6 +8,7 @@
 
 #include <doctest/doctest.h>
 #include <nlohmann/json.hpp>
+#include "../test_data.hpp"
 
 #include <array>
 #include <cmath>
@@ -33,10 +34,7 @@ inline const fs::path kWorkDir = LSNIF_SCENE_WORK_DIR;
 
 // A fresh empty directory under the test work dir.
 inline fs::path fresh_dir(const std::string& name) {
-    const fs::path dir = kWorkDir / name;
-    fs::remove_all(dir);
-    fs::create_directories(dir);
-    return dir;
+    return lsnif::test::fresh_dir(kWorkDir, name);
 }
 
 inline std::vector<std::uint8_t> read_bytes(const fs::path& path) {
