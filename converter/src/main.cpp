@@ -1,5 +1,6 @@
 // The `lsnif` command. Only this file prints "error: ..." and chooses exit codes;
 // everything it calls reports through return values.
+#include <lsnif/converter/batch.hpp>
 #include <lsnif/converter/bench.hpp>
 #include <lsnif/converter/convert.hpp>
 #include <lsnif/converter/eval.hpp>
@@ -236,17 +237,11 @@ std::string recorded_command_line(int argc, char** argv) {
     return line;
 }
 
-struct ConvertCommand {
-    CLI::App* sub = nullptr;
+// The settings `lsnif convert` and `lsnif batch` share, with the same meaning.
+struct ConvertSettings {
     lsnif::converter::ConvertOptions opt;
     std::string target, memory_budget;
-    bool json = false;
-    void add_to(CLI::App& app) {
-        sub = app.add_subcommand(
-            "convert", "Convert scenes (glTF, OBJ, PLY, OFF, STL) into LSNIF assets and a manifest");
-        sub->add_option("INPUT", opt.inputs, "Scene files")->required();
-        sub->add_option("-o,--output", opt.outdir, "Output directory")->required();
-        sub->add_flag("--json", json, "Print a machine-readable report");
+    void add_to(CLI::App* sub) {
         sub->add_option("--seed", opt.seed, "Random seed (sampling and training)");
         sub->add_option("--threads", opt.threads, "Worker threads (0 = all cores)");
         sub->add_option("--preset", opt.preset, "default, fast, quality or smoke (pipeline check)");
@@ -275,28 +270,98 @@ struct ConvertCommand {
                         "Scene memory to fit, in bytes (K, M, G: powers of 1024): candidates are converted "
                         "in order of BVH bytes saved per asset byte until the scene (BVHs + assets, each "
                         "mesh once) fits; the rest stay BVH");
-        sub->add_option("--cache", opt.cache_dir,
-                        "Content-addressed cache of conversion results shared between runs, processes "
-                        "and machines (created if absent)");
         sub->add_flag("--fixed-model", opt.fixed_model,
                       "Train the preset's model (after the memory rule) for the whole budget: no smaller "
                       "sizes, no 8-bit option, no stop at the target (for sweeps and comparisons)");
         sub->add_flag("--dry-run", opt.dry_run,
                       "Import and classify only: print the plan (class, reasons, model size), write nothing");
     }
-    int run(int argc, char** argv) {
+    // The values CLI11 cannot check; false (after printing the error) is a usage error.
+    bool finish(const CLI::App* sub) {
         std::string error;
         if (!target.empty() && !lsnif::converter::parse_target(target, opt.target, error)) {
             std::fprintf(stderr, "error: --target '%s': %s\n", target.c_str(), error.c_str());
-            return 2;
+            return false;
         }
         if (sub->count("--memory-budget") > 0 &&
             !lsnif::converter::parse_byte_size(memory_budget, opt.memory_budget, error)) {
             std::fprintf(stderr, "error: --memory-budget '%s': %s\n", memory_budget.c_str(), error.c_str());
+            return false;
+        }
+        return true;
+    }
+};
+
+struct ConvertCommand {
+    CLI::App* sub = nullptr;
+    ConvertSettings settings;
+    bool json = false;
+    void add_to(CLI::App& app) {
+        sub = app.add_subcommand(
+            "convert", "Convert scenes (glTF, OBJ, PLY, OFF, STL) into LSNIF assets and a manifest");
+        sub->add_option("INPUT", settings.opt.inputs, "Scene files")->required();
+        sub->add_option("-o,--output", settings.opt.outdir, "Output directory")->required();
+        sub->add_flag("--json", json, "Print a machine-readable report");
+        sub->add_option("--cache", settings.opt.cache_dir,
+                        "Content-addressed cache of conversion results shared between runs, processes "
+                        "and machines (created if absent)");
+        settings.add_to(sub);
+    }
+    int run(int argc, char** argv) {
+        if (!settings.finish(sub)) return 2;
+        settings.opt.command_line = recorded_command_line(argc, argv);
+        return run_convert(settings.opt, json);
+    }
+};
+
+struct BatchCommand {
+    CLI::App* sub = nullptr;
+    lsnif::converter::BatchOptions batch;
+    ConvertSettings settings;
+    bool json = false;
+    void add_to(CLI::App& app) {
+        sub = app.add_subcommand(
+            "batch",
+            "Convert an asset library through a shared cache, for CI: one line per asset, "
+            "JUnit XML, exit 0 (all converted or rightly BVH), 1 (some failed), 2 (usage)");
+        sub->add_option(
+               "INPUT", batch.inputs,
+               "Scene files, directories (searched for scene files) or list files (one path per line)")
+            ->required();
+        sub->add_option("-o,--output", settings.opt.outdir, "Output directory")->required();
+        sub->add_option("--cache", settings.opt.cache_dir, "Cache directory shared between runs and machines")
+            ->required();
+        sub->add_option("--junit", batch.junit_path, "Write JUnit XML here: one test case per asset");
+        sub->add_flag("--json", json, "Print a machine-readable summary instead of the lines");
+        settings.add_to(sub);
+    }
+    int run(int argc, char** argv) {
+        if (!settings.finish(sub)) return 2;
+        settings.opt.command_line = recorded_command_line(argc, argv);
+        batch.convert = settings.opt;
+        ProgressPrinter printer;
+        const auto r =
+            lsnif::converter::batch(batch, [&](const lsnif::converter::ProgressEvent& e) { printer(e); });
+        for (const auto& w : r.convert.warnings) std::fprintf(stderr, "warning: %s\n", w.c_str());
+        if (r.exit == lsnif::converter::BatchExit::usage) {
+            for (const auto& e : r.convert.errors) std::fprintf(stderr, "error: %s\n", e.c_str());
             return 2;
         }
-        opt.command_line = recorded_command_line(argc, argv);
-        return run_convert(opt, json);
+        if (json) {
+            std::cout << r.summary.dump(2) << "\n";
+        } else {
+            for (const auto& line : r.lines) std::cout << line << "\n";
+            const auto& a = r.summary["assets"];
+            std::cout << a["lsnif"] << " LSNIF, " << a["bvh"] << " BVH, " << a["failed"] << " failed";
+            if (r.summary.contains("cache"))
+                std::cout << "; cache: " << r.summary["cache"]["hits"] << " found, "
+                          << r.summary["cache"]["stored"] << " stored, " << r.summary["cache"]["corrupt"]
+                          << " corrupt";
+            std::cout << "\n";
+        }
+        for (const auto& e : r.summary["errors"])
+            std::fprintf(stderr, "error: %s\n", e.get<std::string>().c_str());
+        return int(r.exit);
     }
 };
 
@@ -404,22 +469,27 @@ int main(int argc, char** argv) {
     InspectCommand inspect;
     ValidateCommand validate;
     ConvertCommand convert;
+    BatchCommand batch;
     EvalCommand eval;
     BenchCommand bench;
     inspect.add_to(app);
     validate.add_to(app);
     convert.add_to(app);
+    batch.add_to(app);
     eval.add_to(app);
     bench.add_to(app);
     try {
         app.parse(argc, argv);
     } catch (const CLI::ParseError& e) {
-        return app.exit(e);
+        // CLI11 prints the message; its own codes (105, 106, ...) become our one usage code,
+        // 2, documented for every command (--help and --version stay 0).
+        return app.exit(e) == 0 ? 0 : 2;
     }
     try {
         if (*inspect.sub) return inspect.run();
         if (*validate.sub) return validate.run();
         if (*convert.sub) return convert.run(argc, argv);
+        if (*batch.sub) return batch.run(argc, argv);
         if (*eval.sub) return eval.run();
         if (*bench.sub) return bench.run();
     } catch (const std::exception& e) {

@@ -205,6 +205,16 @@ std::string check_scene(const Scene& scene) {
     return {};
 }
 
+bool is_scene_file(const std::filesystem::path& path) {
+    try {
+        const std::string ext = detail::lower_extension(path.string());
+        for (const char* e : {".gltf", ".glb", ".obj", ".ply", ".off", ".stl"})
+            if (ext == e) return true;
+    } catch (const std::exception&) {
+    }
+    return false;
+}
+
 ImportResult import_scene(const std::filesystem::path& path) {
     std::string ext;
     try {

@@ -110,6 +110,10 @@ struct ImportResult {
 // error.
 ImportResult import_scene(const std::filesystem::path& path);
 
+// Whether import_scene() reads `path` by its extension (.gltf .glb .obj .ply .off .stl, any
+// case). Looks at the name only.
+bool is_scene_file(const std::filesystem::path& path);
+
 // glTF 2.0, JSON (.gltf, buffers embedded as data URIs or external files relative to the
 // file's folder) or binary (.glb). The container is recognized by content (the "glTF" magic
 // of glTF 2.0 "Binary glTF Layout"), not by the extension. Textures are never loaded.

@@ -1,0 +1,53 @@
+// `lsnif batch`: an asset library through `lsnif convert` with a shared cache, as CI runs it
+// (docs/pipeline.md "Batch"): inputs expanded from files, directories and list files, one
+// line per asset, a JSON summary, JUnit XML, and exit codes a CI system can act on.
+//
+// Library code: never prints or exits; the CLI decides.
+#pragma once
+
+#include <lsnif/converter/convert.hpp>
+
+#include <nlohmann/json.hpp>
+
+#include <string>
+#include <vector>
+
+namespace lsnif::converter {
+
+// Exit codes of `lsnif batch` (and what the library reports as its verdict).
+enum class BatchExit : int {
+    ok = 0,         // every asset converted or rightly kept as BVH
+    failed = 1,     // at least one input or asset failed; the others were converted
+    usage = 2,      // bad command line (the CLI's) or options no conversion can meet
+};
+
+struct BatchOptions {
+    // Scene files (by extension: scene::is_scene_file), directories (searched recursively
+    // for scene files, in path order), or list files (any other file: one path per line,
+    // relative to the list file's directory; blank lines and lines starting with '#' skipped).
+    std::vector<std::string> inputs;
+    ConvertOptions convert;  // outdir and cache_dir required; every `lsnif convert` setting
+    std::string junit_path;  // write JUnit XML here ("" = none)
+};
+
+struct BatchResult {
+    std::vector<std::string> scenes;  // what the inputs expanded to, in order, duplicates removed
+    std::vector<std::string> input_errors;  // inputs that expanded to nothing usable
+    ConvertResult convert;
+    nlohmann::json summary;  // --json: counts, cache, scene memory, every asset's line
+    std::vector<std::string> lines;  // one per asset (and per failed input), for people and logs
+    BatchExit exit = BatchExit::ok;
+};
+
+// Expands inputs as BatchOptions::inputs says. Inputs that do not exist, unreadable list
+// files and directories without scene files are reported in `errors` ("PATH: problem").
+std::vector<std::string> expand_inputs(const std::vector<std::string>& inputs, std::vector<std::string>& errors);
+
+BatchResult batch(const BatchOptions& options, const ConvertProgress& progress = {});
+
+// JUnit XML of a batch: one <testcase> per mesh (classname = the input file, name = the mesh;
+// passed when converted or kept as BVH with its reason in <system-out>; <failure> when its
+// asset could not be written), and one failed <testcase> per input that could not be read.
+std::string junit_xml(const BatchResult& result);
+
+}  // namespace lsnif::converter

@@ -1,0 +1,231 @@
+// `lsnif batch` (batch.hpp): inputs expanded, one convert() run with the cache, and the
+// reports a CI system reads.
+#include <lsnif/converter/batch.hpp>
+#include <lsnif/format/container.hpp>
+#include <lsnif/scene/scene.hpp>
+
+#include <algorithm>
+#include <cinttypes>
+#include <cstdio>
+#include <filesystem>
+#include <fstream>
+#include <set>
+
+namespace lsnif::converter {
+
+namespace fs = std::filesystem;
+using nlohmann::json;
+
+namespace {
+
+// Scene files under `dir`, recursively, in path order.
+std::vector<std::string> scenes_in(const fs::path& dir) {
+    std::vector<std::string> found;
+    std::error_code ec;
+    for (auto it = fs::recursive_directory_iterator(dir, fs::directory_options::skip_permission_denied, ec);
+         !ec && it != fs::recursive_directory_iterator(); it.increment(ec))
+        if (it->is_regular_file(ec) && scene::is_scene_file(it->path())) found.push_back(it->path().string());
+    std::sort(found.begin(), found.end());
+    return found;
+}
+
+// A scene file or a directory (not a list: lists do not nest) into `out`.
+void expand_path(const fs::path& p, const std::string& where, std::vector<std::string>& out,
+                 std::vector<std::string>& errors) {
+    std::error_code ec;
+    if (fs::is_directory(p, ec)) {
+        const std::vector<std::string> found = scenes_in(p);
+        if (found.empty()) errors.push_back(where + ": no scene files (.gltf .glb .obj .ply .off .stl) in this directory");
+        out.insert(out.end(), found.begin(), found.end());
+    } else if (!fs::exists(p, ec)) {
+        errors.push_back(where + ": no such file or directory");
+    } else {
+        out.push_back(p.string());  // import reports a file it cannot read, as a failed input
+    }
+}
+
+void expand_list(const fs::path& list, std::vector<std::string>& out, std::vector<std::string>& errors) {
+    std::ifstream f(list);
+    if (!f) {
+        errors.push_back(list.string() + ": cannot read the list file");
+        return;
+    }
+    std::string line;
+    std::size_t number = 0, named = 0;
+    while (std::getline(f, line)) {
+        ++number;
+        while (!line.empty() && (line.back() == '\r' || line.back() == ' ' || line.back() == '\t')) line.pop_back();
+        const std::size_t start = line.find_first_not_of(" \t");
+        if (start == std::string::npos || line[start] == '#') continue;
+        ++named;
+        fs::path p = line.substr(start);
+        if (p.is_relative()) p = list.parent_path() / p;
+        expand_path(p, list.string() + ":" + std::to_string(number) + ": " + p.string(), out, errors);
+    }
+    if (named == 0) errors.push_back(list.string() + ": the list file names no input");
+}
+
+std::string xml_escaped(const std::string& s) {
+    std::string out;
+    for (char c : s) {
+        switch (c) {
+            case '&': out += "&amp;"; break;
+            case '<': out += "&lt;"; break;
+            case '>': out += "&gt;"; break;
+            case '"': out += "&quot;"; break;
+            case '\'': out += "&apos;"; break;
+            default:
+                // XML 1.0 allows no control characters but tab, newline and carriage return.
+                if (static_cast<unsigned char>(c) < 0x20 && c != '\t' && c != '\n' && c != '\r')
+                    out += ' ';
+                else
+                    out += c;
+        }
+    }
+    return out;
+}
+
+// Whether a mesh's entry records a failure of this run (its asset could not be encoded or
+// written), as opposed to a decision to keep it as BVH.
+bool mesh_failed(const json& m) {
+    const auto& reasons = m.value("reasons", std::vector<std::string>{});
+    return !reasons.empty() && reasons.back().rfind("the asset could not be", 0) == 0;
+}
+
+double mesh_seconds(const json& m) {
+    double s = 0;
+    const json timings = m.value("timings", json::object());  // items() would dangle on a temporary
+    for (const auto& [stage, t] : timings.items()) s += t.get<double>();
+    return s;
+}
+
+std::string asset_line(const json& m, const std::string& input) {
+    char buf[512];
+    const std::string who = input + ": " + m["name"].get<std::string>();
+    if (mesh_failed(m))
+        std::snprintf(buf, sizeof buf, "failed   %s: %s", who.c_str(), m["reasons"].back().get<std::string>().c_str());
+    else if (m.contains("lsnif"))
+        std::snprintf(buf, sizeof buf, "lsnif    %s: %s, %" PRIu64 " bytes, held-out visibility %.2f %%%s", who.c_str(),
+                      m["lsnif"]["file"].get<std::string>().c_str(), m["lsnif"]["bytes"].get<std::uint64_t>(),
+                      100 * m["metrics"]["families"]["pooled"]["visibility_accuracy"].get<double>(),
+                      m["lsnif"]["reused"].get<bool>() ? " (cached)" : "");
+    else
+        std::snprintf(buf, sizeof buf, "bvh      %s: %s", who.c_str(), m["reasons"].back().get<std::string>().c_str());
+    return buf;
+}
+
+}  // namespace
+
+std::vector<std::string> expand_inputs(const std::vector<std::string>& inputs, std::vector<std::string>& errors) {
+    std::vector<std::string> all;
+    for (const std::string& in : inputs) {
+        const fs::path p(in);
+        std::error_code ec;
+        if (fs::is_regular_file(p, ec) && !scene::is_scene_file(p))
+            expand_list(p, all, errors);
+        else
+            expand_path(p, in, all, errors);
+    }
+    std::vector<std::string> unique;
+    std::set<std::string> seen;
+    for (const std::string& s : all) {
+        std::error_code ec;
+        const std::string id = fs::weakly_canonical(s, ec).string();
+        if (seen.insert(ec ? s : id).second) unique.push_back(s);
+    }
+    return unique;
+}
+
+BatchResult batch(const BatchOptions& options, const ConvertProgress& progress) {
+    BatchResult r;
+    r.scenes = expand_inputs(options.inputs, r.input_errors);
+    for (const std::string& e : r.input_errors) r.lines.push_back("failed   " + e);
+    std::size_t converted = 0, bvh = 0, failed = r.input_errors.size();
+    if (!r.scenes.empty()) {
+        ConvertOptions c = options.convert;
+        c.inputs = r.scenes;
+        r.convert = convert(c, progress);
+        if (r.convert.usage_error) {
+            r.exit = BatchExit::usage;
+            return r;
+        }
+        const json& report = r.convert.report;
+        for (const json& in : report.value("inputs", json::array()))
+            if (in["status"] == "error") {
+                r.lines.push_back("failed   " + in["error"].get<std::string>());
+                ++failed;
+            }
+        for (const json& m : report.value("meshes", json::array())) {
+            const std::string input = report["inputs"][m["input"].get<std::size_t>()]["given"];
+            r.lines.push_back(asset_line(m, input));
+            mesh_failed(m) ? ++failed : m.contains("lsnif") ? ++converted : ++bvh;
+        }
+        // Errors that concern the run and no input or mesh (the manifest could not be written).
+        const std::size_t attributed = failed - r.input_errors.size();
+        if (r.convert.errors.size() > attributed) failed += r.convert.errors.size() - attributed;
+    } else if (r.input_errors.empty()) {
+        r.input_errors.push_back("no inputs");
+        ++failed;
+    }
+    r.summary = {{"scenes", r.scenes},
+                 {"assets", {{"lsnif", converted}, {"bvh", bvh}, {"failed", failed}}},
+                 {"lines", r.lines},
+                 {"errors", r.input_errors},
+                 {"warnings", r.convert.warnings}};
+    for (const std::string& e : r.convert.errors) r.summary["errors"].push_back(e);
+    for (const char* k : {"cache", "scene_memory", "manifest"})
+        if (r.convert.report.contains(k)) r.summary[k] = r.convert.report[k];
+    r.exit = failed ? BatchExit::failed : BatchExit::ok;
+    r.summary["exit_code"] = int(r.exit);
+    if (!options.junit_path.empty()) {
+        const std::string xml = junit_xml(r);
+        const format::Error e = format::write_bytes_atomically(
+            options.junit_path, {reinterpret_cast<const std::uint8_t*>(xml.data()), xml.size()});
+        if (e) {
+            r.summary["errors"].push_back(e.message);
+            r.input_errors.push_back(e.message);
+            r.exit = BatchExit::failed;
+            r.summary["exit_code"] = int(r.exit);
+        }
+    }
+    return r;
+}
+
+std::string junit_xml(const BatchResult& r) {
+    std::string cases;
+    std::size_t tests = 0, failures = 0;
+    double total = 0;
+    auto add_case = [&](const std::string& classname, const std::string& name, double seconds,
+                        const std::string& failure, const std::string& out) {
+        ++tests;
+        total += seconds;
+        char t[32];
+        std::snprintf(t, sizeof t, "%.3f", seconds);
+        cases += "    <testcase classname=\"" + xml_escaped(classname) + "\" name=\"" + xml_escaped(name) +
+                 "\" time=\"" + t + "\">\n";
+        if (!failure.empty()) {
+            ++failures;
+            cases += "      <failure message=\"" + xml_escaped(failure) + "\" type=\"lsnif\">" +
+                     xml_escaped(failure) + "</failure>\n";
+        }
+        if (!out.empty()) cases += "      <system-out>" + xml_escaped(out) + "</system-out>\n";
+        cases += "    </testcase>\n";
+    };
+    for (const std::string& e : r.input_errors) add_case("inputs", e.substr(0, e.find(':')), 0, e, "");
+    // No scene to convert: convert() never ran and its report is null.
+    const json report = r.convert.report.is_object() ? r.convert.report : json::object();
+    for (const json& in : report.value("inputs", json::array()))
+        if (in["status"] == "error") add_case(in["given"], "import", 0, in["error"], "");
+    for (const json& m : report.value("meshes", json::array())) {
+        const std::string input = report["inputs"][m["input"].get<std::size_t>()]["given"];
+        const std::string line = asset_line(m, input);
+        add_case(input, m["name"], mesh_seconds(m), mesh_failed(m) ? line : "", mesh_failed(m) ? "" : line);
+    }
+    char head[256];
+    std::snprintf(head, sizeof head, "tests=\"%zu\" failures=\"%zu\" errors=\"0\" skipped=\"0\" time=\"%.3f\"", tests,
+                  failures, total);
+    return std::string("<?xml version=\"1.0\" encoding=\"UTF-8\"?>\n") + "<testsuites name=\"lsnif batch\" " + head +
+           ">\n  <testsuite name=\"lsnif batch\" " + head + ">\n" + cases + "  </testsuite>\n</testsuites>\n";
+}
+
+}  // namespace lsnif::converter
