@@ -35,7 +35,8 @@ void expand_path(const fs::path& p, const std::string& where, std::vector<std::s
     std::error_code ec;
     if (fs::is_directory(p, ec)) {
         const std::vector<std::string> found = scenes_in(p);
-        if (found.empty()) errors.push_back(where + ": no scene files (.gltf .glb .obj .ply .off .stl) in this directory");
+        if (found.empty())
+            errors.push_back(where + ": no scene files (.gltf .glb .obj .ply .off .stl) in this directory");
         out.insert(out.end(), found.begin(), found.end());
     } else if (!fs::exists(p, ec)) {
         errors.push_back(where + ": no such file or directory");
@@ -54,7 +55,8 @@ void expand_list(const fs::path& list, std::vector<std::string>& out, std::vecto
     std::size_t number = 0, named = 0;
     while (std::getline(f, line)) {
         ++number;
-        while (!line.empty() && (line.back() == '\r' || line.back() == ' ' || line.back() == '\t')) line.pop_back();
+        while (!line.empty() && (line.back() == '\r' || line.back() == ' ' || line.back() == '\t'))
+            line.pop_back();
         const std::size_t start = line.find_first_not_of(" \t");
         if (start == std::string::npos || line[start] == '#') continue;
         ++named;
@@ -103,20 +105,24 @@ std::string asset_line(const json& m, const std::string& input) {
     char buf[512];
     const std::string who = input + ": " + m["name"].get<std::string>();
     if (mesh_failed(m))
-        std::snprintf(buf, sizeof buf, "failed   %s: %s", who.c_str(), m["reasons"].back().get<std::string>().c_str());
+        std::snprintf(buf, sizeof buf, "failed   %s: %s", who.c_str(),
+                      m["reasons"].back().get<std::string>().c_str());
     else if (m.contains("lsnif"))
-        std::snprintf(buf, sizeof buf, "lsnif    %s: %s, %" PRIu64 " bytes, held-out visibility %.2f %%%s", who.c_str(),
-                      m["lsnif"]["file"].get<std::string>().c_str(), m["lsnif"]["bytes"].get<std::uint64_t>(),
+        std::snprintf(buf, sizeof buf, "lsnif    %s: %s, %" PRIu64 " bytes, held-out visibility %.2f %%%s",
+                      who.c_str(), m["lsnif"]["file"].get<std::string>().c_str(),
+                      m["lsnif"]["bytes"].get<std::uint64_t>(),
                       100 * m["metrics"]["families"]["pooled"]["visibility_accuracy"].get<double>(),
                       m["lsnif"]["reused"].get<bool>() ? " (cached)" : "");
     else
-        std::snprintf(buf, sizeof buf, "bvh      %s: %s", who.c_str(), m["reasons"].back().get<std::string>().c_str());
+        std::snprintf(buf, sizeof buf, "bvh      %s: %s", who.c_str(),
+                      m["reasons"].back().get<std::string>().c_str());
     return buf;
 }
 
 }  // namespace
 
-std::vector<std::string> expand_inputs(const std::vector<std::string>& inputs, std::vector<std::string>& errors) {
+std::vector<std::string> expand_inputs(const std::vector<std::string>& inputs,
+                                       std::vector<std::string>& errors) {
     std::vector<std::string> all;
     for (const std::string& in : inputs) {
         const fs::path p(in);
@@ -222,10 +228,12 @@ std::string junit_xml(const BatchResult& r) {
         add_case(input, m["name"], mesh_seconds(m), mesh_failed(m) ? line : "", mesh_failed(m) ? "" : line);
     }
     char head[256];
-    std::snprintf(head, sizeof head, "tests=\"%zu\" failures=\"%zu\" errors=\"0\" skipped=\"0\" time=\"%.3f\"", tests,
-                  failures, total);
-    return std::string("<?xml version=\"1.0\" encoding=\"UTF-8\"?>\n") + "<testsuites name=\"lsnif batch\" " + head +
-           ">\n  <testsuite name=\"lsnif batch\" " + head + ">\n" + cases + "  </testsuite>\n</testsuites>\n";
+    std::snprintf(head, sizeof head,
+                  "tests=\"%zu\" failures=\"%zu\" errors=\"0\" skipped=\"0\" time=\"%.3f\"", tests, failures,
+                  total);
+    return std::string("<?xml version=\"1.0\" encoding=\"UTF-8\"?>\n") + "<testsuites name=\"lsnif batch\" " +
+           head + ">\n  <testsuite name=\"lsnif batch\" " + head + ">\n" + cases +
+           "  </testsuite>\n</testsuites>\n";
 }
 
 }  // namespace lsnif::converter

@@ -16,9 +16,9 @@ namespace lsnif::converter {
 
 // Exit codes of `lsnif batch` (and what the library reports as its verdict).
 enum class BatchExit : int {
-    ok = 0,         // every asset converted or rightly kept as BVH
-    failed = 1,     // at least one input or asset failed; the others were converted
-    usage = 2,      // bad command line (the CLI's) or options no conversion can meet
+    ok = 0,      // every asset converted or rightly kept as BVH
+    failed = 1,  // at least one input or asset failed; the others were converted
+    usage = 2,   // bad command line (the CLI's) or options no conversion can meet
 };
 
 struct BatchOptions {
@@ -31,17 +31,18 @@ struct BatchOptions {
 };
 
 struct BatchResult {
-    std::vector<std::string> scenes;  // what the inputs expanded to, in order, duplicates removed
+    std::vector<std::string> scenes;        // what the inputs expanded to, in order, duplicates removed
     std::vector<std::string> input_errors;  // inputs that expanded to nothing usable
     ConvertResult convert;
-    nlohmann::json summary;  // --json: counts, cache, scene memory, every asset's line
+    nlohmann::json summary;          // --json: counts, cache, scene memory, every asset's line
     std::vector<std::string> lines;  // one per asset (and per failed input), for people and logs
     BatchExit exit = BatchExit::ok;
 };
 
 // Expands inputs as BatchOptions::inputs says. Inputs that do not exist, unreadable list
 // files and directories without scene files are reported in `errors` ("PATH: problem").
-std::vector<std::string> expand_inputs(const std::vector<std::string>& inputs, std::vector<std::string>& errors);
+std::vector<std::string> expand_inputs(const std::vector<std::string>& inputs,
+                                       std::vector<std::string>& errors);
 
 BatchResult batch(const BatchOptions& options, const ConvertProgress& progress = {});
 
