@@ -660,6 +660,24 @@ TEST_CASE("memory monitor reports the BVH") {
     CHECK(d->bvh_bytes() > d->triangle_count() * 16);  // a BVH over 20k triangles is not tiny
 }
 
+TEST_CASE("measure_bvh_bytes: the bytes an EmbreeSource reports, the same in every build") {
+    const TriMesh& m = dragon();
+    auto d = make(m);
+    std::string err;
+    const MeshView view = m.view();
+    // Manifests and memory budgets report these bytes: they must not change between builds
+    // (Embree's multi-threaded builder varies them; the sources build with one thread).
+    for (int k = 0; k < 6; ++k) {
+        const auto bytes = measure_bvh_bytes(view, err);
+        REQUIRE_MESSAGE(bytes, err);
+        CHECK(*bytes == d->bvh_bytes());
+    }
+    CHECK(measure_bvh_bytes(MeshView{view.positions, {}}, err) == std::optional<std::size_t>(0));
+    const std::uint32_t out_of_range[3] = {0, 1, std::uint32_t(m.vertex_count())};
+    CHECK_FALSE(measure_bvh_bytes(MeshView{view.positions, out_of_range}, err));
+    CHECK(err.find("out of range") != std::string::npos);
+}
+
 TEST_CASE("bad input is an error, not a crash") {
     const TriMesh& good = sphere();
     const Box box = padded_box(good);
