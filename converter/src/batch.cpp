@@ -1,10 +1,12 @@
 // `lsnif batch` (batch.hpp): inputs expanded, one convert() run with the cache, and the
 // reports a CI system reads.
 #include <lsnif/converter/batch.hpp>
+#include <lsnif/converter/manifest.hpp>
 #include <lsnif/format/container.hpp>
 #include <lsnif/scene/scene.hpp>
 
 #include <algorithm>
+#include <charconv>
 #include <cinttypes>
 #include <cstdio>
 #include <filesystem>
@@ -234,6 +236,133 @@ std::string junit_xml(const BatchResult& r) {
     return std::string("<?xml version=\"1.0\" encoding=\"UTF-8\"?>\n") + "<testsuites name=\"lsnif batch\" " +
            head + ">\n  <testsuite name=\"lsnif batch\" " + head + ">\n" + cases +
            "  </testsuite>\n</testsuites>\n";
+}
+
+bool parse_shard(const std::string& text, std::uint32_t& index, std::uint32_t& count, std::string& error) {
+    const std::size_t slash = text.find('/');
+    std::uint32_t i = 0, n = 0;
+    auto number = [](std::string_view t, std::uint32_t& v) {
+        const auto [end, ec] = std::from_chars(t.data(), t.data() + t.size(), v);
+        return !t.empty() && ec == std::errc() && end == t.data() + t.size();
+    };
+    if (slash == std::string::npos || !number(std::string_view(text).substr(0, slash), i) ||
+        !number(std::string_view(text).substr(slash + 1), n) || n < 1 || n > 10000 || i < 1 || i > n) {
+        error = "expected I/N with 1 <= I <= N <= 10000, e.g. 2/3";
+        return false;
+    }
+    index = i;
+    count = n;
+    return true;
+}
+
+namespace {
+
+// A shard's manifest, read and checked for the shard record merge needs.
+struct ShardManifest {
+    fs::path dir;
+    json doc;
+    std::uint32_t index = 0, count = 0;
+};
+
+std::string read_shard(const fs::path& dir, ShardManifest& out) {
+    const fs::path path = dir / "manifest.json";
+    std::ifstream f(path);
+    if (!f) return path.string() + ": cannot read (not an lsnif batch output directory?)";
+    json doc = json::parse(f, nullptr, false);
+    if (!doc.is_object() || doc.value("format", "") != kManifestFormat || !doc.contains("meshes"))
+        return path.string() + ": not an lsnif manifest of format " + kManifestFormat;
+    if (!doc.contains("shard") || !doc["shard"].is_object())
+        return path.string() + ": not written by lsnif batch --shard";
+    out = {dir, std::move(doc), 0, 0};
+    out.index = out.doc["shard"].value("index", 0u);
+    out.count = out.doc["shard"].value("count", 0u);
+    return {};
+}
+
+// Why shard `b` does not describe the same conversion as shard `a`; empty when it does.
+std::string shard_mismatch(const ShardManifest& a, const ShardManifest& b) {
+    for (const char* k : {"settings", "instances", "tool"})
+        if (a.doc[k] != b.doc[k]) return std::string("its ") + k + " differ from " + a.dir.string() + "'s";
+    const json &ma = a.doc["meshes"], &mb = b.doc["meshes"];
+    if (ma.size() != mb.size() || a.doc["inputs"].size() != b.doc["inputs"].size())
+        return "its inputs or meshes differ from " + a.dir.string() + "'s";
+    for (std::size_t i = 0; i < a.doc["inputs"].size(); ++i)
+        if (a.doc["inputs"][i]["given"] != b.doc["inputs"][i]["given"])
+            return "its inputs differ from " + a.dir.string() + "'s";
+    for (std::size_t i = 0; i < ma.size(); ++i)
+        for (const char* k : {"name", "geometry_hash", "input", "source_mesh", "shard"})
+            if (ma[i].value(k, json()) != mb[i].value(k, json()))
+                return "mesh " + std::to_string(i) + " differs from " + a.dir.string() + "'s (" + k + ")";
+    return {};
+}
+
+}  // namespace
+
+MergeResult merge(const std::vector<std::string>& shard_dirs, const std::string& outdir) {
+    MergeResult r;
+    std::vector<ShardManifest> shards(shard_dirs.size());
+    for (std::size_t k = 0; k < shard_dirs.size(); ++k)
+        if (std::string e = read_shard(shard_dirs[k], shards[k]); !e.empty()) r.errors.push_back(e);
+    if (!r.errors.empty()) return r;
+    std::vector<const ShardManifest*> by_index(shards.size() + 1, nullptr);
+    for (const ShardManifest& s : shards) {
+        if (s.count != shards.size() || s.index < 1 || s.index > s.count || by_index[s.index]) {
+            r.errors.push_back((s.dir / "manifest.json").string() + ": shard " + std::to_string(s.index) +
+                               "/" + std::to_string(s.count) + " does not complete a set of " +
+                               std::to_string(shards.size()) + " shards, each given once");
+            continue;
+        }
+        by_index[s.index] = &s;
+        if (std::string why = shard_mismatch(shards[0], s); !why.empty())
+            r.errors.push_back((s.dir / "manifest.json").string() + ": " + why);
+    }
+    if (!r.errors.empty()) return r;
+
+    json merged = shards[0].doc;
+    merged.erase("shard");
+    std::uint64_t before = 0, after = 0;
+    for (std::size_t i = 0; i < merged["meshes"].size(); ++i) {
+        json& m = merged["meshes"][i];
+        if (m.contains("shard")) {
+            const ShardManifest& owner = *by_index[m["shard"].get<std::uint32_t>()];
+            m = owner.doc["meshes"][i];
+            m.erase("shard");
+            if (m.contains("lsnif")) {
+                const std::string file = m["lsnif"]["file"];
+                auto bytes = format::read_file_bytes((owner.dir / file).string());
+                if (!bytes) {
+                    r.errors.push_back(bytes.error().message);
+                    continue;
+                }
+                std::error_code ec;
+                fs::create_directories(outdir, ec);
+                if (const format::Error e =
+                        format::write_bytes_atomically((fs::path(outdir) / file).string(), *bytes))
+                    r.errors.push_back(e.message);
+            }
+        }
+        before += m["memory"]["before"].get<std::uint64_t>();
+        after += m["memory"]["after"].get<std::uint64_t>();
+    }
+    for (json& in : merged["inputs"]) {
+        fs::path p = in["path"].get<std::string>();
+        if (p.is_relative()) p = shards[0].dir / p;
+        in["path"] = manifest_relative_path(p, outdir);
+    }
+    merged["scene_memory"]["before"] = before;
+    merged["scene_memory"]["after"] = after;
+    if (!r.errors.empty()) return r;
+    std::error_code ec;
+    fs::create_directories(outdir, ec);
+    const std::string text = merged.dump(2) + "\n";
+    if (const format::Error e = format::write_bytes_atomically(
+            (fs::path(outdir) / "manifest.json").string(),
+            {reinterpret_cast<const std::uint8_t*>(text.data()), text.size()})) {
+        r.errors.push_back(e.message);
+        return r;
+    }
+    r.manifest = std::move(merged);
+    return r;
 }
 
 }  // namespace lsnif::converter

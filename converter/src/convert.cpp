@@ -1144,6 +1144,25 @@ std::uint64_t bytes_after(const Planned& p, const json& entry) {
     return p.estimate;  // a dry run's plan
 }
 
+std::vector<std::uint32_t> shard_owners(const Run& run, const std::vector<Planned>& planned) {
+    std::vector<std::uint32_t> owner(planned.size(), 0);
+    if (run.opt.shard_count == 0) return owner;
+    std::vector<std::pair<std::string, std::size_t>> keyed;
+    for (std::size_t i = 0; i < planned.size(); ++i)
+        if (planned[i].decided.is_null()) keyed.emplace_back(cache_key(run, planned[i]), i);
+    std::sort(keyed.begin(), keyed.end());
+    for (std::size_t r = 0; r < keyed.size(); ++r)
+        owner[keyed[r].second] = std::uint32_t(r % run.opt.shard_count) + 1;
+    return owner;
+}
+
+void strip_run_dependent(json& entry) {
+    entry.erase("timings");
+    if (entry.contains("lsnif")) entry["lsnif"].erase("reused");
+    if (entry.contains("candidates"))
+        for (json& c : entry["candidates"]) c.erase("seconds");
+}
+
 // Why a candidate stays BVH when the scene already fits the budget.
 std::string fits_without_it(std::uint64_t total, std::uint64_t budget) {
     return "the scene fits the memory budget without it (" + std::to_string(total) + " of " +
@@ -1160,14 +1179,26 @@ std::vector<json> convert_meshes(const Run& run, std::vector<Planned>& planned,
         if (!planned[i].decided.is_null()) entries[i] = planned[i].decided;
     }
     const std::uint64_t budget = run.opt.memory_budget;
+    const std::vector<std::uint32_t> owner = shard_owners(run, planned);
     for (std::size_t i : conversion_order(planned, budget > 0)) {
         Planned& p = planned[i];
+        if (run.opt.shard_count > 0) {
+            if (owner[i] != run.opt.shard_index) {
+                entries[i] = p.rec.simple("converted by shard " + std::to_string(owner[i]) + " of " +
+                                          std::to_string(run.opt.shard_count));
+                entries[i]["shard"] = owner[i];
+                p.candidate.reset();
+                p.occupancy.reset();
+                continue;
+            }
+        }
         const std::uint64_t total = std::accumulate(after.begin(), after.end(), std::uint64_t(0));
         if (budget > 0 && total <= budget && !p.forced()) {
             entries[i] = p.rec.simple(fits_without_it(total, budget));
         } else {
             entries[i] = convert_cached(run, p, errors, warnings, counts);
             after[i] = bytes_after(p, entries[i]);
+            if (run.opt.shard_count > 0) entries[i]["shard"] = run.opt.shard_index;
         }
         p.candidate.reset();  // its Embree scene (the largest thing a candidate holds)
         p.occupancy.reset();
@@ -1332,6 +1363,13 @@ ConvertResult convert(const ConvertOptions& opt, const ConvertProgress& progress
                                  {"name", i.node_name},
                                  {"transform", std::vector<float>(i.transform.begin(), i.transform.end())}});
     }
+    if (opt.shard_count > 0 && opt.memory_budget > 0) {
+        res.errors.push_back(
+            "--shard and --memory-budget cannot be combined: the budget decides each "
+            "conversion from the ones before it");
+        res.usage_error = true;
+        return res;
+    }
     if (std::string why = unreachable_budget(run, planned); !why.empty()) {
         res.errors.push_back(why);
         res.usage_error = true;
@@ -1356,7 +1394,11 @@ ConvertResult convert(const ConvertOptions& opt, const ConvertProgress& progress
                                {"corrupt", cache_counts.corrupt}};
     if (ok_inputs == 0 || opt.dry_run) return res;  // nothing converted, or a plan: leave OUTDIR untouched
 
-    res.manifest = manifest_json(run, inputs, meshes, instances, memory);
+    json manifest_meshes = meshes;
+    if (opt.reproducible_manifest)
+        for (json& m : manifest_meshes) strip_run_dependent(m);
+    res.manifest = manifest_json(run, inputs, manifest_meshes, instances, memory);
+    if (opt.shard_count > 0) res.manifest["shard"] = {{"index", opt.shard_index}, {"count", opt.shard_count}};
     if (std::string e = write_manifest(run.outdir, res.manifest); !e.empty()) res.errors.push_back(e);
     res.report["manifest"] = (run.outdir / "manifest.json").string();
     return res;

@@ -292,6 +292,15 @@ std::string cache_key(const Run& run, const Planned& p);
 json convert_cached(const Run& run, Planned& p, std::vector<std::string>& errors,
                     std::vector<std::string>& warnings, CacheCounts& counts);
 
+// The shard (1..shard_count) that converts each candidate of `planned` (0 for the others
+// and without sharding): candidates sorted by cache key, dealt out in turn, so every shard
+// computes the same assignment and their loads differ by at most one candidate.
+std::vector<std::uint32_t> shard_owners(const Run& run, const std::vector<Planned>& planned);
+
+// Drops from a manifest entry what differs between runs of the same conversion: timings,
+// whether the asset was reused, the candidates' seconds (ConvertOptions::reproducible_manifest).
+void strip_run_dependent(json& entry);
+
 // Order in which candidates (indices into `planned`) are converted: the scene's order, or
 // with a memory budget, forced meshes first, then by estimated BVH bytes saved per asset
 // byte, highest first (ties in scene order).

@@ -221,18 +221,22 @@ struct ValidateCommand {
 // conversion run into another directory or from another build gives the same bytes (the
 // file name is already a content hash).
 std::string recorded_command_line(int argc, char** argv) {
+    // Where outputs go and how the work is split do not change an asset: leaving them out keeps
+    // assets byte-identical between a single run and shards, and between output directories.
+    static const char* const with_value[] = {"-o", "--output", "--cache", "--shard", "--junit"};
     std::string line;
     for (int i = 0; i < argc; ++i) {
         const std::string a =
             i == 0 ? std::filesystem::path(argv[0]).filename().string() : std::string(argv[i]);
-        if (a == "-o" || a == "--output") {
-            ++i;
-            continue;
+        bool drop = a == "--json" || (a.size() > 2 && a.rfind("-o", 0) == 0 && a[2] != '-');
+        for (const char* o : with_value) {
+            if (a == o) {
+                ++i;  // and its value
+                drop = true;
+            }
+            drop = drop || a.rfind(std::string(o) + "=", 0) == 0;
         }
-        if (a == "--json" || a.rfind("--output=", 0) == 0 ||
-            (a.size() > 2 && a.rfind("-o", 0) == 0 && a[2] != '-'))
-            continue;
-        line += (line.empty() ? "" : " ") + a;
+        if (!drop) line += (line.empty() ? "" : " ") + a;
     }
     return line;
 }
@@ -318,6 +322,7 @@ struct BatchCommand {
     CLI::App* sub = nullptr;
     lsnif::converter::BatchOptions batch;
     ConvertSettings settings;
+    std::string shard;
     bool json = false;
     void add_to(CLI::App& app) {
         sub = app.add_subcommand(
@@ -332,12 +337,22 @@ struct BatchCommand {
         sub->add_option("--cache", settings.opt.cache_dir, "Cache directory shared between runs and machines")
             ->required();
         sub->add_option("--junit", batch.junit_path, "Write JUnit XML here: one test case per asset");
+        sub->add_option("--shard", shard,
+                        "I/N: convert only this shard's share of the candidates (lsnif merge joins the N "
+                        "output directories)");
         sub->add_flag("--json", json, "Print a machine-readable summary instead of the lines");
         settings.add_to(sub);
     }
     int run(int argc, char** argv) {
         if (!settings.finish(sub)) return 2;
+        std::string error;
+        if (sub->count("--shard") > 0 && !lsnif::converter::parse_shard(shard, settings.opt.shard_index,
+                                                                        settings.opt.shard_count, error)) {
+            std::fprintf(stderr, "error: --shard '%s': %s\n", shard.c_str(), error.c_str());
+            return 2;
+        }
         settings.opt.command_line = recorded_command_line(argc, argv);
+        settings.opt.reproducible_manifest = true;
         batch.convert = settings.opt;
         ProgressPrinter printer;
         const auto r =
@@ -362,6 +377,28 @@ struct BatchCommand {
         for (const auto& e : r.summary["errors"])
             std::fprintf(stderr, "error: %s\n", e.get<std::string>().c_str());
         return int(r.exit);
+    }
+};
+
+struct MergeCommand {
+    CLI::App* sub = nullptr;
+    std::vector<std::string> shards;
+    std::string outdir;
+    void add_to(CLI::App& app) {
+        sub = app.add_subcommand(
+            "merge",
+            "Join the output directories of lsnif batch --shard 1/N .. N/N into one, equal to "
+            "a single run's");
+        sub->add_option("SHARD_OUTDIR", shards, "Every shard's output directory")->required();
+        sub->add_option("-o,--output", outdir, "Output directory")->required();
+    }
+    int run() const {
+        const auto r = lsnif::converter::merge(shards, outdir);
+        for (const auto& e : r.errors) std::fprintf(stderr, "error: %s\n", e.c_str());
+        if (!r.errors.empty()) return 1;
+        std::cout << "merged " << shards.size() << " shards: " << r.manifest["meshes"].size()
+                  << " meshes into " << outdir << "/manifest.json\n";
+        return 0;
     }
 };
 
@@ -470,12 +507,14 @@ int main(int argc, char** argv) {
     ValidateCommand validate;
     ConvertCommand convert;
     BatchCommand batch;
+    MergeCommand merge;
     EvalCommand eval;
     BenchCommand bench;
     inspect.add_to(app);
     validate.add_to(app);
     convert.add_to(app);
     batch.add_to(app);
+    merge.add_to(app);
     eval.add_to(app);
     bench.add_to(app);
     try {
@@ -490,6 +529,7 @@ int main(int argc, char** argv) {
         if (*validate.sub) return validate.run();
         if (*convert.sub) return convert.run(argc, argv);
         if (*batch.sub) return batch.run(argc, argv);
+        if (*merge.sub) return merge.run();
         if (*eval.sub) return eval.run();
         if (*bench.sub) return bench.run();
     } catch (const std::exception& e) {

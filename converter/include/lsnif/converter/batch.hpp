@@ -9,6 +9,7 @@
 
 #include <nlohmann/json.hpp>
 
+#include <cstdint>
 #include <string>
 #include <vector>
 
@@ -50,5 +51,19 @@ BatchResult batch(const BatchOptions& options, const ConvertProgress& progress =
 // passed when converted or kept as BVH with its reason in <system-out>; <failure> when its
 // asset could not be written), and one failed <testcase> per input that could not be read.
 std::string junit_xml(const BatchResult& result);
+
+// "I/N" (1 <= I <= N <= 10000) into a shard index and count; false with a one-line error.
+bool parse_shard(const std::string& text, std::uint32_t& index, std::uint32_t& count, std::string& error);
+
+struct MergeResult {
+    nlohmann::json manifest;          // what was written to OUTDIR/manifest.json (null on failure)
+    std::vector<std::string> errors;  // "PATH: problem"; nothing is written when not empty
+};
+
+// `lsnif merge`: the manifests of the N output directories of `lsnif batch --shard I/N`
+// (I = 1..N, each once, same inputs, settings and plan) into one manifest in `outdir`, equal
+// to a single run's: each candidate's entry from the shard that converted it, its asset
+// copied, input paths made relative to `outdir`, the scene's memory summed again.
+MergeResult merge(const std::vector<std::string>& shard_dirs, const std::string& outdir);
 
 }  // namespace lsnif::converter

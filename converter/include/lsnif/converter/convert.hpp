@@ -164,6 +164,13 @@ struct ConvertOptions {
     // --cache DIR: a content-addressed store (lsnif::cache) of every candidate's result,
     // shared between runs, processes and machines; empty = none (docs/pipeline.md).
     std::string cache_dir;
+    // --shard I/N (`lsnif batch`): convert only the candidates this shard owns (the candidates
+    // of all inputs sorted by cache key, every N-th from the I-th); the others are recorded as
+    // owned by their shard for `lsnif merge`. shard_count 0 = no sharding.
+    std::uint32_t shard_index = 0, shard_count = 0;
+    // Leave run-dependent fields (timings, reused) out of the manifest, so that it is a
+    // function of the inputs, the settings and the build alone (`lsnif batch`, `lsnif merge`).
+    bool reproducible_manifest = false;
     // Train one model per mesh for the preset's whole budget, as before sizing existed: no
     // smaller rungs, no 8-bit option, no TargetStop (EarlyAbort and the gate still apply).
     bool fixed_model = false;
