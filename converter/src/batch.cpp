@@ -114,7 +114,7 @@ std::string asset_line(const json& m, const std::string& input) {
                       who.c_str(), m["lsnif"]["file"].get<std::string>().c_str(),
                       m["lsnif"]["bytes"].get<std::uint64_t>(),
                       100 * m["metrics"]["families"]["pooled"]["visibility_accuracy"].get<double>(),
-                      m["lsnif"]["reused"].get<bool>() ? " (cached)" : "");
+                      m["lsnif"]["reused"].get<bool>() ? " (reused)" : "");
     else
         std::snprintf(buf, sizeof buf, "bvh      %s: %s", who.c_str(),
                       m["reasons"].back().get<std::string>().c_str());
@@ -144,7 +144,8 @@ std::vector<std::string> expand_inputs(const std::vector<std::string>& inputs,
     return unique;
 }
 
-BatchResult batch(const BatchOptions& options, const ConvertProgress& progress) {
+BatchResult batch(const BatchOptions& options, const ConvertProgress& progress,
+                  const std::function<void(const std::string&)>& on_line) {
     BatchResult r;
     r.scenes = expand_inputs(options.inputs, r.input_errors);
     for (const std::string& e : r.input_errors) r.lines.push_back("failed   " + e);
@@ -152,7 +153,12 @@ BatchResult batch(const BatchOptions& options, const ConvertProgress& progress) 
     if (!r.scenes.empty()) {
         ConvertOptions c = options.convert;
         c.inputs = r.scenes;
-        r.convert = convert(c, progress);
+        const auto forward = [&](const ProgressEvent& e) {
+            if (e.stage == "done" && e.entry && on_line)
+                on_line(asset_line(*e.entry, r.scenes.at(e.entry->at("input").get<std::size_t>())));
+            if (progress) progress(e);
+        };
+        r.convert = convert(c, forward);
         if (r.convert.usage_error) {
             r.exit = BatchExit::usage;
             return r;

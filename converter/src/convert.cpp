@@ -1177,6 +1177,8 @@ std::vector<json> convert_meshes(const Run& run, std::vector<Planned>& planned,
     for (std::size_t i = 0; i < planned.size(); ++i) {
         after[i] = planned[i].bvh_bytes;
         if (!planned[i].decided.is_null()) entries[i] = planned[i].decided;
+        if (!planned[i].decided.is_null())
+            run.report({planned[i].mesh->name, "done", 0, 0, 0, 0, &entries[i]});
     }
     const std::uint64_t budget = run.opt.memory_budget;
     const std::vector<std::uint32_t> owner = shard_owners(run, planned);
@@ -1200,6 +1202,7 @@ std::vector<json> convert_meshes(const Run& run, std::vector<Planned>& planned,
             after[i] = bytes_after(p, entries[i]);
             if (run.opt.shard_count > 0) entries[i]["shard"] = run.opt.shard_index;
         }
+        run.report({p.mesh->name, "done", 0, 0, 0, 0, &entries[i]});
         p.candidate.reset();  // its Embree scene (the largest thing a candidate holds)
         p.occupancy.reset();
     }

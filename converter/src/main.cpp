@@ -15,6 +15,7 @@
 #include <cstdio>
 #include <cstdlib>
 #include <filesystem>
+#include <set>
 
 #include <unistd.h>
 #include <iostream>
@@ -146,6 +147,7 @@ public:
         const bool new_stage = e.stage != stage_ || e.mesh != mesh_;
         stage_ = e.stage;
         mesh_ = e.mesh;
+        if (e.stage == "done") return;  // finished meshes are the commands' own lines
         if (e.stage != "train") {
             if (tty_ && drawn_) std::fputc('\n', stderr), drawn_ = false;
             if (new_stage) std::fprintf(stderr, "[%7.1fs] %-9s %s\n", now, e.stage.c_str(), e.mesh.c_str());
@@ -354,9 +356,16 @@ struct BatchCommand {
         settings.opt.command_line = recorded_command_line(argc, argv);
         settings.opt.reproducible_manifest = true;
         batch.convert = settings.opt;
+        std::set<std::string> streamed;
         ProgressPrinter printer;
-        const auto r =
-            lsnif::converter::batch(batch, [&](const lsnif::converter::ProgressEvent& e) { printer(e); });
+        const auto r = lsnif::converter::batch(
+            batch, [&](const lsnif::converter::ProgressEvent& e) { printer(e); },
+            [&](const std::string& line) {
+                // One line per asset as soon as it is done (not with
+                // --json, which prints one document at the end).
+                streamed.insert(line);
+                if (!json) std::cout << line << std::endl;
+            });
         for (const auto& w : r.convert.warnings) std::fprintf(stderr, "warning: %s\n", w.c_str());
         if (r.exit == lsnif::converter::BatchExit::usage) {
             for (const auto& e : r.convert.errors) std::fprintf(stderr, "error: %s\n", e.c_str());
@@ -365,7 +374,8 @@ struct BatchCommand {
         if (json) {
             std::cout << r.summary.dump(2) << "\n";
         } else {
-            for (const auto& line : r.lines) std::cout << line << "\n";
+            for (const auto& line : r.lines)  // what was not streamed: the inputs that failed
+                if (!streamed.count(line)) std::cout << line << "\n";
             const auto& a = r.summary["assets"];
             std::cout << a["lsnif"] << " LSNIF, " << a["bvh"] << " BVH, " << a["failed"] << " failed";
             if (r.summary.contains("cache"))

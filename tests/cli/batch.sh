@@ -41,6 +41,13 @@ assert len(failed) == 1 and failed[0].get("classname").endswith("broken.glb"), f
 assert "invalid binary glTF" in failed[0].find("failure").get("message")
 PY
 
+# Without --json: each asset's line once (streamed as it finishes), the failed input's, the count.
+"$lsnif" batch "$work/lib" -o "$work/out" --cache "$work/cache" --preset smoke --threads 2 >"$work/text.out" 2>/dev/null
+[[ $(grep -c "^lsnif    " "$work/text.out") == 2 ]] || bad "text lines: $(cat "$work/text.out")"
+[[ $(grep -c "^failed   .*broken.glb" "$work/text.out") == 1 ]] || bad "failed line: $(cat "$work/text.out")"
+[[ $(tail -1 "$work/text.out") == "2 LSNIF, 0 BVH, 1 failed; cache: 2 found, 0 stored, 0 corrupt" ]] \
+  || bad "count line: $(tail -1 "$work/text.out")"
+
 # Warm, through a list file naming the directory's files (and a comment): nothing converts.
 printf '# the library\nChineseDragon-10kv.off\n\nsub/armadillo.off\nbroken.glb\n' >"$work/lib/library.list"
 run warm "$work/lib/library.list"; [[ $rc == 1 ]] || bad "warm: exit $rc"

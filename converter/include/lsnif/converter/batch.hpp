@@ -10,6 +10,7 @@
 #include <nlohmann/json.hpp>
 
 #include <cstdint>
+#include <functional>
 #include <string>
 #include <vector>
 
@@ -45,7 +46,10 @@ struct BatchResult {
 std::vector<std::string> expand_inputs(const std::vector<std::string>& inputs,
                                        std::vector<std::string>& errors);
 
-BatchResult batch(const BatchOptions& options, const ConvertProgress& progress = {});
+// `on_line` receives each asset's line as soon as the asset is decided or converted (the
+// same lines end up in BatchResult::lines, with the failed inputs'); `progress` every event.
+BatchResult batch(const BatchOptions& options, const ConvertProgress& progress = {},
+                  const std::function<void(const std::string&)>& on_line = {});
 
 // JUnit XML of a batch: one <testcase> per mesh (classname = the input file, name = the mesh;
 // passed when converted or kept as BVH with its reason in <system-out>; <failure> when its

@@ -192,10 +192,13 @@ struct ConvertOptions {
 // Progress events: stage changes and training steps.
 struct ProgressEvent {
     std::string mesh;
-    std::string stage;  // import, classify, voxelize, sample, train, evaluate, write
+    std::string stage;  // import, classify, voxelize, sample, train, evaluate, write, done
     std::uint32_t step = 0, steps = 0;
     float loss = 0;
     double eta_seconds = 0;
+    // Stage "done": the mesh's finished manifest entry (without "memory"), valid during the
+    // call only. Sent once per mesh, as soon as it is decided or converted.
+    const nlohmann::json* entry = nullptr;
 };
 using ConvertProgress = std::function<void(const ProgressEvent&)>;
 
