@@ -324,6 +324,8 @@ MergeResult merge(const std::vector<std::string>& shard_dirs, const std::string&
     }
     if (!r.errors.empty()) return r;
 
+    std::error_code ec;
+    fs::create_directories(outdir, ec);  // assets are copied in as their entries are taken
     json merged = shards[0].doc;
     merged.erase("shard");
     std::uint64_t before = 0, after = 0;
@@ -340,8 +342,6 @@ MergeResult merge(const std::vector<std::string>& shard_dirs, const std::string&
                     r.errors.push_back(bytes.error().message);
                     continue;
                 }
-                std::error_code ec;
-                fs::create_directories(outdir, ec);
                 if (const format::Error e =
                         format::write_bytes_atomically((fs::path(outdir) / file).string(), *bytes))
                     r.errors.push_back(e.message);
@@ -358,8 +358,6 @@ MergeResult merge(const std::vector<std::string>& shard_dirs, const std::string&
     merged["scene_memory"]["before"] = before;
     merged["scene_memory"]["after"] = after;
     if (!r.errors.empty()) return r;
-    std::error_code ec;
-    fs::create_directories(outdir, ec);
     const std::string text = merged.dump(2) + "\n";
     if (const format::Error e = format::write_bytes_atomically(
             (fs::path(outdir) / "manifest.json").string(),

@@ -1176,32 +1176,25 @@ std::vector<json> convert_meshes(const Run& run, std::vector<Planned>& planned,
     std::vector<std::uint64_t> after(planned.size());
     for (std::size_t i = 0; i < planned.size(); ++i) {
         after[i] = planned[i].bvh_bytes;
-        if (!planned[i].decided.is_null()) entries[i] = planned[i].decided;
-        if (!planned[i].decided.is_null())
-            run.report({planned[i].mesh->name, "done", 0, 0, 0, 0, &entries[i]});
+        if (planned[i].decided.is_null()) continue;
+        entries[i] = planned[i].decided;
+        run.report({planned[i].mesh->name, "done", 0, 0, 0, 0, &entries[i]});
     }
     const std::uint64_t budget = run.opt.memory_budget;
     const std::vector<std::uint32_t> owner = shard_owners(run, planned);
     for (std::size_t i : conversion_order(planned, budget > 0)) {
         Planned& p = planned[i];
-        if (run.opt.shard_count > 0) {
-            if (owner[i] != run.opt.shard_index) {
-                entries[i] = p.rec.simple("converted by shard " + std::to_string(owner[i]) + " of " +
-                                          std::to_string(run.opt.shard_count));
-                entries[i]["shard"] = owner[i];
-                p.candidate.reset();
-                p.occupancy.reset();
-                continue;
-            }
-        }
         const std::uint64_t total = std::accumulate(after.begin(), after.end(), std::uint64_t(0));
-        if (budget > 0 && total <= budget && !p.forced()) {
+        if (run.opt.shard_count > 0 && owner[i] != run.opt.shard_index) {
+            entries[i] = p.rec.simple("converted by shard " + std::to_string(owner[i]) + " of " +
+                                      std::to_string(run.opt.shard_count));
+        } else if (budget > 0 && total <= budget && !p.forced()) {
             entries[i] = p.rec.simple(fits_without_it(total, budget));
         } else {
             entries[i] = convert_cached(run, p, errors, warnings, counts);
             after[i] = bytes_after(p, entries[i]);
-            if (run.opt.shard_count > 0) entries[i]["shard"] = run.opt.shard_index;
         }
+        if (run.opt.shard_count > 0) entries[i]["shard"] = owner[i];
         run.report({p.mesh->name, "done", 0, 0, 0, 0, &entries[i]});
         p.candidate.reset();  // its Embree scene (the largest thing a candidate holds)
         p.occupancy.reset();
