@@ -25,8 +25,10 @@
 #include <filesystem>
 #include <lsnif/base/parallel.hpp>
 #include <memory>
+#include <mutex>
 #include <numeric>
 #include <optional>
+#include <thread>
 
 namespace lsnif::converter {
 
@@ -1169,6 +1171,79 @@ std::string fits_without_it(std::uint64_t total, std::uint64_t budget) {
            std::to_string(budget) + " bytes with this mesh as BVH)";
 }
 
+// What settling one candidate produced; kept apart per candidate so that concurrent jobs
+// (--jobs) never share a vector, and merged in candidate order afterwards.
+struct Settled {
+    json entry;
+    std::uint64_t after = 0;
+    std::vector<std::string> errors, warnings;
+    CacheCounts counts;
+};
+
+// Settles candidate `p` given the scene's memory `total` so far: recorded as another shard's,
+// kept as BVH because the budget is met, or converted (through the cache). Reports "done".
+Settled settle_candidate(const Run& run, Planned& p, std::uint32_t owner, std::uint64_t total) {
+    Settled s;
+    s.after = p.bvh_bytes;
+    const std::uint64_t budget = run.opt.memory_budget;
+    if (run.opt.shard_count > 0 && owner != run.opt.shard_index) {
+        s.entry = p.rec.simple("converted by shard " + std::to_string(owner) + " of " +
+                               std::to_string(run.opt.shard_count));
+    } else if (budget > 0 && total <= budget && !p.forced()) {
+        s.entry = p.rec.simple(fits_without_it(total, budget));
+    } else {
+        s.entry = convert_cached(run, p, s.errors, s.warnings, s.counts);
+        s.after = bytes_after(p, s.entry);
+    }
+    if (run.opt.shard_count > 0) s.entry["shard"] = owner;
+    run.report({p.mesh->name, "done", 0, 0, 0, 0, &s.entry});
+    p.candidate.reset();  // its Embree scene (the largest thing a candidate holds)
+    p.occupancy.reset();
+    return s;
+}
+
+// Settles the candidates in `order`: one after another when a budget decides each from the
+// ones before it, otherwise up to run.opt.jobs at a time, each on its own thread (the
+// conversions are independent; their results do not depend on which job ran them).
+std::vector<Settled> settle_candidates(const Run& run, std::vector<Planned>& planned,
+                                       const std::vector<std::size_t>& order,
+                                       std::vector<std::uint64_t>& after) {
+    std::vector<Settled> settled(planned.size());
+    const std::vector<std::uint32_t> owner = shard_owners(run, planned);
+    if (run.opt.memory_budget > 0 || run.opt.jobs <= 1 || order.size() <= 1) {
+        for (std::size_t i : order) {
+            const std::uint64_t total = std::accumulate(after.begin(), after.end(), std::uint64_t(0));
+            settled[i] = settle_candidate(run, planned[i], owner[i], total);
+            after[i] = settled[i].after;
+        }
+        return settled;
+    }
+    std::atomic<std::size_t> next{0};
+    const auto jobs = std::uint32_t(std::min<std::size_t>(run.opt.jobs, order.size()));
+    std::vector<std::thread> workers;
+    std::mutex failed_mutex;
+    std::exception_ptr failed;  // the first exception a job threw, rethrown once all joined
+    auto work = [&] {
+        try {
+            for (std::size_t k; (k = next.fetch_add(1)) < order.size();) {
+                const std::size_t i = order[k];
+                settled[i] = settle_candidate(run, planned[i], owner[i], 0);
+            }
+        } catch (...) {
+            std::lock_guard lock(failed_mutex);
+            if (!failed) failed = std::current_exception();
+            next = order.size();
+        }
+    };
+    // Plain threads, not base::run_on_threads: each job's conversion uses the pool itself.
+    for (std::uint32_t j = 1; j < jobs; ++j) workers.emplace_back(work);
+    work();
+    for (std::thread& w : workers) w.join();
+    if (failed) std::rethrow_exception(failed);
+    for (std::size_t i : order) after[i] = settled[i].after;
+    return settled;
+}
+
 std::vector<json> convert_meshes(const Run& run, std::vector<Planned>& planned,
                                  std::vector<std::string>& errors, std::vector<std::string>& warnings,
                                  CacheCounts& counts) {
@@ -1180,24 +1255,15 @@ std::vector<json> convert_meshes(const Run& run, std::vector<Planned>& planned,
         entries[i] = planned[i].decided;
         run.report({planned[i].mesh->name, "done", 0, 0, 0, 0, &entries[i]});
     }
-    const std::uint64_t budget = run.opt.memory_budget;
-    const std::vector<std::uint32_t> owner = shard_owners(run, planned);
-    for (std::size_t i : conversion_order(planned, budget > 0)) {
-        Planned& p = planned[i];
-        const std::uint64_t total = std::accumulate(after.begin(), after.end(), std::uint64_t(0));
-        if (run.opt.shard_count > 0 && owner[i] != run.opt.shard_index) {
-            entries[i] = p.rec.simple("converted by shard " + std::to_string(owner[i]) + " of " +
-                                      std::to_string(run.opt.shard_count));
-        } else if (budget > 0 && total <= budget && !p.forced()) {
-            entries[i] = p.rec.simple(fits_without_it(total, budget));
-        } else {
-            entries[i] = convert_cached(run, p, errors, warnings, counts);
-            after[i] = bytes_after(p, entries[i]);
-        }
-        if (run.opt.shard_count > 0) entries[i]["shard"] = owner[i];
-        run.report({p.mesh->name, "done", 0, 0, 0, 0, &entries[i]});
-        p.candidate.reset();  // its Embree scene (the largest thing a candidate holds)
-        p.occupancy.reset();
+    const std::vector<std::size_t> order = conversion_order(planned, run.opt.memory_budget > 0);
+    std::vector<Settled> settled = settle_candidates(run, planned, order, after);
+    for (std::size_t i : order) {
+        entries[i] = std::move(settled[i].entry);
+        errors.insert(errors.end(), settled[i].errors.begin(), settled[i].errors.end());
+        warnings.insert(warnings.end(), settled[i].warnings.begin(), settled[i].warnings.end());
+        counts.hits += settled[i].counts.hits;
+        counts.stored += settled[i].counts.stored;
+        counts.corrupt += settled[i].counts.corrupt;
     }
     for (std::size_t i = 0; i < planned.size(); ++i) {
         json memory = {{"before", planned[i].bvh_bytes}, {"after", after[i]}};
@@ -1305,6 +1371,11 @@ std::string write_manifest(const fs::path& outdir, const json& manifest) {
 
 using namespace stages;
 
+// The threads each conversion gets: --threads (0 = the hardware's) shared by --jobs.
+std::uint32_t threads_per_job(const ConvertOptions& opt) {
+    return std::max(1u, base::resolve_threads(opt.threads) / std::max(1u, opt.jobs));
+}
+
 ConvertResult convert(const ConvertOptions& opt, const ConvertProgress& progress) {
     ConvertResult res;
     Preset preset;
@@ -1322,7 +1393,22 @@ ConvertResult convert(const ConvertOptions& opt, const ConvertProgress& progress
         }
         store = std::make_shared<const cache::Store>(std::move(*opened));
     }
-    const Run run{opt, std::move(preset), base::resolve_threads(opt.threads), opt.outdir, progress, store};
+    if (opt.jobs > 1 && opt.memory_budget > 0) {
+        res.errors.push_back(
+            "--jobs and --memory-budget cannot be combined: the budget decides each conversion "
+            "from the ones before it");
+        res.usage_error = true;
+        return res;
+    }
+    // Concurrent jobs report from their own threads: one at a time reaches the caller.
+    auto progress_mutex = std::make_shared<std::mutex>();
+    const ConvertProgress serialized =
+        !progress || opt.jobs <= 1 ? progress
+                                   : ConvertProgress([progress, progress_mutex](const ProgressEvent& e) {
+                                         std::lock_guard lock(*progress_mutex);
+                                         progress(e);
+                                     });
+    const Run run{opt, std::move(preset), threads_per_job(opt), opt.outdir, serialized, store};
     json inputs = json::array(), instances = json::array();
     std::deque<scene::Scene> scenes;  // every input stays imported: candidates borrow their meshes
     std::vector<Planned> planned;

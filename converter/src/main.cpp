@@ -225,12 +225,14 @@ struct ValidateCommand {
 std::string recorded_command_line(int argc, char** argv) {
     // Where outputs go and how the work is split do not change an asset: leaving them out keeps
     // assets byte-identical between a single run and shards, and between output directories.
-    static const char* const with_value[] = {"-o", "--output", "--cache", "--shard", "--junit"};
+    static const char* const with_value[] = {"-o",      "--output", "--cache", "--shard",
+                                             "--junit", "-j",       "--jobs"};
     std::string line;
     for (int i = 0; i < argc; ++i) {
         const std::string a =
             i == 0 ? std::filesystem::path(argv[0]).filename().string() : std::string(argv[i]);
-        bool drop = a == "--json" || (a.size() > 2 && a.rfind("-o", 0) == 0 && a[2] != '-');
+        bool drop = a == "--json" || (a.size() > 2 && (a.rfind("-o", 0) == 0 || a.rfind("-j", 0) == 0) &&
+                                      a[2] != '-');  // -oDIR, -j2
         for (const char* o : with_value) {
             if (a == o) {
                 ++i;  // and its value
@@ -250,6 +252,10 @@ struct ConvertSettings {
     void add_to(CLI::App* sub) {
         sub->add_option("--seed", opt.seed, "Random seed (sampling and training)");
         sub->add_option("--threads", opt.threads, "Worker threads (0 = all cores)");
+        sub->add_option("-j,--jobs", opt.jobs,
+                        "Meshes converted at once, sharing the threads (each gets threads/jobs); "
+                        "not with --memory-budget")
+            ->check(CLI::Range(1u, 256u));
         sub->add_option("--preset", opt.preset, "default, fast, quality or smoke (pipeline check)");
         sub->add_option("--complex", opt.force_complex, "Force a mesh (by name) to become an LSNIF");
         sub->add_option("--simple", opt.force_simple, "Force a mesh (by name) to stay BVH");

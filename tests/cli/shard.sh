@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # `lsnif batch --shard I/N` on three machines (three processes, each with its own cache), then
 # `lsnif merge`: the manifest and every asset equal a single run's, byte for byte. Incomplete
-# or repeated shard sets are refused; bad --shard values are usage errors.
+# or repeated shard sets are refused; --jobs 2 equals one job of the same threads per mesh; bad --shard values are usage errors.
 # usage: shard.sh LSNIF_BINARY MESH_DIR EXAMPLE_SCENE_GLB WORK_DIR
 set -u
 lsnif=$1 meshes=$2 scene=$3 work=$4
@@ -41,6 +41,32 @@ for f in "$work"/single/*.lsnif; do
   cmp -s "$f" "$work/merged/$(basename "$f")" || bad "$(basename "$f") differs between merged and single"
 done
 (( n >= 2 )) || bad "the single run shipped $n assets"
+
+# --jobs: two meshes converted at once, one thread each, equal one at a time on one thread.
+"$lsnif" batch "${inputs[@]}" -o "$work/jobs2" --cache "$work/cache_jobs2" --preset smoke --seed 3 --threads 2 -j 2 \
+  >/dev/null 2>"$work/jobs2.err" || bad "-j 2 exited $?: $(cat "$work/jobs2.err")"
+"$lsnif" batch "${inputs[@]}" -o "$work/jobs1" --cache "$work/cache_jobs1" --preset smoke --seed 3 --threads 1 \
+  >/dev/null 2>&1 || bad "--threads 1 exited $?"
+cmp -s "$work/jobs2/manifest.json" "$work/jobs1/manifest.json" \
+  || bad "-j 2 manifest differs from one job's: $(diff "$work/jobs2/manifest.json" "$work/jobs1/manifest.json" | head -20)"
+# The assets differ only in the command they record (--threads 1 against --threads 2 -j 2).
+n=0
+for f in "$work"/jobs1/*.lsnif; do
+  n=$((n + 1))
+  for d in jobs1 jobs2; do
+    "$lsnif" inspect --json "$work/$d/$(basename "$f")" | python3 -c '
+import json, sys
+d = json.load(sys.stdin)
+del d["path"], d["metadata"]["tool"]["command"]
+for s in d["sections"]:
+    if s["tag"] == "META": del s["raw_crc32c"], s["stored_crc32c"], s["stored_size"], s["compression_ratio"]
+print(json.dumps(d, sort_keys=True))' >"$work/$d.inspect"
+  done
+  cmp -s "$work/jobs1.inspect" "$work/jobs2.inspect" || bad "$(basename "$f") differs between -j 2 and one job"
+done
+(( n >= 2 )) || bad "the one-job run shipped $n assets"
+"$lsnif" batch "${inputs[0]}" -o "$work/u" --cache "$work/cache1" -j 2 --memory-budget 1M 2>"$work/err"; rc=$?
+[[ $rc == 2 ]] && grep -q "jobs and --memory-budget" "$work/err" || bad "-j with --memory-budget: exit $rc"
 
 # Refused: an incomplete set, a repeated shard, shards of different settings.
 "$lsnif" merge "$work/shard1" "$work/shard2" -o "$work/m2" 2>"$work/err"; rc=$?

@@ -153,6 +153,10 @@ struct ConvertOptions {
     std::string outdir;
     std::uint64_t seed = 1;
     std::uint32_t threads = 0;  // 0 = hardware threads
+    // --jobs: candidates converted at once, each with threads / jobs threads (at least 1;
+    // training is deterministic per thread count, so the count is part of the cache key).
+    // Cannot be combined with memory_budget, which decides each conversion from the last.
+    std::uint32_t jobs = 1;
     std::string preset = "default";
     std::vector<std::string> force_complex;  // mesh names
     std::vector<std::string> force_simple;
