@@ -1146,15 +1146,36 @@ std::uint64_t bytes_after(const Planned& p, const json& entry) {
     return p.estimate;  // a dry run's plan
 }
 
+// The constants were measured on the 2-core reference machine (docs/pipeline.md "Shards").
+// Training dominates and scales with steps x batch; drawing the rays scales with triangles.
+// Integer arithmetic: every shard must compute the same estimate on any machine.
+std::uint64_t estimated_cost_ms(const Run& run, const Planned& p) {
+    const std::uint64_t samples = std::uint64_t(run.preset.train.steps) * run.preset.train.batch_size;
+    return 4200 + samples * 255 / 100000 + std::uint64_t(p.mesh->triangle_count()) * 18 / 10000;
+}
+
+// Longest processing time first: within 4/3 of the best split of the estimated work. Ties
+// go to the lowest shard index, so the split is a function of the inputs and settings alone.
 std::vector<std::uint32_t> shard_owners(const Run& run, const std::vector<Planned>& planned) {
     std::vector<std::uint32_t> owner(planned.size(), 0);
     if (run.opt.shard_count == 0) return owner;
-    std::vector<std::pair<std::string, std::size_t>> keyed;
+    struct Job {
+        std::uint64_t cost;
+        std::string key;
+        std::size_t index;
+    };
+    std::vector<Job> jobs;
     for (std::size_t i = 0; i < planned.size(); ++i)
-        if (planned[i].decided.is_null()) keyed.emplace_back(cache_key(run, planned[i]), i);
-    std::sort(keyed.begin(), keyed.end());
-    for (std::size_t r = 0; r < keyed.size(); ++r)
-        owner[keyed[r].second] = std::uint32_t(r % run.opt.shard_count) + 1;
+        if (planned[i].decided.is_null())
+            jobs.push_back({estimated_cost_ms(run, planned[i]), cache_key(run, planned[i]), i});
+    std::sort(jobs.begin(), jobs.end(),
+              [](const Job& a, const Job& b) { return a.cost != b.cost ? a.cost > b.cost : a.key < b.key; });
+    std::vector<std::uint64_t> load(run.opt.shard_count, 0);
+    for (const Job& j : jobs) {
+        const auto least = std::size_t(std::min_element(load.begin(), load.end()) - load.begin());
+        load[least] += j.cost;
+        owner[j.index] = std::uint32_t(least) + 1;
+    }
     return owner;
 }
 

@@ -292,9 +292,14 @@ std::string cache_key(const Run& run, const Planned& p);
 json convert_cached(const Run& run, Planned& p, std::vector<std::string>& errors,
                     std::vector<std::string>& warnings, CacheCounts& counts);
 
+// A candidate's estimated conversion time in milliseconds on the reference machine
+// (docs/pipeline.md "Shards"), from the preset's training samples and the mesh's triangles.
+std::uint64_t estimated_cost_ms(const Run& run, const Planned& p);
+
 // The shard (1..shard_count) that converts each candidate of `planned` (0 for the others
-// and without sharding): candidates sorted by cache key, dealt out in turn, so every shard
-// computes the same assignment and their loads differ by at most one candidate.
+// and without sharding): candidates costliest first (estimated_cost_ms; ties by cache key),
+// each to the shard with the least estimated work so far. Every shard computes the same
+// assignment, whatever the order of `planned`.
 std::vector<std::uint32_t> shard_owners(const Run& run, const std::vector<Planned>& planned);
 
 // Drops from a manifest entry what differs between runs of the same conversion: timings,

@@ -387,3 +387,44 @@ TEST_CASE("falls_behind: a smaller size is given up when the larger one's later 
     CHECK(falls_behind({{"visibility", 0.5}}, 240, json::array(), target, stop, rule)
               .empty());  // the first rung
 }
+
+TEST_CASE("shard_owners deals the costliest candidates first to the least loaded shard, in any input order") {
+    ConvertOptions o = options("smoke");
+    o.shard_count = 3;
+    const Run run = make_run(o, fresh_dir("shard_owners"));
+    // One mesh whose triangles alone outweigh two small candidates, six small ones, and a
+    // mesh that was decided in the plan (no shard converts it).
+    std::vector<scene::Mesh> meshes(8);
+    for (std::size_t i = 0; i < meshes.size(); ++i) {
+        meshes[i].name = "m" + std::to_string(i);
+        meshes[i].positions = {0, 0, 0, 1, 0, 0, 0, 1, float(i)};
+        meshes[i].indices.assign(3 * (i == 0 ? 20'000'000 : 1000 + i), 0);
+    }
+    std::vector<Planned> planned(meshes.size());
+    for (std::size_t i = 0; i < meshes.size(); ++i) {
+        planned[i].mesh = &meshes[i];
+        planned[i].source = "library.glb";
+        if (i == 7)
+            planned[i].decided = json{{"class", "simple"}};
+        else
+            planned[i].candidate.emplace();
+    }
+    REQUIRE(estimated_cost_ms(run, planned[0]) > 2 * estimated_cost_ms(run, planned[1]));
+    const std::vector<std::uint32_t> owner = shard_owners(run, planned);
+    CHECK(owner[7] == 0);
+    std::array<int, 4> count{};
+    for (std::size_t i = 0; i < 7; ++i) {
+        REQUIRE((owner[i] >= 1 && owner[i] <= 3));
+        ++count[owner[i]];
+    }
+    // The big one gets a shard to itself; the six small ones share the other two evenly.
+    CHECK(count[owner[0]] == 1);
+    CHECK(count[1] + count[2] + count[3] == 7);
+    for (std::uint32_t s = 1; s <= 3; ++s)
+        if (s != owner[0]) CHECK(count[s] == 3);
+    // The same split from the candidates in reverse order: every shard computes it alone.
+    std::vector<Planned> reversed;
+    for (std::size_t i = planned.size(); i-- > 0;) reversed.push_back(std::move(planned[i]));
+    const std::vector<std::uint32_t> again = shard_owners(run, reversed);
+    for (std::size_t i = 0; i < owner.size(); ++i) CHECK(again[owner.size() - 1 - i] == owner[i]);
+}

@@ -169,7 +169,8 @@ struct ConvertOptions {
     // shared between runs, processes and machines; empty = none (docs/pipeline.md).
     std::string cache_dir;
     // --shard I/N (`lsnif batch`): convert only the candidates this shard owns (the candidates
-    // of all inputs sorted by cache key, every N-th from the I-th); the others are recorded as
+    // of all inputs, costliest first by an estimate of their conversion time, ties by cache
+    // key, each dealt to the shard with the least estimated work); the others are recorded as
     // owned by their shard for `lsnif merge`. shard_count 0 = no sharding.
     std::uint32_t shard_index = 0, shard_count = 0;
     // Leave run-dependent fields (timings, reused) out of the manifest, so that it is a
