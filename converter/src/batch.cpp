@@ -1,16 +1,20 @@
 // `lsnif batch` (batch.hpp): inputs expanded, one convert() run with the cache, and the
 // reports a CI system reads.
+#include <lsnif/cache/cache.hpp>
 #include <lsnif/converter/batch.hpp>
 #include <lsnif/converter/manifest.hpp>
 #include <lsnif/format/container.hpp>
 #include <lsnif/scene/scene.hpp>
 
 #include <algorithm>
+#include <cctype>
 #include <charconv>
 #include <cinttypes>
 #include <cstdio>
+#include <cstring>
 #include <filesystem>
 #include <fstream>
+#include <map>
 #include <set>
 
 namespace lsnif::converter {
@@ -96,6 +100,12 @@ bool mesh_failed(const json& m) {
     return !reasons.empty() && reasons.back().rfind("the asset could not be", 0) == 0;
 }
 
+// An entry `lsnif batch --object` left to another job: neither converted nor decided here.
+bool left_to_another_job(const json& m) {
+    const auto& reasons = m.value("reasons", std::vector<std::string>{});
+    return !reasons.empty() && reasons.back() == kLeftToAnotherJob;
+}
+
 double mesh_seconds(const json& m) {
     double s = 0;
     const json timings = m.value("timings", json::object());  // items() would dangle on a temporary
@@ -121,6 +131,172 @@ std::string asset_line(const json& m, const std::string& input) {
     return buf;
 }
 
+// A word for /bin/sh, single-quoted unless it needs no quoting.
+std::string shell_word(const std::string& w) {
+    const bool plain = !w.empty() && std::all_of(w.begin(), w.end(), [](char c) {
+        return std::isalnum(static_cast<unsigned char>(c)) || std::strchr("/._-+=,:@%", c);
+    });
+    if (plain) return w;
+    std::string out = "'";
+    for (char c : w) {
+        if (c == '\'') out += "'\\'";  // close, an escaped quote, reopen
+        out += c;
+    }
+    out += '\'';
+    return out;
+}
+
+// A path in a Ninja `build` line: '$', ' ', ':' and newlines escaped (ninja_syntax's rules).
+std::string ninja_path(const std::string& p) {
+    std::string out;
+    for (char c : p) {
+        if (c == '$' || c == ' ' || c == ':') out += '$';
+        out += c == '\n' ? ' ' : c;
+    }
+    return out;
+}
+
+// A value of a Ninja variable (a command, a description): '$' escaped, one line.
+std::string ninja_value(const std::string& v) {
+    std::string out;
+    for (char c : v) {
+        if (c == '$') out += '$';
+        out += c == '\n' ? ' ' : c;
+    }
+    return out;
+}
+
+std::string shell_line(const std::vector<std::string>& words) {
+    std::string line;
+    for (const std::string& w : words) {
+        if (!line.empty()) line += ' ';
+        line += shell_word(w);
+    }
+    return line;
+}
+
+std::string absolute(const std::string& p) {
+    std::error_code ec;
+    const fs::path a = fs::absolute(p, ec);
+    return (ec ? fs::path(p) : a).lexically_normal().string();
+}
+
+// Whether `p` lies inside directory `dir` (both absolute and normal).
+bool inside(const fs::path& p, const fs::path& dir) {
+    const auto rel = p.lexically_relative(dir);
+    return !rel.empty() && *rel.begin() != "..";
+}
+
+// One unique candidate of the plan: what its Ninja edge converts.
+struct PlannedObject {
+    std::string key, source, mesh;
+    std::uint64_t estimated_ms = 0;
+};
+
+// What the Ninja file's regenerate edge watches: the scene files, list files and every
+// directory searched (a file added or removed changes its directory's time).
+std::vector<std::string> plan_dependencies(const BatchOptions& options,
+                                           const std::vector<std::string>& scenes) {
+    std::set<std::string> deps;
+    for (const std::string& s : scenes) deps.insert(absolute(s));
+    for (const std::string& in : options.inputs) {
+        std::error_code ec;
+        if (!fs::exists(in, ec)) continue;
+        deps.insert(absolute(in));
+        if (!fs::is_directory(in, ec)) continue;
+        for (auto it =
+                 fs::recursive_directory_iterator(in, fs::directory_options::skip_permission_denied, ec);
+             !ec && it != fs::recursive_directory_iterator(); it.increment(ec))
+            if (it->is_directory(ec)) deps.insert(absolute(it->path().string()));
+    }
+    return {deps.begin(), deps.end()};
+}
+
+// The plan's depfile (Makefile syntax, as Ninja reads it): `file` depends on `deps`.
+std::string depfile_text(const std::string& file, const std::vector<std::string>& deps) {
+    auto escaped = [](const std::string& p) {
+        std::string out;
+        for (char c : p) {
+            if (c == ' ' || c == '#') out += '\\';
+            if (c == '$') out += '$';
+            out += c;
+        }
+        return out;
+    };
+    std::string t = escaped(file) + ":";
+    for (const std::string& d : deps) t += " \\\n  " + escaped(d);
+    return t + "\n";
+}
+
+// The text of the Ninja file (docs/pipeline.md "Ninja"): a regenerate edge (generator), one
+// edge per object in a pool of depth 1 whose output is the object's cache entry, and the
+// library edge that writes the manifest from the cache.
+std::string ninja_text(const BatchOptions& options, const std::vector<PlannedObject>& objects,
+                       const std::vector<std::string>& scenes, const cache::Store& store) {
+    const ConvertOptions& c = options.convert;
+    const std::string file = absolute(options.ninja_path), outdir = absolute(c.outdir),
+                      cache_dir = absolute(c.cache_dir), program = absolute(options.program);
+    std::vector<std::string> inputs;
+    for (const std::string& in : options.inputs) inputs.push_back(absolute(in));
+    const std::string settings = shell_line(settings_arguments(c));
+    const std::string junit =
+        options.junit_path.empty() ? "" : " --junit " + shell_word(absolute(options.junit_path));
+    std::string t;
+    t += "# Written by `lsnif batch --ninja` (docs/pipeline.md \"Ninja\"): one edge per unique object.\n";
+    t += "# Run `ninja -f " + file + "` (-k 0 to go on past a failure). Ninja plans again by itself\n";
+    t += "# when an input, list file or searched directory changes.\n";
+    t += "ninja_required_version = 1.7\n\n";
+    t += "lsnif = " + ninja_value(shell_word(program)) + "\n";
+    t += "cache = " + ninja_value(shell_word(cache_dir)) + "\n";
+    t += "outdir = " + ninja_value(shell_word(outdir)) + "\n";
+    t += "settings = " + ninja_value(settings) + "\n\n";
+    t += "# One conversion already uses every core: objects are converted one at a time.\n";
+    t += "pool convert\n  depth = 1\n\n";
+    t += "rule plan\n  command = $lsnif batch " + ninja_value(shell_line(inputs)) +
+         " -o $outdir --cache $cache $settings" + ninja_value(junit) + " --ninja $out\n";
+    t += "  description = lsnif: plan the library again\n  generator = 1\n";
+    t += "  # What it read, as a depfile: a deleted input makes it plan again instead of an error.\n";
+    t += "  depfile = $out.d\n\n";
+    t += "# restat: a cache hit leaves the entry as it was, and the edge is clean afterwards.\n";
+    t += "rule object\n  command = $lsnif batch $in --object $key -o $outdir --cache $cache $settings\n";
+    t += "  description = lsnif: $mesh ($in)\n  pool = convert\n  restat = 1\n\n";
+    t += "rule library\n  command = $lsnif batch " + ninja_value(shell_line(inputs)) +
+         " -o $outdir --cache $cache $settings" + ninja_value(junit) + "\n";
+    t += "  description = lsnif: " + ninja_value(outdir) + "/manifest.json\n\n";
+    t += "build " + ninja_path(file) + ": plan | " + ninja_path(program) + "\n\n";
+    std::string entries;
+    for (const PlannedObject& o : objects) {
+        const std::string entry = ninja_path(store.entry_path(o.key).string());
+        entries += " " + entry;
+        t += "build " + entry + ": object " + ninja_path(absolute(o.source)) + " | " + ninja_path(program) +
+             "\n";
+        t += "  key = " + o.key + "\n  mesh = " + ninja_value(o.mesh) + "\n";
+    }
+    t += "\nbuild " + ninja_path(outdir + "/manifest.json") + ": library" + entries + " |";
+    for (const std::string& s : scenes) t += " " + ninja_path(absolute(s));
+    t += " " + ninja_path(program) + "\n\ndefault " + ninja_path(outdir + "/manifest.json") + "\n";
+    return t;
+}
+
+// Why --ninja cannot write a file for these options; empty when it can.
+std::string ninja_problem(const BatchOptions& options) {
+    const ConvertOptions& c = options.convert;
+    if (c.shard_count > 0 || c.memory_budget > 0 || !c.only_keys.empty())
+        return "--ninja cannot be combined with --shard, --memory-budget or --object: Ninja schedules "
+               "every object itself";
+    if (options.program.empty()) return "--ninja needs the path of the lsnif executable";
+    for (const std::string& in : options.inputs) {
+        std::error_code ec;
+        if (!fs::is_directory(in, ec)) continue;
+        const fs::path dir = absolute(in);
+        for (const std::string& out : {options.ninja_path, c.outdir, c.cache_dir})
+            if (inside(absolute(out), dir))
+                return out + ": inside the input directory " + in +
+                       " (writing there would make Ninja plan again on every run)";
+    }
+    return {};
+}
+
 }  // namespace
 
 std::vector<std::string> expand_inputs(const std::vector<std::string>& inputs,
@@ -144,17 +320,115 @@ std::vector<std::string> expand_inputs(const std::vector<std::string>& inputs,
     return unique;
 }
 
+std::vector<std::string> settings_arguments(const ConvertOptions& c) {
+    std::vector<std::string> a = {"--preset",  c.preset,
+                                  "--seed",    std::to_string(c.seed),
+                                  "--threads", std::to_string(threads_per_job(c))};
+    for (const std::string& m : c.force_complex) a.insert(a.end(), {"--complex", m});
+    for (const std::string& m : c.force_simple) a.insert(a.end(), {"--simple", m});
+    char g[128];
+    if (c.gate_min_visibility >= 0) {
+        std::snprintf(g, sizeof g, "%.17g", c.gate_min_visibility);
+        a.insert(a.end(), {"--gate-visibility", g});
+    }
+    const std::pair<const char*, std::uint32_t> overrides[] = {
+        {"--steps", c.steps},           {"--batch", c.batch_size},     {"--log2-table", c.log2_table_size},
+        {"--max-points", c.max_points}, {"--grid", c.grid_resolution}, {"--hidden", c.hidden_width}};
+    for (const auto& [name, value] : overrides)
+        if (value > 0) a.insert(a.end(), {name, std::to_string(value)});
+    std::snprintf(g, sizeof g, "%.17g,%.17g,%.17g", 100 * c.target.visibility, c.target.distance_pct,
+                  c.target.normal_deg);
+    a.insert(a.end(), {"--target", g});
+    if (c.fixed_model) a.push_back("--fixed-model");
+    return a;
+}
+
+namespace {
+
+// --ninja: plans the library (a dry run) and writes the Ninja file atomically.
+void plan_ninja(const BatchOptions& options, const ConvertProgress& progress, BatchResult& r) {
+    if (std::string why = ninja_problem(options); !why.empty()) {
+        r.convert.errors.push_back(why);
+        r.exit = BatchExit::usage;
+        return;
+    }
+    auto store = cache::Store::open(options.convert.cache_dir);
+    if (!store) {
+        r.convert.errors.push_back(store.error().message);
+        r.exit = BatchExit::failed;
+        return;
+    }
+    ConvertOptions c = options.convert;
+    c.inputs = r.scenes;
+    c.dry_run = true;
+    r.convert = convert(c, progress);
+    if (r.convert.usage_error) {
+        r.exit = BatchExit::usage;
+        return;
+    }
+    std::map<std::string, PlannedObject> unique;
+    const json& report = r.convert.report;
+    for (const json& m : report.value("meshes", json::array()))
+        if (m.contains("cache_key"))
+            unique.emplace(m["cache_key"].get<std::string>(),
+                           PlannedObject{m["cache_key"], r.scenes.at(m["input"].get<std::size_t>()),
+                                         m["name"], m["estimated_ms"].get<std::uint64_t>()});
+    std::vector<PlannedObject> objects;
+    for (auto& [key, o] : unique) objects.push_back(std::move(o));
+    std::stable_sort(objects.begin(), objects.end(), [](const PlannedObject& a, const PlannedObject& b) {
+        return a.estimated_ms > b.estimated_ms;  // costliest first, then by key
+    });
+    const std::string file = absolute(options.ninja_path);
+    std::error_code ec;
+    fs::create_directories(fs::path(file).parent_path(), ec);
+    // The depfile first: a Ninja file is never there without what it depends on.
+    for (const auto& [path, text] :
+         {std::pair{file + ".d", depfile_text(file, plan_dependencies(options, r.scenes))},
+          std::pair{file, ninja_text(options, objects, r.scenes, *store)}})
+        if (const format::Error e = format::write_bytes_atomically(
+                path, {reinterpret_cast<const std::uint8_t*>(text.data()), text.size()})) {
+            r.convert.errors.push_back(e.message);
+            r.exit = BatchExit::failed;
+            return;
+        }
+    r.lines.push_back("planned  " + std::to_string(objects.size()) +
+                      " objects to convert: " + options.ninja_path);
+    // Inputs that cannot be read fail in the library step, where CI sees them; failing here
+    // would stop Ninja each time it plans again.
+    for (const std::string& e : r.input_errors)
+        r.convert.warnings.push_back(e + " (the library step will fail on it)");
+    for (const std::string& e : r.convert.errors)
+        r.convert.warnings.push_back(e + " (the library step will fail on it)");
+    r.input_errors.clear();
+    r.convert.errors.clear();
+    r.exit = BatchExit::ok;
+}
+
+}  // namespace
+
 BatchResult batch(const BatchOptions& options, const ConvertProgress& progress,
                   const std::function<void(const std::string&)>& on_line) {
     BatchResult r;
     r.scenes = expand_inputs(options.inputs, r.input_errors);
     for (const std::string& e : r.input_errors) r.lines.push_back("failed   " + e);
     std::size_t converted = 0, bvh = 0, failed = r.input_errors.size();
+    if (!options.ninja_path.empty()) {
+        plan_ninja(options, progress, r);
+        r.summary = {{"scenes", r.scenes},
+                     {"lines", r.lines},
+                     {"errors", r.input_errors},
+                     {"warnings", r.convert.warnings},
+                     {"ninja", options.ninja_path}};
+        for (const std::string& e : r.convert.errors) r.summary["errors"].push_back(e);
+        r.summary["exit_code"] = int(r.exit);
+        return r;
+    }
     if (!r.scenes.empty()) {
         ConvertOptions c = options.convert;
         c.inputs = r.scenes;
+        c.command_line = "lsnif batch " + shell_line(settings_arguments(c));
         const auto forward = [&](const ProgressEvent& e) {
-            if (e.stage == "done" && e.entry && on_line)
+            if (e.stage == "done" && e.entry && on_line && !left_to_another_job(*e.entry))
                 on_line(asset_line(*e.entry, r.scenes.at(e.entry->at("input").get<std::size_t>())));
             if (progress) progress(e);
         };
@@ -170,6 +444,7 @@ BatchResult batch(const BatchOptions& options, const ConvertProgress& progress,
                 ++failed;
             }
         for (const json& m : report.value("meshes", json::array())) {
+            if (left_to_another_job(m)) continue;
             const std::string input = report["inputs"][m["input"].get<std::size_t>()]["given"];
             r.lines.push_back(asset_line(m, input));
             mesh_failed(m) ? ++failed : m.contains("lsnif") ? ++converted : ++bvh;

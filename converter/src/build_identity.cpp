@@ -3,6 +3,7 @@
 #include <lsnif/converter/convert.hpp>
 
 #include <algorithm>
+#include <filesystem>
 #include <fstream>
 #include <iterator>
 #include <set>
@@ -57,6 +58,12 @@ std::string compute_build_identity() {
 const std::string& build_identity() {
     static const std::string id = compute_build_identity();
     return id;
+}
+
+std::string executable_path() {
+    std::error_code ec;
+    const std::filesystem::path p = std::filesystem::read_symlink("/proc/self/exe", ec);
+    return ec ? std::string() : p.string();
 }
 
 }  // namespace lsnif::converter

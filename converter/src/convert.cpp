@@ -28,6 +28,7 @@
 #include <mutex>
 #include <numeric>
 #include <optional>
+#include <set>
 #include <thread>
 
 namespace lsnif::converter {
@@ -1207,9 +1208,12 @@ Settled settle_candidate(const Run& run, Planned& p, std::uint32_t owner, std::u
     Settled s;
     s.after = p.bvh_bytes;
     const std::uint64_t budget = run.opt.memory_budget;
+    const std::vector<std::string>& only = run.opt.only_keys;
     if (run.opt.shard_count > 0 && owner != run.opt.shard_index) {
         s.entry = p.rec.simple("converted by shard " + std::to_string(owner) + " of " +
                                std::to_string(run.opt.shard_count));
+    } else if (!only.empty() && std::find(only.begin(), only.end(), cache_key(run, p)) == only.end()) {
+        s.entry = p.rec.simple(kLeftToAnotherJob);
     } else if (budget > 0 && total <= budget && !p.forced()) {
         s.entry = p.rec.simple(fits_without_it(total, budget));
     } else {
@@ -1217,6 +1221,10 @@ Settled settle_candidate(const Run& run, Planned& p, std::uint32_t owner, std::u
         s.after = bytes_after(p, s.entry);
     }
     if (run.opt.shard_count > 0) s.entry["shard"] = owner;
+    if (run.opt.dry_run) {
+        s.entry["cache_key"] = cache_key(run, p);
+        s.entry["estimated_ms"] = estimated_cost_ms(run, p);
+    }
     run.report({p.mesh->name, "done", 0, 0, 0, 0, &s.entry});
     p.candidate.reset();  // its Embree scene (the largest thing a candidate holds)
     p.occupancy.reset();
@@ -1292,6 +1300,28 @@ std::vector<json> convert_meshes(const Run& run, std::vector<Planned>& planned,
         entries[i]["memory"] = memory;
     }
     return entries;
+}
+
+// The cache keys of the candidates; call before convert_meshes, which releases them.
+std::set<std::string> candidate_keys(const Run& run, const std::vector<Planned>& planned) {
+    std::set<std::string> keys;
+    for (const Planned& p : planned)
+        if (p.decided.is_null()) keys.insert(cache_key(run, p));
+    return keys;
+}
+
+// --object: every selected key names a candidate, and its result is in the cache.
+void check_selected_stored(const Run& run, const cache::Store& store, const std::set<std::string>& keys,
+                           std::vector<std::string>& errors) {
+    for (const std::string& key : run.opt.only_keys) {
+        std::error_code ec;
+        if (!keys.count(key))
+            errors.push_back("--object " + key +
+                             ": no candidate of the inputs has this cache key (the inputs, the settings "
+                             "or the build changed since it was planned: plan again)");
+        else if (!fs::exists(store.entry_path(key), ec))
+            errors.push_back("--object " + key + ": the result is not in the cache " + store.root().string());
+    }
 }
 
 std::string unreachable_budget(const Run& run, const std::vector<Planned>& planned) {
@@ -1392,7 +1422,6 @@ std::string write_manifest(const fs::path& outdir, const json& manifest) {
 
 using namespace stages;
 
-// The threads each conversion gets: --threads (0 = the hardware's) shared by --jobs.
 std::uint32_t threads_per_job(const ConvertOptions& opt) {
     return std::max(1u, base::resolve_threads(opt.threads) / std::max(1u, opt.jobs));
 }
@@ -1479,6 +1508,8 @@ ConvertResult convert(const ConvertOptions& opt, const ConvertProgress& progress
         return res;  // nothing trained, nothing written
     }
     CacheCounts cache_counts;
+    const std::set<std::string> keys =
+        opt.only_keys.empty() ? std::set<std::string>() : candidate_keys(run, planned);
     const std::vector<json> entries = convert_meshes(run, planned, res.errors, res.warnings, cache_counts);
     const json meshes = entries, memory = scene_memory(run, entries);
     if (memory.contains("fits") && !memory["fits"].get<bool>())
@@ -1497,6 +1528,10 @@ ConvertResult convert(const ConvertOptions& opt, const ConvertProgress& progress
                                {"corrupt", cache_counts.corrupt}};
     if (ok_inputs == 0 || opt.dry_run) return res;  // nothing converted, or a plan: leave OUTDIR untouched
 
+    if (!opt.only_keys.empty()) {  // one job's share: its cache entries, no manifest
+        if (store) check_selected_stored(run, *store, keys, res.errors);
+        return res;
+    }
     json manifest_meshes = meshes;
     if (opt.reproducible_manifest)
         for (json& m : manifest_meshes) strip_run_dependent(m);

@@ -224,9 +224,9 @@ struct ValidateCommand {
 // file name is already a content hash).
 std::string recorded_command_line(int argc, char** argv) {
     // Where outputs go and how the work is split do not change an asset: leaving them out keeps
-    // assets byte-identical between a single run and shards, and between output directories.
-    static const char* const with_value[] = {"-o",      "--output", "--cache", "--shard",
-                                             "--junit", "-j",       "--jobs"};
+    // assets byte-identical between output directories. (`lsnif batch` records its settings
+    // in a canonical form instead: batch.hpp, BatchOptions.)
+    static const char* const with_value[] = {"-o", "--output", "--cache", "-j", "--jobs"};
     std::string line;
     for (int i = 0; i < argc; ++i) {
         const std::string a =
@@ -349,9 +349,14 @@ struct BatchCommand {
                         "I/N: convert only this shard's share of the candidates (lsnif merge joins the N "
                         "output directories)");
         sub->add_flag("--json", json, "Print a machine-readable summary instead of the lines");
+        sub->add_option("--ninja", batch.ninja_path,
+                        "Plan only, and write a Ninja build file with one edge per object to convert "
+                        "(run it with ninja -f FILE)");
+        sub->add_option("--object", settings.opt.only_keys,
+                        "Convert only the candidate with this cache key (a step of the --ninja file)");
         settings.add_to(sub);
     }
-    int run(int argc, char** argv) {
+    int run() {
         if (!settings.finish(sub)) return 2;
         std::string error;
         if (sub->count("--shard") > 0 && !lsnif::converter::parse_shard(shard, settings.opt.shard_index,
@@ -359,9 +364,9 @@ struct BatchCommand {
             std::fprintf(stderr, "error: --shard '%s': %s\n", shard.c_str(), error.c_str());
             return 2;
         }
-        settings.opt.command_line = recorded_command_line(argc, argv);
-        settings.opt.reproducible_manifest = true;
+        settings.opt.reproducible_manifest = true;  // and batch() records its settings canonically
         batch.convert = settings.opt;
+        batch.program = lsnif::converter::executable_path();
         std::set<std::string> streamed;
         ProgressPrinter printer;
         const auto r = lsnif::converter::batch(
@@ -379,6 +384,8 @@ struct BatchCommand {
         }
         if (json) {
             std::cout << r.summary.dump(2) << "\n";
+        } else if (!batch.ninja_path.empty()) {
+            for (const auto& line : r.lines) std::cout << line << "\n";
         } else {
             for (const auto& line : r.lines)  // what was not streamed: the inputs that failed
                 if (!streamed.count(line)) std::cout << line << "\n";
@@ -544,7 +551,7 @@ int main(int argc, char** argv) {
         if (*inspect.sub) return inspect.run();
         if (*validate.sub) return validate.run();
         if (*convert.sub) return convert.run(argc, argv);
-        if (*batch.sub) return batch.run(argc, argv);
+        if (*batch.sub) return batch.run();
         if (*merge.sub) return merge.run();
         if (*eval.sub) return eval.run();
         if (*bench.sub) return bench.run();

@@ -28,8 +28,16 @@ struct BatchOptions {
     // for scene files, in path order), or list files (any other file: one path per line,
     // relative to the list file's directory; blank lines and lines starting with '#' skipped).
     std::vector<std::string> inputs;
-    ConvertOptions convert;  // outdir and cache_dir required; every `lsnif convert` setting
+    // outdir and cache_dir required; every `lsnif convert` setting. Assets record the command
+    // "lsnif batch SETTINGS" (settings_arguments: canonical, inputs and outputs left out, the
+    // asset's source is in its metadata), so that a single run, shards, --jobs and the steps
+    // of a Ninja file write the same bytes; command_line is not used.
+    ConvertOptions convert;
     std::string junit_path;  // write JUnit XML here ("" = none)
+    // --ninja FILE: plan only, and write a Ninja build file that converts the library with
+    // one edge per unique candidate (docs/pipeline.md "Ninja"); `program` is the lsnif
+    // executable its commands run (an absolute path).
+    std::string ninja_path, program;
 };
 
 struct BatchResult {
@@ -50,6 +58,11 @@ std::vector<std::string> expand_inputs(const std::vector<std::string>& inputs,
 // same lines end up in BatchResult::lines, with the failed inputs'); `progress` every event.
 BatchResult batch(const BatchOptions& options, const ConvertProgress& progress = {},
                   const std::function<void(const std::string&)>& on_line = {});
+
+// The command-line options that give `opt`'s settings to `lsnif convert` or `lsnif batch`
+// (the preset, seed, per-job threads, forced meshes, overrides, target, --fixed-model):
+// what a Ninja file passes to every step so that the keys it planned are the keys they use.
+std::vector<std::string> settings_arguments(const ConvertOptions& opt);
 
 // JUnit XML of a batch: one <testcase> per mesh (classname = the input file, name = the mesh;
 // passed when converted or kept as BVH with its reason in <system-out>; <failure> when its

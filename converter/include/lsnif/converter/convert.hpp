@@ -148,6 +148,9 @@ struct Preset {
 bool find_preset(const std::string& name, Preset& out);
 std::vector<std::string> preset_names();
 
+// The reason recorded for a candidate that ConvertOptions::only_keys leaves to another job.
+inline constexpr const char* kLeftToAnotherJob = "left to another job (lsnif batch --object)";
+
 struct ConvertOptions {
     std::vector<std::string> inputs;
     std::string outdir;
@@ -164,7 +167,9 @@ struct ConvertOptions {
     double gate_min_visibility = -1;  // >= 0 overrides the preset's pooled visibility gate
     std::uint32_t steps = 0;          // > 0 overrides the preset's training steps
     std::uint32_t batch_size = 0;     // > 0 overrides the preset's batch size
-    bool dry_run = false;             // import and classify only; report the plan, write nothing
+    // Import and classify only; report the plan (each candidate's cache key and estimated
+    // conversion time with it: `cache_key`, `estimated_ms`), write nothing.
+    bool dry_run = false;
     // --cache DIR: a content-addressed store (lsnif::cache) of every candidate's result,
     // shared between runs, processes and machines; empty = none (docs/pipeline.md).
     std::string cache_dir;
@@ -173,6 +178,12 @@ struct ConvertOptions {
     // key, each dealt to the shard with the least estimated work); the others are recorded as
     // owned by their shard for `lsnif merge`. shard_count 0 = no sharding.
     std::uint32_t shard_index = 0, shard_count = 0;
+    // --object KEY (`lsnif batch`; one edge of a Ninja file, docs/pipeline.md "Ninja"):
+    // convert only the candidates with these cache keys, into the cache and OUTDIR's assets;
+    // the others are left to other jobs and no manifest is written (the library's last step
+    // writes it, from the cache). A key no candidate has is an error, and so is a result
+    // that could not be stored (the Ninja edge's output is the cache entry).
+    std::vector<std::string> only_keys;
     // Leave run-dependent fields (timings, reused) out of the manifest, so that it is a
     // function of the inputs, the settings and the build alone (`lsnif batch`, `lsnif merge`).
     bool reproducible_manifest = false;
@@ -221,6 +232,10 @@ struct ConvertResult {
 
 ConvertResult convert(const ConvertOptions& options, const ConvertProgress& progress = {});
 
+// The threads each conversion of convert(options) uses: --threads (0 = the hardware's)
+// shared by --jobs, at least 1.
+std::uint32_t threads_per_job(const ConvertOptions& options);
+
 // The accuracy gate's verdict on held-out metrics: one "held-out ..." reason per failed
 // rule (the text the manifest's reasons carry after "gate: "); empty means the asset ships.
 std::vector<std::string> gate_failures(const samples::Metrics& metrics, const Gate& gate);
@@ -253,6 +268,9 @@ std::string falls_behind(const nlohmann::json& point, std::uint32_t step, const 
 // source, compiler, flags, -march or Debian library gives another identity; computed once per
 // process (a few hundred milliseconds: it reads those files). Part of every cache key.
 const std::string& build_identity();
+
+// The absolute path of the running executable (/proc/self/exe); "" when it cannot be read.
+std::string executable_path();
 
 // Human-readable summary of a report (what `lsnif convert` prints).
 std::string convert_text(const ConvertResult& result);
