@@ -427,6 +427,7 @@ BatchResult batch(const BatchOptions& options, const ConvertProgress& progress,
         ConvertOptions c = options.convert;
         c.inputs = r.scenes;
         c.command_line = "lsnif batch " + shell_line(settings_arguments(c));
+        c.write_gltf = false;  // a library, not a scene
         const auto forward = [&](const ProgressEvent& e) {
             if (e.stage == "done" && e.entry && on_line && !left_to_another_job(*e.entry))
                 on_line(asset_line(*e.entry, r.scenes.at(e.entry->at("input").get<std::size_t>())));

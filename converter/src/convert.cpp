@@ -3,6 +3,7 @@
 #include <lsnif/cache/cache.hpp>
 #include <lsnif/converter/convert.hpp>
 #include <lsnif/converter/file_tools.hpp>
+#include <lsnif/converter/gltf_out.hpp>
 #include <lsnif/converter/manifest.hpp>
 #include <lsnif/format/forward.hpp>
 #include <lsnif/format/quantize.hpp>
@@ -1461,6 +1462,7 @@ ConvertResult convert(const ConvertOptions& opt, const ConvertProgress& progress
     const Run run{opt, std::move(preset), threads_per_job(opt), opt.outdir, serialized, store};
     json inputs = json::array(), instances = json::array();
     std::deque<scene::Scene> scenes;  // every input stays imported: candidates borrow their meshes
+    std::vector<GltfSource> sources;  // per input, for scene.gltf
     std::vector<Planned> planned;
     std::size_t ok_inputs = 0;
     double import_seconds = 0;
@@ -1471,6 +1473,7 @@ ConvertResult convert(const ConvertOptions& opt, const ConvertProgress& progress
         auto imported = scene::import_scene(path);
         import_seconds += seconds_since(t0);
         json in_json = {{"path", manifest_relative_path(path, run.outdir)}, {"given", path}};
+        sources.push_back({path, nullptr});
         if (!imported.ok()) {
             res.errors.push_back(imported.error);
             in_json["status"] = "error";
@@ -1480,6 +1483,7 @@ ConvertResult convert(const ConvertOptions& opt, const ConvertProgress& progress
         }
         ++ok_inputs;
         const scene::Scene& sc = scenes.emplace_back(std::move(imported.scene));
+        sources.back().scene = &sc;
         in_json["status"] = "ok";
         if (!sc.warnings.empty()) {
             in_json["warnings"] = sc.warnings;
@@ -1539,6 +1543,12 @@ ConvertResult convert(const ConvertOptions& opt, const ConvertProgress& progress
     if (opt.shard_count > 0) res.manifest["shard"] = {{"index", opt.shard_index}, {"count", opt.shard_count}};
     if (std::string e = write_manifest(run.outdir, res.manifest); !e.empty()) res.errors.push_back(e);
     res.report["manifest"] = (run.outdir / "manifest.json").string();
+    if (opt.write_gltf) {
+        if (std::string e = write_scene_gltf(run.outdir, sources, res.manifest); !e.empty())
+            res.errors.push_back(e);
+        else
+            res.report["gltf"] = (run.outdir / "scene.gltf").string();
+    }
     return res;
 }
 
@@ -1623,6 +1633,7 @@ std::string convert_text(const ConvertResult& r) {
         s += "\n";
     }
     if (r.report.contains("manifest")) s += "manifest: " + r.report["manifest"].get<std::string>() + "\n";
+    if (r.report.contains("gltf")) s += "glTF: " + r.report["gltf"].get<std::string>() + "\n";
     if (r.report.value("dry_run", false)) s += "dry run: nothing written\n";
     return s;
 }

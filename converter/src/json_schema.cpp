@@ -249,4 +249,9 @@ const JsonSchema& manifest_schema() {
     return schema;
 }
 
+const JsonSchema& gltf_extension_schema() {
+    static const JsonSchema schema(gltf_extension_schema_text());
+    return schema;
+}
+
 }  // namespace lsnif::converter

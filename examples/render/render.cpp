@@ -2,7 +2,11 @@
 // directory and render the hybrid scene — Embree's BVH for simple meshes, the LSNIF reader
 // for complex ones — with a point light and hard shadows, into a binary PPM.
 //
-//   lsnif_render OUTDIR OUT.ppm [WIDTH HEIGHT] [--camera ex,ey,ez,tx,ty,tz]
+//   lsnif_render OUTDIR|OUTDIR/scene.gltf OUT.ppm [WIDTH HEIGHT] [--camera ex,ey,ez,tx,ty,tz]
+//
+// OUTDIR/scene.gltf is the same scene as a glTF whose converted meshes carry the
+// LSNIF_neural_geometry extension (schema/LSNIF_neural_geometry.md): a renderer that already
+// loads glTF needs only that extension. Read from here on, the manifest route:
 //
 // What a renderer needs from the conversion is all in OUTDIR/manifest.json
 // (schema/manifest.schema.json):
@@ -119,7 +123,7 @@ std::optional<Options> parse_args(int argc, char** argv) {
 // complex meshes as open LSNIF models with their instances' transforms. Owns every handle.
 class HybridScene {
 public:
-    explicit HybridScene(const fs::path& outdir);
+    explicit HybridScene(const fs::path& input);  // an OUTDIR (its manifest) or a scene.gltf
     ~HybridScene();
     HybridScene(const HybridScene&) = delete;
     HybridScene& operator=(const HybridScene&) = delete;
@@ -145,11 +149,14 @@ private:
         std::array<float, 9> nmat;  // A^-T: object -> world normals (before normalizing)
     };
 
+    void load_manifest(const fs::path& outdir);
+    void load_gltf(const fs::path& gltf);
     std::vector<lsnif::scene::Scene> load_inputs(const json& manifest, const fs::path& outdir) const;
-    void add_mesh(const json& m, const std::vector<lsnif::scene::Scene>& inputs, const fs::path& outdir);
-    void add_instance(const json& j);
+    // `asset`: the mesh's .lsnif, or empty to trace its triangles through Embree.
+    void add_mesh(const lsnif::scene::Mesh& src, const fs::path& asset);
+    void add_instance(std::size_t mesh, const float (&xf)[12]);
 
-    fs::path manifest_path_;
+    fs::path manifest_path_;  // or the glTF file: what error messages name
     RTCDevice device_ = nullptr;
     RTCScene top_ = nullptr;
     std::vector<Mesh> meshes_;
@@ -157,20 +164,91 @@ private:
     float world_[6] = {INFINITY, INFINITY, INFINITY, -INFINITY, -INFINITY, -INFINITY};
 };
 
-HybridScene::HybridScene(const fs::path& outdir) : manifest_path_(outdir / "manifest.json") {
+HybridScene::HybridScene(const fs::path& input) {
+    device_ = rtcNewDevice(nullptr);
+    top_ = rtcNewScene(device_);
+    if (!device_ || !top_) throw Failure("embree: cannot create a device");
+    std::error_code ec;
+    if (fs::is_directory(input, ec))
+        load_manifest(input);
+    else
+        load_gltf(input);
+    if (instances_.empty()) throw Failure(manifest_path_.string() + ": the scene has no instances");
+    rtcCommitScene(top_);
+}
+
+void HybridScene::load_manifest(const fs::path& outdir) {
+    manifest_path_ = outdir / "manifest.json";
     std::ifstream mf(manifest_path_);
     const json manifest = json::parse(mf, nullptr, false);
     if (!mf || !manifest.is_object()) throw Failure(manifest_path_.string() + ": cannot read");
     if (manifest.value("format", "") != "lsnif-manifest/2")
         throw Failure(manifest_path_.string() + ": not a lsnif-manifest/2 manifest (re-run lsnif convert)");
-    device_ = rtcNewDevice(nullptr);
-    top_ = rtcNewScene(device_);
-    if (!device_ || !top_) throw Failure("embree: cannot create a device");
     const std::vector<lsnif::scene::Scene> inputs = load_inputs(manifest, outdir);
-    for (const json& m : manifest.at("meshes")) add_mesh(m, inputs, outdir);
-    for (const json& j : manifest.at("instances")) add_instance(j);
-    if (instances_.empty()) throw Failure(manifest_path_.string() + ": the scene has no instances");
-    rtcCommitScene(top_);
+    for (const json& m : manifest.at("meshes")) {
+        const std::size_t input = m.at("input").get<std::size_t>(),
+                          index = m.at("source_mesh").get<std::size_t>();
+        if (input >= inputs.size() || index >= inputs[input].meshes.size())
+            throw Failure(manifest_path_.string() + ": mesh '" + m.value("name", "") + "' refers to input " +
+                          std::to_string(input) + " mesh " + std::to_string(index) +
+                          ", which the source does not have");
+        add_mesh(inputs[input].meshes[index], m.at("class") == "complex"
+                                                  ? outdir / m.at("lsnif").at("file").get<std::string>()
+                                                  : fs::path());
+    }
+    for (const json& j : manifest.at("instances")) {
+        const json& t = j.at("transform");
+        if (!t.is_array() || t.size() != 12)
+            throw Failure(manifest_path_.string() + ": instance " + std::to_string(instances_.size()) +
+                          " is malformed");
+        float xf[12];
+        for (int k = 0; k < 12; ++k) xf[k] = t[k].get<float>();
+        add_instance(j.at("mesh").get<std::size_t>(), xf);
+    }
+}
+
+// glTF URIs are percent-encoded (RFC 3986); lsnif writes relative file references only.
+std::string percent_decoded(const std::string& uri) {
+    std::string out;
+    for (std::size_t i = 0; i < uri.size(); ++i)
+        if (uri[i] == '%' && i + 2 < uri.size()) {
+            out += char(std::strtol(uri.substr(i + 1, 2).c_str(), nullptr, 16));
+            i += 2;
+        } else {
+            out += uri[i];
+        }
+    return out;
+}
+
+// OUTDIR/scene.gltf (schema/LSNIF_neural_geometry.md): every mesh's triangles from the glTF,
+// traced through the asset its LSNIF_neural_geometry extension names when the geometry hash
+// matches (the mesh was not edited since it was converted).
+void HybridScene::load_gltf(const fs::path& gltf) {
+    manifest_path_ = gltf;
+    std::ifstream f(gltf);
+    const json doc = json::parse(f, nullptr, false);
+    if (!f || !doc.is_object()) throw Failure(gltf.string() + ": cannot read (a .gltf file or an OUTDIR)");
+    auto r = lsnif::scene::import_scene(gltf);
+    if (!r.ok()) throw Failure(r.error);
+    for (const lsnif::scene::Mesh& mesh : r.scene.meshes) {
+        fs::path asset;
+        const json& gm = doc.at("meshes").at(std::size_t(mesh.source_index));
+        if (gm.contains("extensions") && gm["extensions"].contains("LSNIF_neural_geometry")) {
+            const json& ext = gm["extensions"]["LSNIF_neural_geometry"];
+            if (ext.value("geometryHash", "") == lsnif::scene::geometry_hash(mesh))
+                asset = gltf.parent_path() / percent_decoded(ext.at("uri").get<std::string>());
+            else
+                std::fprintf(stderr,
+                             "warning: %s: mesh '%s' changed since it was converted: tracing its triangles\n",
+                             gltf.string().c_str(), mesh.name.c_str());
+        }
+        add_mesh(mesh, asset);
+    }
+    for (const lsnif::scene::Instance& in : r.scene.instances) {
+        float xf[12];
+        std::copy(in.transform.begin(), in.transform.end(), xf);
+        add_instance(in.mesh, xf);
+    }
 }
 
 HybridScene::~HybridScene() {
@@ -198,22 +276,13 @@ std::vector<lsnif::scene::Scene> HybridScene::load_inputs(const json& manifest,
     return inputs;
 }
 
-void HybridScene::add_mesh(const json& m, const std::vector<lsnif::scene::Scene>& inputs,
-                           const fs::path& outdir) {
-    const std::size_t input = m.at("input").get<std::size_t>(),
-                      index = m.at("source_mesh").get<std::size_t>();
-    if (input >= inputs.size() || index >= inputs[input].meshes.size())
-        throw Failure(manifest_path_.string() + ": mesh '" + m.value("name", "") + "' refers to input " +
-                      std::to_string(input) + " mesh " + std::to_string(index) +
-                      ", which the source does not have");
-    const lsnif::scene::Mesh& src = inputs[input].meshes[index];
+void HybridScene::add_mesh(const lsnif::scene::Mesh& src, const fs::path& asset) {
     Mesh& out = meshes_.emplace_back();
     for (std::size_t v = 0; v + 2 < src.positions.size(); v += 3) grow(out.box, &src.positions[v]);
-    if (m.at("class") == "complex") {
-        const fs::path file = outdir / m.at("lsnif").at("file").get<std::string>();
+    if (!asset.empty()) {
         lsnif_error err;
-        if (lsnif_open_file(file.c_str(), &out.model, &err) != LSNIF_OK)
-            throw Failure(file.string() + ": " + err.message);
+        if (lsnif_open_file(asset.c_str(), &out.model, &err) != LSNIF_OK)
+            throw Failure(asset.string() + ": " + err.message);
         return;
     }
     out.scene = rtcNewScene(device_);
@@ -236,14 +305,12 @@ void HybridScene::add_mesh(const json& m, const std::vector<lsnif::scene::Scene>
     rtcCommitScene(out.scene);
 }
 
-void HybridScene::add_instance(const json& j) {
-    const std::size_t mesh = j.at("mesh").get<std::size_t>();
-    const json& t = j.at("transform");
-    if (mesh >= meshes_.size() || !t.is_array() || t.size() != 12)
+void HybridScene::add_instance(std::size_t mesh, const float (&xf)[12]) {
+    if (mesh >= meshes_.size())
         throw Failure(manifest_path_.string() + ": instance " + std::to_string(instances_.size()) +
-                      " is malformed");
+                      " refers to a mesh that does not exist");
     Instance in{{}, meshes_[mesh].model, {INFINITY, INFINITY, INFINITY, -INFINITY, -INFINITY, -INFINITY}, {}};
-    for (int k = 0; k < 12; ++k) in.xf[k] = t[k].get<float>();
+    std::copy(std::begin(xf), std::end(xf), in.xf);
     const auto inverse = lsnif::base::invert_linear(in.xf);  // the C API's own rule
     if (!inverse)
         throw Failure(manifest_path_.string() + ": instance " + std::to_string(instances_.size()) +
@@ -423,10 +490,11 @@ int run(const Options& opt) {
 int main(int argc, char** argv) {
     const std::optional<Options> opt = parse_args(argc, argv);
     if (!opt) {
-        std::fprintf(stderr,
-                     "usage: %s OUTDIR OUT.ppm [WIDTH HEIGHT] [--camera ex,ey,ez,tx,ty,tz]\n"
-                     "  WIDTH, HEIGHT in 1..8192 (default 320x240)\n",
-                     argc > 0 ? argv[0] : "lsnif_render");
+        std::fprintf(
+            stderr,
+            "usage: %s OUTDIR|OUTDIR/scene.gltf OUT.ppm [WIDTH HEIGHT] [--camera ex,ey,ez,tx,ty,tz]\n"
+            "  WIDTH, HEIGHT in 1..8192 (default 320x240)\n",
+            argc > 0 ? argv[0] : "lsnif_render");
         return 2;
     }
     try {

@@ -77,8 +77,11 @@ check_one() {  # FILE
     oks=$((oks + 1))
     [[ -f $out/manifest.json ]] || bad "$file: succeeded without a manifest"
     local stray
-    stray=$(find "$out" -mindepth 1 ! -name manifest.json ! -name '*.lsnif')
+    stray=$(find "$out" -mindepth 1 ! -name manifest.json ! -name '*.lsnif' ! -name scene.gltf ! -name scene.bin)
     [[ -z $stray ]] || bad "$file: stray files: $stray"
+    # scene.gltf (the input kept whole, buffers and images re-pointed from OUTDIR) imports again.
+    "$lsnif" convert "$out/scene.gltf" -o "$out/again" --dry-run --preset smoke >/dev/null 2>"$work/stderr_again" \
+      || { bad "$file: its scene.gltf does not import: $(grep error "$work/stderr_again" | head -2)"; }
   fi
   grep -v -e '^error: ' -e '^warning: ' -e '^\[' -e '^ ' "$work/stderr" | grep -q . &&
     { bad "$file: unexpected stderr text"; head -3 "$work/stderr"; }

@@ -34,6 +34,21 @@ PY
 cmp -s "$work/a.ppm" "$work/b.ppm" || bad "renders from two working directories differ"
 distinct=$(tail -c $((96 * 72 * 3)) "$work/a.ppm" | od -An -tu1 -v | tr -s ' ' '\n' | sort -u | wc -l)
 (( distinct > 20 )) || bad "render looks empty ($distinct distinct byte values)"
+# The same scene through OUT/scene.gltf (schema/LSNIF_neural_geometry.md): the same image. With
+# one tagged mesh's geometry hash altered, that mesh is traced as triangles, with a warning.
+(cd "$work/elsewhere" && "$render" ../proj/out/scene.gltf "$work/g.ppm" 96 72 >/dev/null) \
+  || bad "render of scene.gltf exited $?"
+cmp -s "$work/a.ppm" "$work/g.ppm" || bad "the render of scene.gltf differs from the manifest's"
+python3 - "$work/proj/out/scene.gltf" "$work/proj/out/stale.gltf" <<'PY'
+import json, sys
+d = json.load(open(sys.argv[1]))
+tagged = [m for m in d["meshes"] if "LSNIF_neural_geometry" in m.get("extensions", {})]
+assert len(tagged) == 2, len(tagged)
+tagged[0]["extensions"]["LSNIF_neural_geometry"]["geometryHash"] = "fnv1a64:0000000000000000"
+json.dump(d, open(sys.argv[2], "w"))
+PY
+"$render" "$work/proj/out/stale.gltf" "$work/s.ppm" 96 72 >/dev/null 2>"$work/stale.err" || bad "stale glTF exited $?"
+grep -q "changed since it was converted: tracing its triangles" "$work/stale.err" || bad "no warning for a stale hash"
 
 # lsnif eval from elsewhere: all four LSNIF instances traced, FLIP in range.
 eval_json() { # OUTDIR IMAGES JSON_OUT [extra...]

@@ -6,7 +6,9 @@
 
 #include <lsnif/converter/convert.hpp>
 #include <lsnif/converter/file_tools.hpp>
+#include <lsnif/converter/gltf_out.hpp>
 #include <lsnif/converter/json_schema.hpp>
+#include <lsnif/scene/scene.hpp>
 
 #include <algorithm>
 #include <cmath>
@@ -50,6 +52,98 @@ std::string violations(const JsonSchema& schema, const json& doc) {
 
 }  // namespace
 
+// OUTDIR/scene.gltf against the conversion: read back by our importer, it has the inputs'
+// meshes (same geometry, same order as the manifest) and instances; exactly the meshes the
+// manifest ships as LSNIF carry the extension, valid against its schema, naming an asset
+// that is there, for the geometry it was trained on.
+void check_scene_gltf(const fs::path& out, const json& manifest, const std::vector<std::string>& inputs) {
+    std::ifstream f(out / "scene.gltf");
+    const json doc = json::parse(f, nullptr, false);
+    REQUIRE(doc.is_object());
+    const auto back = lsnif::scene::import_scene(out / "scene.gltf");
+    REQUIRE_MESSAGE(back.ok(), back.error);
+    std::vector<lsnif::scene::Mesh> originals;
+    std::vector<lsnif::scene::Instance> instances;
+    for (const std::string& in : inputs) {
+        auto r = lsnif::scene::import_scene(in);
+        REQUIRE(r.ok());
+        for (auto i : r.scene.instances) {
+            i.mesh += std::uint32_t(originals.size());
+            instances.push_back(i);
+        }
+        originals.insert(originals.end(), r.scene.meshes.begin(), r.scene.meshes.end());
+    }
+    REQUIRE(back.scene.meshes.size() == manifest["meshes"].size());
+    REQUIRE(back.scene.meshes.size() == originals.size());
+    REQUIRE(back.scene.instances.size() == instances.size());
+    std::size_t tagged = 0;
+    for (std::size_t k = 0; k < originals.size(); ++k) {
+        const auto& mesh = back.scene.meshes[k];
+        const json& m = manifest["meshes"][k];
+        CHECK(mesh.positions == originals[k].positions);
+        CHECK(mesh.indices == originals[k].indices);
+        CHECK(lsnif::scene::geometry_hash(mesh) == m["geometry_hash"]);
+        const json& gm = doc["meshes"][std::size_t(mesh.source_index)];
+        const bool has = gm.contains("extensions") && gm["extensions"].contains(kGltfExtension);
+        CHECK_MESSAGE(has == m.contains("lsnif"), m["name"]);
+        if (!has) continue;
+        ++tagged;
+        const json& ext = gm["extensions"][kGltfExtension];
+        CHECK_MESSAGE(violations(gltf_extension_schema(), ext).empty(),
+                      violations(gltf_extension_schema(), ext));
+        CHECK(ext["uri"] == m["lsnif"]["file"]);
+        CHECK(ext["byteLength"] == fs::file_size(out / ext["uri"].get<std::string>()));
+        CHECK(ext["geometryHash"] == m["geometry_hash"]);
+        CHECK(ext["manifestMesh"] == m["id"]);
+    }
+    for (std::size_t i = 0; i < instances.size(); ++i) {
+        CHECK(back.scene.instances[i].mesh == instances[i].mesh);
+        for (int e = 0; e < 12; ++e)
+            CHECK(back.scene.instances[i].transform[e] ==
+                  doctest::Approx(instances[i].transform[e]).epsilon(1e-6));
+    }
+    const bool used = doc.contains("extensionsUsed") &&
+                      std::find(doc["extensionsUsed"].begin(), doc["extensionsUsed"].end(), kGltfExtension) !=
+                          doc["extensionsUsed"].end();
+    CHECK(used == (tagged > 0));
+    CHECK_FALSE(doc.contains("extensionsRequired"));  // a renderer without LSNIF still has the meshes
+}
+
+TEST_CASE("scene.gltf keeps a glTF input whole and tags exactly its converted meshes") {
+    const fs::path out = fresh_dir("gltf_kept");
+    const ConvertResult r = convert(smoke({LSNIF_EXAMPLE_SCENE_GLB}, out));
+    REQUIRE_MESSAGE(r.ok(), (r.errors.empty() ? "" : r.errors[0]));
+    REQUIRE(r.report.contains("gltf"));
+    check_scene_gltf(out, r.manifest, {LSNIF_EXAMPLE_SCENE_GLB});
+    // Kept whole: the nodes, names and materials of the input, its binary chunk as scene.bin.
+    std::ifstream f(out / "scene.gltf");
+    const json doc = json::parse(f);
+    CHECK(doc["buffers"].size() == 1);
+    CHECK(doc["buffers"][0]["uri"] == "scene.bin");
+    CHECK(fs::file_size(out / "scene.bin") >= doc["buffers"][0]["byteLength"].get<std::uint64_t>());
+    std::size_t shipped = 0;
+    for (const auto& m : r.manifest["meshes"]) shipped += m.contains("lsnif");
+    CHECK(shipped >= 1);
+}
+
+TEST_CASE("scene.gltf of mesh files is built from their geometry, one root node per input") {
+    const std::string armadillo = std::string(LSNIF_TEST_MESH_DIR) + "/armadillo.off";
+    const fs::path out = fresh_dir("gltf_built");
+    const ConvertResult r = convert(smoke({kDragon, armadillo}, out));
+    REQUIRE_MESSAGE(r.ok(), (r.errors.empty() ? "" : r.errors[0]));
+    check_scene_gltf(out, r.manifest, {kDragon, armadillo});
+    std::ifstream f(out / "scene.gltf");
+    const json doc = json::parse(f);
+    REQUIRE(doc["scenes"][0]["nodes"].size() == 2);
+    CHECK(doc["nodes"][doc["scenes"][0]["nodes"][0].get<std::size_t>()]["name"] == "ChineseDragon-10kv.off");
+    // The glTF rules our importer does not check: bounds on POSITION, aligned views.
+    for (const auto& a : doc["accessors"]) {
+        CHECK(doc["bufferViews"][a["bufferView"].get<std::size_t>()]["byteOffset"].get<std::size_t>() % 4 ==
+              0);
+        if (a["type"] == "VEC3" && a.contains("min")) CHECK(a["max"].size() == 3);
+    }
+}
+
 TEST_CASE("convert a real mesh: asset, metadata, manifest, reuse") {
     REQUIRE(manifest_schema().valid());
     const fs::path out = fresh_dir("dragon");
@@ -88,8 +182,8 @@ TEST_CASE("convert a real mesh: asset, metadata, manifest, reuse") {
           doctest::Approx(m["metrics"]["families"]["pooled"]["visibility_accuracy"].get<double>())
               .epsilon(0.05));
     CHECK(manifest["instances"].size() == 1);
-    // Only the manifest and the asset: no temporaries left behind.
-    CHECK(std::distance(fs::directory_iterator(out), fs::directory_iterator{}) == 2);
+    // Only the manifest, the asset, scene.gltf and scene.bin: no temporaries left behind.
+    CHECK(std::distance(fs::directory_iterator(out), fs::directory_iterator{}) == 4);
 
     // The default target (97 %, 1 %, 15 deg) is beyond a smoke model: shipped through the
     // gate, with the target's misses named.
@@ -158,7 +252,8 @@ TEST_CASE("an asset below the accuracy gate is not shipped: the mesh stays BVH w
         gate_reason = gate_reason || reason.get<std::string>().find("gate") != std::string::npos;
     CHECK(gate_reason);
     CHECK_FALSE(m.contains("lsnif"));
-    CHECK(std::distance(fs::directory_iterator(out), fs::directory_iterator{}) == 1);  // manifest only
+    CHECK(std::distance(fs::directory_iterator(out), fs::directory_iterator{}) ==
+          3);  // manifest, scene.gltf/.bin
 }
 
 TEST_CASE("forced classification by mesh name") {
@@ -353,7 +448,8 @@ TEST_CASE("--memory-budget: the manifest records the budget and the scene's real
     CHECK(assets == 1);
     CHECK(left == 1);
     CHECK(r.manifest["scene_memory"]["fits"] == true);
-    CHECK(std::distance(fs::directory_iterator(out), fs::directory_iterator{}) == 2);  // manifest + asset
+    CHECK(std::distance(fs::directory_iterator(out), fs::directory_iterator{}) ==
+          4);  // + asset, scene.gltf/.bin
 }
 
 TEST_CASE("--cache: a warm run converts nothing; damaged entries are rebuilt; settings change the key") {
@@ -424,7 +520,7 @@ TEST_CASE("--cache: a warm run converts nothing; damaged entries are rebuilt; se
     CHECK(other.report["cache"]["stored"] == 2);
 }
 
-TEST_CASE("2CylinderEngine converts: all meshes and 67 instances in the manifest") {
+TEST_CASE("2CylinderEngine converts: all meshes and 67 instances in the manifest and scene.gltf") {
     const fs::path out = fresh_dir("engine");
     ConvertOptions o = smoke({kEngine}, out);
     o.preset = "default";
@@ -473,6 +569,7 @@ TEST_CASE("2CylinderEngine converts: all meshes and 67 instances in the manifest
         CHECK(inst["transform"].size() == 12);
         CHECK(inst["mesh"].get<std::size_t>() < 29);
     }
+    check_scene_gltf(out, r.manifest, {kEngine});  // 67 instances of a kept document, none tagged
 }
 
 TEST_CASE("bad inputs: clear errors naming the file, no output, and multi-input runs continue") {

@@ -34,7 +34,7 @@ Run make_run(const ConvertOptions& opt, const fs::path& outdir) {
     Preset p;
     std::string error;
     REQUIRE_MESSAGE(resolve_preset(opt, p, error), error);
-    return Run{opt, p, 2, outdir, {}};
+    return Run{opt, p, 2, outdir, {}, nullptr};
 }
 
 ConvertOptions options(const std::string& preset) {

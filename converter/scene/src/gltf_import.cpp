@@ -754,6 +754,7 @@ private:
     bool import_mesh(int index, const std::string& what, Mesh& mesh) {
         const tinygltf::Mesh& source = model_.meshes[std::size_t(index)];
         mesh.name = source.name.empty() ? "mesh_" + std::to_string(index) : source.name;
+        mesh.source_index = index;
         if (source.primitives.empty()) {
             warnings_.add(what + " has no primitives (glTF 2.0 \"Meshes\" requires at least one)");
             return true;

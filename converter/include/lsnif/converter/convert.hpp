@@ -184,6 +184,10 @@ struct ConvertOptions {
     // writes it, from the cache). A key no candidate has is an error, and so is a result
     // that could not be stored (the Ninja edge's output is the cache entry).
     std::vector<std::string> only_keys;
+    // Also write OUTDIR/scene.gltf (+ scene.bin): the scene with the LSNIF_neural_geometry
+    // extension on every converted mesh (gltf_out.hpp). `lsnif batch` converts libraries,
+    // not scenes, and leaves it out.
+    bool write_gltf = true;
     // Leave run-dependent fields (timings, reused) out of the manifest, so that it is a
     // function of the inputs, the settings and the build alone (`lsnif batch`, `lsnif merge`).
     bool reproducible_manifest = false;

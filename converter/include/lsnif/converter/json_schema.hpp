@@ -42,5 +42,8 @@ const JsonSchema& metadata_schema();
 // schema/manifest.schema.json, embedded at build time.
 const std::string& manifest_schema_text();
 const JsonSchema& manifest_schema();
+// schema/mesh.LSNIF_neural_geometry.schema.json (the glTF extension), embedded at build time.
+const std::string& gltf_extension_schema_text();
+const JsonSchema& gltf_extension_schema();
 
 }  // namespace lsnif::converter

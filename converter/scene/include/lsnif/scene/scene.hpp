@@ -56,6 +56,9 @@ enum class NormalOrigin : std::uint8_t {
 // their vertices). A mesh file (OBJ/PLY/OFF/STL) is one Mesh.
 struct Mesh {
     std::string name;  // glTF mesh name, "mesh_<index>" if it has none; file stem for mesh files
+    // glTF: the mesh's index in the file's `meshes` (meshes without triangles or instances
+    // are dropped, so it can differ from the index in Scene::meshes); -1 for mesh files.
+    std::int32_t source_index = -1;
 
     // x, y, z per vertex (3 floats per vertex), object space, source units, all finite.
     std::vector<float> positions;
