@@ -124,7 +124,7 @@ std::string asset_line(const json& m, const std::string& input) {
                       who.c_str(), m["lsnif"]["file"].get<std::string>().c_str(),
                       m["lsnif"]["bytes"].get<std::uint64_t>(),
                       100 * m["metrics"]["families"]["pooled"]["visibility_accuracy"].get<double>(),
-                      m["lsnif"]["reused"].get<bool>() ? " (reused)" : "");
+                      m["lsnif"].value("reused", false) ? " (reused)" : "");
     else
         std::snprintf(buf, sizeof buf, "bvh      %s: %s", who.c_str(),
                       m["reasons"].back().get<std::string>().c_str());
@@ -518,6 +518,13 @@ std::string junit_xml(const BatchResult& r) {
     return std::string("<?xml version=\"1.0\" encoding=\"UTF-8\"?>\n") + "<testsuites name=\"lsnif batch\" " +
            head + ">\n  <testsuite name=\"lsnif batch\" " + head + ">\n" + cases +
            "  </testsuite>\n</testsuites>\n";
+}
+
+std::string manifest_junit_xml(const json& manifest) {
+    BatchResult r;
+    r.convert.report = {{"inputs", manifest.value("inputs", json::array())},
+                        {"meshes", manifest.value("meshes", json::array())}};
+    return junit_xml(r);
 }
 
 bool parse_shard(const std::string& text, std::uint32_t& index, std::uint32_t& count, std::string& error) {

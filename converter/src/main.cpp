@@ -406,7 +406,7 @@ struct BatchCommand {
 struct MergeCommand {
     CLI::App* sub = nullptr;
     std::vector<std::string> shards;
-    std::string outdir;
+    std::string outdir, junit;
     void add_to(CLI::App& app) {
         sub = app.add_subcommand(
             "merge",
@@ -414,11 +414,21 @@ struct MergeCommand {
             "a single run's");
         sub->add_option("SHARD_OUTDIR", shards, "Every shard's output directory")->required();
         sub->add_option("-o,--output", outdir, "Output directory")->required();
+        sub->add_option("--junit", junit,
+                        "Write JUnit XML of the whole library here: one test case per asset");
     }
     int run() const {
         const auto r = lsnif::converter::merge(shards, outdir);
         for (const auto& e : r.errors) std::fprintf(stderr, "error: %s\n", e.c_str());
         if (!r.errors.empty()) return 1;
+        if (!junit.empty()) {
+            const std::string xml = lsnif::converter::manifest_junit_xml(r.manifest);
+            if (const auto e = lsnif::format::write_bytes_atomically(
+                    junit, {reinterpret_cast<const std::uint8_t*>(xml.data()), xml.size()})) {
+                std::fprintf(stderr, "error: %s\n", e.message.c_str());
+                return 1;
+            }
+        }
         std::cout << "merged " << shards.size() << " shards: " << r.manifest["meshes"].size()
                   << " meshes into " << outdir << "/manifest.json\n";
         return 0;
@@ -524,7 +534,12 @@ struct BenchCommand {
 
 int main(int argc, char** argv) {
     CLI::App app{"lsnif: convert scenes into LSNIF neural intersection assets and check them"};
-    app.set_version_flag("--version", std::string(LSNIF_VERSION_STRING));
+    // The build identity keys the cache (docs/pipeline.md "Cache keys"): CI keys its cache
+    // action on this output (examples/ci/lsnif-ci cache-key).
+    app.set_version_flag("--version", [] {
+        return "lsnif " + std::string(LSNIF_VERSION_STRING) + "\nbuild identity " +
+               lsnif::converter::build_identity();
+    });
     app.require_subcommand(1);
     InspectCommand inspect;
     ValidateCommand validate;

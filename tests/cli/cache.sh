@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # `lsnif convert --cache` as processes: two conversions sharing one cache at the same time
-# both succeed with identical assets; a third run finds everything; a cache path that cannot
-# be a directory is an error naming it.
+# both succeed with identical assets; a third run finds everything; two `lsnif batch` runs
+# at once agree byte for byte; a cache path that cannot be a directory is an error naming it.
 # usage: cache.sh LSNIF_BINARY MESH_DIR WORK_DIR
 set -u
 lsnif=$1 meshes=$2 work=$3
@@ -32,6 +32,20 @@ PY
 for f in "$work"/out1/*.lsnif; do
   cmp -s "$f" "$work/out3/$(basename "$f")" || bad "$(basename "$f") differs in the warm run"
 done
+
+# Two `lsnif batch` processes sharing a fresh cache at the same time: both succeed, with the
+# same manifest and assets.
+for k in 1 2; do
+  "$lsnif" batch "${inputs[@]}" -o "$work/batch$k" --preset smoke --threads 1 --cache "$work/batch_cache" \
+    >"$work/batch$k.out" 2>"$work/batch_err$k" &
+done
+wait %1 || bad "first concurrent batch exited $?: $(cat "$work/batch_err1")"
+wait %2 || bad "second concurrent batch exited $?: $(cat "$work/batch_err2")"
+cmp -s "$work/batch1/manifest.json" "$work/batch2/manifest.json" || bad "the concurrent batches' manifests differ"
+for f in "$work"/batch1/*.lsnif; do
+  cmp -s "$f" "$work/batch2/$(basename "$f")" || bad "$(basename "$f") differs between the concurrent batches"
+done
+[[ $(ls "$work"/batch1/*.lsnif | wc -l) == 2 ]] || bad "expected two assets from each batch"
 
 echo "not a directory" >"$work/blocked"
 "$lsnif" convert "${inputs[0]}" -o "$work/out4" --preset smoke --cache "$work/blocked/c" 2>"$work/err4"; rc=$?

@@ -69,6 +69,11 @@ std::vector<std::string> settings_arguments(const ConvertOptions& opt);
 // asset could not be written), and one failed <testcase> per input that could not be read.
 std::string junit_xml(const BatchResult& result);
 
+// JUnit XML of a manifest written by `lsnif batch` or `lsnif merge` (the same test cases as
+// junit_xml; times are 0, since such manifests carry no timings): what `lsnif merge --junit`
+// writes for the whole library.
+std::string manifest_junit_xml(const nlohmann::json& manifest);
+
 // "I/N" (1 <= I <= N <= 10000) into a shard index and count; false with a one-line error.
 bool parse_shard(const std::string& text, std::uint32_t& index, std::uint32_t& count, std::string& error);
 
