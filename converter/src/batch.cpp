@@ -358,6 +358,8 @@ void plan_ninja(const BatchOptions& options, const ConvertProgress& progress, Ba
         r.exit = BatchExit::failed;
         return;
     }
+    // Absolute paths, as the Ninja file's steps give them: a source path is part of each key.
+    for (std::string& scene : r.scenes) scene = absolute(scene);
     ConvertOptions c = options.convert;
     c.inputs = r.scenes;
     c.dry_run = true;

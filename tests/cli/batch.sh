@@ -75,6 +75,19 @@ m = json.load(open(sys.argv[1]))
 names = [x['name'] for x in m['meshes']]
 assert names == ['armadillo'], names" "$work/out/manifest.json" || bad "deleted input still in the manifest"
 
+# An assembly: assimp's 2CylinderEngine (29 meshes, 67 instances; short training), cold then
+# warm: the warm run converts nothing and writes the same manifest.
+engine=/usr/share/assimp/models/glTF2/2CylinderEngine-glTF-Binary/2CylinderEngine.glb
+for k in cold warm; do
+  "$lsnif" batch "$engine" -o "$work/engine_$k" --cache "$work/engine_cache" --preset smoke --threads 2 --steps 40 \
+    --json >"$work/engine_$k.json" 2>/dev/null || bad "engine $k: exit $?"
+done
+summary engine_cold 's["cache"]["stored"] >= 10 and s["assets"]["failed"] == 0'
+summary engine_warm 's["cache"]["stored"] == 0 and s["cache"]["hits"] >= 10'
+cmp -s "$work/engine_cold/manifest.json" "$work/engine_warm/manifest.json" || bad "engine: warm manifest differs"
+python3 -c "import json,sys; m=json.load(open(sys.argv[1])); assert len(m['meshes']) == 29 and len(m['instances']) == 67" \
+  "$work/engine_warm/manifest.json" || bad "engine: not 29 meshes and 67 instances"
+
 # Inputs that name nothing: a failure naming them, exit 1. Usage errors: exit 2.
 run nothing "$work/empty" "$work/missing.off"; [[ $rc == 1 ]] || bad "nothing: exit $rc"
 grep -q "empty: no scene files" "$work/nothing.err" || bad "empty directory not reported: $(cat "$work/nothing.err")"

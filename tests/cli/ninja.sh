@@ -17,8 +17,9 @@ file=$work/build/lib.ninja
 # Edges that ran, by description, from a Ninja log (progress lines "[k/n] lsnif: MESH (INPUT)").
 ran() { grep -o '^\[[0-9]*/[0-9]*\] lsnif: .*' "$1" | sed 's/^\[[0-9/]*\] lsnif: //' | sort; }
 
-"$lsnif" batch "$work/lib" -o "$work/out" --cache "$work/cache" "${settings[@]}" --ninja "$file" \
-  >"$work/plan.out" 2>"$work/plan.err"; rc=$?
+# Planned with relative paths, as a user types them (the file's steps use absolute ones).
+(cd "$work" && "$lsnif" batch lib -o out --cache cache "${settings[@]}" --ninja build/lib.ninja \
+  >"$work/plan.out" 2>"$work/plan.err"); rc=$?
 [[ $rc == 0 ]] || bad "plan exited $rc: $(cat "$work/plan.err")"
 grep -q "broken.off.*the library step will fail on it" "$work/plan.err" || bad "plan does not warn about broken.off"
 objects=$(grep -c '^build .*\.entry: object ' "$file")
