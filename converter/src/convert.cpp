@@ -1423,6 +1423,20 @@ std::string write_manifest(const fs::path& outdir, const json& manifest) {
 
 using namespace stages;
 
+namespace {
+
+// Why the options split work that a memory budget must decide in order; empty when they do not.
+std::string budget_conflict(const ConvertOptions& opt) {
+    if (opt.memory_budget == 0) return {};
+    const char* other = opt.shard_count > 0 ? "--shard" : opt.jobs > 1 ? "--jobs" : nullptr;
+    if (!other) return {};
+    return std::string(other) +
+           " and --memory-budget cannot be combined: the budget decides each conversion from the ones "
+           "before it";
+}
+
+}  // namespace
+
 std::uint32_t threads_per_job(const ConvertOptions& opt) {
     return std::max(1u, base::resolve_threads(opt.threads) / std::max(1u, opt.jobs));
 }
@@ -1444,12 +1458,10 @@ ConvertResult convert(const ConvertOptions& opt, const ConvertProgress& progress
         }
         store = std::make_shared<const cache::Store>(std::move(*opened));
     }
-    if (opt.jobs > 1 && opt.memory_budget > 0) {
-        res.errors.push_back(
-            "--jobs and --memory-budget cannot be combined: the budget decides each conversion "
-            "from the ones before it");
+    if (std::string why = budget_conflict(opt); !why.empty()) {
+        res.errors.push_back(why);
         res.usage_error = true;
-        return res;
+        return res;  // nothing imported, trained or written
     }
     // Concurrent jobs report from their own threads: one at a time reaches the caller.
     auto progress_mutex = std::make_shared<std::mutex>();
@@ -1498,13 +1510,6 @@ ConvertResult convert(const ConvertOptions& opt, const ConvertProgress& progress
             instances.push_back({{"mesh", first_id + i.mesh},
                                  {"name", i.node_name},
                                  {"transform", std::vector<float>(i.transform.begin(), i.transform.end())}});
-    }
-    if (opt.shard_count > 0 && opt.memory_budget > 0) {
-        res.errors.push_back(
-            "--shard and --memory-budget cannot be combined: the budget decides each "
-            "conversion from the ones before it");
-        res.usage_error = true;
-        return res;
     }
     if (std::string why = unreachable_budget(run, planned); !why.empty()) {
         res.errors.push_back(why);

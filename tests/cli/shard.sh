@@ -8,6 +8,16 @@ lsnif=$1 meshes=$2 scene=$3 work=$4
 fail=0
 bad() { echo "FAIL: $*"; fail=1; }
 rm -rf "$work" && mkdir -p "$work"
+same_outputs() {  # DIR_A DIR_B WHAT: the same manifest and the same assets, byte for byte
+  cmp -s "$1/manifest.json" "$2/manifest.json" \
+    || bad "$3: the manifests differ: $(diff "$1/manifest.json" "$2/manifest.json" | head -20)"
+  local n=0 f
+  for f in "$2"/*.lsnif; do
+    n=$((n + 1))
+    cmp -s "$f" "$1/$(basename "$f")" || bad "$3: $(basename "$f") differs"
+  done
+  ((n >= 2)) || bad "$3: $2 has $n assets"
+}
 inputs=("$meshes/ChineseDragon-10kv.off" "$meshes/armadillo.off" "$scene")
 settings=(--preset smoke --threads 2 --seed 3)
 
@@ -33,28 +43,14 @@ PY
   || bad "merge exited $?: $(cat "$work/merge.err")"
 "$lsnif" batch "${inputs[@]}" -o "$work/single" --cache "$work/cache_single" "${settings[@]}" >/dev/null 2>&1 \
   || bad "single run exited $?"
-cmp -s "$work/merged/manifest.json" "$work/single/manifest.json" \
-  || bad "merged manifest differs from the single run's: $(diff "$work/merged/manifest.json" "$work/single/manifest.json" | head -20)"
-n=0
-for f in "$work"/single/*.lsnif; do
-  n=$((n + 1))
-  cmp -s "$f" "$work/merged/$(basename "$f")" || bad "$(basename "$f") differs between merged and single"
-done
-(( n >= 2 )) || bad "the single run shipped $n assets"
+same_outputs "$work/merged" "$work/single" "merged shards against a single run"
 
 # --jobs: two meshes converted at once, one thread each, equal one at a time on one thread.
 "$lsnif" batch "${inputs[@]}" -o "$work/jobs2" --cache "$work/cache_jobs2" --preset smoke --seed 3 --threads 2 -j 2 \
   >/dev/null 2>"$work/jobs2.err" || bad "-j 2 exited $?: $(cat "$work/jobs2.err")"
 "$lsnif" batch "${inputs[@]}" -o "$work/jobs1" --cache "$work/cache_jobs1" --preset smoke --seed 3 --threads 1 \
   >/dev/null 2>&1 || bad "--threads 1 exited $?"
-cmp -s "$work/jobs2/manifest.json" "$work/jobs1/manifest.json" \
-  || bad "-j 2 manifest differs from one job's: $(diff "$work/jobs2/manifest.json" "$work/jobs1/manifest.json" | head -20)"
-n=0
-for f in "$work"/jobs1/*.lsnif; do
-  n=$((n + 1))
-  cmp -s "$f" "$work/jobs2/$(basename "$f")" || bad "$(basename "$f") differs between -j 2 and one job"
-done
-(( n >= 2 )) || bad "the one-job run shipped $n assets"
+same_outputs "$work/jobs2" "$work/jobs1" "-j 2 against one job"
 "$lsnif" batch "${inputs[0]}" -o "$work/u" --cache "$work/cache1" -j 2 --memory-budget 1M 2>"$work/err"; rc=$?
 [[ $rc == 2 ]] && grep -q "jobs and --memory-budget" "$work/err" || bad "-j with --memory-budget: exit $rc"
 
