@@ -245,7 +245,9 @@ std::string ninja_text(const BatchOptions& options, const std::vector<PlannedObj
     t += "# Written by `lsnif batch --ninja` (docs/pipeline.md \"Ninja\"): one edge per unique object.\n";
     t += "# Run `ninja -f " + file + "` (-k 0 to go on past a failure). Ninja plans again by itself\n";
     t += "# when an input, list file or searched directory changes.\n";
-    t += "ninja_required_version = 1.7\n\n";
+    t += "ninja_required_version = 1.7\n";
+    t += "# Ninja's log beside this file, wherever ninja is run from.\n";
+    t += "builddir = " + ninja_value(fs::path(file).parent_path().string()) + "\n\n";
     t += "lsnif = " + ninja_value(shell_word(program)) + "\n";
     t += "cache = " + ninja_value(shell_word(cache_dir)) + "\n";
     t += "outdir = " + ninja_value(shell_word(outdir)) + "\n";
@@ -352,7 +354,7 @@ void plan_ninja(const BatchOptions& options, const ConvertProgress& progress, Ba
         r.exit = BatchExit::usage;
         return;
     }
-    auto store = cache::Store::open(options.convert.cache_dir);
+    auto store = cache::Store::open(absolute(options.convert.cache_dir));  // entry paths go in the file
     if (!store) {
         r.convert.errors.push_back(store.error().message);
         r.exit = BatchExit::failed;

@@ -149,6 +149,7 @@ private:
         std::array<float, 9> nmat;  // A^-T: object -> world normals (before normalizing)
     };
 
+    void release();  // every handle, once
     void load_manifest(const fs::path& outdir);
     void load_gltf(const fs::path& gltf);
     std::vector<lsnif::scene::Scene> load_inputs(const json& manifest, const fs::path& outdir) const;
@@ -165,16 +166,21 @@ private:
 };
 
 HybridScene::HybridScene(const fs::path& input) {
-    device_ = rtcNewDevice(nullptr);
-    top_ = rtcNewScene(device_);
-    if (!device_ || !top_) throw Failure("embree: cannot create a device");
-    std::error_code ec;
-    if (fs::is_directory(input, ec))
-        load_manifest(input);
-    else
-        load_gltf(input);
-    if (instances_.empty()) throw Failure(manifest_path_.string() + ": the scene has no instances");
-    rtcCommitScene(top_);
+    try {  // a constructor that throws runs no destructor: release what was made so far
+        device_ = rtcNewDevice(nullptr);
+        top_ = rtcNewScene(device_);
+        if (!device_ || !top_) throw Failure("embree: cannot create a device");
+        std::error_code ec;
+        if (fs::is_directory(input, ec))
+            load_manifest(input);
+        else
+            load_gltf(input);
+        if (instances_.empty()) throw Failure(manifest_path_.string() + ": the scene has no instances");
+        rtcCommitScene(top_);
+    } catch (...) {
+        release();
+        throw;
+    }
 }
 
 void HybridScene::load_manifest(const fs::path& outdir) {
@@ -252,12 +258,19 @@ void HybridScene::load_gltf(const fs::path& gltf) {
 }
 
 HybridScene::~HybridScene() {
+    release();
+}
+
+void HybridScene::release() {
     for (Mesh& m : meshes_) {
         if (m.model) lsnif_close(m.model);
         if (m.scene) rtcReleaseScene(m.scene);
     }
+    meshes_.clear();
     if (top_) rtcReleaseScene(top_);
     if (device_) rtcReleaseDevice(device_);
+    top_ = nullptr;
+    device_ = nullptr;
 }
 
 std::vector<lsnif::scene::Scene> HybridScene::load_inputs(const json& manifest,
