@@ -1015,8 +1015,9 @@ void hash_array(cache::Sha256& h, const std::vector<T>& v) {
     h.update({reinterpret_cast<const std::uint8_t*>(v.data()), v.size() * sizeof(T)});
 }
 
-std::string cache_key(const Run& run, const Planned& p) {
+const std::string& cache_key(const Run& run, Planned& p) {
     static_assert(std::endian::native == std::endian::little, "cache keys hash little-endian arrays");
+    if (!p.key.empty()) return p.key;
     const scene::Mesh& m = *p.mesh;
     cache::Sha256 h;
     h.update("lsnif-convert-result/1\n").update(build_identity()).update("\n");
@@ -1033,7 +1034,8 @@ std::string cache_key(const Run& run, const Planned& p) {
     hash_array(h, m.indices);
     hash_array(h, m.normals);
     hash_array(h, m.triangle_materials);
-    return h.hex();
+    p.key = h.hex();
+    return p.key;
 }
 
 // Fields of a manifest entry that belong to the scene the mesh is in, not to its result.
@@ -1092,7 +1094,7 @@ cache::Entry entry_to_store(const Run& run, const json& result, std::string& pro
 json convert_cached(const Run& run, Planned& p, std::vector<std::string>& errors,
                     std::vector<std::string>& warnings, CacheCounts& counts) {
     if (!run.cache || run.opt.dry_run) return convert_candidate(run, p, errors);
-    const std::string key = cache_key(run, p);
+    const std::string& key = cache_key(run, p);
     const cache::Lookup found = run.cache->get(key);
     if (found.status == cache::Status::corrupt) {
         ++counts.corrupt;
@@ -1158,7 +1160,7 @@ std::uint64_t estimated_cost_ms(const Run& run, const Planned& p) {
 
 // Longest processing time first: within 4/3 of the best split of the estimated work. Ties
 // go to the lowest shard index, so the split is a function of the inputs and settings alone.
-std::vector<std::uint32_t> shard_owners(const Run& run, const std::vector<Planned>& planned) {
+std::vector<std::uint32_t> shard_owners(const Run& run, std::vector<Planned>& planned) {
     std::vector<std::uint32_t> owner(planned.size(), 0);
     if (run.opt.shard_count == 0) return owner;
     struct Job {
@@ -1304,9 +1306,9 @@ std::vector<json> convert_meshes(const Run& run, std::vector<Planned>& planned,
 }
 
 // The cache keys of the candidates; call before convert_meshes, which releases them.
-std::set<std::string> candidate_keys(const Run& run, const std::vector<Planned>& planned) {
+std::set<std::string> candidate_keys(const Run& run, std::vector<Planned>& planned) {
     std::set<std::string> keys;
-    for (const Planned& p : planned)
+    for (Planned& p : planned)
         if (p.decided.is_null()) keys.insert(cache_key(run, p));
     return keys;
 }

@@ -261,6 +261,7 @@ struct Planned {
     json decided;                 // the entry of a mesh that stays BVH; null for a candidate
     std::uint64_t bvh_bytes = 0;  // the mesh's own BVH: what it costs while it stays BVH
     std::uint64_t estimate = 0;   // a candidate's estimated asset bytes (lsnif_bytes_estimate)
+    std::string key;              // its cache key once cache_key computed it ("" until then)
     bool forced() const { return candidate && candidate->forced; }
 };
 
@@ -283,8 +284,10 @@ struct CacheCounts {
 // The cache key of a candidate's result (docs/pipeline.md "Cache keys"): SHA-256 over the
 // build identity, every setting that changes the result (asset_key's, the gate, whether the
 // mesh was forced, the source and mesh name its asset's metadata records) and the mesh's
-// geometry (positions, indices, shading normals, triangle materials).
-std::string cache_key(const Run& run, const Planned& p);
+// geometry (positions, indices, shading normals, triangle materials). Computed once per
+// candidate (it hashes every geometry array) and kept in p.key; the first call must come
+// while p.candidate is set.
+const std::string& cache_key(const Run& run, Planned& p);
 
 // convert_candidate through run.cache: a hit restores the stored entry (and writes its
 // asset into OUTDIR); a miss converts and stores the result; a corrupt entry is reported in
@@ -300,7 +303,7 @@ std::uint64_t estimated_cost_ms(const Run& run, const Planned& p);
 // and without sharding): candidates costliest first (estimated_cost_ms; ties by cache key),
 // each to the shard with the least estimated work so far. Every shard computes the same
 // assignment, whatever the order of `planned`.
-std::vector<std::uint32_t> shard_owners(const Run& run, const std::vector<Planned>& planned);
+std::vector<std::uint32_t> shard_owners(const Run& run, std::vector<Planned>& planned);
 
 // Drops from a manifest entry what differs between runs of the same conversion: timings,
 // whether the asset was reused, the candidates' seconds (ConvertOptions::reproducible_manifest).
