@@ -389,8 +389,7 @@ void plan_ninja(const BatchOptions& options, const ConvertProgress& progress, Ba
     for (const auto& [path, text] :
          {std::pair{file + ".d", depfile_text(file, plan_dependencies(options, r.scenes))},
           std::pair{file, ninja_text(options, objects, r.scenes, *store)}})
-        if (const format::Error e = format::write_bytes_atomically(
-                path, {reinterpret_cast<const std::uint8_t*>(text.data()), text.size()})) {
+        if (const format::Error e = format::write_text_atomically(path, text)) {
             r.convert.errors.push_back(e.message);
             r.exit = BatchExit::failed;
             return;
@@ -472,9 +471,7 @@ BatchResult batch(const BatchOptions& options, const ConvertProgress& progress,
     r.exit = failed ? BatchExit::failed : BatchExit::ok;
     r.summary["exit_code"] = int(r.exit);
     if (!options.junit_path.empty()) {
-        const std::string xml = junit_xml(r);
-        const format::Error e = format::write_bytes_atomically(
-            options.junit_path, {reinterpret_cast<const std::uint8_t*>(xml.data()), xml.size()});
+        const format::Error e = format::write_text_atomically(options.junit_path, junit_xml(r));
         if (e) {
             r.summary["errors"].push_back(e.message);
             r.input_errors.push_back(e.message);
@@ -645,11 +642,8 @@ MergeResult merge(const std::vector<std::string>& shard_dirs, const std::string&
     merged["scene_memory"]["before"] = before;
     merged["scene_memory"]["after"] = after;
     if (!r.errors.empty()) return r;
-    const std::string text = merged.dump(2) + "\n";
-    if (const format::Error e = format::write_bytes_atomically(
-            (fs::path(outdir) / "manifest.json").string(),
-            {reinterpret_cast<const std::uint8_t*>(text.data()), text.size()})) {
-        r.errors.push_back(e.message);
+    if (std::string e = write_manifest(outdir, merged); !e.empty()) {
+        r.errors.push_back(e);
         return r;
     }
     r.manifest = std::move(merged);

@@ -1410,17 +1410,6 @@ json manifest_json(const Run& run, const json& inputs, const json& meshes, const
     return manifest;
 }
 
-std::string write_manifest(const fs::path& outdir, const json& manifest) {
-    std::error_code ec;
-    fs::create_directories(outdir, ec);
-    if (ec) return outdir.string() + ": cannot create the output directory: " + ec.message();
-    const std::string text = manifest.dump(2) + "\n";
-    const format::Error e =
-        format::write_bytes_atomically((outdir / "manifest.json").string(),
-                                       {reinterpret_cast<const std::uint8_t*>(text.data()), text.size()});
-    return e ? e.message : std::string();
-}
-
 }  // namespace stages
 
 using namespace stages;

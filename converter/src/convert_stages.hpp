@@ -4,7 +4,7 @@
 //   budget is met, convert_candidate: asset_key -> (reusable_metrics -> shipped |
 //   draw_measure_rays -> size_to_target [train_rung -> gate per rung, choose_option] ->
 //   asset_metadata -> encode_asset -> memory_rule_failure -> write_asset -> shipped);
-//   finally scene_memory, manifest_json -> write_manifest.
+//   finally scene_memory, manifest_json -> write_manifest (manifest.hpp).
 // A stage that decides "simple" returns nothing (or false) and records its reason in the
 // mesh's MeshRecord. Internal to the converter: exposed so that each stage is tested on its
 // own (tests/converter/test_convert_stages.cpp); not installed, not an API.
@@ -341,8 +341,5 @@ MeshRecord new_record(const scene::Scene& sc, std::size_t in, std::size_t k, std
 // The manifest document (schema/manifest.schema.json).
 json manifest_json(const Run& run, const json& inputs, const json& meshes, const json& instances,
                    const json& memory);
-
-// Writes OUTDIR/manifest.json atomically. Returns the error, if any.
-std::string write_manifest(const fs::path& outdir, const json& manifest);
 
 }  // namespace lsnif::converter::stages

@@ -239,12 +239,6 @@ void tag_meshes(json& doc, const MeshIndex& index, const json& manifest) {
     if (std::find(used.begin(), used.end(), kGltfExtension) == used.end()) used.push_back(kGltfExtension);
 }
 
-std::string write_text(const fs::path& path, const std::string& text) {
-    const format::Error e = format::write_bytes_atomically(
-        path.string(), {reinterpret_cast<const std::uint8_t*>(text.data()), text.size()});
-    return e ? e.message : std::string();
-}
-
 bool is_gltf_path(const std::string& path) {
     std::string ext = fs::path(path).extension().string();
     std::transform(ext.begin(), ext.end(), ext.begin(),
@@ -268,7 +262,9 @@ std::string write_scene_gltf(const fs::path& outdir, const std::vector<GltfSourc
     if (!bin.empty())
         if (const format::Error e = format::write_bytes_atomically((outdir / "scene.bin").string(), bin))
             return e.message;
-    return write_text(outdir / "scene.gltf", doc.dump(1) + "\n");
+    const format::Error e =
+        format::write_text_atomically((outdir / "scene.gltf").string(), doc.dump(1) + "\n");
+    return e ? e.message : std::string();
 }
 
 }  // namespace lsnif::converter

@@ -422,9 +422,8 @@ struct MergeCommand {
         for (const auto& e : r.errors) std::fprintf(stderr, "error: %s\n", e.c_str());
         if (!r.errors.empty()) return 1;
         if (!junit.empty()) {
-            const std::string xml = lsnif::converter::manifest_junit_xml(r.manifest);
-            if (const auto e = lsnif::format::write_bytes_atomically(
-                    junit, {reinterpret_cast<const std::uint8_t*>(xml.data()), xml.size()})) {
+            if (const auto e = lsnif::format::write_text_atomically(
+                    junit, lsnif::converter::manifest_junit_xml(r.manifest))) {
                 std::fprintf(stderr, "error: %s\n", e.message.c_str());
                 return 1;
             }

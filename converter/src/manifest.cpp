@@ -1,4 +1,5 @@
 #include <lsnif/converter/manifest.hpp>
+#include <lsnif/format/container.hpp>
 
 #include <fstream>
 
@@ -21,6 +22,15 @@ fs::path physical_location(const fs::path& p, bool is_file) {
 }
 
 }  // namespace
+
+std::string write_manifest(const fs::path& outdir, const nlohmann::json& manifest) {
+    std::error_code ec;
+    fs::create_directories(outdir, ec);
+    if (ec) return outdir.string() + ": cannot create the output directory: " + ec.message();
+    const format::Error e =
+        format::write_text_atomically((outdir / "manifest.json").string(), manifest.dump(2) + "\n");
+    return e ? e.message : std::string();
+}
 
 std::string manifest_relative_path(const fs::path& input, const fs::path& manifest_dir) {
     const fs::path file = physical_location(input, true), dir = physical_location(manifest_dir, false);

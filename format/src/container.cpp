@@ -946,6 +946,10 @@ Error write_bytes_atomically(const std::string& path, std::span<const std::uint8
     return {};
 }
 
+Error write_text_atomically(const std::string& path, std::string_view text) {
+    return write_bytes_atomically(path, {reinterpret_cast<const std::uint8_t*>(text.data()), text.size()});
+}
+
 Error write_file(const std::string& path, const ModelData& model, const WriteOptions& options) {
     auto bytes = serialize(model, options);
     if (!bytes) return bytes.error();

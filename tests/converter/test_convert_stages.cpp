@@ -4,6 +4,7 @@
 #include <doctest/doctest.h>
 #include "../test_data.hpp"
 
+#include <lsnif/converter/manifest.hpp>
 #include "convert_stages.hpp"
 
 #include <cmath>

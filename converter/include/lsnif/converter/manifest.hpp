@@ -1,6 +1,6 @@
 // The scene manifest (OUTDIR/manifest.json, schema/manifest.schema.json): the one place that
-// knows its format tag and its path rule, for the writer (`lsnif convert`) and every reader
-// (`lsnif eval`, `lsnif bench memory|rays`).
+// knows its format tag, its path rule and its text form, for the writers (`lsnif convert`,
+// `lsnif merge`) and every reader (`lsnif eval`, `lsnif bench memory|rays`).
 //
 // Path rule: `inputs[].path` is relative to the directory that holds the manifest (absolute
 // only where no relative path exists), so OUTDIR can be moved or archived together with its
@@ -26,6 +26,11 @@ inline constexpr const char* kManifestFormat = "lsnif-manifest/2";
 // `manifest_dir`, in generic ('/') form, or the absolute path if none exists.
 std::string manifest_relative_path(const std::filesystem::path& input,
                                    const std::filesystem::path& manifest_dir);
+
+// Writes OUTDIR/manifest.json atomically (creating OUTDIR), in the one text form every
+// writer uses (`lsnif convert`, `lsnif merge`: their manifests must compare byte for byte).
+// Returns "PATH: problem", or "" on success.
+std::string write_manifest(const std::filesystem::path& outdir, const nlohmann::json& manifest);
 
 // A manifest read back, with each input's file resolved for this process.
 struct LoadedManifest {

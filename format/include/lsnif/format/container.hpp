@@ -16,6 +16,7 @@
 #include <optional>
 #include <span>
 #include <string>
+#include <string_view>
 #include <utility>
 #include <variant>
 #include <vector>
@@ -198,6 +199,8 @@ Result<std::vector<std::uint8_t>> serialize(const ModelData& model, const WriteO
 // flushed, then renamed over `path`. On failure no file (and no temporary) remains.
 Error write_file(const std::string& path, const ModelData& model, const WriteOptions& options = {});
 Error write_bytes_atomically(const std::string& path, std::span<const std::uint8_t> bytes);
+// The same for text (JSON, XML, Ninja files): its bytes as they are.
+Error write_text_atomically(const std::string& path, std::string_view text);
 
 // ---- low level: for tools and tests that must build exact byte streams ----------------
 
