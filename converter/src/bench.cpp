@@ -128,7 +128,7 @@ json bench_train(const BenchOptions& o) {
             cfg.steps = 1000000;
             cfg.mlp_precision = p;
             auto tr = std::make_unique<trainer::Trainer>(d, src.occupancy(d), cfg);
-            if (tr->mlp_precision() != p) continue;  // bf16 without AMX: fp32 only
+            if (tr->mlp_precision() != p) continue;  // bf16 without a bf16 backend: fp32 only
             slots[count++].tr = std::move(tr);
         }
         const std::span<Run> per(slots.data(), count);
@@ -172,7 +172,8 @@ json bench_train(const BenchOptions& o) {
             {"model", "V=32 H=18 levels 64,128 T=2^17 F=3 hidden 128x128 (v1 default)"},
             {"cpu", cpu_model()},
             {"threads", o.threads},
-            {"bf16_amx_available", bf16_available},
+            {"bf16_available", bf16_available},
+            {"bf16_arithmetic", trainer::mlp_arithmetic(trainer::MlpPrecision::bf16)},
             {"sgemm_gflops_openblas_2048", peak},
             {"dense_kernel", kernel_comparison(o.min_seconds)},
             {"runs", runs}};
@@ -240,8 +241,10 @@ std::string bench_text(const json& r) {
                       k["shape"].get<std::string>().c_str(), k["lsnif_gflops"].get<double>(),
                       k["openblas_gflops"].get<double>());
         s += buf;
-        if (!r["bf16_amx_available"].get<bool>())
-            s += "bf16 MLP products: no AMX on this machine, fp32 only\n";
+        if (!r["bf16_available"].get<bool>())
+            s += "bf16 MLP products: neither AMX nor AVX-512 BF16 on this machine, fp32 only\n";
+        else
+            s += "bf16 MLP products on " + r["bf16_arithmetic"].get<std::string>().substr(5) + "\n";
         for (const json& x : r["runs"]) {
             std::snprintf(buf, sizeof buf,
                           "batch %6d %-4s: %10.0f samples/s, MLP %.1f GFLOP/s (%.0f%% of sgemm); ray "

@@ -22,6 +22,7 @@
 #include <cinttypes>
 #include <cmath>
 #include <cstdio>
+#include <cstdlib>
 #include <deque>
 #include <filesystem>
 #include <lsnif/base/parallel.hpp>
@@ -345,12 +346,12 @@ constexpr int kRecipeVersion = 2;
 static std::string recipe_key(const Preset& p, std::uint32_t threads) {
     const trainer::TrainConfig& c = p.train;
     char buf[512];
-    std::snprintf(
-        buf, sizeof buf, "r%d|t%u|%s|lw%g,%g,%g,%g|g%g,%g,%g,%g|m%g,%g,%g,%g,%g|d%g,%g,%g,%g", kRecipeVersion,
-        threads, trainer::precision_name(trainer::resolve_precision(c.mlp_precision)), c.loss.visibility,
-        c.loss.distance, c.loss.normal, c.loss.material, c.grid_adam.lr, c.grid_adam.beta1, c.grid_adam.beta2,
-        c.grid_adam.eps, c.mlp_adam.lr, c.mlp_adam.beta1, c.mlp_adam.beta2, c.mlp_adam.eps, c.mlp_adam.l2,
-        c.decay_start, c.final_lr_fraction, c.huber_delta, c.grad_clip_norm);
+    std::snprintf(buf, sizeof buf, "r%d|t%u|%s|lw%g,%g,%g,%g|g%g,%g,%g,%g|m%g,%g,%g,%g,%g|d%g,%g,%g,%g",
+                  kRecipeVersion, threads, trainer::mlp_arithmetic(c.mlp_precision).c_str(),
+                  c.loss.visibility, c.loss.distance, c.loss.normal, c.loss.material, c.grid_adam.lr,
+                  c.grid_adam.beta1, c.grid_adam.beta2, c.grid_adam.eps, c.mlp_adam.lr, c.mlp_adam.beta1,
+                  c.mlp_adam.beta2, c.mlp_adam.eps, c.mlp_adam.l2, c.decay_start, c.final_lr_fraction,
+                  c.huber_delta, c.grad_clip_norm);
     return buf;
 }
 

@@ -41,6 +41,22 @@ bool skip_without_amx() {
     return true;
 }
 
+bool skip_without_bf16() {
+    if (bf16_backend() != Bf16Backend::none) return false;
+    MESSAGE("no bf16 backend (AMX or AVX-512 BF16): skipped");
+    return true;
+}
+
+// Every bf16 GEMM kernel this machine can run: AMX machines also have AVX-512 BF16.
+std::vector<Bf16Backend> usable_backends() {
+    switch (bf16_backend()) {
+        case Bf16Backend::amx: return {Bf16Backend::amx, Bf16Backend::avx512_bf16};
+        case Bf16Backend::avx512_bf16: return {Bf16Backend::avx512_bf16};
+        case Bf16Backend::none: return {};
+    }
+    return {};
+}
+
 }  // namespace
 
 TEST_CASE("fp32 -> bf16 rounds to nearest even like VCVTNEPS2BF16") {
@@ -117,65 +133,70 @@ TEST_CASE("bf16 packers match their scalar definitions on ragged shapes, padding
     }
 }
 
-TEST_CASE("AMX bf16 GEMM matches a double reference on ragged shapes") {
-    if (skip_without_amx()) return;
-    std::mt19937 rng(3);
-    struct Shape {
-        std::size_t m, n, k;
-    };
-    // The trainer's shapes (v1: forward 128x128x108, weight gradient 112x128x128, output
-    // layer 128x16x128, its input gradient 128x128x5), and ragged ones in every dimension.
-    for (const Shape s : {Shape{128, 128, 108}, Shape{112, 128, 128}, Shape{128, 16, 128}, Shape{128, 112, 5},
-                          Shape{1, 1, 1}, Shape{5, 16, 32}, Shape{17, 33, 40}, Shape{100, 130, 70},
-                          Shape{33, 17, 96}, Shape{48, 80, 33}, Shape{15, 47, 200}}) {
-        for (const bool accumulate : {false, true}) {
-            CAPTURE(s.m);
-            CAPTURE(s.n);
-            CAPTURE(s.k);
-            CAPTURE(accumulate);
-            const auto A = random_matrix(s.m, s.k, rng), B = random_matrix(s.k, s.n, rng);
-            const std::size_t kp = round_up(s.k, 32);
-            // Strides wider than needed, so row addressing is exercised.
-            const std::size_t lda = kp + 32, ldb = 2 * round_up(s.n, 16) + 32, ldc = s.n + 5;
-            Bf16Buffer a(round_up(s.m, 16) * lda), b(kp / 2 * ldb);
-            pack_rows(A.data(), s.m, s.k, s.k, a.data(), lda, round_up(s.m, 16));
-            pack_vnni(B.data(), s.k, s.n, s.n, b.data(), ldb, kp);
-            // C with extra rows and columns holding a sentinel that must survive.
-            const float sentinel = 12345.0f;
-            std::vector<float> C((s.m + 3) * ldc, sentinel), C0 = random_matrix(s.m, s.n, rng);
-            if (accumulate)
-                for (std::size_t r = 0; r < s.m; ++r)
-                    for (std::size_t j = 0; j < s.n; ++j) C[r * ldc + j] = C0[r * s.n + j];
-            gemm_bf16(s.m, s.n, kp, a.data(), lda, b.data(), ldb, C.data(), ldc, accumulate);
-            for (std::size_t r = 0; r < s.m + 3; ++r)
-                for (std::size_t j = 0; j < ldc; ++j) {
-                    if (r < s.m && j < s.n) continue;
-                    REQUIRE(C[r * ldc + j] == sentinel);
-                }
-            for (std::size_t r = 0; r < s.m; ++r)
-                for (std::size_t j = 0; j < s.n; ++j) {
-                    // exact: products of the bf16-rounded operands, summed in double.
-                    // ideal: the fp32 operands themselves. mag: sum |a||b| for the bounds.
-                    double exact = accumulate ? C0[r * s.n + j] : 0.0, ideal = exact, mag = std::fabs(exact);
-                    for (std::size_t q = 0; q < s.k; ++q) {
-                        const double x = A[r * s.k + q], y = B[q * s.n + j];
-                        exact +=
-                            double(from_bf16(to_bf16(A[r * s.k + q]))) * from_bf16(to_bf16(B[q * s.n + j]));
-                        ideal += x * y;
-                        mag += std::fabs(x * y);
+TEST_CASE("bf16 GEMM (AMX and AVX-512 BF16) matches a double reference on ragged shapes") {
+    if (skip_without_bf16()) return;
+    for (const Bf16Backend backend : usable_backends()) {
+        CAPTURE(bf16_backend_name(backend));
+        std::mt19937 rng(3);
+        struct Shape {
+            std::size_t m, n, k;
+        };
+        // The trainer's shapes (v1: forward 128x128x108, weight gradient 112x128x128, output
+        // layer 128x16x128, its input gradient 128x128x5), and ragged ones in every dimension.
+        for (const Shape s :
+             {Shape{128, 128, 108}, Shape{112, 128, 128}, Shape{128, 16, 128}, Shape{128, 112, 5},
+              Shape{1, 1, 1}, Shape{5, 16, 32}, Shape{17, 33, 40}, Shape{100, 130, 70}, Shape{33, 17, 96},
+              Shape{48, 80, 33}, Shape{15, 47, 200}}) {
+            for (const bool accumulate : {false, true}) {
+                CAPTURE(s.m);
+                CAPTURE(s.n);
+                CAPTURE(s.k);
+                CAPTURE(accumulate);
+                const auto A = random_matrix(s.m, s.k, rng), B = random_matrix(s.k, s.n, rng);
+                const std::size_t kp = round_up(s.k, 32);
+                // Strides wider than needed, so row addressing is exercised.
+                const std::size_t lda = kp + 32, ldb = 2 * round_up(s.n, 16) + 32, ldc = s.n + 5;
+                Bf16Buffer a(round_up(s.m, 16) * lda), b(kp / 2 * ldb);
+                pack_rows(A.data(), s.m, s.k, s.k, a.data(), lda, round_up(s.m, 16));
+                pack_vnni(B.data(), s.k, s.n, s.n, b.data(), ldb, kp);
+                // C with extra rows and columns holding a sentinel that must survive.
+                const float sentinel = 12345.0f;
+                std::vector<float> C((s.m + 3) * ldc, sentinel), C0 = random_matrix(s.m, s.n, rng);
+                if (accumulate)
+                    for (std::size_t r = 0; r < s.m; ++r)
+                        for (std::size_t j = 0; j < s.n; ++j) C[r * ldc + j] = C0[r * s.n + j];
+                gemm_bf16_on(backend, s.m, s.n, kp, a.data(), lda, b.data(), ldb, C.data(), ldc, accumulate);
+                for (std::size_t r = 0; r < s.m + 3; ++r)
+                    for (std::size_t j = 0; j < ldc; ++j) {
+                        if (r < s.m && j < s.n) continue;
+                        REQUIRE(C[r * ldc + j] == sentinel);
                     }
-                    const double got = C[r * ldc + j];
-                    // fp32 accumulation of exact products: at most k + 1 roundings of 2^-24
-                    // relative to the running magnitude.
-                    const double acc_tol = double(s.k + 1) * std::ldexp(mag, -24) * 1.01 + 1e-30;
-                    // Each operand rounded to bf16 (relative 2^-8): each product is off by
-                    // at most 2^-7 + 2^-16 of its magnitude.
-                    const double bf16_tol = (std::ldexp(1.0, -7) + std::ldexp(1.0, -16)) * mag + acc_tol;
-                    INFO("C[" << r << "][" << j << "] = " << got << ", exact " << exact << ", ideal "
-                              << ideal);
-                    REQUIRE(std::fabs(got - exact) <= acc_tol);
-                    REQUIRE(std::fabs(got - ideal) <= bf16_tol);
-                }
+                for (std::size_t r = 0; r < s.m; ++r)
+                    for (std::size_t j = 0; j < s.n; ++j) {
+                        // exact: products of the bf16-rounded operands, summed in double.
+                        // ideal: the fp32 operands themselves. mag: sum |a||b| for the bounds.
+                        double exact = accumulate ? C0[r * s.n + j] : 0.0, ideal = exact,
+                               mag = std::fabs(exact);
+                        for (std::size_t q = 0; q < s.k; ++q) {
+                            const double x = A[r * s.k + q], y = B[q * s.n + j];
+                            exact += double(from_bf16(to_bf16(A[r * s.k + q]))) *
+                                     from_bf16(to_bf16(B[q * s.n + j]));
+                            ideal += x * y;
+                            mag += std::fabs(x * y);
+                        }
+                        const double got = C[r * ldc + j];
+                        // fp32 accumulation of exact products: at most k + 1 roundings of 2^-24
+                        // relative to the running magnitude.
+                        const double acc_tol = double(s.k + 1) * std::ldexp(mag, -24) * 1.01 + 1e-30;
+                        // Each operand rounded to bf16 (relative 2^-8): each product is off by
+                        // at most 2^-7 + 2^-16 of its magnitude.
+                        const double bf16_tol = (std::ldexp(1.0, -7) + std::ldexp(1.0, -16)) * mag + acc_tol;
+                        INFO("C[" << r << "][" << j << "] = " << got << ", exact " << exact << ", ideal "
+                                  << ideal);
+                        REQUIRE(std::fabs(got - exact) <= acc_tol);
+                        REQUIRE(std::fabs(got - ideal) <= bf16_tol);
+                    }
+            }
         }
     }
 }
@@ -246,13 +267,13 @@ double rel_l2(const std::vector<float>& got, const std::vector<float>& ref) {
 
 }  // namespace
 
-TEST_CASE("precision selection: automatic and bf16 use AMX exactly when it is available") {
+TEST_CASE("precision selection: automatic and bf16 use bf16 exactly when a backend is available") {
     const format::ModelDesc d = mid_desc();
     SpheresSource src({{{0.0f, 0.0f, 0.0f}, 0.5f}}, d.box_min, d.box_max);
     const auto occ = src.occupancy(d);
     TrainConfig cfg;
     cfg.threads = 1;
-    const MlpPrecision expect = amx_available() ? MlpPrecision::bf16 : MlpPrecision::fp32;
+    const MlpPrecision expect = bf16_backend() != Bf16Backend::none ? MlpPrecision::bf16 : MlpPrecision::fp32;
     CHECK(Trainer(d, occ, cfg).mlp_precision() == expect);  // default: automatic
     cfg.mlp_precision = MlpPrecision::bf16;
     CHECK(Trainer(d, occ, cfg).mlp_precision() == expect);
@@ -261,7 +282,7 @@ TEST_CASE("precision selection: automatic and bf16 use AMX exactly when it is av
 }
 
 TEST_CASE("bf16 loss and gradients agree with fp32 on a real batch of a trained model") {
-    if (skip_without_amx()) return;
+    if (skip_without_bf16()) return;
     const format::ModelDesc d = mid_desc();
     SpheresSource src(
         {{{-0.35f, 0.1f, 0.0f}, 0.4f}, {{0.4f, -0.2f, 0.1f}, 0.3f}, {{0.1f, 0.55f, -0.3f}, 0.2f}}, d.box_min,

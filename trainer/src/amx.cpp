@@ -338,9 +338,79 @@ LSNIF_AMX_TARGET void gemm_amx(std::size_t m, std::size_t n, std::size_t k, cons
     _tile_release();
 }
 
+// ---- AVX-512 BF16 GEMM (machines without AMX) ------------------------------------------
+
+// One block of MB rows x NV 16-column vectors of C. VDPBF16PS multiplies a broadcast dword
+// of A (the bf16 pair A[r][2p], A[r][2p+1]) with B's VNNI row p (16 such pairs) and adds
+// both products to each fp32 lane: the VNNI layout the AMX path uses serves here unchanged.
+// With MB = 6, NV = 4: 24 accumulators, 4 B vectors and one broadcast in 29 of 32 registers.
+template <int MB, int NV>
+LSNIF_BF16_TARGET void dp_block(std::size_t r0, std::size_t j0, std::size_t n, std::size_t pairs,
+                                const Bf16* a, std::size_t lda, const Bf16* b, std::size_t ldb, float* c,
+                                std::size_t ldc, bool accumulate) {
+    __m512 acc[MB][NV];
+    __mmask16 mask[NV];
+    for (int v = 0; v < NV; ++v) mask[v] = lane_mask16(j0 + 16 * v, n);
+    for (int m = 0; m < MB; ++m)
+        for (int v = 0; v < NV; ++v)
+            acc[m][v] = accumulate ? _mm512_maskz_loadu_ps(mask[v], c + (r0 + m) * ldc + j0 + 16 * v)
+                                   : _mm512_setzero_ps();
+    const Bf16* arow = a + r0 * lda;
+    const Bf16* bcol = b + 2 * j0;
+    for (std::size_t p = 0; p < pairs; ++p) {
+        __m512bh bv[NV];
+        for (int v = 0; v < NV; ++v) bv[v] = (__m512bh)_mm512_loadu_si512(bcol + p * ldb + 32 * v);
+        for (int m = 0; m < MB; ++m) {
+            std::int32_t pair;
+            std::memcpy(&pair, arow + m * lda + 2 * p, sizeof pair);
+            const __m512bh av = (__m512bh)_mm512_set1_epi32(pair);
+            for (int v = 0; v < NV; ++v) acc[m][v] = _mm512_dpbf16_ps(acc[m][v], av, bv[v]);
+        }
+    }
+    for (int m = 0; m < MB; ++m)
+        for (int v = 0; v < NV; ++v)
+            _mm512_mask_storeu_ps(c + (r0 + m) * ldc + j0 + 16 * v, mask[v], acc[m][v]);
+}
+
+template <int NV>
+LSNIF_BF16_TARGET void dp_columns(std::size_t j0, std::size_t m, std::size_t n, std::size_t pairs,
+                                  const Bf16* a, std::size_t lda, const Bf16* b, std::size_t ldb, float* c,
+                                  std::size_t ldc, bool accumulate) {
+    constexpr std::size_t MB = 6;
+    std::size_t r = 0;
+    for (; r + MB <= m; r += MB) dp_block<MB, NV>(r, j0, n, pairs, a, lda, b, ldb, c, ldc, accumulate);
+    for (; r < m; ++r) dp_block<1, NV>(r, j0, n, pairs, a, lda, b, ldb, c, ldc, accumulate);
+}
+
+// Same contract as gemm_amx (A rows, B VNNI, K a multiple of 32), but only the logical m rows
+// of A and round_up(n, 16) columns of B are read.
+LSNIF_BF16_TARGET void gemm_avx512bf16(std::size_t m, std::size_t n, std::size_t k, const Bf16* a,
+                                       std::size_t lda, const Bf16* b, std::size_t ldb, float* c,
+                                       std::size_t ldc, bool accumulate) {
+    const std::size_t pairs = k / 2;
+    std::size_t j = 0;
+    for (; j + 64 <= n; j += 64) dp_columns<4>(j, m, n, pairs, a, lda, b, ldb, c, ldc, accumulate);
+    for (; j < n; j += 16) dp_columns<1>(j, m, n, pairs, a, lda, b, ldb, c, ldc, accumulate);
+}
+
 #endif  // LSNIF_HAVE_X86
 
 }  // namespace
+
+Bf16Backend bf16_backend() {
+    if (features().amx) return Bf16Backend::amx;
+    if (features().avx512_bf16) return Bf16Backend::avx512_bf16;
+    return Bf16Backend::none;
+}
+
+const char* bf16_backend_name(Bf16Backend b) {
+    switch (b) {
+        case Bf16Backend::amx: return "amx";
+        case Bf16Backend::avx512_bf16: return "avx512-bf16";
+        case Bf16Backend::none: return "none";
+    }
+    return "?";
+}
 
 bool amx_available() {
     return features().amx;
@@ -373,12 +443,21 @@ void pack_vnni(const float* src, std::size_t k, std::size_t n, std::size_t lds, 
 
 void gemm_bf16(std::size_t m, std::size_t n, std::size_t k, const Bf16* a, std::size_t lda, const Bf16* b,
                std::size_t ldb, float* c, std::size_t ldc, bool accumulate) {
+    gemm_bf16_on(bf16_backend(), m, n, k, a, lda, b, ldb, c, ldc, accumulate);
+}
+
+void gemm_bf16_on(Bf16Backend backend, std::size_t m, std::size_t n, std::size_t k, const Bf16* a,
+                  std::size_t lda, const Bf16* b, std::size_t ldb, float* c, std::size_t ldc,
+                  bool accumulate) {
 #if LSNIF_HAVE_X86
-    if (m && n && features().amx) return gemm_amx(m, n, k, a, lda, b, ldb, c, ldc, accumulate);
+    if (m && n && backend == Bf16Backend::amx && features().amx)
+        return gemm_amx(m, n, k, a, lda, b, ldb, c, ldc, accumulate);
+    if (m && n && backend == Bf16Backend::avx512_bf16 && features().avx512_bf16)
+        return gemm_avx512bf16(m, n, k, a, lda, b, ldb, c, ldc, accumulate);
 #endif
-    // No AMX: the same product in plain loops (fp32 accumulation of exact bf16 products;
-    // summation order differs from the tiles'). Far too slow to train with; it exists so a
-    // contract violation degrades to slowness instead of SIGILL.
+    // No bf16 instructions: the same product in plain loops (fp32 accumulation of exact bf16
+    // products; summation order differs from the kernels'). Far too slow to train with; it
+    // exists so a contract violation degrades to slowness instead of SIGILL.
     for (std::size_t r = 0; r < m; ++r)
         for (std::size_t j = 0; j < n; ++j) {
             float s = accumulate ? c[r * ldc + j] : 0.0f;

@@ -1,4 +1,5 @@
-// bf16 matrix products on Intel AMX for the trainer's MLP (internal to trainer/).
+// bf16 matrix products for the trainer's MLP (internal to trainer/): Intel AMX tiles, or
+// AVX-512 BF16 dot products on machines without AMX.
 //
 // Layouts (all bf16 values are raw 16-bit patterns, the upper half of an IEEE binary32):
 //  * A operand, "rows": A[r][k] at a[r * lda + k]. K is padded with zeros to a multiple of
@@ -6,13 +7,14 @@
 //    so whole tiles can be loaded without reading past the buffer.
 //  * B operand, "VNNI": pairs of consecutive K rows interleaved, B[k][n] at
 //    b[(k / 2) * ldb + 2 * n + (k % 2)], K padded to 32 and N to 16 with zeros. This is the
-//    layout TDPBF16PS reads: each 32-bit element of a B tile row holds (B[2p][n], B[2p+1][n]).
+//    layout TDPBF16PS (and VDPBF16PS) reads: each 32-bit element of a B row holds
+//    (B[2p][n], B[2p+1][n]).
 //  * C: fp32 row-major, C[r][n] at c[r * ldc + n]; only the logical m x n region is read or
 //    written (ragged edges go through a 16 x 16 staging tile).
 //
 // Everything that needs AMX or AVX-512 BF16 is compiled with function-level target
-// attributes, so this file builds without -mamx-*; callers must check amx_available()
-// before calling gemm_bf16 (the packing helpers work everywhere).
+// attributes, so this file builds without -mamx-*; callers must check bf16_backend() !=
+// none before calling gemm_bf16 (the packing helpers work everywhere).
 #pragma once
 
 #include <cstddef>
@@ -29,6 +31,13 @@ using Bf16 = std::uint16_t;
 // in XCR0, and (Linux) the process was granted XTILEDATA with arch_prctl. Evaluated once
 // (thread-safe static initialization); never faults on machines without AMX.
 bool amx_available();
+
+// Which instructions gemm_bf16 uses: AMX tiles where available, else AVX-512 BF16
+// (VDPBF16PS, e.g. AMD Zen 4), else none (bf16 training is not offered: resolve_precision
+// picks fp32). Evaluated once.
+enum class Bf16Backend { none, avx512_bf16, amx };
+Bf16Backend bf16_backend();
+const char* bf16_backend_name(Bf16Backend b);
 
 // fp32 -> bf16, round to nearest even. Matches VCVTNEPS2BF16 exactly, which is what the
 // vectorized packers use: NaN stays a (quiet) NaN with its sign, and fp32 subnormals become
@@ -68,15 +77,22 @@ void pack_transposed(const float* src, std::size_t rows, std::size_t cols, std::
 void pack_vnni(const float* src, std::size_t k, std::size_t n, std::size_t lds, Bf16* dst, std::size_t ldd,
                std::size_t k_pad);
 
-// C[m x n] = A[m x k] B[k x n] (accumulate == false) or C += A B, fp32 accumulation.
+// C[m x n] = A[m x k] B[k x n] (accumulate == false) or C += A B, fp32 accumulation, on
+// bf16_backend().
 // Contract: k a multiple of 32; `a` readable for round_up(m, 16) rows of lda >= k elements;
 // `b` readable for k / 2 rows of ldb >= 2 * round_up(n, 16) elements; padding entries of A
 // and B that fall inside those regions are finite (the packers write zeros). Strides in
 // elements. Configures the tiles of the calling thread and releases them on return, so it
-// may be called from any thread, including short-lived ones. Meant for amx_available()
-// machines; elsewhere it falls back to a (slow) scalar loop.
+// may be called from any thread, including short-lived ones. Meant for machines with a
+// bf16 backend; elsewhere it falls back to a (slow) scalar loop.
 void gemm_bf16(std::size_t m, std::size_t n, std::size_t k, const Bf16* a, std::size_t lda, const Bf16* b,
                std::size_t ldb, float* c, std::size_t ldc, bool accumulate);
+
+// gemm_bf16 on a given backend (tests compare the two kernels on AMX machines). A backend
+// this machine lacks falls back to the scalar loop.
+void gemm_bf16_on(Bf16Backend backend, std::size_t m, std::size_t n, std::size_t k, const Bf16* a,
+                  std::size_t lda, const Bf16* b, std::size_t ldb, float* c, std::size_t ldc,
+                  bool accumulate);
 
 // Cache-line aligned storage for tile operands: a tile row is 64 bytes, so aligned rows
 // load from one line instead of two.

@@ -21,8 +21,14 @@ using format::RayPoints;
 using format::TraceStatus;
 
 MlpPrecision resolve_precision(MlpPrecision requested) {
-    return requested != MlpPrecision::fp32 && detail::amx_available() ? MlpPrecision::bf16
-                                                                      : MlpPrecision::fp32;
+    return requested != MlpPrecision::fp32 && detail::bf16_backend() != detail::Bf16Backend::none
+               ? MlpPrecision::bf16
+               : MlpPrecision::fp32;
+}
+
+std::string mlp_arithmetic(MlpPrecision requested) {
+    if (resolve_precision(requested) == MlpPrecision::fp32) return "fp32";
+    return std::string("bf16/") + detail::bf16_backend_name(detail::bf16_backend());
 }
 
 const char* precision_name(MlpPrecision p) {

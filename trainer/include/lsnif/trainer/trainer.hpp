@@ -43,16 +43,22 @@ struct LossWeights {
 
 // Arithmetic of the MLP matrix products inside training steps (loss_and_gradients: forward
 // hidden and output layers, input gradients, weight gradients). bf16 rounds the operands of
-// those products to bfloat16 and runs them on Intel AMX tiles with fp32 accumulation; bias,
-// activations, losses, gradient reductions, master weights and Adam stay fp32. fp32 uses
-// format/'s kernels throughout (exact enough for finite-difference checks). automatic =
-// bf16 when the CPU and OS provide AMX (see Trainer::mlp_precision), else fp32.
+// those products to bfloat16 and runs them with fp32 accumulation on Intel AMX tiles, or
+// with AVX-512 BF16 dot products (VDPBF16PS) where there is no AMX; bias, activations,
+// losses, gradient reductions, master weights and Adam stay fp32. fp32 uses format/'s
+// kernels throughout (exact enough for finite-difference checks). automatic = bf16 when
+// the CPU and OS provide either (see Trainer::mlp_precision), else fp32.
 // predict_raw, export and evaluation are fp32 whatever this says.
 enum class MlpPrecision : std::uint8_t { fp32, bf16, automatic };
 const char* precision_name(MlpPrecision p);
-// What a Trainer built with `requested` will run: bf16 only where the CPU and OS allow AMX.
-// Weights trained in bf16 and fp32 differ, so callers that cache assets key on this.
+// What a Trainer built with `requested` will run: bf16 only where the CPU and OS allow AMX
+// or AVX-512 BF16. Weights trained in bf16 and fp32 differ, so callers that cache assets
+// key on this.
 MlpPrecision resolve_precision(MlpPrecision requested);
+// The arithmetic `requested` resolves to on this machine, with the instructions that run it:
+// "fp32", "bf16/amx" or "bf16/avx512-bf16". The two bf16 kernels sum in different orders,
+// so their weights differ in the last bits: asset cache keys use this, not precision_name.
+std::string mlp_arithmetic(MlpPrecision requested);
 
 struct TrainConfig {
     std::uint32_t steps = 2000;
