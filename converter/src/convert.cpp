@@ -22,7 +22,6 @@
 #include <cinttypes>
 #include <cmath>
 #include <cstdio>
-#include <cstdlib>
 #include <deque>
 #include <filesystem>
 #include <lsnif/base/parallel.hpp>
@@ -340,9 +339,9 @@ json metrics_json(const samples::Metrics& m) {
 }
 
 // Everything else that changes the trained weights: the recipe (bump kRecipeVersion when
-// sampling or training code changes its streams), the thread count (training is
+// sampling or training code changes its streams or its rounding), the thread count (training is
 // deterministic per thread count) and the MLP arithmetic this machine will use.
-constexpr int kRecipeVersion = 2;
+constexpr int kRecipeVersion = 3;
 static std::string recipe_key(const Preset& p, std::uint32_t threads) {
     const trainer::TrainConfig& c = p.train;
     char buf[512];

@@ -314,15 +314,17 @@ TEST_CASE("bf16 loss and gradients agree with fp32 on a real batch of a trained 
     // The hidden layers' inputs are rounded to bf16 (relative 2^-8): the loss moves by
     // ~1e-4 relative (measured 0.171825 vs 0.171850). Gradients move more: the loss
     // gradient depends on residuals much smaller than the outputs, which the rounded forward
-    // shifts. Measured relative L2 differences: 3-7% for every parameter kind (the bf16
-    // backward products alone, with an fp32 forward: 0.1-0.5%). 15% leaves margin and still
-    // catches any layout error, which gives differences of order 100%.
+    // shifts, and how much depends on how small the residuals of the reference model are.
+    // Measured relative L2 differences: 3-7% for every parameter kind on one reference
+    // model, up to 21% (output layer) on another that differs only by the rounding of its
+    // Adam steps (the bf16 backward products alone, with an fp32 forward: 0.1-0.5%). 30%
+    // still catches any layout error, which gives differences of order 100%.
     CHECK(std::fabs(l16.total - l32.total) <= 1e-3 * l32.total);
     for (std::size_t k = 0; k < g32.weights.size(); ++k) {
         const double ew = rel_l2(g16.weights[k], g32.weights[k]), eb = rel_l2(g16.biases[k], g32.biases[k]);
         MESSAGE("layer " << k << ": weight gradient rel. L2 error " << ew << ", bias " << eb);
-        CHECK(ew <= 0.15);
-        CHECK(eb <= 0.15);
+        CHECK(ew <= 0.3);
+        CHECK(eb <= 0.3);
     }
     for (std::size_t l = 0; l < g32.grid.size(); ++l) {
         const double e = rel_l2(g16.grid[l], g32.grid[l]);

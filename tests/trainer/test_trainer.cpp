@@ -71,6 +71,47 @@ TEST_CASE("Adam matches a scalar reference step for step, with per-row step coun
     CHECK(qm == qm2);
 }
 
+TEST_CASE("sparse row update equals the per-row Adam step; inactive rows keep their state") {
+    const AdamConfig c{0.02f, 0.9f, 0.99f, 1e-10f, 0.0f};
+    const std::uint32_t F = 3;
+    const std::size_t rows = 203;  // ragged against the 32-row blocks
+    std::vector<double> correction(64);
+    for (std::uint32_t t = 1; t < correction.size(); ++t) correction[t] = adam_bias_correction(c, t);
+    std::vector<float> p(rows * F), m(rows * F), v(rows * F), g(rows * F);
+    std::vector<std::uint32_t> row_step(rows, 0);
+    for (std::size_t i = 0; i < p.size(); ++i) p[i] = float(std::sin(0.37 * double(i)));
+    auto rp = p, rm = m, rv = v;
+    auto rsteps = row_step;
+    for (std::uint32_t step = 1; step <= 40; ++step) {
+        std::vector<std::uint8_t> active(rows), expect_active(rows);
+        for (std::size_t r = 0; r < rows; ++r) active[r] = std::uint8_t((r * 7 + step) % 5 != 0);
+        for (std::size_t i = 0; i < g.size(); ++i)
+            g[i] = active[i / F] ? float(std::cos(0.11 * double(i) + step)) : float(1e30);  // stale garbage
+        float want_max = 0;
+        for (std::size_t r = 0; r < rows; ++r) {
+            if (!active[r]) continue;
+            const std::uint32_t t = ++rsteps[r];
+            adam_update_corrected(&rp[r * F], &rm[r * F], &rv[r * F], &g[r * F], F,
+                                  float(double(c.lr) * correction[t]), 0.5f, c);
+            for (std::uint32_t f = 0; f < F; ++f) want_max = std::max(want_max, std::fabs(rp[r * F + f]));
+        }
+        const SparseRows sr{p.data(), m.data(), v.data(), g.data(), active.data(), row_step.data(), F};
+        // Two calls over a split range, as two threads would make them.
+        const float got_max = std::max(adam_update_rows(sr, 0, 77, c.lr, correction.data(), 0.5f, c),
+                                       adam_update_rows(sr, 77, rows, c.lr, correction.data(), 0.5f, c));
+        CHECK(active == expect_active);  // every flag cleared
+        CHECK(row_step == rsteps);
+        CHECK(got_max == doctest::Approx(want_max).epsilon(1e-6));
+        for (std::size_t i = 0; i < p.size(); ++i) {
+            // Same formula; the compiler may contract it into FMAs differently when it
+            // vectorizes, so allow a few ulps.
+            REQUIRE(p[i] == doctest::Approx(rp[i]).epsilon(1e-6));
+            REQUIRE(m[i] == doctest::Approx(rm[i]).epsilon(1e-5));
+            REQUIRE(v[i] == doctest::Approx(rv[i]).epsilon(1e-5));
+        }
+    }
+}
+
 TEST_CASE("finite-difference gradient check for every parameter kind and loss term") {
     const format::ModelDesc d = small_desc();
     SpheresSource src = two_spheres(d);

@@ -26,6 +26,45 @@ MlpPrecision resolve_precision(MlpPrecision requested) {
                : MlpPrecision::fp32;
 }
 
+float adam_update_rows(const SparseRows& r, std::size_t rb, std::size_t re, float lr,
+                       const double* correction, float grad_scale, const AdamConfig& c) {
+    constexpr std::size_t kRows = 32;
+    const std::uint32_t F = r.F;
+    thread_local std::vector<float> step, on;  // per element: step size, 1 if the row is active
+    step.resize(kRows * F);
+    on.resize(kRows * F);
+    float pmax = 0.0f;
+    for (std::size_t r0 = rb; r0 < re; r0 += kRows) {
+        const std::size_t r1 = std::min(re, r0 + kRows);
+        for (std::size_t row = r0; row < r1; ++row) {
+            float s = 0.0f, a = 0.0f;
+            if (r.active[row]) {
+                r.active[row] = 0;
+                s = float(double(lr) * correction[++r.row_step[row]]);
+                a = 1.0f;
+            }
+            for (std::uint32_t f = 0; f < F; ++f) step[(row - r0) * F + f] = s, on[(row - r0) * F + f] = a;
+        }
+        const std::size_t n = (r1 - r0) * F, base = r0 * F;
+        float* p = r.p + base;
+        float* m = r.m + base;
+        float* v = r.v + base;
+        const float* g = r.g + base;
+        for (std::size_t i = 0; i < n; ++i) {
+            const float gi = g[i] * grad_scale + c.l2 * p[i];
+            const float mi = c.beta1 * m[i] + (1.0f - c.beta1) * gi;
+            const float vi = c.beta2 * v[i] + (1.0f - c.beta2) * gi * gi;
+            const float pi = p[i] - step[i] * mi / (std::sqrt(vi) + c.eps);
+            const bool keep = on[i] == 0.0f;
+            m[i] = keep ? m[i] : mi;
+            v[i] = keep ? v[i] : vi;
+            p[i] = keep ? p[i] : pi;
+            pmax = std::max(pmax, keep ? 0.0f : std::fabs(pi));
+        }
+    }
+    return pmax;
+}
+
 std::string mlp_arithmetic(MlpPrecision requested) {
     if (resolve_precision(requested) == MlpPrecision::fp32) return "fp32";
     return std::string("bf16/") + detail::bf16_backend_name(detail::bf16_backend());
@@ -99,6 +138,7 @@ struct Trainer::Impl {
     std::vector<std::vector<std::uint32_t>> row_step;
     std::vector<double> grid_correction;   // [t] = adam_bias_correction(grid_adam, t); [0] unused
     std::vector<std::vector<float>> gsum;  // reduced grid gradient of the step
+    std::vector<double> gsum_norm2;        // per thread: sum of squares of its rows of gsum
     std::vector<std::vector<std::uint8_t>> active;
     std::vector<std::vector<float>> wgrad, bgrad;  // reduced MLP gradient, file layout
     double ema = 0;
@@ -127,7 +167,9 @@ struct Trainer::Impl {
     float* mlp_backward(const Geometry& geo, std::size_t n, bool bf16, Work& w) const;
     // Sums the threads' MLP gradients into wgrad/bgrad (file layout) and clears theirs.
     void reduce_mlp_gradients(const format::ModelDesc& desc);
-    // Sums the threads' touched grid rows into gsum, marks them in `active`, clears theirs.
+    // Sums the threads' touched grid rows into gsum, marks them in `active`, clears theirs;
+    // thread t also sums the squares of the rows it reduced into gsum_norm2[t] (the grid's
+    // share of the global gradient norm, in a fixed order for a fixed thread count).
     void reduce_grid_gradients(std::uint32_t F, std::uint32_t threads);
     // Copies the reduced gradients out (gradient checks) and clears `active`.
     void export_gradients(const std::vector<std::vector<float>>& grid, std::uint32_t F, Gradients& grads);
@@ -621,7 +663,9 @@ void Trainer::Impl::reduce_mlp_gradients(const format::ModelDesc& desc) {
 }
 
 void Trainer::Impl::reduce_grid_gradients(std::uint32_t F, std::uint32_t threads) {
+    gsum_norm2.assign(threads, 0.0);
     base::run_on_threads(threads, [&](std::uint32_t t) {
+        double norm2 = 0;
         for (std::size_t l = 0; l < active.size(); ++l) {
             const std::size_t rows = active[l].size();
             const std::size_t per_rows = (rows + threads - 1) / threads;
@@ -638,9 +682,11 @@ void Trainer::Impl::reduce_grid_gradients(std::uint32_t F, std::uint32_t threads
                     for (std::uint32_t f = 0; f < F; ++f) dst[f] += src[f], src[f] = 0.0f;
                     w.touched[l][row] = 0;
                 }
+                for (std::uint32_t f = 0; f < F; ++f) norm2 += double(dst[f]) * dst[f];
                 active[l][row] = 1;
             }
         }
+        gsum_norm2[t] = norm2;
     });
 }
 
@@ -737,17 +783,13 @@ float Trainer::step(const PreparedSet& set, std::span<const std::uint32_t> batch
     if (!im.snap.valid) snapshot();
     const LossParts lp = loss_and_gradients(set, batch, nullptr);
     const std::uint32_t L = geo_.L, F = geo_.F;
-    // Global gradient norm (fixed summation order).
+    // Global gradient norm (fixed summation order for a fixed thread count).
     double norm2 = 0;
     for (const auto& g : im.wgrad)
         for (float x : g) norm2 += double(x) * x;
     for (const auto& g : im.bgrad)
         for (float x : g) norm2 += double(x) * x;
-    for (std::uint32_t l = 0; l < L; ++l)
-        for (std::size_t row = 0; row < im.active[l].size(); ++row)
-            if (im.active[l][row])
-                for (std::uint32_t f = 0; f < F; ++f)
-                    norm2 += double(im.gsum[l][row * F + f]) * im.gsum[l][row * F + f];
+    for (const double part : im.gsum_norm2) norm2 += part;
     const float loss = float(lp.total);
     const bool warm = step_ >= 20;
     const bool bad = !std::isfinite(loss) || !std::isfinite(norm2) ||
@@ -787,16 +829,16 @@ float Trainer::step(const PreparedSet& set, std::span<const std::uint32_t> batch
             const std::size_t rows = im.active[l].size();
             const std::size_t per_rows = (rows + threads_ - 1) / threads_;
             const std::size_t rb = std::min(rows, t * per_rows), re = std::min(rows, rb + per_rows);
-            for (std::size_t row = rb; row < re; ++row) {
-                if (!im.active[l][row]) continue;
-                im.active[l][row] = 0;
-                const std::uint32_t rs = ++im.row_step[l][row];
-                adam_update_corrected(grid_[l].data() + row * F, im.gm[l].data() + row * F,
-                                      im.gv[l].data() + row * F, im.gsum[l].data() + row * F, F,
-                                      float(double(grid_lr) * im.grid_correction[rs]), scale, cfg_.grid_adam);
-                for (std::uint32_t f = 0; f < F; ++f)
-                    grid_max[t] = std::max(grid_max[t], std::fabs(grid_[l][row * F + f]));
-            }
+            const SparseRows r{grid_[l].data(),
+                               im.gm[l].data(),
+                               im.gv[l].data(),
+                               im.gsum[l].data(),
+                               im.active[l].data(),
+                               im.row_step[l].data(),
+                               F};
+            grid_max[t] = std::max(
+                grid_max[t],
+                adam_update_rows(r, rb, re, grid_lr, im.grid_correction.data(), scale, cfg_.grid_adam));
         }
     });
     // fp16 export needs |p| <= 65504; anything near that is divergence, not learning.

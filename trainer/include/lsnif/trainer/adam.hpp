@@ -48,4 +48,26 @@ inline void adam_update(float* p, float* m, float* v, const float* g, std::size_
     adam_update_corrected(p, m, v, g, n, float(double(lr) * adam_bias_correction(c, t)), grad_scale, c);
 }
 
+// Rows of F parameters updated sparsely (a hash-grid level): parameters, moments and this
+// step's gradient are rows x F arrays; flags and counters are per row.
+struct SparseRows {
+    float* p;
+    float* m;
+    float* v;
+    const float* g;
+    std::uint8_t* active;     // rows with a gradient this step; cleared here
+    std::uint32_t* row_step;  // updates each row has taken (its own bias correction)
+    std::uint32_t F;
+};
+
+// Sparse Adam (adam_update_corrected's arithmetic) over rows [rb, re): an active row takes a
+// step of lr x correction[its new step count] (correction[t] = adam_bias_correction(c, t),
+// defined up to the largest count) and its flag is cleared; an inactive row keeps its
+// parameters and moments. Rows go 32 at a time: the step sizes are spread per element and the update selects
+// between old and new values, so the arithmetic vectorizes across rows (a row alone is F = 3
+// elements, and most rows are active in every step). Returns the largest |parameter| of the
+// rows updated.
+float adam_update_rows(const SparseRows& r, std::size_t rb, std::size_t re, float lr,
+                       const double* correction, float grad_scale, const AdamConfig& c);
+
 }  // namespace lsnif::trainer
