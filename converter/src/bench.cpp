@@ -185,7 +185,7 @@ json bench_infer(const BenchOptions& o) {
     trainer::TrainConfig cfg;
     cfg.threads = o.threads;
     trainer::Trainer tr(d, src.occupancy(d), cfg);  // initialized weights: cost does not depend on values
-    const format::Runtime rt = format::make_runtime(tr.export_model("{}"));
+    const format::ModelData model = tr.export_model("{}");
     std::vector<samples::Sample> raw;
     src.generate(2, 1u << 18, raw);
     std::vector<format::Ray> mix(raw.size());
@@ -193,7 +193,7 @@ json bench_infer(const BenchOptions& o) {
     std::vector<format::Ray> reach;
     for (const auto& s : tr.reachable(raw)) reach.push_back(s.ray);
 
-    auto run = [&](const std::vector<format::Ray>& rays) {
+    auto run = [&](const format::Runtime& rt, const std::vector<format::Ray>& rays) {
         std::vector<format::Hit> hits(rays.size());
         const std::uint32_t T = o.threads;
         const std::size_t per = (rays.size() + T - 1) / T;
@@ -217,12 +217,19 @@ json bench_infer(const BenchOptions& o) {
                     {"network_fraction", double(st.inferred) / double(rays.size())},
                     {"culled_fraction", double(st.culled) / double(rays.size())}};
     };
-    return {{"benchmark", "infer"},
-            {"model", "V=32 H=18 levels 64,128 T=2^17 F=3 hidden 128x128 (v1 default)"},
-            {"cpu", cpu_model()},
-            {"threads", o.threads},
-            {"through_network", run(reach)},
-            {"mixed_with_early_out", run(mix)}};
+    // fp32 (the reference; the top-level figures) and, where the CPU has AVX-512 BF16, the
+    // bf16 hidden layers lsnif_open picks there.
+    const format::Runtime rt32 = format::make_runtime(model, format::MlpArithmetic::fp32);
+    json r = {{"benchmark", "infer"},
+              {"model", "V=32 H=18 levels 64,128 T=2^17 F=3 hidden 128x128 (v1 default)"},
+              {"cpu", cpu_model()},
+              {"threads", o.threads},
+              {"through_network", run(rt32, reach)},
+              {"mixed_with_early_out", run(rt32, mix)}};
+    const format::Runtime rt16 = format::make_runtime(model, format::MlpArithmetic::bf16);
+    if (format::mlp_arithmetic(rt16.net) == format::MlpArithmetic::bf16)
+        r["bf16"] = {{"through_network", run(rt16, reach)}, {"mixed_with_early_out", run(rt16, mix)}};
+    return r;
 }
 
 std::string bench_text(const json& r) {
@@ -263,9 +270,16 @@ std::string bench_text(const json& r) {
     } else {
         for (const char* key : {"through_network", "mixed_with_early_out"}) {
             const json& x = r[key];
-            std::snprintf(buf, sizeof buf, "%-22s %10.0f rays/s (%.0f%% reach the network)\n", key,
+            std::snprintf(buf, sizeof buf, "%-22s fp32 %10.0f rays/s (%.0f%% reach the network)", key,
                           x["rays_per_second"].get<double>(), 100 * x["network_fraction"].get<double>());
             s += buf;
+            if (r.contains("bf16")) {
+                const double b = r["bf16"][key]["rays_per_second"].get<double>();
+                std::snprintf(buf, sizeof buf, "; bf16 %10.0f rays/s (%.2fx)", b,
+                              b / x["rays_per_second"].get<double>());
+                s += buf;
+            }
+            s += "\n";
         }
     }
     return s;

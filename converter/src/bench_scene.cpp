@@ -87,6 +87,7 @@ bool load_objects(const SceneBenchOptions& opt, Loaded& out, std::string& error)
             error = asset.string() + ": " + lsnif_status_string(e.status) + " (" + e.message + ")";
             return false;
         }
+        if (opt.fp32) lsnif_set_arithmetic(o.model, LSNIF_ARITHMETIC_FP32, nullptr);
         std::error_code ec;
         o.lsnif_bytes = fs::file_size(asset, ec);
         out.objects.push_back(std::move(o));
@@ -252,7 +253,8 @@ json bench_rays(const SceneBenchOptions& opt, std::string& error) {
              {"ratio_lsnif_over_rtcintersect1", lsnif_rps / g.plain_rtcintersect_rays_per_second},
              {"ratio_lsnif_over_rtcintersect16", lsnif_rps / g.packet_rays_per_second},
              {"time_ratio_lsnif_over_rtcintersect1", g.plain_rtcintersect_rays_per_second / lsnif_rps},
-             {"hit_agreement", double(agree) / double(rays.size())}});
+             {"hit_agreement", double(agree) / double(rays.size())},
+             {"lsnif_arithmetic", lsnif_get_arithmetic(o.model) == LSNIF_ARITHMETIC_BF16 ? "bf16" : "fp32"}});
     }
     return {{"benchmark", "rays"}, {"outdir", opt.outdir}, {"objects", objects}};
 }

@@ -112,7 +112,7 @@ struct EvalScene::Impl {
     bool open_device(std::string& error);
     // Uploads one source mesh to its own Embree scene (measuring its BVH bytes) and opens
     // its shipped asset when the manifest gives one.
-    bool add_mesh(const scene::Mesh& sm, const json& manifest_mesh, const fs::path& outdir,
+    bool add_mesh(const scene::Mesh& sm, const json& manifest_mesh, const fs::path& outdir, bool fp32,
                   std::string& error);
     // Instance i of the manifest (opt.instance_transforms may override its placement) into
     // the reference scene, and into the hybrid one unless its mesh is traced as an LSNIF.
@@ -342,7 +342,7 @@ bool EvalScene::Impl::open_device(std::string& error) {
     return true;
 }
 
-bool EvalScene::Impl::add_mesh(const scene::Mesh& sm, const json& mj, const fs::path& outdir,
+bool EvalScene::Impl::add_mesh(const scene::Mesh& sm, const json& mj, const fs::path& outdir, bool fp32,
                                std::string& error) {
     Mesh m;
     m.name = sm.name;
@@ -379,6 +379,7 @@ bool EvalScene::Impl::add_mesh(const scene::Mesh& sm, const json& mj, const fs::
             meshes.push_back(std::move(m));  // released by ~Impl
             return false;
         }
+        if (fp32) lsnif_set_arithmetic(m.model, LSNIF_ARITHMETIC_FP32, nullptr);
         std::error_code ec;
         m.lsnif_bytes = fs::file_size(asset, ec);
     }
@@ -450,7 +451,7 @@ std::unique_ptr<EvalScene> EvalScene::load(const EvalOptions& opt, std::string& 
                     "' differs from the converted geometry (geometry hash mismatch): re-run lsnif convert";
             return nullptr;
         }
-        if (!im.add_mesh(sm, mj, opt.outdir, error)) return nullptr;
+        if (!im.add_mesh(sm, mj, opt.outdir, opt.fp32, error)) return nullptr;
     }
     im.reference = rtcNewScene(im.device);
     im.hybrid = rtcNewScene(im.device);
@@ -791,9 +792,14 @@ EvalResult render_and_compare(const EvalOptions& opt) {
         return res;
     }
     std::uint64_t lsnif_bytes = 0, bvh_replaced = 0;
+    bool bf16 = false;
     for (const auto& m : im.meshes)
-        if (m.model) lsnif_bytes += m.lsnif_bytes, bvh_replaced += m.bvh_bytes;
+        if (m.model) {
+            lsnif_bytes += m.lsnif_bytes, bvh_replaced += m.bvh_bytes;
+            bf16 = bf16 || lsnif_get_arithmetic(m.model) == LSNIF_ARITHMETIC_BF16;
+        }
     json report;
+    report["lsnif_arithmetic"] = bf16 ? "bf16" : "fp32";
     report["images"] = per;
     report["flip_mean"] = flip_mean;
     report["width"] = view.W;

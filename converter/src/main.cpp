@@ -456,6 +456,10 @@ struct EvalCommand {
         sub->add_option("--ao-samples", opt.ao_samples, "Ambient-occlusion rays per pixel")
             ->check(CLI::Range(1u, 1024u));
         sub->add_option("--threads", opt.threads, "Worker threads (0 = all cores)");
+        sub->add_flag(
+            "--fp32", opt.fp32,
+            "Evaluate LSNIF in the fp32 reference arithmetic (default: bf16 hidden layers where the "
+            "CPU has AVX-512 BF16, as lsnif_open chooses)");
         sub->add_flag("--json", json, "Print the report as JSON");
     }
     int run() const { return run_eval(opt, camera, light, moves, json); }
@@ -488,6 +492,10 @@ struct BenchCommand {
         }
         rays->add_option("--rays", scene.rays, "Rays per object")->check(CLI::Range(1024ull, 1ull << 26));
         rays->add_option("--repeats", scene.repeats, "Best of N")->check(CLI::Range(1u, 100u));
+        rays->add_flag(
+            "--fp32", scene.fp32,
+            "LSNIF in the fp32 reference arithmetic (default: bf16 hidden layers where the CPU has "
+            "AVX-512 BF16, as lsnif_open chooses)");
         convert = sub->add_subcommand("convert",
                                       "Convert INPUT... into OUTDIR and print the wall time split by stage");
         convert->add_option("INPUT", convert_opt.inputs, "Scene files")->required();

@@ -51,7 +51,7 @@ lsnif_status open_bytes(std::span<const std::uint8_t> bytes, lsnif_model** out, 
     if (!model) return fail(error, LSNIF_ERR_OUT_OF_MEMORY, "out of memory");
     model->data = std::move(m.value());
     model->file_size = bytes.size();
-    model->runtime = lsnif::format::make_runtime(model->data);
+    model->runtime = lsnif::format::make_runtime(model->data, lsnif::format::best_mlp_arithmetic());
     *out = model;
     fill_error(error, Error{});
     return LSNIF_OK;
@@ -301,6 +301,29 @@ lsnif_status lsnif_intersect_instance(const lsnif_model* model, const float m[12
         }
         return LSNIF_OK;
     });
+}
+
+lsnif_status lsnif_set_arithmetic(lsnif_model* model, lsnif_arithmetic requested, lsnif_arithmetic* in_use) {
+    using lsnif::format::MlpArithmetic;
+    if (!model) return LSNIF_ERR_INVALID_ARGUMENT;
+    MlpArithmetic want;
+    switch (requested) {
+        case LSNIF_ARITHMETIC_AUTO: want = lsnif::format::best_mlp_arithmetic(); break;
+        case LSNIF_ARITHMETIC_FP32: want = MlpArithmetic::fp32; break;
+        case LSNIF_ARITHMETIC_BF16: want = MlpArithmetic::bf16; break;
+        default: return LSNIF_ERR_INVALID_ARGUMENT;
+    }
+    return guarded(nullptr, [&] {
+        lsnif::format::set_mlp_arithmetic(model->runtime.net, want);
+        if (in_use) *in_use = lsnif_get_arithmetic(model);
+        return LSNIF_OK;
+    });
+}
+
+lsnif_arithmetic lsnif_get_arithmetic(const lsnif_model* model) {
+    return model && lsnif::format::mlp_arithmetic(model->runtime.net) == lsnif::format::MlpArithmetic::bf16
+               ? LSNIF_ARITHMETIC_BF16
+               : LSNIF_ARITHMETIC_FP32;
 }
 
 }  // extern "C"

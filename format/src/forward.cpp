@@ -496,16 +496,49 @@ Network make_network(const ModelDesc& desc, const std::vector<std::vector<float>
     return net;
 }
 
+const char* arithmetic_name(MlpArithmetic a) {
+    return a == MlpArithmetic::bf16 ? "bf16" : "fp32";
+}
+
+MlpArithmetic best_mlp_arithmetic() {
+    return avx512_bf16_available() ? MlpArithmetic::bf16 : MlpArithmetic::fp32;
+}
+
+MlpArithmetic set_mlp_arithmetic(Network& net, MlpArithmetic a) {
+    net.wt_vnni.clear();
+    if (a != MlpArithmetic::bf16 || !avx512_bf16_available() || net.wt.empty()) return MlpArithmetic::fp32;
+    for (std::size_t k = 0; k + 1 < net.wt.size(); ++k) {
+        const std::size_t in = net.in[k], op = net.out_padded[k];
+        net.wt_vnni.emplace_back(round_up(in, 32) * op);
+        pack_vnni(net.wt[k].data(), in, op, op, net.wt_vnni.back().data(), 2 * op, round_up(in, 32));
+    }
+    return MlpArithmetic::bf16;
+}
+
+MlpArithmetic mlp_arithmetic(const Network& net) {
+    return net.wt_vnni.empty() ? MlpArithmetic::fp32 : MlpArithmetic::bf16;
+}
+
 const float* mlp_forward(const Network& net, const float* input, std::size_t n, std::vector<float>& scratch) {
     const std::size_t w = net.max_width_padded;
     if (scratch.size() < 2 * n * w) scratch.resize(2 * n * w);
+    const bool bf16 = !net.wt_vnni.empty();
+    thread_local std::vector<Bf16> rows;  // bf16: the current layer's input, K padded to 32
     const float* src = input;
     std::size_t lda = net.in[0];
     const std::size_t layers = net.wt.size();
     for (std::size_t k = 0; k < layers; ++k) {
         float* dst = scratch.data() + (k % 2) * n * w;
-        dense_layer(src, n, net.in[k], lda, net.wt[k].data(), net.bias[k].data(), net.out_padded[k],
-                    k + 1 < layers, dst);
+        if (bf16 && k + 1 < layers) {
+            const std::size_t kp = round_up(net.in[k], 32);
+            if (rows.size() < n * kp) rows.resize(n * kp);
+            pack_rows(src, n, net.in[k], lda, rows.data(), kp, n);
+            gemm_bf16_dp(n, net.out_padded[k], kp, rows.data(), kp, net.wt_vnni[k].data(),
+                         2 * net.out_padded[k], dst, net.out_padded[k], {net.bias[k].data(), true, false});
+        } else {
+            dense_layer(src, n, net.in[k], lda, net.wt[k].data(), net.bias[k].data(), net.out_padded[k],
+                        k + 1 < layers, dst);
+        }
         src = dst;
         lda = net.out_padded[k];
     }
@@ -533,7 +566,7 @@ Hit decode_output(const Geometry& geo, const RayPoints& pts, const Ray& ray, con
 
 // ---- the whole pass ------------------------------------------------------------------------
 
-Runtime make_runtime(const ModelData& m) {
+Runtime make_runtime(const ModelData& m, MlpArithmetic arithmetic) {
     Runtime rt;
     rt.geo = make_geometry(m.desc);
     rt.occupancy = OccupancyGrid(m.desc.grid_resolution, m.occupancy);
@@ -552,6 +585,7 @@ Runtime make_runtime(const ModelData& m) {
     pad_levels(m.grid_u8, rt.grid_u8);
     rt.grid_affine = m.grid_affine;
     rt.net = make_network(m);
+    set_mlp_arithmetic(rt.net, arithmetic);
     return rt;
 }
 

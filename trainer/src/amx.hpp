@@ -1,21 +1,14 @@
 // bf16 matrix products for the trainer's MLP (internal to trainer/): Intel AMX tiles, or
 // AVX-512 BF16 dot products on machines without AMX.
 //
-// Layouts (all bf16 values are raw 16-bit patterns, the upper half of an IEEE binary32):
-//  * A operand, "rows": A[r][k] at a[r * lda + k]. K is padded with zeros to a multiple of
-//    32 (one tile row is 32 bf16 = 64 bytes) and M to a multiple of 16 (a tile has 16 rows),
-//    so whole tiles can be loaded without reading past the buffer.
-//  * B operand, "VNNI": pairs of consecutive K rows interleaved, B[k][n] at
-//    b[(k / 2) * ldb + 2 * n + (k % 2)], K padded to 32 and N to 16 with zeros. This is the
-//    layout TDPBF16PS (and VDPBF16PS) reads: each 32-bit element of a B row holds
-//    (B[2p][n], B[2p+1][n]).
-//  * C: fp32 row-major, C[r][n] at c[r * ldc + n]; only the logical m x n region is read or
-//    written (ragged edges go through a 16 x 16 staging tile).
+// Operand layouts and packers: lsnif/format/bf16.hpp (shared with the reader's bf16 MLP).
 //
 // Everything that needs AMX or AVX-512 BF16 is compiled with function-level target
 // attributes, so this file builds without -mamx-*; callers must check bf16_backend() !=
 // none before calling gemm_bf16 (the packing helpers work everywhere).
 #pragma once
+
+#include <lsnif/format/bf16.hpp>
 
 #include <cstddef>
 #include <cstdint>
@@ -25,7 +18,13 @@
 
 namespace lsnif::trainer::detail {
 
-using Bf16 = std::uint16_t;
+using format::Bf16;
+using format::from_bf16;
+using format::pack_rows;
+using format::pack_transposed;
+using format::pack_vnni;
+using format::round_up;
+using format::to_bf16;
 
 // True when the CPU has AMX-TILE, AMX-BF16 and AVX-512 BF16, the OS enables the tile state
 // in XCR0, and (Linux) the process was granted XTILEDATA with arch_prctl. Evaluated once
@@ -38,44 +37,6 @@ bool amx_available();
 enum class Bf16Backend { none, avx512_bf16, amx };
 Bf16Backend bf16_backend();
 const char* bf16_backend_name(Bf16Backend b);
-
-// fp32 -> bf16, round to nearest even. Matches VCVTNEPS2BF16 exactly, which is what the
-// vectorized packers use: NaN stays a (quiet) NaN with its sign, and fp32 subnormals become
-// a signed zero (the instruction treats denormal inputs as zero; TDPBF16PS would anyway).
-inline Bf16 to_bf16(float x) {
-    std::uint32_t u;
-    __builtin_memcpy(&u, &x, 4);
-    if ((u & 0x7fffffffu) > 0x7f800000u) return Bf16((u >> 16) | 0x40u);  // NaN -> quiet NaN
-    if ((u & 0x7f800000u) == 0) return Bf16((u >> 16) & 0x8000u);         // zero / subnormal
-    u += 0x7fffu + ((u >> 16) & 1u);
-    return Bf16(u >> 16);
-}
-inline float from_bf16(Bf16 h) {
-    const std::uint32_t u = std::uint32_t(h) << 16;
-    float x;
-    __builtin_memcpy(&x, &u, 4);
-    return x;
-}
-
-inline constexpr std::size_t round_up(std::size_t n, std::size_t m) {
-    return (n + m - 1) / m * m;
-}
-
-// Rows layout (A operand): dst[r * ldd + c] = bf16(src[r * lds + c]) for r < rows, c < cols;
-// zero for cols <= c < ldd and for rows <= r < rows_pad.
-void pack_rows(const float* src, std::size_t rows, std::size_t cols, std::size_t lds, Bf16* dst,
-               std::size_t ldd, std::size_t rows_pad);
-
-// Rows layout of the transpose (A operand = src^T): dst[c * ldd + r] = bf16(src[r * lds + c])
-// for r < rows, c < cols; zero for rows <= r < ldd and for cols <= c < cols_pad.
-void pack_transposed(const float* src, std::size_t rows, std::size_t cols, std::size_t lds, Bf16* dst,
-                     std::size_t ldd, std::size_t cols_pad);
-
-// VNNI layout (B operand) of src as a k x n matrix: element (kk, nn) = bf16(src[kk * lds + nn])
-// goes to dst[(kk / 2) * ldd + 2 * nn + kk % 2]; zero for k <= kk < k_pad and n <= nn < ldd / 2.
-// k_pad must be even.
-void pack_vnni(const float* src, std::size_t k, std::size_t n, std::size_t lds, Bf16* dst, std::size_t ldd,
-               std::size_t k_pad);
 
 // C[m x n] = A[m x k] B[k x n] (accumulate == false) or C += A B, fp32 accumulation, on
 // bf16_backend().

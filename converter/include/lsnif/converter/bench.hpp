@@ -22,6 +22,7 @@ struct SceneBenchOptions {
     std::uint64_t rays = 1u << 20;  // rays: per object, all three families
     std::uint32_t repeats = 3;      // rays: best of
     std::uint64_t seed = 12345;
+    bool fp32 = false;  // LSNIF in the fp32 reference arithmetic (default: what lsnif_open picks)
 };
 struct ConvertOptions;
 

@@ -47,6 +47,7 @@ struct EvalOptions {
     // Run-time placement changes: instance index -> object-to-world 3x4 row-major matrix.
     std::vector<std::pair<std::uint32_t, std::array<float, 12>>> instance_transforms;
     bool write_images = true;
+    bool fp32 = false;  // LSNIF in the fp32 reference arithmetic (default: what lsnif_open picks)
 };
 
 struct EvalResult {

@@ -9,6 +9,7 @@
 // coordinates g map the box to [0, V]^3: g = (x - box_min) / cell.
 #pragma once
 
+#include <lsnif/format/bf16.hpp>
 #include <lsnif/format/container.hpp>
 
 #include <algorithm>
@@ -158,6 +159,9 @@ struct Network {
     std::vector<std::vector<float>> wt;
     std::vector<std::vector<float>> bias;
     std::size_t max_width_padded = 0;
+    // MlpArithmetic::bf16 only (empty otherwise): each hidden layer's W^T as the B operand
+    // of gemm_bf16_dp (VNNI layout, K = in padded to 32, N = out_padded).
+    std::vector<std::vector<Bf16>> wt_vnni;
 };
 // From fp16 arrays of a model (weights [out][in] row-major).
 Network make_network(const ModelData& model);
@@ -170,8 +174,22 @@ Network make_network(const ModelDesc& desc, const std::vector<std::vector<float>
 void dense_layer(const float* A, std::size_t n, std::size_t in, std::size_t lda, const float* wt,
                  const float* bias, std::size_t out_padded, bool relu, float* C);
 
-// Runs all layers. `scratch` grows as needed; the result is n rows of
-// net.out_padded.back() floats, returned as a pointer into scratch.
+// Arithmetic of the hidden layers' products. fp32 is FORMAT.md §8's reference. bf16 rounds
+// each hidden layer's input and weights to bfloat16 and accumulates in fp32 (AVX-512 BF16);
+// bias, ReLU and the output layer stay fp32 (the visibility logit and the distance are read
+// from the output layer directly, so its inputs keep full precision). Hit decisions agree
+// with fp32 on >= 99.5 % of rays (tests/format/test_bf16.cpp).
+enum class MlpArithmetic : std::uint8_t { fp32, bf16 };
+const char* arithmetic_name(MlpArithmetic a);
+// bf16 where the CPU has AVX-512 BF16 (avx512_bf16_available()), else fp32.
+MlpArithmetic best_mlp_arithmetic();
+// Sets the arithmetic of `net` (packs or releases wt_vnni). bf16 on a machine without
+// AVX-512 BF16 gives fp32. Returns the arithmetic now in use.
+MlpArithmetic set_mlp_arithmetic(Network& net, MlpArithmetic a);
+MlpArithmetic mlp_arithmetic(const Network& net);
+
+// Runs all layers in the network's arithmetic. `scratch` grows as needed; the result is n
+// rows of net.out_padded.back() floats, returned as a pointer into scratch.
 const float* mlp_forward(const Network& net, const float* input, std::size_t n, std::vector<float>& scratch);
 
 // ---- decode -------------------------------------------------------------------------------
@@ -212,7 +230,9 @@ struct Runtime {
     // Bytes held by the feature tables (what the encoding saves at run time).
     std::uint64_t grid_bytes() const;
 };
-Runtime make_runtime(const ModelData& model);
+// The network starts in `arithmetic` (set_mlp_arithmetic(rt.net, ...) changes it later;
+// not while other threads call intersect on the runtime).
+Runtime make_runtime(const ModelData& model, MlpArithmetic arithmetic = MlpArithmetic::fp32);
 
 // Statistics of one batch, for benchmarks and evaluation.
 struct IntersectStats {
