@@ -19,18 +19,11 @@ namespace {
 
 #if LSNIF_HAVE_X86
 
-std::uint64_t read_xcr0() {
-    std::uint32_t lo, hi;
-    __asm__ volatile("xgetbv" : "=a"(lo), "=d"(hi) : "c"(0));
-    return (std::uint64_t(hi) << 32) | lo;
-}
-
 // AVX-512 F/BW/VL and AVX512_BF16 in CPUID, and the OS saving the ZMM state (XCR0).
 bool detect_avx512_bf16() {
     unsigned a, b, c, d;
-    if (!__get_cpuid(1, &a, &b, &c, &d) || !(c & (1u << 27))) return false;  // OSXSAVE: xgetbv allowed
     constexpr std::uint64_t kZmmState = (1u << 1) | (1u << 2) | (1u << 5) | (1u << 6) | (1u << 7);
-    if ((read_xcr0() & kZmmState) != kZmmState) return false;
+    if ((enabled_state_components() & kZmmState) != kZmmState) return false;
     if (!__get_cpuid_count(7, 0, &a, &b, &c, &d)) return false;
     const bool avx512 = (b & (1u << 16)) && (b & (1u << 30)) && (b & (1u << 31));  // F, BW, VL
     const unsigned max_subleaf = a;
@@ -238,6 +231,18 @@ LSNIF_BF16_TARGET void gemm_dp(std::size_t m, std::size_t n, std::size_t k, cons
 #endif  // LSNIF_HAVE_X86
 
 }  // namespace
+
+std::uint64_t enabled_state_components() {
+#if LSNIF_HAVE_X86
+    unsigned a, b, c, d;
+    if (!__get_cpuid(1, &a, &b, &c, &d) || !(c & (1u << 27))) return 0;  // OSXSAVE: xgetbv allowed
+    std::uint32_t lo, hi;
+    __asm__ volatile("xgetbv" : "=a"(lo), "=d"(hi) : "c"(0));
+    return (std::uint64_t(hi) << 32) | lo;
+#else
+    return 0;
+#endif
+}
 
 bool avx512_bf16_available() {
     return has_avx512_bf16();

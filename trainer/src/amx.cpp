@@ -24,12 +24,6 @@ struct Features {
 
 #if LSNIF_HAVE_X86
 
-std::uint64_t read_xcr0() {
-    std::uint32_t lo, hi;
-    __asm__ volatile("xgetbv" : "=a"(lo), "=d"(hi) : "c"(0));
-    return (std::uint64_t(hi) << 32) | lo;
-}
-
 // Asks Linux for the AMX tile data state. Without it the first tile instruction raises
 // SIGILL (the kernel arms XFD for XTILEDATA until a process opts in).
 bool request_tile_permission() {
@@ -53,7 +47,8 @@ Features detect() {
     constexpr std::uint64_t kTileState = (1u << 17) | (1u << 18);
     if (!__get_cpuid_count(7, 0, &a, &b, &c, &d)) return f;
     const bool amx_bf16 = d & (1u << 22), amx_tile = d & (1u << 24);
-    f.amx = amx_bf16 && amx_tile && (read_xcr0() & kTileState) == kTileState && request_tile_permission();
+    f.amx = amx_bf16 && amx_tile && (format::enabled_state_components() & kTileState) == kTileState &&
+            request_tile_permission();
     return f;
 }
 

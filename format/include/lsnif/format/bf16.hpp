@@ -64,6 +64,10 @@ void pack_transposed(const float* src, std::size_t rows, std::size_t cols, std::
 void pack_vnni(const float* src, std::size_t k, std::size_t n, std::size_t lds, Bf16* dst, std::size_t ldd,
                std::size_t k_pad);
 
+// XCR0: the register state components the OS saves and restores (bit 7 ZMM, 17-18 AMX
+// tiles, ...); 0 where XGETBV is unavailable (no OSXSAVE, not x86).
+std::uint64_t enabled_state_components();
+
 // True when the CPU has AVX-512 F/BW/VL and AVX512_BF16 and the OS saves the ZMM state.
 // Evaluated once (thread-safe); never faults.
 bool avx512_bf16_available();
