@@ -314,17 +314,21 @@ TEST_CASE("bf16 loss and gradients agree with fp32 on a real batch of a trained 
     // The hidden layers' inputs are rounded to bf16 (relative 2^-8): the loss moves by
     // ~1e-4 relative (measured 0.171825 vs 0.171850). Gradients move more: the loss
     // gradient depends on residuals much smaller than the outputs, which the rounded forward
-    // shifts, and how much depends on how small the residuals of the reference model are.
-    // Measured relative L2 differences: 3-7% for every parameter kind on one reference
-    // model, up to 21% (output layer) on another that differs only by the rounding of its
-    // Adam steps (the bf16 backward products alone, with an fp32 forward: 0.1-0.5%). 30%
-    // still catches any layout error, which gives differences of order 100%.
+    // shifts, and how much depends on how small the residuals of the reference model are
+    // (the reference model itself depends on the build's rounding: -march, FMA contraction,
+    // Adam's vectorization). Measured relative L2 differences over three reference models:
+    // hidden layers and grid 3-11%; the output layer up to 21% (weights) and 39% (bias: a
+    // sum of signed residuals that largely cancel). The bf16 backward products alone, with an
+    // fp32 forward: 0.1-0.5%. A layout error gives differences of order 100% or more, which
+    // the bounds (30% hidden, 60% output layer) still catch; the products themselves are
+    // checked exactly against a reference in the GEMM test above.
     CHECK(std::fabs(l16.total - l32.total) <= 1e-3 * l32.total);
     for (std::size_t k = 0; k < g32.weights.size(); ++k) {
         const double ew = rel_l2(g16.weights[k], g32.weights[k]), eb = rel_l2(g16.biases[k], g32.biases[k]);
         MESSAGE("layer " << k << ": weight gradient rel. L2 error " << ew << ", bias " << eb);
-        CHECK(ew <= 0.3);
-        CHECK(eb <= 0.3);
+        const double bound = k + 1 == g32.weights.size() ? 0.6 : 0.3;
+        CHECK(ew <= bound);
+        CHECK(eb <= bound);
     }
     for (std::size_t l = 0; l < g32.grid.size(); ++l) {
         const double e = rel_l2(g16.grid[l], g32.grid[l]);
