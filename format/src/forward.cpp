@@ -496,10 +496,6 @@ Network make_network(const ModelDesc& desc, const std::vector<std::vector<float>
     return net;
 }
 
-const char* arithmetic_name(MlpArithmetic a) {
-    return a == MlpArithmetic::bf16 ? "bf16" : "fp32";
-}
-
 MlpArithmetic best_mlp_arithmetic() {
     return avx512_bf16_available() ? MlpArithmetic::bf16 : MlpArithmetic::fp32;
 }

@@ -180,7 +180,6 @@ void dense_layer(const float* A, std::size_t n, std::size_t in, std::size_t lda,
 // from the output layer directly, so its inputs keep full precision). Hit decisions agree
 // with fp32 on >= 99.5 % of rays (tests/format/test_bf16.cpp).
 enum class MlpArithmetic : std::uint8_t { fp32, bf16 };
-const char* arithmetic_name(MlpArithmetic a);
 // bf16 where the CPU has AVX-512 BF16 (avx512_bf16_available()), else fp32.
 MlpArithmetic best_mlp_arithmetic();
 // Sets the arithmetic of `net` (packs or releases wt_vnni). bf16 on a machine without
