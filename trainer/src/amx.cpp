@@ -17,11 +17,6 @@ namespace lsnif::trainer::detail {
 
 namespace {
 
-struct Features {
-    bool avx512_bf16 = false;  // AVX-512 F/BW/VL/BF16 usable (CPU and OS)
-    bool amx = false;          // AMX-TILE + AMX-BF16 usable and permitted for this process
-};
-
 #if LSNIF_HAVE_X86
 
 // Asks Linux for the AMX tile data state. Without it the first tile instruction raises
@@ -39,30 +34,28 @@ bool request_tile_permission() {
 #endif
 }
 
-Features detect() {
-    Features f;
-    f.avx512_bf16 = format::avx512_bf16_available();
-    if (!f.avx512_bf16) return f;
+// AMX-TILE + AMX-BF16 usable and permitted for this process (AVX-512 BF16 is required too).
+bool detect_amx() {
+    if (!format::avx512_bf16_available()) return false;
     unsigned a, b, c, d;
     constexpr std::uint64_t kTileState = (1u << 17) | (1u << 18);
-    if (!__get_cpuid_count(7, 0, &a, &b, &c, &d)) return f;
+    if (!__get_cpuid_count(7, 0, &a, &b, &c, &d)) return false;
     const bool amx_bf16 = d & (1u << 22), amx_tile = d & (1u << 24);
-    f.amx = amx_bf16 && amx_tile && (format::enabled_state_components() & kTileState) == kTileState &&
-            request_tile_permission();
-    return f;
+    return amx_bf16 && amx_tile && (format::enabled_state_components() & kTileState) == kTileState &&
+           request_tile_permission();
 }
 
 #else
 
-Features detect() {
-    return {format::avx512_bf16_available(), false};
+bool detect_amx() {
+    return false;
 }
 
 #endif
 
-const Features& features() {
-    static const Features f = detect();  // thread-safe one-time initialization
-    return f;
+bool has_amx() {
+    static const bool yes = detect_amx();  // thread-safe one-time initialization
+    return yes;
 }
 
 #if LSNIF_HAVE_X86
@@ -208,8 +201,8 @@ LSNIF_AMX_TARGET void gemm_amx(std::size_t m, std::size_t n, std::size_t k, cons
 }  // namespace
 
 Bf16Backend bf16_backend() {
-    if (features().amx) return Bf16Backend::amx;
-    if (features().avx512_bf16) return Bf16Backend::avx512_bf16;
+    if (has_amx()) return Bf16Backend::amx;
+    if (format::avx512_bf16_available()) return Bf16Backend::avx512_bf16;
     return Bf16Backend::none;
 }
 
@@ -223,7 +216,7 @@ const char* bf16_backend_name(Bf16Backend b) {
 }
 
 bool amx_available() {
-    return features().amx;
+    return has_amx();
 }
 
 void gemm_bf16(std::size_t m, std::size_t n, std::size_t k, const Bf16* a, std::size_t lda, const Bf16* b,
@@ -235,9 +228,9 @@ void gemm_bf16_on(Bf16Backend backend, std::size_t m, std::size_t n, std::size_t
                   std::size_t lda, const Bf16* b, std::size_t ldb, float* c, std::size_t ldc,
                   bool accumulate) {
 #if LSNIF_HAVE_X86
-    if (m && n && backend == Bf16Backend::amx && features().amx)
+    if (m && n && backend == Bf16Backend::amx && has_amx())
         return gemm_amx(m, n, k, a, lda, b, ldb, c, ldc, accumulate);
-    if (m && n && backend == Bf16Backend::avx512_bf16 && features().avx512_bf16)
+    if (m && n && backend == Bf16Backend::avx512_bf16 && format::avx512_bf16_available())
         return format::gemm_bf16_dp(m, n, k, a, lda, b, ldb, c, ldc, {nullptr, false, accumulate});
 #endif
     // No bf16 instructions: the same product in plain loops (fp32 accumulation of exact bf16
