@@ -51,15 +51,12 @@ float adam_update_rows(const SparseRows& r, std::size_t rb, std::size_t re, floa
         float* v = r.v + base;
         const float* g = r.g + base;
         for (std::size_t i = 0; i < n; ++i) {
-            const float gi = g[i] * grad_scale + c.l2 * p[i];
-            const float mi = c.beta1 * m[i] + (1.0f - c.beta1) * gi;
-            const float vi = c.beta2 * v[i] + (1.0f - c.beta2) * gi * gi;
-            const float pi = p[i] - step[i] * mi / (std::sqrt(vi) + c.eps);
+            const AdamState s = adam_step(p[i], m[i], v[i], g[i], step[i], grad_scale, c);
             const bool keep = on[i] == 0.0f;
-            m[i] = keep ? m[i] : mi;
-            v[i] = keep ? v[i] : vi;
-            p[i] = keep ? p[i] : pi;
-            pmax = std::max(pmax, keep ? 0.0f : std::fabs(pi));
+            m[i] = keep ? m[i] : s.m;
+            v[i] = keep ? v[i] : s.v;
+            p[i] = keep ? p[i] : s.p;
+            pmax = std::max(pmax, keep ? 0.0f : std::fabs(s.p));
         }
     }
     return pmax;

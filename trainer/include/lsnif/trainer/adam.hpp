@@ -30,14 +30,25 @@ inline double adam_bias_correction(const AdamConfig& c, std::uint32_t t) {
     return std::sqrt(bc2) / bc1;
 }
 
+// One parameter's Adam step with an already bias-corrected step size: the arithmetic every
+// update below shares. Returns the new parameter and moments.
+struct AdamState {
+    float p, m, v;
+};
+inline AdamState adam_step(float p, float m, float v, float g, float step, float grad_scale,
+                           const AdamConfig& c) {
+    const float gi = g * grad_scale + c.l2 * p;
+    const float mi = c.beta1 * m + (1.0f - c.beta1) * gi;
+    const float vi = c.beta2 * v + (1.0f - c.beta2) * gi * gi;
+    return {p - step * mi / (std::sqrt(vi) + c.eps), mi, vi};
+}
+
 // Updates n parameters with an already bias-corrected step size (lr x correction).
 inline void adam_update_corrected(float* p, float* m, float* v, const float* g, std::size_t n, float step,
                                   float grad_scale, const AdamConfig& c) {
     for (std::size_t i = 0; i < n; ++i) {
-        const float gi = g[i] * grad_scale + c.l2 * p[i];
-        m[i] = c.beta1 * m[i] + (1.0f - c.beta1) * gi;
-        v[i] = c.beta2 * v[i] + (1.0f - c.beta2) * gi * gi;
-        p[i] -= step * m[i] / (std::sqrt(v[i]) + c.eps);
+        const AdamState s = adam_step(p[i], m[i], v[i], g[i], step, grad_scale, c);
+        p[i] = s.p, m[i] = s.m, v[i] = s.v;
     }
 }
 
