@@ -52,199 +52,6 @@ Geometry make_geometry(const ModelDesc& d) {
     return g;
 }
 
-// ---- ray -> voxel entry points ----------------------------------------------------------
-
-TraceStatus make_ray_grid(const Geometry& geo, const Ray& ray, RayGrid& rg, float& t_near, float& t_far) {
-    bool nonzero = false;
-    for (int a = 0; a < 3; ++a) {
-        if (!std::isfinite(ray.org[a]) || !std::isfinite(ray.dir[a])) return TraceStatus::invalid;
-        nonzero = nonzero || ray.dir[a] != 0.0f;
-    }
-    if (!nonzero || std::isnan(ray.tmin) || std::isnan(ray.tmax)) return TraceStatus::invalid;
-    t_near = ray.tmin;
-    t_far = ray.tmax;
-    const float V = float(geo.V);
-    for (int a = 0; a < 3; ++a) {
-        // Grid-space origin/direction computed in double, stored rounded once.
-        const double cell = (double(geo.box_max[a]) - geo.box_min[a]) / geo.V;
-        rg.go[a] = float((double(ray.org[a]) - geo.box_min[a]) / cell);
-        rg.gd[a] = float(double(ray.dir[a]) / cell);
-        if (rg.gd[a] == 0.0f) {
-            rg.inv_gd[a] = kInf;
-            if (rg.go[a] < 0.0f || rg.go[a] > V) return TraceStatus::miss;
-            continue;
-        }
-        rg.inv_gd[a] = 1.0f / rg.gd[a];
-        float t0 = rg.plane_t(a, 0.0f), t1 = rg.plane_t(a, V);
-        if (t0 > t1) std::swap(t0, t1);
-        t_near = std::max(t_near, t0);
-        t_far = std::min(t_far, t1);
-    }
-    if (!(t_near <= t_far)) return TraceStatus::miss;
-    return TraceStatus::ok;
-}
-
-namespace {
-
-// Walks the crossed voxels in order, calling visit(voxel_index, entry_t, g_entry) for
-// each voxel that `want(voxel_index)` accepts; visit returns false to stop early.
-// Implements exactly the definition in forward.hpp. With `blocks` (OccupancyGrid), whole
-// empty blocks are skipped: the walk jumps to the block's exit parameter and resumes in
-// the cell the plain walk would be in at that parameter, so every accepted (occupied)
-// voxel is still reported with the same entry.
-template <class Want, class Visit>
-TraceStatus walk(const Geometry& geo, const Ray& ray, const OccupancyGrid* blocks, Want&& want,
-                 Visit&& visit) {
-    RayGrid rg;
-    float t_near, t_far;
-    const TraceStatus st = make_ray_grid(geo, ray, rg, t_near, t_far);
-    if (st != TraceStatus::ok) return st;
-    const int V = int(geo.V);
-    int cell[3], step[3];
-    for (int a = 0; a < 3; ++a) {
-        const float gpos = rg.go[a] + t_near * rg.gd[a];
-        if (rg.gd[a] > 0) {
-            step[a] = 1;
-            int x = std::clamp(int(std::floor(gpos)), 0, V - 1);
-            while (x > 0 && rg.plane_t(a, x) > t_near) --x;
-            while (x < V - 1 && rg.plane_t(a, x + 1) <= t_near) ++x;
-            cell[a] = x;
-        } else if (rg.gd[a] < 0) {
-            step[a] = -1;
-            int x = std::clamp(int(std::ceil(gpos)) - 1, 0, V - 1);
-            while (x < V - 1 && rg.plane_t(a, x + 1) > t_near) ++x;
-            while (x > 0 && rg.plane_t(a, x) <= t_near) --x;
-            cell[a] = x;
-        } else {
-            step[a] = 0;
-            cell[a] = std::clamp(int(std::floor(rg.go[a])), 0, V - 1);
-        }
-    }
-    // Per-axis entry/exit parameters of the current cell, from the shared plane_t. When an
-    // axis steps, its new entry plane is its old exit plane (same value); only the new
-    // exit is computed.
-    float enter_a[3], exit_a[3];
-    for (int a = 0; a < 3; ++a) {
-        if (step[a] == 0) {
-            enter_a[a] = -kInf;
-            exit_a[a] = kInf;
-        } else {
-            enter_a[a] = rg.plane_t(a, step[a] > 0 ? cell[a] : cell[a] + 1);
-            exit_a[a] = rg.plane_t(a, step[a] > 0 ? cell[a] + 1 : cell[a]);
-        }
-    }
-    const int B = int(OccupancyGrid::kBlock);
-    while (true) {
-        if (blocks && !blocks->block_occupied(std::uint32_t(cell[0]) / B, std::uint32_t(cell[1]) / B,
-                                              std::uint32_t(cell[2]) / B)) {
-            // Leave the empty block: its exit is the first of its boundary planes reached.
-            float block_exit = kInf;
-            for (int a = 0; a < 3; ++a) {
-                if (step[a] == 0) continue;
-                const int b0 = cell[a] / B * B;
-                const int plane = step[a] > 0 ? std::min(b0 + B, V) : b0;
-                block_exit = std::min(block_exit, rg.plane_t(a, plane));
-            }
-            if (block_exit > t_far) return TraceStatus::ok;
-            // Advance each axis past every plane reached by block_exit (ties step together).
-            for (int a = 0; a < 3; ++a) {
-                if (step[a] == 0) continue;
-                while (exit_a[a] <= block_exit) {
-                    cell[a] += step[a];
-                    if (cell[a] < 0 || cell[a] >= V) return TraceStatus::ok;
-                    enter_a[a] = exit_a[a];
-                    exit_a[a] = rg.plane_t(a, step[a] > 0 ? cell[a] + 1 : cell[a]);
-                }
-            }
-            continue;
-        }
-        const float enter = std::max(enter_a[0], std::max(enter_a[1], enter_a[2]));
-        const float exit = std::min(exit_a[0], std::min(exit_a[1], exit_a[2]));
-        const float lo = std::max(t_near, enter);
-        const std::uint32_t idx =
-            std::uint32_t(cell[0]) + geo.V * (std::uint32_t(cell[1]) + geo.V * std::uint32_t(cell[2]));
-        if (lo <= t_far && lo < exit && want(idx)) {
-            float g[3];
-            for (int a = 0; a < 3; ++a) {
-                if (step[a] != 0 && enter_a[a] == lo)  // entered through this face: exact plane
-                    g[a] = float(step[a] > 0 ? cell[a] : cell[a] + 1);
-                else
-                    g[a] = std::clamp(rg.go[a] + lo * rg.gd[a], float(cell[a]), float(cell[a] + 1));
-            }
-            if (!visit(idx, lo, g)) return TraceStatus::ok;
-        }
-        if (exit > t_far) return TraceStatus::ok;
-        // Step every axis whose boundary is reached at `exit` (edges and corners at once).
-        for (int a = 0; a < 3; ++a) {
-            if (exit_a[a] != exit) continue;
-            cell[a] += step[a];
-            if (cell[a] < 0 || cell[a] >= V) return TraceStatus::ok;
-            enter_a[a] = exit_a[a];
-            exit_a[a] = rg.plane_t(a, float(step[a] > 0 ? cell[a] + 1 : cell[a]));
-        }
-    }
-}
-
-}  // namespace
-
-namespace {
-
-TraceStatus trace_points_impl(const Geometry& geo, const std::uint8_t* occupancy, const OccupancyGrid* blocks,
-                              const Ray& ray, RayPoints& out) {
-    out.count = 0;
-    RayGrid rg;
-    const TraceStatus st = make_ray_grid(geo, ray, rg, out.t_near, out.t_far);
-    if (st != TraceStatus::ok) return st;
-    walk(
-        geo, ray, blocks, [&](std::uint32_t idx) { return ((occupancy[idx >> 3] >> (idx & 7)) & 1u) != 0; },
-        [&](std::uint32_t idx, float t, const float g[3]) {
-            const std::uint32_t k = out.count++;
-            out.t[k] = t;
-            out.g[k][0] = g[0];
-            out.g[k][1] = g[1];
-            out.g[k][2] = g[2];
-            out.voxel[k] = idx;
-            return out.count < geo.H;
-        });
-    return out.count ? TraceStatus::ok : TraceStatus::miss;
-}
-
-}  // namespace
-
-TraceStatus trace_points(const Geometry& geo, const std::uint8_t* occupancy, const Ray& ray, RayPoints& out) {
-    return trace_points_impl(geo, occupancy, nullptr, ray, out);
-}
-
-TraceStatus trace_points(const Geometry& geo, const OccupancyGrid& occ, const Ray& ray, RayPoints& out) {
-    return trace_points_impl(geo, occ.bits.data(), &occ, ray, out);
-}
-
-OccupancyGrid::OccupancyGrid(std::uint32_t V, std::vector<std::uint8_t> voxel_bits)
-    : V(V), bits(std::move(voxel_bits)) {
-    nb = (V + kBlock - 1) / kBlock;
-    blocks.assign(std::size_t(nb) * nb * nb, 0);
-    for (std::uint32_t z = 0; z < V; ++z)
-        for (std::uint32_t y = 0; y < V; ++y)
-            for (std::uint32_t x = 0; x < V; ++x) {
-                const std::uint64_t i = x + std::uint64_t(V) * (y + std::uint64_t(V) * z);
-                if ((bits[i >> 3] >> (i & 7)) & 1u)
-                    blocks[x / kBlock + nb * (y / kBlock + std::size_t(nb) * (z / kBlock))] = 1;
-            }
-}
-
-TraceStatus trace_all_voxels(const Geometry& geo, const Ray& ray, std::vector<std::uint32_t>& voxels,
-                             std::vector<float>& entry_t) {
-    voxels.clear();
-    entry_t.clear();
-    return walk(
-        geo, ray, nullptr, [](std::uint32_t) { return true; },
-        [&](std::uint32_t idx, float t, const float*) {
-            voxels.push_back(idx);
-            entry_t.push_back(t);
-            return true;
-        });
-}
-
 // ---- encoding -------------------------------------------------------------------------
 
 void level_corners(const Geometry& geo, const LevelInfo& lv, const float g[3], Corners& out) {
@@ -604,10 +411,12 @@ std::uint64_t Runtime::grid_bytes() const {
 IntersectStats intersect(const Runtime& rt, std::span<const Ray> rays, std::span<Hit> hits) {
     constexpr std::size_t kChunk = 256;
     thread_local std::vector<RayPoints> pts;
+    thread_local std::vector<TraceStatus> status;
     thread_local std::vector<float> input, scratch;
     thread_local std::vector<std::uint32_t> which;
     const Geometry& geo = rt.geo;
     pts.resize(kChunk);
+    status.resize(kChunk);
     input.resize(kChunk * geo.input_width);
     which.resize(kChunk);
     const auto grid = rt.grid_views();
@@ -616,20 +425,18 @@ IntersectStats intersect(const Runtime& rt, std::span<const Ray> rays, std::span
     st.rays = rays.size();
     for (std::size_t base = 0; base < rays.size(); base += kChunk) {
         const std::size_t n = std::min(kChunk, rays.size() - base);
+        trace_points_batch(geo, rt.occupancy, rays.subspan(base, n), pts.data(), status.data());
         std::size_t k = 0;
         for (std::size_t i = 0; i < n; ++i) {
-            const Ray& r = rays[base + i];
-            Hit& h = hits[base + i];
-            const TraceStatus ts = trace_points(geo, rt.occupancy, r, pts[k]);
-            if (ts != TraceStatus::ok) {
-                h = Hit{kInf, {0, 0, 0}, 0, 0};
-                if (ts == TraceStatus::invalid)
+            if (status[i] != TraceStatus::ok) {
+                hits[base + i] = Hit{kInf, {0, 0, 0}, 0, 0};
+                if (status[i] == TraceStatus::invalid)
                     ++st.invalid;
                 else
                     ++st.culled;
                 continue;
             }
-            encode_points(geo, grid.data(), pts[k], input.data() + k * geo.input_width);
+            encode_points(geo, grid.data(), pts[i], input.data() + k * geo.input_width);
             which[k++] = std::uint32_t(i);
         }
         if (!k) continue;
@@ -637,7 +444,7 @@ IntersectStats intersect(const Runtime& rt, std::span<const Ray> rays, std::span
         const float* out = mlp_forward(rt.net, input.data(), k, scratch);
         for (std::size_t j = 0; j < k; ++j) {
             const std::size_t i = base + which[j];
-            hits[i] = decode_output(geo, pts[j], rays[i], out + j * outp);
+            hits[i] = decode_output(geo, pts[which[j]], rays[i], out + j * outp);
             st.hits += hits[i].hit;
         }
     }

@@ -20,6 +20,7 @@
 
 #include <cmath>
 #include <cstdlib>
+#include <cstring>
 #include <filesystem>
 #include <fstream>
 #include <iterator>
@@ -77,27 +78,23 @@ void check_targets(const nlohmann::json& mesh) {
         CHECK(mesh["validation"].size() == 10);
 }
 
-// The shipped asset read back and evaluated with bf16 hidden layers (format::MlpArithmetic,
-// what lsnif_open picks on CPUs with AVX-512 BF16) against the fp32 reference, on held-out
-// rays drawn afresh from the mesh (Embree ground truth): hit decisions agree on >= 99.5 % of
-// the rays that reach the network, and the pooled metrics move by <= 0.1 point (visibility
-// in percent, distance in percent of the diagonal, normal in degrees).
-void check_bf16_inference(const nlohmann::json& mesh, const std::string& file, const std::string& name) {
+// The shipped asset read back, and held-out rays drawn afresh from its mesh (Embree ground
+// truth, a seed the conversion did not use).
+struct Shipped {
+    lsnif::format::ModelData model;
+    std::vector<lsnif::samples::Sample> held;
+    std::vector<lsnif::format::Ray> rays;
+};
+
+Shipped read_shipped(const nlohmann::json& mesh, const std::string& file, const std::string& name) {
     using namespace lsnif;
-    if (!format::avx512_bf16_available()) {
-        MESSAGE("no AVX-512 BF16 on this machine: bf16 inference not compared (fp32 is what ships here)");
-        return;
-    }
     const fs::path asset =
         fs::path(LSNIF_TEST_WORK_DIR) / ("accuracy_" + name) / mesh["lsnif"]["file"].get<std::string>();
     std::ifstream in(asset, std::ios::binary);
     const std::vector<std::uint8_t> bytes{std::istreambuf_iterator<char>(in), {}};
     auto model = format::read_model(bytes);
     REQUIRE(model);
-    const format::Runtime fp32 = format::make_runtime(*model, format::MlpArithmetic::fp32);
-    const format::Runtime bf16 = format::make_runtime(*model, format::MlpArithmetic::bf16);
-    REQUIRE(format::mlp_arithmetic(bf16.net) == format::MlpArithmetic::bf16);
-
+    Shipped s{std::move(*model), {}, {}};
     auto imported = scene::import_scene(std::string(LSNIF_TEST_MESH_DIR) + "/" + file);
     REQUIRE(imported.ok());
     const mesh::MeshView view = converter::stages::view_of(imported.scene.meshes[0]);
@@ -106,11 +103,57 @@ void check_bf16_inference(const nlohmann::json& mesh, const std::string& file, c
     std::string error;
     auto source = sampling::EmbreeSource::create(view, *box, {}, error);
     REQUIRE_MESSAGE(source, error);
-    std::vector<samples::Sample> held;
-    source->generate(977, 1u << 16, held);
+    source->generate(977, 1u << 16, s.held);
+    for (const auto& h : s.held) s.rays.push_back(h.ray);
+    return s;
+}
 
-    std::vector<format::Ray> rays(held.size());
-    for (std::size_t i = 0; i < held.size(); ++i) rays[i] = held[i].ray;
+// The 16-lane voxel walk that intersect() uses gives the scalar walk's entry points bit for
+// bit on the asset's real occupancy grid (tests/format/test_walk.cpp covers the edge cases).
+void check_walks_agree(const Shipped& s, const std::string& name) {
+    using namespace lsnif::format;
+    const Geometry geo = make_geometry(s.model.desc);
+    const OccupancyGrid occ(s.model.desc.grid_resolution, s.model.occupancy);
+    std::vector<RayPoints> got(s.rays.size());
+    std::vector<TraceStatus> status(s.rays.size());
+    trace_points_batch(geo, occ, s.rays, got.data(), status.data());
+    std::size_t same = 0, traced = 0;
+    RayPoints want;
+    for (std::size_t i = 0; i < s.rays.size(); ++i) {
+        const TraceStatus st = trace_points(geo, occ, s.rays[i], want);
+        bool equal = st == status[i];
+        if (st == TraceStatus::ok) {
+            ++traced;
+            equal = equal && want.count == got[i].count &&
+                    std::memcmp(want.t, got[i].t, sizeof(float) * want.count) == 0 &&
+                    std::memcmp(want.g, got[i].g, sizeof(float) * 3 * want.count) == 0 &&
+                    std::memcmp(want.voxel, got[i].voxel, sizeof(std::uint32_t) * want.count) == 0;
+        }
+        same += equal;
+    }
+    MESSAGE(name << ": 16-lane walk "
+                 << std::string(simd_walk_available() ? "(AVX-512)" : "(scalar fallback)")
+                 << " equals the scalar walk on " << same << " of " << s.rays.size() << " held-out rays ("
+                 << traced << " reach the network)");
+    CHECK(same == s.rays.size());
+    CHECK(traced > s.rays.size() / 2);
+}
+
+// The shipped asset evaluated with bf16 hidden layers (format::MlpArithmetic, what
+// lsnif_open picks on CPUs with AVX-512 BF16) against the fp32 reference on the held-out
+// rays: hit decisions agree on >= 99.5 % of the rays that reach the network, and the pooled
+// metrics move by <= 0.1 point (visibility in percent, distance in percent of the
+// diagonal, normal in degrees).
+void check_bf16_inference(const Shipped& s, const std::string& name) {
+    using namespace lsnif;
+    if (!format::avx512_bf16_available()) {
+        MESSAGE("no AVX-512 BF16 on this machine: bf16 inference not compared (fp32 is what ships here)");
+        return;
+    }
+    const format::Runtime fp32 = format::make_runtime(s.model, format::MlpArithmetic::fp32);
+    const format::Runtime bf16 = format::make_runtime(s.model, format::MlpArithmetic::bf16);
+    REQUIRE(format::mlp_arithmetic(bf16.net) == format::MlpArithmetic::bf16);
+    const auto& rays = s.rays;
     std::vector<format::Hit> h32(rays.size()), h16(rays.size());
     const auto s32 = format::intersect(fp32, rays, h32);
     format::intersect(bf16, rays, h16);
@@ -118,8 +161,8 @@ void check_bf16_inference(const nlohmann::json& mesh, const std::string& file, c
     for (std::size_t i = 0; i < rays.size(); ++i) agree += h32[i].hit == h16[i].hit;
     const std::size_t culled = rays.size() - s32.inferred;  // agree trivially: no inference
     const double agreement = double(agree - culled) / double(s32.inferred);
-    const samples::Metrics m32 = samples::held_out_metrics(fp32, held),
-                           m16 = samples::held_out_metrics(bf16, held);
+    const samples::Metrics m32 = samples::held_out_metrics(fp32, s.held),
+                           m16 = samples::held_out_metrics(bf16, s.held);
     MESSAGE(name << " bf16 vs fp32: hit agreement " << 100 * agreement << " % of " << s32.inferred
                  << " inferred rays; pooled visibility " << 100 * m32.pooled.visibility_accuracy << " -> "
                  << 100 * m16.pooled.visibility_accuracy << " %, distance " << m32.pooled.distance_median_pct
@@ -136,13 +179,17 @@ void check_bf16_inference(const nlohmann::json& mesh, const std::string& file, c
 TEST_CASE("default preset meets the accuracy targets on CGAL's Chinese dragon") {
     const auto mesh = convert_default("ChineseDragon-10kv.off", "ChineseDragon-10kv");
     check_targets(mesh);
-    check_bf16_inference(mesh, "ChineseDragon-10kv.off", "ChineseDragon-10kv");
+    const Shipped shipped = read_shipped(mesh, "ChineseDragon-10kv.off", "ChineseDragon-10kv");
+    check_walks_agree(shipped, "ChineseDragon-10kv");
+    check_bf16_inference(shipped, "ChineseDragon-10kv");
 }
 
 TEST_CASE("default preset meets the accuracy targets on CGAL's armadillo") {
     const auto mesh = convert_default("armadillo.off", "armadillo");
     check_targets(mesh);
-    check_bf16_inference(mesh, "armadillo.off", "armadillo");
+    const Shipped shipped = read_shipped(mesh, "armadillo.off", "armadillo");
+    check_walks_agree(shipped, "armadillo");
+    check_bf16_inference(shipped, "armadillo");
 }
 
 // Deciding early (docs/model.md "Deciding early"): the hairball of the hard-geometry suite

@@ -98,6 +98,9 @@ struct OccupancyGrid {
     std::uint32_t V = 0, nb = 0;
     std::vector<std::uint8_t> bits;    // OCCU layout
     std::vector<std::uint8_t> blocks;  // nb^3 bytes
+    // The same two maps as bit arrays of 32-bit words (bit i of word i / 32), for the
+    // 16-lane walk's gathers.
+    std::vector<std::uint32_t> voxel_words, block_words;
     OccupancyGrid() = default;
     OccupancyGrid(std::uint32_t V, std::vector<std::uint8_t> voxel_bits);
     bool block_occupied(std::uint32_t bx, std::uint32_t by, std::uint32_t bz) const {
@@ -109,6 +112,13 @@ struct OccupancyGrid {
 // The OccupancyGrid overload skips empty blocks and returns exactly the same points.
 TraceStatus trace_points(const Geometry& geo, const std::uint8_t* occupancy, const Ray& ray, RayPoints& out);
 TraceStatus trace_points(const Geometry& geo, const OccupancyGrid& occupancy, const Ray& ray, RayPoints& out);
+
+// trace_points(geo, occ, rays[i], out[i]) for every i, with status[i] its return value:
+// bit-identical results, computed 16 rays at a time with AVX-512 where the CPU has it
+// (simd_walk_available()). out and status hold rays.size() elements.
+void trace_points_batch(const Geometry& geo, const OccupancyGrid& occ, std::span<const Ray> rays,
+                        RayPoints* out, TraceStatus* status);
+bool simd_walk_available();
 
 // Every voxel crossed (occupied or not), in order, with entry t: for tests and tools.
 TraceStatus trace_all_voxels(const Geometry& geo, const Ray& ray, std::vector<std::uint32_t>& voxels,

@@ -1,0 +1,506 @@
+// Ray -> voxel entry points (the 3D-DDA of forward.hpp), after Amanatides & Woo, "A Fast
+// Voxel Traversal Algorithm for Ray Tracing" (1987): one ray at a time, and 16 rays at a
+// time with AVX-512 where the CPU has it. Both walks run the same state machine on the same
+// IEEE operations, so they return bit-identical points (tests/format/test_walk.cpp); the
+// model was trained on these points, so any difference would be an input the network never saw.
+#include <lsnif/format/forward.hpp>
+
+#include <algorithm>
+#include <bit>
+#include <cmath>
+#include <limits>
+
+#if defined(__x86_64__) && defined(__GNUC__)
+#define LSNIF_HAVE_X86 1
+#include <immintrin.h>
+// GCC 12's AVX-512 shift and mask intrinsics start from _mm512_undefined_*(), which its
+// -Wmaybe-uninitialized reports as a use of an uninitialized value (a false positive).
+#pragma GCC diagnostic ignored "-Wmaybe-uninitialized"
+#endif
+
+namespace lsnif::format {
+
+namespace {
+constexpr float kInf = std::numeric_limits<float>::infinity();
+}
+
+TraceStatus make_ray_grid(const Geometry& geo, const Ray& ray, RayGrid& rg, float& t_near, float& t_far) {
+    bool nonzero = false;
+    for (int a = 0; a < 3; ++a) {
+        if (!std::isfinite(ray.org[a]) || !std::isfinite(ray.dir[a])) return TraceStatus::invalid;
+        nonzero = nonzero || ray.dir[a] != 0.0f;
+    }
+    if (!nonzero || std::isnan(ray.tmin) || std::isnan(ray.tmax)) return TraceStatus::invalid;
+    t_near = ray.tmin;
+    t_far = ray.tmax;
+    const float V = float(geo.V);
+    for (int a = 0; a < 3; ++a) {
+        // Grid-space origin/direction computed in double, stored rounded once.
+        const double cell = (double(geo.box_max[a]) - geo.box_min[a]) / geo.V;
+        rg.go[a] = float((double(ray.org[a]) - geo.box_min[a]) / cell);
+        rg.gd[a] = float(double(ray.dir[a]) / cell);
+        if (rg.gd[a] == 0.0f) {
+            rg.inv_gd[a] = kInf;
+            if (rg.go[a] < 0.0f || rg.go[a] > V) return TraceStatus::miss;
+            continue;
+        }
+        rg.inv_gd[a] = 1.0f / rg.gd[a];
+        float t0 = rg.plane_t(a, 0.0f), t1 = rg.plane_t(a, V);
+        if (t0 > t1) std::swap(t0, t1);
+        t_near = std::max(t_near, t0);
+        t_far = std::min(t_far, t1);
+    }
+    if (!(t_near <= t_far)) return TraceStatus::miss;
+    return TraceStatus::ok;
+}
+
+namespace {
+
+// A walk's state: the ray in grid space, the clipped segment, the current cell, and per
+// axis the parameters at which the ray enters and leaves the cell's slab.
+struct WalkState {
+    RayGrid rg;
+    float t_near, t_far;
+    int cell[3], step[3];
+    float enter_a[3], exit_a[3];
+};
+
+// The walk's first cell: the one containing t_near under the half-open rule of forward.hpp,
+// found from the shared plane_t so it agrees with every later step. Returns what
+// make_ray_grid returns; `w` is complete only for ok.
+TraceStatus start_walk(const Geometry& geo, const Ray& ray, WalkState& w) {
+    RayGrid& rg = w.rg;
+    const TraceStatus st = make_ray_grid(geo, ray, rg, w.t_near, w.t_far);
+    if (st != TraceStatus::ok) return st;
+    const int V = int(geo.V);
+    for (int a = 0; a < 3; ++a) {
+        const float gpos = rg.go[a] + w.t_near * rg.gd[a];  // a guess, corrected by the loops
+        int& x = w.cell[a];
+        if (rg.gd[a] > 0) {
+            w.step[a] = 1;
+            x = std::clamp(int(std::floor(gpos)), 0, V - 1);
+            while (x > 0 && rg.plane_t(a, x) > w.t_near) --x;
+            while (x < V - 1 && rg.plane_t(a, x + 1) <= w.t_near) ++x;
+        } else if (rg.gd[a] < 0) {
+            w.step[a] = -1;
+            x = std::clamp(int(std::ceil(gpos)) - 1, 0, V - 1);
+            while (x < V - 1 && rg.plane_t(a, x + 1) > w.t_near) ++x;
+            while (x > 0 && rg.plane_t(a, x) <= w.t_near) --x;
+        } else {
+            w.step[a] = 0;
+            x = std::clamp(int(std::floor(rg.go[a])), 0, V - 1);
+        }
+        // When an axis steps, its new entry plane is its old exit plane (same value); only
+        // the new exit is computed.
+        if (w.step[a] == 0) {
+            w.enter_a[a] = -kInf;
+            w.exit_a[a] = kInf;
+        } else {
+            w.enter_a[a] = rg.plane_t(a, float(w.step[a] > 0 ? x : x + 1));
+            w.exit_a[a] = rg.plane_t(a, float(w.step[a] > 0 ? x + 1 : x));
+        }
+    }
+    return TraceStatus::ok;
+}
+
+// Grid coordinate of the entry point on axis a: exact plane when the ray entered the cell
+// through this axis's face, else the ray's position clamped into the cell. One fused
+// multiply-add (std::fma, _mm512_fmadd_ps in the 16-lane walk) so every build and both
+// walks round it the same way.
+inline float entry_coordinate(const WalkState& w, int a, float lo) {
+    if (w.step[a] != 0 && w.enter_a[a] == lo) return float(w.step[a] > 0 ? w.cell[a] : w.cell[a] + 1);
+    return std::clamp(std::fma(lo, w.rg.gd[a], w.rg.go[a]), float(w.cell[a]), float(w.cell[a] + 1));
+}
+
+// Walks the crossed voxels in order, calling visit(voxel_index, entry_t, g_entry) for
+// each voxel that `want(voxel_index)` accepts; visit returns false to stop early.
+// Implements exactly the definition in forward.hpp. With `blocks` (OccupancyGrid), whole
+// empty blocks are skipped: the walk jumps to the block's exit parameter and resumes in
+// the cell the plain walk would be in at that parameter, so every accepted (occupied)
+// voxel is still reported with the same entry.
+template <class Want, class Visit>
+TraceStatus walk(const Geometry& geo, const Ray& ray, const OccupancyGrid* blocks, Want&& want,
+                 Visit&& visit) {
+    WalkState w;
+    const TraceStatus st = start_walk(geo, ray, w);
+    if (st != TraceStatus::ok) return st;
+    const RayGrid& rg = w.rg;
+    const int V = int(geo.V);
+    int* cell = w.cell;
+    const int* step = w.step;
+    float* enter_a = w.enter_a;
+    float* exit_a = w.exit_a;
+    const int B = int(OccupancyGrid::kBlock);
+    while (true) {
+        if (blocks && !blocks->block_occupied(std::uint32_t(cell[0]) / B, std::uint32_t(cell[1]) / B,
+                                              std::uint32_t(cell[2]) / B)) {
+            // Leave the empty block: its exit is the first of its boundary planes reached.
+            float block_exit = kInf;
+            for (int a = 0; a < 3; ++a) {
+                if (step[a] == 0) continue;
+                const int b0 = cell[a] / B * B;
+                const int plane = step[a] > 0 ? std::min(b0 + B, V) : b0;
+                block_exit = std::min(block_exit, rg.plane_t(a, float(plane)));
+            }
+            if (block_exit > w.t_far) return TraceStatus::ok;
+            // Advance each axis past every plane reached by block_exit (ties step together).
+            for (int a = 0; a < 3; ++a) {
+                if (step[a] == 0) continue;
+                while (exit_a[a] <= block_exit) {
+                    cell[a] += step[a];
+                    if (cell[a] < 0 || cell[a] >= V) return TraceStatus::ok;
+                    enter_a[a] = exit_a[a];
+                    exit_a[a] = rg.plane_t(a, float(step[a] > 0 ? cell[a] + 1 : cell[a]));
+                }
+            }
+            continue;
+        }
+        const float enter = std::max(enter_a[0], std::max(enter_a[1], enter_a[2]));
+        const float exit = std::min(exit_a[0], std::min(exit_a[1], exit_a[2]));
+        const float lo = std::max(w.t_near, enter);
+        const std::uint32_t idx =
+            std::uint32_t(cell[0]) + geo.V * (std::uint32_t(cell[1]) + geo.V * std::uint32_t(cell[2]));
+        if (lo <= w.t_far && lo < exit && want(idx)) {
+            const float g[3] = {entry_coordinate(w, 0, lo), entry_coordinate(w, 1, lo),
+                                entry_coordinate(w, 2, lo)};
+            if (!visit(idx, lo, g)) return TraceStatus::ok;
+        }
+        if (exit > w.t_far) return TraceStatus::ok;
+        // Step every axis whose boundary is reached at `exit` (edges and corners at once).
+        for (int a = 0; a < 3; ++a) {
+            if (exit_a[a] != exit) continue;
+            cell[a] += step[a];
+            if (cell[a] < 0 || cell[a] >= V) return TraceStatus::ok;
+            enter_a[a] = exit_a[a];
+            exit_a[a] = rg.plane_t(a, float(step[a] > 0 ? cell[a] + 1 : cell[a]));
+        }
+    }
+}
+
+TraceStatus trace_points_impl(const Geometry& geo, const std::uint8_t* occupancy, const OccupancyGrid* blocks,
+                              const Ray& ray, RayPoints& out) {
+    out.count = 0;
+    RayGrid rg;
+    const TraceStatus st = make_ray_grid(geo, ray, rg, out.t_near, out.t_far);
+    if (st != TraceStatus::ok) return st;
+    walk(
+        geo, ray, blocks, [&](std::uint32_t idx) { return ((occupancy[idx >> 3] >> (idx & 7)) & 1u) != 0; },
+        [&](std::uint32_t idx, float t, const float g[3]) {
+            const std::uint32_t k = out.count++;
+            out.t[k] = t;
+            out.g[k][0] = g[0];
+            out.g[k][1] = g[1];
+            out.g[k][2] = g[2];
+            out.voxel[k] = idx;
+            return out.count < geo.H;
+        });
+    return out.count ? TraceStatus::ok : TraceStatus::miss;
+}
+
+}  // namespace
+
+TraceStatus trace_points(const Geometry& geo, const std::uint8_t* occupancy, const Ray& ray, RayPoints& out) {
+    return trace_points_impl(geo, occupancy, nullptr, ray, out);
+}
+
+TraceStatus trace_points(const Geometry& geo, const OccupancyGrid& occ, const Ray& ray, RayPoints& out) {
+    return trace_points_impl(geo, occ.bits.data(), &occ, ray, out);
+}
+
+OccupancyGrid::OccupancyGrid(std::uint32_t V, std::vector<std::uint8_t> voxel_bits)
+    : V(V), bits(std::move(voxel_bits)) {
+    nb = (V + kBlock - 1) / kBlock;
+    blocks.assign(std::size_t(nb) * nb * nb, 0);
+    const std::uint64_t voxels = std::uint64_t(V) * V * V;
+    voxel_words.assign((voxels + 31) / 32, 0);
+    block_words.assign((blocks.size() + 31) / 32, 0);
+    for (std::uint32_t z = 0; z < V; ++z)
+        for (std::uint32_t y = 0; y < V; ++y)
+            for (std::uint32_t x = 0; x < V; ++x) {
+                const std::uint64_t i = x + std::uint64_t(V) * (y + std::uint64_t(V) * z);
+                if (!((bits[i >> 3] >> (i & 7)) & 1u)) continue;
+                voxel_words[i >> 5] |= 1u << (i & 31);
+                const std::size_t b = x / kBlock + nb * (y / kBlock + std::size_t(nb) * (z / kBlock));
+                blocks[b] = 1;
+                block_words[b >> 5] |= 1u << (b & 31);
+            }
+}
+
+TraceStatus trace_all_voxels(const Geometry& geo, const Ray& ray, std::vector<std::uint32_t>& voxels,
+                             std::vector<float>& entry_t) {
+    voxels.clear();
+    entry_t.clear();
+    return walk(
+        geo, ray, nullptr, [](std::uint32_t) { return true; },
+        [&](std::uint32_t idx, float t, const float*) {
+            voxels.push_back(idx);
+            entry_t.push_back(t);
+            return true;
+        });
+}
+
+// ---- 16 walks at once ------------------------------------------------------------------
+
+namespace {
+
+#if LSNIF_HAVE_X86
+
+#define LSNIF_AVX512 __attribute__((target("avx512f,avx512vl,avx512bw,avx512dq,fma")))
+
+constexpr int kLanes = 16;
+static_assert(OccupancyGrid::kBlock == 4, "the 16-lane walk divides cells by kBlock with a shift of 2");
+
+// The state of 16 walks as structure-of-arrays, and which ray each lane walks. Held in
+// registers across iterations; written back here only when lanes are refilled.
+struct Lanes {
+    alignas(64) float go[3][kLanes], gd[3][kLanes], inv[3][kLanes];
+    alignas(64) float enter[3][kLanes], exit[3][kLanes], t_near[kLanes], t_far[kLanes];
+    alignas(64) std::int32_t cell[3][kLanes], step[3][kLanes];
+    std::uint32_t ray[kLanes];
+};
+
+void load_lane(Lanes& L, int lane, const WalkState& w, std::uint32_t ray) {
+    for (int a = 0; a < 3; ++a) {
+        L.go[a][lane] = w.rg.go[a];
+        L.gd[a][lane] = w.rg.gd[a];
+        L.inv[a][lane] = w.rg.inv_gd[a];
+        L.enter[a][lane] = w.enter_a[a];
+        L.exit[a][lane] = w.exit_a[a];
+        L.cell[a][lane] = w.cell[a];
+        L.step[a][lane] = w.step[a];
+    }
+    L.t_near[lane] = w.t_near;
+    L.t_far[lane] = w.t_far;
+    L.ray[lane] = ray;
+}
+
+// Puts rays[next..] into the free lanes (not in `live`) until every lane is busy or the
+// rays run out; rays that miss the box or are invalid are finished on the spot. Returns
+// the new live mask.
+std::uint32_t refill(const Geometry& geo, std::span<const Ray> rays, std::size_t& next, RayPoints* out,
+                     TraceStatus* status, Lanes& L, std::uint32_t live) {
+    for (int lane = 0; lane < kLanes && next < rays.size(); ++lane) {
+        if (live & (1u << lane)) continue;
+        while (next < rays.size()) {
+            const std::size_t i = next++;
+            WalkState w;
+            out[i].count = 0;
+            const TraceStatus st = start_walk(geo, rays[i], w);
+            if (st != TraceStatus::invalid) {  // as trace_points: set unless the ray is invalid
+                out[i].t_near = w.t_near;
+                out[i].t_far = w.t_far;
+            }
+            if (st != TraceStatus::ok) {
+                status[i] = st;
+                continue;
+            }
+            load_lane(L, lane, w, std::uint32_t(i));
+            live |= 1u << lane;
+            break;
+        }
+    }
+    return live;
+}
+
+// One axis of the 16 walks in registers.
+struct Axis {
+    __m512 go, gd, inv, enter, exit;
+    __m512i cell, step;
+    __mmask16 moves, forward;  // step != 0, step > 0
+};
+
+LSNIF_AVX512 inline __m512 plane_t(const Axis& x, __m512i k) {
+    return _mm512_mul_ps(_mm512_sub_ps(_mm512_cvtepi32_ps(k), x.go), x.inv);
+}
+
+// The plane the walk leaves the cell through (cell + 1 forward, cell backward), as in
+// the scalar walk's exit_a update.
+LSNIF_AVX512 inline __m512i exit_plane(const Axis& x) {
+    return _mm512_mask_add_epi32(x.cell, x.forward, x.cell, _mm512_set1_epi32(1));
+}
+
+// Steps the lanes in `m` one cell along the axis; returns the lanes that left the grid
+// (their walk is over).
+LSNIF_AVX512 inline __mmask16 step_axis(Axis& x, __mmask16 m, __m512i vV) {
+    x.cell = _mm512_mask_add_epi32(x.cell, m, x.cell, x.step);
+    const __mmask16 out = _mm512_mask_cmplt_epi32_mask(m, x.cell, _mm512_setzero_si512()) |
+                          _mm512_mask_cmpge_epi32_mask(m, x.cell, vV);
+    m &= ~out;
+    x.enter = _mm512_mask_mov_ps(x.enter, m, x.exit);
+    x.exit = _mm512_mask_mov_ps(x.exit, m, plane_t(x, exit_plane(x)));
+    return out;
+}
+
+// Tests bit `index` of a bit array of 32-bit words for the lanes in m (0 elsewhere).
+LSNIF_AVX512 inline __mmask16 test_bits(const std::uint32_t* words, __m512i index, __mmask16 m) {
+    const __m512i w = _mm512_mask_i32gather_epi32(_mm512_setzero_si512(), m, _mm512_srli_epi32(index, 5),
+                                                  reinterpret_cast<const int*>(words), 4);
+    const __m512i bit =
+        _mm512_sllv_epi32(_mm512_set1_epi32(1), _mm512_and_si512(index, _mm512_set1_epi32(31)));
+    return _mm512_mask_test_epi32_mask(m, w, bit);
+}
+
+// The scalar walk's loop body for 16 rays: std::max(a, b) is _mm512_max_ps(b, a) and
+// std::min(a, b) is _mm512_min_ps(b, a) for every input, NaN included (MAXPS/MINPS return
+// their second operand unless the first compares greater/less), and ordered comparisons
+// are false on NaN as in C++, so each lane computes what the scalar walk computes.
+LSNIF_AVX512 void trace_batch_avx512(const Geometry& geo, const OccupancyGrid& occ, std::span<const Ray> rays,
+                                     RayPoints* out, TraceStatus* status) {
+    Lanes L;
+    std::size_t next = 0;
+    std::uint32_t live = refill(geo, rays, next, out, status, L, 0);
+    const __m512i vV = _mm512_set1_epi32(int(geo.V));
+    const __m512i vnb = _mm512_set1_epi32(int(occ.nb));
+    const __m512i vB = _mm512_set1_epi32(int(OccupancyGrid::kBlock));
+    const __m512 vinf = _mm512_set1_ps(kInf);
+    const std::uint32_t H = geo.H;
+    alignas(64) float rec_t[kLanes], rec_g[3][kLanes];
+    alignas(64) std::uint32_t rec_idx[kLanes];
+    while (live) {
+        Axis ax[3];
+        for (int a = 0; a < 3; ++a) {
+            Axis& x = ax[a];
+            x.go = _mm512_load_ps(L.go[a]);
+            x.gd = _mm512_load_ps(L.gd[a]);
+            x.inv = _mm512_load_ps(L.inv[a]);
+            x.enter = _mm512_load_ps(L.enter[a]);
+            x.exit = _mm512_load_ps(L.exit[a]);
+            x.cell = _mm512_load_si512(L.cell[a]);
+            x.step = _mm512_load_si512(L.step[a]);
+            x.moves = _mm512_test_epi32_mask(x.step, x.step);
+            x.forward = _mm512_cmpgt_epi32_mask(x.step, _mm512_setzero_si512());
+        }
+        const __m512 t_near = _mm512_load_ps(L.t_near);
+        const __m512 t_far = _mm512_load_ps(L.t_far);
+        __mmask16 act = __mmask16(live);
+        // Finished lanes leave `act`; the walk stays in registers until half the lanes are
+        // free (or no rays are left to refill them with).
+        const bool draining = next == rays.size();
+        do {
+            const __m512i bidx = _mm512_add_epi32(
+                _mm512_srli_epi32(ax[0].cell, 2),
+                _mm512_mullo_epi32(
+                    vnb, _mm512_add_epi32(_mm512_srli_epi32(ax[1].cell, 2),
+                                          _mm512_mullo_epi32(vnb, _mm512_srli_epi32(ax[2].cell, 2)))));
+            const __mmask16 occupied = test_bits(occ.block_words.data(), bidx, act);
+            __mmask16 skip = act & ~occupied;
+            __mmask16 vis = act & occupied;
+            if (skip) {
+                // Leave the empty block: the first of its boundary planes reached.
+                __m512 block_exit = vinf;
+                for (int a = 0; a < 3; ++a) {
+                    const Axis& x = ax[a];
+                    const __m512i b0 = _mm512_slli_epi32(_mm512_srli_epi32(x.cell, 2), 2);
+                    const __m512i plane = _mm512_mask_min_epi32(b0, x.forward, _mm512_add_epi32(b0, vB), vV);
+                    block_exit = _mm512_mask_min_ps(block_exit, x.moves, plane_t(x, plane), block_exit);
+                }
+                const __mmask16 beyond = _mm512_mask_cmp_ps_mask(skip, block_exit, t_far, _CMP_GT_OQ);
+                act &= ~beyond;
+                skip &= ~beyond;
+                for (int a = 0; a < 3 && skip; ++a) {
+                    Axis& x = ax[a];
+                    __mmask16 m = _mm512_mask_cmp_ps_mask(skip & x.moves, x.exit, block_exit, _CMP_LE_OQ);
+                    while (m) {
+                        const __mmask16 left = step_axis(x, m, vV);
+                        act &= ~left;
+                        skip &= ~left;
+                        m = _mm512_mask_cmp_ps_mask(m & ~left, x.exit, block_exit, _CMP_LE_OQ);
+                    }
+                }
+            }
+            if (vis) {
+                const __m512 enter = _mm512_max_ps(_mm512_max_ps(ax[2].enter, ax[1].enter), ax[0].enter);
+                const __m512 exit = _mm512_min_ps(_mm512_min_ps(ax[2].exit, ax[1].exit), ax[0].exit);
+                const __m512 lo = _mm512_max_ps(enter, t_near);
+                const __m512i idx = _mm512_add_epi32(
+                    ax[0].cell,
+                    _mm512_mullo_epi32(vV, _mm512_add_epi32(ax[1].cell, _mm512_mullo_epi32(vV, ax[2].cell))));
+                __mmask16 rec = _mm512_mask_cmp_ps_mask(vis, lo, t_far, _CMP_LE_OQ);
+                rec = _mm512_mask_cmp_ps_mask(rec, lo, exit, _CMP_LT_OQ);
+                rec = test_bits(occ.voxel_words.data(), idx, rec);
+                if (rec) {
+                    for (int a = 0; a < 3; ++a) {
+                        const Axis& x = ax[a];
+                        const __m512 cell = _mm512_cvtepi32_ps(x.cell);
+                        const __m512 cell1 =
+                            _mm512_cvtepi32_ps(_mm512_add_epi32(x.cell, _mm512_set1_epi32(1)));
+                        const __m512 pos = _mm512_fmadd_ps(lo, x.gd, x.go);
+                        // std::clamp(p, c, c + 1) = std::min(std::max(p, c), c + 1)
+                        const __m512 clamped = _mm512_min_ps(cell1, _mm512_max_ps(cell, pos));
+                        const __mmask16 face = _mm512_mask_cmp_ps_mask(x.moves, x.enter, lo, _CMP_EQ_OQ);
+                        const __m512 plane = _mm512_mask_mov_ps(cell1, x.forward, cell);
+                        _mm512_store_ps(rec_g[a], _mm512_mask_mov_ps(clamped, face, plane));
+                    }
+                    _mm512_store_ps(rec_t, lo);
+                    _mm512_store_si512(rec_idx, idx);
+                    for (std::uint32_t m = rec; m; m &= m - 1) {
+                        const int lane = std::countr_zero(m);
+                        RayPoints& p = out[L.ray[lane]];
+                        const std::uint32_t k = p.count++;
+                        p.t[k] = rec_t[lane];
+                        p.g[k][0] = rec_g[0][lane];
+                        p.g[k][1] = rec_g[1][lane];
+                        p.g[k][2] = rec_g[2][lane];
+                        p.voxel[k] = rec_idx[lane];
+                        if (p.count == H) {
+                            act &= __mmask16(~(1u << lane));
+                            vis &= __mmask16(~(1u << lane));
+                        }
+                    }
+                }
+                const __mmask16 beyond = _mm512_mask_cmp_ps_mask(vis, exit, t_far, _CMP_GT_OQ);
+                act &= ~beyond;
+                vis &= ~beyond;
+                for (int a = 0; a < 3 && vis; ++a) {
+                    const __mmask16 m = _mm512_mask_cmp_ps_mask(vis, ax[a].exit, exit, _CMP_EQ_OQ);
+                    if (!m) continue;
+                    const __mmask16 left = step_axis(ax[a], m, vV);
+                    act &= ~left;
+                    vis &= ~left;
+                }
+            }
+            for (std::uint32_t done = live & ~std::uint32_t(act); done; done &= done - 1) {
+                const std::uint32_t i = L.ray[std::countr_zero(done)];
+                status[i] = out[i].count ? TraceStatus::ok : TraceStatus::miss;
+            }
+            live = act;
+        } while (act && (draining || std::popcount(std::uint32_t(act)) > kLanes / 2));
+        for (int a = 0; a < 3; ++a) {
+            _mm512_store_ps(L.enter[a], ax[a].enter);
+            _mm512_store_ps(L.exit[a], ax[a].exit);
+            _mm512_store_si512(L.cell[a], ax[a].cell);
+        }
+        live = refill(geo, rays, next, out, status, L, live);
+    }
+}
+
+#undef LSNIF_AVX512
+
+bool detect_walk_avx512() {
+    __builtin_cpu_init();
+    return __builtin_cpu_supports("avx512f") && __builtin_cpu_supports("avx512bw") &&
+           __builtin_cpu_supports("avx512dq") && __builtin_cpu_supports("avx512vl");
+}
+
+#endif
+
+}  // namespace
+
+bool simd_walk_available() {
+#if LSNIF_HAVE_X86
+    static const bool available = detect_walk_avx512();
+    return available;
+#else
+    return false;
+#endif
+}
+
+void trace_points_batch(const Geometry& geo, const OccupancyGrid& occ, std::span<const Ray> rays,
+                        RayPoints* out, TraceStatus* status) {
+#if LSNIF_HAVE_X86
+    if (simd_walk_available() && geo.V == occ.V) return trace_batch_avx512(geo, occ, rays, out, status);
+#endif
+    for (std::size_t i = 0; i < rays.size(); ++i) status[i] = trace_points(geo, occ, rays[i], out[i]);
+}
+
+}  // namespace lsnif::format
