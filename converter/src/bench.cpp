@@ -235,6 +235,48 @@ json bench_infer(const BenchOptions& o) {
                     {"network_fraction", double(st.inferred) / double(rays.size())},
                     {"culled_fraction", double(st.culled) / double(rays.size())}};
     };
+    // The pass's stages, cumulatively, on the rays that reach the network: each rate covers
+    // its stage and those before it, so 1/rate differences are per-stage costs.
+    auto stages = [&](const format::Runtime& rt) {
+        constexpr std::size_t kChunk = 256;  // intersect()'s chunk
+        auto rate = [&](auto&& chunk) {
+            const std::uint32_t T = o.threads;
+            const std::size_t per = (reach.size() + T - 1) / T;
+            std::uint64_t total = 0;
+            const auto t0 = Clock::now();
+            do {
+                base::run_on_threads(T, [&](std::uint32_t t) {
+                    std::vector<format::RayPoints> pts(kChunk);
+                    std::vector<format::TraceStatus> status(kChunk);
+                    std::vector<float> row(rt.geo.input_width);
+                    const std::size_t b = std::min(reach.size(), t * per),
+                                      e = std::min(reach.size(), b + per);
+                    for (std::size_t c = b; c < e; c += kChunk)
+                        chunk(std::span(reach).subspan(c, std::min(kChunk, e - c)), pts, status, row);
+                });
+                total += reach.size();
+            } while (seconds_since(t0) < o.min_seconds);
+            return double(total) / seconds_since(t0);
+        };
+        const auto grid = rt.grid_views();
+        auto scalar_walk = [&](std::span<const format::Ray> rays, auto& pts, auto& status, auto&) {
+            for (std::size_t i = 0; i < rays.size(); ++i)
+                status[i] = format::trace_points(rt.geo, rt.occupancy, rays[i], pts[i]);
+        };
+        auto walk = [&](std::span<const format::Ray> rays, auto& pts, auto& status, auto&) {
+            format::trace_points_batch(rt.geo, rt.occupancy, rays, pts.data(), status.data());
+        };
+        auto walk_encode = [&](std::span<const format::Ray> rays, auto& pts, auto& status, auto& row) {
+            walk(rays, pts, status, row);
+            for (std::size_t i = 0; i < rays.size(); ++i)
+                if (status[i] == format::TraceStatus::ok)
+                    format::encode_points(rt.geo, grid.data(), pts[i], row.data());
+        };
+        return json{{"walk_scalar_rays_per_second", rate(scalar_walk)},
+                    {"walk_rays_per_second", rate(walk)},
+                    {"walk_16_lane", format::simd_walk_available()},
+                    {"walk_encode_rays_per_second", rate(walk_encode)}};
+    };
     // fp32 (the reference; the top-level figures) and, where the CPU has AVX-512 BF16, the
     // bf16 hidden layers lsnif_open picks there.
     const format::Runtime rt32 = format::make_runtime(model, format::MlpArithmetic::fp32);
@@ -243,7 +285,8 @@ json bench_infer(const BenchOptions& o) {
               {"cpu", cpu_model()},
               {"threads", o.threads},
               {"through_network", run(rt32, reach)},
-              {"mixed_with_early_out", run(rt32, mix)}};
+              {"mixed_with_early_out", run(rt32, mix)},
+              {"stages", stages(rt32)}};
     const format::Runtime rt16 = format::make_runtime(model, format::MlpArithmetic::bf16);
     if (format::mlp_arithmetic(rt16.net) == format::MlpArithmetic::bf16)
         r["bf16"] = {{"through_network", run(rt16, reach)}, {"mixed_with_early_out", run(rt16, mix)}};
@@ -304,6 +347,21 @@ std::string bench_text(const json& r) {
             }
             s += "\n";
         }
+        const json& st = r["stages"];
+        const double T = r["threads"].get<int>();
+        const double walk1 = st["walk_scalar_rays_per_second"].get<double>(),
+                     walk = st["walk_rays_per_second"].get<double>(),
+                     enc = st["walk_encode_rays_per_second"].get<double>(),
+                     all = r.contains("bf16") ? r["bf16"]["through_network"]["rays_per_second"].get<double>()
+                                              : r["through_network"]["rays_per_second"].get<double>();
+        std::snprintf(
+            buf, sizeof buf,
+            "stages, thread-ns per ray reaching the network: walk %.0f (%s; scalar walk %.0f, %.2fx), "
+            "encode %.0f, MLP + decode %.0f (%s)\n",
+            1e9 * T / walk, st["walk_16_lane"].get<bool>() ? "16 lanes" : "scalar", 1e9 * T / walk1,
+            walk / walk1, 1e9 * T * (1 / enc - 1 / walk), 1e9 * T * (1 / all - 1 / enc),
+            r.contains("bf16") ? "bf16" : "fp32");
+        s += buf;
     }
     return s;
 }

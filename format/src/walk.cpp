@@ -213,16 +213,23 @@ OccupancyGrid::OccupancyGrid(std::uint32_t V, std::vector<std::uint8_t> voxel_bi
     blocks.assign(std::size_t(nb) * nb * nb, 0);
     const std::uint64_t voxels = std::uint64_t(V) * V * V;
     voxel_words.assign((voxels + 31) / 32, 0);
-    block_words.assign((blocks.size() + 31) / 32, 0);
+    block_words.assign((voxels + 31) / 32, 0);
+    auto block_of = [&](std::uint32_t x, std::uint32_t y, std::uint32_t z) {
+        return x / kBlock + nb * (y / kBlock + std::size_t(nb) * (z / kBlock));
+    };
     for (std::uint32_t z = 0; z < V; ++z)
         for (std::uint32_t y = 0; y < V; ++y)
             for (std::uint32_t x = 0; x < V; ++x) {
                 const std::uint64_t i = x + std::uint64_t(V) * (y + std::uint64_t(V) * z);
                 if (!((bits[i >> 3] >> (i & 7)) & 1u)) continue;
                 voxel_words[i >> 5] |= 1u << (i & 31);
-                const std::size_t b = x / kBlock + nb * (y / kBlock + std::size_t(nb) * (z / kBlock));
-                blocks[b] = 1;
-                block_words[b >> 5] |= 1u << (b & 31);
+                blocks[block_of(x, y, z)] = 1;
+            }
+    for (std::uint32_t z = 0; z < V; ++z)
+        for (std::uint32_t y = 0; y < V; ++y)
+            for (std::uint32_t x = 0; x < V; ++x) {
+                const std::uint64_t i = x + std::uint64_t(V) * (y + std::uint64_t(V) * z);
+                if (blocks[block_of(x, y, z)]) block_words[i >> 5] |= 1u << (i & 31);
             }
 }
 
@@ -350,7 +357,6 @@ LSNIF_AVX512 void trace_batch_avx512(const Geometry& geo, const OccupancyGrid& o
     std::size_t next = 0;
     std::uint32_t live = refill(geo, rays, next, out, status, L, 0);
     const __m512i vV = _mm512_set1_epi32(int(geo.V));
-    const __m512i vnb = _mm512_set1_epi32(int(occ.nb));
     const __m512i vB = _mm512_set1_epi32(int(OccupancyGrid::kBlock));
     const __m512 vinf = _mm512_set1_ps(kInf);
     const std::uint32_t H = geo.H;
@@ -358,6 +364,7 @@ LSNIF_AVX512 void trace_batch_avx512(const Geometry& geo, const OccupancyGrid& o
     alignas(64) std::uint32_t rec_idx[kLanes];
     while (live) {
         Axis ax[3];
+#pragma GCC unroll 3
         for (int a = 0; a < 3; ++a) {
             Axis& x = ax[a];
             x.go = _mm512_load_ps(L.go[a]);
@@ -377,17 +384,18 @@ LSNIF_AVX512 void trace_batch_avx512(const Geometry& geo, const OccupancyGrid& o
         // free (or no rays are left to refill them with).
         const bool draining = next == rays.size();
         do {
-            const __m512i bidx = _mm512_add_epi32(
-                _mm512_srli_epi32(ax[0].cell, 2),
-                _mm512_mullo_epi32(
-                    vnb, _mm512_add_epi32(_mm512_srli_epi32(ax[1].cell, 2),
-                                          _mm512_mullo_epi32(vnb, _mm512_srli_epi32(ax[2].cell, 2)))));
-            const __mmask16 occupied = test_bits(occ.block_words.data(), bidx, act);
+            // Both maps are indexed by voxel, so their two gathers issue together.
+            const __m512i idx = _mm512_add_epi32(
+                ax[0].cell,
+                _mm512_mullo_epi32(vV, _mm512_add_epi32(ax[1].cell, _mm512_mullo_epi32(vV, ax[2].cell))));
+            const __mmask16 occupied = test_bits(occ.block_words.data(), idx, act);
+            const __mmask16 voxel_occupied = test_bits(occ.voxel_words.data(), idx, act);
             __mmask16 skip = act & ~occupied;
             __mmask16 vis = act & occupied;
             if (skip) {
                 // Leave the empty block: the first of its boundary planes reached.
                 __m512 block_exit = vinf;
+#pragma GCC unroll 3
                 for (int a = 0; a < 3; ++a) {
                     const Axis& x = ax[a];
                     const __m512i b0 = _mm512_slli_epi32(_mm512_srli_epi32(x.cell, 2), 2);
@@ -397,7 +405,8 @@ LSNIF_AVX512 void trace_batch_avx512(const Geometry& geo, const OccupancyGrid& o
                 const __mmask16 beyond = _mm512_mask_cmp_ps_mask(skip, block_exit, t_far, _CMP_GT_OQ);
                 act &= ~beyond;
                 skip &= ~beyond;
-                for (int a = 0; a < 3 && skip; ++a) {
+#pragma GCC unroll 3
+                for (int a = 0; a < 3; ++a) {
                     Axis& x = ax[a];
                     __mmask16 m = _mm512_mask_cmp_ps_mask(skip & x.moves, x.exit, block_exit, _CMP_LE_OQ);
                     while (m) {
@@ -412,13 +421,11 @@ LSNIF_AVX512 void trace_batch_avx512(const Geometry& geo, const OccupancyGrid& o
                 const __m512 enter = _mm512_max_ps(_mm512_max_ps(ax[2].enter, ax[1].enter), ax[0].enter);
                 const __m512 exit = _mm512_min_ps(_mm512_min_ps(ax[2].exit, ax[1].exit), ax[0].exit);
                 const __m512 lo = _mm512_max_ps(enter, t_near);
-                const __m512i idx = _mm512_add_epi32(
-                    ax[0].cell,
-                    _mm512_mullo_epi32(vV, _mm512_add_epi32(ax[1].cell, _mm512_mullo_epi32(vV, ax[2].cell))));
                 __mmask16 rec = _mm512_mask_cmp_ps_mask(vis, lo, t_far, _CMP_LE_OQ);
                 rec = _mm512_mask_cmp_ps_mask(rec, lo, exit, _CMP_LT_OQ);
-                rec = test_bits(occ.voxel_words.data(), idx, rec);
+                rec &= voxel_occupied;
                 if (rec) {
+#pragma GCC unroll 3
                     for (int a = 0; a < 3; ++a) {
                         const Axis& x = ax[a];
                         const __m512 cell = _mm512_cvtepi32_ps(x.cell);
@@ -451,7 +458,8 @@ LSNIF_AVX512 void trace_batch_avx512(const Geometry& geo, const OccupancyGrid& o
                 const __mmask16 beyond = _mm512_mask_cmp_ps_mask(vis, exit, t_far, _CMP_GT_OQ);
                 act &= ~beyond;
                 vis &= ~beyond;
-                for (int a = 0; a < 3 && vis; ++a) {
+#pragma GCC unroll 3
+                for (int a = 0; a < 3; ++a) {
                     const __mmask16 m = _mm512_mask_cmp_ps_mask(vis, ax[a].exit, exit, _CMP_EQ_OQ);
                     if (!m) continue;
                     const __mmask16 left = step_axis(ax[a], m, vV);
@@ -465,6 +473,7 @@ LSNIF_AVX512 void trace_batch_avx512(const Geometry& geo, const OccupancyGrid& o
             }
             live = act;
         } while (act && (draining || std::popcount(std::uint32_t(act)) > kLanes / 2));
+#pragma GCC unroll 3
         for (int a = 0; a < 3; ++a) {
             _mm512_store_ps(L.enter[a], ax[a].enter);
             _mm512_store_ps(L.exit[a], ax[a].exit);

@@ -80,6 +80,16 @@ grep -q "^error: --memory-budget 1024 bytes is below the BVHs" "$work/err" || ba
 # bench memory names the object and both byte counts.
 "$lsnif" bench memory "$out" | grep -q "ChineseDragon-10kv *19994" || bad "bench memory output"
 
+# bench infer reports every stage of the inference pass with a positive rate.
+"$lsnif" bench infer --threads 1 --seconds 0.01 --json >"$work/infer.json" || bad "bench infer exited $?"
+python3 - "$work/infer.json" <<'PY' || bad "bench infer stages"
+import json, sys
+st = json.load(open(sys.argv[1]))["stages"]
+keys = ["walk_scalar_rays_per_second", "walk_rays_per_second", "walk_encode_rays_per_second"]
+assert all(st[k] > 0 for k in keys), st
+assert st["walk_encode_rays_per_second"] < st["walk_rays_per_second"], st  # encoding adds work
+PY
+
 # The reference renderer: a P6 image of the requested size, not all background.
 "$render" "$out" "$work/r.ppm" 64 48 >/dev/null || bad "render exited $?"
 head -c 13 "$work/r.ppm" | cmp -s - <(printf 'P6\n64 48\n255\n') || bad "render header"

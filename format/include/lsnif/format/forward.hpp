@@ -98,8 +98,8 @@ struct OccupancyGrid {
     std::uint32_t V = 0, nb = 0;
     std::vector<std::uint8_t> bits;    // OCCU layout
     std::vector<std::uint8_t> blocks;  // nb^3 bytes
-    // The same two maps as bit arrays of 32-bit words (bit i of word i / 32), for the
-    // 16-lane walk's gathers.
+    // Both maps per voxel, as bit arrays of 32-bit words (bit i of word i / 32), for the
+    // 16-lane walk's gathers: voxel i is occupied; voxel i's block has an occupied voxel.
     std::vector<std::uint32_t> voxel_words, block_words;
     OccupancyGrid() = default;
     OccupancyGrid(std::uint32_t V, std::vector<std::uint8_t> voxel_bits);
