@@ -274,7 +274,7 @@ json bench_infer(const BenchOptions& o) {
         };
         return json{{"walk_scalar_rays_per_second", rate(scalar_walk)},
                     {"walk_rays_per_second", rate(walk)},
-                    {"walk_16_lane", format::simd_walk_available()},
+                    {"walk_16_lane", format::avx512_available()},
                     {"walk_encode_rays_per_second", rate(walk_encode)}};
     };
     // fp32 (the reference; the top-level figures) and, where the CPU has AVX-512 BF16, the

@@ -11,7 +11,13 @@
 #include <cstring>
 #include <limits>
 
-#if defined(__F16C__)
+#if defined(__x86_64__) && defined(__GNUC__)
+#define LSNIF_HAVE_X86 1
+#include <immintrin.h>
+// GCC 12's AVX-512 intrinsics start from _mm*_undefined_*(), which -Wmaybe-uninitialized
+// reports as a use of an uninitialized value (a false positive).
+#pragma GCC diagnostic ignored "-Wmaybe-uninitialized"
+#elif defined(__F16C__)
 #include <immintrin.h>
 #endif
 
@@ -54,7 +60,9 @@ Geometry make_geometry(const ModelDesc& d) {
 
 // ---- encoding -------------------------------------------------------------------------
 
-void level_corners(const Geometry& geo, const LevelInfo& lv, const float g[3], Corners& out) {
+namespace {
+
+void level_corners_scalar(const Geometry& geo, const LevelInfo& lv, const float g[3], Corners& out) {
     std::uint32_t ci[3][2];
     float cw[3][2];
     int cn[3];
@@ -85,6 +93,72 @@ void level_corners(const Geometry& geo, const LevelInfo& lv, const float g[3], C
                 out.weight[out.n] = cw[0][x] * cw[1][y] * cw[2][z];
                 ++out.n;
             }
+}
+
+#if LSNIF_HAVE_X86
+
+// level_corners_scalar with the three axes in one SSE vector and the eight corners in one
+// AVX vector, compressed to the corners that carry weight. Same IEEE operations in the
+// same order (the weight is (w_x * w_y) * w_z), so bit-identical results: std::max(v, lo)
+// is MAXPS(lo, v) and std::min(v, hi) is MINPS(hi, v). A zero-weight corner is one whose
+// axis factor is 0 (f == 0 drops the upper corner, f == 1 the lower one); a product of
+// non-zero factors cannot underflow, each being at least 2^-24.
+__attribute__((target("avx512f,avx512vl,avx512bw,avx512dq,fma"))) void level_corners_avx512(
+    const Geometry& geo, const LevelInfo& lv, const float g[3], Corners& out) {
+    const __m128 s = _mm_mul_ps(_mm_maskz_loadu_ps(0x7, g), _mm_set1_ps(lv.scale));
+    __m128 fl = _mm_floor_ps(s);
+    fl = _mm_mask_blend_ps(_mm_cmp_ps_mask(fl, _mm_set1_ps(float(lv.res)), _CMP_GE_OQ), fl,
+                           _mm_set1_ps(float(lv.res - 1)));  // s == res: last cell
+    fl = _mm_mask_blend_ps(_mm_cmp_ps_mask(fl, _mm_setzero_ps(), _CMP_LT_OQ), fl, _mm_setzero_ps());
+    const __m128 f = _mm_min_ps(_mm_set1_ps(1.0f), _mm_max_ps(_mm_setzero_ps(), _mm_sub_ps(s, fl)));
+    const __m128i i0 = _mm_cvttps_epi32(fl);
+    // Lanes 0-2: lower corner per axis; lanes 4-6: upper corner.
+    const __m256i ci =
+        _mm256_inserti128_si256(_mm256_castsi128_si256(i0), _mm_add_epi32(i0, _mm_set1_epi32(1)), 1);
+    const __m256 cw = _mm256_insertf128_ps(_mm256_castps128_ps256(_mm_sub_ps(_mm_set1_ps(1.0f), f)), f, 1);
+    // Corner c = x + 2y + 4z, the scalar loops' order (x fastest).
+    const __m256i sel_x = _mm256_setr_epi32(0, 4, 0, 4, 0, 4, 0, 4);
+    const __m256i sel_y = _mm256_setr_epi32(1, 1, 5, 5, 1, 1, 5, 5);
+    const __m256i sel_z = _mm256_setr_epi32(2, 2, 2, 2, 6, 6, 6, 6);
+    const __m256i X = _mm256_permutexvar_epi32(sel_x, ci), Y = _mm256_permutexvar_epi32(sel_y, ci),
+                  Z = _mm256_permutexvar_epi32(sel_z, ci);
+    const __m256 wx = _mm256_permutexvar_ps(sel_x, cw), wy = _mm256_permutexvar_ps(sel_y, cw),
+                 wz = _mm256_permutexvar_ps(sel_z, cw);
+    __m256i idx;
+    if (lv.dense) {
+        const __m256i stride = _mm256_set1_epi32(int(lv.stride));
+        idx = _mm256_add_epi32(
+            X, _mm256_mullo_epi32(stride, _mm256_add_epi32(Y, _mm256_mullo_epi32(stride, Z))));
+    } else {
+        idx = _mm256_xor_si256(_mm256_xor_si256(_mm256_mullo_epi32(X, _mm256_set1_epi32(int(geo.primes[0]))),
+                                                _mm256_mullo_epi32(Y, _mm256_set1_epi32(int(geo.primes[1])))),
+                               _mm256_mullo_epi32(Z, _mm256_set1_epi32(int(geo.primes[2]))));
+        idx = _mm256_and_si256(idx, _mm256_set1_epi32(int(lv.mask)));
+    }
+    const __m256 w = _mm256_mul_ps(_mm256_mul_ps(wx, wy), wz);
+    const __m256 zero = _mm256_setzero_ps();
+    const __mmask8 keep = _mm256_cmp_ps_mask(wx, zero, _CMP_NEQ_OQ) &
+                          _mm256_cmp_ps_mask(wy, zero, _CMP_NEQ_OQ) &
+                          _mm256_cmp_ps_mask(wz, zero, _CMP_NEQ_OQ);
+    _mm256_storeu_si256(reinterpret_cast<__m256i*>(out.index), _mm256_maskz_compress_epi32(keep, idx));
+    _mm256_storeu_ps(out.weight, _mm256_maskz_compress_ps(keep, w));
+    out.n = std::uint32_t(__builtin_popcount(keep));
+}
+
+#endif
+
+}  // namespace
+
+void level_corners(const Geometry& geo, const LevelInfo& lv, const float g[3], Corners& out) {
+#if LSNIF_HAVE_X86
+    static const bool avx512 = avx512_available();
+    if (avx512) return level_corners_avx512(geo, lv, g, out);
+#endif
+    level_corners_scalar(geo, lv, g, out);
+}
+
+void level_corners_reference(const Geometry& geo, const LevelInfo& lv, const float g[3], Corners& out) {
+    level_corners_scalar(geo, lv, g, out);
 }
 
 namespace {

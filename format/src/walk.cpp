@@ -495,7 +495,7 @@ bool detect_walk_avx512() {
 
 }  // namespace
 
-bool simd_walk_available() {
+bool avx512_available() {
 #if LSNIF_HAVE_X86
     static const bool available = detect_walk_avx512();
     return available;
@@ -507,7 +507,7 @@ bool simd_walk_available() {
 void trace_points_batch(const Geometry& geo, const OccupancyGrid& occ, std::span<const Ray> rays,
                         RayPoints* out, TraceStatus* status) {
 #if LSNIF_HAVE_X86
-    if (simd_walk_available() && geo.V == occ.V) return trace_batch_avx512(geo, occ, rays, out, status);
+    if (avx512_available() && geo.V == occ.V) return trace_batch_avx512(geo, occ, rays, out, status);
 #endif
     for (std::size_t i = 0; i < rays.size(); ++i) status[i] = trace_points(geo, occ, rays[i], out[i]);
 }

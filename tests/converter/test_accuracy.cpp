@@ -131,8 +131,7 @@ void check_walks_agree(const Shipped& s, const std::string& name) {
         }
         same += equal;
     }
-    MESSAGE(name << ": 16-lane walk "
-                 << std::string(simd_walk_available() ? "(AVX-512)" : "(scalar fallback)")
+    MESSAGE(name << ": 16-lane walk " << std::string(avx512_available() ? "(AVX-512)" : "(scalar fallback)")
                  << " equals the scalar walk on " << same << " of " << s.rays.size() << " held-out rays ("
                  << traced << " reach the network)");
     CHECK(same == s.rays.size());

@@ -77,7 +77,7 @@ std::vector<std::uint8_t> shell_occupancy(const ModelDesc& d, std::uint32_t seed
 }  // namespace
 
 TEST_CASE("the 16-lane walk returns the scalar walk's points bit for bit") {
-    const std::string path = simd_walk_available() ? "in use" : "not available: scalar on both sides";
+    const std::string path = avx512_available() ? "in use" : "not available: scalar on both sides";
     MESSAGE("16-lane AVX-512 walk " << path);
     // V = 7 and 33 leave partial blocks at the far faces; H = 1 stops walks after one point,
     // H = 64 lets most walks run to the box's far side.
@@ -137,4 +137,35 @@ TEST_CASE("the 16-lane walk handles batches shorter than its lanes and empty gri
             }
         }
     }
+}
+
+TEST_CASE("the vector corner computation matches the scalar reference bit for bit") {
+    // Hashed levels (aligned and not), a dense level, and points on lattice planes, on the
+    // grid's far faces (s == res) and at random.
+    ModelDesc d = shell_desc(32, 18);
+    d.level_resolution = {64, 128, 40, 8};
+    d.log2_table_size = 12;  // 9^3 = 729 <= 4096: the res-8 level is dense
+    const Geometry geo = make_geometry(d);
+    REQUIRE(geo.levels[3].dense);
+    REQUIRE(!geo.levels[0].dense);
+    std::mt19937 rng(8);
+    std::uniform_real_distribution<float> u(0.f, 32.f);
+    std::uniform_int_distribution<int> plane(0, 32);
+    std::size_t sparse = 0;
+    for (int i = 0; i < 20000; ++i) {
+        float g[3] = {u(rng), u(rng), u(rng)};
+        for (int a = 0; a < 3; ++a)
+            if ((i >> a) % 3 == 0) g[a] = float(plane(rng));  // on a voxel face
+        if (i % 17 == 0) g[i % 3] = 32.0f;
+        for (std::uint32_t l = 0; l < geo.L; ++l) {
+            Corners got, want;
+            level_corners(geo, geo.levels[l], g, got);
+            level_corners_reference(geo, geo.levels[l], g, want);
+            REQUIRE(got.n == want.n);
+            sparse += want.n < 8;
+            REQUIRE(std::memcmp(got.index, want.index, want.n * sizeof want.index[0]) == 0);
+            REQUIRE(std::memcmp(got.weight, want.weight, want.n * sizeof want.weight[0]) == 0);
+        }
+    }
+    CHECK(sparse > 1000);  // the dropped-corner cases are exercised
 }

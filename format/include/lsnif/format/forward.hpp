@@ -115,10 +115,12 @@ TraceStatus trace_points(const Geometry& geo, const OccupancyGrid& occupancy, co
 
 // trace_points(geo, occ, rays[i], out[i]) for every i, with status[i] its return value:
 // bit-identical results, computed 16 rays at a time with AVX-512 where the CPU has it
-// (simd_walk_available()). out and status hold rays.size() elements.
+// (avx512_available()). out and status hold rays.size() elements.
 void trace_points_batch(const Geometry& geo, const OccupancyGrid& occ, std::span<const Ray> rays,
                         RayPoints* out, TraceStatus* status);
-bool simd_walk_available();
+// AVX-512 F/BW/DQ/VL in CPUID and enabled by the OS: what the 16-lane walk and the
+// vector corner computation (level_corners) need; both fall back to scalar code without it.
+bool avx512_available();
 
 // Every voxel crossed (occupied or not), in order, with entry t: for tests and tools.
 TraceStatus trace_all_voxels(const Geometry& geo, const Ray& ray, std::vector<std::uint32_t>& voxels,
@@ -135,6 +137,8 @@ struct Corners {
     float weight[8];
 };
 void level_corners(const Geometry& geo, const LevelInfo& lv, const float g[3], Corners& out);
+// The portable scalar level_corners, which the AVX-512 one must match bit for bit (tests).
+void level_corners_reference(const Geometry& geo, const LevelInfo& lv, const float g[3], Corners& out);
 
 // Element type of a GridView.
 enum class GridElement : std::uint8_t {
