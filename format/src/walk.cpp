@@ -405,16 +405,22 @@ LSNIF_AVX512 void trace_batch_avx512(const Geometry& geo, const OccupancyGrid& o
                 const __mmask16 beyond = _mm512_mask_cmp_ps_mask(skip, block_exit, t_far, _CMP_GT_OQ);
                 act &= ~beyond;
                 skip &= ~beyond;
+                // The scalar walk advances axis 0 fully, then 1, then 2; the axes do not
+                // depend on each other, so they advance here together (three independent
+                // chains). A lane that leaves the grid on one axis is over, whatever the
+                // other axes then did.
+                __mmask16 m[3];
 #pragma GCC unroll 3
-                for (int a = 0; a < 3; ++a) {
-                    Axis& x = ax[a];
-                    __mmask16 m = _mm512_mask_cmp_ps_mask(skip & x.moves, x.exit, block_exit, _CMP_LE_OQ);
-                    while (m) {
-                        const __mmask16 left = step_axis(x, m, vV);
-                        act &= ~left;
-                        skip &= ~left;
-                        m = _mm512_mask_cmp_ps_mask(m & ~left, x.exit, block_exit, _CMP_LE_OQ);
-                    }
+                for (int a = 0; a < 3; ++a)
+                    m[a] = _mm512_mask_cmp_ps_mask(skip & ax[a].moves, ax[a].exit, block_exit, _CMP_LE_OQ);
+                while (m[0] | m[1] | m[2]) {
+                    __mmask16 left = 0;
+#pragma GCC unroll 3
+                    for (int a = 0; a < 3; ++a) left |= step_axis(ax[a], m[a], vV);
+                    act &= ~left;
+#pragma GCC unroll 3
+                    for (int a = 0; a < 3; ++a)
+                        m[a] = _mm512_mask_cmp_ps_mask(m[a] & ~left, ax[a].exit, block_exit, _CMP_LE_OQ);
                 }
             }
             if (vis) {
