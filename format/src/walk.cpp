@@ -347,144 +347,169 @@ LSNIF_AVX512 inline __mmask16 test_bits(const std::uint32_t* words, __m512i inde
     return _mm512_mask_test_epi32_mask(m, w, bit);
 }
 
-// The scalar walk's loop body for 16 rays: std::max(a, b) is _mm512_max_ps(b, a) and
-// std::min(a, b) is _mm512_min_ps(b, a) for every input, NaN included (MAXPS/MINPS return
-// their second operand unless the first compares greater/less), and ordered comparisons
-// are false on NaN as in C++, so each lane computes what the scalar walk computes.
+// Linear voxel index x + V * (y + V * z) of each lane's cell.
+LSNIF_AVX512 inline __m512i voxel_index(const Axis (&ax)[3], __m512i vV) {
+    return _mm512_add_epi32(
+        ax[0].cell, _mm512_mullo_epi32(vV, _mm512_add_epi32(ax[1].cell, _mm512_mullo_epi32(vV, ax[2].cell))));
+}
+
+// The scalar walk's empty-block branch for the lanes in `skip` (their cell's block is
+// empty): leave the block at the first of its boundary planes reached. Returns the lanes
+// whose walk is over (the block's exit lies beyond t_far, or they left the grid).
+LSNIF_AVX512 inline __mmask16 skip_empty_block(Axis (&ax)[3], __mmask16 skip, __m512 t_far, __m512i vV) {
+    const __m512i vB = _mm512_set1_epi32(int(OccupancyGrid::kBlock));
+    __m512 block_exit = _mm512_set1_ps(kInf);
+#pragma GCC unroll 3
+    for (int a = 0; a < 3; ++a) {
+        const Axis& x = ax[a];
+        const __m512i b0 = _mm512_slli_epi32(_mm512_srli_epi32(x.cell, 2), 2);
+        const __m512i plane = _mm512_mask_min_epi32(b0, x.forward, _mm512_add_epi32(b0, vB), vV);
+        block_exit = _mm512_mask_min_ps(block_exit, x.moves, plane_t(x, plane), block_exit);
+    }
+    __mmask16 over = _mm512_mask_cmp_ps_mask(skip, block_exit, t_far, _CMP_GT_OQ);
+    skip &= ~over;
+    // The scalar walk advances axis 0 fully, then 1, then 2; the axes do not depend on each
+    // other, so they advance here together (three independent chains). A lane that leaves
+    // the grid on one axis is over, whatever the other axes then did.
+    __mmask16 m[3];
+#pragma GCC unroll 3
+    for (int a = 0; a < 3; ++a)
+        m[a] = _mm512_mask_cmp_ps_mask(skip & ax[a].moves, ax[a].exit, block_exit, _CMP_LE_OQ);
+    while (m[0] | m[1] | m[2]) {
+        __mmask16 left = 0;
+#pragma GCC unroll 3
+        for (int a = 0; a < 3; ++a) left |= step_axis(ax[a], m[a], vV);
+        over |= left;
+#pragma GCC unroll 3
+        for (int a = 0; a < 3; ++a)
+            m[a] = _mm512_mask_cmp_ps_mask(m[a] & ~left, ax[a].exit, block_exit, _CMP_LE_OQ);
+    }
+    return over;
+}
+
+// Where the lanes in `rec` record an entry point, and which voxel.
+struct Entries {
+    alignas(64) float t[kLanes], g[3][kLanes];
+    alignas(64) std::uint32_t voxel[kLanes];
+};
+
+// The scalar walk's voxel branch for the lanes in `vis` (their cell's block is occupied):
+// record the entry point when the cell is occupied and crossed, then step every axis whose
+// boundary comes first. Returns the lanes whose walk is over (H points recorded, t_far
+// reached, or they left the grid).
+LSNIF_AVX512 inline __mmask16 visit_cell(Axis (&ax)[3], __mmask16 vis, __mmask16 voxel_occupied, __m512i idx,
+                                         __m512 t_near, __m512 t_far, __m512i vV, const Lanes& L,
+                                         std::uint32_t H, RayPoints* out) {
+    const __m512 enter = _mm512_max_ps(_mm512_max_ps(ax[2].enter, ax[1].enter), ax[0].enter);
+    const __m512 exit = _mm512_min_ps(_mm512_min_ps(ax[2].exit, ax[1].exit), ax[0].exit);
+    const __m512 lo = _mm512_max_ps(enter, t_near);
+    __mmask16 rec = _mm512_mask_cmp_ps_mask(vis, lo, t_far, _CMP_LE_OQ);
+    rec = _mm512_mask_cmp_ps_mask(rec, lo, exit, _CMP_LT_OQ) & voxel_occupied;
+    __mmask16 over = 0;
+    if (rec) {
+        Entries e;
+#pragma GCC unroll 3
+        for (int a = 0; a < 3; ++a) {  // entry_coordinate()
+            const Axis& x = ax[a];
+            const __m512 cell = _mm512_cvtepi32_ps(x.cell);
+            const __m512 cell1 = _mm512_cvtepi32_ps(_mm512_add_epi32(x.cell, _mm512_set1_epi32(1)));
+            const __m512 pos = _mm512_fmadd_ps(lo, x.gd, x.go);
+            // std::clamp(p, c, c + 1) = std::min(std::max(p, c), c + 1)
+            const __m512 clamped = _mm512_min_ps(cell1, _mm512_max_ps(cell, pos));
+            const __mmask16 face = _mm512_mask_cmp_ps_mask(x.moves, x.enter, lo, _CMP_EQ_OQ);
+            const __m512 plane = _mm512_mask_mov_ps(cell1, x.forward, cell);
+            _mm512_store_ps(e.g[a], _mm512_mask_mov_ps(clamped, face, plane));
+        }
+        _mm512_store_ps(e.t, lo);
+        _mm512_store_si512(e.voxel, idx);
+        for (std::uint32_t m = rec; m; m &= m - 1) {
+            const int lane = std::countr_zero(m);
+            RayPoints& p = out[L.ray[lane]];
+            const std::uint32_t k = p.count++;
+            p.t[k] = e.t[lane];
+            p.g[k][0] = e.g[0][lane];
+            p.g[k][1] = e.g[1][lane];
+            p.g[k][2] = e.g[2][lane];
+            p.voxel[k] = e.voxel[lane];
+            if (p.count == H) over |= __mmask16(1u << lane);
+        }
+        vis &= ~over;
+    }
+    const __mmask16 beyond = _mm512_mask_cmp_ps_mask(vis, exit, t_far, _CMP_GT_OQ);
+    over |= beyond;
+    vis &= ~beyond;
+#pragma GCC unroll 3
+    for (int a = 0; a < 3; ++a) {
+        const __mmask16 m = _mm512_mask_cmp_ps_mask(vis, ax[a].exit, exit, _CMP_EQ_OQ);
+        if (!m) continue;
+        const __mmask16 left = step_axis(ax[a], m, vV);
+        over |= left;
+        vis &= ~left;
+    }
+    return over;
+}
+
+LSNIF_AVX512 inline void load_axes(const Lanes& L, Axis (&ax)[3]) {
+#pragma GCC unroll 3
+    for (int a = 0; a < 3; ++a) {
+        Axis& x = ax[a];
+        x.go = _mm512_load_ps(L.go[a]);
+        x.gd = _mm512_load_ps(L.gd[a]);
+        x.inv = _mm512_load_ps(L.inv[a]);
+        x.enter = _mm512_load_ps(L.enter[a]);
+        x.exit = _mm512_load_ps(L.exit[a]);
+        x.cell = _mm512_load_si512(L.cell[a]);
+        x.step = _mm512_load_si512(L.step[a]);
+        x.moves = _mm512_test_epi32_mask(x.step, x.step);
+        x.forward = _mm512_cmpgt_epi32_mask(x.step, _mm512_setzero_si512());
+    }
+}
+
+// Writes back what the walk changes (the rays' constants never change).
+LSNIF_AVX512 inline void store_axes(const Axis (&ax)[3], Lanes& L) {
+#pragma GCC unroll 3
+    for (int a = 0; a < 3; ++a) {
+        _mm512_store_ps(L.enter[a], ax[a].enter);
+        _mm512_store_ps(L.exit[a], ax[a].exit);
+        _mm512_store_si512(L.cell[a], ax[a].cell);
+    }
+}
+
+// The scalar walk for 16 rays at a time, each lane computing what walk() computes:
+// std::max(a, b) is _mm512_max_ps(b, a) and std::min(a, b) is _mm512_min_ps(b, a) for
+// every input, NaN included (MAXPS/MINPS return their second operand unless the first
+// compares greater/less), and ordered comparisons are false on NaN as in C++.
 LSNIF_AVX512 void trace_batch_avx512(const Geometry& geo, const OccupancyGrid& occ, std::span<const Ray> rays,
                                      RayPoints* out, TraceStatus* status) {
     Lanes L;
     std::size_t next = 0;
     std::uint32_t live = refill(geo, rays, next, out, status, L, 0);
     const __m512i vV = _mm512_set1_epi32(int(geo.V));
-    const __m512i vB = _mm512_set1_epi32(int(OccupancyGrid::kBlock));
-    const __m512 vinf = _mm512_set1_ps(kInf);
-    const std::uint32_t H = geo.H;
-    alignas(64) float rec_t[kLanes], rec_g[3][kLanes];
-    alignas(64) std::uint32_t rec_idx[kLanes];
     while (live) {
         Axis ax[3];
-#pragma GCC unroll 3
-        for (int a = 0; a < 3; ++a) {
-            Axis& x = ax[a];
-            x.go = _mm512_load_ps(L.go[a]);
-            x.gd = _mm512_load_ps(L.gd[a]);
-            x.inv = _mm512_load_ps(L.inv[a]);
-            x.enter = _mm512_load_ps(L.enter[a]);
-            x.exit = _mm512_load_ps(L.exit[a]);
-            x.cell = _mm512_load_si512(L.cell[a]);
-            x.step = _mm512_load_si512(L.step[a]);
-            x.moves = _mm512_test_epi32_mask(x.step, x.step);
-            x.forward = _mm512_cmpgt_epi32_mask(x.step, _mm512_setzero_si512());
-        }
+        load_axes(L, ax);
         const __m512 t_near = _mm512_load_ps(L.t_near);
         const __m512 t_far = _mm512_load_ps(L.t_far);
-        __mmask16 act = __mmask16(live);
-        // Finished lanes leave `act`; the walk stays in registers until half the lanes are
-        // free (or no rays are left to refill them with).
+        // Lanes whose walk is over leave `live`; the walks stay in registers until half the
+        // lanes are free (or no rays are left to refill them with).
         const bool draining = next == rays.size();
         do {
             // Both maps are indexed by voxel, so their two gathers issue together.
-            const __m512i idx = _mm512_add_epi32(
-                ax[0].cell,
-                _mm512_mullo_epi32(vV, _mm512_add_epi32(ax[1].cell, _mm512_mullo_epi32(vV, ax[2].cell))));
-            const __mmask16 occupied = test_bits(occ.block_words.data(), idx, act);
-            const __mmask16 voxel_occupied = test_bits(occ.voxel_words.data(), idx, act);
-            __mmask16 skip = act & ~occupied;
-            __mmask16 vis = act & occupied;
-            if (skip) {
-                // Leave the empty block: the first of its boundary planes reached.
-                __m512 block_exit = vinf;
-#pragma GCC unroll 3
-                for (int a = 0; a < 3; ++a) {
-                    const Axis& x = ax[a];
-                    const __m512i b0 = _mm512_slli_epi32(_mm512_srli_epi32(x.cell, 2), 2);
-                    const __m512i plane = _mm512_mask_min_epi32(b0, x.forward, _mm512_add_epi32(b0, vB), vV);
-                    block_exit = _mm512_mask_min_ps(block_exit, x.moves, plane_t(x, plane), block_exit);
-                }
-                const __mmask16 beyond = _mm512_mask_cmp_ps_mask(skip, block_exit, t_far, _CMP_GT_OQ);
-                act &= ~beyond;
-                skip &= ~beyond;
-                // The scalar walk advances axis 0 fully, then 1, then 2; the axes do not
-                // depend on each other, so they advance here together (three independent
-                // chains). A lane that leaves the grid on one axis is over, whatever the
-                // other axes then did.
-                __mmask16 m[3];
-#pragma GCC unroll 3
-                for (int a = 0; a < 3; ++a)
-                    m[a] = _mm512_mask_cmp_ps_mask(skip & ax[a].moves, ax[a].exit, block_exit, _CMP_LE_OQ);
-                while (m[0] | m[1] | m[2]) {
-                    __mmask16 left = 0;
-#pragma GCC unroll 3
-                    for (int a = 0; a < 3; ++a) left |= step_axis(ax[a], m[a], vV);
-                    act &= ~left;
-#pragma GCC unroll 3
-                    for (int a = 0; a < 3; ++a)
-                        m[a] = _mm512_mask_cmp_ps_mask(m[a] & ~left, ax[a].exit, block_exit, _CMP_LE_OQ);
-                }
-            }
-            if (vis) {
-                const __m512 enter = _mm512_max_ps(_mm512_max_ps(ax[2].enter, ax[1].enter), ax[0].enter);
-                const __m512 exit = _mm512_min_ps(_mm512_min_ps(ax[2].exit, ax[1].exit), ax[0].exit);
-                const __m512 lo = _mm512_max_ps(enter, t_near);
-                __mmask16 rec = _mm512_mask_cmp_ps_mask(vis, lo, t_far, _CMP_LE_OQ);
-                rec = _mm512_mask_cmp_ps_mask(rec, lo, exit, _CMP_LT_OQ);
-                rec &= voxel_occupied;
-                if (rec) {
-#pragma GCC unroll 3
-                    for (int a = 0; a < 3; ++a) {
-                        const Axis& x = ax[a];
-                        const __m512 cell = _mm512_cvtepi32_ps(x.cell);
-                        const __m512 cell1 =
-                            _mm512_cvtepi32_ps(_mm512_add_epi32(x.cell, _mm512_set1_epi32(1)));
-                        const __m512 pos = _mm512_fmadd_ps(lo, x.gd, x.go);
-                        // std::clamp(p, c, c + 1) = std::min(std::max(p, c), c + 1)
-                        const __m512 clamped = _mm512_min_ps(cell1, _mm512_max_ps(cell, pos));
-                        const __mmask16 face = _mm512_mask_cmp_ps_mask(x.moves, x.enter, lo, _CMP_EQ_OQ);
-                        const __m512 plane = _mm512_mask_mov_ps(cell1, x.forward, cell);
-                        _mm512_store_ps(rec_g[a], _mm512_mask_mov_ps(clamped, face, plane));
-                    }
-                    _mm512_store_ps(rec_t, lo);
-                    _mm512_store_si512(rec_idx, idx);
-                    for (std::uint32_t m = rec; m; m &= m - 1) {
-                        const int lane = std::countr_zero(m);
-                        RayPoints& p = out[L.ray[lane]];
-                        const std::uint32_t k = p.count++;
-                        p.t[k] = rec_t[lane];
-                        p.g[k][0] = rec_g[0][lane];
-                        p.g[k][1] = rec_g[1][lane];
-                        p.g[k][2] = rec_g[2][lane];
-                        p.voxel[k] = rec_idx[lane];
-                        if (p.count == H) {
-                            act &= __mmask16(~(1u << lane));
-                            vis &= __mmask16(~(1u << lane));
-                        }
-                    }
-                }
-                const __mmask16 beyond = _mm512_mask_cmp_ps_mask(vis, exit, t_far, _CMP_GT_OQ);
-                act &= ~beyond;
-                vis &= ~beyond;
-#pragma GCC unroll 3
-                for (int a = 0; a < 3; ++a) {
-                    const __mmask16 m = _mm512_mask_cmp_ps_mask(vis, ax[a].exit, exit, _CMP_EQ_OQ);
-                    if (!m) continue;
-                    const __mmask16 left = step_axis(ax[a], m, vV);
-                    act &= ~left;
-                    vis &= ~left;
-                }
-            }
-            for (std::uint32_t done = live & ~std::uint32_t(act); done; done &= done - 1) {
+            const __m512i idx = voxel_index(ax, vV);
+            const __mmask16 block_occupied = test_bits(occ.block_words.data(), idx, __mmask16(live));
+            const __mmask16 voxel_occupied = test_bits(occ.voxel_words.data(), idx, __mmask16(live));
+            const __mmask16 skip = __mmask16(live) & ~block_occupied;
+            const __mmask16 vis = __mmask16(live) & block_occupied;
+            __mmask16 over = 0;
+            if (skip) over |= skip_empty_block(ax, skip, t_far, vV);
+            if (vis) over |= visit_cell(ax, vis, voxel_occupied, idx, t_near, t_far, vV, L, geo.H, out);
+            for (std::uint32_t done = over; done; done &= done - 1) {
                 const std::uint32_t i = L.ray[std::countr_zero(done)];
                 status[i] = out[i].count ? TraceStatus::ok : TraceStatus::miss;
             }
-            live = act;
-        } while (act && (draining || std::popcount(std::uint32_t(act)) > kLanes / 2));
-#pragma GCC unroll 3
-        for (int a = 0; a < 3; ++a) {
-            _mm512_store_ps(L.enter[a], ax[a].enter);
-            _mm512_store_ps(L.exit[a], ax[a].exit);
-            _mm512_store_si512(L.cell[a], ax[a].cell);
-        }
+            live &= ~std::uint32_t(over);
+        } while (live && (draining || std::popcount(live) > kLanes / 2));
+        store_axes(ax, L);
         live = refill(geo, rays, next, out, status, L, live);
     }
 }
