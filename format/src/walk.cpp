@@ -118,12 +118,9 @@ inline float entry_coordinate(const WalkState& w, int a, float lo) {
 // empty blocks are skipped: the walk jumps to the block's exit parameter and resumes in
 // the cell the plain walk would be in at that parameter, so every accepted (occupied)
 // voxel is still reported with the same entry.
+// `w` is a state start_walk returned ok for; the walk consumes it.
 template <class Want, class Visit>
-TraceStatus walk(const Geometry& geo, const Ray& ray, const OccupancyGrid* blocks, Want&& want,
-                 Visit&& visit) {
-    WalkState w;
-    const TraceStatus st = start_walk(geo, ray, w);
-    if (st != TraceStatus::ok) return st;
+void walk(const Geometry& geo, WalkState& w, const OccupancyGrid* blocks, Want&& want, Visit&& visit) {
     const RayGrid& rg = w.rg;
     const int V = int(geo.V);
     int* cell = w.cell;
@@ -142,13 +139,13 @@ TraceStatus walk(const Geometry& geo, const Ray& ray, const OccupancyGrid* block
                 const int plane = step[a] > 0 ? std::min(b0 + B, V) : b0;
                 block_exit = std::min(block_exit, rg.plane_t(a, float(plane)));
             }
-            if (block_exit > w.t_far) return TraceStatus::ok;
+            if (block_exit > w.t_far) return;
             // Advance each axis past every plane reached by block_exit (ties step together).
             for (int a = 0; a < 3; ++a) {
                 if (step[a] == 0) continue;
                 while (exit_a[a] <= block_exit) {
                     cell[a] += step[a];
-                    if (cell[a] < 0 || cell[a] >= V) return TraceStatus::ok;
+                    if (cell[a] < 0 || cell[a] >= V) return;
                     enter_a[a] = exit_a[a];
                     exit_a[a] = rg.plane_t(a, float(step[a] > 0 ? cell[a] + 1 : cell[a]));
                 }
@@ -163,14 +160,14 @@ TraceStatus walk(const Geometry& geo, const Ray& ray, const OccupancyGrid* block
         if (lo <= w.t_far && lo < exit && want(idx)) {
             const float g[3] = {entry_coordinate(w, 0, lo), entry_coordinate(w, 1, lo),
                                 entry_coordinate(w, 2, lo)};
-            if (!visit(idx, lo, g)) return TraceStatus::ok;
+            if (!visit(idx, lo, g)) return;
         }
-        if (exit > w.t_far) return TraceStatus::ok;
+        if (exit > w.t_far) return;
         // Step every axis whose boundary is reached at `exit` (edges and corners at once).
         for (int a = 0; a < 3; ++a) {
             if (exit_a[a] != exit) continue;
             cell[a] += step[a];
-            if (cell[a] < 0 || cell[a] >= V) return TraceStatus::ok;
+            if (cell[a] < 0 || cell[a] >= V) return;
             enter_a[a] = exit_a[a];
             exit_a[a] = rg.plane_t(a, float(step[a] > 0 ? cell[a] + 1 : cell[a]));
         }
@@ -180,11 +177,15 @@ TraceStatus walk(const Geometry& geo, const Ray& ray, const OccupancyGrid* block
 TraceStatus trace_points_impl(const Geometry& geo, const std::uint8_t* occupancy, const OccupancyGrid* blocks,
                               const Ray& ray, RayPoints& out) {
     out.count = 0;
-    RayGrid rg;
-    const TraceStatus st = make_ray_grid(geo, ray, rg, out.t_near, out.t_far);
+    WalkState w;
+    const TraceStatus st = start_walk(geo, ray, w);
+    if (st != TraceStatus::invalid) {  // the clipped segment, also for a miss; not for an invalid ray
+        out.t_near = w.t_near;
+        out.t_far = w.t_far;
+    }
     if (st != TraceStatus::ok) return st;
     walk(
-        geo, ray, blocks, [&](std::uint32_t idx) { return ((occupancy[idx >> 3] >> (idx & 7)) & 1u) != 0; },
+        geo, w, blocks, [&](std::uint32_t idx) { return ((occupancy[idx >> 3] >> (idx & 7)) & 1u) != 0; },
         [&](std::uint32_t idx, float t, const float g[3]) {
             const std::uint32_t k = out.count++;
             out.t[k] = t;
@@ -237,13 +238,17 @@ TraceStatus trace_all_voxels(const Geometry& geo, const Ray& ray, std::vector<st
                              std::vector<float>& entry_t) {
     voxels.clear();
     entry_t.clear();
-    return walk(
-        geo, ray, nullptr, [](std::uint32_t) { return true; },
+    WalkState w;
+    const TraceStatus st = start_walk(geo, ray, w);
+    if (st != TraceStatus::ok) return st;
+    walk(
+        geo, w, nullptr, [](std::uint32_t) { return true; },
         [&](std::uint32_t idx, float t, const float*) {
             voxels.push_back(idx);
             entry_t.push_back(t);
             return true;
         });
+    return TraceStatus::ok;
 }
 
 // ---- 16 walks at once ------------------------------------------------------------------
@@ -293,7 +298,7 @@ std::uint32_t refill(const Geometry& geo, std::span<const Ray> rays, std::size_t
             WalkState w;
             out[i].count = 0;
             const TraceStatus st = start_walk(geo, rays[i], w);
-            if (st != TraceStatus::invalid) {  // as trace_points: set unless the ray is invalid
+            if (st != TraceStatus::invalid) {  // as trace_points_impl
                 out[i].t_near = w.t_near;
                 out[i].t_far = w.t_far;
             }
