@@ -338,6 +338,41 @@ LSNIF_DENSE_KERNEL(dense_avx2, __attribute__((target("avx2,fma"))), 8)
 LSNIF_DENSE_KERNEL(dense_generic, , 4)
 #undef LSNIF_DENSE_KERNEL
 
+// Narrow layers (outputs padded to 16, 32 or 48, e.g. the output layer), where the kernel
+// above would fall back to its generic loop: one weight vector per input feeds 8 rows, the
+// 8 independent FMA chains that cover the FMA latency. Same operations per output in the
+// same order (bias, then input 0, 1, ...), so the same results bit for bit.
+__attribute__((target("avx512f,avx512vl,avx2,fma"))) void dense_narrow_avx512(
+    const float* A, std::size_t n, std::size_t in, std::size_t lda, const float* wt, const float* bias,
+    std::size_t outp, bool relu, float* C) {
+    typedef float vec __attribute__((vector_size(64), aligned(4)));
+    constexpr std::size_t MB = 8;
+    for (std::size_t o = 0; o < outp; o += 16) {
+        const vec b = *reinterpret_cast<const vec*>(bias + o);
+        for (std::size_t r = 0; r < n; r += MB) {
+            const std::size_t mb = std::min(MB, n - r);
+            vec acc[MB];
+            for (std::size_t m = 0; m < MB; ++m) acc[m] = b;
+            if (mb == MB) {
+                for (std::size_t i = 0; i < in; ++i) {
+                    const vec w = *reinterpret_cast<const vec*>(wt + i * outp + o);
+                    for (std::size_t m = 0; m < MB; ++m) acc[m] += A[(r + m) * lda + i] * w;
+                }
+            } else {
+                for (std::size_t i = 0; i < in; ++i) {
+                    const vec w = *reinterpret_cast<const vec*>(wt + i * outp + o);
+                    for (std::size_t m = 0; m < mb; ++m) acc[m] += A[(r + m) * lda + i] * w;
+                }
+            }
+            for (std::size_t m = 0; m < mb; ++m) {
+                vec x = acc[m];
+                if (relu) x = x > 0.0f ? x : 0.0f;
+                *reinterpret_cast<vec*>(C + (r + m) * outp + o) = x;
+            }
+        }
+    }
+}
+
 using DenseFn = void (*)(const float*, std::size_t, std::size_t, std::size_t, const float*, const float*,
                          std::size_t, bool, float*);
 
@@ -353,6 +388,8 @@ DenseFn pick_dense() {
 void dense_layer(const float* A, std::size_t n, std::size_t in, std::size_t lda, const float* wt,
                  const float* bias, std::size_t out_padded, bool relu, float* C) {
     static const DenseFn fn = pick_dense();
+    if (out_padded < 64 && fn == dense_avx512)
+        return dense_narrow_avx512(A, n, in, lda, wt, bias, out_padded, relu, C);
     fn(A, n, in, lda, wt, bias, out_padded, relu, C);
 }
 

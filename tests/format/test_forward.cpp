@@ -273,6 +273,31 @@ TEST_CASE("encoding: aligned levels touch 4 corners on faces; trilinear weights 
     CHECK(c.index[0] == ((4u * 1u) ^ (6u * 2654435761u) ^ (10u * 805459861u)) % (1u << 17));
 }
 
+TEST_CASE("narrow layers (16 to 48 outputs) equal the wide kernel's columns bit for bit") {
+    // dense_layer takes an 8-row kernel below 64 padded outputs; the same weights padded
+    // to 64 outputs go through the wide kernel, whose first columns must be identical.
+    std::mt19937 rng(12);
+    std::uniform_real_distribution<float> u(-1.f, 1.f);
+    for (const std::size_t n : {std::size_t(1), std::size_t(7), std::size_t(8), std::size_t(133)})
+        for (const std::size_t op : {std::size_t(16), std::size_t(48)})
+            for (const bool relu : {false, true}) {
+                const std::size_t in = 128, lda = in + 4, wide = 64;
+                std::vector<float> A(n * lda), wt(in * op), wt_wide(in * wide, 0.f), bias(op),
+                    bias_wide(wide, 0.f);
+                for (auto& x : A) x = u(rng);
+                for (std::size_t i = 0; i < in; ++i)
+                    for (std::size_t o = 0; o < op; ++o) wt[i * op + o] = wt_wide[i * wide + o] = u(rng);
+                for (std::size_t o = 0; o < op; ++o) bias[o] = bias_wide[o] = u(rng);
+                std::vector<float> got(n * op), want(n * wide);
+                dense_layer(A.data(), n, in, lda, wt.data(), bias.data(), op, relu, got.data());
+                dense_layer(A.data(), n, in, lda, wt_wide.data(), bias_wide.data(), wide, relu, want.data());
+                CAPTURE(n);
+                CAPTURE(op);
+                for (std::size_t r = 0; r < n; ++r)
+                    REQUIRE(std::memcmp(&got[r * op], &want[r * wide], op * sizeof(float)) == 0);
+            }
+}
+
 TEST_CASE("dense_layer matches a naive reference, including ragged sizes") {
     std::mt19937 rng(5);
     std::uniform_real_distribution<float> u(-1.f, 1.f);

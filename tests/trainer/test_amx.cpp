@@ -222,26 +222,6 @@ TEST_CASE("AMX GEMM: tiles configured per thread, concurrent threads agree bit f
     for (const auto& o : out) CHECK(o == ref);
 }
 
-TEST_CASE("dense_narrow (the bf16 path's fp32 output layer) equals format::dense_layer bit for bit") {
-    std::mt19937 rng(11);
-    for (const std::size_t n :
-         {std::size_t(1), std::size_t(7), std::size_t(8), std::size_t(128), std::size_t(133)})
-        for (const std::size_t outp : {std::size_t(16), std::size_t(48)}) {
-            const std::size_t in = 128, lda = in + 4;
-            const auto A = random_matrix(n, lda, rng), Wt = random_matrix(in, outp, rng),
-                       bias = random_matrix(1, outp, rng);
-            std::vector<float> want(n * outp), got(n * outp, 0.0f);
-            format::dense_layer(A.data(), n, in, lda, Wt.data(), bias.data(), outp, false, want.data());
-            if (!dense_narrow(A.data(), n, in, lda, Wt.data(), bias.data(), outp, got.data())) {
-                MESSAGE("no AVX-512: dense_narrow unavailable, skipped");
-                return;
-            }
-            CAPTURE(n);
-            CAPTURE(outp);
-            CHECK(std::memcmp(got.data(), want.data(), got.size() * sizeof(float)) == 0);
-        }
-}
-
 namespace {
 
 format::ModelDesc mid_desc() {  // v1 widths (108 -> 128 -> 128 -> 5), smaller tables

@@ -69,47 +69,6 @@ OuterFn pick() {
 
 }  // namespace
 
-namespace {
-
-// Blocks of 8 rows x 16 outputs: one weight vector per input feeds 8 independent FMA chains
-// (enough to cover FMA latency), the inputs are broadcast from memory.
-__attribute__((target("avx512f"))) void dense_narrow_avx512(const float* A, std::size_t n, std::size_t in,
-                                                            std::size_t lda, const float* Wt,
-                                                            const float* bias, std::size_t outp, float* C) {
-    typedef float vec __attribute__((vector_size(64), aligned(4)));
-    constexpr std::size_t MB = 8;
-    for (std::size_t o = 0; o < outp; o += 16) {
-        const vec b = *reinterpret_cast<const vec*>(bias + o);
-        for (std::size_t r = 0; r < n; r += MB) {
-            const std::size_t mb = std::min(MB, n - r);
-            vec acc[MB];
-            for (std::size_t m = 0; m < MB; ++m) acc[m] = b;
-            if (mb == MB) {
-                for (std::size_t i = 0; i < in; ++i) {
-                    const vec w = *reinterpret_cast<const vec*>(Wt + i * outp + o);
-                    for (std::size_t m = 0; m < MB; ++m) acc[m] += A[(r + m) * lda + i] * w;
-                }
-            } else {
-                for (std::size_t i = 0; i < in; ++i) {
-                    const vec w = *reinterpret_cast<const vec*>(Wt + i * outp + o);
-                    for (std::size_t m = 0; m < mb; ++m) acc[m] += A[(r + m) * lda + i] * w;
-                }
-            }
-            for (std::size_t m = 0; m < mb; ++m) *reinterpret_cast<vec*>(C + (r + m) * outp + o) = acc[m];
-        }
-    }
-}
-
-}  // namespace
-
-bool dense_narrow(const float* A, std::size_t n, std::size_t in, std::size_t lda, const float* Wt,
-                  const float* bias, std::size_t outp, float* C) {
-    static const bool avx512 = (__builtin_cpu_init(), __builtin_cpu_supports("avx512f"));
-    if (!avx512 || outp % 16) return false;
-    dense_narrow_avx512(A, n, in, lda, Wt, bias, outp, C);
-    return true;
-}
-
 void outer_accumulate(const float* X, std::size_t n, std::size_t in, std::size_t ldx, const float* G,
                       std::size_t outp, float* dWt) {
     static const OuterFn fn = pick();

@@ -300,7 +300,7 @@ void forward_layers(const Geometry& geo, const std::vector<format::GridView>& gr
 // forward_layers with the hidden layers' products in bf16 on AMX (MlpPrecision::bf16):
 // each hidden layer's input is rounded to bf16 rows, multiplied by the VNNI-packed weights
 // `wf` into w.act (fp32), then bias and ReLU are applied in fp32.
-// The output layer's forward stays fp32 (dense_narrow, ~2% of the MLP FLOPs; its two
+// The output layer's forward stays fp32 (format::dense_layer, ~2% of the MLP FLOPs; its two
 // backward products are bf16 like the others): the loss gradients depend on residuals
 // (distance error against a 1%-of-diagonal Huber delta) far smaller than the outputs, so
 // rounding its inputs to bf16 would move them by tens of percent late in training.
@@ -316,11 +316,9 @@ void forward_layers_bf16(const Geometry& geo, const std::vector<format::GridView
     std::size_t lda = geo.input_width;
     for (std::size_t k = 0; k < net.wt.size(); ++k) {
         const std::size_t in = net.in[k], kp = pad32(net.in[k]), outp = net.out_padded[k];
-        if (k + 1 == net.wt.size()) {  // dense_narrow: dense_layer's results, faster for outp = 16
-            if (!detail::dense_narrow(src, n, in, lda, net.wt[k].data(), net.bias[k].data(), outp,
-                                      w.act[k].data()))
-                format::dense_layer(src, n, in, lda, net.wt[k].data(), net.bias[k].data(), outp, false,
-                                    w.act[k].data());
+        if (k + 1 == net.wt.size()) {
+            format::dense_layer(src, n, in, lda, net.wt[k].data(), net.bias[k].data(), outp, false,
+                                w.act[k].data());
             break;
         }
         detail::pack_rows(src, n, in, lda, w.a_rows.data(), kp, detail::round_up(n, 16));
