@@ -8,14 +8,16 @@
 #include <algorithm>
 #include <bit>
 #include <cmath>
+#include <cstddef>
 #include <limits>
 
 #if defined(__x86_64__) && defined(__GNUC__)
 #define LSNIF_HAVE_X86 1
 #include <immintrin.h>
-// GCC 12's AVX-512 shift and mask intrinsics start from _mm512_undefined_*(), which its
-// -Wmaybe-uninitialized reports as a use of an uninitialized value (a false positive).
+// GCC 12's AVX-512 intrinsics start from _mm512_undefined_*(), which its
+// -W(maybe-)uninitialized reports as a use of an uninitialized value (a false positive).
 #pragma GCC diagnostic ignored "-Wmaybe-uninitialized"
+#pragma GCC diagnostic ignored "-Wuninitialized"
 #endif
 
 namespace lsnif::format {
@@ -271,45 +273,191 @@ struct Lanes {
     std::uint32_t ray[kLanes];
 };
 
-void load_lane(Lanes& L, int lane, const WalkState& w, std::uint32_t ray) {
+// start_walk() for up to 16 rays (rays[0..n)), lane j for ray first + j: the same
+// operations lane by lane (make_ray_grid's double-precision grid mapping, its axis order
+// for a miss's partial t_near / t_far, the cell search from the shared plane_t). Writes
+// each ray's RayPoints count and clipped segment (not for an invalid ray) and, for rays
+// that do not start a walk, their status. Returns the lanes that start one, filled in Q.
+LSNIF_AVX512 std::uint32_t start_walks(const Geometry& geo, const Ray* rays, int n, std::uint32_t first,
+                                       RayPoints* out, TraceStatus* status, Lanes& Q) {
+    const __mmask16 lanes = __mmask16((1u << n) - 1);
+    // Field f of ray j sits at float j * 8 + f (Ray is 8 floats).
+    const __m512i base =
+        _mm512_mullo_epi32(_mm512_setr_epi32(0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 11, 12, 13, 14, 15),
+                           _mm512_set1_epi32(int(sizeof(Ray) / sizeof(float))));
+    const float* f = reinterpret_cast<const float*>(rays);
+    auto field = [&](int k) {
+        return _mm512_mask_i32gather_ps(_mm512_setzero_ps(), lanes,
+                                        _mm512_add_epi32(base, _mm512_set1_epi32(k)), f, 4);
+    };
+    static_assert(sizeof(Ray) == 8 * sizeof(float) && offsetof(Ray, tmin) == 12 && offsetof(Ray, dir) == 16 &&
+                  offsetof(Ray, tmax) == 28);
+    __m512 org[3], dir[3];
+    __mmask16 nonfinite = 0, nonzero = 0;
     for (int a = 0; a < 3; ++a) {
-        L.go[a][lane] = w.rg.go[a];
-        L.gd[a][lane] = w.rg.gd[a];
-        L.inv[a][lane] = w.rg.inv_gd[a];
-        L.enter[a][lane] = w.enter_a[a];
-        L.exit[a][lane] = w.exit_a[a];
-        L.cell[a][lane] = w.cell[a];
-        L.step[a][lane] = w.step[a];
+        org[a] = field(a);
+        dir[a] = field(4 + a);
+        nonfinite |=
+            _mm512_fpclass_ps_mask(org[a], 0x99) | _mm512_fpclass_ps_mask(dir[a], 0x99);  // NaN, +-inf
+        nonzero |= _mm512_cmp_ps_mask(dir[a], _mm512_setzero_ps(), _CMP_NEQ_UQ);
     }
-    L.t_near[lane] = w.t_near;
-    L.t_far[lane] = w.t_far;
-    L.ray[lane] = ray;
+    __m512 t_near = field(3), t_far = field(7);
+    const __mmask16 invalid =
+        lanes & (nonfinite | ~nonzero | _mm512_cmp_ps_mask(t_near, t_near, _CMP_UNORD_Q) |
+                 _mm512_cmp_ps_mask(t_far, t_far, _CMP_UNORD_Q));
+    __mmask16 live = lanes & ~invalid, miss = 0;
+    const float V = float(geo.V);
+    const __m512 vV = _mm512_set1_ps(V);
+    for (int a = 0; a < 3; ++a) {
+        const double cell = (double(geo.box_max[a]) - geo.box_min[a]) / geo.V;
+        const __m512d vmin = _mm512_set1_pd(double(geo.box_min[a])), vcell = _mm512_set1_pd(cell);
+        auto to_grid = [&](__m512 x, bool shift) {
+            const __m512d lo = _mm512_cvtps_pd(_mm512_castps512_ps256(x));
+            const __m512d hi =
+                _mm512_cvtps_pd(_mm256_castpd_ps(_mm512_extractf64x4_pd(_mm512_castps_pd(x), 1)));
+            const __m256 l = _mm512_cvtpd_ps(_mm512_div_pd(shift ? _mm512_sub_pd(lo, vmin) : lo, vcell));
+            const __m256 h = _mm512_cvtpd_ps(_mm512_div_pd(shift ? _mm512_sub_pd(hi, vmin) : hi, vcell));
+            return _mm512_insertf32x8(_mm512_castps256_ps512(l), h, 1);
+        };
+        const __m512 go = to_grid(org[a], true), gd = to_grid(dir[a], false);
+        const __mmask16 zero = _mm512_cmp_ps_mask(gd, _mm512_setzero_ps(), _CMP_EQ_OQ);
+        const __m512 inv =
+            _mm512_mask_mov_ps(_mm512_div_ps(_mm512_set1_ps(1.0f), gd), zero, _mm512_set1_ps(kInf));
+        _mm512_store_ps(Q.go[a], go);
+        _mm512_store_ps(Q.gd[a], gd);
+        _mm512_store_ps(Q.inv[a], inv);
+        const __mmask16 outside = live & zero &
+                                  (_mm512_cmp_ps_mask(go, _mm512_setzero_ps(), _CMP_LT_OQ) |
+                                   _mm512_cmp_ps_mask(go, vV, _CMP_GT_OQ));
+        miss |= outside;
+        live &= ~outside;
+        const __mmask16 slab = live & ~zero;
+        const __m512 t0 = _mm512_mul_ps(_mm512_sub_ps(_mm512_setzero_ps(), go), inv);
+        const __m512 t1 = _mm512_mul_ps(_mm512_sub_ps(vV, go), inv);
+        const __mmask16 swap = _mm512_cmp_ps_mask(t0, t1, _CMP_GT_OQ);
+        const __m512 lo = _mm512_mask_mov_ps(t0, swap, t1), hi = _mm512_mask_mov_ps(t1, swap, t0);
+        t_near = _mm512_mask_max_ps(t_near, slab, lo, t_near);  // std::max(t_near, lo)
+        t_far = _mm512_mask_min_ps(t_far, slab, hi, t_far);     // std::min(t_far, hi)
+    }
+    const __mmask16 empty = live & ~_mm512_cmp_ps_mask(t_near, t_far, _CMP_LE_OQ);
+    miss |= empty;
+    live &= ~empty;
+    alignas(64) float tn[kLanes], tf[kLanes];
+    _mm512_store_ps(tn, t_near);
+    _mm512_store_ps(tf, t_far);
+    _mm512_store_ps(Q.t_near, t_near);
+    _mm512_store_ps(Q.t_far, t_far);
+    for (int j = 0; j < n; ++j) {
+        RayPoints& p = out[j];
+        p.count = 0;
+        if (invalid & (1u << j)) {
+            status[j] = TraceStatus::invalid;
+            continue;
+        }
+        p.t_near = tn[j];
+        p.t_far = tf[j];
+        if (miss & (1u << j)) status[j] = TraceStatus::miss;
+        Q.ray[j] = first + std::uint32_t(j);
+    }
+    if (!live) return 0;
+    // The first cell: the largest x whose entry plane is at or before t_near (forward), the
+    // smallest whose exit plane is (backward); the guess from floor/ceil is corrected by
+    // the same comparisons as start_walk's loops, so the guess's rounding does not matter.
+    const __m512i vV1 = _mm512_set1_epi32(int(geo.V) - 1), one = _mm512_set1_epi32(1),
+                  zero_i = _mm512_setzero_si512();
+    for (int a = 0; a < 3; ++a) {
+        const __m512 go = _mm512_load_ps(Q.go[a]), gd = _mm512_load_ps(Q.gd[a]),
+                     inv = _mm512_load_ps(Q.inv[a]);
+        auto plane = [&](__m512i k) { return _mm512_mul_ps(_mm512_sub_ps(_mm512_cvtepi32_ps(k), go), inv); };
+        const __mmask16 fwd = live & _mm512_cmp_ps_mask(gd, _mm512_setzero_ps(), _CMP_GT_OQ);
+        const __mmask16 bwd = live & _mm512_cmp_ps_mask(gd, _mm512_setzero_ps(), _CMP_LT_OQ);
+        const __mmask16 still = live & ~fwd & ~bwd;
+        const __m512 gpos = _mm512_add_ps(go, _mm512_mul_ps(t_near, gd));
+        __m512i x =
+            _mm512_cvttps_epi32(_mm512_roundscale_ps(gpos, _MM_FROUND_TO_NEG_INF | _MM_FROUND_NO_EXC));
+        x = _mm512_mask_sub_epi32(
+            x, bwd,
+            _mm512_cvttps_epi32(_mm512_roundscale_ps(gpos, _MM_FROUND_TO_POS_INF | _MM_FROUND_NO_EXC)), one);
+        x = _mm512_mask_mov_epi32(
+            x, still,
+            _mm512_cvttps_epi32(_mm512_roundscale_ps(go, _MM_FROUND_TO_NEG_INF | _MM_FROUND_NO_EXC)));
+        x = _mm512_min_epi32(_mm512_max_epi32(x, zero_i), vV1);
+        // forward: down while plane(x) > t_near, then up while plane(x + 1) <= t_near
+        for (__mmask16 m =
+                 fwd & _mm512_cmpgt_epi32_mask(x, zero_i) & _mm512_cmp_ps_mask(plane(x), t_near, _CMP_GT_OQ);
+             m; m &= _mm512_cmpgt_epi32_mask(x, zero_i) & _mm512_cmp_ps_mask(plane(x), t_near, _CMP_GT_OQ))
+            x = _mm512_mask_sub_epi32(x, m, x, one);
+        for (__mmask16 m = fwd & _mm512_cmplt_epi32_mask(x, vV1) &
+                           _mm512_cmp_ps_mask(plane(_mm512_add_epi32(x, one)), t_near, _CMP_LE_OQ);
+             m; m &= _mm512_cmplt_epi32_mask(x, vV1) &
+                     _mm512_cmp_ps_mask(plane(_mm512_add_epi32(x, one)), t_near, _CMP_LE_OQ))
+            x = _mm512_mask_add_epi32(x, m, x, one);
+        // backward: up while plane(x + 1) > t_near, then down while plane(x) <= t_near
+        for (__mmask16 m = bwd & _mm512_cmplt_epi32_mask(x, vV1) &
+                           _mm512_cmp_ps_mask(plane(_mm512_add_epi32(x, one)), t_near, _CMP_GT_OQ);
+             m; m &= _mm512_cmplt_epi32_mask(x, vV1) &
+                     _mm512_cmp_ps_mask(plane(_mm512_add_epi32(x, one)), t_near, _CMP_GT_OQ))
+            x = _mm512_mask_add_epi32(x, m, x, one);
+        for (__mmask16 m =
+                 bwd & _mm512_cmpgt_epi32_mask(x, zero_i) & _mm512_cmp_ps_mask(plane(x), t_near, _CMP_LE_OQ);
+             m; m &= _mm512_cmpgt_epi32_mask(x, zero_i) & _mm512_cmp_ps_mask(plane(x), t_near, _CMP_LE_OQ))
+            x = _mm512_mask_sub_epi32(x, m, x, one);
+        const __m512i x1 = _mm512_add_epi32(x, one);
+        const __m512i step =
+            _mm512_mask_mov_epi32(_mm512_mask_mov_epi32(zero_i, fwd, one), bwd, _mm512_set1_epi32(-1));
+        const __m512 enter =
+            _mm512_mask_mov_ps(_mm512_mask_mov_ps(_mm512_set1_ps(-kInf), fwd, plane(x)), bwd, plane(x1));
+        const __m512 exit =
+            _mm512_mask_mov_ps(_mm512_mask_mov_ps(_mm512_set1_ps(kInf), fwd, plane(x1)), bwd, plane(x));
+        _mm512_store_si512(Q.cell[a], x);
+        _mm512_store_si512(Q.step[a], step);
+        _mm512_store_ps(Q.enter[a], enter);
+        _mm512_store_ps(Q.exit[a], exit);
+    }
+    return live;
 }
 
-// Puts rays[next..] into the free lanes (not in `live`) until every lane is busy or the
-// rays run out; rays that miss the box or are invalid are finished on the spot. Returns
-// the new live mask.
-std::uint32_t refill(const Geometry& geo, std::span<const Ray> rays, std::size_t& next, RayPoints* out,
-                     TraceStatus* status, Lanes& L, std::uint32_t live) {
-    for (int lane = 0; lane < kLanes && next < rays.size(); ++lane) {
+// Lane `to` of L takes the walk in lane `from` of Q.
+void move_lane(Lanes& L, int to, const Lanes& Q, int from) {
+    for (int a = 0; a < 3; ++a) {
+        L.go[a][to] = Q.go[a][from];
+        L.gd[a][to] = Q.gd[a][from];
+        L.inv[a][to] = Q.inv[a][from];
+        L.enter[a][to] = Q.enter[a][from];
+        L.exit[a][to] = Q.exit[a][from];
+        L.cell[a][to] = Q.cell[a][from];
+        L.step[a][to] = Q.step[a][from];
+    }
+    L.t_near[to] = Q.t_near[from];
+    L.t_far[to] = Q.t_far[from];
+    L.ray[to] = Q.ray[from];
+}
+
+// Walks started 16 rays at a time (start_walks), handed to lanes as they free up.
+struct StartQueue {
+    Lanes started;
+    std::uint32_t ready = 0;  // lanes of `started` not yet handed out
+};
+
+// Puts started walks into the free lanes of L (not in `live`), starting rays[next..] 16 at
+// a time as the queue runs dry, until every lane is busy or the rays run out. Returns the
+// new live mask.
+LSNIF_AVX512 std::uint32_t refill(const Geometry& geo, std::span<const Ray> rays, std::size_t& next,
+                                  RayPoints* out, TraceStatus* status, StartQueue& q, Lanes& L,
+                                  std::uint32_t live) {
+    for (int lane = 0; lane < kLanes; ++lane) {
         if (live & (1u << lane)) continue;
-        while (next < rays.size()) {
-            const std::size_t i = next++;
-            WalkState w;
-            out[i].count = 0;
-            const TraceStatus st = start_walk(geo, rays[i], w);
-            if (st != TraceStatus::invalid) {  // as trace_points_impl
-                out[i].t_near = w.t_near;
-                out[i].t_far = w.t_far;
-            }
-            if (st != TraceStatus::ok) {
-                status[i] = st;
-                continue;
-            }
-            load_lane(L, lane, w, std::uint32_t(i));
-            live |= 1u << lane;
-            break;
+        while (!q.ready && next < rays.size()) {
+            const int n = int(std::min<std::size_t>(kLanes, rays.size() - next));
+            q.ready = start_walks(geo, rays.data() + next, n, std::uint32_t(next), out + next, status + next,
+                                  q.started);
+            next += std::size_t(n);
         }
+        if (!q.ready) break;
+        const int from = std::countr_zero(q.ready);
+        q.ready &= q.ready - 1;
+        move_lane(L, lane, q.started, from);
+        live |= 1u << lane;
     }
     return live;
 }
@@ -488,7 +636,8 @@ LSNIF_AVX512 void trace_batch_avx512(const Geometry& geo, const OccupancyGrid& o
                                      RayPoints* out, TraceStatus* status) {
     Lanes L;
     std::size_t next = 0;
-    std::uint32_t live = refill(geo, rays, next, out, status, L, 0);
+    StartQueue q;
+    std::uint32_t live = refill(geo, rays, next, out, status, q, L, 0);
     const __m512i vV = _mm512_set1_epi32(int(geo.V));
     while (live) {
         Axis ax[3];
@@ -497,7 +646,7 @@ LSNIF_AVX512 void trace_batch_avx512(const Geometry& geo, const OccupancyGrid& o
         const __m512 t_far = _mm512_load_ps(L.t_far);
         // Lanes whose walk is over leave `live`; the walks stay in registers until half the
         // lanes are free (or no rays are left to refill them with).
-        const bool draining = next == rays.size();
+        const bool draining = next == rays.size() && !q.ready;
         do {
             // Both maps are indexed by voxel, so their two gathers issue together.
             const __m512i idx = voxel_index(ax, vV);
@@ -515,7 +664,7 @@ LSNIF_AVX512 void trace_batch_avx512(const Geometry& geo, const OccupancyGrid& o
             live &= ~std::uint32_t(over);
         } while (live && (draining || std::popcount(live) > kLanes / 2));
         store_axes(ax, L);
-        live = refill(geo, rays, next, out, status, L, live);
+        live = refill(geo, rays, next, out, status, q, L, live);
     }
 }
 

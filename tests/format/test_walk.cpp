@@ -18,26 +18,31 @@ namespace {
 
 // Random rays that start outside, inside and on grid planes of the box [-1, 1]^3, with
 // axis-aligned, nearly axis-aligned (a direction component far below a cell per unit t)
-// and general directions, bounded and unbounded segments, and some invalid or degenerate rays.
+// and general directions, bounded and unbounded segments, and some invalid or degenerate
+// rays. Each case is drawn at random per ray, so every case lands in every one of the
+// walk's 16 lanes.
 std::vector<Ray> edge_case_rays(std::uint32_t V, std::size_t n, std::uint32_t seed) {
     std::mt19937 rng(seed);
     std::uniform_real_distribution<float> u(-1.f, 1.f);
+    auto one_in = [&](unsigned k) { return rng() % k == 0; };
     const float inf = std::numeric_limits<float>::infinity();
     std::vector<Ray> rays(n);
-    for (std::size_t i = 0; i < n; ++i) {
-        Ray& r = rays[i];
+    for (Ray& r : rays) {
         r = Ray{};
+        const float spread = one_in(2) ? 0.9f : 2.0f;  // inside the box, or also outside
+        const bool on_planes = one_in(7), aligned = one_in(5), nearly = one_in(11);
+        const int nearly_axis = int(rng() % 3);
         for (int k = 0; k < 3; ++k) {
-            r.org[k] = u(rng) * (i % 2 ? 0.9f : 2.0f);
-            if (i % 7 == 0) r.org[k] = std::round(r.org[k] * V * 0.5f) / (V * 0.5f);  // on planes
+            r.org[k] = u(rng) * spread;
+            if (on_planes) r.org[k] = std::round(r.org[k] * V * 0.5f) / (V * 0.5f);
             r.dir[k] = u(rng);
-            if (i % 5 == 0) r.dir[k] = float(int(u(rng) * 2.0f));            // axis-aligned or diagonal
-            if (i % 11 == 0 && k == int(i % 3)) r.dir[k] = u(rng) * 1e-30f;  // nearly aligned
+            if (aligned) r.dir[k] = float(int(u(rng) * 2.0f));  // axis-aligned or diagonal
+            if (nearly && k == nearly_axis) r.dir[k] = u(rng) * 1e-30f;
         }
         if (r.dir[0] == 0 && r.dir[1] == 0 && r.dir[2] == 0) r.dir[0] = 1;
-        r.tmin = i % 13 == 0 ? std::fabs(u(rng)) : 0.0f;
-        r.tmax = i % 3 == 0 ? std::fabs(u(rng)) * 3.0f : inf;
-        switch (i % 97) {  // invalid or empty segments, scattered through the batch
+        r.tmin = one_in(13) ? std::fabs(u(rng)) : 0.0f;
+        r.tmax = one_in(3) ? std::fabs(u(rng)) * 3.0f : inf;
+        switch (rng() % 97) {  // invalid or empty segments
             case 1: r.dir[0] = r.dir[1] = r.dir[2] = 0; break;
             case 2: r.org[1] = std::numeric_limits<float>::quiet_NaN(); break;
             case 3: r.tmax = -1.0f; break;
