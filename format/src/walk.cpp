@@ -273,6 +273,27 @@ struct Lanes {
     std::uint32_t ray[kLanes];
 };
 
+// Field k (0..7 in float units) of the rays in `lanes`, `base` holding each lane's ray offset.
+LSNIF_AVX512 inline __m512 ray_field(const float* f, __m512i base, __mmask16 lanes, int k) {
+    return _mm512_mask_i32gather_ps(_mm512_setzero_ps(), lanes, _mm512_add_epi32(base, _mm512_set1_epi32(k)),
+                                    f, 4);
+}
+
+// make_ray_grid's grid mapping, (x - box_min) / cell (shift) or x / cell, in double and
+// rounded to float once.
+LSNIF_AVX512 inline __m512 to_grid(__m512 x, __m512d vmin, __m512d vcell, bool shift) {
+    const __m512d lo = _mm512_cvtps_pd(_mm512_castps512_ps256(x));
+    const __m512d hi = _mm512_cvtps_pd(_mm256_castpd_ps(_mm512_extractf64x4_pd(_mm512_castps_pd(x), 1)));
+    const __m256 l = _mm512_cvtpd_ps(_mm512_div_pd(shift ? _mm512_sub_pd(lo, vmin) : lo, vcell));
+    const __m256 h = _mm512_cvtpd_ps(_mm512_div_pd(shift ? _mm512_sub_pd(hi, vmin) : hi, vcell));
+    return _mm512_insertf32x8(_mm512_castps256_ps512(l), h, 1);
+}
+
+// RayGrid::plane_t for 16 lanes: (k - go) * inv.
+LSNIF_AVX512 inline __m512 plane_at(__m512 go, __m512 inv, __m512i k) {
+    return _mm512_mul_ps(_mm512_sub_ps(_mm512_cvtepi32_ps(k), go), inv);
+}
+
 // start_walk() for up to 16 rays (rays[0..n)), lane j for ray first + j: the same
 // operations lane by lane (make_ray_grid's double-precision grid mapping, its axis order
 // for a miss's partial t_near / t_far, the cell search from the shared plane_t). Writes
@@ -286,22 +307,18 @@ LSNIF_AVX512 std::uint32_t start_walks(const Geometry& geo, const Ray* rays, int
         _mm512_mullo_epi32(_mm512_setr_epi32(0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 11, 12, 13, 14, 15),
                            _mm512_set1_epi32(int(sizeof(Ray) / sizeof(float))));
     const float* f = reinterpret_cast<const float*>(rays);
-    auto field = [&](int k) {
-        return _mm512_mask_i32gather_ps(_mm512_setzero_ps(), lanes,
-                                        _mm512_add_epi32(base, _mm512_set1_epi32(k)), f, 4);
-    };
     static_assert(sizeof(Ray) == 8 * sizeof(float) && offsetof(Ray, tmin) == 12 && offsetof(Ray, dir) == 16 &&
                   offsetof(Ray, tmax) == 28);
     __m512 org[3], dir[3];
     __mmask16 nonfinite = 0, nonzero = 0;
     for (int a = 0; a < 3; ++a) {
-        org[a] = field(a);
-        dir[a] = field(4 + a);
+        org[a] = ray_field(f, base, lanes, a);
+        dir[a] = ray_field(f, base, lanes, 4 + a);
         nonfinite |=
             _mm512_fpclass_ps_mask(org[a], 0x99) | _mm512_fpclass_ps_mask(dir[a], 0x99);  // NaN, +-inf
         nonzero |= _mm512_cmp_ps_mask(dir[a], _mm512_setzero_ps(), _CMP_NEQ_UQ);
     }
-    __m512 t_near = field(3), t_far = field(7);
+    __m512 t_near = ray_field(f, base, lanes, 3), t_far = ray_field(f, base, lanes, 7);
     const __mmask16 invalid =
         lanes & (nonfinite | ~nonzero | _mm512_cmp_ps_mask(t_near, t_near, _CMP_UNORD_Q) |
                  _mm512_cmp_ps_mask(t_far, t_far, _CMP_UNORD_Q));
@@ -311,15 +328,7 @@ LSNIF_AVX512 std::uint32_t start_walks(const Geometry& geo, const Ray* rays, int
     for (int a = 0; a < 3; ++a) {
         const double cell = (double(geo.box_max[a]) - geo.box_min[a]) / geo.V;
         const __m512d vmin = _mm512_set1_pd(double(geo.box_min[a])), vcell = _mm512_set1_pd(cell);
-        auto to_grid = [&](__m512 x, bool shift) {
-            const __m512d lo = _mm512_cvtps_pd(_mm512_castps512_ps256(x));
-            const __m512d hi =
-                _mm512_cvtps_pd(_mm256_castpd_ps(_mm512_extractf64x4_pd(_mm512_castps_pd(x), 1)));
-            const __m256 l = _mm512_cvtpd_ps(_mm512_div_pd(shift ? _mm512_sub_pd(lo, vmin) : lo, vcell));
-            const __m256 h = _mm512_cvtpd_ps(_mm512_div_pd(shift ? _mm512_sub_pd(hi, vmin) : hi, vcell));
-            return _mm512_insertf32x8(_mm512_castps256_ps512(l), h, 1);
-        };
-        const __m512 go = to_grid(org[a], true), gd = to_grid(dir[a], false);
+        const __m512 go = to_grid(org[a], vmin, vcell, true), gd = to_grid(dir[a], vmin, vcell, false);
         const __mmask16 zero = _mm512_cmp_ps_mask(gd, _mm512_setzero_ps(), _CMP_EQ_OQ);
         const __m512 inv =
             _mm512_mask_mov_ps(_mm512_div_ps(_mm512_set1_ps(1.0f), gd), zero, _mm512_set1_ps(kInf));
@@ -368,7 +377,6 @@ LSNIF_AVX512 std::uint32_t start_walks(const Geometry& geo, const Ray* rays, int
     for (int a = 0; a < 3; ++a) {
         const __m512 go = _mm512_load_ps(Q.go[a]), gd = _mm512_load_ps(Q.gd[a]),
                      inv = _mm512_load_ps(Q.inv[a]);
-        auto plane = [&](__m512i k) { return _mm512_mul_ps(_mm512_sub_ps(_mm512_cvtepi32_ps(k), go), inv); };
         const __mmask16 fwd = live & _mm512_cmp_ps_mask(gd, _mm512_setzero_ps(), _CMP_GT_OQ);
         const __mmask16 bwd = live & _mm512_cmp_ps_mask(gd, _mm512_setzero_ps(), _CMP_LT_OQ);
         const __mmask16 still = live & ~fwd & ~bwd;
@@ -383,32 +391,36 @@ LSNIF_AVX512 std::uint32_t start_walks(const Geometry& geo, const Ray* rays, int
             _mm512_cvttps_epi32(_mm512_roundscale_ps(go, _MM_FROUND_TO_NEG_INF | _MM_FROUND_NO_EXC)));
         x = _mm512_min_epi32(_mm512_max_epi32(x, zero_i), vV1);
         // forward: down while plane(x) > t_near, then up while plane(x + 1) <= t_near
-        for (__mmask16 m =
-                 fwd & _mm512_cmpgt_epi32_mask(x, zero_i) & _mm512_cmp_ps_mask(plane(x), t_near, _CMP_GT_OQ);
-             m; m &= _mm512_cmpgt_epi32_mask(x, zero_i) & _mm512_cmp_ps_mask(plane(x), t_near, _CMP_GT_OQ))
+        for (__mmask16 m = fwd & _mm512_cmpgt_epi32_mask(x, zero_i) &
+                           _mm512_cmp_ps_mask(plane_at(go, inv, x), t_near, _CMP_GT_OQ);
+             m; m &= _mm512_cmpgt_epi32_mask(x, zero_i) &
+                     _mm512_cmp_ps_mask(plane_at(go, inv, x), t_near, _CMP_GT_OQ))
             x = _mm512_mask_sub_epi32(x, m, x, one);
-        for (__mmask16 m = fwd & _mm512_cmplt_epi32_mask(x, vV1) &
-                           _mm512_cmp_ps_mask(plane(_mm512_add_epi32(x, one)), t_near, _CMP_LE_OQ);
+        for (__mmask16 m =
+                 fwd & _mm512_cmplt_epi32_mask(x, vV1) &
+                 _mm512_cmp_ps_mask(plane_at(go, inv, _mm512_add_epi32(x, one)), t_near, _CMP_LE_OQ);
              m; m &= _mm512_cmplt_epi32_mask(x, vV1) &
-                     _mm512_cmp_ps_mask(plane(_mm512_add_epi32(x, one)), t_near, _CMP_LE_OQ))
+                     _mm512_cmp_ps_mask(plane_at(go, inv, _mm512_add_epi32(x, one)), t_near, _CMP_LE_OQ))
             x = _mm512_mask_add_epi32(x, m, x, one);
         // backward: up while plane(x + 1) > t_near, then down while plane(x) <= t_near
-        for (__mmask16 m = bwd & _mm512_cmplt_epi32_mask(x, vV1) &
-                           _mm512_cmp_ps_mask(plane(_mm512_add_epi32(x, one)), t_near, _CMP_GT_OQ);
-             m; m &= _mm512_cmplt_epi32_mask(x, vV1) &
-                     _mm512_cmp_ps_mask(plane(_mm512_add_epi32(x, one)), t_near, _CMP_GT_OQ))
-            x = _mm512_mask_add_epi32(x, m, x, one);
         for (__mmask16 m =
-                 bwd & _mm512_cmpgt_epi32_mask(x, zero_i) & _mm512_cmp_ps_mask(plane(x), t_near, _CMP_LE_OQ);
-             m; m &= _mm512_cmpgt_epi32_mask(x, zero_i) & _mm512_cmp_ps_mask(plane(x), t_near, _CMP_LE_OQ))
+                 bwd & _mm512_cmplt_epi32_mask(x, vV1) &
+                 _mm512_cmp_ps_mask(plane_at(go, inv, _mm512_add_epi32(x, one)), t_near, _CMP_GT_OQ);
+             m; m &= _mm512_cmplt_epi32_mask(x, vV1) &
+                     _mm512_cmp_ps_mask(plane_at(go, inv, _mm512_add_epi32(x, one)), t_near, _CMP_GT_OQ))
+            x = _mm512_mask_add_epi32(x, m, x, one);
+        for (__mmask16 m = bwd & _mm512_cmpgt_epi32_mask(x, zero_i) &
+                           _mm512_cmp_ps_mask(plane_at(go, inv, x), t_near, _CMP_LE_OQ);
+             m; m &= _mm512_cmpgt_epi32_mask(x, zero_i) &
+                     _mm512_cmp_ps_mask(plane_at(go, inv, x), t_near, _CMP_LE_OQ))
             x = _mm512_mask_sub_epi32(x, m, x, one);
         const __m512i x1 = _mm512_add_epi32(x, one);
         const __m512i step =
             _mm512_mask_mov_epi32(_mm512_mask_mov_epi32(zero_i, fwd, one), bwd, _mm512_set1_epi32(-1));
-        const __m512 enter =
-            _mm512_mask_mov_ps(_mm512_mask_mov_ps(_mm512_set1_ps(-kInf), fwd, plane(x)), bwd, plane(x1));
-        const __m512 exit =
-            _mm512_mask_mov_ps(_mm512_mask_mov_ps(_mm512_set1_ps(kInf), fwd, plane(x1)), bwd, plane(x));
+        const __m512 enter = _mm512_mask_mov_ps(
+            _mm512_mask_mov_ps(_mm512_set1_ps(-kInf), fwd, plane_at(go, inv, x)), bwd, plane_at(go, inv, x1));
+        const __m512 exit = _mm512_mask_mov_ps(
+            _mm512_mask_mov_ps(_mm512_set1_ps(kInf), fwd, plane_at(go, inv, x1)), bwd, plane_at(go, inv, x));
         _mm512_store_si512(Q.cell[a], x);
         _mm512_store_si512(Q.step[a], step);
         _mm512_store_ps(Q.enter[a], enter);
