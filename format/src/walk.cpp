@@ -294,6 +294,22 @@ LSNIF_AVX512 inline __m512 plane_at(__m512 go, __m512 inv, __m512i k) {
     return _mm512_mul_ps(_mm512_sub_ps(_mm512_cvtepi32_ps(k), go), inv);
 }
 
+// start_walk's cell-search loops for the lanes in m: step x by `delta` (+1 or -1, staying
+// in [0, V - 1]) while plane(x + offset) compares `Cmp` against t_near.
+template <int Cmp>
+LSNIF_AVX512 inline __m512i move_while(__m512i x, __mmask16 m, int delta, int offset, __m512 go, __m512 inv,
+                                       __m512 t_near, __m512i vV1) {
+    const __m512i d = _mm512_set1_epi32(delta), off = _mm512_set1_epi32(offset);
+    while (true) {
+        // The lanes that may still move: x > 0 going down, x < V - 1 going up.
+        const __mmask16 movable =
+            delta < 0 ? _mm512_cmpgt_epi32_mask(x, _mm512_setzero_si512()) : _mm512_cmplt_epi32_mask(x, vV1);
+        m &= movable & _mm512_cmp_ps_mask(plane_at(go, inv, _mm512_add_epi32(x, off)), t_near, Cmp);
+        if (!m) return x;
+        x = _mm512_mask_add_epi32(x, m, x, d);
+    }
+}
+
 // start_walk() for up to 16 rays (rays[0..n)), lane j for ray first + j: the same
 // operations lane by lane (make_ray_grid's double-precision grid mapping, its axis order
 // for a miss's partial t_near / t_far, the cell search from the shared plane_t). Writes
@@ -390,30 +406,12 @@ LSNIF_AVX512 std::uint32_t start_walks(const Geometry& geo, const Ray* rays, int
             x, still,
             _mm512_cvttps_epi32(_mm512_roundscale_ps(go, _MM_FROUND_TO_NEG_INF | _MM_FROUND_NO_EXC)));
         x = _mm512_min_epi32(_mm512_max_epi32(x, zero_i), vV1);
-        // forward: down while plane(x) > t_near, then up while plane(x + 1) <= t_near
-        for (__mmask16 m = fwd & _mm512_cmpgt_epi32_mask(x, zero_i) &
-                           _mm512_cmp_ps_mask(plane_at(go, inv, x), t_near, _CMP_GT_OQ);
-             m; m &= _mm512_cmpgt_epi32_mask(x, zero_i) &
-                     _mm512_cmp_ps_mask(plane_at(go, inv, x), t_near, _CMP_GT_OQ))
-            x = _mm512_mask_sub_epi32(x, m, x, one);
-        for (__mmask16 m =
-                 fwd & _mm512_cmplt_epi32_mask(x, vV1) &
-                 _mm512_cmp_ps_mask(plane_at(go, inv, _mm512_add_epi32(x, one)), t_near, _CMP_LE_OQ);
-             m; m &= _mm512_cmplt_epi32_mask(x, vV1) &
-                     _mm512_cmp_ps_mask(plane_at(go, inv, _mm512_add_epi32(x, one)), t_near, _CMP_LE_OQ))
-            x = _mm512_mask_add_epi32(x, m, x, one);
-        // backward: up while plane(x + 1) > t_near, then down while plane(x) <= t_near
-        for (__mmask16 m =
-                 bwd & _mm512_cmplt_epi32_mask(x, vV1) &
-                 _mm512_cmp_ps_mask(plane_at(go, inv, _mm512_add_epi32(x, one)), t_near, _CMP_GT_OQ);
-             m; m &= _mm512_cmplt_epi32_mask(x, vV1) &
-                     _mm512_cmp_ps_mask(plane_at(go, inv, _mm512_add_epi32(x, one)), t_near, _CMP_GT_OQ))
-            x = _mm512_mask_add_epi32(x, m, x, one);
-        for (__mmask16 m = bwd & _mm512_cmpgt_epi32_mask(x, zero_i) &
-                           _mm512_cmp_ps_mask(plane_at(go, inv, x), t_near, _CMP_LE_OQ);
-             m; m &= _mm512_cmpgt_epi32_mask(x, zero_i) &
-                     _mm512_cmp_ps_mask(plane_at(go, inv, x), t_near, _CMP_LE_OQ))
-            x = _mm512_mask_sub_epi32(x, m, x, one);
+        // forward: down while plane(x) > t_near, then up while plane(x + 1) <= t_near;
+        // backward: up while plane(x + 1) > t_near, then down while plane(x) <= t_near.
+        x = move_while<_CMP_GT_OQ>(x, fwd, -1, 0, go, inv, t_near, vV1);
+        x = move_while<_CMP_LE_OQ>(x, fwd, +1, 1, go, inv, t_near, vV1);
+        x = move_while<_CMP_GT_OQ>(x, bwd, +1, 1, go, inv, t_near, vV1);
+        x = move_while<_CMP_LE_OQ>(x, bwd, -1, 0, go, inv, t_near, vV1);
         const __m512i x1 = _mm512_add_epi32(x, one);
         const __m512i step =
             _mm512_mask_mov_epi32(_mm512_mask_mov_epi32(zero_i, fwd, one), bwd, _mm512_set1_epi32(-1));
