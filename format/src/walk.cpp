@@ -131,8 +131,9 @@ void walk(const Geometry& geo, WalkState& w, const OccupancyGrid* blocks, Want&&
     float* exit_a = w.exit_a;
     const int B = int(OccupancyGrid::kBlock);
     while (true) {
-        if (blocks && !blocks->block_occupied(std::uint32_t(cell[0]) / B, std::uint32_t(cell[1]) / B,
-                                              std::uint32_t(cell[2]) / B)) {
+        const std::uint32_t idx =
+            std::uint32_t(cell[0]) + geo.V * (std::uint32_t(cell[1]) + geo.V * std::uint32_t(cell[2]));
+        if (blocks && !blocks->block_occupied(idx)) {
             // Leave the empty block: its exit is the first of its boundary planes reached.
             float block_exit = kInf;
             for (int a = 0; a < 3; ++a) {
@@ -157,8 +158,6 @@ void walk(const Geometry& geo, WalkState& w, const OccupancyGrid* blocks, Want&&
         const float enter = std::max(enter_a[0], std::max(enter_a[1], enter_a[2]));
         const float exit = std::min(exit_a[0], std::min(exit_a[1], exit_a[2]));
         const float lo = std::max(w.t_near, enter);
-        const std::uint32_t idx =
-            std::uint32_t(cell[0]) + geo.V * (std::uint32_t(cell[1]) + geo.V * std::uint32_t(cell[2]));
         if (lo <= w.t_far && lo < exit && want(idx)) {
             const float g[3] = {entry_coordinate(w, 0, lo), entry_coordinate(w, 1, lo),
                                 entry_coordinate(w, 2, lo)};
@@ -212,28 +211,28 @@ TraceStatus trace_points(const Geometry& geo, const OccupancyGrid& occ, const Ra
 
 OccupancyGrid::OccupancyGrid(std::uint32_t V, std::vector<std::uint8_t> voxel_bits)
     : V(V), bits(std::move(voxel_bits)) {
-    nb = (V + kBlock - 1) / kBlock;
-    blocks.assign(std::size_t(nb) * nb * nb, 0);
-    const std::uint64_t voxels = std::uint64_t(V) * V * V;
-    voxel_words.assign((voxels + 31) / 32, 0);
-    block_words.assign((voxels + 31) / 32, 0);
+    const std::uint32_t nb = (V + kBlock - 1) / kBlock;
+    std::vector<std::uint8_t> blocks(std::size_t(nb) * nb * nb, 0);  // 1 = the block has an occupied voxel
     auto block_of = [&](std::uint32_t x, std::uint32_t y, std::uint32_t z) {
         return x / kBlock + nb * (y / kBlock + std::size_t(nb) * (z / kBlock));
     };
-    for (std::uint32_t z = 0; z < V; ++z)
-        for (std::uint32_t y = 0; y < V; ++y)
-            for (std::uint32_t x = 0; x < V; ++x) {
-                const std::uint64_t i = x + std::uint64_t(V) * (y + std::uint64_t(V) * z);
-                if (!((bits[i >> 3] >> (i & 7)) & 1u)) continue;
-                voxel_words[i >> 5] |= 1u << (i & 31);
-                blocks[block_of(x, y, z)] = 1;
-            }
-    for (std::uint32_t z = 0; z < V; ++z)
-        for (std::uint32_t y = 0; y < V; ++y)
-            for (std::uint32_t x = 0; x < V; ++x) {
-                const std::uint64_t i = x + std::uint64_t(V) * (y + std::uint64_t(V) * z);
-                if (blocks[block_of(x, y, z)]) block_words[i >> 5] |= 1u << (i & 31);
-            }
+    auto for_each_voxel = [&](auto&& f) {
+        for (std::uint32_t z = 0; z < V; ++z)
+            for (std::uint32_t y = 0; y < V; ++y)
+                for (std::uint32_t x = 0; x < V; ++x)
+                    f(x + std::uint64_t(V) * (y + std::uint64_t(V) * z), block_of(x, y, z));
+    };
+    const std::uint64_t voxels = std::uint64_t(V) * V * V;
+    voxel_words.assign((voxels + 31) / 32, 0);
+    block_words.assign((voxels + 31) / 32, 0);
+    for_each_voxel([&](std::uint64_t i, std::size_t b) {
+        if (!((bits[i >> 3] >> (i & 7)) & 1u)) return;
+        voxel_words[i >> 5] |= 1u << (i & 31);
+        blocks[b] = 1;
+    });
+    for_each_voxel([&](std::uint64_t i, std::size_t b) {
+        if (blocks[b]) block_words[i >> 5] |= 1u << (i & 31);
+    });
 }
 
 TraceStatus trace_all_voxels(const Geometry& geo, const Ray& ray, std::vector<std::uint32_t>& voxels,

@@ -91,21 +91,18 @@ struct RayGrid {
 // or NaN bounds; miss when the ray does not meet the box within [tmin, tmax].
 TraceStatus make_ray_grid(const Geometry& geo, const Ray& ray, RayGrid& rg, float& t_near, float& t_far);
 
-// The OCCU bit array plus a coarse map of kBlock^3-voxel blocks (1 = some voxel occupied)
-// that lets the DDA jump over empty space.
+// The OCCU bit array plus, per voxel, whether its kBlock^3-voxel block has an occupied
+// voxel: what lets the DDA jump over empty space.
 struct OccupancyGrid {
     static constexpr std::uint32_t kBlock = 4;
-    std::uint32_t V = 0, nb = 0;
-    std::vector<std::uint8_t> bits;    // OCCU layout
-    std::vector<std::uint8_t> blocks;  // nb^3 bytes
-    // Both maps per voxel, as bit arrays of 32-bit words (bit i of word i / 32), for the
-    // 16-lane walk's gathers: voxel i is occupied; voxel i's block has an occupied voxel.
+    std::uint32_t V = 0;
+    std::vector<std::uint8_t> bits;  // OCCU layout
+    // Both maps per voxel, as bit arrays of 32-bit words (bit i of word i / 32; the 16-lane
+    // walk gathers them): voxel i is occupied; voxel i's block has an occupied voxel.
     std::vector<std::uint32_t> voxel_words, block_words;
     OccupancyGrid() = default;
     OccupancyGrid(std::uint32_t V, std::vector<std::uint8_t> voxel_bits);
-    bool block_occupied(std::uint32_t bx, std::uint32_t by, std::uint32_t bz) const {
-        return blocks[bx + nb * (by + std::size_t(nb) * bz)] != 0;
-    }
+    bool block_occupied(std::uint32_t voxel) const { return (block_words[voxel >> 5] >> (voxel & 31)) & 1u; }
 };
 
 // Fills `out` with up to geo.H occupied entry points. `occupancy` is the OCCU bit array.
