@@ -479,7 +479,7 @@ struct Axis {
 };
 
 LSNIF_AVX512 inline __m512 plane_t(const Axis& x, __m512i k) {
-    return _mm512_mul_ps(_mm512_sub_ps(_mm512_cvtepi32_ps(k), x.go), x.inv);
+    return plane_at(x.go, x.inv, k);
 }
 
 // The plane the walk leaves the cell through (cell + 1 forward, cell backward), as in
