@@ -71,7 +71,9 @@ TEST_CASE("Adam matches a scalar reference step for step, with per-row step coun
     CHECK(qm == qm2);
 }
 
-TEST_CASE("sparse row update equals the per-row Adam step; inactive rows keep their state") {
+TEST_CASE(
+    "sparse row update equals the per-row Adam step and zeroes the gradients it used; inactive rows keep "
+    "their state") {
     const AdamConfig c{0.02f, 0.9f, 0.99f, 1e-10f, 0.0f};
     const std::uint32_t F = 3;
     const std::size_t rows = 203;  // ragged against the 32-row blocks
@@ -82,9 +84,10 @@ TEST_CASE("sparse row update equals the per-row Adam step; inactive rows keep th
     for (std::size_t i = 0; i < p.size(); ++i) p[i] = float(std::sin(0.37 * double(i)));
     auto rp = p, rm = m, rv = v;
     auto rsteps = row_step;
+    const auto r_active = [](std::size_t r, std::uint32_t step) { return (r * 7 + step) % 5 != 0; };
     for (std::uint32_t step = 1; step <= 40; ++step) {
         std::vector<std::uint8_t> active(rows), expect_active(rows);
-        for (std::size_t r = 0; r < rows; ++r) active[r] = std::uint8_t((r * 7 + step) % 5 != 0);
+        for (std::size_t r = 0; r < rows; ++r) active[r] = std::uint8_t(r_active(r, step));
         for (std::size_t i = 0; i < g.size(); ++i)
             g[i] = active[i / F] ? float(std::cos(0.11 * double(i) + step)) : float(1e30);  // stale garbage
         float want_max = 0;
@@ -99,7 +102,9 @@ TEST_CASE("sparse row update equals the per-row Adam step; inactive rows keep th
         // Two calls over a split range, as two threads would make them.
         const float got_max = std::max(adam_update_rows(sr, 0, 77, c.lr, correction.data(), 0.5f, c),
                                        adam_update_rows(sr, 77, rows, c.lr, correction.data(), 0.5f, c));
-        CHECK(active == expect_active);  // every flag cleared
+        CHECK(active == expect_active);             // every flag cleared
+        for (std::size_t i = 0; i < g.size(); ++i)  // used gradients zeroed, the others untouched
+            REQUIRE(g[i] == ((r_active(i / F, step)) ? 0.0f : float(1e30)));
         CHECK(row_step == rsteps);
         CHECK(got_max == doctest::Approx(want_max).epsilon(1e-6));
         for (std::size_t i = 0; i < p.size(); ++i) {
@@ -186,6 +191,38 @@ TEST_CASE("finite-difference gradient check for every parameter kind and loss te
             ++checked;
         }
         CHECK(checked >= 10);
+    }
+}
+
+TEST_CASE("grid gradients are the same bit for bit for any thread count, and cleared after use") {
+    // Every hash row has one owning thread that sums the samples in batch order, so the grid
+    // gradient does not depend on how the batch or the rows are split. small_desc's levels
+    // have 729 and 1,024 rows: with 3 threads the middle share straddles both.
+    const format::ModelDesc d = small_desc();
+    SpheresSource src = two_spheres(d);
+    std::vector<Sample> raw;
+    src.generate(5, 900, raw);
+    std::vector<std::vector<float>> want;
+    for (const std::uint32_t threads : {1u, 2u, 3u, 5u}) {
+        CAPTURE(threads);
+        TrainConfig cfg;
+        cfg.threads = threads;
+        cfg.seed = 4;
+        cfg.mlp_precision = MlpPrecision::fp32;
+        Trainer tr(d, src.occupancy(d), cfg);
+        for (auto& level : tr.grid())
+            for (std::size_t i = 0; i < level.size(); ++i) level[i] = 0.3f * float(std::cos(double(i) * 0.7));
+        const auto batch = tr.reachable(raw);
+        Gradients first, second;
+        tr.loss_and_gradients(batch, &first);
+        tr.loss_and_gradients(batch, &second);  // nothing left over from the first call
+        CHECK(first.grid == second.grid);
+        std::size_t nonzero = 0;
+        for (const auto& level : first.grid)
+            for (const float x : level) nonzero += x != 0.0f;
+        CHECK(nonzero > 500);
+        if (want.empty()) want = first.grid;
+        CHECK(first.grid == want);
     }
 }
 

@@ -49,13 +49,14 @@ float adam_update_rows(const SparseRows& r, std::size_t rb, std::size_t re, floa
         float* p = r.p + base;
         float* m = r.m + base;
         float* v = r.v + base;
-        const float* g = r.g + base;
+        float* g = r.g + base;
         for (std::size_t i = 0; i < n; ++i) {
             const AdamState s = adam_step(p[i], m[i], v[i], g[i], step[i], grad_scale, c);
             const bool keep = on[i] == 0.0f;
             m[i] = keep ? m[i] : s.m;
             v[i] = keep ? v[i] : s.v;
             p[i] = keep ? p[i] : s.p;
+            g[i] = keep ? g[i] : 0.0f;
             pmax = std::max(pmax, keep ? 0.0f : std::fabs(s.p));
         }
     }
@@ -104,14 +105,17 @@ float sigmoid(float z) {
 // cache line with another thread's buffer headers.
 struct alignas(128) Work {
     std::vector<RayPoints> pts;
-    std::vector<float> x;                            // kSub x in0
-    std::vector<std::vector<float>> act;             // per layer output, kSub x outp
-    std::vector<float> d0, d1;                       // gradient ping-pong, kSub x max padded width
-    std::vector<std::vector<float>> dwt;             // per layer, pad16(in) x outp (transposed layout)
-    std::vector<std::vector<float>> db;              // per layer, outp
-    std::vector<std::vector<float>> gg;              // grid gradient per level, entries * F
-    std::vector<std::vector<std::uint8_t>> touched;  // per level, entries
-    std::vector<format::Corners> corners;            // one sample's (point, level) corners
+    std::vector<float> x;                 // kSub x in0
+    std::vector<std::vector<float>> act;  // per layer output, kSub x outp
+    std::vector<float> d0, d1;            // gradient ping-pong, kSub x max padded width
+    std::vector<std::vector<float>> dwt;  // per layer, pad16(in) x outp (transposed layout)
+    std::vector<std::vector<float>> db;   // per layer, outp
+    // The thread's samples of the step, in batch order, for the grid-gradient scatter:
+    // per sample count x (3 grid coordinates, then input_width/count gradients of the point's
+    // features), and the counts.
+    std::vector<float> point_grads;
+    std::vector<std::uint16_t> point_counts;
+    std::vector<format::Corners> corners;  // one sample's corners on one level
     // bf16 path only (empty in fp32): operands of the AMX products of one sub-chunk.
     detail::Bf16Buffer a_rows;  // forward A: layer input, kSub x pad32(in)
     detail::Bf16Buffer a_t;     // weight-gradient A: layer input transposed, pad16(in) x pad32(kSub)
@@ -119,6 +123,27 @@ struct alignas(128) Work {
     detail::Bf16Buffer g_vnni;  // weight-gradient B: G in pair-of-rows layout, pad32(kSub)/2 x 2 outp
     LossParts loss;
 };
+
+// The share of grid rows each of T threads owns (Impl::owned): [first, last) per level.
+std::vector<std::vector<std::pair<std::size_t, std::size_t>>> owned_rows(const format::ModelDesc& desc,
+                                                                         std::uint32_t T) {
+    std::size_t total = 0;
+    for (std::uint32_t l = 0; l < desc.level_count(); ++l) total += desc.level_entries(l);
+    const std::size_t per = (total + T - 1) / T;
+    std::vector<std::vector<std::pair<std::size_t, std::size_t>>> owned(T);
+    for (std::uint32_t t = 0; t < T; ++t) {
+        const std::size_t b = std::min(total, t * per), e = std::min(total, b + per);
+        std::size_t offset = 0;
+        for (std::uint32_t l = 0; l < desc.level_count(); ++l) {
+            const std::size_t n = desc.level_entries(l);
+            const std::size_t first = std::clamp(b, offset, offset + n) - offset;
+            const std::size_t last = std::clamp(e, offset, offset + n) - offset;
+            owned[t].emplace_back(first, std::max(first, last));
+            offset += n;
+        }
+    }
+    return owned;
+}
 
 }  // namespace
 
@@ -133,9 +158,15 @@ struct Trainer::Impl {
     // Adam state.
     std::vector<std::vector<float>> gm, gv, wm, wv, bm, bv;
     std::vector<std::vector<std::uint32_t>> row_step;
-    std::vector<double> grid_correction;   // [t] = adam_bias_correction(grid_adam, t); [0] unused
-    std::vector<std::vector<float>> gsum;  // reduced grid gradient of the step
-    std::vector<double> gsum_norm2;        // per thread: sum of squares of its rows of gsum
+    std::vector<double> grid_correction;  // [t] = adam_bias_correction(grid_adam, t); [0] unused
+    // The grid gradient of the step, per level (entries x F). Rows without gradient are
+    // zero between steps: the scatter adds into them, Adam and clear_grid_gradients zero them.
+    std::vector<std::vector<float>> gsum;
+    std::vector<double> gsum_norm2;  // per thread: sum of squares of its rows of gsum
+    // Rows thread t owns, per level: [first, last). The levels' rows laid end to end are cut
+    // into one contiguous share per thread, so every row has one writer (no per-thread
+    // tables to reduce) and, with as many threads as levels, a thread owns one level.
+    std::vector<std::vector<std::pair<std::size_t, std::size_t>>> owned;
     std::vector<std::vector<std::uint8_t>> active;
     std::vector<std::vector<float>> wgrad, bgrad;  // reduced MLP gradient, file layout
     double ema = 0;
@@ -164,12 +195,16 @@ struct Trainer::Impl {
     float* mlp_backward(const Geometry& geo, std::size_t n, bool bf16, Work& w) const;
     // Sums the threads' MLP gradients into wgrad/bgrad (file layout) and clears theirs.
     void reduce_mlp_gradients(const format::ModelDesc& desc);
-    // Sums the threads' touched grid rows into gsum, marks them in `active`, clears theirs;
-    // thread t also sums the squares of the rows it reduced into gsum_norm2[t] (the grid's
-    // share of the global gradient norm, in a fixed order for a fixed thread count).
-    void reduce_grid_gradients(std::uint32_t F, std::uint32_t threads);
-    // Copies the reduced gradients out (gradient checks) and clears `active`.
-    void export_gradients(const std::vector<std::vector<float>>& grid, std::uint32_t F, Gradients& grads);
+    // Adds every sample's share of dL/d(features) (the threads' point_grads) into gsum and
+    // marks the rows in `active`; thread t writes only the rows it owns, visiting the samples
+    // in batch order, so each row's sum has the same order for any thread count. Thread t
+    // then sums the squares of its rows into gsum_norm2[t] (the grid's share of the global
+    // gradient norm).
+    void scatter_grid_gradients(const Geometry& geo);
+    // Zeroes gsum's active rows and clears `active` (a step that is not applied).
+    void clear_grid_gradients(std::uint32_t F);
+    // Copies the reduced gradients out (gradient checks), then clear_grid_gradients.
+    void export_gradients(std::uint32_t F, Gradients& grads);
 };
 
 Trainer::Trainer(const format::ModelDesc& desc, std::vector<std::uint8_t> occupancy, const TrainConfig& cfg)
@@ -241,11 +276,8 @@ Trainer::Trainer(const format::ModelDesc& desc, std::vector<std::uint8_t> occupa
             w.g_rows.resize(kSub * max_out32);
             w.g_vnni.resize(std::size_t(pad32(kSub)) * maxw);
         }
-        for (std::uint32_t l = 0; l < desc.level_count(); ++l) {
-            w.gg.emplace_back(grid_[l].size(), 0.0f);
-            w.touched.emplace_back(desc.level_entries(l), 0u);
-        }
     }
+    im.owned = owned_rows(desc, threads_);
 }
 
 Trainer::~Trainer() {
@@ -550,35 +582,68 @@ void load_points(const PreparedSet& set, std::span<const std::uint32_t> rows, Wo
     }
 }
 
-// Adds each hash-grid corner's share of dL/d(features) (dx: n rows of pad16(input_width))
-// into the thread's tables w.gg and marks the rows it touched. Only corners that carry
-// weight are visited. Two passes per sample, as in format::encode_points: corners first,
-// prefetching the gradient rows (the tables exceed L2), then the accumulation.
-void scatter_grid_gradients(const Geometry& geo, const float* dx, std::size_t n, Work& w) {
-    const std::uint32_t L = geo.L, F = geo.F;
-    const std::size_t ip0 = pad16(geo.input_width);
-    w.corners.resize(std::size_t(geo.H) * L);
+// Appends the n rows' entry points and dL/d(point features) (dx: n rows of
+// pad16(input_width)) to w.point_grads, for Impl::scatter_grid_gradients after the pass.
+void record_point_gradients(const Geometry& geo, const float* dx, std::size_t n, Work& w) {
+    const std::size_t ip0 = pad16(geo.input_width), per_point = std::size_t(geo.L) * geo.F;
     for (std::size_t r = 0; r < n; ++r) {
         const RayPoints& p = w.pts[r];
-        const float* dxr = dx + r * ip0;
-        for (std::uint32_t h = 0; h < p.count; ++h)
-            for (std::uint32_t l = 0; l < L; ++l) {
-                format::Corners& c = w.corners[std::size_t(h) * L + l];
-                format::level_corners(geo, geo.levels[l], p.g[h], c);
+        const std::size_t at = w.point_grads.size();
+        w.point_grads.resize(at + p.count * (3 + per_point));
+        float* out = w.point_grads.data() + at;
+        std::memcpy(out, p.g, sizeof(float) * 3 * p.count);
+        std::memcpy(out + 3 * p.count, dx + r * ip0, sizeof(float) * per_point * p.count);
+        w.point_counts.push_back(std::uint16_t(p.count));
+    }
+}
+
+// Sum of x[i]^2 in double over 8 interleaved partial sums: a fixed order (the result
+// depends only on x), and one that vectorizes instead of waiting on a single running sum.
+double sum_of_squares(const float* x, std::size_t n) {
+    double part[8] = {};
+    std::size_t i = 0;
+    for (; i + 8 <= n; i += 8)
+        for (std::size_t k = 0; k < 8; ++k) part[k] += double(x[i + k]) * double(x[i + k]);
+    double sum = 0;
+    for (const double p : part) sum += p;
+    for (; i < n; ++i) sum += double(x[i]) * double(x[i]);
+    return sum;
+}
+
+// Adds each sample's corner shares on level `lv` into rows [first, last) of `table` (rows x
+// F) and marks them in `active`, the samples in the order `work` recorded them. Only corners
+// that carry weight are visited. Two passes per sample, as in format::encode_points:
+// corners first, prefetching the rows (the table exceeds L2), then the accumulation.
+void scatter_level(const Geometry& geo, std::uint32_t level, std::pair<std::size_t, std::size_t> rows,
+                   const std::vector<Work>& work, float* table, std::uint8_t* active,
+                   std::vector<format::Corners>& corners) {
+    const std::uint32_t L = geo.L, F = geo.F;
+    const auto [first, last] = rows;
+    corners.resize(geo.H);
+    for (const Work& w : work) {
+        const float* rec = w.point_grads.data();
+        for (const std::uint16_t count : w.point_counts) {
+            const float* g = rec;
+            const float* dx = rec + 3 * count;
+            rec += count * (3 + std::size_t(L) * F);
+            for (std::uint32_t h = 0; h < count; ++h) {
+                format::Corners& c = corners[h];
+                format::level_corners(geo, geo.levels[level], g + 3 * h, c);
                 for (std::uint32_t q = 0; q < c.n; ++q)
-                    __builtin_prefetch(w.gg[l].data() + std::size_t(c.index[q]) * F, 1);
+                    if (c.index[q] >= first && c.index[q] < last)
+                        __builtin_prefetch(table + std::size_t(c.index[q]) * F, 1);
             }
-        for (std::uint32_t h = 0; h < p.count; ++h)
-            for (std::uint32_t l = 0; l < L; ++l) {
-                const format::Corners& c = w.corners[std::size_t(h) * L + l];
-                const float* src = dxr + (std::size_t(h) * L + l) * F;
-                float* table = w.gg[l].data();
+            for (std::uint32_t h = 0; h < count; ++h) {
+                const format::Corners& c = corners[h];
+                const float* src = dx + (std::size_t(h) * L + level) * F;
                 for (std::uint32_t q = 0; q < c.n; ++q) {
+                    if (c.index[q] < first || c.index[q] >= last) continue;
                     float* dst = table + std::size_t(c.index[q]) * F;
                     for (std::uint32_t f = 0; f < F; ++f) dst[f] += c.weight[q] * src[f];
-                    w.touched[l][c.index[q]] = 1;
+                    active[c.index[q]] = 1;
                 }
             }
+        }
     }
 }
 
@@ -667,46 +732,36 @@ void Trainer::Impl::reduce_mlp_gradients(const format::ModelDesc& desc) {
     }
 }
 
-void Trainer::Impl::reduce_grid_gradients(std::uint32_t F, std::uint32_t threads) {
-    gsum_norm2.assign(threads, 0.0);
-    base::run_on_threads(threads, [&](std::uint32_t t) {
+void Trainer::Impl::scatter_grid_gradients(const Geometry& geo) {
+    const auto T = std::uint32_t(owned.size());
+    gsum_norm2.assign(T, 0.0);
+    base::run_on_threads(T, [&](std::uint32_t t) {
         double norm2 = 0;
-        for (std::size_t l = 0; l < active.size(); ++l) {
-            const std::size_t rows = active[l].size();
-            const std::size_t per_rows = (rows + threads - 1) / threads;
-            const std::size_t rb = std::min(rows, t * per_rows), re = std::min(rows, rb + per_rows);
-            for (std::size_t row = rb; row < re; ++row) {
-                bool any = false;
-                for (const Work& w : work) any = any || w.touched[l][row];
-                if (!any) continue;
-                float* dst = gsum[l].data() + row * F;
-                for (std::uint32_t f = 0; f < F; ++f) dst[f] = 0.0f;
-                for (Work& w : work) {
-                    if (!w.touched[l][row]) continue;
-                    float* src = w.gg[l].data() + row * F;
-                    for (std::uint32_t f = 0; f < F; ++f) dst[f] += src[f], src[f] = 0.0f;
-                    w.touched[l][row] = 0;
-                }
-                for (std::uint32_t f = 0; f < F; ++f) norm2 += double(dst[f]) * dst[f];
-                active[l][row] = 1;
-            }
+        for (std::uint32_t l = 0; l < geo.L; ++l) {
+            const auto [first, last] = owned[t][l];
+            if (first == last) continue;
+            scatter_level(geo, l, owned[t][l], work, gsum[l].data(), active[l].data(), work[t].corners);
+            // Rows without gradient are zero, so the whole share can be summed.
+            norm2 += sum_of_squares(gsum[l].data() + first * geo.F, (last - first) * geo.F);
         }
         gsum_norm2[t] = norm2;
     });
 }
 
-void Trainer::Impl::export_gradients(const std::vector<std::vector<float>>& grid, std::uint32_t F,
-                                     Gradients& grads) {
-    grads.grid.assign(grid.size(), {});
-    for (std::size_t l = 0; l < grid.size(); ++l) {
-        grads.grid[l].assign(grid[l].size(), 0.0f);
-        for (std::size_t row = 0; row < active[l].size(); ++row)
-            if (active[l][row])
-                for (std::uint32_t f = 0; f < F; ++f) grads.grid[l][row * F + f] = gsum[l][row * F + f];
-    }
+void Trainer::Impl::clear_grid_gradients(std::uint32_t F) {
+    for (std::size_t l = 0; l < active.size(); ++l)
+        for (std::size_t row = 0; row < active[l].size(); ++row) {
+            if (!active[l][row]) continue;
+            std::fill_n(gsum[l].data() + row * F, F, 0.0f);
+            active[l][row] = 0;
+        }
+}
+
+void Trainer::Impl::export_gradients(std::uint32_t F, Gradients& grads) {
+    grads.grid = gsum;
     grads.weights = wgrad;
     grads.biases = bgrad;
-    for (auto& a : active) std::fill(a.begin(), a.end(), 0u);
+    clear_grid_gradients(F);
 }
 
 LossParts Trainer::loss_and_gradients(const PreparedSet& set, std::span<const std::uint32_t> batch,
@@ -728,6 +783,8 @@ LossParts Trainer::loss_and_gradients(const PreparedSet& set, std::span<const st
     parallel(threads_, [&](std::uint32_t t) {
         Work& w = im.work[t];
         w.loss = LossParts{};
+        w.point_grads.clear();
+        w.point_counts.clear();
         const std::size_t begin = std::min(B, t * per), end = std::min(B, begin + per);
         for (std::size_t base = begin; base < end; base += kSub) {
             const std::size_t n = std::min(kSub, end - base);
@@ -740,7 +797,7 @@ LossParts Trainer::loss_and_gradients(const PreparedSet& set, std::span<const st
             output_losses(geo_, set, rows, w.act.back().data(), im.net.out_padded.back(), scale, w,
                           w.d0.data());
             const float* dx = im.mlp_backward(geo_, n, bf16, w);
-            scatter_grid_gradients(geo_, dx, n, w);
+            record_point_gradients(geo_, dx, n, w);
         }
     });
 
@@ -756,8 +813,8 @@ LossParts Trainer::loss_and_gradients(const PreparedSet& set, std::span<const st
     total.total = lw.visibility * total.visibility + lw.distance * total.distance + lw.normal * total.normal +
                   lw.material * total.material;
     im.reduce_mlp_gradients(desc_);
-    im.reduce_grid_gradients(geo_.F, threads_);
-    if (grads) im.export_gradients(grid_, geo_.F, *grads);
+    im.scatter_grid_gradients(geo_);
+    if (grads) im.export_gradients(geo_.F, *grads);
     return total;
 }
 
@@ -800,7 +857,7 @@ float Trainer::step(const PreparedSet& set, std::span<const std::uint32_t> batch
     const bool bad = !std::isfinite(loss) || !std::isfinite(norm2) ||
                      (warm && im.ema > 0 && loss > cfg_.divergence_factor * im.ema);
     if (bad) {
-        for (auto& a : im.active) std::fill(a.begin(), a.end(), 0u);
+        im.clear_grid_gradients(F);
         rollback();
         lr_scale_ *= 0.5f;
         ++rollbacks_;
@@ -831,9 +888,8 @@ float Trainer::step(const PreparedSet& set, std::span<const std::uint32_t> batch
     std::vector<float> grid_max(threads_, 0.0f);
     parallel(threads_, [&](std::uint32_t t) {
         for (std::uint32_t l = 0; l < L; ++l) {
-            const std::size_t rows = im.active[l].size();
-            const std::size_t per_rows = (rows + threads_ - 1) / threads_;
-            const std::size_t rb = std::min(rows, t * per_rows), re = std::min(rows, rb + per_rows);
+            // The rows this thread scattered into: still in its cache.
+            const auto [rb, re] = im.owned[t][l];
             const SparseRows r{grid_[l].data(),
                                im.gm[l].data(),
                                im.gv[l].data(),

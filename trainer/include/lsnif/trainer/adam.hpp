@@ -65,7 +65,7 @@ struct SparseRows {
     float* p;
     float* m;
     float* v;
-    const float* g;
+    float* g;                 // this step's gradient; active rows are zeroed here
     std::uint8_t* active;     // rows with a gradient this step; cleared here
     std::uint32_t* row_step;  // updates each row has taken (its own bias correction)
     std::uint32_t F;
@@ -73,7 +73,8 @@ struct SparseRows {
 
 // Sparse Adam (adam_update_corrected's arithmetic) over rows [rb, re): an active row takes a
 // step of lr x correction[its new step count] (correction[t] = adam_bias_correction(c, t),
-// defined up to the largest count) and its flag is cleared; an inactive row keeps its
+// defined up to the largest count), and its flag and gradient are cleared (the gradient
+// table is zero again for the next step's sums); an inactive row keeps its
 // parameters and moments. Rows go 32 at a time: the step sizes are spread per element and the update selects
 // between old and new values, so the arithmetic vectorizes across rows (a row alone is F = 3
 // elements, and most rows are active in every step). Returns the largest |parameter| of the

@@ -2,6 +2,8 @@
 // sparse hash-grid encoding, hand-written Adam, learning-rate schedule, gradient clipping
 // and a divergence guard. Multi-threaded on the shared pool (lsnif/base/parallel.hpp); for a fixed seed and
 // thread count every step is bit-for-bit deterministic (fixed work partition, fixed reduction order).
+// The hash-grid gradients do not even depend on the thread count: each table row is summed by
+// the one thread that owns it, over the batch in order (Adam then updates the rows in place).
 //
 // The forward computation is format/'s (trace_points, encode_points, dense_layer), so a
 // model trained here evaluates identically in a renderer once exported to fp16
