@@ -96,8 +96,8 @@ TEST_CASE(
             const std::uint32_t t = ++rsteps[r];
             adam_update_corrected(&rp[r * F], &rm[r * F], &rv[r * F], &g[r * F], F,
                                   float(double(c.lr) * correction[t]), 0.5f, c);
-            for (std::uint32_t f = 0; f < F; ++f) want_max = std::max(want_max, std::fabs(rp[r * F + f]));
         }
+        for (const float x : rp) want_max = std::max(want_max, std::fabs(x));  // every row in range
         const SparseRows sr{p.data(), m.data(), v.data(), g.data(), active.data(), row_step.data(), F};
         // Two calls over a split range, as two threads would make them.
         const float got_max = std::max(adam_update_rows(sr, 0, 77, c.lr, correction.data(), 0.5f, c),

@@ -78,7 +78,7 @@ struct SparseRows {
 // parameters and moments. Rows go 32 at a time: the step sizes are spread per element and the update selects
 // between old and new values, so the arithmetic vectorizes across rows (a row alone is F = 3
 // elements, and most rows are active in every step). Returns the largest |parameter| of the
-// rows updated.
+// rows [rb, re) after the update, NaN if one of them is NaN.
 float adam_update_rows(const SparseRows& r, std::size_t rb, std::size_t re, float lr,
                        const double* correction, float grad_scale, const AdamConfig& c);
 
