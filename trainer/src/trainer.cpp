@@ -63,21 +63,24 @@ float adam_update_rows(const SparseRows& r, std::size_t rb, std::size_t re, floa
     thread_local std::vector<float> step, on;  // per element: step size, 1 if the row is active
     step.resize(kRows * F);
     on.resize(kRows * F);
+    float* const st = step.data();  // the thread_local lookups once, not per row
+    float* const onp = on.data();
     std::uint32_t pmax = 0;
     for (std::size_t r0 = rb; r0 < re; r0 += kRows) {
         const std::size_t r1 = std::min(re, r0 + kRows);
         for (std::size_t row = r0; row < r1; ++row) {
-            float s = 0.0f, a = 0.0f;
-            if (r.active[row]) {
-                r.active[row] = 0;
-                s = float(double(lr) * correction[++r.row_step[row]]);
-                a = 1.0f;
-            }
-            for (std::uint32_t f = 0; f < F; ++f) step[(row - r0) * F + f] = s, on[(row - r0) * F + f] = a;
+            // Branch-free: most rows are active, but which ones is data-dependent.
+            const bool is_active = r.active[row] != 0;
+            const std::uint32_t t = r.row_step[row] + std::uint32_t(is_active);
+            r.row_step[row] = t;
+            r.active[row] = 0;
+            const float s = is_active ? float(double(lr) * correction[t]) : 0.0f;
+            const float a = is_active ? 1.0f : 0.0f;
+            for (std::uint32_t f = 0; f < F; ++f) st[(row - r0) * F + f] = s, onp[(row - r0) * F + f] = a;
         }
         const std::size_t base = r0 * F;
-        pmax = std::max(pmax, adam_elements(r.p + base, r.m + base, r.v + base, r.g + base, step.data(),
-                                            on.data(), (r1 - r0) * F, grad_scale, c));
+        pmax = std::max(pmax, adam_elements(r.p + base, r.m + base, r.v + base, r.g + base, st, onp,
+                                            (r1 - r0) * F, grad_scale, c));
     }
     return std::bit_cast<float>(pmax);
 }
