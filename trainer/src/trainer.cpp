@@ -632,41 +632,51 @@ double sum_of_squares(const float* x, std::size_t n) {
     return sum;
 }
 
-// Adds each sample's corner shares on level `lv` into rows [first, last) of `table` (rows x
-// F) and marks them in `active`, the samples in the order `work` recorded them. Only corners
-// that carry weight are visited. Two passes per sample, as in format::encode_points:
-// corners first, prefetching the rows (the table exceeds L2), then the accumulation.
+// Adds each sample's corner shares on level `level` into rows [first, last) of `table`
+// (rows x F) and marks them in `active`, the samples in the order `work` recorded them. Only
+// corners that carry weight are visited. Software-pipelined by one sample: a sample's
+// corners are computed and their rows prefetched (the table exceeds L2) while the previous
+// sample's shares are added, so each row has a sample's worth of work to arrive.
 void scatter_level(const Geometry& geo, std::uint32_t level, std::pair<std::size_t, std::size_t> rows,
                    const std::vector<Work>& work, float* table, std::uint8_t* active,
                    std::vector<format::Corners>& corners) {
-    const std::uint32_t L = geo.L, F = geo.F;
+    const std::uint32_t L = geo.L, F = geo.F, H = geo.H;
     const auto [first, last] = rows;
-    corners.resize(geo.H);
+    const auto owned = [&](std::uint32_t index) { return index >= first && index < last; };
+    corners.resize(2 * std::size_t(H));
+    const auto stage = [&](const float* g, std::uint32_t count, format::Corners* cs) {
+        for (std::uint32_t h = 0; h < count; ++h) {
+            format::level_corners(geo, geo.levels[level], g + 3 * h, cs[h]);
+            for (std::uint32_t q = 0; q < cs[h].n; ++q)
+                if (owned(cs[h].index[q])) __builtin_prefetch(table + std::size_t(cs[h].index[q]) * F, 1);
+        }
+    };
+    const auto add = [&](const float* dx, std::uint32_t count, const format::Corners* cs) {
+        for (std::uint32_t h = 0; h < count; ++h) {
+            const format::Corners& c = cs[h];
+            const float* src = dx + (std::size_t(h) * L + level) * F;
+            for (std::uint32_t q = 0; q < c.n; ++q) {
+                if (!owned(c.index[q])) continue;
+                float* dst = table + std::size_t(c.index[q]) * F;
+                for (std::uint32_t f = 0; f < F; ++f) dst[f] += c.weight[q] * src[f];
+                active[c.index[q]] = 1;
+            }
+        }
+    };
+    const float* pending_dx = nullptr;  // the staged sample whose shares are not added yet
+    std::uint32_t pending_count = 0, slot = 0;
     for (const Work& w : work) {
         const float* rec = w.point_grads.data();
         for (const std::uint16_t count : w.point_counts) {
-            const float* g = rec;
-            const float* dx = rec + 3 * count;
+            stage(rec, count, corners.data() + slot * H);
+            if (pending_dx) add(pending_dx, pending_count, corners.data() + (slot ^ 1) * H);
+            pending_dx = rec + 3 * count;
+            pending_count = count;
+            slot ^= 1;
             rec += count * (3 + std::size_t(L) * F);
-            for (std::uint32_t h = 0; h < count; ++h) {
-                format::Corners& c = corners[h];
-                format::level_corners(geo, geo.levels[level], g + 3 * h, c);
-                for (std::uint32_t q = 0; q < c.n; ++q)
-                    if (c.index[q] >= first && c.index[q] < last)
-                        __builtin_prefetch(table + std::size_t(c.index[q]) * F, 1);
-            }
-            for (std::uint32_t h = 0; h < count; ++h) {
-                const format::Corners& c = corners[h];
-                const float* src = dx + (std::size_t(h) * L + level) * F;
-                for (std::uint32_t q = 0; q < c.n; ++q) {
-                    if (c.index[q] < first || c.index[q] >= last) continue;
-                    float* dst = table + std::size_t(c.index[q]) * F;
-                    for (std::uint32_t f = 0; f < F; ++f) dst[f] += c.weight[q] * src[f];
-                    active[c.index[q]] = 1;
-                }
-            }
         }
     }
+    if (pending_dx) add(pending_dx, pending_count, corners.data() + (slot ^ 1) * H);
 }
 
 }  // namespace
