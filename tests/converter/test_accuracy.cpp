@@ -5,7 +5,10 @@
 // shading-normal error <= 15 degrees. Every family's figures are printed, as is the
 // geometric-normal error.
 //
-// This converts two meshes at full size (minutes of training), so it is registered only in
+// Beyond CGAL's scans, two models of sweethome3d-furniture's catalogues: a truck assembly,
+// which ships past the gate but short of the target, and a tree, which stays BVH.
+//
+// This converts meshes at full size (minutes of training), so it is registered only in
 // optimized builds (label "accuracy"); a sanitized build would take far longer and measure
 // nothing different.
 #include <doctest/doctest.h>
@@ -35,9 +38,9 @@ namespace {
 // Converts one mesh with the default preset and options, as a user would: automatic
 // classification, the memory rule and sizing to the default target choose its model.
 // Returns the mesh's manifest entry.
-nlohmann::json convert_default(const std::string& file, const std::string& name) {
+nlohmann::json convert_default(const fs::path& file, const std::string& name) {
     ConvertOptions opt;
-    opt.inputs = {std::string(LSNIF_TEST_MESH_DIR) + "/" + file};
+    opt.inputs = {file.string()};
     opt.outdir = std::string(LSNIF_TEST_WORK_DIR) + "/accuracy_" + name;
     fs::remove_all(opt.outdir);
     opt.preset = "default";
@@ -48,7 +51,17 @@ nlohmann::json convert_default(const std::string& file, const std::string& name)
     return r.manifest["meshes"][0];
 }
 
-void check_targets(const nlohmann::json& mesh) {
+fs::path cgal_mesh(const std::string& file) {
+    return fs::path(LSNIF_TEST_MESH_DIR) / file;
+}
+
+// sweethome3d-furniture's models, extracted by tests/CMakeLists.txt.
+fs::path furniture_mesh(const std::string& model) {
+    const fs::path dir = fs::path(LSNIF_TEST_FURNITURE_DIR) / model;
+    return dir / (dir.filename().string() + ".obj");
+}
+
+void print_families(const nlohmann::json& mesh) {
     const auto& fam = mesh["metrics"]["families"];
     for (const char* f : {"outside", "surface", "interior", "pooled"}) {
         const auto& m = fam[f];
@@ -59,7 +72,11 @@ void check_targets(const nlohmann::json& mesh) {
                 << m["geometric_normal_error_median_deg"].get<double>() << " deg)");
     }
     MESSAGE("timings (s): " << mesh["timings"].dump());
-    const auto& p = fam["pooled"];
+}
+
+void check_targets(const nlohmann::json& mesh) {
+    print_families(mesh);
+    const auto& p = mesh["metrics"]["families"]["pooled"];
     CHECK(p["visibility_accuracy"].get<double>() >= 0.97);
     CHECK(p["distance_error_median_pct"].get<double>() <= 1.0);
     CHECK(p["normal_error_median_deg"].get<double>() <= 15.0);
@@ -86,7 +103,7 @@ struct Shipped {
     std::vector<lsnif::format::Ray> rays;
 };
 
-Shipped read_shipped(const nlohmann::json& mesh, const std::string& file, const std::string& name) {
+Shipped read_shipped(const nlohmann::json& mesh, const fs::path& file, const std::string& name) {
     using namespace lsnif;
     const fs::path asset =
         fs::path(LSNIF_TEST_WORK_DIR) / ("accuracy_" + name) / mesh["lsnif"]["file"].get<std::string>();
@@ -95,7 +112,7 @@ Shipped read_shipped(const nlohmann::json& mesh, const std::string& file, const 
     auto model = format::read_model(bytes);
     REQUIRE(model);
     Shipped s{std::move(*model), {}, {}};
-    auto imported = scene::import_scene(std::string(LSNIF_TEST_MESH_DIR) + "/" + file);
+    auto imported = scene::import_scene(file.string());
     REQUIRE(imported.ok());
     const mesh::MeshView view = converter::stages::view_of(imported.scene.meshes[0]);
     const auto box = voxelize::padded_box(view);
@@ -176,19 +193,53 @@ void check_bf16_inference(const Shipped& s, const std::string& name) {
 }  // namespace
 
 TEST_CASE("default preset meets the accuracy targets on CGAL's Chinese dragon") {
-    const auto mesh = convert_default("ChineseDragon-10kv.off", "ChineseDragon-10kv");
+    const auto mesh = convert_default(cgal_mesh("ChineseDragon-10kv.off"), "ChineseDragon-10kv");
     check_targets(mesh);
-    const Shipped shipped = read_shipped(mesh, "ChineseDragon-10kv.off", "ChineseDragon-10kv");
+    const Shipped shipped = read_shipped(mesh, cgal_mesh("ChineseDragon-10kv.off"), "ChineseDragon-10kv");
     check_walks_agree(shipped, "ChineseDragon-10kv");
     check_bf16_inference(shipped, "ChineseDragon-10kv");
 }
 
 TEST_CASE("default preset meets the accuracy targets on CGAL's armadillo") {
-    const auto mesh = convert_default("armadillo.off", "armadillo");
+    const auto mesh = convert_default(cgal_mesh("armadillo.off"), "armadillo");
     check_targets(mesh);
-    const Shipped shipped = read_shipped(mesh, "armadillo.off", "armadillo");
+    const Shipped shipped = read_shipped(mesh, cgal_mesh("armadillo.off"), "armadillo");
     check_walks_agree(shipped, "armadillo");
     check_bf16_inference(shipped, "armadillo");
+}
+
+// A CAD-like assembly (BlendSwap's Peterbilt truck, CC0, 116,495 triangles in hundreds of
+// parts: thin panels, wheels, chrome trim) ships, but short of the 97 % target
+// (BENCHMARKS.md "More real meshes"): the gate's figures with a margin over them, and the
+// shipped asset's walk and bf16 inference checked like the CGAL meshes'.
+TEST_CASE("default preset ships a truck assembly past the gate with a margin") {
+    const fs::path file = furniture_mesh("blendswap-cc-0/peterbilt");
+    const auto mesh = convert_default(file, "peterbilt");
+    print_families(mesh);
+    REQUIRE(mesh["class"] == "complex");
+    REQUIRE(mesh.contains("lsnif"));
+    const auto& fam = mesh["metrics"]["families"];
+    CHECK(fam["pooled"]["visibility_accuracy"].get<double>() >= 0.955);
+    CHECK(fam["pooled"]["distance_error_median_pct"].get<double>() <= 1.0);
+    CHECK(fam["pooled"]["normal_error_median_deg"].get<double>() <= 15.0);
+    for (const char* f : {"outside", "surface", "interior"})
+        CHECK(fam[f]["visibility_accuracy"].get<double>() >= 0.92);
+    const Shipped shipped = read_shipped(mesh, file, "peterbilt");
+    check_walks_agree(shipped, "peterbilt");
+    check_bf16_inference(shipped, "peterbilt");
+}
+
+// Foliage (Scopia's Japanese maple, CC-BY 3.0, 198,396 triangles of leaves) is thin geometry
+// the network cannot represent at the default size (75 % visibility): it stays BVH, decided
+// at the first validation like the synthetic hairball below, in seconds.
+TEST_CASE("default preset keeps a tree as BVH, decided at the first validation") {
+    const auto mesh = convert_default(furniture_mesh("scopia/japaneseMaple"), "japaneseMaple");
+    print_families(mesh);
+    CHECK(mesh["class"] == "simple");
+    CHECK(!mesh.contains("lsnif"));
+    REQUIRE(mesh["validation"].size() == 1);
+    CHECK(mesh["validation"][0]["step"] == 240);
+    CHECK(mesh["reasons"].back() == "decided early from the validation curve: stays BVH");
 }
 
 // Deciding early (docs/model.md "Deciding early"): the hairball of the hard-geometry suite
