@@ -24,6 +24,7 @@
 #include <cstdio>
 #include <deque>
 #include <filesystem>
+#include <limits>
 #include <lsnif/base/parallel.hpp>
 #include <memory>
 #include <mutex>
@@ -449,6 +450,7 @@ bool resolve_preset(const ConvertOptions& opt, Preset& preset, std::string& erro
         preset.sizing.quantize = false;
         preset.target_stop.consecutive = 0;
     }
+    if (opt.no_give_up) preset.early_abort.min_samples = std::numeric_limits<std::uint64_t>::max();
     return true;
 }
 

@@ -285,6 +285,9 @@ struct ConvertSettings {
         sub->add_flag("--fixed-model", opt.fixed_model,
                       "Train the preset's model (after the memory rule) for the whole budget: no smaller "
                       "sizes, no 8-bit option, no stop at the target (for sweeps and comparisons)");
+        sub->add_flag("--no-give-up", opt.no_give_up,
+                      "Train to the end of the budget even when the validation curve shows the gate is out "
+                      "of reach (to measure hard geometry); the gate still decides what ships");
         sub->add_flag("--dry-run", opt.dry_run,
                       "Import and classify only: print the plan (class, reasons, model size), write nothing");
     }

@@ -77,6 +77,11 @@ TEST_CASE("resolve_preset applies every command-line override, and names the pre
     CHECK_FALSE(p.sizing.explore_smaller);
     CHECK_FALSE(p.sizing.quantize);
     CHECK(p.target_stop.consecutive == 0);
+    // --no-give-up: no validation check can abort training.
+    CHECK(p.early_abort.min_samples < std::numeric_limits<std::uint64_t>::max());
+    o.no_give_up = true;
+    REQUIRE(resolve_preset(o, p, error));
+    CHECK(p.early_abort.min_samples == std::numeric_limits<std::uint64_t>::max());
 
     o.preset = "turbo";
     CHECK_FALSE(resolve_preset(o, p, error));
@@ -202,6 +207,9 @@ TEST_CASE("asset_key changes with the geometry and every setting that changes th
     ConvertOptions o5 = o;
     o5.fixed_model = true;
     CHECK(asset_key(make_run(o5, run.outdir), mesh, desc) != key);
+    ConvertOptions o6 = o;
+    o6.no_give_up = true;
+    CHECK(asset_key(make_run(o6, run.outdir), mesh, desc) != key);
     // Where the output goes does not change the weights.
     CHECK(asset_key(make_run(o, fresh_dir("stages_key_elsewhere")), mesh, desc) == key);
 }

@@ -194,6 +194,10 @@ struct ConvertOptions {
     // Train one model per mesh for the preset's whole budget, as before sizing existed: no
     // smaller rungs, no 8-bit option, no TargetStop (EarlyAbort and the gate still apply).
     bool fixed_model = false;
+    // --no-give-up: train to the end of the budget even where the validation curve shows the
+    // gate is out of reach (EarlyAbort off), to measure how far hard geometry gets. The gate
+    // still decides what ships.
+    bool no_give_up = false;
     Target target;  // --target: judged and reported per shipped asset
     // --memory-budget: the scene's memory in bytes (every mesh once: BVHs of the meshes that
     // stay BVH plus LSNIF assets) that conversion aims at; candidates are converted in order
