@@ -132,9 +132,9 @@ struct alignas(128) Work {
     std::vector<float> d0, d1;            // gradient ping-pong, kSub x max padded width
     std::vector<std::vector<float>> dwt;  // per layer, pad16(in) x outp (transposed layout)
     std::vector<std::vector<float>> db;   // per layer, outp
-    // The thread's samples of the step, in batch order, for the grid-gradient scatter:
-    // per sample count x (3 grid coordinates, then input_width/count gradients of the point's
-    // features), and the counts.
+    // The thread's samples of the step, in batch order, for the grid-gradient scatter: per
+    // sample its `count` points' grid coordinates (count x 3), then the gradients of their
+    // features (count x L x F); and the counts.
     std::vector<float> point_grads;
     std::vector<std::uint16_t> point_counts;
     std::vector<format::Corners> corners;  // one sample's corners on one level
@@ -187,7 +187,7 @@ struct Trainer::Impl {
     std::vector<double> gsum_norm2;  // per thread: sum of squares of its rows of gsum
     // Rows thread t owns, per level: [first, last). The levels' rows laid end to end are cut
     // into one contiguous share per thread, so every row has one writer (no per-thread
-    // tables to reduce) and, with as many threads as levels, a thread owns one level.
+    // tables to reduce); with two threads and two levels of equal size, one level each.
     std::vector<std::vector<std::pair<std::size_t, std::size_t>>> owned;
     std::vector<std::vector<std::uint8_t>> active;
     std::vector<std::vector<float>> wgrad, bgrad;  // reduced MLP gradient, file layout
