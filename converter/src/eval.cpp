@@ -584,8 +584,10 @@ GBuffer render_primary(const EvalScene& scene, const std::vector<EvalScene::Impl
     return gb;
 }
 
-enum { kShadow, kAo, kReflection, kEffects };
-constexpr const char* kEffectNames[kEffects] = {"shadow", "ao", "reflection"};
+// The three effects one at a time, then their combination (docs/eval.md "The renders").
+enum { kShadow, kAo, kReflection, kCombined, kEffects };
+constexpr int kSeparateEffects = kCombined;  // what the report's overall flip_mean averages
+constexpr const char* kEffectNames[kEffects] = {"shadow", "ao", "reflection", "combined"};
 
 // Linear RGB images of the three effects from one tracer, and the time its secondary
 // rays took (summed over threads).
@@ -629,7 +631,9 @@ void make_row_rays(const GBuffer& gb, const View& v, const EvalOptions& opt, std
 }
 
 // Shades pixel k of a row from its traced secondary rays: Lambert with shadow, the open
-// fraction of AO rays, and the mirror bounce (the hit object's Lambert, or the sky).
+// fraction of AO rays, the mirror bounce (the hit object's Lambert, or the sky), and the
+// three combined as one picture: ambient light scaled by the AO fraction plus shadowed
+// direct light, under a 20 % mirror coat.
 void shade_pixel(const GBuffer& gb, const View& v, const std::vector<EvalScene::Impl::Instance>& instances,
                  const RowRays& rr, std::size_t k, std::size_t i, std::uint32_t S,
                  const std::vector<std::uint8_t>& shadow_occ, const std::vector<std::uint8_t>& ao_occ,
@@ -653,7 +657,9 @@ void shade_pixel(const GBuffer& gb, const View& v, const std::vector<EvalScene::
     } else {
         rc = sky(rd);
     }
-    const Vec3 px[kEffects] = {sh, Vec3{aov, aov, aov}, mul(rc, Vec3{0.9f, 0.9f, 0.9f})};
+    const Vec3 diffuse = base * (0.25f * aov + 0.75f * lambert * (shadow_occ[k] ? 0.0f : 1.0f));
+    const Vec3 combined = diffuse * 0.8f + rc * 0.2f;
+    const Vec3 px[kEffects] = {sh, Vec3{aov, aov, aov}, mul(rc, Vec3{0.9f, 0.9f, 0.9f}), combined};
     for (int e = 0; e < kEffects; ++e)
         for (int c = 0; c < 3; ++c) out.rgb[e][i * 3 + c] = px[e][c];
 }
@@ -686,12 +692,22 @@ EffectImages render_secondary(const EvalScene& scene, const std::vector<EvalScen
     return out;
 }
 
-// FLIP and PSNR of each effect (sRGB-encoded images), and the reference, hybrid and FLIP
-// heat-map PNGs in `images` when write_images. Returns the per-effect JSON and the mean
-// FLIP over the effects; false with `error` set on failure.
+// Mean of the FLIP error map over the pixels `mask` selects; null when it selects none.
+json masked_mean(const std::vector<float>& error_map, const std::vector<std::uint8_t>& mask) {
+    double sum = 0;
+    std::size_t n = 0;
+    for (std::size_t i = 0; i < mask.size(); ++i)
+        if (mask[i]) sum += error_map[i], ++n;
+    return n ? json(sum / double(n)) : json(nullptr);
+}
+
+// FLIP and PSNR of each effect (sRGB-encoded images) over the frame, FLIP's mean over the
+// pixels `lsnif_pixels` selects (the primary hit is an LSNIF instance), and the reference,
+// hybrid and FLIP heat-map PNGs in `images` when write_images. Returns the per-effect JSON
+// and the mean FLIP over the separate effects; false with `error` set on failure.
 bool compare_effects(const EffectImages& reference, const EffectImages& hybrid, const View& v,
-                     const fs::path& images, bool write_images, json& per, double& flip_mean,
-                     std::string& error) {
+                     const std::vector<std::uint8_t>& lsnif_pixels, const fs::path& images, bool write_images,
+                     json& per, double& flip_mean, std::string& error) {
     const std::uint32_t W = v.W, H = v.H;
     per = json::object();
     double flip_sum = 0;
@@ -705,6 +721,7 @@ bool compare_effects(const EffectImages& reference, const EffectImages& hybrid, 
             return false;
         }
         json j = flip_json(f->stats, image::psnr(ref, hyb));
+        j["flip_mean_lsnif_pixels"] = masked_mean(f->error_map, lsnif_pixels);
         if (write_images) {
             const std::string stem = kEffectNames[e];
             const image::Image heat = image::heatmap(f->error_map, W, H);
@@ -722,11 +739,21 @@ bool compare_effects(const EffectImages& reference, const EffectImages& hybrid, 
                           {"hybrid", "hybrid_" + stem + ".png"},
                           {"flip", "flip_" + stem + ".png"}};
         }
-        flip_sum += f->stats.mean;
+        if (e < kSeparateEffects) flip_sum += f->stats.mean;
         per[kEffectNames[e]] = j;
     }
-    flip_mean = flip_sum / double(int(kEffects));
+    flip_mean = flip_sum / double(kSeparateEffects);
     return true;
+}
+
+// 1 for the pixels whose primary hit is an instance the hybrid render traces as an LSNIF.
+std::vector<std::uint8_t> lsnif_pixel_mask(const GBuffer& gb,
+                                           const std::vector<std::uint32_t>& lsnif_instances) {
+    std::vector<std::uint8_t> is_lsnif(gb.inst.size(), 0);
+    for (std::size_t i = 0; i < gb.inst.size(); ++i)
+        is_lsnif[i] = gb.inst[i] >= 0 && std::find(lsnif_instances.begin(), lsnif_instances.end(),
+                                                   std::uint32_t(gb.inst[i])) != lsnif_instances.end();
+    return is_lsnif;
 }
 
 // `text` to `path` through a temporary file and a rename: no half-written file.
@@ -787,7 +814,9 @@ EvalResult render_and_compare(const EvalOptions& opt) {
     }
     json per;
     double flip_mean = 0;
-    if (!compare_effects(reference, hybrid, view, images, opt.write_images, per, flip_mean, err)) {
+    const std::vector<std::uint8_t> lsnif_pixels = lsnif_pixel_mask(gb, im.lsnif_instances);
+    if (!compare_effects(reference, hybrid, view, lsnif_pixels, images, opt.write_images, per, flip_mean,
+                         err)) {
         res.errors.push_back(err);
         return res;
     }
@@ -802,6 +831,7 @@ EvalResult render_and_compare(const EvalOptions& opt) {
     report["lsnif_arithmetic"] = bf16 ? "bf16" : "fp32";
     report["images"] = per;
     report["flip_mean"] = flip_mean;
+    report["lsnif_pixels"] = std::count(lsnif_pixels.begin(), lsnif_pixels.end(), 1);
     report["width"] = view.W;
     report["height"] = view.H;
     report["ao_samples"] = std::max(1u, opt.ao_samples);

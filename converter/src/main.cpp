@@ -89,13 +89,19 @@ int run_eval(lsnif::converter::EvalOptions opt, const std::string& camera, const
                     j["width"].get<unsigned>(), j["height"].get<unsigned>(),
                     j["instances"].get<std::size_t>(), j["lsnif_instances"].get<std::size_t>(),
                     j["images_dir"].get<std::string>().c_str());
-        for (const auto& [name, v] : j["images"].items())
-            std::printf("  %-10s FLIP mean %.4f (median %.4f, p95 %.4f)  PSNR %s dB\n", name.c_str(),
-                        v["flip_mean"].get<double>(), v["flip_median"].get<double>(),
+        for (const auto& [name, v] : j["images"].items()) {
+            const auto& on_lsnif = v["flip_mean_lsnif_pixels"];
+            std::printf("  %-10s FLIP mean %.4f (median %.4f, p95 %.4f; on LSNIF pixels %s)  PSNR %s dB\n",
+                        name.c_str(), v["flip_mean"].get<double>(), v["flip_median"].get<double>(),
                         v["flip_p95"].get<double>(),
+                        on_lsnif.is_null() ? "none" : std::to_string(on_lsnif.get<double>()).c_str(),
                         v["psnr_db"].is_null() ? "inf" : std::to_string(v["psnr_db"].get<double>()).c_str());
-        std::printf("  overall    FLIP mean %.4f; secondary-ray time hybrid/reference %.2f\n",
-                    j["flip_mean"].get<double>(), j["secondary_time_ratio"].get<double>());
+        }
+        std::printf(
+            "  overall    FLIP mean %.4f (shadow, ao, reflection); %zu LSNIF pixels; secondary-ray time "
+            "hybrid/reference %.2f\n",
+            j["flip_mean"].get<double>(), j["lsnif_pixels"].get<std::size_t>(),
+            j["secondary_time_ratio"].get<double>());
     }
     return 0;
 }

@@ -4,6 +4,7 @@
 //                            [--tubes N] [--segments N] [--seed N]
 //   lsnif_make_example_scene --out FILE.glb --hairball-only [--tubes N] [--segments N] [--seed N]
 //   lsnif_make_example_scene --out FILE.glb --hard-case NAME [--scale S]
+//   lsnif_make_example_scene --out FILE.glb --composition dragons|statues --cgal-data DIR
 //
 // --hard-case writes one case of the hard-geometry suite (hard_cases.hpp,
 // docs/failure-modes.md): a mesh named NAME (plus a "floor" mesh for "statue"), scaled by S.
@@ -82,6 +83,9 @@ const double kSqrt3Half = 0.5 * std::sqrt(3.0);
 const Yaw kYaw0{1.0, 0.0};
 const Yaw kYaw60{0.5, kSqrt3Half};
 const Yaw kYaw90{0.0, 1.0};
+const Yaw kYaw30{kSqrt3Half, 0.5};
+const Yaw kYaw150{-kSqrt3Half, 0.5};
+const Yaw kYawMinus150{-kSqrt3Half, -0.5};
 const Yaw kYawMinus30{kSqrt3Half, -0.5};
 const Yaw kYawMinus120{-0.5, -kSqrt3Half};
 
@@ -248,52 +252,64 @@ struct Options {
     std::string hard_case;  // non-empty: write this hard-geometry case only
     double scale = 1.0;
     int subdivisions = 1;
+    bool subdivisions_given = false;
+    std::string composition;  // non-empty: write this evaluation composition only
     ex::HairballParams hairball;
 };
 
-// Finds the CGAL mesh: `path` itself if it is a file, else ChineseDragon-10kv.off under
-// path/data/meshes, path/meshes or path. Returns false with `error` set if none exists.
-bool locate_cgal_mesh(const std::string& path, fs::path& mesh, std::string& error) {
+// Finds a CGAL mesh: `path` itself if it is a file (and `name` is the dragon), else `name`
+// under path/data/meshes, path/meshes or path. Returns false with `error` set if none exists.
+bool locate_cgal_mesh(const std::string& path, const std::string& name, fs::path& mesh, std::string& error) {
     std::error_code ec;
-    if (fs::is_regular_file(path, ec)) {
+    if (fs::is_regular_file(path, ec) && name == kCgalMeshName) {
         mesh = path;
         return true;
     }
     if (fs::is_directory(path, ec)) {
         for (const char* sub : {"data/meshes", "meshes", "."}) {
-            const fs::path candidate = fs::path(path) / sub / kCgalMeshName;
+            const fs::path candidate = fs::path(path) / sub / name;
             if (fs::is_regular_file(candidate, ec)) {
                 mesh = candidate.lexically_normal();
                 return true;
             }
         }
-        error = std::string("no ") + kCgalMeshName + " under '" + path +
-                "' (looked in data/meshes/, meshes/ and the directory itself)";
+        error =
+            "no " + name + " under '" + path + "' (looked in data/meshes/, meshes/ and the directory itself)";
         return false;
     }
-    error = "CGAL data '" + path + "' does not exist (extract data/meshes/" + kCgalMeshName +
+    error = "CGAL data '" + path + "' is not " + (name == kCgalMeshName ? "a file or " : "") +
+            "a directory (extract data/meshes/" + name +
             " from /usr/share/doc/libcgal-dev/data.tar.gz, package libcgal-demo)";
     return false;
+}
+
+// Reads CGAL mesh `name` (locate_cgal_mesh), Loop-subdivides it `subdivisions` times and
+// scales it to `height` with its lowest point on y = 0, centred in x and z. Returns false
+// with `error` set when it cannot be found or read, has no triangles or is flat in y.
+bool load_cgal_mesh(const std::string& path, const std::string& name, int subdivisions, double height,
+                    ex::TriMesh& mesh, std::string& error) {
+    fs::path file;
+    if (!locate_cgal_mesh(path, name, file, error)) return false;
+    if (!ex::read_off(file.string(), mesh, error)) return false;
+    if (mesh.triangle_count() == 0) {
+        error = "'" + file.string() + "' has no triangles";
+        return false;
+    }
+    for (int i = 0; i < subdivisions; ++i) mesh = ex::loop_subdivide(mesh);
+    const ex::Bounds b = ex::mesh_bounds(mesh);
+    if (!(b.max.y - b.min.y > 0)) {
+        error = "'" + file.string() + "' is flat in y";
+        return false;
+    }
+    ex::fit_on_floor(mesh, height);
+    return true;
 }
 
 // Builds the complete scene into `gltf`. Returns false with `error` set if the CGAL mesh
 // cannot be found or read.
 bool build_full_scene(const Options& opt, GltfBuilder& gltf, std::string& error) {
-    fs::path mesh_path;
-    if (!locate_cgal_mesh(opt.cgal_data, mesh_path, error)) return false;
     ex::TriMesh dragon;
-    if (!ex::read_off(mesh_path.string(), dragon, error)) return false;
-    if (dragon.triangle_count() == 0) {
-        error = "'" + mesh_path.string() + "' has no triangles";
-        return false;
-    }
-    for (int i = 0; i < opt.subdivisions; ++i) dragon = ex::loop_subdivide(dragon);
-    const ex::Bounds db = ex::mesh_bounds(dragon);
-    if (!(db.max.y - db.min.y > 0)) {
-        error = "'" + mesh_path.string() + "' is flat in y";
-        return false;
-    }
-    ex::fit_on_floor(dragon, 1.0);
+    if (!load_cgal_mesh(opt.cgal_data, kCgalMeshName, opt.subdivisions, 1.0, dragon, error)) return false;
 
     const int m_floor = gltf.add_material("floor_oak", {0.55, 0.38, 0.22}, 0.0, 0.6);
     const int m_wall = gltf.add_material("wall_plaster", {0.85, 0.83, 0.78}, 0.0, 0.9);
@@ -350,6 +366,62 @@ bool build_full_scene(const Options& opt, GltfBuilder& gltf, std::string& error)
                        hair);
     gltf.add_mesh_node(hairballs, matrix_node("hairball_on_floor", {0.4, 0.3, -1.9}, kYaw90, 0.6), hair);
     return true;
+}
+
+// The compositions `lsnif eval` measures (docs/eval.md "Scenes like the paper's"), built
+// from CGAL's meshes with floors that end just beyond the objects, so eval's default camera
+// (framing the scene's bounds) is filled by them:
+//   dragons: the dragon Loop-subdivided (three times unless --subdivisions says otherwise:
+//            1,279,616 triangles), 1 m tall, three instances side by side, the middle one
+//            set back, each turned differently;
+//   statues: armadillo, bunny, bear and lion, 0.8 m tall, each on a 0.5 m pedestal (one
+//            mesh, four instances), in a row.
+bool build_composition(const Options& opt, GltfBuilder& gltf, std::string& error) {
+    const int m_floor = gltf.add_material("floor_stone", {0.55, 0.55, 0.52}, 0.0, 0.7);
+    const int root = gltf.add_node({{"name", opt.composition}});
+    gltf.set_root(root);
+    if (opt.composition == "dragons") {
+        ex::TriMesh dragon;
+        const int steps = opt.subdivisions_given ? opt.subdivisions : 3;
+        if (!load_cgal_mesh(opt.cgal_data, kCgalMeshName, steps, 1.0, dragon, error)) return false;
+        const int m_jade = gltf.add_material("dragon_jade", {0.25, 0.60, 0.40}, 0.0, 0.3);
+        const int mesh = gltf.add_mesh("dragon", dragon, m_jade);
+        gltf.add_mesh_node(root, trs_node("dragon_left", {-0.95, 0.0, 0.0}, kYawMinus30), mesh);
+        gltf.add_mesh_node(root, trs_node("dragon_middle", {0.0, 0.0, -0.3}, kYaw0), mesh);
+        gltf.add_mesh_node(root, trs_node("dragon_right", {0.95, 0.0, 0.0}, kYaw30), mesh);
+        gltf.add_mesh_node(
+            root, {{"name", "floor"}},
+            gltf.add_mesh("floor", ex::make_box({-1.7, -0.05, -1.0}, {1.7, 0.0, 0.8}), m_floor));
+        return true;
+    }
+    if (opt.composition == "statues") {
+        const int steps = opt.subdivisions_given ? opt.subdivisions : 0;
+        const int m_stone = gltf.add_material("pedestal_stone", {0.75, 0.73, 0.70}, 0.0, 0.8);
+        const int pedestal = gltf.add_mesh("pedestal", ex::make_box_on_floor(0.5, 0.5, 0.5), m_stone);
+        // Turned to face the camera (+z) a little from either side: the armadillo and the
+        // bear are modelled facing -z.
+        const char* statues[] = {"armadillo", "bunny00", "bear", "lion"};
+        const Yaw turn[] = {kYawMinus150, kYaw30, kYaw150, kYawMinus30};
+        const double x0 = -1.65, dx = 1.1;
+        for (int k = 0; k < 4; ++k) {
+            ex::TriMesh mesh;
+            const std::string file = std::string(statues[k]) + ".off";
+            if (!load_cgal_mesh(opt.cgal_data, file, steps, 0.8, mesh, error)) return false;
+            const int material = gltf.add_material(std::string(statues[k]) + "_bronze",
+                                                   {0.55 + 0.1 * k, 0.42, 0.25 + 0.08 * k}, 0.0, 0.4);
+            const double x = x0 + dx * k;
+            gltf.add_mesh_node(root, trs_node(std::string("pedestal_") + statues[k], {x, 0.0, 0.0}),
+                               pedestal);
+            gltf.add_mesh_node(root, trs_node(statues[k], {x, 0.5, 0.0}, turn[k]),
+                               gltf.add_mesh(statues[k], mesh, material));
+        }
+        gltf.add_mesh_node(
+            root, {{"name", "floor"}},
+            gltf.add_mesh("floor", ex::make_box({-2.4, -0.05, -0.8}, {2.4, 0.0, 0.8}), m_floor));
+        return true;
+    }
+    error = "unknown --composition '" + opt.composition + "'; one of: dragons statues";
+    return false;
 }
 
 // Only the hairball mesh, once, under a root node.
@@ -432,21 +504,27 @@ void print_stats(const json& doc, const fs::path& out, std::size_t bytes) {
 }
 
 void print_usage(std::FILE* to) {
-    std::fprintf(to,
-                 "usage: lsnif_make_example_scene --out FILE.glb --cgal-data DIR_OR_OFF [options]\n"
-                 "       lsnif_make_example_scene --out FILE.glb --hairball-only [options]\n"
-                 "       lsnif_make_example_scene --out FILE.glb --hard-case NAME [--scale S]\n"
-                 "  --cgal-data PATH    directory holding data/meshes/%s (from libcgal-demo's\n"
-                 "                      data.tar.gz), or the .off file itself\n"
-                 "  --hairball-only     write only the hairball mesh (no CGAL data needed)\n"
-                 "  --hard-case NAME    write one hard-geometry case (hairball, cards, cloth, lattice,\n"
-                 "                      statue, flat, blob, triangle; no CGAL data needed)\n"
-                 "  --scale S           scale of the hard case (default 1; 1e-6..1e7)\n"
-                 "  --subdivisions N    Loop subdivision steps of the CGAL mesh (0..3, default 1)\n"
-                 "  --tubes N           hairball tubes (1..100000, default 300)\n"
-                 "  --segments N        segments per tube (1..1000, default 20)\n"
-                 "  --seed N            hairball seed (default %llu)\n",
-                 kCgalMeshName, static_cast<unsigned long long>(ex::HairballParams{}.seed));
+    std::fprintf(
+        to,
+        "usage: lsnif_make_example_scene --out FILE.glb --cgal-data DIR_OR_OFF [options]\n"
+        "       lsnif_make_example_scene --out FILE.glb --hairball-only [options]\n"
+        "       lsnif_make_example_scene --out FILE.glb --hard-case NAME [--scale S]\n"
+        "       lsnif_make_example_scene --out FILE.glb --composition dragons|statues --cgal-data DIR\n"
+        "  --cgal-data PATH    directory holding data/meshes/%s (from libcgal-demo's\n"
+        "                      data.tar.gz), or the .off file itself\n"
+        "  --hairball-only     write only the hairball mesh (no CGAL data needed)\n"
+        "  --hard-case NAME    write one hard-geometry case (hairball, cards, cloth, lattice,\n"
+        "                      statue, flat, blob, triangle; no CGAL data needed)\n"
+        "  --scale S           scale of the hard case (default 1; 1e-6..1e7)\n"
+        "  --composition NAME  write an evaluation composition from CGAL's meshes: dragons\n"
+        "                      (three Loop x3 dragons on a floor) or statues (four meshes\n"
+        "                      on pedestals)\n"
+        "  --subdivisions N    Loop subdivision steps of the CGAL mesh (0..3, default 1;\n"
+        "                      dragons 3, statues 0)\n"
+        "  --tubes N           hairball tubes (1..100000, default 300)\n"
+        "  --segments N        segments per tube (1..1000, default 20)\n"
+        "  --seed N            hairball seed (default %llu)\n",
+        kCgalMeshName, static_cast<unsigned long long>(ex::HairballParams{}.seed));
 }
 
 // Parses an integer in [lo, hi]; nullopt if malformed or out of range.
@@ -475,6 +553,9 @@ bool parse_args(int argc, char** argv, Options& opt, bool& help, std::string& er
             help = true;
         } else if (arg == "--hairball-only") {
             opt.hairball_only = true;
+        } else if (arg == "--composition") {
+            if (!value(v)) return false;
+            opt.composition = std::string(v);
         } else if (arg == "--hard-case") {
             if (!value(v)) return false;
             opt.hard_case = std::string(v);
@@ -501,6 +582,7 @@ bool parse_args(int argc, char** argv, Options& opt, bool& help, std::string& er
             (arg == "--subdivisions" ? opt.subdivisions
              : arg == "--tubes"      ? opt.hairball.tubes
                                      : opt.hairball.segments) = *n;
+            opt.subdivisions_given = opt.subdivisions_given || arg == "--subdivisions";
         } else if (arg == "--seed") {
             if (!value(v)) return false;
             const auto n = parse_int<std::uint64_t>(v, 0, UINT64_MAX);
@@ -520,7 +602,8 @@ bool parse_args(int argc, char** argv, Options& opt, bool& help, std::string& er
         return false;
     }
     if (!opt.hairball_only && opt.hard_case.empty() && opt.cgal_data.empty()) {
-        error = "--cgal-data PATH is required (or --hairball-only)";
+        error = opt.composition.empty() ? "--cgal-data PATH is required (or --hairball-only)"
+                                        : "--composition needs --cgal-data DIR (libcgal-demo's data)";
         return false;
     }
     return true;
@@ -542,7 +625,12 @@ int main(int argc, char** argv) {
     }
     try {
         GltfBuilder gltf;
-        if (!opt.hard_case.empty()) {
+        if (!opt.composition.empty()) {
+            if (!build_composition(opt, gltf, error)) {
+                std::fprintf(stderr, "error: %s\n", error.c_str());
+                return 1;
+            }
+        } else if (!opt.hard_case.empty()) {
             if (!build_hard_case(opt, gltf, error)) {
                 std::fprintf(stderr, "error: %s\n", error.c_str());
                 return 1;

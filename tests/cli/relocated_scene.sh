@@ -80,8 +80,10 @@ eval_json "$work/moved/out" "$work/img3" "$work/e3.json" --camera 0,50,0,0,60,0 
 python3 - "$work/e3.json" <<'PY' || bad "all-miss eval report"
 import json, sys
 r = json.load(open(sys.argv[1]))
-for e in ("shadow", "ao", "reflection"):
+for e in ("shadow", "ao", "reflection", "combined"):
     assert r["images"][e]["flip_mean"] == 0.0, r["images"][e]  # both images are all background
+    assert r["images"][e]["flip_mean_lsnif_pixels"] is None, r["images"][e]  # no LSNIF pixel
+assert r["lsnif_pixels"] == 0, r["lsnif_pixels"]
 PY
 
 # Copy OUTDIR alone: its inputs are gone. One error line naming the missing source, exit 1,

@@ -181,18 +181,28 @@ TEST_CASE("eval renders, compares with FLIP, and camera and light change without
     REQUIRE_MESSAGE(a.ok(), (a.errors.empty() ? "" : a.errors[0]));
     const json& ra = a.report;
     CHECK(ra["lsnif_instances"] == 1);
-    for (const char* e : {"shadow", "ao", "reflection"}) {
+    // The dragon is the only mesh, so its pixels are the frame's covered ones.
+    const auto lsnif_pixels = ra["lsnif_pixels"].get<std::size_t>();
+    CHECK(lsnif_pixels > 96 * 72 / 20);
+    CHECK(lsnif_pixels < 96 * 72);
+    double separate = 0;
+    for (const char* e : {"shadow", "ao", "reflection", "combined"}) {
         INFO(e);
         const json& im = ra["images"][e];
         CHECK(im["flip_mean"].get<double>() >= 0.0);
         CHECK(im["flip_mean"].get<double>() <= 1.0);
         CHECK(im["flip_max"].get<double>() <= 1.0);
+        // Background pixels are identical in both renders: the error sits on the object.
+        CHECK(im["flip_mean_lsnif_pixels"].get<double>() > im["flip_mean"].get<double>());
+        CHECK(im["flip_mean_lsnif_pixels"].get<double>() <= im["flip_max"].get<double>());
         for (const char* f : {"reference", "hybrid", "flip"})
             CHECK(fs::file_size(fs::path(o.images_dir) / im["files"][f].get<std::string>()) > 100);
+        if (std::string(e) != "combined") separate += im["flip_mean"].get<double>() / 3;
     }
     // The network is not exact: some pixel differs somewhere, but the picture is the same.
     CHECK(ra["flip_mean"].get<double>() > 0.0);
     CHECK(ra["flip_mean"].get<double>() < 0.2);
+    CHECK(ra["flip_mean"].get<double>() == doctest::Approx(separate));  // the combined image is extra
     CHECK(fs::exists(fs::path(o.images_dir) / "report.json"));
 
     // A moved camera and light, same assets: different pictures, assets untouched.
