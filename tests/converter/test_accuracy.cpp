@@ -23,6 +23,8 @@
 
 #include "convert_stages.hpp"
 
+#include <algorithm>
+#include <array>
 #include <cmath>
 #include <cstdlib>
 #include <cstring>
@@ -104,6 +106,7 @@ struct Shipped {
     std::vector<lsnif::samples::Sample> held;
     std::vector<lsnif::format::Ray> rays;
     std::vector<lsnif::sampling::SampleExtras> extras;  // per held-out sample: side, triangles
+    std::vector<std::array<float, 3>> source_normal;    // family (b): the left triangle's normal
 };
 
 Shipped read_shipped(const nlohmann::json& mesh, const fs::path& file, const std::string& name) {
@@ -114,7 +117,7 @@ Shipped read_shipped(const nlohmann::json& mesh, const fs::path& file, const std
     const std::vector<std::uint8_t> bytes{std::istreambuf_iterator<char>(in), {}};
     auto model = format::read_model(bytes);
     REQUIRE(model);
-    Shipped s{std::move(*model), {}, {}, {}};
+    Shipped s{std::move(*model), {}, {}, {}, {}};
     auto imported = scene::import_scene(file.string());
     REQUIRE(imported.ok());
     const mesh::MeshView view = converter::stages::view_of(imported.scene.meshes[0]);
@@ -124,6 +127,20 @@ Shipped read_shipped(const nlohmann::json& mesh, const fs::path& file, const std
     auto source = sampling::EmbreeSource::create(view, *box, {}, error);
     REQUIRE_MESSAGE(source, error);
     source->generate(977, 1u << 16, s.held, &s.extras);
+    s.source_normal.resize(s.held.size());
+    for (std::size_t i = 0; i < s.held.size(); ++i) {
+        const std::uint32_t t = s.extras[i].source_primitive;
+        if (t == sampling::kNoPrimitive) continue;
+        float p[3][3];
+        for (int k = 0; k < 3; ++k)
+            for (int a = 0; a < 3; ++a) p[k][a] = view.positions[view.indices[3 * t + k] * 3 + a];
+        const float e1[3] = {p[1][0] - p[0][0], p[1][1] - p[0][1], p[1][2] - p[0][2]};
+        const float e2[3] = {p[2][0] - p[0][0], p[2][1] - p[0][1], p[2][2] - p[0][2]};
+        const float n[3] = {e1[1] * e2[2] - e1[2] * e2[1], e1[2] * e2[0] - e1[0] * e2[2],
+                            e1[0] * e2[1] - e1[1] * e2[0]};
+        const float len = std::sqrt(n[0] * n[0] + n[1] * n[1] + n[2] * n[2]);
+        if (len > 0) s.source_normal[i] = {n[0] / len, n[1] / len, n[2] / len};
+    }
     for (const auto& h : s.held) s.rays.push_back(h.ray);
     return s;
 }
@@ -178,6 +195,26 @@ void report_surface_sides(const Shipped& s, const std::string& name) {
                      << " %, false misses " << 100 * m.false_miss_rate << " %), distance "
                      << m.distance_median_pct << " %, normal " << m.normal_median_deg << " deg");
         CHECK(m.rays > s.held.size() / 10);
+    }
+    // Front-side rays by the cosine of their angle to the geometric normal: grazing rays
+    // (near the terminator of a light behind them) against steep ones.
+    const double edges[] = {0.0, 0.15, 0.5, 1.01};
+    for (int b = 0; b < 3; ++b) {
+        std::vector<samples::Sample> part;
+        for (std::size_t i = 0; i < s.held.size(); ++i) {
+            if (s.held[i].family != samples::Family::surface || s.extras[i].side != 1) continue;
+            const auto& d = s.held[i].ray.dir;
+            const auto& n = s.source_normal[i];
+            const double c = std::fabs(d[0] * n[0] + d[1] * n[1] + d[2] * n[2]) /
+                             std::sqrt(d[0] * d[0] + d[1] * d[1] + d[2] * d[2]);
+            if (c >= edges[b] && c < edges[b + 1]) part.push_back(s.held[i]);
+        }
+        const samples::FamilyMetrics m =
+            samples::held_out_metrics(rt, part).family[int(samples::Family::surface)];
+        MESSAGE(name << " front-side rays with cos in [" << edges[b] << ", " << std::min(1.0, edges[b + 1])
+                     << "): " << m.rays << " rays, visibility " << 100 * m.visibility_accuracy
+                     << " % (false hits " << 100 * m.false_hit_rate << " %, false misses "
+                     << 100 * m.false_miss_rate << " %)");
     }
 }
 
