@@ -55,6 +55,26 @@ nlohmann::json convert_default(const fs::path& file, const std::string& name) {
     return r.manifest["meshes"][0];
 }
 
+// Writes a scene with `lsnif_make_example_scene ARGS` into DIR/scene.glb (DIR emptied
+// first) and converts it into DIR/out with the default preset, seed 1, forcing the meshes
+// named in `complex` to be modelled.
+ConvertResult convert_generated(const fs::path& dir, const std::string& args,
+                                std::vector<std::string> complex) {
+    fs::remove_all(dir);
+    fs::create_directories(dir);
+    const fs::path glb = dir / "scene.glb";
+    const std::string cmd =
+        std::string(LSNIF_MAKE_SCENE_EXE) + " --out " + glb.string() + " " + args + " > /dev/null";
+    REQUIRE(std::system(cmd.c_str()) == 0);
+    ConvertOptions opt;
+    opt.inputs = {glb.string()};
+    opt.outdir = (dir / "out").string();
+    opt.preset = "default";
+    opt.seed = 1;
+    opt.force_complex = std::move(complex);
+    return lsnif::converter::convert(opt);
+}
+
 fs::path cgal_mesh(const std::string& file) {
     return fs::path(LSNIF_TEST_MESH_DIR) / file;
 }
@@ -314,20 +334,9 @@ TEST_CASE("default preset keeps a tree as BVH, decided at the first validation")
 // the three dragons. The combined image (direct light with shadows, AO and a mirror coat)
 // must stay within FLIP 0.03 of the Embree reference over the frame (issue #15 item 2).
 TEST_CASE("dragons composition: the combined image is within FLIP 0.03 of the reference") {
-    const fs::path dir = fs::path(LSNIF_TEST_WORK_DIR) / "accuracy_dragons";
-    fs::remove_all(dir);
-    fs::create_directories(dir);
-    const fs::path glb = dir / "dragons.glb";
     const std::string cgal_data = fs::path(LSNIF_TEST_MESH_DIR).parent_path().parent_path().string();
-    const std::string cmd = std::string(LSNIF_MAKE_SCENE_EXE) + " --out " + glb.string() +
-                            " --composition dragons --cgal-data " + cgal_data + " > /dev/null";
-    REQUIRE(std::system(cmd.c_str()) == 0);
-    ConvertOptions opt;
-    opt.inputs = {glb.string()};
-    opt.outdir = (dir / "out").string();
-    opt.preset = "default";
-    opt.seed = 1;
-    const ConvertResult r = lsnif::converter::convert(opt);
+    const fs::path dir = fs::path(LSNIF_TEST_WORK_DIR) / "accuracy_dragons";
+    const ConvertResult r = convert_generated(dir, "--composition dragons --cgal-data " + cgal_data, {});
     REQUIRE(r.ok());
     REQUIRE(r.manifest["meshes"].size() == 2);
     for (const auto& mesh : r.manifest["meshes"])
@@ -338,7 +347,7 @@ TEST_CASE("dragons composition: the combined image is within FLIP 0.03 of the re
         }
 
     lsnif::converter::EvalOptions e;
-    e.outdir = opt.outdir;
+    e.outdir = (dir / "out").string();
     e.camera =
         lsnif::converter::EvalCamera{{0.45f, 1.0f, 2.7f}, {0.0f, 0.4f, -0.1f}, {0.0f, 1.0f, 0.0f}, 40.0f};
     e.images_dir = (dir / "eval").string();
@@ -361,19 +370,7 @@ TEST_CASE("dragons composition: the combined image is within FLIP 0.03 of the re
 // at the first check that may decide, a tenth of the default budget.
 TEST_CASE("default preset gives up on the hairball after a tenth of its training budget") {
     const fs::path dir = fs::path(LSNIF_TEST_WORK_DIR) / "accuracy_hairball";
-    fs::remove_all(dir);
-    fs::create_directories(dir);
-    const fs::path glb = dir / "hairball.glb";
-    const std::string cmd =
-        std::string(LSNIF_MAKE_SCENE_EXE) + " --out " + glb.string() + " --hard-case hairball";
-    REQUIRE(std::system(cmd.c_str()) == 0);
-    ConvertOptions opt;
-    opt.inputs = {glb.string()};
-    opt.outdir = (dir / "out").string();
-    opt.preset = "default";
-    opt.seed = 1;
-    opt.force_complex = {"hairball"};
-    const ConvertResult r = lsnif::converter::convert(opt);
+    const ConvertResult r = convert_generated(dir, "--hard-case hairball", {"hairball"});
     REQUIRE(r.ok());
     const auto& mesh = r.manifest["meshes"][0];
     MESSAGE("hairball: " << mesh["reasons"].dump() << " timings " << mesh["timings"].dump());
