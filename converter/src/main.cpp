@@ -462,6 +462,10 @@ struct EvalCommand {
                         "INDEX=m0,...,m11: place an instance elsewhere (3x4 row-major)");
         sub->add_option("--width", opt.width, "Image width")->check(CLI::Range(1u, 8192u));
         sub->add_option("--height", opt.height, "Image height")->check(CLI::Range(1u, 8192u));
+        sub->add_option("--surface-tmin", opt.surface_tmin_voxels,
+                        "Hybrid only: secondary rays leaving an LSNIF object start this many of its voxels "
+                        "from the surface (0 = off; docs/model.md)")
+            ->check(CLI::Range(0.0f, 4.0f));
         sub->add_option("--ao-samples", opt.ao_samples, "Ambient-occlusion rays per pixel")
             ->check(CLI::Range(1u, 1024u));
         sub->add_option("--threads", opt.threads, "Worker threads (0 = all cores)");

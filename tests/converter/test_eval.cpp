@@ -205,6 +205,22 @@ TEST_CASE("eval renders, compares with FLIP, and camera and light change without
     CHECK(ra["flip_mean"].get<double>() == doctest::Approx(separate));  // the combined image is extra
     CHECK(fs::exists(fs::path(o.images_dir) / "report.json"));
 
+    // Surface-leaving rays started half a voxel later (hybrid only): the reference is the
+    // same picture, the hybrid one changes, and the report says which setting made it.
+    {
+        EvalOptions later = o;
+        later.surface_tmin_voxels = 0.5f;
+        later.images_dir = (fs::path(LSNIF_TEST_WORK_DIR) / "eval_images_later").string();
+        fs::remove_all(later.images_dir);
+        const EvalResult l = render_and_compare(later);
+        REQUIRE_MESSAGE(l.ok(), (l.errors.empty() ? "" : l.errors[0]));
+        CHECK(l.report["surface_tmin_voxels"] == 0.5);
+        CHECK(ra["surface_tmin_voxels"] == 0.0);
+        const fs::path a_dir = o.images_dir, l_dir = later.images_dir;
+        CHECK(file_bytes(l_dir / "reference_shadow.png") == file_bytes(a_dir / "reference_shadow.png"));
+        CHECK(file_bytes(l_dir / "hybrid_ao.png") != file_bytes(a_dir / "hybrid_ao.png"));
+    }
+
     // A moved camera and light, same assets: different pictures, assets untouched.
     const auto c = ra["camera"];
     EvalCamera cam;

@@ -48,6 +48,11 @@ struct EvalOptions {
     std::vector<std::pair<std::uint32_t, std::array<float, 12>>> instance_transforms;
     bool write_images = true;
     bool fp32 = false;  // LSNIF in the fp32 reference arithmetic (default: what lsnif_open picks)
+    // Hybrid render only: secondary rays leaving an LSNIF instance's surface start this many of
+    // its occupancy voxels (edge length in world units) away from the surface (tmin), the
+    // runtime treatment docs/model.md "Rays leaving the surface, by side" measures; the
+    // reference keeps tmin = 0, so the images show what it costs and what it fixes. 0 = off.
+    float surface_tmin_voxels = 0.0f;
 };
 
 struct EvalResult {
