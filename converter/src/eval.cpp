@@ -641,7 +641,8 @@ void shade_pixel(const GBuffer& gb, const View& v, const std::vector<EvalScene::
     const Vec3 base = albedo(instances[gb.inst[i]].mesh);
     const Vec3 ldir = normalize(v.light - gb.p[i]);
     const float lambert = std::max(0.0f, dot(gb.n[i], ldir));
-    const Vec3 sh = base * (0.12f + 0.88f * lambert * (shadow_occ[k] ? 0.0f : 1.0f));
+    const float direct = lambert * (shadow_occ[k] ? 0.0f : 1.0f);  // shadowed Lambert term
+    const Vec3 sh = base * (0.12f + 0.88f * direct);
     std::uint32_t open = 0;
     for (std::uint32_t q = 0; q < S; ++q) open += ao_occ[k * S + q] ? 0u : 1u;
     const float aov = float(open) / float(S);
@@ -657,7 +658,7 @@ void shade_pixel(const GBuffer& gb, const View& v, const std::vector<EvalScene::
     } else {
         rc = sky(rd);
     }
-    const Vec3 diffuse = base * (0.25f * aov + 0.75f * lambert * (shadow_occ[k] ? 0.0f : 1.0f));
+    const Vec3 diffuse = base * (0.25f * aov + 0.75f * direct);
     const Vec3 combined = diffuse * 0.8f + rc * 0.2f;
     const Vec3 px[kEffects] = {sh, Vec3{aov, aov, aov}, mul(rc, Vec3{0.9f, 0.9f, 0.9f}), combined};
     for (int e = 0; e < kEffects; ++e)
@@ -783,13 +784,11 @@ bool compare_effects(const EffectImages& reference, const EffectImages& hybrid, 
 }
 
 // 1 for the pixels whose primary hit is an instance the hybrid render traces as an LSNIF.
-std::vector<std::uint8_t> lsnif_pixel_mask(const GBuffer& gb,
-                                           const std::vector<std::uint32_t>& lsnif_instances) {
-    std::vector<std::uint8_t> is_lsnif(gb.inst.size(), 0);
-    for (std::size_t i = 0; i < gb.inst.size(); ++i)
-        is_lsnif[i] = gb.inst[i] >= 0 && std::find(lsnif_instances.begin(), lsnif_instances.end(),
-                                                   std::uint32_t(gb.inst[i])) != lsnif_instances.end();
-    return is_lsnif;
+std::vector<std::uint8_t> lsnif_pixel_mask(const GBuffer& gb, const EvalScene::Impl& im) {
+    std::vector<std::uint8_t> traced(im.instances.size(), 0), mask(gb.inst.size(), 0);
+    for (const std::uint32_t i : im.lsnif_instances) traced[i] = 1;
+    for (std::size_t i = 0; i < gb.inst.size(); ++i) mask[i] = gb.inst[i] >= 0 && traced[gb.inst[i]];
+    return mask;
 }
 
 // `text` to `path` through a temporary file and a rename: no half-written file.
@@ -853,7 +852,7 @@ EvalResult render_and_compare(const EvalOptions& opt) {
     }
     json per;
     double flip_mean = 0;
-    const std::vector<std::uint8_t> lsnif_pixels = lsnif_pixel_mask(gb, im.lsnif_instances);
+    const std::vector<std::uint8_t> lsnif_pixels = lsnif_pixel_mask(gb, im);
     if (!compare_effects(reference, hybrid, view, lsnif_pixels, images, opt.write_images, per, flip_mean,
                          err)) {
         res.errors.push_back(err);

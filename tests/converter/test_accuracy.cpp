@@ -202,13 +202,16 @@ void check_walks_agree(const Shipped& s, const std::string& name) {
 void report_surface_sides(const Shipped& s, const std::string& name) {
     using namespace lsnif;
     const format::Runtime rt = format::make_runtime(s.model);
-    for (const int side : {+1, -1}) {
+    // The surface family's metrics over the held-out samples i with keep(i).
+    const auto surface_metrics = [&](auto&& keep) {
         std::vector<samples::Sample> part;
         for (std::size_t i = 0; i < s.held.size(); ++i)
-            if (s.held[i].family == samples::Family::surface && s.extras[i].side == side)
-                part.push_back(s.held[i]);
+            if (s.held[i].family == samples::Family::surface && keep(i)) part.push_back(s.held[i]);
+        return samples::held_out_metrics(rt, part).family[int(samples::Family::surface)];
+    };
+    for (const int side : {+1, -1}) {
         const samples::FamilyMetrics m =
-            samples::held_out_metrics(rt, part).family[int(samples::Family::surface)];
+            surface_metrics([&](std::size_t i) { return s.extras[i].side == side; });
         const std::string which = side > 0 ? "front" : "back";
         MESSAGE(name << " surface rays leaving the " << which << ": " << m.rays << " rays, visibility "
                      << 100 * m.visibility_accuracy << " % (false hits " << 100 * m.false_hit_rate
@@ -220,17 +223,14 @@ void report_surface_sides(const Shipped& s, const std::string& name) {
     // (near the terminator of a light behind them) against steep ones.
     const double edges[] = {0.0, 0.15, 0.5, 1.01};
     for (int b = 0; b < 3; ++b) {
-        std::vector<samples::Sample> part;
-        for (std::size_t i = 0; i < s.held.size(); ++i) {
-            if (s.held[i].family != samples::Family::surface || s.extras[i].side != 1) continue;
+        const samples::FamilyMetrics m = surface_metrics([&](std::size_t i) {
+            if (s.extras[i].side != 1) return false;
             const auto& d = s.held[i].ray.dir;
             const auto& n = s.source_normal[i];
             const double c = std::fabs(d[0] * n[0] + d[1] * n[1] + d[2] * n[2]) /
                              std::sqrt(d[0] * d[0] + d[1] * d[1] + d[2] * d[2]);
-            if (c >= edges[b] && c < edges[b + 1]) part.push_back(s.held[i]);
-        }
-        const samples::FamilyMetrics m =
-            samples::held_out_metrics(rt, part).family[int(samples::Family::surface)];
+            return c >= edges[b] && c < edges[b + 1];
+        });
         MESSAGE(name << " front-side rays with cos in [" << edges[b] << ", " << std::min(1.0, edges[b + 1])
                      << "): " << m.rays << " rays, visibility " << 100 * m.visibility_accuracy
                      << " % (false hits " << 100 * m.false_hit_rate << " %, false misses "
