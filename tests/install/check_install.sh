@@ -1,0 +1,187 @@
+#!/usr/bin/env bash
+# The reader as a renderer's build meets it: installed, relocated, found by CMake or
+# pkg-config from C and C++, linked static or shared (docs/packaging.md).
+#
+#   check_install.sh build SOURCE_DIR WORK_DIR REFERENCE_CONSUMER NATIVE ASSET...
+#       builds format/ alone (LSNIF_READER_ONLY) twice, with and without LSNIF_SHARED,
+#       installs each with --prefix WORK_DIR/staged-*, moves the tree to WORK_DIR/moved-*
+#       and checks every consumer against the moved tree.
+#   check_install.sh prefix PREFIX KIND WORK_DIR REFERENCE_CONSUMER ASSET...
+#       checks the consumers against an existing install (KIND: shared or static), e.g.
+#       /usr after `apt-get install ./*.deb` (scripts/check_packages).
+#
+# REFERENCE_CONSUMER is tests/install/consumer.c built in the project's own tree; every
+# consumer built here must print what it prints, for every ASSET. Exit status is the truth.
+set -euo pipefail
+
+here=$(cd "$(dirname "$0")" && pwd)
+fail() {
+    echo "check_install: $*" >&2
+    exit 1
+}
+
+# Runs a consumer on every asset and compares with the reference consumer's output.
+expect_reference_output() {
+    local consumer=$1 label=$2
+    local asset
+    for asset in "${assets[@]}"; do
+        local want got
+        want=$("$reference" "$asset") || fail "reference consumer failed on $asset"
+        got=$("$consumer" "$asset") || fail "$label: $consumer failed on $asset"
+        [[ $got == "$want" ]] || fail "$label: output on $asset differs:"$'\n'"$got"$'\n'"expected:"$'\n'"$want"
+    done
+    echo "ok: $label"
+}
+
+# Checks how a consumer binary reached the reader: through liblsnif_format.so.N or
+# linked in (no dynamic dependency at all).
+expect_linkage() {
+    local consumer=$1 linkage=$2 label=$3
+    local needed
+    needed=$(readelf -d "$consumer" | grep NEEDED || true)
+    if [[ $linkage == shared ]]; then
+        grep -q 'liblsnif_format\.so\.[0-9]' <<<"$needed" || fail "$label: $consumer does not load liblsnif_format.so.N"
+    else
+        ! grep -q 'liblsnif_format' <<<"$needed" || fail "$label: $consumer loads the shared reader"
+    fi
+}
+
+# The directory under PREFIX holding the reader: lib (GNUInstallDirs' default) or Debian's
+# multiarch lib/<triplet> for a /usr install.
+library_dir() {
+    local prefix=$1 dir
+    for dir in "$prefix/lib" "$prefix/lib/$(gcc -print-multiarch)" "$prefix/lib64"; do
+        if [[ -f $dir/pkgconfig/lsnif.pc ]]; then
+            echo "$dir"
+            return
+        fi
+    done
+    fail "$prefix: no lib*/pkgconfig/lsnif.pc under it"
+}
+
+# One CMake consumer project (c_project or cpp_project) against PREFIX.
+cmake_consumer() {
+    local prefix=$1 project=$2 linkage=$3 out=$4
+    local static_flag=OFF
+    [[ $linkage == static ]] && static_flag=ON
+    local args=(-S "$here/$project" -B "$out" -DCMAKE_BUILD_TYPE=Release -DLSNIF_USE_STATIC_LIBS=$static_flag)
+    [[ $prefix == /usr ]] || args+=(-DCMAKE_PREFIX_PATH="$prefix")
+    cmake "${args[@]}" >"$out.log" 2>&1 || { cat "$out.log" >&2; fail "$project ($linkage): configure failed"; }
+    cmake --build "$out" >>"$out.log" 2>&1 || { cat "$out.log" >&2; fail "$project ($linkage): build failed"; }
+}
+
+# Every consumer against one installed tree. KIND shared: the install has the shared
+# library (and the archive); static: the archive alone.
+check_prefix() {
+    local prefix=$1 kind=$2 work=$3
+    mkdir -p "$work"
+    local libdir
+    libdir=$(library_dir "$prefix")
+    local pc_dirs="$libdir/pkgconfig"
+
+    # pkg-config resolves the prefix from the .pc file's own place.
+    local pc_prefix
+    pc_prefix=$(PKG_CONFIG_PATH=$pc_dirs pkg-config --variable=prefix lsnif)
+    [[ $(cd "$pc_prefix" && pwd -P) == $(cd "$prefix" && pwd -P) ]] ||
+        fail "$prefix: lsnif.pc's prefix is $pc_prefix"
+
+    # CMake: C only and C++, the default target and the static one.
+    local linkages=(static)
+    [[ $kind == shared ]] && linkages=(shared static)
+    local project linkage
+    for project in c_project cpp_project; do
+        for linkage in "${linkages[@]}"; do
+            local out="$work/$project-$linkage"
+            cmake_consumer "$prefix" "$project" "$linkage" "$out"
+            local exe="$out/lsnif_consumer_${project%_project}"
+            expect_linkage "$exe" "$linkage" "$project ($linkage, $prefix)"
+            expect_reference_output "$exe" "CMake $project, $linkage library, $prefix"
+        done
+    done
+
+    # Plain compiler lines with pkg-config, as a Makefile would write them.
+    local flags
+    flags=$(PKG_CONFIG_PATH=$pc_dirs pkg-config --cflags --libs lsnif)
+    cc -std=c99 -o "$work/pc_c" "$here/consumer.c" $flags -lm || fail "cc with pkg-config --libs failed"
+    c++ -std=c++17 -o "$work/pc_cpp" "$here/consumer.cpp" $flags || fail "c++ with pkg-config --libs failed"
+    local linkage_plain=static
+    [[ $kind == shared ]] && linkage_plain=shared
+    for exe in "$work/pc_c" "$work/pc_cpp"; do
+        expect_linkage "$exe" "$linkage_plain" "pkg-config $(basename "$exe")"
+        LD_LIBRARY_PATH=$libdir expect_reference_output "$exe" "pkg-config $(basename "$exe") ($kind install, $prefix)"
+    done
+    # A fully static executable: pkg-config --static names everything the archive needs.
+    flags=$(PKG_CONFIG_PATH=$pc_dirs pkg-config --static --cflags --libs lsnif)
+    cc -std=c99 -static -o "$work/pc_c_static" "$here/consumer.c" $flags -lm ||
+        fail "cc -static with pkg-config --static failed"
+    expect_linkage "$work/pc_c_static" static "pkg-config --static"
+    expect_reference_output "$work/pc_c_static" "pkg-config --static, -static executable ($prefix)"
+}
+
+# The shared library exports the C API and nothing else, under its SONAME.
+check_shared_library() {
+    local lib=$1
+    local soname
+    soname=$(readelf -d "$lib" | sed -n 's/.*Library soname: \[\(.*\)\]/\1/p')
+    [[ $soname =~ ^liblsnif_format\.so\.[0-9]+$ ]] || fail "$lib: SONAME is '$soname'"
+    local exported
+    exported=$(nm -D --defined-only "$lib" | awk '$2 != "A" {print $3}' | sed 's/@.*//')
+    [[ -n $exported ]] || fail "$lib: exports nothing"
+    local stray
+    stray=$(grep -v '^lsnif_' <<<"$exported" || true)
+    [[ -z $stray ]] || fail "$lib: exports more than the C API:"$'\n'"$stray"
+    local api
+    api=$(sed -n 's/^LSNIF_API [^(]*[ *]\(lsnif_[a-z_]*\)(.*/\1/p' "$source_dir/format/include/lsnif/lsnif.h" | sort)
+    [[ $(sort <<<"$exported") == "$api" ]] ||
+        fail "$lib: exported symbols differ from lsnif.h's LSNIF_API functions"
+    echo "ok: $lib is $soname and exports the $(wc -l <<<"$api") C API functions only"
+}
+
+mode=${1:-}
+case $mode in
+build)
+    (($# >= 6)) || fail "usage: $0 build SOURCE_DIR WORK_DIR REFERENCE_CONSUMER NATIVE ASSET..."
+    source_dir=$2 work=$3 reference=$4 native=$5
+    shift 5
+    assets=("$@")
+    rm -rf "$work"
+    mkdir -p "$work"
+    for kind in shared static; do
+        shared=OFF
+        [[ $kind == shared ]] && shared=ON
+        build="$work/build-$kind"
+        cmake -S "$source_dir" -B "$build" -DCMAKE_BUILD_TYPE=Release -DLSNIF_READER_ONLY=ON \
+            -DLSNIF_SHARED=$shared -DLSNIF_NATIVE="$native" >"$build.log" 2>&1 ||
+            { cat "$build.log" >&2; fail "configure of the reader ($kind) failed"; }
+        cmake --build "$build" -j 2 >>"$build.log" 2>&1 || { cat "$build.log" >&2; fail "build ($kind) failed"; }
+        cmake --install "$build" --prefix "$work/staged-$kind" >>"$build.log" 2>&1 || fail "install ($kind) failed"
+        # Relocation: nothing may remember where the tree was installed.
+        mv "$work/staged-$kind" "$work/moved-$kind"
+        if grep -rq "$work/staged-$kind" "$work/moved-$kind"; then
+            fail "the installed tree names its install prefix: $(grep -rl "$work/staged-$kind" "$work/moved-$kind")"
+        fi
+        if [[ $kind == shared ]]; then
+            check_shared_library "$(find "$work/moved-$kind" -name 'liblsnif_format.so.*.*' -print -quit)"
+        else
+            ! find "$work/moved-$kind" -name 'liblsnif_format.so*' | grep -q . || fail "static install has a .so"
+        fi
+        check_prefix "$work/moved-$kind" "$kind" "$work/consumers-$kind"
+    done
+    ;;
+prefix)
+    (($# >= 6)) || fail "usage: $0 prefix PREFIX KIND WORK_DIR REFERENCE_CONSUMER ASSET..."
+    prefix=$2 kind=$3 work=$4 reference=$5
+    shift 5
+    assets=("$@")
+    source_dir=$(cd "$here/../.." && pwd)
+    rm -rf "$work"
+    if [[ $kind == shared ]]; then
+        check_shared_library "$(find "$(library_dir "$prefix")" -maxdepth 1 -name 'liblsnif_format.so.*.*' -print -quit)"
+    fi
+    check_prefix "$prefix" "$kind" "$work"
+    ;;
+*)
+    fail "usage: $0 build|prefix ..."
+    ;;
+esac
+echo "check_install: all consumers agree with the reference"
