@@ -1,9 +1,50 @@
 /* Minimal C consumer of the lsnif runtime reader: open a .lsnif file, print its
- * dimensions and where the weight arrays live. Compiled as C99, so it proves that
- * <lsnif/lsnif.h> is plain C. Usage: lsnif_print_info FILE.lsnif */
+ * dimensions and where the weight arrays live, then trace a fixed fan of rays through its
+ * box and print what came back. Compiled as C99, so it proves that <lsnif/lsnif.h> is
+ * plain C; tests/install/check_install.sh builds it against installed trees and packages.
+ * Usage: lsnif_print_info FILE.lsnif */
 #include <lsnif/lsnif.h>
 
+#include <math.h>
 #include <stdio.h>
+
+enum { FAN = 16, RAYS = FAN * FAN };
+
+/* Rays from a point in front of the box (-z side) to points spread over its back face:
+ * every ray crosses the box, some the object. Prints the hit count and mean t. */
+static int trace_fan(const lsnif_model* model, const lsnif_info* info) {
+    static lsnif_ray rays[RAYS];
+    static lsnif_hit hits[RAYS];
+    const float* lo = info->box_min;
+    const float* hi = info->box_max;
+    for (int i = 0; i < FAN; ++i) {
+        for (int j = 0; j < FAN; ++j) {
+            lsnif_ray* r = &rays[i * FAN + j];
+            const float u = (i + 0.5f) / FAN, v = (j + 0.5f) / FAN;
+            const float target[3] = {lo[0] + u * (hi[0] - lo[0]), lo[1] + v * (hi[1] - lo[1]), hi[2]};
+            r->org[0] = 0.5f * (lo[0] + hi[0]);
+            r->org[1] = 0.5f * (lo[1] + hi[1]);
+            r->org[2] = lo[2] - (hi[2] - lo[2]);
+            for (int k = 0; k < 3; ++k) r->dir[k] = target[k] - r->org[k];
+            r->tmin = 0.0f;
+            r->tmax = INFINITY;
+        }
+    }
+    const lsnif_status st = lsnif_intersect(model, rays, RAYS, hits);
+    if (st != LSNIF_OK) {
+        fprintf(stderr, "error: intersect failed (%s)\n", lsnif_status_string(st));
+        return 1;
+    }
+    int hit_count = 0;
+    double t_sum = 0.0;
+    for (int k = 0; k < RAYS; ++k) {
+        if (!hits[k].hit) continue;
+        ++hit_count;
+        t_sum += hits[k].t;
+    }
+    printf("fan: %d of %d rays hit, mean t %.4f\n", hit_count, RAYS, hit_count ? t_sum / hit_count : 0.0);
+    return 0;
+}
 
 int main(int argc, char** argv) {
     if (argc != 2) {
@@ -17,6 +58,9 @@ int main(int argc, char** argv) {
         fprintf(stderr, "error: %s: %s (%s)\n", argv[1], err.message, lsnif_status_string(st));
         return 1;
     }
+    uint32_t reads_major = 0, reads_minor = 0;
+    const char* library = lsnif_version(&reads_major, &reads_minor);
+    printf("library %s, reads format %u.%u\n", library, (unsigned)reads_major, (unsigned)reads_minor);
     lsnif_info info;
     lsnif_get_info(model, &info);
     printf("format %u.%u, %llu bytes\n", (unsigned)info.version_major, (unsigned)info.version_minor,
@@ -40,6 +84,10 @@ int main(int argc, char** argv) {
     size_t len = 0;
     lsnif_metadata(model, &len);
     printf("metadata %zu bytes, %llu parameters\n", len, (unsigned long long)info.parameter_count);
+    /* The fp32 reference arithmetic (FORMAT.md section 8): the same hits on every CPU, so
+     * builds of this program against different installs can be compared line by line. */
+    lsnif_set_arithmetic(model, LSNIF_ARITHMETIC_FP32, NULL);
+    const int failed = trace_fan(model, &info);
     lsnif_close(model);
-    return 0;
+    return failed;
 }

@@ -2,31 +2,35 @@
 # The reader as a renderer's build meets it: installed, relocated, found by CMake or
 # pkg-config from C and C++, linked static or shared (docs/packaging.md).
 #
-#   check_install.sh build SOURCE_DIR WORK_DIR REFERENCE_CONSUMER NATIVE ASSET...
+#   check_install.sh WORK_DIR REFERENCE_C REFERENCE_CPP build SOURCE_DIR NATIVE ASSET...
 #       builds format/ alone (LSNIF_READER_ONLY) twice, with and without LSNIF_SHARED,
 #       installs each with --prefix WORK_DIR/staged-*, moves the tree to WORK_DIR/moved-*
 #       and checks every consumer against the moved tree.
-#   check_install.sh prefix PREFIX KIND WORK_DIR REFERENCE_CONSUMER ASSET...
+#   check_install.sh WORK_DIR REFERENCE_C REFERENCE_CPP prefix PREFIX KIND ASSET...
 #       checks the consumers against an existing install (KIND: shared or static), e.g.
 #       /usr after `apt-get install ./*.deb` (scripts/check_packages).
 #
-# REFERENCE_CONSUMER is tests/install/consumer.c built in the project's own tree; every
-# consumer built here must print what it prints, for every ASSET. Exit status is the truth.
+# The consumers are examples/c_reader/print_info.c (C) and tests/install/consumer.cpp (C++);
+# REFERENCE_C and REFERENCE_CPP are the same programs built in the project's own tree, and
+# every consumer built here must print what its reference prints, for every ASSET.
+# Exit status is the truth.
 set -euo pipefail
 
 here=$(cd "$(dirname "$0")" && pwd)
+c_source=$(cd "$here/../../examples/c_reader" && pwd)/print_info.c
+declare -A references
 fail() {
     echo "check_install: $*" >&2
     exit 1
 }
 
-# Runs a consumer on every asset and compares with the reference consumer's output.
+# Runs a consumer on every asset and compares with its reference's output.
 expect_reference_output() {
-    local consumer=$1 label=$2
+    local consumer=$1 reference=$2 label=$3
     local asset
     for asset in "${assets[@]}"; do
         local want got
-        want=$("$reference" "$asset") || fail "reference consumer failed on $asset"
+        want=$("$reference" "$asset") || fail "reference $reference failed on $asset"
         got=$("$consumer" "$asset") || fail "$label: $consumer failed on $asset"
         [[ $got == "$want" ]] || fail "$label: output on $asset differs:"$'\n'"$got"$'\n'"expected:"$'\n'"$want"
     done
@@ -93,29 +97,33 @@ check_prefix() {
         for linkage in "${linkages[@]}"; do
             local out="$work/$project-$linkage"
             cmake_consumer "$prefix" "$project" "$linkage" "$out"
-            local exe="$out/lsnif_consumer_${project%_project}"
+            local language=${project%_project}
+            local exe="$out/lsnif_consumer_$language"
             expect_linkage "$exe" "$linkage" "$project ($linkage, $prefix)"
-            expect_reference_output "$exe" "CMake $project, $linkage library, $prefix"
+            expect_reference_output "$exe" "${references[$language]}" "CMake $project, $linkage library, $prefix"
         done
     done
 
     # Plain compiler lines with pkg-config, as a Makefile would write them.
     local flags
     flags=$(PKG_CONFIG_PATH=$pc_dirs pkg-config --cflags --libs lsnif)
-    cc -std=c99 -o "$work/pc_c" "$here/consumer.c" $flags -lm || fail "cc with pkg-config --libs failed"
+    cc -std=c99 -o "$work/pc_c" "$c_source" $flags -lm || fail "cc with pkg-config --libs failed"
     c++ -std=c++17 -o "$work/pc_cpp" "$here/consumer.cpp" $flags || fail "c++ with pkg-config --libs failed"
     local linkage_plain=static
     [[ $kind == shared ]] && linkage_plain=shared
-    for exe in "$work/pc_c" "$work/pc_cpp"; do
+    local language
+    for language in c cpp; do
+        local exe="$work/pc_$language"
         expect_linkage "$exe" "$linkage_plain" "pkg-config $(basename "$exe")"
-        LD_LIBRARY_PATH=$libdir expect_reference_output "$exe" "pkg-config $(basename "$exe") ($kind install, $prefix)"
+        LD_LIBRARY_PATH=$libdir expect_reference_output "$exe" "${references[$language]}" \
+            "pkg-config $(basename "$exe") ($kind install, $prefix)"
     done
     # A fully static executable: pkg-config --static names everything the archive needs.
     flags=$(PKG_CONFIG_PATH=$pc_dirs pkg-config --static --cflags --libs lsnif)
-    cc -std=c99 -static -o "$work/pc_c_static" "$here/consumer.c" $flags -lm ||
+    cc -std=c99 -static -o "$work/pc_c_static" "$c_source" $flags -lm ||
         fail "cc -static with pkg-config --static failed"
     expect_linkage "$work/pc_c_static" static "pkg-config --static"
-    expect_reference_output "$work/pc_c_static" "pkg-config --static, -static executable ($prefix)"
+    expect_reference_output "$work/pc_c_static" "${references[c]}" "pkg-config --static, -static executable ($prefix)"
 }
 
 # The shared library exports the C API and nothing else, under its SONAME.
@@ -137,15 +145,16 @@ check_shared_library() {
     echo "ok: $lib is $soname and exports the $(wc -l <<<"$api") C API functions only"
 }
 
-mode=${1:-}
+usage="usage: $0 WORK_DIR REFERENCE_C REFERENCE_CPP {build SOURCE_DIR NATIVE | prefix PREFIX KIND} ASSET..."
+(($# >= 7)) || fail "$usage"
+work=$1 mode=$4
+references=([c]=$2 [cpp]=$3)
+assets=("${@:7}")
+rm -rf "$work"
+mkdir -p "$work"
 case $mode in
 build)
-    (($# >= 6)) || fail "usage: $0 build SOURCE_DIR WORK_DIR REFERENCE_CONSUMER NATIVE ASSET..."
-    source_dir=$2 work=$3 reference=$4 native=$5
-    shift 5
-    assets=("$@")
-    rm -rf "$work"
-    mkdir -p "$work"
+    source_dir=$5 native=$6
     for kind in shared static; do
         shared=OFF
         [[ $kind == shared ]] && shared=ON
@@ -169,19 +178,15 @@ build)
     done
     ;;
 prefix)
-    (($# >= 6)) || fail "usage: $0 prefix PREFIX KIND WORK_DIR REFERENCE_CONSUMER ASSET..."
-    prefix=$2 kind=$3 work=$4 reference=$5
-    shift 5
-    assets=("$@")
+    prefix=$5 kind=$6
     source_dir=$(cd "$here/../.." && pwd)
-    rm -rf "$work"
     if [[ $kind == shared ]]; then
         check_shared_library "$(find "$(library_dir "$prefix")" -maxdepth 1 -name 'liblsnif_format.so.*.*' -print -quit)"
     fi
     check_prefix "$prefix" "$kind" "$work"
     ;;
 *)
-    fail "usage: $0 build|prefix ..."
+    fail "$usage"
     ;;
 esac
 echo "check_install: all consumers agree with the reference"

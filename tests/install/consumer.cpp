@@ -1,6 +1,9 @@
-// The same use of the installed reader from C++ (RAII ownership, std::vector batches):
-// the header's extern "C" block is what a C++ renderer relies on. Output matches
-// consumer.c's line for line. Usage: lsnif_consumer_cpp FILE.lsnif
+// A C++ renderer's use of the installed reader (RAII ownership, std::vector batches): the
+// header's extern "C" block is what it relies on. Opens an asset, traces a fixed fan of
+// rays with the fp32 reference arithmetic and prints the library version and what came
+// back. tests/install/check_install.sh builds it against installed trees and packages
+// and compares its output with the same program built in the project's tree.
+// Usage: lsnif_consumer_cpp FILE.lsnif
 #include <lsnif/lsnif.h>
 
 #include <cmath>
