@@ -8,6 +8,7 @@
 #include <lsnif/base/clock.hpp>
 #include <lsnif/converter/bench.hpp>
 #include <lsnif/format/bf16.hpp>
+#include <lsnif/format/cpu.hpp>
 #include <lsnif/format/forward.hpp>
 #include <lsnif/trainer/trainer.hpp>
 
@@ -102,7 +103,7 @@ json kernel_comparison(double min_seconds) {
     // The bf16 kernel on the same product (K padded to 128 as the trainer and reader pad it;
     // the FLOPs counted are the padded ones the instructions execute): this machine's bf16
     // rate on our shapes, against which the bf16 MLP fractions are read.
-    if (format::avx512_bf16_available()) {
+    if (format::cpu_features().avx512_bf16) {
         const std::size_t kp = format::round_up(in, 32);
         std::vector<format::Bf16> a(std::size_t(rows) * kp), b(kp * 2 * out);
         format::pack_rows(A.data(), rows, in, in, a.data(), kp, rows);
@@ -274,7 +275,7 @@ json bench_infer(const BenchOptions& o) {
         };
         return json{{"walk_scalar_rays_per_second", rate(scalar_walk)},
                     {"walk_rays_per_second", rate(walk)},
-                    {"walk_16_lane", format::avx512_available()},
+                    {"walk_16_lane", format::cpu_features().avx512},
                     {"walk_encode_rays_per_second", rate(walk_encode)}};
     };
     // fp32 (the reference; the top-level figures) and, where the CPU has AVX-512 BF16, the

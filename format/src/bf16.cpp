@@ -3,45 +3,19 @@
 // compiled with function-level target attributes and chosen at run time, so the library
 // builds and runs on any x86-64 (and elsewhere, on the scalar paths).
 #include <lsnif/format/bf16.hpp>
+#include <lsnif/format/cpu.hpp>
 
 #include <algorithm>
 #include <cstring>
 
 #if defined(__x86_64__) && defined(__GNUC__)
 #define LSNIF_HAVE_X86 1
-#include <cpuid.h>
 #include <immintrin.h>
 #endif
 
 namespace lsnif::format {
 
 namespace {
-
-#if LSNIF_HAVE_X86
-
-// AVX-512 F/BW/VL and AVX512_BF16 in CPUID, and the OS saving the ZMM state (XCR0).
-bool detect_avx512_bf16() {
-    unsigned a, b, c, d;
-    constexpr std::uint64_t kZmmState = (1u << 1) | (1u << 2) | (1u << 5) | (1u << 6) | (1u << 7);
-    if ((enabled_state_components() & kZmmState) != kZmmState) return false;
-    if (!__get_cpuid_count(7, 0, &a, &b, &c, &d)) return false;
-    const bool avx512 = (b & (1u << 16)) && (b & (1u << 30)) && (b & (1u << 31));  // F, BW, VL
-    const unsigned max_subleaf = a;
-    return avx512 && max_subleaf >= 1 && __get_cpuid_count(7, 1, &a, &b, &c, &d) && (a & (1u << 5));
-}
-
-#else
-
-bool detect_avx512_bf16() {
-    return false;
-}
-
-#endif
-
-bool has_avx512_bf16() {
-    static const bool yes = detect_avx512_bf16();  // thread-safe one-time initialization
-    return yes;
-}
 
 // ---- scalar packers (reference, and machines without AVX-512 BF16) ----------------------
 
@@ -232,26 +206,10 @@ LSNIF_BF16_TARGET void gemm_dp(std::size_t m, std::size_t n, std::size_t k, cons
 
 }  // namespace
 
-std::uint64_t enabled_state_components() {
-#if LSNIF_HAVE_X86
-    unsigned a, b, c, d;
-    if (!__get_cpuid(1, &a, &b, &c, &d) || !(c & (1u << 27))) return 0;  // OSXSAVE: xgetbv allowed
-    std::uint32_t lo, hi;
-    __asm__ volatile("xgetbv" : "=a"(lo), "=d"(hi) : "c"(0));
-    return (std::uint64_t(hi) << 32) | lo;
-#else
-    return 0;
-#endif
-}
-
-bool avx512_bf16_available() {
-    return has_avx512_bf16();
-}
-
 void pack_rows(const float* src, std::size_t rows, std::size_t cols, std::size_t lds, Bf16* dst,
                std::size_t ldd, std::size_t rows_pad) {
 #if LSNIF_HAVE_X86
-    if (has_avx512_bf16()) return pack_rows_avx512(src, rows, cols, lds, dst, ldd, rows_pad);
+    if (cpu_features().avx512_bf16) return pack_rows_avx512(src, rows, cols, lds, dst, ldd, rows_pad);
 #endif
     pack_rows_scalar(src, rows, cols, lds, dst, ldd, rows_pad);
 }
@@ -259,7 +217,7 @@ void pack_rows(const float* src, std::size_t rows, std::size_t cols, std::size_t
 void pack_transposed(const float* src, std::size_t rows, std::size_t cols, std::size_t lds, Bf16* dst,
                      std::size_t ldd, std::size_t cols_pad) {
 #if LSNIF_HAVE_X86
-    if (has_avx512_bf16() && ldd % 32 == 0 && cols_pad % 16 == 0)
+    if (cpu_features().avx512_bf16 && ldd % 32 == 0 && cols_pad % 16 == 0)
         return pack_transposed_avx512(src, rows, cols, lds, dst, ldd, cols_pad);
 #endif
     pack_transposed_scalar(src, rows, cols, lds, dst, ldd, cols_pad);
@@ -268,7 +226,7 @@ void pack_transposed(const float* src, std::size_t rows, std::size_t cols, std::
 void pack_vnni(const float* src, std::size_t k, std::size_t n, std::size_t lds, Bf16* dst, std::size_t ldd,
                std::size_t k_pad) {
 #if LSNIF_HAVE_X86
-    if (has_avx512_bf16() && ldd % 2 == 0) return pack_vnni_avx512(src, k, n, lds, dst, ldd, k_pad);
+    if (cpu_features().avx512_bf16 && ldd % 2 == 0) return pack_vnni_avx512(src, k, n, lds, dst, ldd, k_pad);
 #endif
     pack_vnni_scalar(src, k, n, lds, dst, ldd, k_pad);
 }
@@ -276,7 +234,7 @@ void pack_vnni(const float* src, std::size_t k, std::size_t n, std::size_t lds, 
 void gemm_bf16_dp(std::size_t m, std::size_t n, std::size_t k, const Bf16* a, std::size_t lda, const Bf16* b,
                   std::size_t ldb, float* c, std::size_t ldc, const Epilogue& e) {
 #if LSNIF_HAVE_X86
-    if (m && n && has_avx512_bf16()) return gemm_dp(m, n, k, a, lda, b, ldb, c, ldc, e);
+    if (m && n && cpu_features().avx512_bf16) return gemm_dp(m, n, k, a, lda, b, ldb, c, ldc, e);
 #endif
     // No AVX-512 BF16: the same product in plain loops (fp32 accumulation of exact bf16
     // products; summation order differs from the kernel's). Far too slow for real work; it

@@ -2,6 +2,7 @@
 // Woo, "A Fast Voxel Traversal Algorithm for Ray Tracing" (1987); multiresolution hash
 // encoding after Müller et al., "Instant Neural Graphics Primitives" (2022); LSNIF after
 // Fujieda et al. (I3D 2025).
+#include <lsnif/format/cpu.hpp>
 #include <lsnif/format/forward.hpp>
 #include <lsnif/format/half.hpp>
 #include <lsnif/format/quantize.hpp>
@@ -151,8 +152,7 @@ __attribute__((target("avx512f,avx512vl,avx512bw,avx512dq,fma"))) void level_cor
 
 void level_corners(const Geometry& geo, const LevelInfo& lv, const float g[3], Corners& out) {
 #if LSNIF_HAVE_X86
-    static const bool avx512 = avx512_available();
-    if (avx512) return level_corners_avx512(geo, lv, g, out);
+    if (cpu_features().avx512) return level_corners_avx512(geo, lv, g, out);
 #endif
     level_corners_scalar(geo, lv, g, out);
 }
@@ -377,9 +377,8 @@ using DenseFn = void (*)(const float*, std::size_t, std::size_t, std::size_t, co
                          std::size_t, bool, float*);
 
 DenseFn pick_dense() {
-    __builtin_cpu_init();
-    if (__builtin_cpu_supports("avx512f")) return dense_avx512;
-    if (__builtin_cpu_supports("avx2") && __builtin_cpu_supports("fma")) return dense_avx2;
+    if (cpu_features().avx512) return dense_avx512;
+    if (cpu_features().avx2_fma) return dense_avx2;
     return dense_generic;
 }
 
@@ -415,12 +414,12 @@ Network make_network(const ModelDesc& desc, const std::vector<std::vector<float>
 }
 
 MlpArithmetic best_mlp_arithmetic() {
-    return avx512_bf16_available() ? MlpArithmetic::bf16 : MlpArithmetic::fp32;
+    return cpu_features().avx512_bf16 ? MlpArithmetic::bf16 : MlpArithmetic::fp32;
 }
 
 MlpArithmetic set_mlp_arithmetic(Network& net, MlpArithmetic a) {
     net.wt_vnni.clear();
-    if (a != MlpArithmetic::bf16 || !avx512_bf16_available() || net.wt.empty()) return MlpArithmetic::fp32;
+    if (a != MlpArithmetic::bf16 || !cpu_features().avx512_bf16 || net.wt.empty()) return MlpArithmetic::fp32;
     for (std::size_t k = 0; k + 1 < net.wt.size(); ++k) {
         const std::size_t in = net.in[k], op = net.out_padded[k];
         net.wt_vnni.emplace_back(round_up(in, 32) * op);

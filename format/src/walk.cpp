@@ -3,6 +3,7 @@
 // time with AVX-512 where the CPU has it. Both walks run the same state machine on the same
 // IEEE operations, so they return bit-identical points (tests/format/test_walk.cpp); the
 // model was trained on these points, so any difference would be an input the network never saw.
+#include <lsnif/format/cpu.hpp>
 #include <lsnif/format/forward.hpp>
 
 #include <algorithm>
@@ -679,29 +680,14 @@ LSNIF_AVX512 void trace_batch_avx512(const Geometry& geo, const OccupancyGrid& o
 
 #undef LSNIF_AVX512
 
-bool detect_walk_avx512() {
-    __builtin_cpu_init();
-    return __builtin_cpu_supports("avx512f") && __builtin_cpu_supports("avx512bw") &&
-           __builtin_cpu_supports("avx512dq") && __builtin_cpu_supports("avx512vl");
-}
-
 #endif
 
 }  // namespace
 
-bool avx512_available() {
-#if LSNIF_HAVE_X86
-    static const bool available = detect_walk_avx512();
-    return available;
-#else
-    return false;
-#endif
-}
-
 void trace_points_batch(const Geometry& geo, const OccupancyGrid& occ, std::span<const Ray> rays,
                         RayPoints* out, TraceStatus* status) {
 #if LSNIF_HAVE_X86
-    if (avx512_available() && geo.V == occ.V) return trace_batch_avx512(geo, occ, rays, out, status);
+    if (cpu_features().avx512 && geo.V == occ.V) return trace_batch_avx512(geo, occ, rays, out, status);
 #endif
     for (std::size_t i = 0; i < rays.size(); ++i) status[i] = trace_points(geo, occ, rays[i], out[i]);
 }

@@ -16,6 +16,7 @@
 
 #include <lsnif/converter/convert.hpp>
 #include <lsnif/converter/eval.hpp>
+#include <lsnif/format/cpu.hpp>
 #include <lsnif/format/forward.hpp>
 #include <lsnif/samples/held_out.hpp>
 #include <lsnif/sampling/sampling.hpp>
@@ -188,7 +189,8 @@ void check_walks_agree(const Shipped& s, const std::string& name) {
         }
         same += equal;
     }
-    MESSAGE(name << ": 16-lane walk " << std::string(avx512_available() ? "(AVX-512)" : "(scalar fallback)")
+    MESSAGE(name << ": 16-lane walk "
+                 << std::string(cpu_features().avx512 ? "(AVX-512)" : "(scalar fallback)")
                  << " equals the scalar walk on " << same << " of " << s.rays.size() << " held-out rays ("
                  << traced << " reach the network)");
     CHECK(same == s.rays.size());
@@ -245,7 +247,7 @@ void report_surface_sides(const Shipped& s, const std::string& name) {
 // diagonal, normal in degrees).
 void check_bf16_inference(const Shipped& s, const std::string& name) {
     using namespace lsnif;
-    if (!format::avx512_bf16_available()) {
+    if (!format::cpu_features().avx512_bf16) {
         MESSAGE("no AVX-512 BF16 on this machine: bf16 inference not compared (fp32 is what ships here)");
         return;
     }

@@ -7,6 +7,7 @@
 
 #include <lsnif/lsnif.h>
 #include <lsnif/format/container.hpp>
+#include <lsnif/format/cpu.hpp>
 #include <lsnif/format/forward.hpp>
 #include <lsnif/format/half.hpp>
 #include <lsnif/format/quantize.hpp>
@@ -303,7 +304,7 @@ TEST_CASE(
     const auto bytes = serialize(q.value()).value();
     lsnif_model* model = nullptr;
     REQUIRE(lsnif_open_memory(bytes.data(), bytes.size(), &model, nullptr) == LSNIF_OK);
-    const lsnif_arithmetic best = avx512_bf16_available() ? LSNIF_ARITHMETIC_BF16 : LSNIF_ARITHMETIC_FP32;
+    const lsnif_arithmetic best = cpu_features().avx512_bf16 ? LSNIF_ARITHMETIC_BF16 : LSNIF_ARITHMETIC_FP32;
     CHECK(lsnif_get_arithmetic(model) == best);  // what lsnif_open chose
     lsnif_arithmetic in_use{};
     CHECK(lsnif_set_arithmetic(model, LSNIF_ARITHMETIC_FP32, &in_use) == LSNIF_OK);

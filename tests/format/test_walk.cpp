@@ -4,6 +4,7 @@
 #include <doctest/doctest.h>
 
 #include <lsnif/format/container.hpp>
+#include <lsnif/format/cpu.hpp>
 #include <lsnif/format/forward.hpp>
 
 #include <cmath>
@@ -82,7 +83,7 @@ std::vector<std::uint8_t> shell_occupancy(const ModelDesc& d, std::uint32_t seed
 }  // namespace
 
 TEST_CASE("the 16-lane walk returns the scalar walk's points bit for bit") {
-    const std::string path = avx512_available() ? "in use" : "not available: scalar on both sides";
+    const std::string path = cpu_features().avx512 ? "in use" : "not available: scalar on both sides";
     MESSAGE("16-lane AVX-512 walk " << path);
     // V = 7 and 33 leave partial blocks at the far faces; H = 1 stops walks after one point,
     // H = 64 lets most walks run to the box's far side.

@@ -1,11 +1,12 @@
 #include "amx.hpp"
 
+#include <lsnif/format/cpu.hpp>
+
 #include <algorithm>
 #include <cstring>
 
 #if defined(__x86_64__) && defined(__GNUC__)
 #define LSNIF_HAVE_X86 1
-#include <cpuid.h>
 #include <immintrin.h>
 #endif
 #if defined(__linux__)
@@ -36,13 +37,7 @@ bool request_tile_permission() {
 
 // AMX-TILE + AMX-BF16 usable and permitted for this process (AVX-512 BF16 is required too).
 bool detect_amx() {
-    if (!format::avx512_bf16_available()) return false;
-    unsigned a, b, c, d;
-    constexpr std::uint64_t kTileState = (1u << 17) | (1u << 18);
-    if (!__get_cpuid_count(7, 0, &a, &b, &c, &d)) return false;
-    const bool amx_bf16 = d & (1u << 22), amx_tile = d & (1u << 24);
-    return amx_bf16 && amx_tile && (format::enabled_state_components() & kTileState) == kTileState &&
-           request_tile_permission();
+    return format::cpu_features().amx_bf16 && request_tile_permission();
 }
 
 #else
@@ -202,7 +197,7 @@ LSNIF_AMX_TARGET void gemm_amx(std::size_t m, std::size_t n, std::size_t k, cons
 
 Bf16Backend bf16_backend() {
     if (has_amx()) return Bf16Backend::amx;
-    if (format::avx512_bf16_available()) return Bf16Backend::avx512_bf16;
+    if (format::cpu_features().avx512_bf16) return Bf16Backend::avx512_bf16;
     return Bf16Backend::none;
 }
 
@@ -230,7 +225,7 @@ void gemm_bf16_on(Bf16Backend backend, std::size_t m, std::size_t n, std::size_t
 #if LSNIF_HAVE_X86
     if (m && n && backend == Bf16Backend::amx && has_amx())
         return gemm_amx(m, n, k, a, lda, b, ldb, c, ldc, accumulate);
-    if (m && n && backend == Bf16Backend::avx512_bf16 && format::avx512_bf16_available())
+    if (m && n && backend == Bf16Backend::avx512_bf16 && format::cpu_features().avx512_bf16)
         return format::gemm_bf16_dp(m, n, k, a, lda, b, ldb, c, ldc, {nullptr, false, accumulate});
 #endif
     // No bf16 instructions: the same product in plain loops (fp32 accumulation of exact bf16

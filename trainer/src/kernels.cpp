@@ -1,5 +1,7 @@
 #include "kernels.hpp"
 
+#include <lsnif/format/cpu.hpp>
+
 #include <algorithm>
 
 namespace lsnif::trainer::detail {
@@ -61,9 +63,8 @@ using OuterFn = void (*)(const float*, std::size_t, std::size_t, std::size_t, co
                          float*);
 
 OuterFn pick() {
-    __builtin_cpu_init();
-    if (__builtin_cpu_supports("avx512f")) return outer_avx512;
-    if (__builtin_cpu_supports("avx2") && __builtin_cpu_supports("fma")) return outer_avx2;
+    if (format::cpu_features().avx512) return outer_avx512;
+    if (format::cpu_features().avx2_fma) return outer_avx2;
     return outer_generic;
 }
 

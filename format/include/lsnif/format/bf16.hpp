@@ -14,7 +14,7 @@
 //  * C: fp32 row-major, C[r][n] at c[r * ldc + n]; only the logical m x n region is read or
 //    written.
 //
-// Functions that need AVX-512 BF16 check for it at run time (avx512_bf16_available());
+// Functions that need AVX-512 BF16 check for it at run time (cpu_features().avx512_bf16);
 // without it they take scalar paths with the same results (packers) or the same products
 // in another summation order (gemm_bf16_dp).
 #pragma once
@@ -63,14 +63,6 @@ void pack_transposed(const float* src, std::size_t rows, std::size_t cols, std::
 // k_pad must be even.
 void pack_vnni(const float* src, std::size_t k, std::size_t n, std::size_t lds, Bf16* dst, std::size_t ldd,
                std::size_t k_pad);
-
-// XCR0: the register state components the OS saves and restores (bit 7 ZMM, 17-18 AMX
-// tiles, ...); 0 where XGETBV is unavailable (no OSXSAVE, not x86).
-std::uint64_t enabled_state_components();
-
-// True when the CPU has AVX-512 F/BW/VL and AVX512_BF16 and the OS saves the ZMM state.
-// Evaluated once (thread-safe); never faults.
-bool avx512_bf16_available();
 
 // What happens to each fp32 result of gemm_bf16_dp: start from C (accumulate), else from
 // bias[j] (bias non-null, at least round_up(n, 16) readable values), else from zero; then

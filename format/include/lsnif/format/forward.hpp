@@ -112,12 +112,10 @@ TraceStatus trace_points(const Geometry& geo, const OccupancyGrid& occupancy, co
 
 // trace_points(geo, occ, rays[i], out[i]) for every i, with status[i] its return value:
 // bit-identical results, computed 16 rays at a time with AVX-512 where the CPU has it
-// (avx512_available()). out and status hold rays.size() elements.
+// (cpu_features().avx512; the vector corner computation of level_corners needs the same).
+// out and status hold rays.size() elements.
 void trace_points_batch(const Geometry& geo, const OccupancyGrid& occ, std::span<const Ray> rays,
                         RayPoints* out, TraceStatus* status);
-// AVX-512 F/BW/DQ/VL in CPUID and enabled by the OS: what the 16-lane walk and the
-// vector corner computation (level_corners) need; both fall back to scalar code without it.
-bool avx512_available();
 
 // Every voxel crossed (occupied or not), in order, with entry t: for tests and tools.
 TraceStatus trace_all_voxels(const Geometry& geo, const Ray& ray, std::vector<std::uint32_t>& voxels,
@@ -191,7 +189,7 @@ void dense_layer(const float* A, std::size_t n, std::size_t in, std::size_t lda,
 // from the output layer directly, so its inputs keep full precision). Hit decisions agree
 // with fp32 on >= 99.5 % of rays (tests/format/test_bf16.cpp).
 enum class MlpArithmetic : std::uint8_t { fp32, bf16 };
-// bf16 where the CPU has AVX-512 BF16 (avx512_bf16_available()), else fp32.
+// bf16 where the CPU has AVX-512 BF16 (cpu_features().avx512_bf16), else fp32.
 MlpArithmetic best_mlp_arithmetic();
 // Sets the arithmetic of `net` (packs or releases wt_vnni). bf16 on a machine without
 // AVX-512 BF16 gives fp32. Returns the arithmetic now in use.

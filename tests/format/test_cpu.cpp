@@ -1,0 +1,38 @@
+// cpu_features() (lsnif/format/cpu.hpp) against GCC's own CPU detection (libgcc's
+// __builtin_cpu_supports, which also checks the OS-enabled register states): the one
+// place that reads CPUID must agree with it on every flag, whatever machine runs the test.
+#include <doctest/doctest.h>
+
+#include <lsnif/format/cpu.hpp>
+
+using lsnif::format::cpu_features;
+using lsnif::format::CpuFeatures;
+
+TEST_CASE("cpu_features agrees with the compiler's CPU detection on every flag") {
+#if defined(__x86_64__) && defined(__GNUC__)
+    __builtin_cpu_init();
+    auto has = [](bool x) { return x; };
+    const bool avx2_fma = has(__builtin_cpu_supports("avx2")) && has(__builtin_cpu_supports("fma"));
+    const bool avx512 = avx2_fma && has(__builtin_cpu_supports("avx512f")) &&
+                        has(__builtin_cpu_supports("avx512bw")) && has(__builtin_cpu_supports("avx512dq")) &&
+                        has(__builtin_cpu_supports("avx512vl"));
+    const bool avx512_bf16 = avx512 && has(__builtin_cpu_supports("avx512bf16"));
+    const bool amx_bf16 =
+        avx512_bf16 && has(__builtin_cpu_supports("amx-tile")) && has(__builtin_cpu_supports("amx-bf16"));
+    const CpuFeatures& f = cpu_features();
+    MESSAGE("this CPU: avx2+fma " << f.avx2_fma << ", avx512 " << f.avx512 << ", avx512-bf16 "
+                                  << f.avx512_bf16 << ", amx-bf16 " << f.amx_bf16);
+    CHECK(f.avx2_fma == avx2_fma);
+    CHECK(f.avx512 == avx512);
+    CHECK(f.avx512_bf16 == avx512_bf16);
+    CHECK(f.amx_bf16 == amx_bf16);
+#else
+    const CpuFeatures& f = cpu_features();
+    CHECK_FALSE(f.avx2_fma);
+    CHECK_FALSE(f.avx512);
+#endif
+}
+
+TEST_CASE("cpu_features is detected once: every call returns the same object") {
+    CHECK(&cpu_features() == &cpu_features());
+}
