@@ -885,10 +885,8 @@ float Trainer::step(const PreparedSet& set, std::span<const std::uint32_t> batch
     const std::uint32_t L = geo_.L, F = geo_.F;
     // Global gradient norm (fixed summation order for a fixed thread count).
     double norm2 = 0;
-    for (const auto& g : im.wgrad)
-        for (float x : g) norm2 += double(x) * x;
-    for (const auto& g : im.bgrad)
-        for (float x : g) norm2 += double(x) * x;
+    for (const auto& g : im.wgrad) norm2 += sum_of_squares(g.data(), g.size());
+    for (const auto& g : im.bgrad) norm2 += sum_of_squares(g.data(), g.size());
     for (const double part : im.gsum_norm2) norm2 += part;
     const float loss = float(lp.total);
     const bool warm = step_ >= 20;
