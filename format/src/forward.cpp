@@ -152,7 +152,8 @@ __attribute__((target("avx512f,avx512vl,avx512bw,avx512dq,fma"))) void level_cor
 
 void level_corners(const Geometry& geo, const LevelInfo& lv, const float g[3], Corners& out) {
 #if LSNIF_HAVE_X86
-    if (cpu_features().avx512) return level_corners_avx512(geo, lv, g, out);
+    static const bool avx512 = cpu_features().avx512;  // called per point: no call into cpu.cpp each time
+    if (avx512) return level_corners_avx512(geo, lv, g, out);
 #endif
     level_corners_scalar(geo, lv, g, out);
 }
