@@ -665,11 +665,13 @@ void shade_pixel(const GBuffer& gb, const View& v, const std::vector<EvalScene::
         for (int c = 0; c < 3; ++c) out.rgb[e][i * 3 + c] = px[e][c];
 }
 
-// World-space edge of one occupancy voxel per instance: the model box's largest extent over
-// its grid resolution, times the instance transform's largest axis scale; 0 for instances
-// not traced through LSNIF.
-std::vector<float> lsnif_voxel_edges(const EvalScene::Impl& im) {
-    std::vector<float> edge(im.instances.size(), 0.0f);
+// EvalOptions::surface_tmin_voxels in world units per instance: `voxels` times the edge of
+// one occupancy voxel (the model box's largest extent over its grid resolution, times the
+// instance transform's largest axis scale); 0 for instances not traced through LSNIF.
+// Empty when `voxels` is 0: the option is off.
+std::vector<float> surface_tmins(const EvalScene::Impl& im, float voxels) {
+    if (!(voxels > 0)) return {};
+    std::vector<float> tmin(im.instances.size(), 0.0f);
     for (const std::uint32_t i : im.lsnif_instances) {
         const EvalScene::Impl::Instance& in = im.instances[i];
         lsnif_info info{};
@@ -680,18 +682,18 @@ std::vector<float> lsnif_voxel_edges(const EvalScene::Impl& im) {
         float scale = 0;
         for (int c = 0; c < 3; ++c)
             scale = std::max(scale, length(Vec3{in.transform[c], in.transform[4 + c], in.transform[8 + c]}));
-        edge[i] = extent / float(info.grid_resolution) * scale;
+        tmin[i] = voxels * (extent / float(info.grid_resolution) * scale);
     }
-    return edge;
+    return tmin;
 }
 
-// EvalOptions::surface_tmin_voxels on one row's rays: every secondary ray of a pixel whose
-// primary hit is an LSNIF instance starts that many of its voxels from the surface.
-void start_later(const GBuffer& gb, const std::vector<float>& voxel_edge, float voxels, std::size_t row0,
-                 std::uint32_t S, RowRays& rr) {
+// surface_tmins() on one row's rays: every secondary ray of a pixel whose primary hit is an
+// LSNIF instance starts that far from the surface.
+void start_later(const GBuffer& gb, const std::vector<float>& surface_tmin, std::size_t row0, std::uint32_t S,
+                 RowRays& rr) {
     const auto later = [](lsnif_ray& r, float tmin) { r.tmin = std::min(tmin, r.tmax); };
     for (std::size_t k = 0; k < rr.px.size(); ++k) {
-        const float tmin = voxels * voxel_edge[gb.inst[row0 + rr.px[k]]];
+        const float tmin = surface_tmin[gb.inst[row0 + rr.px[k]]];
         if (tmin <= 0) continue;
         later(rr.shadow[k], tmin);
         for (std::uint32_t q = 0; q < S; ++q) later(rr.ao[k * S + q], tmin);
@@ -699,10 +701,12 @@ void start_later(const GBuffer& gb, const std::vector<float>& voxel_edge, float 
     }
 }
 
-// The three effect images with one tracer (`hybrid`: LSNIF reader for complex meshes).
+// The three effect images and their combination with one tracer (`hybrid`: LSNIF reader for
+// complex meshes); secondary rays from LSNIF pixels start `surface_tmin` (per instance, world
+// units; empty = at the surface) from it.
 EffectImages render_secondary(const EvalScene& scene, const std::vector<EvalScene::Impl::Instance>& instances,
                               const GBuffer& gb, const View& v, const EvalOptions& opt, bool hybrid,
-                              const std::vector<float>& voxel_edge, std::uint32_t threads) {
+                              const std::vector<float>& surface_tmin, std::uint32_t threads) {
     const std::uint32_t W = v.W, S = std::max(1u, opt.ao_samples);
     EffectImages out;
     for (auto& img : out.rgb) img.assign(std::size_t(W) * v.H * 3, 0.0f);
@@ -710,8 +714,7 @@ EffectImages render_secondary(const EvalScene& scene, const std::vector<EvalScen
     base::parallel_chunks(v.H, threads, 1, [&](std::uint32_t t, std::size_t y, std::size_t) {
         RowRays rr;
         make_row_rays(gb, v, opt, y, S, rr);
-        if (hybrid && opt.surface_tmin_voxels > 0)
-            start_later(gb, voxel_edge, opt.surface_tmin_voxels, y * W, S, rr);
+        if (!surface_tmin.empty()) start_later(gb, surface_tmin, y * W, S, rr);
         std::vector<std::uint8_t> shadow_occ(rr.shadow.size()), ao_occ(rr.ao.size());
         std::vector<TraceHit> refl_hit(rr.refl.size());
         const auto tt = std::chrono::steady_clock::now();
@@ -835,11 +838,9 @@ EvalResult render_and_compare(const EvalOptions& opt) {
     const auto t0 = std::chrono::steady_clock::now();
     const GBuffer gb = render_primary(*scene, im.instances, view, threads);
     const double primary_seconds = seconds_since(t0);
-    const std::vector<float> voxel_edge = lsnif_voxel_edges(im);
-    const EffectImages reference =
-        render_secondary(*scene, im.instances, gb, view, opt, false, voxel_edge, threads);
-    const EffectImages hybrid =
-        render_secondary(*scene, im.instances, gb, view, opt, true, voxel_edge, threads);
+    const EffectImages reference = render_secondary(*scene, im.instances, gb, view, opt, false, {}, threads);
+    const EffectImages hybrid = render_secondary(*scene, im.instances, gb, view, opt, true,
+                                                 surface_tmins(im, opt.surface_tmin_voxels), threads);
 
     const fs::path images = opt.images_dir.empty() ? fs::path(opt.outdir) / "eval" : fs::path(opt.images_dir);
     if (opt.write_images) {
