@@ -251,9 +251,8 @@ struct Options {
     bool hairball_only = false;
     std::string hard_case;  // non-empty: write this hard-geometry case only
     double scale = 1.0;
-    int subdivisions = 1;
-    bool subdivisions_given = false;
-    std::string composition;  // non-empty: write this evaluation composition only
+    std::optional<int> subdivisions;  // --subdivisions; each scene has its own default
+    std::string composition;          // non-empty: write this evaluation composition only
     ex::HairballParams hairball;
 };
 
@@ -309,7 +308,8 @@ bool load_cgal_mesh(const std::string& path, const std::string& name, int subdiv
 // cannot be found or read.
 bool build_full_scene(const Options& opt, GltfBuilder& gltf, std::string& error) {
     ex::TriMesh dragon;
-    if (!load_cgal_mesh(opt.cgal_data, kCgalMeshName, opt.subdivisions, 1.0, dragon, error)) return false;
+    if (!load_cgal_mesh(opt.cgal_data, kCgalMeshName, opt.subdivisions.value_or(1), 1.0, dragon, error))
+        return false;
 
     const int m_floor = gltf.add_material("floor_oak", {0.55, 0.38, 0.22}, 0.0, 0.6);
     const int m_wall = gltf.add_material("wall_plaster", {0.85, 0.83, 0.78}, 0.0, 0.9);
@@ -382,7 +382,7 @@ bool build_composition(const Options& opt, GltfBuilder& gltf, std::string& error
     gltf.set_root(root);
     if (opt.composition == "dragons") {
         ex::TriMesh dragon;
-        const int steps = opt.subdivisions_given ? opt.subdivisions : 3;
+        const int steps = opt.subdivisions.value_or(3);
         if (!load_cgal_mesh(opt.cgal_data, kCgalMeshName, steps, 1.0, dragon, error)) return false;
         const int m_jade = gltf.add_material("dragon_jade", {0.25, 0.60, 0.40}, 0.0, 0.3);
         const int mesh = gltf.add_mesh("dragon", dragon, m_jade);
@@ -395,7 +395,7 @@ bool build_composition(const Options& opt, GltfBuilder& gltf, std::string& error
         return true;
     }
     if (opt.composition == "statues") {
-        const int steps = opt.subdivisions_given ? opt.subdivisions : 0;
+        const int steps = opt.subdivisions.value_or(0);
         const int m_stone = gltf.add_material("pedestal_stone", {0.75, 0.73, 0.70}, 0.0, 0.8);
         const int pedestal = gltf.add_mesh("pedestal", ex::make_box_on_floor(0.5, 0.5, 0.5), m_stone);
         // Turned to face the camera (+z) a little from either side: the armadillo and the
@@ -579,10 +579,10 @@ bool parse_args(int argc, char** argv, Options& opt, bool& help, std::string& er
                 error = "bad value '" + std::string(v) + "' for " + std::string(arg);
                 return false;
             }
-            (arg == "--subdivisions" ? opt.subdivisions
-             : arg == "--tubes"      ? opt.hairball.tubes
-                                     : opt.hairball.segments) = *n;
-            opt.subdivisions_given = opt.subdivisions_given || arg == "--subdivisions";
+            if (arg == "--subdivisions")
+                opt.subdivisions = *n;
+            else
+                (arg == "--tubes" ? opt.hairball.tubes : opt.hairball.segments) = *n;
         } else if (arg == "--seed") {
             if (!value(v)) return false;
             const auto n = parse_int<std::uint64_t>(v, 0, UINT64_MAX);
