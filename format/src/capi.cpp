@@ -137,6 +137,12 @@ void lsnif_close(lsnif_model* model) {
     delete model;
 }
 
+lsnif_status lsnif_get_direction_input(const lsnif_model* model, std::uint32_t* out) {
+    if (!model || !out) return LSNIF_ERR_INVALID_ARGUMENT;
+    *out = std::uint32_t(model->data.desc.direction_input);
+    return LSNIF_OK;
+}
+
 lsnif_status lsnif_get_info(const lsnif_model* model, lsnif_info* out) {
     if (!model || !out) return LSNIF_ERR_INVALID_ARGUMENT;
     const auto& d = model->data.desc;

@@ -53,6 +53,8 @@ Geometry make_geometry(const ModelDesc& d) {
         g.levels.push_back(lv);
     }
     g.distance_encoding = d.distance_encoding;
+    g.point_width = d.point_feature_width();
+    g.direction_width = d.direction_width();
     g.input_width = d.input_width();
     g.output_count = d.output_count();
     g.material_count = d.material_count;
@@ -254,6 +256,7 @@ void encode_points(const Geometry& geo, const GridView* grid, const RayPoints& p
         }
     std::memset(row + std::size_t(pts.count) * L * F, 0,
                 sizeof(float) * (std::size_t(geo.H) - pts.count) * L * F);
+    if (geo.direction_width) std::memcpy(row + geo.point_width, pts.dir, sizeof(pts.dir));
 }
 
 // ---- MLP --------------------------------------------------------------------------------

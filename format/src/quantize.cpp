@@ -65,7 +65,7 @@ Result<ModelData> quantize_model(const ModelData& in) {
         ModelData out = in;
         out.desc.grid_encoding = GridEncoding::u8_affine;
         out.grid.clear();
-        out.version_minor = kMinorVersionQuantized;
+        out.version_minor = out.desc.minor_version();
         for (const auto& level : in.grid) {
             auto q = quantize_level_fp16(level);
             if (!q) return q.error();

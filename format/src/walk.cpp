@@ -184,6 +184,7 @@ TraceStatus trace_points_impl(const Geometry& geo, const std::uint8_t* occupancy
     if (st != TraceStatus::invalid) {  // the clipped segment, also for a miss; not for an invalid ray
         out.t_near = w.t_near;
         out.t_far = w.t_far;
+        unit_direction(ray, out.dir);
     }
     if (st != TraceStatus::ok) return st;
     walk(
@@ -201,6 +202,14 @@ TraceStatus trace_points_impl(const Geometry& geo, const std::uint8_t* occupancy
 }
 
 }  // namespace
+
+void unit_direction(const Ray& ray, float out[3]) {
+    const float x = ray.dir[0], y = ray.dir[1], z = ray.dir[2];
+    const float length = std::sqrt(std::fma(z, z, std::fma(y, y, x * x)));
+    out[0] = x / length;
+    out[1] = y / length;
+    out[2] = z / length;
+}
 
 TraceStatus trace_points(const Geometry& geo, const std::uint8_t* occupancy, const Ray& ray, RayPoints& out) {
     return trace_points_impl(geo, occupancy, nullptr, ray, out);
@@ -381,6 +390,7 @@ LSNIF_AVX512 std::uint32_t start_walks(const Geometry& geo, const Ray* rays, int
         }
         p.t_near = tn[j];
         p.t_far = tf[j];
+        unit_direction(rays[j], p.dir);
         if (miss & (1u << j)) status[j] = TraceStatus::miss;
         Q.ray[j] = first + std::uint32_t(j);
     }

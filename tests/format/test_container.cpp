@@ -119,6 +119,41 @@ TEST_CASE("round trip: write, read, identical dimensions, metadata and weights")
     }
 }
 
+TEST_CASE("a direction input is written as 1.2 and read back; without one the file stays 1.0") {
+    for (const DirectionInput dir : {DirectionInput::none, DirectionInput::unit}) {
+        ModelDesc d = small_desc();
+        d.direction_input = dir;
+        CHECK(d.input_width() ==
+              d.max_points * d.level_count() * d.features_per_level + (dir == DirectionInput::unit ? 3 : 0));
+        const ModelData m = random_model(d, 11);
+        CHECK(m.weights[0].size() == std::size_t(d.hidden_width[0]) * d.input_width());
+        auto bytes = serialize(m);
+        REQUIRE(bytes.ok());
+        CHECK(bytes.value()[10] == (dir == DirectionInput::unit ? 2 : 0));  // header version_minor
+        auto back = read_model(bytes.value());
+        REQUIRE_MESSAGE(back.ok(), back.error().message);
+        CHECK(back.value().desc.direction_input == dir);
+        CHECK(back.value().version_minor == (dir == DirectionInput::unit ? 2 : 0));
+        CHECK(back.value().weights == m.weights);
+    }
+    // The C API reports it; older files have none.
+    for (const auto& [file, want] : {std::pair{"direction_unit.lsnif", LSNIF_DIRECTION_UNIT},
+                                     std::pair{"quantized_u8.lsnif", LSNIF_DIRECTION_NONE},
+                                     std::pair{"v1_default.lsnif", LSNIF_DIRECTION_NONE}}) {
+        const auto bytes = load(data_dir() / "valid" / file);
+        lsnif_model* m = nullptr;
+        REQUIRE(lsnif_open_memory(bytes.data(), bytes.size(), &m, nullptr) == LSNIF_OK);
+        std::uint32_t got = 99;
+        CHECK(lsnif_get_direction_input(m, &got) == LSNIF_OK);
+        CHECK_MESSAGE(got == std::uint32_t(want), file);
+        lsnif_info info{};
+        REQUIRE(lsnif_get_info(m, &info) == LSNIF_OK);
+        CHECK(info.input_width == info.max_points * info.level_count * info.features_per_level +
+                                      (got == LSNIF_DIRECTION_UNIT ? 3 : 0));
+        lsnif_close(m);
+    }
+}
+
 TEST_CASE("dense vs hashed level sizes follow the (res+1)^3 <= T rule") {
     ModelDesc d = small_desc();
     d.log2_table_size = 9;        // T = 512
@@ -278,6 +313,9 @@ TEST_CASE("every C API call follows its documented NULL rule") {
     CHECK(lsnif_open_file(nullptr, &out, nullptr) == LSNIF_ERR_INVALID_ARGUMENT);
     CHECK(lsnif_open_file("x.lsnif", nullptr, nullptr) == LSNIF_ERR_INVALID_ARGUMENT);
     CHECK(lsnif_get_info(m, nullptr) == LSNIF_ERR_INVALID_ARGUMENT);
+    std::uint32_t direction = 0;
+    CHECK(lsnif_get_direction_input(nullptr, &direction) == LSNIF_ERR_INVALID_ARGUMENT);
+    CHECK(lsnif_get_direction_input(m, nullptr) == LSNIF_ERR_INVALID_ARGUMENT);
     CHECK(lsnif_get_array(nullptr, LSNIF_ARRAY_OCCUPANCY, 0, &a) == LSNIF_ERR_INVALID_ARGUMENT);
     CHECK(lsnif_get_array(m, LSNIF_ARRAY_OCCUPANCY, 0, nullptr) == LSNIF_ERR_INVALID_ARGUMENT);
     CHECK(lsnif_layer_count(nullptr) == 0);

@@ -348,7 +348,88 @@ std::vector<std::uint8_t> constant_model_bytes(float logit, float y, std::array<
     return serialize(m).value();
 }
 
+// constant_model_bytes' block with a direction input: hidden unit 0 is ReLU(dir_x) of the
+// ray's unit direction (FORMAT.md §8), the visibility logit 8 h0 - 6, so a ray hits iff its
+// normalized x component exceeds 0.75; every other weight is zero.
+std::vector<std::uint8_t> direction_model_bytes() {
+    ModelDesc d = desc_with(8, {-1.f, -1.f, -1.f}, {1.f, 1.f, 1.f});
+    d.max_points = 4;
+    d.level_resolution = {16};
+    d.log2_table_size = 10;
+    d.hidden_width = {16};
+    d.direction_input = DirectionInput::unit;
+    auto m = make_empty_model(d).value();
+    m.metadata_json = "{}";
+    for (std::uint32_t z = 2; z < 6; ++z)
+        for (std::uint32_t y2 = 2; y2 < 6; ++y2)
+            for (std::uint32_t x = 2; x < 6; ++x) {
+                const std::uint32_t i = x + 8 * (y2 + 8 * z);
+                m.occupancy[i >> 3] |= std::uint8_t(1u << (i & 7));
+            }
+    const std::uint32_t in = d.input_width(), dir_x = d.point_feature_width();
+    m.weights[0][0 * in + dir_x] = float_to_half(1.0f);
+    m.weights[1][0 * 16 + 0] = float_to_half(8.0f);
+    m.biases[1][0] = float_to_half(-6.0f);
+    m.biases[1][1] = float_to_half(0.25f);
+    m.biases[1][4] = float_to_half(1.0f);
+    return serialize(m).value();
+}
+
 }  // namespace
+
+TEST_CASE("a direction input feeds the ray's unit direction in object space to the MLP") {
+    const auto bytes = direction_model_bytes();
+    lsnif_model* model = nullptr;
+    REQUIRE(lsnif_open_memory(bytes.data(), bytes.size(), &model, nullptr) == LSNIF_OK);
+    lsnif_ray rays[5] = {
+        {{-3.f, 0.1f, 0.1f}, 0.f, {1.f, 0.f, 0.f}, INFINITY},    // dir_x 1: hit
+        {{-3.f, 0.1f, 0.1f}, 0.f, {0.25f, 0.f, 0.f}, INFINITY},  // short, still dir_x 1: hit
+        {{3.f, 0.1f, 0.1f}, 0.f, {-1.f, 0.f, 0.f}, INFINITY},    // dir_x -1: miss
+        {{-3.f, -2.9f, 0.1f}, 0.f, {1.f, 1.f, 0.f}, INFINITY},   // dir_x 0.707 < 0.75: miss
+        {{-3.f, -0.75f, 0.1f}, 0.f, {4.f, 1.f, 0.f}, INFINITY},  // dir_x 0.970: hit
+    };
+    lsnif_hit hits[5];
+    REQUIRE(lsnif_intersect(model, rays, 5, hits) == LSNIF_OK);
+    CHECK(hits[0].hit == 1);
+    CHECK(hits[1].hit == 1);
+    CHECK(hits[2].hit == 0);
+    CHECK(hits[3].hit == 0);
+    CHECK(hits[4].hit == 1);
+    // Under an instance the direction is the object-space one: a world ray that maps to +x
+    // hits whatever the instance's rotation and scale.
+    const float M[12] = {0.f, -3.f, 0.f, 10.f,  //
+                         3.f, 0.f,  0.f, -2.f,  //
+                         0.f, 0.f,  3.f, 5.f};
+    lsnif_ray world[2];
+    for (int k = 0; k < 2; ++k) {
+        const lsnif_ray& r = rays[k == 0 ? 0 : 2];
+        for (int a = 0; a < 3; ++a) {
+            world[k].org[a] =
+                M[4 * a] * r.org[0] + M[4 * a + 1] * r.org[1] + M[4 * a + 2] * r.org[2] + M[4 * a + 3];
+            world[k].dir[a] = M[4 * a] * r.dir[0] + M[4 * a + 1] * r.dir[1] + M[4 * a + 2] * r.dir[2];
+        }
+        world[k].tmin = 0.f;
+        world[k].tmax = INFINITY;
+    }
+    lsnif_hit wh[2];
+    REQUIRE(lsnif_intersect_instance(model, M, world, 2, wh) == LSNIF_OK);
+    CHECK(wh[0].hit == 1);
+    CHECK(wh[1].hit == 0);
+    lsnif_close(model);
+
+    // unit_direction: the ray direction over its length, the same bits from both walks.
+    const Geometry geo = make_geometry(desc_with(8, {-1.f, -1.f, -1.f}, {1.f, 1.f, 1.f}));
+    const Ray r{{-0.3f, -0.4f, -1.2f}, 0.f, {3.f, 4.f, 12.f}, INFINITY};
+    float u[3];
+    unit_direction(r, u);
+    CHECK(u[0] == 3.f / 13.f);
+    CHECK(u[1] == 4.f / 13.f);
+    CHECK(u[2] == 12.f / 13.f);
+    RayPoints p;
+    std::vector<std::uint8_t> all(8 * 8 * 8 / 8, 0xFF);
+    REQUIRE(trace_points(geo, all.data(), r, p) == TraceStatus::ok);
+    CHECK(std::memcmp(p.dir, u, sizeof u) == 0);
+}
 
 TEST_CASE("C API intersect: occupancy early-out, decode, and instance transforms") {
     const auto bytes = constant_model_bytes(2.0f, 0.25f, {0.f, 0.f, 2.f});

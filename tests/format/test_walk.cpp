@@ -108,6 +108,7 @@ TEST_CASE("the 16-lane walk returns the scalar walk's points bit for bit") {
                 if (s == TraceStatus::invalid) continue;  // t_near / t_far are left alone
                 REQUIRE(std::memcmp(&got[i].t_near, &want.t_near, sizeof want.t_near) == 0);
                 REQUIRE(std::memcmp(&got[i].t_far, &want.t_far, sizeof want.t_far) == 0);
+                REQUIRE(std::memcmp(got[i].dir, want.dir, sizeof want.dir) == 0);
                 REQUIRE(got[i].count == want.count);
                 full += want.count == H;
                 for (std::uint32_t k = 0; k < want.count; ++k) {

@@ -48,13 +48,14 @@ std::string metadata_for(const ModelDesc& d, const char* name) {
         "  \"model\": {\"grid_resolution\": %u, \"max_points\": %u, \"level_resolutions\": [%s],\n"
         "            \"features_per_level\": %u, \"log2_table_size\": %u, \"hidden_widths\": [%s],\n"
         "            \"output_count\": %u, \"material_count\": %u, \"activation\": \"relu\",\n"
-        "            \"distance_encoding\": \"%s\"}\n"
+        "            \"distance_encoding\": \"%s\"%s}\n"
         "}\n",
         name, 0x1234abcdULL * d.grid_resolution, double(d.box_min[0]), double(d.box_min[1]),
         double(d.box_min[2]), double(d.box_max[0]), double(d.box_max[1]), double(d.box_max[2]),
         d.grid_resolution, d.max_points, levels.c_str(), d.features_per_level, d.log2_table_size,
         hidden.c_str(), d.output_count(), d.material_count,
-        d.distance_encoding == LSNIF_DISTANCE_SEGMENT ? "segment" : "first_entry_diagonal");
+        d.distance_encoding == LSNIF_DISTANCE_SEGMENT ? "segment" : "first_entry_diagonal",
+        d.direction_input == DirectionInput::unit ? ", \"direction_input\": \"unit\"" : "");
     return buf;
 }
 
@@ -203,6 +204,12 @@ int main(int argc, char** argv) {
     // writer would have written it as 1.0. Pins that a 1.1 reader keeps the zero meaning.
     write(out / "valid" / "v1_1_fp16.lsnif", bytes_of(assemble(model_sections(tiny), 19, 1, 1)));
 
+    // Version 1.2: a direction input (three more MLP inputs), which the writer marks 1.2.
+    ModelDesc tiny_dir_desc = tiny_desc();
+    tiny_dir_desc.direction_input = DirectionInput::unit;
+    const ModelData tiny_dir = make_model(tiny_dir_desc, "tiny-direction", 7);
+    write(out / "valid" / "direction_unit.lsnif", bytes_of(serialize(tiny_dir)));
+
     // ---- invalid: each breaks exactly one rule ------------------------------------------
     auto inv = [&](const char* name, std::vector<std::uint8_t> b) { write(out / "invalid" / name, b); };
     {
@@ -239,7 +246,7 @@ int main(int argc, char** argv) {
     }
     {
         auto b = tiny_bytes;
-        b[10] = 2;  // 1.2: one past the reference reader's 1.1
+        b[10] = 3;  // 1.3: one past the reference reader's 1.2
         reseal(b);
         inv("newer_minor.lsnif", b);
     }
@@ -375,6 +382,25 @@ int main(int argc, char** argv) {
         auto secs = model_sections(tiny_u8);
         secs[3].raw = model_sections(tiny)[3].raw;  // fp16-sized GRID under grid_encoding 1
         inv_u8("quantized_grid_size_mismatch.lsnif", secs);
+    }
+    // 1.2 descriptor rules (FORMAT.md §6.2, §7.2 E4.6b).
+    auto inv_dir = [&](const char* name, const std::vector<RawSection>& secs) {
+        inv(name, bytes_of(assemble(secs, 0, 1, kMinorVersionDirection)));
+    };
+    {
+        auto secs = model_sections(tiny_dir);
+        secs[1].raw[148] = 2;  // direction_input 2: not defined
+        inv_dir("direction_input_unknown.lsnif", secs);
+    }
+    {
+        auto secs = model_sections(tiny_dir);
+        secs[1].raw[152] = 1;  // first byte still reserved in 1.2
+        inv_dir("descriptor_reserved_v1_2.lsnif", secs);
+    }
+    {
+        auto secs = model_sections(tiny);
+        secs[1].raw[148] = 1;  // a direction input, but MLPW sized for the points' features only
+        inv_dir("direction_input_weights_mismatch.lsnif", secs);
     }
     auto with_affine = [&](const char* name, float scale, float offset) {
         ModelData m = tiny_u8;

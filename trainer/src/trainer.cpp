@@ -607,6 +607,7 @@ void load_points(const PreparedSet& set, std::span<const std::uint32_t> rows, Wo
         p.t_far = set.t_far[i];
         p.t[0] = set.t_first[i];
         std::memcpy(p.g, &set.g[std::size_t(i) * set.H * 3], sizeof(float) * 3 * p.count);
+        format::unit_direction(set.samples[i].ray, p.dir);
     }
 }
 

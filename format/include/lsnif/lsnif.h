@@ -43,10 +43,10 @@ extern "C" {
 
 /* Container version this reader implements. It reads any file of the same major
  * version whose minor version is <= LSNIF_VERSION_MINOR. Writers of this library write
- * the lowest version that can express a model (FORMAT.md §2.4): 1.0 for fp16 grids,
- * 1.1 only for quantized ones. */
+ * the lowest version that can express a model (FORMAT.md §2.4): 1.0 for fp16 grids
+ * without a direction input, 1.1 for quantized grids, 1.2 for a direction input. */
 #define LSNIF_VERSION_MAJOR 1
-#define LSNIF_VERSION_MINOR 1
+#define LSNIF_VERSION_MINOR 2
 
 /* Hard limits of the v1 model descriptor (FORMAT.md §5). */
 #define LSNIF_MAX_LEVELS 8
@@ -159,6 +159,16 @@ typedef enum lsnif_grid_encoding {
     LSNIF_GRID_U8_AFFINE = 1
 } lsnif_grid_encoding;
 
+/* What the MLP sees of the ray besides the features of its voxel entry points (MODL
+ * direction_input, FORMAT.md §6.2, §8). */
+typedef enum lsnif_direction_input {
+    /* nothing: the input is the H * L * F point features (1.0 and 1.1 files) */
+    LSNIF_DIRECTION_NONE = 0,
+    /* three more inputs after the point features: the ray direction divided by its
+     * Euclidean length, object space, x y z. Needs version 1.2. */
+    LSNIF_DIRECTION_UNIT = 1
+} lsnif_direction_input;
+
 typedef struct lsnif_info {
     uint16_t version_major;
     uint16_t version_minor;
@@ -171,7 +181,7 @@ typedef struct lsnif_info {
     uint64_t level_entries[LSNIF_MAX_LEVELS]; /* rows actually stored per level */
     uint32_t level_dense[LSNIF_MAX_LEVELS];   /* 1 if the level is indexed densely */
     uint32_t hash_primes[3];
-    uint32_t input_width; /* H * L * F */
+    uint32_t input_width; /* H * L * F, plus 3 with LSNIF_DIRECTION_UNIT */
     uint32_t hidden_layer_count;
     uint32_t hidden_width[LSNIF_MAX_HIDDEN_LAYERS];
     uint32_t output_count; /* 5 + material_count */
@@ -208,6 +218,12 @@ LSNIF_API void lsnif_close(lsnif_model* model);
 
 /* Fills `*out`. Neither pointer may be NULL. */
 LSNIF_API lsnif_status lsnif_get_info(const lsnif_model* model, lsnif_info* out);
+
+/* The model's lsnif_direction_input into `*out` (LSNIF_DIRECTION_NONE for 1.0 and 1.1
+ * files). A function of its own because lsnif_info has no room left for a field without
+ * changing its size (see lsnif_info.grid_encoding). Neither pointer may be NULL. Added
+ * in 1.2. */
+LSNIF_API lsnif_status lsnif_get_direction_input(const lsnif_model* model, uint32_t* out);
 
 /* The JSON metadata (UTF-8, not NUL-counted in *length, but NUL-terminated). `length`
  * may be NULL; a NULL model returns NULL and sets *length to 0. */

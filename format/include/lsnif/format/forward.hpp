@@ -53,6 +53,8 @@ struct Geometry {
     std::array<std::uint32_t, 3> primes;
     std::vector<LevelInfo> levels;
     std::uint32_t distance_encoding;
+    // MLP input: point_width = H * L * F point features, then direction_width (0 or 3).
+    std::uint32_t point_width, direction_width;
     std::uint32_t input_width, output_count, material_count;
 };
 Geometry make_geometry(const ModelDesc& desc);
@@ -75,6 +77,10 @@ struct RayPoints {
     // aligned levels touch 4 corners instead of 8.
     float g[kMaxPoints][3];
     std::uint32_t voxel[kMaxPoints];  // linear voxel index x + V*(y + V*z)
+    // The ray direction divided by its length (unit_direction), object space: the
+    // direction input of models that have one (FORMAT.md §8). Set for every ray whose
+    // status is not invalid.
+    float dir[3];
 };
 
 enum class TraceStatus { ok, miss, invalid };
@@ -90,6 +96,11 @@ struct RayGrid {
 // Returns invalid for a zero/non-finite direction or non-finite origin, or tmin > tmax,
 // or NaN bounds; miss when the ray does not meet the box within [tmin, tmax].
 TraceStatus make_ray_grid(const Geometry& geo, const Ray& ray, RayGrid& rg, float& t_near, float& t_far);
+
+// ray.dir / |ray.dir| as FORMAT.md §8 defines it: the squared length summed with explicit
+// fused multiply-adds, so every build rounds it the same way (the network was trained on
+// these bits). `ray.dir` must be finite and non-zero (a valid ray).
+void unit_direction(const Ray& ray, float out[3]);
 
 // The OCCU bit array plus, per voxel, whether its kBlock^3-voxel block has an occupied
 // voxel: what lets the DDA jump over empty space.
@@ -155,8 +166,8 @@ struct GridView {
     float offset = 0.0f;  // u8 only
 };
 
-// Encodes the points of one ray into `row` (input_width floats: slot-major, then level,
-// then feature). Empty slots are zero.
+// Encodes one ray into `row` (input_width floats): the points' features slot-major, then
+// level, then feature, empty slots zero; then pts.dir if the model has a direction input.
 void encode_points(const Geometry& geo, const GridView* grid, const RayPoints& pts, float* row);
 
 // ---- MLP --------------------------------------------------------------------------------
