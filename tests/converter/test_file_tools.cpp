@@ -132,15 +132,17 @@ TEST_CASE("metadata must agree with the binary descriptor") {
                   {{"grid_resolution", 32},
                    {"level_resolutions", {64, 128}},
                    {"hidden_widths", {64}},
-                   {"distance_encoding", "first_entry_diagonal"}}},
+                   {"distance_encoding", "first_entry_diagonal"},
+                   {"direction_input", "unit"}}},
                  {"object", {{"box_min", {-1.5, 0, 0}}, {"box_max", {0.1, 0, 0}}}}};
-    CHECK(metadata_consistency(meta, info).empty());
+    CHECK(metadata_consistency(meta, info, LSNIF_DIRECTION_UNIT).empty());
     meta["model"]["hidden_widths"] = {128};
     meta["object"]["box_max"][0] = 0.2;
-    const auto problems = metadata_consistency(meta, info);
-    REQUIRE(problems.size() == 2);
+    const auto problems = metadata_consistency(meta, info, LSNIF_DIRECTION_NONE);
+    REQUIRE(problems.size() == 3);
     CHECK(problems[0].find("model.hidden_widths") != std::string::npos);
-    CHECK(problems[1].find("object.box_max") != std::string::npos);
+    CHECK(problems[1].find("model.direction_input") != std::string::npos);
+    CHECK(problems[2].find("object.box_max") != std::string::npos);
 }
 
 TEST_CASE("inspect reports sections, model and metadata; keeps the table of a damaged file") {

@@ -46,12 +46,15 @@ std::string inspect_text(const nlohmann::json& report);
 
 // The metadata's names (schema/lsnif-metadata.schema.json, "model") for two enumerations of
 // the descriptor: the one spelling for the writer (`lsnif convert`) and for
-// metadata_consistency. A grid encoding this reader does not define is "unknown".
+// metadata_consistency. An encoding this reader does not define is "unknown".
 const char* distance_encoding_name(std::uint32_t distance_encoding);
 const char* grid_encoding_name(std::uint32_t grid_encoding);
+const char* direction_input_name(std::uint32_t direction_input);
 
 // Checks that the metadata's "model" and "object.box_*" agree with the binary
 // descriptor (which is authoritative). Returns one message per disagreement.
-std::vector<std::string> metadata_consistency(const nlohmann::json& metadata, const lsnif_info& info);
+// `direction_input` is lsnif_get_direction_input's value.
+std::vector<std::string> metadata_consistency(const nlohmann::json& metadata, const lsnif_info& info,
+                                              std::uint32_t direction_input);
 
 }  // namespace lsnif::converter
