@@ -72,6 +72,12 @@ int main(int argc, char** argv) {
     printf("\nmlp %u", info.input_width);
     for (uint32_t k = 0; k < info.hidden_layer_count; ++k) printf(" -> %u", info.hidden_width[k]);
     printf(" -> %u\n", info.output_count);
+    /* A GPU implementation must append the ray's unit direction to the point features
+     * when the model asks for it (FORMAT.md §8 step 4a). */
+    uint32_t direction = LSNIF_DIRECTION_NONE;
+    lsnif_get_direction_input(model, &direction);
+    printf("direction input: %s\n",
+           direction == LSNIF_DIRECTION_UNIT ? "unit direction (last 3 inputs)" : "none");
     printf("box [%g %g %g] .. [%g %g %g]\n", info.box_min[0], info.box_min[1], info.box_min[2],
            info.box_max[0], info.box_max[1], info.box_max[2]);
     /* The arrays a GPU renderer would upload, with their shapes. */
