@@ -342,7 +342,7 @@ std::vector<std::string> settings_arguments(const ConvertOptions& c) {
                   c.target.normal_deg);
     a.insert(a.end(), {"--target", g});
     if (c.fixed_model) a.push_back("--fixed-model");
-    if (c.no_direction_input) a.push_back("--no-direction-input");
+    if (c.no_ray_inputs) a.push_back("--no-ray-inputs");
     return a;
 }
 

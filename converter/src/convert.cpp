@@ -148,7 +148,7 @@ json model_json(const format::ModelDesc& d) {
             {"activation", "relu"},
             {"distance_encoding", distance_encoding_name(d.distance_encoding)},
             {"grid_encoding", grid_encoding_name(std::uint32_t(d.grid_encoding))},
-            {"direction_input", direction_input_name(std::uint32_t(d.direction_input))},
+            {"ray_inputs", ray_inputs_name(d.ray_inputs)},
             {"normal", "shading"},
             {"parameter_count", d.parameter_count()}};
 }
@@ -389,10 +389,10 @@ bool find_preset(const std::string& name, Preset& p) {
     // (2400 x 8192 with weight 1: 97.52 %, 0.83 %, 14.7 deg).
     p.train.batch_size = 1u << 13;
     p.train.loss.normal = 2.0f;
-    // The MLP also sees the ray's unit direction: on CGAL's dragon and armadillo, three
-    // seeds each, every held-out metric improved on every seed (docs/model.md "A direction
-    // input").
-    p.model.direction_input = format::DirectionInput::unit;
+    // The MLP also sees the ray's unit direction and its entry points' offsets along it:
+    // on CGAL's dragon and armadillo, three seeds each, every held-out metric improved on
+    // every seed (docs/model.md "Ray inputs").
+    p.model.ray_inputs = format::kRayInputDirection | format::kRayInputEntryOffsets;
     if (name == "default") {
         p.train.steps = 2400;
         p.train_rays = 1u << 23;
@@ -450,7 +450,7 @@ bool resolve_preset(const ConvertOptions& opt, Preset& preset, std::string& erro
     if (opt.grid_resolution > 0) preset.model.grid_resolution = opt.grid_resolution;
     if (opt.hidden_width > 0)
         for (auto& w : preset.model.hidden_width) w = opt.hidden_width;
-    if (opt.no_direction_input) preset.model.direction_input = format::DirectionInput::none;
+    if (opt.no_ray_inputs) preset.model.ray_inputs = 0;
     if (opt.fixed_model) {
         preset.sizing.explore_smaller = false;
         preset.sizing.quantize = false;

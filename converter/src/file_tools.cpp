@@ -52,10 +52,10 @@ std::string grid_text(const json& g) {
     return out;
 }
 
-std::uint32_t direction_input_of(const lsnif_model* model) {
-    std::uint32_t d = LSNIF_DIRECTION_NONE;
-    lsnif_get_direction_input(model, &d);
-    return d;
+std::uint32_t ray_inputs_of(const lsnif_model* model) {
+    std::uint32_t bits = 0;
+    lsnif_get_ray_inputs(model, &bits);
+    return bits;
 }
 
 json info_json(const lsnif_model* model, const lsnif_info& info) {
@@ -77,7 +77,7 @@ json info_json(const lsnif_model* model, const lsnif_info& info) {
         {"levels", levels},
         {"hash_primes", {info.hash_primes[0], info.hash_primes[1], info.hash_primes[2]}},
         {"input_width", info.input_width},
-        {"direction_input", direction_input_name(direction_input_of(model))},
+        {"ray_inputs", ray_inputs_name(ray_inputs_of(model))},
         {"hidden_widths", hidden},
         {"grid", grid_json(model, info)},
         {"output_count", info.output_count},
@@ -111,12 +111,18 @@ const char* grid_encoding_name(std::uint32_t e) {
     return e == LSNIF_GRID_U8_AFFINE ? "u8_affine" : e == LSNIF_GRID_FP16 ? "fp16" : "unknown";
 }
 
-const char* direction_input_name(std::uint32_t d) {
-    return d == LSNIF_DIRECTION_UNIT ? "unit" : d == LSNIF_DIRECTION_NONE ? "none" : "unknown";
+const char* ray_inputs_name(std::uint32_t bits) {
+    switch (bits) {
+        case 0: return "none";
+        case LSNIF_RAY_INPUT_DIRECTION: return "direction";
+        case LSNIF_RAY_INPUT_ENTRY_OFFSETS: return "entry_offsets";
+        case LSNIF_RAY_INPUT_DIRECTION | LSNIF_RAY_INPUT_ENTRY_OFFSETS: return "direction+entry_offsets";
+        default: return "unknown";
+    }
 }
 
 std::vector<std::string> metadata_consistency(const json& meta, const lsnif_info& info,
-                                              std::uint32_t direction_input) {
+                                              std::uint32_t ray_inputs) {
     std::vector<std::string> out;
     if (!meta.is_object()) return out;
     auto check = [&](const std::string& name, const json& got, const json& want) {
@@ -140,7 +146,7 @@ std::vector<std::string> metadata_consistency(const json& meta, const lsnif_info
             {"activation", "relu"},
             {"distance_encoding", distance_encoding_name(info.distance_encoding)},
             {"grid_encoding", grid_encoding_name(info.grid_encoding)},
-            {"direction_input", direction_input_name(direction_input)},
+            {"ray_inputs", ray_inputs_name(ray_inputs)},
             {"parameter_count", info.parameter_count}};
         for (const auto& [key, want] : fields)
             if (m->contains(key)) check(std::string("model.") + key, (*m)[key], want);
@@ -212,7 +218,7 @@ ValidationReport validate_bytes(std::span<const std::uint8_t> bytes, const std::
         r.problems.push_back(
             {"metadata", UINT64_MAX,
              "metadata " + (v.pointer.empty() ? std::string("(root)") : v.pointer) + " " + v.message});
-    for (const std::string& m : metadata_consistency(meta, info, direction_input_of(model.get())))
+    for (const std::string& m : metadata_consistency(meta, info, ray_inputs_of(model.get())))
         r.problems.push_back({"metadata", UINT64_MAX, m});
     return r;
 }
@@ -340,7 +346,8 @@ std::string inspect_text(const json& r) {
         for (const json& l : m["levels"])
             o << " " << l["resolution"] << "(" << l["indexing"].get<std::string>() << ")";
         o << "\n  mlp: " << m["input_width"];
-        if (m.value("direction_input", "none") != "none") o << " (with the ray direction)";
+        if (m.value("ray_inputs", "none") != "none")
+            o << " (ray inputs: " << m["ray_inputs"].get<std::string>() << ")";
         for (const json& w : m["hidden_widths"]) o << " -> " << w;
         o << " -> " << m["output_count"] << " (ReLU), distance " << m["distance_encoding"].get<std::string>()
           << "\n";

@@ -280,9 +280,9 @@ struct ConvertSettings {
             ->check(CLI::Range(4u, 256u));
         sub->add_option("--hidden", opt.hidden_width, "Override the hidden layers' width")
             ->check(CLI::Range(16u, 512u));
-        sub->add_flag("--no-direction-input", opt.no_direction_input,
-                      "Leave the ray direction out of the network's input (container 1.0/1.1 files, "
-                      "for comparisons)");
+        sub->add_flag("--no-ray-inputs", opt.no_ray_inputs,
+                      "The network sees its points' features only, not the ray's direction and entry "
+                      "offsets (container 1.0/1.1 files, for comparisons)");
         sub->add_option(
             "--target", target,
             "Accuracy asked of every asset: VIS,DIST,NORMAL (held-out visibility %, median distance "

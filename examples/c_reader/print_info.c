@@ -72,12 +72,13 @@ int main(int argc, char** argv) {
     printf("\nmlp %u", info.input_width);
     for (uint32_t k = 0; k < info.hidden_layer_count; ++k) printf(" -> %u", info.hidden_width[k]);
     printf(" -> %u\n", info.output_count);
-    /* A GPU implementation must append the ray's unit direction to the point features
-     * when the model asks for it (FORMAT.md §8 step 4a). */
-    uint32_t direction = LSNIF_DIRECTION_NONE;
-    lsnif_get_direction_input(model, &direction);
-    printf("direction input: %s\n",
-           direction == LSNIF_DIRECTION_UNIT ? "unit direction (last 3 inputs)" : "none");
+    /* A GPU implementation must append these inputs after the point features when the
+     * model has them (FORMAT.md §8 steps 4a and 4b). */
+    uint32_t ray_inputs = 0;
+    lsnif_get_ray_inputs(model, &ray_inputs);
+    printf("ray inputs:%s%s%s\n", ray_inputs ? "" : " none",
+           ray_inputs & LSNIF_RAY_INPUT_DIRECTION ? " direction (3)" : "",
+           ray_inputs & LSNIF_RAY_INPUT_ENTRY_OFFSETS ? " entry offsets (H)" : "");
     printf("box [%g %g %g] .. [%g %g %g]\n", info.box_min[0], info.box_min[1], info.box_min[2],
            info.box_max[0], info.box_max[1], info.box_max[2]);
     /* The arrays a GPU renderer would upload, with their shapes. */

@@ -137,9 +137,9 @@ void lsnif_close(lsnif_model* model) {
     delete model;
 }
 
-lsnif_status lsnif_get_direction_input(const lsnif_model* model, std::uint32_t* out) {
+lsnif_status lsnif_get_ray_inputs(const lsnif_model* model, std::uint32_t* out) {
     if (!model || !out) return LSNIF_ERR_INVALID_ARGUMENT;
-    *out = std::uint32_t(model->data.desc.direction_input);
+    *out = model->data.desc.ray_inputs;
     return LSNIF_OK;
 }
 

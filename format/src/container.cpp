@@ -135,8 +135,8 @@ std::vector<std::uint8_t> encode_desc(const ModelDesc& d) {
     for (int i = 0; i < 3; ++i) store_f32(p + 132 + 4 * i, d.box_max[i]);
     // 0 for fp16, so an fp16 descriptor is byte-identical to a 1.0 one.
     store_u32(p + 144, std::uint32_t(d.grid_encoding));
-    // 0 without a direction input: such a descriptor is byte-identical to a 1.1 one.
-    store_u32(p + 148, std::uint32_t(d.direction_input));
+    // 0 without ray inputs: such a descriptor is byte-identical to a 1.1 one.
+    store_u32(p + 148, d.ray_inputs);
     return b;
 }
 
@@ -201,7 +201,7 @@ Result<ModelDesc> decode_desc(const std::vector<std::uint8_t>& b, std::uint64_t 
                               "MODL section: reserved bytes 144..255 are not zero");
     } else {
         // 1.1 defines bytes 144..147, 1.2 also 148..151; the rest stays reserved.
-        const std::uint32_t reserved_from = minor < kMinorVersionDirection ? 148 : 152;
+        const std::uint32_t reserved_from = minor < kMinorVersionRayInputs ? 148 : 152;
         if (!all_zero(p + reserved_from, kDescriptorSize - reserved_from))
             return make_error(LSNIF_ERR_RESERVED, file_offset,
                               "MODL section: reserved bytes %u..255 are not zero", reserved_from);
@@ -210,13 +210,14 @@ Result<ModelDesc> decode_desc(const std::vector<std::uint8_t>& b, std::uint64_t 
             return make_error(LSNIF_ERR_MODEL, file_offset,
                               "MODL section: grid_encoding %u unknown (0 = fp16, 1 = u8 affine)", enc);
         d.grid_encoding = GridEncoding(enc);
-        if (minor >= kMinorVersionDirection) {
-            const std::uint32_t dir = load_u32(p + 148);
-            if (dir > LSNIF_DIRECTION_UNIT)
-                return make_error(LSNIF_ERR_MODEL, file_offset,
-                                  "MODL section: direction_input %u unknown (0 = none, 1 = unit direction)",
-                                  dir);
-            d.direction_input = DirectionInput(dir);
+        if (minor >= kMinorVersionRayInputs) {
+            const std::uint32_t inputs = load_u32(p + 148);
+            if (inputs & ~kRayInputsKnown)
+                return make_error(
+                    LSNIF_ERR_MODEL, file_offset,
+                    "MODL section: ray_inputs 0x%x has unknown bits (1 = direction, 2 = entry offsets)",
+                    inputs);
+            d.ray_inputs = inputs;
         }
     }
     if (Error e = validate_desc(d)) {
@@ -670,8 +671,7 @@ Error validate_desc(const ModelDesc& d) {
         return bad("distance_encoding %u unknown", d.distance_encoding);
     if (std::uint32_t(d.grid_encoding) > LSNIF_GRID_U8_AFFINE)
         return bad("grid_encoding %u unknown", std::uint32_t(d.grid_encoding));
-    if (std::uint32_t(d.direction_input) > LSNIF_DIRECTION_UNIT)
-        return bad("direction_input %u unknown", std::uint32_t(d.direction_input));
+    if (d.ray_inputs & ~kRayInputsKnown) return bad("ray_inputs 0x%x has unknown bits", d.ray_inputs);
     for (int i = 0; i < 3; ++i) {
         if (!std::isfinite(d.box_min[i]) || !std::isfinite(d.box_max[i]))
             return Error{LSNIF_ERR_NONFINITE, UINT64_MAX, "box has a NaN or infinite coordinate"};

@@ -55,6 +55,8 @@ Geometry make_geometry(const ModelDesc& d) {
     g.distance_encoding = d.distance_encoding;
     g.point_width = d.point_feature_width();
     g.direction_width = d.direction_width();
+    g.offset_width = d.offset_width();
+    for (int a = 0; a < 3; ++a) g.cell[a] = (d.box_max[a] - d.box_min[a]) / float(d.grid_resolution);
     g.input_width = d.input_width();
     g.output_count = d.output_count();
     g.material_count = d.material_count;
@@ -257,6 +259,19 @@ void encode_points(const Geometry& geo, const GridView* grid, const RayPoints& p
     std::memset(row + std::size_t(pts.count) * L * F, 0,
                 sizeof(float) * (std::size_t(geo.H) - pts.count) * L * F);
     if (geo.direction_width) std::memcpy(row + geo.point_width, pts.dir, sizeof(pts.dir));
+    if (geo.offset_width) entry_offsets(geo, pts, row + geo.point_width + geo.direction_width);
+}
+
+void entry_offsets(const Geometry& geo, const RayPoints& pts, float* out) {
+    for (std::uint32_t k = 0; k < geo.H; ++k) {
+        if (k >= pts.count) {
+            out[k] = 0.0f;
+            continue;
+        }
+        float d[3];
+        for (int a = 0; a < 3; ++a) d[a] = (pts.g[k][a] - pts.g[0][a]) * geo.cell[a];
+        out[k] = std::sqrt(std::fma(d[2], d[2], std::fma(d[1], d[1], d[0] * d[0]))) / geo.diagonal;
+    }
 }
 
 // ---- MLP --------------------------------------------------------------------------------

@@ -204,13 +204,13 @@ TEST_CASE("convert a real mesh: asset, metadata, manifest, reuse") {
     // A lenient target (and gate: training aims at the stricter of the two) changes the
     // weights: training stops at the second validation check, the first two that meet it
     // (TargetStop), so it is a new asset, and it meets the target.
-    // The points-only model (no direction input): with the direction the smoke model answers
+    // The points-only model (no ray inputs): with the direction the smoke model answers
     // "hit" for almost every ray in its first hundred steps (interior family 55 % at step 80,
     // below the smoke gate's 60 % family floor), and this case is about TargetStop, not the
-    // model. It also keeps --no-direction-input's path converting.
+    // model. It also keeps --no-ray-inputs' path converting.
     ConvertOptions lenient = smoke({kDragon}, out);
     lenient.gate_min_visibility = 0.5;
-    lenient.no_direction_input = true;
+    lenient.no_ray_inputs = true;
     std::string target_error;
     REQUIRE(parse_target("50,50,90", lenient.target, target_error));
     const ConvertResult early = convert(lenient);

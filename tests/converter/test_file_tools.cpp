@@ -133,15 +133,16 @@ TEST_CASE("metadata must agree with the binary descriptor") {
                    {"level_resolutions", {64, 128}},
                    {"hidden_widths", {64}},
                    {"distance_encoding", "first_entry_diagonal"},
-                   {"direction_input", "unit"}}},
+                   {"ray_inputs", "direction+entry_offsets"}}},
                  {"object", {{"box_min", {-1.5, 0, 0}}, {"box_max", {0.1, 0, 0}}}}};
-    CHECK(metadata_consistency(meta, info, LSNIF_DIRECTION_UNIT).empty());
+    CHECK(
+        metadata_consistency(meta, info, LSNIF_RAY_INPUT_DIRECTION | LSNIF_RAY_INPUT_ENTRY_OFFSETS).empty());
     meta["model"]["hidden_widths"] = {128};
     meta["object"]["box_max"][0] = 0.2;
-    const auto problems = metadata_consistency(meta, info, LSNIF_DIRECTION_NONE);
+    const auto problems = metadata_consistency(meta, info, LSNIF_RAY_INPUT_DIRECTION);
     REQUIRE(problems.size() == 3);
     CHECK(problems[0].find("model.hidden_widths") != std::string::npos);
-    CHECK(problems[1].find("model.direction_input") != std::string::npos);
+    CHECK(problems[1].find("model.ray_inputs") != std::string::npos);
     CHECK(problems[2].find("object.box_max") != std::string::npos);
 }
 

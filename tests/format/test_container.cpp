@@ -119,37 +119,39 @@ TEST_CASE("round trip: write, read, identical dimensions, metadata and weights")
     }
 }
 
-TEST_CASE("a direction input is written as 1.2 and read back; without one the file stays 1.0") {
-    for (const DirectionInput dir : {DirectionInput::none, DirectionInput::unit}) {
+TEST_CASE("ray inputs are written as 1.2 and read back; without them the file stays 1.0") {
+    for (const std::uint32_t bits : {0u, kRayInputDirection, kRayInputEntryOffsets, kRayInputsKnown}) {
         ModelDesc d = small_desc();
-        d.direction_input = dir;
-        CHECK(d.input_width() ==
-              d.max_points * d.level_count() * d.features_per_level + (dir == DirectionInput::unit ? 3 : 0));
+        d.ray_inputs = bits;
+        CHECK(d.input_width() == d.max_points * d.level_count() * d.features_per_level +
+                                     (bits & kRayInputDirection ? 3 : 0) +
+                                     (bits & kRayInputEntryOffsets ? d.max_points : 0));
         const ModelData m = random_model(d, 11);
         CHECK(m.weights[0].size() == std::size_t(d.hidden_width[0]) * d.input_width());
         auto bytes = serialize(m);
         REQUIRE(bytes.ok());
-        CHECK(bytes.value()[10] == (dir == DirectionInput::unit ? 2 : 0));  // header version_minor
+        CHECK(bytes.value()[10] == (bits ? 2 : 0));  // header version_minor
         auto back = read_model(bytes.value());
         REQUIRE_MESSAGE(back.ok(), back.error().message);
-        CHECK(back.value().desc.direction_input == dir);
-        CHECK(back.value().version_minor == (dir == DirectionInput::unit ? 2 : 0));
+        CHECK(back.value().desc.ray_inputs == bits);
+        CHECK(back.value().version_minor == (bits ? 2 : 0));
         CHECK(back.value().weights == m.weights);
     }
-    // The C API reports it; older files have none.
-    for (const auto& [file, want] : {std::pair{"direction_unit.lsnif", LSNIF_DIRECTION_UNIT},
-                                     std::pair{"quantized_u8.lsnif", LSNIF_DIRECTION_NONE},
-                                     std::pair{"v1_default.lsnif", LSNIF_DIRECTION_NONE}}) {
+    // The C API reports them; older files have none.
+    for (const auto& [file, want] :
+         {std::pair{"ray_inputs.lsnif", kRayInputsKnown}, std::pair{"quantized_u8.lsnif", 0u},
+          std::pair{"v1_default.lsnif", 0u}}) {
         const auto bytes = load(data_dir() / "valid" / file);
         lsnif_model* m = nullptr;
         REQUIRE(lsnif_open_memory(bytes.data(), bytes.size(), &m, nullptr) == LSNIF_OK);
         std::uint32_t got = 99;
-        CHECK(lsnif_get_direction_input(m, &got) == LSNIF_OK);
-        CHECK_MESSAGE(got == std::uint32_t(want), file);
+        CHECK(lsnif_get_ray_inputs(m, &got) == LSNIF_OK);
+        CHECK_MESSAGE(got == want, file);
         lsnif_info info{};
         REQUIRE(lsnif_get_info(m, &info) == LSNIF_OK);
         CHECK(info.input_width == info.max_points * info.level_count * info.features_per_level +
-                                      (got == LSNIF_DIRECTION_UNIT ? 3 : 0));
+                                      (got & LSNIF_RAY_INPUT_DIRECTION ? 3 : 0) +
+                                      (got & LSNIF_RAY_INPUT_ENTRY_OFFSETS ? info.max_points : 0));
         lsnif_close(m);
     }
 }
@@ -313,9 +315,9 @@ TEST_CASE("every C API call follows its documented NULL rule") {
     CHECK(lsnif_open_file(nullptr, &out, nullptr) == LSNIF_ERR_INVALID_ARGUMENT);
     CHECK(lsnif_open_file("x.lsnif", nullptr, nullptr) == LSNIF_ERR_INVALID_ARGUMENT);
     CHECK(lsnif_get_info(m, nullptr) == LSNIF_ERR_INVALID_ARGUMENT);
-    std::uint32_t direction = 0;
-    CHECK(lsnif_get_direction_input(nullptr, &direction) == LSNIF_ERR_INVALID_ARGUMENT);
-    CHECK(lsnif_get_direction_input(m, nullptr) == LSNIF_ERR_INVALID_ARGUMENT);
+    std::uint32_t ray_inputs = 0;
+    CHECK(lsnif_get_ray_inputs(nullptr, &ray_inputs) == LSNIF_ERR_INVALID_ARGUMENT);
+    CHECK(lsnif_get_ray_inputs(m, nullptr) == LSNIF_ERR_INVALID_ARGUMENT);
     CHECK(lsnif_get_array(nullptr, LSNIF_ARRAY_OCCUPANCY, 0, &a) == LSNIF_ERR_INVALID_ARGUMENT);
     CHECK(lsnif_get_array(m, LSNIF_ARRAY_OCCUPANCY, 0, nullptr) == LSNIF_ERR_INVALID_ARGUMENT);
     CHECK(lsnif_layer_count(nullptr) == 0);

@@ -348,16 +348,18 @@ std::vector<std::uint8_t> constant_model_bytes(float logit, float y, std::array<
     return serialize(m).value();
 }
 
-// constant_model_bytes' block with a direction input: hidden unit 0 is ReLU(dir_x) of the
-// ray's unit direction (FORMAT.md §8), the visibility logit 8 h0 - 6, so a ray hits iff its
-// normalized x component exceeds 0.75; every other weight is zero.
-std::vector<std::uint8_t> direction_model_bytes() {
+// constant_model_bytes' block with both ray inputs (FORMAT.md §8): hidden unit 0 is
+// ReLU(dir_x) of the ray's unit direction and the visibility logit 8 h0 - 6, so a ray hits
+// iff its normalized x component exceeds 0.75; hidden unit 1 is the entry offset of slot 2
+// and the distance output equals it, so a hit lies at the third occupied voxel's entry.
+// Every other weight is zero.
+std::vector<std::uint8_t> ray_inputs_model_bytes() {
     ModelDesc d = desc_with(8, {-1.f, -1.f, -1.f}, {1.f, 1.f, 1.f});
     d.max_points = 4;
     d.level_resolution = {16};
     d.log2_table_size = 10;
     d.hidden_width = {16};
-    d.direction_input = DirectionInput::unit;
+    d.ray_inputs = kRayInputDirection | kRayInputEntryOffsets;
     auto m = make_empty_model(d).value();
     m.metadata_json = "{}";
     for (std::uint32_t z = 2; z < 6; ++z)
@@ -366,19 +368,20 @@ std::vector<std::uint8_t> direction_model_bytes() {
                 const std::uint32_t i = x + 8 * (y2 + 8 * z);
                 m.occupancy[i >> 3] |= std::uint8_t(1u << (i & 7));
             }
-    const std::uint32_t in = d.input_width(), dir_x = d.point_feature_width();
+    const std::uint32_t in = d.input_width(), dir_x = d.point_feature_width(), offset_2 = dir_x + 3 + 2;
     m.weights[0][0 * in + dir_x] = float_to_half(1.0f);
+    m.weights[0][1 * in + offset_2] = float_to_half(1.0f);
     m.weights[1][0 * 16 + 0] = float_to_half(8.0f);
+    m.weights[1][1 * 16 + 1] = float_to_half(1.0f);
     m.biases[1][0] = float_to_half(-6.0f);
-    m.biases[1][1] = float_to_half(0.25f);
     m.biases[1][4] = float_to_half(1.0f);
     return serialize(m).value();
 }
 
 }  // namespace
 
-TEST_CASE("a direction input feeds the ray's unit direction in object space to the MLP") {
-    const auto bytes = direction_model_bytes();
+TEST_CASE("ray inputs feed the unit direction in object space and the entry offsets to the MLP") {
+    const auto bytes = ray_inputs_model_bytes();
     lsnif_model* model = nullptr;
     REQUIRE(lsnif_open_memory(bytes.data(), bytes.size(), &model, nullptr) == LSNIF_OK);
     lsnif_ray rays[5] = {
@@ -392,6 +395,10 @@ TEST_CASE("a direction input feeds the ray's unit direction in object space to t
     REQUIRE(lsnif_intersect(model, rays, 5, hits) == LSNIF_OK);
     CHECK(hits[0].hit == 1);
     CHECK(hits[1].hit == 1);
+    // Entries at x = -0.5, -0.25, 0, 0.25: slot 2's offset is 0.5 / diagonal, so t is the
+    // entry at x = 0 (t = 3 for |d| = 1, 12 for |d| = 0.25).
+    CHECK(hits[0].t == doctest::Approx(3.0f).epsilon(2e-3));
+    CHECK(hits[1].t == doctest::Approx(12.0f).epsilon(2e-3));
     CHECK(hits[2].hit == 0);
     CHECK(hits[3].hit == 0);
     CHECK(hits[4].hit == 1);
@@ -429,6 +436,15 @@ TEST_CASE("a direction input feeds the ray's unit direction in object space to t
     std::vector<std::uint8_t> all(8 * 8 * 8 / 8, 0xFF);
     REQUIRE(trace_points(geo, all.data(), r, p) == TraceStatus::ok);
     CHECK(std::memcmp(p.dir, u, sizeof u) == 0);
+    // entry_offsets: the distance along the ray from the first entry, over the diagonal.
+    REQUIRE(p.count > 3);
+    std::vector<float> offsets(geo.H, -1.0f);
+    entry_offsets(geo, p, offsets.data());
+    for (std::uint32_t k = 0; k < geo.H; ++k)
+        if (k < p.count)
+            CHECK(offsets[k] == doctest::Approx((p.t[k] - p.t[0]) * 13.0f / geo.diagonal).epsilon(1e-5));
+        else
+            CHECK(offsets[k] == 0.0f);
 }
 
 TEST_CASE("C API intersect: occupancy early-out, decode, and instance transforms") {

@@ -55,7 +55,9 @@ std::string metadata_for(const ModelDesc& d, const char* name) {
         d.grid_resolution, d.max_points, levels.c_str(), d.features_per_level, d.log2_table_size,
         hidden.c_str(), d.output_count(), d.material_count,
         d.distance_encoding == LSNIF_DISTANCE_SEGMENT ? "segment" : "first_entry_diagonal",
-        d.direction_input == DirectionInput::unit ? ", \"direction_input\": \"unit\"" : "");
+        d.ray_inputs == (kRayInputDirection | kRayInputEntryOffsets)
+            ? ", \"ray_inputs\": \"direction+entry_offsets\""
+            : "");
     return buf;
 }
 
@@ -204,11 +206,12 @@ int main(int argc, char** argv) {
     // writer would have written it as 1.0. Pins that a 1.1 reader keeps the zero meaning.
     write(out / "valid" / "v1_1_fp16.lsnif", bytes_of(assemble(model_sections(tiny), 19, 1, 1)));
 
-    // Version 1.2: a direction input (three more MLP inputs), which the writer marks 1.2.
+    // Version 1.2: ray inputs (the direction and the entry offsets: 3 + H more MLP inputs),
+    // which the writer marks 1.2.
     ModelDesc tiny_dir_desc = tiny_desc();
-    tiny_dir_desc.direction_input = DirectionInput::unit;
-    const ModelData tiny_dir = make_model(tiny_dir_desc, "tiny-direction", 7);
-    write(out / "valid" / "direction_unit.lsnif", bytes_of(serialize(tiny_dir)));
+    tiny_dir_desc.ray_inputs = kRayInputDirection | kRayInputEntryOffsets;
+    const ModelData tiny_dir = make_model(tiny_dir_desc, "tiny-ray-inputs", 7);
+    write(out / "valid" / "ray_inputs.lsnif", bytes_of(serialize(tiny_dir)));
 
     // ---- invalid: each breaks exactly one rule ------------------------------------------
     auto inv = [&](const char* name, std::vector<std::uint8_t> b) { write(out / "invalid" / name, b); };
@@ -385,12 +388,12 @@ int main(int argc, char** argv) {
     }
     // 1.2 descriptor rules (FORMAT.md §6.2, §7.2 E4.6b).
     auto inv_dir = [&](const char* name, const std::vector<RawSection>& secs) {
-        inv(name, bytes_of(assemble(secs, 0, 1, kMinorVersionDirection)));
+        inv(name, bytes_of(assemble(secs, 0, 1, kMinorVersionRayInputs)));
     };
     {
         auto secs = model_sections(tiny_dir);
-        secs[1].raw[148] = 2;  // direction_input 2: not defined
-        inv_dir("direction_input_unknown.lsnif", secs);
+        secs[1].raw[148] = 7;  // ray_inputs bit 2: not defined
+        inv_dir("ray_inputs_unknown.lsnif", secs);
     }
     {
         auto secs = model_sections(tiny_dir);
@@ -400,7 +403,7 @@ int main(int argc, char** argv) {
     {
         auto secs = model_sections(tiny);
         secs[1].raw[148] = 1;  // a direction input, but MLPW sized for the points' features only
-        inv_dir("direction_input_weights_mismatch.lsnif", secs);
+        inv_dir("ray_inputs_weights_mismatch.lsnif", secs);
     }
     auto with_affine = [&](const char* name, float scale, float offset) {
         ModelData m = tiny_u8;

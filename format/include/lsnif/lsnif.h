@@ -44,7 +44,7 @@ extern "C" {
 /* Container version this reader implements. It reads any file of the same major
  * version whose minor version is <= LSNIF_VERSION_MINOR. Writers of this library write
  * the lowest version that can express a model (FORMAT.md §2.4): 1.0 for fp16 grids
- * without a direction input, 1.1 for quantized grids, 1.2 for a direction input. */
+ * without ray inputs, 1.1 for quantized grids, 1.2 for ray inputs. */
 #define LSNIF_VERSION_MAJOR 1
 #define LSNIF_VERSION_MINOR 2
 
@@ -159,15 +159,16 @@ typedef enum lsnif_grid_encoding {
     LSNIF_GRID_U8_AFFINE = 1
 } lsnif_grid_encoding;
 
-/* What the MLP sees of the ray besides the features of its voxel entry points (MODL
- * direction_input, FORMAT.md §6.2, §8). */
-typedef enum lsnif_direction_input {
-    /* nothing: the input is the H * L * F point features (1.0 and 1.1 files) */
-    LSNIF_DIRECTION_NONE = 0,
-    /* three more inputs after the point features: the ray direction divided by its
-     * Euclidean length, object space, x y z. Needs version 1.2. */
-    LSNIF_DIRECTION_UNIT = 1
-} lsnif_direction_input;
+/* What the MLP sees of the ray besides the features of its voxel entry points: the bits
+ * of MODL ray_inputs (FORMAT.md §6.2, §8; 0 in 1.0 and 1.1 files, where the input is the
+ * H * L * F point features only). Inputs follow the point features in bit order. */
+typedef enum lsnif_ray_input {
+    /* 3 inputs: the ray direction divided by its Euclidean length, object space, x y z */
+    LSNIF_RAY_INPUT_DIRECTION = 1,
+    /* H inputs: per point slot k, the distance from the first entry point to entry point
+     * k over the box diagonal (0 for empty slots) */
+    LSNIF_RAY_INPUT_ENTRY_OFFSETS = 2
+} lsnif_ray_input;
 
 typedef struct lsnif_info {
     uint16_t version_major;
@@ -181,7 +182,7 @@ typedef struct lsnif_info {
     uint64_t level_entries[LSNIF_MAX_LEVELS]; /* rows actually stored per level */
     uint32_t level_dense[LSNIF_MAX_LEVELS];   /* 1 if the level is indexed densely */
     uint32_t hash_primes[3];
-    uint32_t input_width; /* H * L * F, plus 3 with LSNIF_DIRECTION_UNIT */
+    uint32_t input_width; /* H * L * F plus the ray inputs' (lsnif_get_ray_inputs) */
     uint32_t hidden_layer_count;
     uint32_t hidden_width[LSNIF_MAX_HIDDEN_LAYERS];
     uint32_t output_count; /* 5 + material_count */
@@ -219,11 +220,11 @@ LSNIF_API void lsnif_close(lsnif_model* model);
 /* Fills `*out`. Neither pointer may be NULL. */
 LSNIF_API lsnif_status lsnif_get_info(const lsnif_model* model, lsnif_info* out);
 
-/* The model's lsnif_direction_input into `*out` (LSNIF_DIRECTION_NONE for 1.0 and 1.1
+/* The model's ray inputs, a bit set of lsnif_ray_input, into `*out` (0 for 1.0 and 1.1
  * files). A function of its own because lsnif_info has no room left for a field without
  * changing its size (see lsnif_info.grid_encoding). Neither pointer may be NULL. Added
  * in 1.2. */
-LSNIF_API lsnif_status lsnif_get_direction_input(const lsnif_model* model, uint32_t* out);
+LSNIF_API lsnif_status lsnif_get_ray_inputs(const lsnif_model* model, uint32_t* out);
 
 /* The JSON metadata (UTF-8, not NUL-counted in *length, but NUL-terminated). `length`
  * may be NULL; a NULL model returns NULL and sets *length to 0. */

@@ -211,7 +211,7 @@ struct ConvertOptions {
     std::uint32_t max_points = 0;       // H, voxel entry points per ray
     std::uint32_t grid_resolution = 0;  // V, occupancy grid cells per axis
     std::uint32_t hidden_width = 0;     // width of both hidden layers
-    bool no_direction_input = false;    // the MLP sees the points' features only (1.0/1.1 files)
+    bool no_ray_inputs = false;         // the MLP sees the points' features only (1.0/1.1 files)
 };
 
 // Progress events: stage changes and training steps.

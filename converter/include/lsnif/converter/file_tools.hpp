@@ -49,12 +49,12 @@ std::string inspect_text(const nlohmann::json& report);
 // metadata_consistency. An encoding this reader does not define is "unknown".
 const char* distance_encoding_name(std::uint32_t distance_encoding);
 const char* grid_encoding_name(std::uint32_t grid_encoding);
-const char* direction_input_name(std::uint32_t direction_input);
+const char* ray_inputs_name(std::uint32_t ray_inputs);
 
 // Checks that the metadata's "model" and "object.box_*" agree with the binary
 // descriptor (which is authoritative). Returns one message per disagreement.
-// `direction_input` is lsnif_get_direction_input's value.
+// `ray_inputs` is lsnif_get_ray_inputs' value.
 std::vector<std::string> metadata_consistency(const nlohmann::json& metadata, const lsnif_info& info,
-                                              std::uint32_t direction_input);
+                                              std::uint32_t ray_inputs);
 
 }  // namespace lsnif::converter

@@ -69,13 +69,12 @@ enum class GridEncoding : std::uint32_t {
 // model (FORMAT.md §2.4), so fp16 assets stay 1.0 files that 1.0 readers open.
 inline constexpr std::uint16_t kMinorVersionFp16 = 0;
 inline constexpr std::uint16_t kMinorVersionQuantized = 1;
-// MODL direction_input (descriptor offset 148, since 1.2). The values are
-// LSNIF_DIRECTION_* of lsnif.h.
-enum class DirectionInput : std::uint32_t {
-    none = LSNIF_DIRECTION_NONE,  // the MLP input is the H x L x F point features only
-    unit = LSNIF_DIRECTION_UNIT   // v1.2: then the ray's unit direction (3 values)
-};
-inline constexpr std::uint16_t kMinorVersionDirection = 2;
+// MODL ray_inputs (descriptor offset 148, since 1.2): a bit set of LSNIF_RAY_INPUT_* of
+// lsnif.h; 0 = the MLP input is the H x L x F point features only.
+inline constexpr std::uint32_t kRayInputDirection = LSNIF_RAY_INPUT_DIRECTION;
+inline constexpr std::uint32_t kRayInputEntryOffsets = LSNIF_RAY_INPUT_ENTRY_OFFSETS;
+inline constexpr std::uint32_t kRayInputsKnown = kRayInputDirection | kRayInputEntryOffsets;
+inline constexpr std::uint16_t kMinorVersionRayInputs = 2;
 // Inputs the direction adds after the point features (FORMAT.md §8).
 inline constexpr std::uint32_t kDirectionInputs = 3;
 
@@ -107,17 +106,17 @@ struct ModelDesc {
     std::array<float, 3> box_max{1.f, 1.f, 1.f};
     // How GRID stores the features (FORMAT.md §6.4). fp16 keeps the file at version 1.0.
     GridEncoding grid_encoding = GridEncoding::fp16;
-    // Whether the MLP also sees the ray direction (FORMAT.md §6.2, §8). none keeps the
+    // What else the MLP sees of the ray (kRayInput* bits, FORMAT.md §6.2, §8). 0 keeps the
     // file at version 1.0/1.1.
-    DirectionInput direction_input = DirectionInput::none;
+    std::uint32_t ray_inputs = 0;
 
     std::uint32_t level_count() const { return std::uint32_t(level_resolution.size()); }
-    // Point features first (H x L x F, slot-major), then the direction's inputs if any.
+    // Point features first (H x L x F, slot-major), then the direction (3), then the entry
+    // offsets (H), each if its ray_inputs bit is set.
     std::uint32_t point_feature_width() const { return max_points * level_count() * features_per_level; }
-    std::uint32_t direction_width() const {
-        return direction_input == DirectionInput::unit ? kDirectionInputs : 0;
-    }
-    std::uint32_t input_width() const { return point_feature_width() + direction_width(); }
+    std::uint32_t direction_width() const { return ray_inputs & kRayInputDirection ? kDirectionInputs : 0; }
+    std::uint32_t offset_width() const { return ray_inputs & kRayInputEntryOffsets ? max_points : 0; }
+    std::uint32_t input_width() const { return point_feature_width() + direction_width() + offset_width(); }
     std::uint32_t output_count() const { return OutputLayout::material + material_count; }
     std::uint64_t table_size() const { return std::uint64_t{1} << log2_table_size; }
     // A level is dense when its (res+1)^3 lattice vertices fit in the table (FORMAT.md §6.4).
@@ -134,7 +133,7 @@ struct ModelDesc {
     std::uint64_t grid_raw_size() const;
     // Header minor version the writer uses for this descriptor (FORMAT.md §2.4).
     std::uint16_t minor_version() const {
-        if (direction_input != DirectionInput::none) return kMinorVersionDirection;
+        if (ray_inputs != 0) return kMinorVersionRayInputs;
         return grid_encoding == GridEncoding::fp16 ? kMinorVersionFp16 : kMinorVersionQuantized;
     }
     // (out, in) of MLP layer k, hidden layers first, output layer last.

@@ -53,8 +53,10 @@ struct Geometry {
     std::array<std::uint32_t, 3> primes;
     std::vector<LevelInfo> levels;
     std::uint32_t distance_encoding;
-    // MLP input: point_width = H * L * F point features, then direction_width (0 or 3).
-    std::uint32_t point_width, direction_width;
+    // MLP input: point_width = H * L * F point features, then direction_width (0 or 3),
+    // then offset_width (0 or H) values (FORMAT.md §8).
+    std::uint32_t point_width, direction_width, offset_width;
+    float cell[3];  // voxel edge per axis, (box_max - box_min) / V in f32 (entry offsets)
     std::uint32_t input_width, output_count, material_count;
 };
 Geometry make_geometry(const ModelDesc& desc);
@@ -101,6 +103,12 @@ TraceStatus make_ray_grid(const Geometry& geo, const Ray& ray, RayGrid& rg, floa
 // fused multiply-adds, so every build rounds it the same way (the network was trained on
 // these bits). `ray.dir` must be finite and non-zero (a valid ray).
 void unit_direction(const Ray& ray, float out[3]);
+
+// The entry-offset inputs (FORMAT.md §8): for slot k < pts.count, the distance from entry
+// point 0 to entry point k in object space over the box diagonal, from the points' grid
+// coordinates (what training and inference both have, bit for bit) with explicit FMAs;
+// 0 for empty slots. Writes geo.H values.
+void entry_offsets(const Geometry& geo, const RayPoints& pts, float* out);
 
 // The OCCU bit array plus, per voxel, whether its kBlock^3-voxel block has an occupied
 // voxel: what lets the DDA jump over empty space.
@@ -167,7 +175,8 @@ struct GridView {
 };
 
 // Encodes one ray into `row` (input_width floats): the points' features slot-major, then
-// level, then feature, empty slots zero; then pts.dir if the model has a direction input.
+// level, then feature, empty slots zero; then the ray inputs the model has: pts.dir, and
+// entry_offsets().
 void encode_points(const Geometry& geo, const GridView* grid, const RayPoints& pts, float* row);
 
 // ---- MLP --------------------------------------------------------------------------------
