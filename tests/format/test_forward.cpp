@@ -325,27 +325,51 @@ TEST_CASE("dense_layer matches a naive reference, including ragged sizes") {
 
 namespace {
 
-// A model whose MLP ignores its input: weights zero, biases fixed, so every ray that
-// reaches the network gets the same outputs and decode can be checked exactly.
-std::vector<std::uint8_t> constant_model_bytes(float logit, float y, std::array<float, 3> n) {
+// An empty model over the box [-1, 1]^3 (V = 8, H = 4, one level, 16 hidden units) with
+// `ray_inputs`, the central 4x4x4 voxel block occupied: x, y, z in [-0.5, 0.5].
+ModelData block_model(std::uint32_t ray_inputs) {
     ModelDesc d = desc_with(8, {-1.f, -1.f, -1.f}, {1.f, 1.f, 1.f});
     d.max_points = 4;
     d.level_resolution = {16};
     d.log2_table_size = 10;
     d.hidden_width = {16};
+    d.ray_inputs = ray_inputs;
     auto m = make_empty_model(d).value();
     m.metadata_json = "{}";
-    // Occupy the central 4x4x4 block.
     for (std::uint32_t z = 2; z < 6; ++z)
         for (std::uint32_t y2 = 2; y2 < 6; ++y2)
             for (std::uint32_t x = 2; x < 6; ++x) {
                 const std::uint32_t i = x + 8 * (y2 + 8 * z);
                 m.occupancy[i >> 3] |= std::uint8_t(1u << (i & 7));
             }
+    return m;
+}
+
+// A model whose MLP ignores its input: weights zero, biases fixed, so every ray that
+// reaches the network gets the same outputs and decode can be checked exactly.
+std::vector<std::uint8_t> constant_model_bytes(float logit, float y, std::array<float, 3> n) {
+    auto m = block_model(0);
     m.biases[1][0] = float_to_half(logit);
     m.biases[1][1] = float_to_half(y);
     for (int a = 0; a < 3; ++a) m.biases[1][2 + a] = float_to_half(n[a]);
     return serialize(m).value();
+}
+
+// The instance transform of the intersect tests: rotate 90 degrees about z, scale 3,
+// translate. to_world maps an object-space ray by it.
+constexpr float kInstance[12] = {0.f, -3.f, 0.f, 10.f,  //
+                                 3.f, 0.f,  0.f, -2.f,  //
+                                 0.f, 0.f,  3.f, 5.f};
+lsnif_ray to_world(const lsnif_ray& r) {
+    const float* M = kInstance;
+    lsnif_ray w{};
+    for (int a = 0; a < 3; ++a) {
+        w.org[a] = M[4 * a] * r.org[0] + M[4 * a + 1] * r.org[1] + M[4 * a + 2] * r.org[2] + M[4 * a + 3];
+        w.dir[a] = M[4 * a] * r.dir[0] + M[4 * a + 1] * r.dir[1] + M[4 * a + 2] * r.dir[2];
+    }
+    w.tmin = r.tmin;
+    w.tmax = r.tmax;
+    return w;
 }
 
 // constant_model_bytes' block with both ray inputs (FORMAT.md §8): hidden unit 0 is
@@ -354,20 +378,8 @@ std::vector<std::uint8_t> constant_model_bytes(float logit, float y, std::array<
 // and the distance output equals it, so a hit lies at the third occupied voxel's entry.
 // Every other weight is zero.
 std::vector<std::uint8_t> ray_inputs_model_bytes() {
-    ModelDesc d = desc_with(8, {-1.f, -1.f, -1.f}, {1.f, 1.f, 1.f});
-    d.max_points = 4;
-    d.level_resolution = {16};
-    d.log2_table_size = 10;
-    d.hidden_width = {16};
-    d.ray_inputs = kRayInputDirection | kRayInputEntryOffsets;
-    auto m = make_empty_model(d).value();
-    m.metadata_json = "{}";
-    for (std::uint32_t z = 2; z < 6; ++z)
-        for (std::uint32_t y2 = 2; y2 < 6; ++y2)
-            for (std::uint32_t x = 2; x < 6; ++x) {
-                const std::uint32_t i = x + 8 * (y2 + 8 * z);
-                m.occupancy[i >> 3] |= std::uint8_t(1u << (i & 7));
-            }
+    auto m = block_model(kRayInputDirection | kRayInputEntryOffsets);
+    const ModelDesc& d = m.desc;
     const std::uint32_t in = d.input_width(), dir_x = d.point_feature_width(), offset_2 = dir_x + 3 + 2;
     m.weights[0][0 * in + dir_x] = float_to_half(1.0f);
     m.weights[0][1 * in + offset_2] = float_to_half(1.0f);
@@ -404,22 +416,9 @@ TEST_CASE("ray inputs feed the unit direction in object space and the entry offs
     CHECK(hits[4].hit == 1);
     // Under an instance the direction is the object-space one: a world ray that maps to +x
     // hits whatever the instance's rotation and scale.
-    const float M[12] = {0.f, -3.f, 0.f, 10.f,  //
-                         3.f, 0.f,  0.f, -2.f,  //
-                         0.f, 0.f,  3.f, 5.f};
-    lsnif_ray world[2];
-    for (int k = 0; k < 2; ++k) {
-        const lsnif_ray& r = rays[k == 0 ? 0 : 2];
-        for (int a = 0; a < 3; ++a) {
-            world[k].org[a] =
-                M[4 * a] * r.org[0] + M[4 * a + 1] * r.org[1] + M[4 * a + 2] * r.org[2] + M[4 * a + 3];
-            world[k].dir[a] = M[4 * a] * r.dir[0] + M[4 * a + 1] * r.dir[1] + M[4 * a + 2] * r.dir[2];
-        }
-        world[k].tmin = 0.f;
-        world[k].tmax = INFINITY;
-    }
+    const lsnif_ray world[2] = {to_world(rays[0]), to_world(rays[2])};
     lsnif_hit wh[2];
-    REQUIRE(lsnif_intersect_instance(model, M, world, 2, wh) == LSNIF_OK);
+    REQUIRE(lsnif_intersect_instance(model, kInstance, world, 2, wh) == LSNIF_OK);
     CHECK(wh[0].hit == 1);
     CHECK(wh[1].hit == 0);
     lsnif_close(model);
@@ -468,21 +467,10 @@ TEST_CASE("C API intersect: occupancy early-out, decode, and instance transforms
     CHECK(hits[2].hit == 0);
     CHECK(hits[3].hit == 0);
 
-    // Instance: rotate 90° about z, scale 3, translate; world rays are object rays mapped.
-    const float M[12] = {0.f, -3.f, 0.f, 10.f,  //
-                         3.f, 0.f,  0.f, -2.f,  //
-                         0.f, 0.f,  3.f, 5.f};
-    lsnif_ray world[1];
-    for (int r = 0; r < 3; ++r) {
-        world[0].org[r] = M[4 * r] * rays[0].org[0] + M[4 * r + 1] * rays[0].org[1] +
-                          M[4 * r + 2] * rays[0].org[2] + M[4 * r + 3];
-        world[0].dir[r] =
-            M[4 * r] * rays[0].dir[0] + M[4 * r + 1] * rays[0].dir[1] + M[4 * r + 2] * rays[0].dir[2];
-    }
-    world[0].tmin = 0.f;
-    world[0].tmax = INFINITY;
+    // Instance (kInstance): world rays are object rays mapped.
+    lsnif_ray world[1] = {to_world(rays[0])};
     lsnif_hit wh[1];
-    REQUIRE(lsnif_intersect_instance(model, M, world, 1, wh) == LSNIF_OK);
+    REQUIRE(lsnif_intersect_instance(model, kInstance, world, 1, wh) == LSNIF_OK);
     CHECK(wh[0].hit == 1);
     CHECK(wh[0].t == doctest::Approx(hits[0].t).epsilon(1e-5));  // same parameter in both spaces
     CHECK(wh[0].normal[2] == doctest::Approx(1.0f));             // z-axis normal stays z under this map
