@@ -343,16 +343,17 @@ json metrics_json(const samples::Metrics& m) {
 // Everything else that changes the trained weights: the recipe (bump kRecipeVersion when
 // sampling or training code changes its streams or its rounding), the thread count (training is
 // deterministic per thread count) and the MLP arithmetic this machine will use.
-constexpr int kRecipeVersion = 3;
+constexpr int kRecipeVersion = 4;
 static std::string recipe_key(const Preset& p, std::uint32_t threads) {
     const trainer::TrainConfig& c = p.train;
     char buf[512];
-    std::snprintf(buf, sizeof buf, "r%d|t%u|%s|lw%g,%g,%g,%g|g%g,%g,%g,%g|m%g,%g,%g,%g,%g|d%g,%g,%g,%g",
-                  kRecipeVersion, threads, trainer::mlp_arithmetic(c.mlp_precision).c_str(),
-                  c.loss.visibility, c.loss.distance, c.loss.normal, c.loss.material, c.grid_adam.lr,
-                  c.grid_adam.beta1, c.grid_adam.beta2, c.grid_adam.eps, c.mlp_adam.lr, c.mlp_adam.beta1,
-                  c.mlp_adam.beta2, c.mlp_adam.eps, c.mlp_adam.l2, c.decay_start, c.final_lr_fraction,
-                  c.huber_delta, c.grad_clip_norm);
+    std::snprintf(buf, sizeof buf,
+                  "r%d|t%u|%s|lw%g,%g,%g,%g|g%g,%g,%g,%g|m%g,%g,%g,%g,%g|d%g,%g,%g,%g|n%d,%g", kRecipeVersion,
+                  threads, trainer::mlp_arithmetic(c.mlp_precision).c_str(), c.loss.visibility,
+                  c.loss.distance, c.loss.normal, c.loss.material, c.grid_adam.lr, c.grid_adam.beta1,
+                  c.grid_adam.beta2, c.grid_adam.eps, c.mlp_adam.lr, c.mlp_adam.beta1, c.mlp_adam.beta2,
+                  c.mlp_adam.eps, c.mlp_adam.l2, c.decay_start, c.final_lr_fraction, c.huber_delta,
+                  c.grad_clip_norm, int(c.normal_loss), c.normal_chord_epsilon);
     return buf;
 }
 
@@ -384,11 +385,14 @@ bool find_preset(const std::string& name, Preset& p) {
     // v1 model of docs/architecture.md §3 in every preset; presets trade training time for accuracy.
     // Measured on the dragon (BENCHMARKS.md "Conversion", 2^23 streamed rays, bf16 MLP):
     // at equal samples, more and smaller steps win slightly (1200 x 16384: 97.21 %, 0.90 %,
-    // 14.1 deg in 77 s of training; 2400 x 8192: 97.46 %, 0.85 %, 12.8 deg in 83 s), and
-    // doubling the normal loss weight buys 2 deg of normal error for 0.06 % of visibility
-    // (2400 x 8192 with weight 1: 97.52 %, 0.83 %, 14.7 deg).
+    // 14.1 deg in 77 s of training; 2400 x 8192: 97.46 %, 0.85 %, 12.8 deg in 83 s).
     p.train.batch_size = 1u << 13;
-    p.train.loss.normal = 2.0f;
+    // The normal loss is the smoothed chord (trainer.hpp NormalLoss) at weight 0.7: on CGAL's
+    // dragon and armadillo at the full budget the median normal error drops 1.1-1.4 degrees
+    // with visibility and distance as good or better than the cosine loss at weight 2
+    // (docs/model.md "The normal loss").
+    p.train.normal_loss = trainer::NormalLoss::chord;
+    p.train.loss.normal = 0.7f;
     // The MLP also sees the ray's unit direction and its entry points' offsets along it:
     // on CGAL's dragon and armadillo, three seeds each, every held-out metric improved on
     // every seed (docs/model.md "Ray inputs").

@@ -210,6 +210,13 @@ TEST_CASE("asset_key changes with the geometry and every setting that changes th
     ConvertOptions o6 = o;
     o6.no_give_up = true;
     CHECK(asset_key(make_run(o6, run.outdir), mesh, desc) != key);
+    // The normal loss's shape and smoothing.
+    Run cosine = make_run(o, run.outdir);
+    cosine.preset.train.normal_loss = lsnif::trainer::NormalLoss::cosine;
+    CHECK(asset_key(cosine, mesh, desc) != key);
+    Run smoother = make_run(o, run.outdir);
+    smoother.preset.train.normal_chord_epsilon *= 2;
+    CHECK(asset_key(smoother, mesh, desc) != key);
     // Where the output goes does not change the weights.
     CHECK(asset_key(make_run(o, fresh_dir("stages_key_elsewhere")), mesh, desc) == key);
 }

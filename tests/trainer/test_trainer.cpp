@@ -120,15 +120,17 @@ TEST_CASE(
 TEST_CASE("finite-difference gradient check for every parameter kind and loss term") {
     const format::ModelDesc d = small_desc();
     SpheresSource src = two_spheres(d);
-    for (int term = 0; term < 4; ++term) {
+    // Terms: visibility, distance, normal (cosine), material, normal (chord).
+    for (int term = 0; term < 5; ++term) {
         TrainConfig cfg;
         cfg.threads = 2;
         cfg.seed = 3;
         // Exact arithmetic: a 1e-4 step is below bf16 resolution for most weights.
         cfg.mlp_precision = MlpPrecision::fp32;
         // One loss term at a time, so each term's gradient is checked on its own.
-        cfg.loss = {term == 0 ? 1.f : 0.f, term == 1 ? 1.f : 0.f, term == 2 ? 1.f : 0.f,
+        cfg.loss = {term == 0 ? 1.f : 0.f, term == 1 ? 1.f : 0.f, term == 2 || term == 4 ? 1.f : 0.f,
                     term == 3 ? 1.f : 0.f};
+        cfg.normal_loss = term == 4 ? NormalLoss::chord : NormalLoss::cosine;
         cfg.huber_delta = 10.0f;  // quadratic regime: smooth for finite differences
         Trainer tr(d, src.occupancy(d), cfg);
         // Larger weights than the init so every parameter carries a measurable gradient.
@@ -192,6 +194,35 @@ TEST_CASE("finite-difference gradient check for every parameter kind and loss te
         }
         CHECK(checked >= 10);
     }
+}
+
+TEST_CASE("the chord normal loss is sqrt(2 (1 - cos) + eps^2) - eps of the cosine loss, per sample") {
+    const format::ModelDesc d = small_desc();
+    SpheresSource src = two_spheres(d);
+    std::vector<Sample> raw;
+    src.generate(5, 400, raw);
+    TrainConfig probe_cfg;
+    probe_cfg.threads = 1;
+    const Trainer probe(d, src.occupancy(d), probe_cfg);
+    int checked = 0;
+    for (const Sample& s : probe.reachable(raw)) {
+        if (!s.hit) continue;
+        double cosine = 0, chord = 0;
+        for (const NormalLoss kind : {NormalLoss::cosine, NormalLoss::chord}) {
+            TrainConfig cfg;
+            cfg.threads = 1;
+            cfg.seed = 9;
+            cfg.normal_loss = kind;
+            cfg.normal_chord_epsilon = 0.05f;
+            Trainer tr(d, src.occupancy(d), cfg);  // same seed: same weights
+            const LossParts lp = tr.loss_and_gradients(std::span(&s, 1), nullptr);
+            (kind == NormalLoss::cosine ? cosine : chord) = lp.normal;
+        }
+        REQUIRE(cosine > 1e-3);  // an untrained network: a real angle
+        CHECK(chord == doctest::Approx(std::sqrt(2 * cosine + 0.05 * 0.05) - 0.05).epsilon(1e-4));
+        if (++checked == 20) break;
+    }
+    CHECK(checked == 20);
 }
 
 TEST_CASE("grid gradients are the same bit for bit for any thread count, and cleared after use") {

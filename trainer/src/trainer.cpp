@@ -523,6 +523,8 @@ struct LossScale {
     float inv_h;  // 1 / true hits in the batch
     LossWeights weight;
     float huber_delta;
+    NormalLoss normal_loss;
+    float chord_epsilon;
     std::uint32_t materials;
 };
 
@@ -545,15 +547,25 @@ void distance_loss(const Geometry& geo, const Sample& s, const RayPoints& p, con
     g[OutputLayout::distance] = k.weight.distance * std::clamp(e / delta, -1.0f, 1.0f) * k.inv_h;
 }
 
-// Normal: 1 - cos(angle) between the raw output and the unit target normal.
+// Normal: a function of c = cos(angle) between the raw output and the unit target normal
+// (NormalLoss): 1 - c, or the smoothed chord q - ε with q = sqrt(2 (1 - c) + ε²), whose
+// derivative in c is -1/q.
 void normal_loss(const Sample& s, const float* o, const LossScale& k, LossParts& loss, float* g) {
     const float* n = o + OutputLayout::normal;
     const float len = std::sqrt(n[0] * n[0] + n[1] * n[1] + n[2] * n[2]) + 1e-12f;
     const float c = (n[0] * s.normal[0] + n[1] * s.normal[1] + n[2] * s.normal[2]) / len;
-    loss.normal += double(1.0f - c) * k.inv_h;
+    float dc = 1.0f;  // -dL/dc
+    if (k.normal_loss == NormalLoss::chord) {
+        const float eps = k.chord_epsilon;
+        const float q = std::sqrt(2.0f * std::max(0.0f, 1.0f - c) + eps * eps);
+        loss.normal += double(q - eps) * k.inv_h;
+        dc = 1.0f / q;
+    } else {
+        loss.normal += double(1.0f - c) * k.inv_h;
+    }
     for (int a = 0; a < 3; ++a)
         g[OutputLayout::normal + a] =
-            -k.weight.normal * k.inv_h * (s.normal[a] / len - c * n[a] / (len * len));
+            -dc * k.weight.normal * k.inv_h * (s.normal[a] / len - c * n[a] / (len * len));
 }
 
 // Material: softmax cross-entropy over the material logits (materials > 0).
@@ -816,7 +828,11 @@ LossParts Trainer::loss_and_gradients(const PreparedSet& set, std::span<const st
     std::size_t hits = 0;
     for (std::uint32_t i : batch) hits += set.samples[i].hit != 0;
     const LossScale scale{1.0f / float(std::max<std::size_t>(1, B)),
-                          1.0f / float(std::max<std::size_t>(1, hits)), cfg_.loss, cfg_.huber_delta,
+                          1.0f / float(std::max<std::size_t>(1, hits)),
+                          cfg_.loss,
+                          cfg_.huber_delta,
+                          cfg_.normal_loss,
+                          cfg_.normal_chord_epsilon,
                           desc_.material_count};
     const std::size_t per = (B + threads_ - 1) / threads_;
     parallel(threads_, [&](std::uint32_t t) {

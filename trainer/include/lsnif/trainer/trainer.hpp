@@ -43,6 +43,17 @@ struct LossWeights {
     float material = 0.1f;
 };
 
+// Shape of the normal loss, a function of the angle θ between the predicted direction (the
+// raw output, normalized) and the unit target normal:
+//   cosine: 1 - cos θ ≈ θ²/2, a squared error on unit vectors. Its gradient fades as θ -> 0,
+//           so the large errors of a batch decide most of a step.
+//   chord:  sqrt(2 (1 - cos θ) + ε²) - ε, the chord |n̂ - n| = 2 sin(θ/2) ≈ θ smoothed below
+//           ε: an absolute error, whose gradient keeps its size down to θ ≈ ε, so the typical
+//           hit pulls as hard as the outliers. The metric users read is the median angle;
+//           on CGAL's dragon and armadillo this shape lowers it by 1-2 degrees at equal
+//           visibility and steps (docs/model.md "The normal loss").
+enum class NormalLoss : std::uint8_t { cosine, chord };
+
 // Arithmetic of the MLP matrix products inside training steps (loss_and_gradients: forward
 // hidden and output layers, input gradients, weight gradients). bf16 rounds the operands of
 // those products to bfloat16 and runs them with fp32 accumulation on Intel AMX tiles, or
@@ -73,8 +84,10 @@ struct TrainConfig {
     // down to final_lr_fraction of the initial rate at the last step.
     float decay_start = 0.4f;
     float final_lr_fraction = 0.05f;
-    float huber_delta = 0.01f;     // distance loss: quadratic below this error (diagonal units)
-    float grad_clip_norm = 10.0f;  // global L2 norm of all gradients; <= 0 disables
+    float huber_delta = 0.01f;  // distance loss: quadratic below this error (diagonal units)
+    NormalLoss normal_loss = NormalLoss::cosine;
+    float normal_chord_epsilon = 0.01f;  // ε of NormalLoss::chord (in chord length, ~radians)
+    float grad_clip_norm = 10.0f;        // global L2 norm of all gradients; <= 0 disables
     LossWeights loss;
     // Divergence guard: a step whose loss is non-finite, or above divergence_factor x the
     // running mean after warm-up, is undone: parameters roll back to the last snapshot
