@@ -1,5 +1,6 @@
 // lsnif::base: the shared helpers (thread pool, random numbers, affine transforms, result).
 #include <lsnif/base/affine.hpp>
+#include <lsnif/base/huge_pages.hpp>
 #include <lsnif/base/parallel.hpp>
 #include <lsnif/base/random.hpp>
 #include <lsnif/base/result.hpp>
@@ -8,6 +9,8 @@
 
 #include <atomic>
 #include <cmath>
+#include <cstdint>
+#include <cstring>
 #include <stdexcept>
 #include <string>
 #include <thread>
@@ -137,4 +140,18 @@ TEST_CASE("Result holds a value or an error") {
     CHECK(*good == 7);
     CHECK_FALSE(bad);
     CHECK(bad.error().message == "no");
+}
+
+TEST_CASE("allocate_large: large blocks on 2 MiB boundaries, small ones from operator new, all usable") {
+    for (const std::size_t n :
+         {std::size_t(1), std::size_t(4096), lsnif::base::kHugePageBytes - 1, lsnif::base::kHugePageBytes,
+          lsnif::base::kHugePageBytes + 1, std::size_t(5) * lsnif::base::kHugePageBytes + 123}) {
+        auto* p = static_cast<unsigned char*>(lsnif::base::allocate_large(n));
+        REQUIRE(p != nullptr);
+        if (n >= lsnif::base::kHugePageBytes)
+            CHECK(reinterpret_cast<std::uintptr_t>(p) % lsnif::base::kHugePageBytes == 0);
+        std::memset(p, 0xA5, n);  // every byte writable (ASan checks the bounds)
+        CHECK(p[n - 1] == 0xA5);
+        lsnif::base::free_large(p, n);
+    }
 }
