@@ -4,6 +4,7 @@
 #include <lsnif/analytic/spheres.hpp>
 #include <lsnif/trainer/streamed.hpp>
 
+#include <cstring>
 #include <map>
 
 using namespace lsnif;
@@ -136,4 +137,46 @@ TEST_CASE("train_streamed stops when the progress callback says so, and draws no
     Trainer full(d, all.occupancy(d), small_config());
     CHECK_FALSE(train_streamed(full, all, plan, [](const Progress&) { return true; }).stopped);
     CHECK(full.step_count() == 30);
+}
+
+// The window of rounds is built in place: each round's reachable rays are appended after
+// the rounds before it, and the oldest round is dropped from the front. Field by field the
+// window must hold what preparing the live rounds' rays in one go gives.
+TEST_CASE("prepare_append appends a round in sample order; drop_front leaves the later rounds") {
+    const format::ModelDesc d = tiny_desc();
+    CountingSource src(d);
+    TrainConfig cfg = small_config();
+    const Trainer tr(d, src.occupancy(d), cfg);
+    std::vector<Sample> r0, r1, r2;
+    src.generate(1, 1500, r0);
+    src.generate(2, 1700, r1);
+    src.generate(3, 900, r2);
+    const auto same = [](const PreparedSet& a, const PreparedSet& b) {
+        REQUIRE(a.size() == b.size());
+        REQUIRE(a.H == b.H);
+        for (std::size_t i = 0; i < a.size(); ++i) {
+            REQUIRE(std::memcmp(&a.samples[i], &b.samples[i], sizeof(Sample)) == 0);
+            REQUIRE(a.count[i] == b.count[i]);
+            REQUIRE(a.t_near[i] == b.t_near[i]);
+            REQUIRE(a.t_far[i] == b.t_far[i]);
+            REQUIRE(a.t_first[i] == b.t_first[i]);
+            for (std::size_t k = 0; k < std::size_t(a.count[i]) * 3; ++k)
+                REQUIRE(a.g[i * a.H * 3 + k] == b.g[i * b.H * 3 + k]);
+        }
+    };
+    const auto joined = [&](std::vector<const std::vector<Sample>*> rounds) {
+        std::vector<Sample> all;
+        for (const auto* r : rounds) all.insert(all.end(), r->begin(), r->end());
+        return tr.prepare(all);
+    };
+    PreparedSet window;
+    tr.prepare_append(r0, window);
+    const std::size_t n0 = window.size();
+    REQUIRE(n0 > 0);
+    REQUIRE(n0 < r0.size());  // some rays miss every occupied voxel and are dropped
+    tr.prepare_append(r1, window);
+    same(window, joined({&r0, &r1}));
+    window.drop_front(n0);
+    tr.prepare_append(r2, window);
+    same(window, joined({&r1, &r2}));
 }

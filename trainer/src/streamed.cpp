@@ -38,7 +38,6 @@ StreamedResult train_streamed(Trainer& trainer, SampleSource& source, const Stre
     out.rounds = std::min<std::uint64_t>((plan.total_rays + chunk - 1) / chunk, steps);
 
     PreparedSet pool;          // the latest `window` rounds
-    PreparedSet fresh;         // this round's rays (buffers reused)
     std::vector<Sample> rays;  // this round's draw (capacity reused)
     // Room for the whole window up front: a pool that regrows reallocates and copies
     // hundreds of MB, and every fresh page is a page fault.
@@ -52,17 +51,17 @@ StreamedResult train_streamed(Trainer& trainer, SampleSource& source, const Stre
         out.generate_seconds += seconds_since(t0);
 
         t0 = Clock::now();
-        trainer.prepare_into(rays, fresh);
-        for (auto c : fresh.count) out.entry_points += c;
-        out.rays_reaching += fresh.size();
         // Drop the oldest round before adding this one: the pool never holds more than
         // the window, and its buffers stop growing after the first rounds.
         if (in_pool.size() >= window) {
             pool.drop_front(in_pool.front());
             in_pool.pop_front();
         }
-        in_pool.push_back(fresh.size());
-        pool.append(fresh);
+        const std::size_t before = pool.size();
+        trainer.prepare_append(rays, pool);
+        for (std::size_t i = before; i < pool.size(); ++i) out.entry_points += pool.count[i];
+        out.rays_reaching += pool.size() - before;
+        in_pool.push_back(pool.size() - before);
         out.prepare_seconds += seconds_since(t0);
 
         const auto until = std::uint32_t(r + 1 == out.rounds ? steps : steps * (r + 1) / out.rounds);

@@ -192,7 +192,7 @@ struct Trainer::Impl {
     std::vector<std::vector<std::uint8_t>> active;
     std::vector<std::vector<float>> wgrad, bgrad;  // reduced MLP gradient, file layout
     double ema = 0;
-    // prepare_into()'s per-sample scratch, kept across rounds (see PreparedSet).
+    // prepare_append()'s per-sample scratch, kept across rounds (see PreparedSet).
     struct PrepareScratch {
         Buffer<std::uint8_t> ok;
         Buffer<std::uint16_t> count;
@@ -417,11 +417,11 @@ std::vector<float> Trainer::predict_raw(std::span<const Sample> batch) {
 
 PreparedSet Trainer::prepare(std::span<const Sample> samples) const {
     PreparedSet set;
-    prepare_into(samples, set);
+    prepare_append(samples, set);
     return set;
 }
 
-void Trainer::prepare_into(std::span<const Sample> samples, PreparedSet& set) const {
+void Trainer::prepare_append(std::span<const Sample> samples, PreparedSet& set) const {
     const std::uint32_t H = geo_.H;
     const format::OccupancyGrid occ_grid(geo_.V, occupancy_);  // block skipping; same points
     Impl::PrepareScratch& sc = impl_->prep;
@@ -471,6 +471,7 @@ void Trainer::prepare_into(std::span<const Sample> samples, PreparedSet& set) co
         for (std::size_t i = b; i < e; ++i) n += ok[i];
         kept[t + 1] = n;
     });
+    kept[0] = set.size();  // appended after the samples already in the set
     for (std::uint32_t t = 0; t < threads_; ++t) kept[t + 1] += kept[t];
     set.H = H;
     const std::size_t n = kept[threads_];
@@ -971,20 +972,6 @@ float Trainer::step(const PreparedSet& set, std::span<const std::uint32_t> batch
     return loss;
 }
 
-namespace {
-
-// dst += src as one memcpy (insert() would construct element by element through the
-// allocator's construct(), which is not turned into a block copy).
-template <class T>
-void append_block(Buffer<T>& dst, const Buffer<T>& src) {
-    static_assert(std::is_trivially_copyable_v<T>);
-    const std::size_t old = dst.size();
-    dst.resize(old + src.size());
-    if (!src.empty()) std::memcpy(dst.data() + old, src.data(), src.size() * sizeof(T));
-}
-
-}  // namespace
-
 void PreparedSet::reserve(std::size_t n, std::uint32_t h) {
     samples.reserve(n);
     count.reserve(n);
@@ -992,16 +979,6 @@ void PreparedSet::reserve(std::size_t n, std::uint32_t h) {
     t_far.reserve(n);
     t_first.reserve(n);
     g.reserve(n * h * 3);
-}
-
-void PreparedSet::append(const PreparedSet& o) {
-    if (samples.empty()) H = o.H;
-    append_block(samples, o.samples);
-    append_block(count, o.count);
-    append_block(t_near, o.t_near);
-    append_block(t_far, o.t_far);
-    append_block(t_first, o.t_first);
-    append_block(g, o.g);
 }
 
 void PreparedSet::drop_front(std::size_t n) {

@@ -171,11 +171,10 @@ struct PreparedSet {
     Buffer<float> g;  // samples x H x 3 grid coordinates (slots past count unused)
     std::uint32_t H = 0;
     std::size_t size() const { return samples.size(); }
-    // Streaming training data (rounds of fresh rays): appends a copy of another set prepared
-    // by the same trainer (same H), and drops the oldest n samples. Both keep the buffers'
-    // capacity, so a window that is refilled every round stops allocating (fresh pages cost
-    // a page fault each) once it has reached its largest size.
-    void append(const PreparedSet& other);
+    // Streaming training data (rounds of fresh rays, added by Trainer::prepare_append): drops
+    // the oldest n samples. Keeps the buffers' capacity, so a window that is refilled every
+    // round stops allocating (fresh pages cost a page fault each) once it has reached its
+    // largest size.
     void drop_front(std::size_t n);
     // Capacity for n samples of `h` entry points each (no allocation while size() <= n).
     void reserve(std::size_t n, std::uint32_t h);
@@ -201,9 +200,12 @@ public:
 
     // Traces every sample once (multi-threaded); drops those that do not reach the network.
     PreparedSet prepare(std::span<const Sample> samples) const;
-    // The same into `out`, reusing its buffers' capacity (and the trainer's scratch space):
-    // the form for rounds of streamed rays. Not thread-safe with itself.
-    void prepare_into(std::span<const Sample> samples, PreparedSet& out) const;
+    // The same appended to `out` (empty, or prepared by this trainer), in sample order, with
+    // the trainer's scratch space reused: the form for rounds of streamed rays, which land
+    // straight in the window of rounds instead of in a set of their own that is then copied
+    // (every buffer a round first touches costs page faults: BENCHMARKS.md "Huge pages for
+    // the prepared rays"). Not thread-safe with itself.
+    void prepare_append(std::span<const Sample> samples, PreparedSet& out) const;
 
     // Trains cfg.steps steps on random batches (with replacement) from `samples`.
     // Deterministic for (seed, threads, samples).
