@@ -145,8 +145,7 @@ TEST_CASE("train_streamed stops when the progress callback says so, and draws no
 TEST_CASE("prepare_append appends a round in sample order; drop_front leaves the later rounds") {
     const format::ModelDesc d = tiny_desc();
     CountingSource src(d);
-    TrainConfig cfg = small_config();
-    const Trainer tr(d, src.occupancy(d), cfg);
+    const Trainer tr(d, src.occupancy(d), small_config());
     std::vector<Sample> r0, r1, r2;
     src.generate(1, 1500, r0);
     src.generate(2, 1700, r1);
