@@ -249,7 +249,7 @@ json bench_infer(const BenchOptions& o) {
                 base::run_on_threads(T, [&](std::uint32_t t) {
                     std::vector<format::RayPoints> pts(kChunk);
                     std::vector<format::TraceStatus> status(kChunk);
-                    std::vector<float> row(rt.geo.input_width);
+                    std::vector<float> row(kChunk * rt.geo.input_width);
                     const std::size_t b = std::min(reach.size(), t * per),
                                       e = std::min(reach.size(), b + per);
                     for (std::size_t c = b; c < e; c += kChunk)
@@ -269,9 +269,11 @@ json bench_infer(const BenchOptions& o) {
         };
         auto walk_encode = [&](std::span<const format::Ray> rays, auto& pts, auto& status, auto& row) {
             walk(rays, pts, status, row);
+            std::uint32_t which[kChunk];
+            std::size_t k = 0;
             for (std::size_t i = 0; i < rays.size(); ++i)
-                if (status[i] == format::TraceStatus::ok)
-                    format::encode_points(rt.geo, grid.data(), pts[i], row.data());
+                if (status[i] == format::TraceStatus::ok) which[k++] = std::uint32_t(i);
+            format::encode_batch(rt.geo, grid.data(), pts.data(), std::span(which, k), row.data());
         };
         return json{{"walk_scalar_rays_per_second", rate(scalar_walk)},
                     {"walk_rays_per_second", rate(walk)},

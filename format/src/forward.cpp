@@ -18,6 +18,7 @@
 // GCC 12's AVX-512 intrinsics start from _mm*_undefined_*(), which -Wmaybe-uninitialized
 // reports as a use of an uninitialized value (a false positive).
 #pragma GCC diagnostic ignored "-Wmaybe-uninitialized"
+#pragma GCC diagnostic ignored "-Wuninitialized"
 #elif defined(__F16C__)
 #include <immintrin.h>
 #endif
@@ -193,7 +194,9 @@ struct PlainLoader {
     }
 };
 
-// Interpolates one level from precomputed corners.
+// Interpolates one level from precomputed corners: per feature, starting from 0, one
+// explicitly fused multiply-add per corner in corner order, so every build and the
+// 16-point encoder (encode_batch) round it the same way.
 template <class T, class Load>
 void accumulate_level(const Corners& c, const T* table, std::uint32_t stride, std::uint32_t F, Load load,
                       float* dst) {
@@ -201,9 +204,9 @@ void accumulate_level(const Corners& c, const T* table, std::uint32_t stride, st
         float a0 = 0, a1 = 0, a2 = 0;
         for (std::uint32_t k = 0; k < c.n; ++k) {
             const T* src = table + std::size_t(c.index[k]) * stride;
-            a0 += c.weight[k] * load(src);
-            a1 += c.weight[k] * load(src + 1);
-            a2 += c.weight[k] * load(src + 2);
+            a0 = std::fma(c.weight[k], load(src), a0);
+            a1 = std::fma(c.weight[k], load(src + 1), a1);
+            a2 = std::fma(c.weight[k], load(src + 2), a2);
         }
         dst[0] = a0, dst[1] = a1, dst[2] = a2;
         return;
@@ -211,7 +214,7 @@ void accumulate_level(const Corners& c, const T* table, std::uint32_t stride, st
     for (std::uint32_t f = 0; f < F; ++f) dst[f] = 0.0f;
     for (std::uint32_t k = 0; k < c.n; ++k) {
         const T* src = table + std::size_t(c.index[k]) * stride;
-        for (std::uint32_t f = 0; f < F; ++f) dst[f] += c.weight[k] * load(src + f);
+        for (std::uint32_t f = 0; f < F; ++f) dst[f] = std::fma(c.weight[k], load(src + f), dst[f]);
     }
 }
 
@@ -220,6 +223,10 @@ std::size_t element_size(GridElement e) {
 }
 
 }  // namespace
+
+namespace {
+void encode_ray_inputs(const Geometry& geo, const RayPoints& pts, float* row);
+}
 
 void encode_points(const Geometry& geo, const GridView* grid, const RayPoints& pts, float* row) {
     const std::uint32_t F = geo.F, L = geo.L;
@@ -256,10 +263,172 @@ void encode_points(const Geometry& geo, const GridView* grid, const RayPoints& p
                     break;
             }
         }
-    std::memset(row + std::size_t(pts.count) * L * F, 0,
-                sizeof(float) * (std::size_t(geo.H) - pts.count) * L * F);
+    encode_ray_inputs(geo, pts, row);
+}
+
+namespace {
+
+// What encode_points writes besides the occupied slots' features: zeros for the empty
+// slots, then the ray inputs the model has.
+void encode_ray_inputs(const Geometry& geo, const RayPoints& pts, float* row) {
+    const std::size_t slot = std::size_t(geo.L) * geo.F;
+    std::memset(row + pts.count * slot, 0, sizeof(float) * (geo.H - pts.count) * slot);
     if (geo.direction_width) std::memcpy(row + geo.point_width, pts.dir, sizeof(pts.dir));
     if (geo.offset_width) entry_offsets(geo, pts, row + geo.point_width + geo.direction_width);
+}
+
+#if LSNIF_HAVE_X86
+
+#define LSNIF_AVX512 __attribute__((target("avx512f,avx512vl,avx512bw,avx512dq,fma")))
+
+// The points of a batch of rays as structure-of-arrays, one entry per occupied slot:
+// its grid coordinates and where its level features go (float offset into the rows).
+struct PointList {
+    std::vector<float> g[3];
+    std::vector<std::int32_t> out;
+    std::size_t n = 0;
+};
+
+// Per axis of 16 points at one level: the lower and upper lattice corner's term of the
+// index (prime product for a hashed level, stride power for a dense one), trilinear
+// factor and whether the factor is non-zero. The operations are level_corners_avx512's,
+// lane by lane.
+struct AxisCorners {
+    __m512i term[2];
+    __m512 weight[2];
+    __mmask16 nonzero[2];
+};
+
+LSNIF_AVX512 inline AxisCorners axis_corners(const LevelInfo& lv, __m512 g, std::uint32_t multiplier) {
+    const __m512 s = _mm512_mul_ps(g, _mm512_set1_ps(lv.scale));
+    __m512 fl = _mm512_roundscale_ps(s, _MM_FROUND_TO_NEG_INF | _MM_FROUND_NO_EXC);
+    fl = _mm512_mask_blend_ps(_mm512_cmp_ps_mask(fl, _mm512_set1_ps(float(lv.res)), _CMP_GE_OQ), fl,
+                              _mm512_set1_ps(float(lv.res - 1)));  // s == res: last cell
+    fl = _mm512_mask_blend_ps(_mm512_cmp_ps_mask(fl, _mm512_setzero_ps(), _CMP_LT_OQ), fl, _mm512_setzero_ps());
+    const __m512 f =
+        _mm512_min_ps(_mm512_set1_ps(1.0f), _mm512_max_ps(_mm512_setzero_ps(), _mm512_sub_ps(s, fl)));
+    const __m512i i0 = _mm512_cvttps_epi32(fl);
+    const __m512i m = _mm512_set1_epi32(int(multiplier));
+    AxisCorners c;
+    c.term[0] = _mm512_mullo_epi32(i0, m);
+    c.term[1] = _mm512_mullo_epi32(_mm512_add_epi32(i0, _mm512_set1_epi32(1)), m);
+    c.weight[0] = _mm512_sub_ps(_mm512_set1_ps(1.0f), f);
+    c.weight[1] = f;
+    for (int b = 0; b < 2; ++b) c.nonzero[b] = _mm512_cmp_ps_mask(c.weight[b], _mm512_setzero_ps(), _CMP_NEQ_OQ);
+    return c;
+}
+
+// Feature f (< 4) of the rows at element offsets `off` (row * stride) of a table, for the
+// lanes in k (0 elsewhere), converted to f32 exactly as the scalar loaders do.
+LSNIF_AVX512 inline void load_features(const GridView& g, __m512i off, __mmask16 k, std::uint32_t F,
+                                       __m512 (&v)[4]) {
+    const __m512i zero = _mm512_setzero_si512();
+    switch (g.element) {
+        case GridElement::u8: {  // one dword holds the row's features (stride >= 4)
+            const __m512i q = _mm512_mask_i32gather_epi32(zero, k, off, g.data, 1);
+            const __m512i byte = _mm512_set1_epi32(0xFF);
+            for (std::uint32_t f = 0; f < F; ++f) {
+                const __m512 x = _mm512_cvtepi32_ps(_mm512_and_si512(_mm512_srli_epi32(q, int(8 * f)), byte));
+                v[f] = _mm512_fmadd_ps(x, _mm512_set1_ps(g.scale), _mm512_set1_ps(g.offset));
+            }
+            break;
+        }
+        case GridElement::f16:  // two dwords hold halves 0-1 and 2-3 (stride >= 4)
+            for (std::uint32_t f = 0; f < F; f += 2) {
+                const __m512i h = _mm512_mask_i32gather_epi32(
+                    zero, k, _mm512_add_epi32(off, _mm512_set1_epi32(int(f))), g.data, 2);
+                v[f] = _mm512_cvtph_ps(_mm512_cvtepi32_epi16(h));
+                if (f + 1 < F) v[f + 1] = _mm512_cvtph_ps(_mm512_cvtepi32_epi16(_mm512_srli_epi32(h, 16)));
+            }
+            break;
+        case GridElement::f32:
+            for (std::uint32_t f = 0; f < F; ++f)
+                v[f] = _mm512_mask_i32gather_ps(_mm512_setzero_ps(), k,
+                                                _mm512_add_epi32(off, _mm512_set1_epi32(int(f))), g.data, 4);
+            break;
+    }
+}
+
+// One level's F features of points [i, i + 16) of `pl` (lanes past pl.n masked off),
+// written to the rows: encode_points' per-point arithmetic, 16 points per vector. Each
+// corner with a zero factor is masked out of the sum, as level_corners drops it.
+LSNIF_AVX512 void encode_level16(const Geometry& geo, const LevelInfo& lv, const GridView& g,
+                                 std::uint32_t level, const PointList& pl, std::size_t i, float* rows) {
+    const std::uint32_t F = geo.F;
+    const __mmask16 lanes = pl.n - i >= 16 ? __mmask16(0xFFFF) : __mmask16((1u << (pl.n - i)) - 1);
+    const std::uint32_t mult[3] = {lv.dense ? 1u : geo.primes[0], lv.dense ? lv.stride : geo.primes[1],
+                                   lv.dense ? lv.stride * lv.stride : geo.primes[2]};
+    AxisCorners ax[3];
+    for (int a = 0; a < 3; ++a) ax[a] = axis_corners(lv, _mm512_maskz_loadu_ps(lanes, pl.g[a].data() + i), mult[a]);
+    const __m512i mask = _mm512_set1_epi32(int(lv.mask));
+    const __m512i stride = _mm512_set1_epi32(int(g.stride));
+    __m512 acc[4] = {_mm512_setzero_ps(), _mm512_setzero_ps(), _mm512_setzero_ps(), _mm512_setzero_ps()};
+    // Corner c = x + 2y + 4z, the scalar loops' order (x fastest).
+#pragma GCC unroll 8
+    for (int c = 0; c < 8; ++c) {
+        const int x = c & 1, y = (c >> 1) & 1, z = c >> 2;
+        const __mmask16 k = lanes & ax[0].nonzero[x] & ax[1].nonzero[y] & ax[2].nonzero[z];
+        if (!k) continue;
+        const __m512i idx =
+            lv.dense ? _mm512_add_epi32(_mm512_add_epi32(ax[0].term[x], ax[1].term[y]), ax[2].term[z])
+                     : _mm512_and_si512(
+                           _mm512_xor_si512(_mm512_xor_si512(ax[0].term[x], ax[1].term[y]), ax[2].term[z]), mask);
+        const __m512 w = _mm512_mul_ps(_mm512_mul_ps(ax[0].weight[x], ax[1].weight[y]), ax[2].weight[z]);
+        __m512 v[4];
+        load_features(g, _mm512_mullo_epi32(idx, stride), k, F, v);
+        for (std::uint32_t f = 0; f < F; ++f) acc[f] = _mm512_mask3_fmadd_ps(w, v[f], acc[f], k);
+    }
+    const __m512i out = _mm512_maskz_loadu_epi32(lanes, pl.out.data() + i);
+    for (std::uint32_t f = 0; f < F; ++f)
+        _mm512_mask_i32scatter_ps(rows, lanes, _mm512_add_epi32(out, _mm512_set1_epi32(int(level * F + f))),
+                                  acc[f], 4);
+}
+
+// The vector encoder handles tables whose rows it can read with dword gathers.
+bool encode_batch_supported(const Geometry& geo, const GridView* grid) {
+    if (geo.F > 4) return false;
+    for (std::uint32_t l = 0; l < geo.L; ++l)
+        if (grid[l].element != GridElement::f32 && grid[l].stride < 4) return false;
+    return true;
+}
+
+LSNIF_AVX512 void encode_batch_avx512(const Geometry& geo, const GridView* grid, const RayPoints* pts,
+                                      std::span<const std::uint32_t> which, float* rows) {
+    thread_local PointList pl;
+    std::size_t total = 0;
+    for (const std::uint32_t r : which) total += pts[r].count;
+    for (auto& v : pl.g) v.resize(total);
+    pl.out.resize(total);
+    pl.n = total;
+    const std::size_t slot = std::size_t(geo.L) * geo.F;
+    std::size_t i = 0;
+    for (std::size_t j = 0; j < which.size(); ++j) {
+        const RayPoints& p = pts[which[j]];
+        for (std::uint32_t h = 0; h < p.count; ++h, ++i) {
+            for (int a = 0; a < 3; ++a) pl.g[a][i] = p.g[h][a];
+            pl.out[i] = std::int32_t(j * geo.input_width + h * slot);
+        }
+        encode_ray_inputs(geo, p, rows + j * geo.input_width);
+    }
+    for (std::uint32_t l = 0; l < geo.L; ++l)
+        for (std::size_t b = 0; b < total; b += 16) encode_level16(geo, geo.levels[l], grid[l], l, pl, b, rows);
+}
+
+#undef LSNIF_AVX512
+
+#endif
+
+}  // namespace
+
+void encode_batch(const Geometry& geo, const GridView* grid, const RayPoints* pts,
+                  std::span<const std::uint32_t> which, float* rows) {
+#if LSNIF_HAVE_X86
+    if (cpu_features().avx512 && encode_batch_supported(geo, grid) &&
+        which.size() * geo.input_width <= std::size_t(std::numeric_limits<std::int32_t>::max()))
+        return encode_batch_avx512(geo, grid, pts, which, rows);
+#endif
+    for (std::size_t j = 0; j < which.size(); ++j)
+        encode_points(geo, grid, pts[which[j]], rows + j * geo.input_width);
 }
 
 void entry_offsets(const Geometry& geo, const RayPoints& pts, float* out) {
@@ -565,10 +734,10 @@ IntersectStats intersect(const Runtime& rt, std::span<const Ray> rays, std::span
                     ++st.culled;
                 continue;
             }
-            encode_points(geo, grid.data(), pts[i], input.data() + k * geo.input_width);
             which[k++] = std::uint32_t(i);
         }
         if (!k) continue;
+        encode_batch(geo, grid.data(), pts.data(), std::span(which.data(), k), input.data());
         st.inferred += k;
         const float* out = mlp_forward(rt.net, input.data(), k, scratch);
         for (std::size_t j = 0; j < k; ++j) {

@@ -166,8 +166,10 @@ Shipped read_shipped(const nlohmann::json& mesh, const fs::path& file, const std
     return s;
 }
 
-// The 16-lane voxel walk that intersect() uses gives the scalar walk's entry points bit for
-// bit on the asset's real occupancy grid (tests/format/test_walk.cpp covers the edge cases).
+// The 16-lane voxel walk and the 16-point encoder that intersect() uses give the scalar
+// walk's entry points and the per-ray encoder's rows bit for bit on the asset's real
+// occupancy grid and tables (tests/format/test_walk.cpp and test_forward.cpp cover the edge
+// cases).
 void check_walks_agree(const Shipped& s, const std::string& name) {
     using namespace lsnif::format;
     const Geometry geo = make_geometry(s.model.desc);
@@ -195,6 +197,24 @@ void check_walks_agree(const Shipped& s, const std::string& name) {
                  << traced << " reach the network)");
     CHECK(same == s.rays.size());
     CHECK(traced > s.rays.size() / 2);
+
+    // The 16-point encoder that intersect() uses gives the per-ray encoder's MLP inputs bit
+    // for bit on the asset's own (8-bit or fp16) tables.
+    const Runtime rt = make_runtime(s.model);
+    const auto grid = rt.grid_views();
+    std::vector<std::uint32_t> which;
+    for (std::size_t i = 0; i < s.rays.size(); ++i)
+        if (status[i] == TraceStatus::ok) which.push_back(std::uint32_t(i));
+    std::vector<float> rows(which.size() * geo.input_width), row(geo.input_width);
+    encode_batch(geo, grid.data(), got.data(), which, rows.data());
+    std::size_t rows_same = 0;
+    for (std::size_t j = 0; j < which.size(); ++j) {
+        encode_points(geo, grid.data(), got[which[j]], row.data());
+        rows_same += std::memcmp(row.data(), rows.data() + j * geo.input_width, row.size() * sizeof(float)) == 0;
+    }
+    MESSAGE(name << ": 16-point encoder equals the per-ray encoder on " << rows_same << " of " << which.size()
+                 << " rows");
+    CHECK(rows_same == which.size());
 }
 
 // The surface family split by the side its rays leave from (issue #15 item 1): the front

@@ -178,6 +178,12 @@ struct GridView {
 // level, then feature, empty slots zero; then the ray inputs the model has: pts.dir, and
 // entry_offsets().
 void encode_points(const Geometry& geo, const GridView* grid, const RayPoints& pts, float* row);
+// encode_points(geo, grid, pts[which[j]], rows + j * geo.input_width) for every j, bit for
+// bit, computed level by level for 16 points at a time with AVX-512 where the CPU has it
+// (F <= 4 and fp16/u8 rows padded to 4 elements, as Runtime keeps them; otherwise one ray
+// at a time). Rows must not overlap; any number of threads may call it on their own rows.
+void encode_batch(const Geometry& geo, const GridView* grid, const RayPoints* pts,
+                  std::span<const std::uint32_t> which, float* rows);
 
 // ---- MLP --------------------------------------------------------------------------------
 
