@@ -148,10 +148,13 @@ LSNIF_BF16_TARGET void pack_transposed_avx512(const float* src, std::size_t rows
 // of A (the bf16 pair A[r][2p], A[r][2p+1]) with B's VNNI row p (16 such pairs) and adds
 // both products to each fp32 lane: the VNNI layout the AMX path uses serves here unchanged.
 // With MB = 6, NV = 4: 24 accumulators, 4 B vectors and one broadcast in 29 of 32 registers.
+// The block runs over pairs [0, head) and [tail, pairs) (head <= tail <= pairs): the rows'
+// pairs in between are zero (ZeroColumns) and add nothing.
 template <int MB, int NV>
-LSNIF_BF16_TARGET void dp_block(std::size_t r0, std::size_t j0, std::size_t n, std::size_t pairs,
-                                const Bf16* a, std::size_t lda, const Bf16* b, std::size_t ldb, float* c,
-                                std::size_t ldc, const Epilogue& e) {
+LSNIF_BF16_TARGET void dp_block(std::size_t r0, std::size_t j0, std::size_t n, std::size_t head,
+                                std::size_t tail, std::size_t pairs, const Bf16* a, std::size_t lda,
+                                const Bf16* b, std::size_t ldb, float* c, std::size_t ldc,
+                                const Epilogue& e) {
     __m512 acc[MB][NV];
     __mmask16 mask[NV];
     for (int v = 0; v < NV; ++v) mask[v] = lane_mask16(j0 + 16 * v, n);
@@ -162,7 +165,7 @@ LSNIF_BF16_TARGET void dp_block(std::size_t r0, std::size_t j0, std::size_t n, s
                                      : _mm512_setzero_ps();
     const Bf16* arow = a + r0 * lda;
     const Bf16* bcol = b + 2 * j0;
-    for (std::size_t p = 0; p < pairs; ++p) {
+    const auto pair_step = [&](std::size_t p) LSNIF_BF16_TARGET {
         __m512bh bv[NV];
         for (int v = 0; v < NV; ++v) bv[v] = (__m512bh)_mm512_loadu_si512(bcol + p * ldb + 32 * v);
         for (int m = 0; m < MB; ++m) {
@@ -171,7 +174,9 @@ LSNIF_BF16_TARGET void dp_block(std::size_t r0, std::size_t j0, std::size_t n, s
             const __m512bh av = (__m512bh)_mm512_set1_epi32(pair);
             for (int v = 0; v < NV; ++v) acc[m][v] = _mm512_dpbf16_ps(acc[m][v], av, bv[v]);
         }
-    }
+    };
+    for (std::size_t p = 0; p < head; ++p) pair_step(p);
+    for (std::size_t p = tail; p < pairs; ++p) pair_step(p);
     for (int m = 0; m < MB; ++m)
         for (int v = 0; v < NV; ++v) {
             // ReLU as a masked move: x > 0 ? x : +0, like dense_layer (GCC 12 warns falsely
@@ -184,22 +189,42 @@ LSNIF_BF16_TARGET void dp_block(std::size_t r0, std::size_t j0, std::size_t n, s
         }
 }
 
+// The pairs of rows [r, r + rows) that ZeroColumns does not rule out: [0, head), [tail, pairs).
+struct PairRange {
+    std::size_t head, tail;
+};
+inline PairRange live_pairs(const ZeroColumns* zeros, std::size_t r, std::size_t rows, std::size_t pairs) {
+    if (!zeros) return {pairs, pairs};
+    std::uint32_t lead = 0;
+    for (std::size_t i = r; i < r + rows; ++i) lead = std::max(lead, zeros->lead[i]);
+    const std::size_t tail = zeros->tail / 2;  // a pair straddling `tail` stays in
+    const std::size_t head = std::min<std::size_t>((lead + 1) / 2, tail);
+    return head == tail ? PairRange{pairs, pairs} : PairRange{head, tail};
+}
+
 template <int NV>
 LSNIF_BF16_TARGET void dp_columns(std::size_t j0, std::size_t m, std::size_t n, std::size_t pairs,
                                   const Bf16* a, std::size_t lda, const Bf16* b, std::size_t ldb, float* c,
-                                  std::size_t ldc, const Epilogue& e) {
+                                  std::size_t ldc, const Epilogue& e, const ZeroColumns* zeros) {
     constexpr std::size_t MB = 6;
     std::size_t r = 0;
-    for (; r + MB <= m; r += MB) dp_block<MB, NV>(r, j0, n, pairs, a, lda, b, ldb, c, ldc, e);
-    for (; r < m; ++r) dp_block<1, NV>(r, j0, n, pairs, a, lda, b, ldb, c, ldc, e);
+    for (; r + MB <= m; r += MB) {
+        const PairRange live = live_pairs(zeros, r, MB, pairs);
+        dp_block<MB, NV>(r, j0, n, live.head, live.tail, pairs, a, lda, b, ldb, c, ldc, e);
+    }
+    for (; r < m; ++r) {
+        const PairRange live = live_pairs(zeros, r, 1, pairs);
+        dp_block<1, NV>(r, j0, n, live.head, live.tail, pairs, a, lda, b, ldb, c, ldc, e);
+    }
 }
 
 LSNIF_BF16_TARGET void gemm_dp(std::size_t m, std::size_t n, std::size_t k, const Bf16* a, std::size_t lda,
-                               const Bf16* b, std::size_t ldb, float* c, std::size_t ldc, const Epilogue& e) {
+                               const Bf16* b, std::size_t ldb, float* c, std::size_t ldc, const Epilogue& e,
+                               const ZeroColumns* zeros) {
     const std::size_t pairs = k / 2;
     std::size_t j = 0;
-    for (; j + 64 <= n; j += 64) dp_columns<4>(j, m, n, pairs, a, lda, b, ldb, c, ldc, e);
-    for (; j < n; j += 16) dp_columns<1>(j, m, n, pairs, a, lda, b, ldb, c, ldc, e);
+    for (; j + 64 <= n; j += 64) dp_columns<4>(j, m, n, pairs, a, lda, b, ldb, c, ldc, e, zeros);
+    for (; j < n; j += 16) dp_columns<1>(j, m, n, pairs, a, lda, b, ldb, c, ldc, e, zeros);
 }
 
 #endif  // LSNIF_HAVE_X86
@@ -232,9 +257,9 @@ void pack_vnni(const float* src, std::size_t k, std::size_t n, std::size_t lds, 
 }
 
 void gemm_bf16_dp(std::size_t m, std::size_t n, std::size_t k, const Bf16* a, std::size_t lda, const Bf16* b,
-                  std::size_t ldb, float* c, std::size_t ldc, const Epilogue& e) {
+                  std::size_t ldb, float* c, std::size_t ldc, const Epilogue& e, const ZeroColumns* zeros) {
 #if LSNIF_HAVE_X86
-    if (m && n && cpu_features().avx512_bf16) return gemm_dp(m, n, k, a, lda, b, ldb, c, ldc, e);
+    if (m && n && cpu_features().avx512_bf16) return gemm_dp(m, n, k, a, lda, b, ldb, c, ldc, e, zeros);
 #endif
     // No AVX-512 BF16: the same product in plain loops (fp32 accumulation of exact bf16
     // products; summation order differs from the kernel's). Far too slow for real work; it

@@ -304,7 +304,8 @@ LSNIF_AVX512 inline AxisCorners axis_corners(const LevelInfo& lv, __m512 g, std:
     __m512 fl = _mm512_roundscale_ps(s, _MM_FROUND_TO_NEG_INF | _MM_FROUND_NO_EXC);
     fl = _mm512_mask_blend_ps(_mm512_cmp_ps_mask(fl, _mm512_set1_ps(float(lv.res)), _CMP_GE_OQ), fl,
                               _mm512_set1_ps(float(lv.res - 1)));  // s == res: last cell
-    fl = _mm512_mask_blend_ps(_mm512_cmp_ps_mask(fl, _mm512_setzero_ps(), _CMP_LT_OQ), fl, _mm512_setzero_ps());
+    fl = _mm512_mask_blend_ps(_mm512_cmp_ps_mask(fl, _mm512_setzero_ps(), _CMP_LT_OQ), fl,
+                              _mm512_setzero_ps());
     const __m512 f =
         _mm512_min_ps(_mm512_set1_ps(1.0f), _mm512_max_ps(_mm512_setzero_ps(), _mm512_sub_ps(s, fl)));
     const __m512i i0 = _mm512_cvttps_epi32(fl);
@@ -314,7 +315,8 @@ LSNIF_AVX512 inline AxisCorners axis_corners(const LevelInfo& lv, __m512 g, std:
     c.term[1] = _mm512_mullo_epi32(_mm512_add_epi32(i0, _mm512_set1_epi32(1)), m);
     c.weight[0] = _mm512_sub_ps(_mm512_set1_ps(1.0f), f);
     c.weight[1] = f;
-    for (int b = 0; b < 2; ++b) c.nonzero[b] = _mm512_cmp_ps_mask(c.weight[b], _mm512_setzero_ps(), _CMP_NEQ_OQ);
+    for (int b = 0; b < 2; ++b)
+        c.nonzero[b] = _mm512_cmp_ps_mask(c.weight[b], _mm512_setzero_ps(), _CMP_NEQ_OQ);
     return c;
 }
 
@@ -359,7 +361,8 @@ LSNIF_AVX512 void encode_level16(const Geometry& geo, const LevelInfo& lv, const
     const std::uint32_t mult[3] = {lv.dense ? 1u : geo.primes[0], lv.dense ? lv.stride : geo.primes[1],
                                    lv.dense ? lv.stride * lv.stride : geo.primes[2]};
     AxisCorners ax[3];
-    for (int a = 0; a < 3; ++a) ax[a] = axis_corners(lv, _mm512_maskz_loadu_ps(lanes, pl.g[a].data() + i), mult[a]);
+    for (int a = 0; a < 3; ++a)
+        ax[a] = axis_corners(lv, _mm512_maskz_loadu_ps(lanes, pl.g[a].data() + i), mult[a]);
     const __m512i mask = _mm512_set1_epi32(int(lv.mask));
     const __m512i stride = _mm512_set1_epi32(int(g.stride));
     __m512 acc[4] = {_mm512_setzero_ps(), _mm512_setzero_ps(), _mm512_setzero_ps(), _mm512_setzero_ps()};
@@ -370,9 +373,10 @@ LSNIF_AVX512 void encode_level16(const Geometry& geo, const LevelInfo& lv, const
         const __mmask16 k = lanes & ax[0].nonzero[x] & ax[1].nonzero[y] & ax[2].nonzero[z];
         if (!k) continue;
         const __m512i idx =
-            lv.dense ? _mm512_add_epi32(_mm512_add_epi32(ax[0].term[x], ax[1].term[y]), ax[2].term[z])
-                     : _mm512_and_si512(
-                           _mm512_xor_si512(_mm512_xor_si512(ax[0].term[x], ax[1].term[y]), ax[2].term[z]), mask);
+            lv.dense
+                ? _mm512_add_epi32(_mm512_add_epi32(ax[0].term[x], ax[1].term[y]), ax[2].term[z])
+                : _mm512_and_si512(
+                      _mm512_xor_si512(_mm512_xor_si512(ax[0].term[x], ax[1].term[y]), ax[2].term[z]), mask);
         const __m512 w = _mm512_mul_ps(_mm512_mul_ps(ax[0].weight[x], ax[1].weight[y]), ax[2].weight[z]);
         __m512 v[4];
         load_features(g, _mm512_mullo_epi32(idx, stride), k, F, v);
@@ -411,7 +415,8 @@ LSNIF_AVX512 void encode_batch_avx512(const Geometry& geo, const GridView* grid,
         encode_ray_inputs(geo, p, rows + j * geo.input_width);
     }
     for (std::uint32_t l = 0; l < geo.L; ++l)
-        for (std::size_t b = 0; b < total; b += 16) encode_level16(geo, geo.levels[l], grid[l], l, pl, b, rows);
+        for (std::size_t b = 0; b < total; b += 16)
+            encode_level16(geo, geo.levels[l], grid[l], l, pl, b, rows);
 }
 
 #undef LSNIF_AVX512
@@ -620,7 +625,8 @@ MlpArithmetic mlp_arithmetic(const Network& net) {
     return net.wt_vnni.empty() ? MlpArithmetic::fp32 : MlpArithmetic::bf16;
 }
 
-const float* mlp_forward(const Network& net, const float* input, std::size_t n, std::vector<float>& scratch) {
+const float* mlp_forward(const Network& net, const float* input, std::size_t n, std::vector<float>& scratch,
+                         const ZeroColumns* input_zeros) {
     const std::size_t w = net.max_width_padded;
     if (scratch.size() < 2 * n * w) scratch.resize(2 * n * w);
     const bool bf16 = !net.wt_vnni.empty();
@@ -634,8 +640,10 @@ const float* mlp_forward(const Network& net, const float* input, std::size_t n, 
             const std::size_t kp = round_up(net.in[k], 32);
             if (rows.size() < n * kp) rows.resize(n * kp);
             pack_rows(src, n, net.in[k], lda, rows.data(), kp, n);
-            gemm_bf16_dp(n, net.out_padded[k], kp, rows.data(), kp, net.wt_vnni[k].data(),
-                         2 * net.out_padded[k], dst, net.out_padded[k], {net.bias[k].data(), true, false});
+            // K stops at the inputs rounded to a pair: the padding beyond holds zeros.
+            gemm_bf16_dp(n, net.out_padded[k], round_up(net.in[k], 2), rows.data(), kp, net.wt_vnni[k].data(),
+                         2 * net.out_padded[k], dst, net.out_padded[k], {net.bias[k].data(), true, false},
+                         k == 0 ? input_zeros : nullptr);
         } else {
             dense_layer(src, n, net.in[k], lda, net.wt[k].data(), net.bias[k].data(), net.out_padded[k],
                         k + 1 < layers, dst);
@@ -706,17 +714,33 @@ std::uint64_t Runtime::grid_bytes() const {
     return n;
 }
 
+namespace {
+
+// Reorders `which` by decreasing pts[which[j]].count (<= H), stably (a counting sort).
+void sort_by_count(const RayPoints* pts, std::span<std::uint32_t> which, std::uint32_t H) {
+    thread_local std::vector<std::uint32_t> start, sorted;
+    start.assign(H + 2, 0);
+    for (const std::uint32_t r : which) ++start[H - pts[r].count + 1];
+    for (std::uint32_t c = 1; c <= H + 1; ++c) start[c] += start[c - 1];
+    sorted.resize(which.size());
+    for (const std::uint32_t r : which) sorted[start[H - pts[r].count]++] = r;
+    std::copy(sorted.begin(), sorted.end(), which.begin());
+}
+
+}  // namespace
+
 IntersectStats intersect(const Runtime& rt, std::span<const Ray> rays, std::span<Hit> hits) {
     constexpr std::size_t kChunk = 256;
     thread_local std::vector<RayPoints> pts;
     thread_local std::vector<TraceStatus> status;
     thread_local std::vector<float> input, scratch;
-    thread_local std::vector<std::uint32_t> which;
+    thread_local std::vector<std::uint32_t> which, lead;
     const Geometry& geo = rt.geo;
     pts.resize(kChunk);
     status.resize(kChunk);
     input.resize(kChunk * geo.input_width);
     which.resize(kChunk);
+    lead.resize(kChunk);
     const auto grid = rt.grid_views();
     const std::size_t outp = rt.net.out_padded.back();
     IntersectStats st;
@@ -737,9 +761,14 @@ IntersectStats intersect(const Runtime& rt, std::span<const Ray> rays, std::span
             which[k++] = std::uint32_t(i);
         }
         if (!k) continue;
+        // Rows in decreasing point count, so the first layer's blocks of rows skip alike
+        // runs of empty slots.
+        sort_by_count(pts.data(), std::span(which.data(), k), geo.H);
         encode_batch(geo, grid.data(), pts.data(), std::span(which.data(), k), input.data());
+        for (std::size_t j = 0; j < k; ++j) lead[j] = pts[which[j]].count * geo.L * geo.F;
+        const ZeroColumns empty_slots{lead.data(), geo.point_width};
         st.inferred += k;
-        const float* out = mlp_forward(rt.net, input.data(), k, scratch);
+        const float* out = mlp_forward(rt.net, input.data(), k, scratch, &empty_slots);
         for (std::size_t j = 0; j < k; ++j) {
             const std::size_t i = base + which[j];
             hits[i] = decode_output(geo, pts[which[j]], rays[i], out + j * outp);

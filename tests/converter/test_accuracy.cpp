@@ -210,7 +210,8 @@ void check_walks_agree(const Shipped& s, const std::string& name) {
     std::size_t rows_same = 0;
     for (std::size_t j = 0; j < which.size(); ++j) {
         encode_points(geo, grid.data(), got[which[j]], row.data());
-        rows_same += std::memcmp(row.data(), rows.data() + j * geo.input_width, row.size() * sizeof(float)) == 0;
+        rows_same +=
+            std::memcmp(row.data(), rows.data() + j * geo.input_width, row.size() * sizeof(float)) == 0;
     }
     MESSAGE(name << ": 16-point encoder equals the per-ray encoder on " << rows_same << " of " << which.size()
                  << " rows");

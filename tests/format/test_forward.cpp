@@ -4,6 +4,7 @@
 
 #include <lsnif/lsnif.h>
 #include <lsnif/format/container.hpp>
+#include <lsnif/format/cpu.hpp>
 #include <lsnif/format/forward.hpp>
 #include <lsnif/format/half.hpp>
 
@@ -330,9 +331,54 @@ TEST_CASE("the 16-point encoder equals the per-ray encoder bit for bit on f32, f
             std::size_t same = 0;
             for (std::size_t j = 0; j < which.size(); ++j) {
                 encode_points(geo, views->data(), pts[which[j]], row.data());
-                same += std::memcmp(row.data(), rows.data() + j * geo.input_width, row.size() * sizeof(float)) == 0;
+                same += std::memcmp(row.data(), rows.data() + j * geo.input_width,
+                                    row.size() * sizeof(float)) == 0;
             }
             CHECK(same == which.size());
+        }
+    }
+}
+
+TEST_CASE("the bf16 product skips the zero columns ZeroColumns names, with the same results") {
+    if (!cpu_features().avx512_bf16) {
+        MESSAGE("no AVX-512 BF16: the skipping kernel is not used on this machine");
+        return;
+    }
+    std::mt19937 rng(5);
+    std::uniform_real_distribution<float> u(-1.f, 1.f);
+    // The inference shapes (129 inputs: 108 point features, then 21 ray inputs) and ragged
+    // ones: odd lead and tail, rows not a multiple of the 6-row block, leads in any order.
+    struct Shape {
+        std::size_t m, n, in, tail;
+    };
+    for (const Shape sh :
+         {Shape{256, 128, 129, 108}, Shape{37, 128, 129, 108}, Shape{13, 48, 71, 51}, Shape{7, 16, 33, 33}}) {
+        CAPTURE(sh.m);
+        CAPTURE(sh.in);
+        const std::size_t kp = round_up(sh.in, 32), n = sh.n;
+        std::vector<std::uint32_t> lead(sh.m);
+        std::vector<float> A(sh.m * sh.in), W(sh.in * n), bias(round_up(n, 16));
+        for (std::size_t r = 0; r < sh.m; ++r) {
+            lead[r] = std::uint32_t(rng() % (sh.tail + 1));
+            if (r % 3 == 0 && r > 0) lead[r] = lead[r - 1];  // runs of equal leads, as sorted rows have
+            for (std::size_t c = 0; c < sh.in; ++c)
+                A[r * sh.in + c] = (c >= lead[r] && c < sh.tail) ? 0.0f : u(rng);
+        }
+        for (float& w : W) w = u(rng);
+        for (float& b : bias) b = u(rng);
+        std::vector<Bf16> a(sh.m * kp), b(kp / 2 * 2 * round_up(n, 16));
+        pack_rows(A.data(), sh.m, sh.in, sh.in, a.data(), kp, sh.m);
+        pack_vnni(W.data(), sh.in, n, n, b.data(), 2 * round_up(n, 16), kp);
+        const ZeroColumns zeros{lead.data(), sh.tail};
+        for (const bool relu : {true, false}) {
+            std::vector<float> full(sh.m * n), skipped(sh.m * n);
+            gemm_bf16_dp(sh.m, n, kp, a.data(), kp, b.data(), 2 * round_up(n, 16), full.data(), n,
+                         {bias.data(), relu, false});
+            gemm_bf16_dp(sh.m, n, round_up(sh.in, 2), a.data(), kp, b.data(), 2 * round_up(n, 16),
+                         skipped.data(), n, {bias.data(), relu, false}, &zeros);
+            std::size_t same = 0;
+            for (std::size_t i = 0; i < full.size(); ++i) same += full[i] == skipped[i];
+            CHECK(same == full.size());
         }
     }
 }

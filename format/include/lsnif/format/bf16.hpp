@@ -73,12 +73,24 @@ struct Epilogue {
     bool accumulate = false;
 };
 
+// Columns of A that hold zeros, which a product may skip: row r of A is zero in columns
+// [lead[r], tail) (lead: m values). The kernel skips them per block of rows up to the
+// block's largest lead, so callers put rows with alike leads next to each other. Skipping
+// changes nothing but the sign of an exactly zero sum (+0 instead of -0): each skipped
+// term is a product of zeros with finite weights.
+struct ZeroColumns {
+    const std::uint32_t* lead;
+    std::size_t tail;
+};
+
 // C[m x n] = epilogue(A[m x k] B[k x n]) with fp32 accumulation of bf16 products, A in the
-// rows layout, B in the VNNI layout. Contract: k even (packers pad K to 32); `a` readable for
-// m rows of lda >= k elements; `b` readable for k / 2 rows of ldb >= 2 * round_up(n, 16)
-// elements with finite padding (the packers write zeros). Only the m x n region of C is
-// written. Thread-safe (no shared state).
+// rows layout, B in the VNNI layout. Contract: k even (packers pad K to 32; k may stop
+// short of the padding, which is zero); `a` readable for m rows of lda >= k elements; `b`
+// readable for k / 2 rows of ldb >= 2 * round_up(n, 16) elements with finite padding (the
+// packers write zeros); `zeros`, if given, true of A (tail <= k). Only the m x n region of
+// C is written. Thread-safe (no shared state).
 void gemm_bf16_dp(std::size_t m, std::size_t n, std::size_t k, const Bf16* a, std::size_t lda, const Bf16* b,
-                  std::size_t ldb, float* c, std::size_t ldc, const Epilogue& e);
+                  std::size_t ldb, float* c, std::size_t ldc, const Epilogue& e,
+                  const ZeroColumns* zeros = nullptr);
 
 }  // namespace lsnif::format

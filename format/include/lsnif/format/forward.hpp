@@ -223,8 +223,11 @@ MlpArithmetic set_mlp_arithmetic(Network& net, MlpArithmetic a);
 MlpArithmetic mlp_arithmetic(const Network& net);
 
 // Runs all layers in the network's arithmetic. `scratch` grows as needed; the result is n
-// rows of net.out_padded.back() floats, returned as a pointer into scratch.
-const float* mlp_forward(const Network& net, const float* input, std::size_t n, std::vector<float>& scratch);
+// rows of net.out_padded.back() floats, returned as a pointer into scratch. `input_zeros`,
+// if given, says which inputs are zero (e.g. the empty point slots, lead = count * L * F,
+// tail = point_width); the bf16 first layer skips them (same results, gemm_bf16_dp).
+const float* mlp_forward(const Network& net, const float* input, std::size_t n, std::vector<float>& scratch,
+                         const ZeroColumns* input_zeros = nullptr);
 
 // ---- decode -------------------------------------------------------------------------------
 
