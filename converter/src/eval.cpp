@@ -701,34 +701,49 @@ void start_later(const GBuffer& gb, const std::vector<float>& surface_tmin, std:
     }
 }
 
-// The three effect images and their combination with one tracer (`hybrid`: LSNIF reader for
-// complex meshes); secondary rays from LSNIF pixels start `surface_tmin` (per instance, world
-// units; empty = at the surface) from it.
-EffectImages render_secondary(const EvalScene& scene, const std::vector<EvalScene::Impl::Instance>& instances,
-                              const GBuffer& gb, const View& v, const EvalOptions& opt, bool hybrid,
-                              const std::vector<float>& surface_tmin, std::uint32_t threads) {
+// The three effect images and their combination, traced row by row with both tracers: the
+// reference (Embree only) and the hybrid (LSNIF reader for complex meshes), whose secondary
+// rays from LSNIF pixels start `surface_tmin` (per instance, world units; empty = at the
+// surface) from it. The two traces of a row run back to back on one thread, so the machine's
+// drifts (shared hosts, frequency) hit both sides of the time ratio alike.
+struct BothImages {
+    EffectImages reference, hybrid;
+};
+
+BothImages render_secondary(const EvalScene& scene, const std::vector<EvalScene::Impl::Instance>& instances,
+                            const GBuffer& gb, const View& v, const EvalOptions& opt,
+                            const std::vector<float>& surface_tmin, std::uint32_t threads) {
     const std::uint32_t W = v.W, S = std::max(1u, opt.ao_samples);
-    EffectImages out;
-    for (auto& img : out.rgb) img.assign(std::size_t(W) * v.H * 3, 0.0f);
-    std::vector<double> per_thread(threads, 0.0);
+    BothImages out;
+    for (EffectImages* side : {&out.reference, &out.hybrid})
+        for (auto& img : side->rgb) img.assign(std::size_t(W) * v.H * 3, 0.0f);
+    std::vector<double> per_thread[2] = {std::vector<double>(threads, 0.0),
+                                         std::vector<double>(threads, 0.0)};
     base::parallel_chunks(v.H, threads, 1, [&](std::uint32_t t, std::size_t y, std::size_t) {
-        RowRays rr;
-        make_row_rays(gb, v, opt, y, S, rr);
-        if (!surface_tmin.empty()) start_later(gb, surface_tmin, y * W, S, rr);
-        std::vector<std::uint8_t> shadow_occ(rr.shadow.size()), ao_occ(rr.ao.size());
-        std::vector<TraceHit> refl_hit(rr.refl.size());
-        const auto tt = std::chrono::steady_clock::now();
-        scene.occluded(hybrid, rr.shadow, shadow_occ);
-        scene.occluded(hybrid, rr.ao, ao_occ);
-        scene.closest(hybrid, rr.refl, refl_hit);
-        per_thread[t] += seconds_since(tt);
-        for (std::uint32_t x = 0; x < W; ++x)  // background everywhere first
-            for (int e = 0; e < kEffects; ++e)
-                for (int c = 0; c < 3; ++c) out.rgb[e][(y * W + x) * 3 + c] = kBackground[c];
-        for (std::size_t k = 0; k < rr.px.size(); ++k)
-            shade_pixel(gb, v, instances, rr, k, y * W + rr.px[k], S, shadow_occ, ao_occ, refl_hit[k], out);
+        RowRays rays[2];
+        make_row_rays(gb, v, opt, y, S, rays[0]);
+        rays[1] = rays[0];
+        if (!surface_tmin.empty()) start_later(gb, surface_tmin, y * W, S, rays[1]);
+        for (const int side : {0, 1}) {
+            const RowRays& rr = rays[side];
+            EffectImages& img = side ? out.hybrid : out.reference;
+            std::vector<std::uint8_t> shadow_occ(rr.shadow.size()), ao_occ(rr.ao.size());
+            std::vector<TraceHit> refl_hit(rr.refl.size());
+            const auto tt = std::chrono::steady_clock::now();
+            scene.occluded(side == 1, rr.shadow, shadow_occ);
+            scene.occluded(side == 1, rr.ao, ao_occ);
+            scene.closest(side == 1, rr.refl, refl_hit);
+            per_thread[side][t] += seconds_since(tt);
+            for (std::uint32_t x = 0; x < W; ++x)  // background everywhere first
+                for (int e = 0; e < kEffects; ++e)
+                    for (int c = 0; c < 3; ++c) img.rgb[e][(y * W + x) * 3 + c] = kBackground[c];
+            for (std::size_t k = 0; k < rr.px.size(); ++k)
+                shade_pixel(gb, v, instances, rr, k, y * W + rr.px[k], S, shadow_occ, ao_occ, refl_hit[k],
+                            img);
+        }
     });
-    for (double s : per_thread) out.trace_seconds += s;
+    for (double s : per_thread[0]) out.reference.trace_seconds += s;
+    for (double s : per_thread[1]) out.hybrid.trace_seconds += s;
     return out;
 }
 
@@ -838,9 +853,10 @@ EvalResult render_and_compare(const EvalOptions& opt) {
     const auto t0 = std::chrono::steady_clock::now();
     const GBuffer gb = render_primary(*scene, im.instances, view, threads);
     const double primary_seconds = seconds_since(t0);
-    const EffectImages reference = render_secondary(*scene, im.instances, gb, view, opt, false, {}, threads);
-    const EffectImages hybrid = render_secondary(*scene, im.instances, gb, view, opt, true,
-                                                 surface_tmins(im, opt.surface_tmin_voxels), threads);
+    const BothImages both = render_secondary(*scene, im.instances, gb, view, opt,
+                                             surface_tmins(im, opt.surface_tmin_voxels), threads);
+    const EffectImages& reference = both.reference;
+    const EffectImages& hybrid = both.hybrid;
 
     const fs::path images = opt.images_dir.empty() ? fs::path(opt.outdir) / "eval" : fs::path(opt.images_dir);
     if (opt.write_images) {
