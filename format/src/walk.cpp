@@ -614,7 +614,6 @@ LSNIF_AVX512 inline __mmask16 visit_cell(Axis (&ax)[3], __mmask16 vis, __mmask16
 #pragma GCC unroll 3
     for (int a = 0; a < 3; ++a) {
         const __mmask16 m = _mm512_mask_cmp_ps_mask(vis, ax[a].exit, exit, _CMP_EQ_OQ);
-        if (!m) continue;
         const __mmask16 left = step_axis(ax[a], m, vV);
         over |= left;
         vis &= ~left;
