@@ -352,8 +352,9 @@ LSNIF_AVX512 inline void load_features(const GridView& g, __m512i off, __mmask16
 }
 
 // One level's F features of points [i, i + 16) of `pl` (lanes past pl.n masked off),
-// written to the rows: encode_points' per-point arithmetic, 16 points per vector. Each
-// corner with a zero factor is masked out of the sum, as level_corners drops it.
+// written to the rows: encode_points' per-point arithmetic, 16 points per vector. Each lane
+// walks its own live corners (those level_corners keeps: no zero factor) in level_corners'
+// order, so a point on a voxel face of an aligned level costs 4 gathers, not 8.
 LSNIF_AVX512 void encode_level16(const Geometry& geo, const LevelInfo& lv, const GridView& g,
                                  std::uint32_t level, const PointList& pl, std::size_t i, float* rows) {
     const std::uint32_t F = geo.F;
@@ -363,21 +364,40 @@ LSNIF_AVX512 void encode_level16(const Geometry& geo, const LevelInfo& lv, const
     AxisCorners ax[3];
     for (int a = 0; a < 3; ++a)
         ax[a] = axis_corners(lv, _mm512_maskz_loadu_ps(lanes, pl.g[a].data() + i), mult[a]);
+    // Per axis: lanes with both sides live, and lanes whose one live side is the upper one.
+    // A lane's live corners are the product of its axes' live sides; it has n of them.
+    __mmask16 both[3], upper[3];
+    const __m512i one = _mm512_set1_epi32(1);
+    __m512i n = one;
+    for (int a = 0; a < 3; ++a) {
+        both[a] = ax[a].nonzero[0] & ax[a].nonzero[1];
+        upper[a] = __mmask16(~ax[a].nonzero[0]);
+        n = _mm512_mask_slli_epi32(n, both[a], n, 1);
+    }
+    const std::uint32_t slots = _mm512_mask_reduce_max_epu32(lanes, n);
     const __m512i mask = _mm512_set1_epi32(int(lv.mask));
     const __m512i stride = _mm512_set1_epi32(int(g.stride));
     __m512 acc[4] = {_mm512_setzero_ps(), _mm512_setzero_ps(), _mm512_setzero_ps(), _mm512_setzero_ps()};
-    // Corner c = x + 2y + 4z, the scalar loops' order (x fastest).
-#pragma GCC unroll 8
-    for (int c = 0; c < 8; ++c) {
-        const int x = c & 1, y = (c >> 1) & 1, z = c >> 2;
-        const __mmask16 k = lanes & ax[0].nonzero[x] & ax[1].nonzero[y] & ax[2].nonzero[z];
-        if (!k) continue;
+    // Slot s is each lane's s-th live corner in corner order c = x + 2y + 4z (x fastest):
+    // the digits of s, one bit per axis with both sides live, x first.
+    for (std::uint32_t s = 0; s < slots; ++s) {
+        const __mmask16 k = lanes & _mm512_cmpgt_epu32_mask(n, _mm512_set1_epi32(int(s)));
+        __m512i digits = _mm512_set1_epi32(int(s));
+        __mmask16 up[3];
+        for (int a = 0; a < 3; ++a) {
+            up[a] = (both[a] & _mm512_test_epi32_mask(digits, one)) | (~both[a] & upper[a]);
+            digits = _mm512_mask_srli_epi32(digits, both[a], digits, 1);
+        }
+        __m512i term[3];
+        __m512 weight[3];
+        for (int a = 0; a < 3; ++a) {
+            term[a] = _mm512_mask_blend_epi32(up[a], ax[a].term[0], ax[a].term[1]);
+            weight[a] = _mm512_mask_blend_ps(up[a], ax[a].weight[0], ax[a].weight[1]);
+        }
         const __m512i idx =
-            lv.dense
-                ? _mm512_add_epi32(_mm512_add_epi32(ax[0].term[x], ax[1].term[y]), ax[2].term[z])
-                : _mm512_and_si512(
-                      _mm512_xor_si512(_mm512_xor_si512(ax[0].term[x], ax[1].term[y]), ax[2].term[z]), mask);
-        const __m512 w = _mm512_mul_ps(_mm512_mul_ps(ax[0].weight[x], ax[1].weight[y]), ax[2].weight[z]);
+            lv.dense ? _mm512_add_epi32(_mm512_add_epi32(term[0], term[1]), term[2])
+                     : _mm512_and_si512(_mm512_xor_si512(_mm512_xor_si512(term[0], term[1]), term[2]), mask);
+        const __m512 w = _mm512_mul_ps(_mm512_mul_ps(weight[0], weight[1]), weight[2]);
         __m512 v[4];
         load_features(g, _mm512_mullo_epi32(idx, stride), k, F, v);
         for (std::uint32_t f = 0; f < F; ++f) acc[f] = _mm512_mask3_fmadd_ps(w, v[f], acc[f], k);
@@ -406,14 +426,20 @@ LSNIF_AVX512 void encode_batch_avx512(const Geometry& geo, const GridView* grid,
     pl.n = total;
     const std::size_t slot = std::size_t(geo.L) * geo.F;
     std::size_t i = 0;
+    // The rays' first points last: a ray that starts inside a voxel has one there with 8
+    // live corners, and a group of 16 points runs to its largest count of live corners.
+    const auto add = [&](std::size_t j, std::uint32_t h) {
+        const RayPoints& p = pts[which[j]];
+        for (int a = 0; a < 3; ++a) pl.g[a][i] = p.g[h][a];
+        pl.out[i++] = std::int32_t(j * geo.input_width + h * slot);
+    };
     for (std::size_t j = 0; j < which.size(); ++j) {
         const RayPoints& p = pts[which[j]];
-        for (std::uint32_t h = 0; h < p.count; ++h, ++i) {
-            for (int a = 0; a < 3; ++a) pl.g[a][i] = p.g[h][a];
-            pl.out[i] = std::int32_t(j * geo.input_width + h * slot);
-        }
+        for (std::uint32_t h = 1; h < p.count; ++h) add(j, h);
         encode_ray_inputs(geo, p, rows + j * geo.input_width);
     }
+    for (std::size_t j = 0; j < which.size(); ++j)
+        if (pts[which[j]].count) add(j, 0);
     for (std::uint32_t l = 0; l < geo.L; ++l)
         for (std::size_t b = 0; b < total; b += 16)
             encode_level16(geo, geo.levels[l], grid[l], l, pl, b, rows);
