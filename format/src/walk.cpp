@@ -221,27 +221,37 @@ TraceStatus trace_points(const Geometry& geo, const OccupancyGrid& occ, const Ra
 
 OccupancyGrid::OccupancyGrid(std::uint32_t V, std::vector<std::uint8_t> voxel_bits)
     : V(V), bits(std::move(voxel_bits)) {
-    const std::uint32_t nb = (V + kBlock - 1) / kBlock;
-    std::vector<std::uint8_t> blocks(std::size_t(nb) * nb * nb, 0);  // 1 = the block has an occupied voxel
-    auto block_of = [&](std::uint32_t x, std::uint32_t y, std::uint32_t z) {
-        return x / kBlock + nb * (y / kBlock + std::size_t(nb) * (z / kBlock));
+    // Per block size (kSubBlock, kBlock): 1 = the block has an occupied voxel.
+    const std::uint32_t size[2] = {kSubBlock, kBlock};
+    std::uint32_t nb[2];
+    std::vector<std::uint8_t> blocks[2];
+    for (int k = 0; k < 2; ++k) {
+        nb[k] = (V + size[k] - 1) / size[k];
+        blocks[k].assign(std::size_t(nb[k]) * nb[k] * nb[k], 0);
+    }
+    auto block_of = [&](int k, std::uint32_t x, std::uint32_t y, std::uint32_t z) {
+        const std::uint32_t b = size[k];
+        return x / b + nb[k] * (y / b + std::size_t(nb[k]) * (z / b));
     };
     auto for_each_voxel = [&](auto&& f) {
         for (std::uint32_t z = 0; z < V; ++z)
             for (std::uint32_t y = 0; y < V; ++y)
                 for (std::uint32_t x = 0; x < V; ++x)
-                    f(x + std::uint64_t(V) * (y + std::uint64_t(V) * z), block_of(x, y, z));
+                    f(x + std::uint64_t(V) * (y + std::uint64_t(V) * z), x, y, z);
     };
     const std::uint64_t voxels = std::uint64_t(V) * V * V;
-    voxel_words.assign((voxels + 31) / 32, 0);
     block_words.assign((voxels + 31) / 32, 0);
-    for_each_voxel([&](std::uint64_t i, std::size_t b) {
+    nibbles.assign((voxels + 7) / 8, 0);
+    for_each_voxel([&](std::uint64_t i, std::uint32_t x, std::uint32_t y, std::uint32_t z) {
         if (!((bits[i >> 3] >> (i & 7)) & 1u)) return;
-        voxel_words[i >> 5] |= 1u << (i & 31);
-        blocks[b] = 1;
+        for (int k = 0; k < 2; ++k) blocks[k][block_of(k, x, y, z)] = 1;
     });
-    for_each_voxel([&](std::uint64_t i, std::size_t b) {
-        if (blocks[b]) block_words[i >> 5] |= 1u << (i & 31);
+    for_each_voxel([&](std::uint64_t i, std::uint32_t x, std::uint32_t y, std::uint32_t z) {
+        const bool occupied = (bits[i >> 3] >> (i & 7)) & 1u;
+        const bool sub = blocks[0][block_of(0, x, y, z)] != 0, block = blocks[1][block_of(1, x, y, z)] != 0;
+        if (block) block_words[i >> 5] |= 1u << (i & 31);
+        const std::uint32_t nibble = (occupied ? 1u : 0u) | (sub ? 2u : 0u) | (block ? 4u : 0u);
+        nibbles[i >> 3] |= nibble << (4 * (i & 7));
     });
 }
 
@@ -271,7 +281,8 @@ namespace {
 #define LSNIF_AVX512 __attribute__((target("avx512f,avx512vl,avx512bw,avx512dq,fma")))
 
 constexpr int kLanes = 16;
-static_assert(OccupancyGrid::kBlock == 4, "the 16-lane walk divides cells by kBlock with a shift of 2");
+static_assert(OccupancyGrid::kBlock == 4 && OccupancyGrid::kSubBlock == 2,
+              "the 16-lane walk divides cells by a block's size with a shift of 2 or 1");
 
 // The state of 16 walks as structure-of-arrays, and which ray each lane walks. Held in
 // registers across iterations; written back here only when lanes are refilled.
@@ -511,15 +522,6 @@ LSNIF_AVX512 inline __mmask16 step_axis(Axis& x, __mmask16 m, __m512i vV) {
     return out;
 }
 
-// Tests bit `index` of a bit array of 32-bit words for the lanes in m (0 elsewhere).
-LSNIF_AVX512 inline __mmask16 test_bits(const std::uint32_t* words, __m512i index, __mmask16 m) {
-    const __m512i w = _mm512_mask_i32gather_epi32(_mm512_setzero_si512(), m, _mm512_srli_epi32(index, 5),
-                                                  reinterpret_cast<const int*>(words), 4);
-    const __m512i bit =
-        _mm512_sllv_epi32(_mm512_set1_epi32(1), _mm512_and_si512(index, _mm512_set1_epi32(31)));
-    return _mm512_mask_test_epi32_mask(m, w, bit);
-}
-
 // Linear voxel index x + V * (y + V * z) of each lane's cell.
 LSNIF_AVX512 inline __m512i voxel_index(const Axis (&ax)[3], __m512i vV) {
     return _mm512_add_epi32(
@@ -527,15 +529,19 @@ LSNIF_AVX512 inline __m512i voxel_index(const Axis (&ax)[3], __m512i vV) {
 }
 
 // The scalar walk's empty-block branch for the lanes in `skip` (their cell's block is
-// empty): leave the block at the first of its boundary planes reached. Returns the lanes
-// whose walk is over (the block's exit lies beyond t_far, or they left the grid).
-LSNIF_AVX512 inline __mmask16 skip_empty_block(Axis (&ax)[3], __mmask16 skip, __m512 t_far, __m512i vV) {
-    const __m512i vB = _mm512_set1_epi32(int(OccupancyGrid::kBlock));
+// empty; a block of 2^shift voxels a side, shift per lane: the empty kBlock^3 block, or
+// else the empty kSubBlock^3 block): leave the block at the first of its boundary planes
+// reached. Skipping any empty aligned box keeps every occupied voxel's entry, as for the
+// scalar walk's blocks. Returns the lanes whose walk is over (the block's exit lies beyond
+// t_far, or they left the grid).
+LSNIF_AVX512 inline __mmask16 skip_empty_block(Axis (&ax)[3], __mmask16 skip, __m512i shift, __m512 t_far,
+                                               __m512i vV) {
+    const __m512i vB = _mm512_sllv_epi32(_mm512_set1_epi32(1), shift);
     __m512 block_exit = _mm512_set1_ps(kInf);
 #pragma GCC unroll 3
     for (int a = 0; a < 3; ++a) {
         const Axis& x = ax[a];
-        const __m512i b0 = _mm512_slli_epi32(_mm512_srli_epi32(x.cell, 2), 2);
+        const __m512i b0 = _mm512_sllv_epi32(_mm512_srlv_epi32(x.cell, shift), shift);
         const __m512i plane = _mm512_mask_min_epi32(b0, x.forward, _mm512_add_epi32(b0, vB), vV);
         block_exit = _mm512_mask_min_ps(block_exit, x.moves, plane_t(x, plane), block_exit);
     }
@@ -667,14 +673,24 @@ LSNIF_AVX512 void trace_batch_avx512(const Geometry& geo, const OccupancyGrid& o
         // lanes are free (or no rays are left to refill them with).
         const bool draining = next == rays.size() && !q.ready;
         do {
-            // Both maps are indexed by voxel, so their two gathers issue together.
+            // One gather reads the voxel's three occupancy bits (OccupancyGrid::nibbles).
             const __m512i idx = voxel_index(ax, vV);
-            const __mmask16 block_occupied = test_bits(occ.block_words.data(), idx, __mmask16(live));
-            const __mmask16 voxel_occupied = test_bits(occ.voxel_words.data(), idx, __mmask16(live));
-            const __mmask16 skip = __mmask16(live) & ~block_occupied;
-            const __mmask16 vis = __mmask16(live) & block_occupied;
+            const __m512i word = _mm512_mask_i32gather_epi32(
+                _mm512_setzero_si512(), __mmask16(live), _mm512_srli_epi32(idx, 3),
+                reinterpret_cast<const int*>(occ.nibbles.data()), 4);
+            const __m512i nibble =
+                _mm512_srlv_epi32(word, _mm512_slli_epi32(_mm512_and_si512(idx, _mm512_set1_epi32(7)), 2));
+            const __mmask16 voxel_occupied = _mm512_test_epi32_mask(nibble, _mm512_set1_epi32(1));
+            const __mmask16 sub_occupied = _mm512_test_epi32_mask(nibble, _mm512_set1_epi32(2));
+            const __mmask16 block_occupied = _mm512_test_epi32_mask(nibble, _mm512_set1_epi32(4));
+            const __mmask16 skip = __mmask16(live) & ~sub_occupied;
+            const __mmask16 vis = __mmask16(live) & sub_occupied;
             __mmask16 over = 0;
-            if (skip) over |= skip_empty_block(ax, skip, t_far, vV);
+            if (skip) {
+                const __m512i shift =
+                    _mm512_mask_blend_epi32(block_occupied, _mm512_set1_epi32(2), _mm512_set1_epi32(1));
+                over |= skip_empty_block(ax, skip, shift, t_far, vV);
+            }
             if (vis) over |= visit_cell(ax, vis, voxel_occupied, idx, t_near, t_far, vV, L, geo.H, out);
             for (std::uint32_t done = over; done; done &= done - 1) {
                 const std::uint32_t i = L.ray[std::countr_zero(done)];

@@ -114,11 +114,16 @@ void entry_offsets(const Geometry& geo, const RayPoints& pts, float* out);
 // voxel: what lets the DDA jump over empty space.
 struct OccupancyGrid {
     static constexpr std::uint32_t kBlock = 4;
+    static constexpr std::uint32_t kSubBlock = 2;  // the 16-lane walk's finer empty blocks
     std::uint32_t V = 0;
     std::vector<std::uint8_t> bits;  // OCCU layout
-    // Both maps per voxel, as bit arrays of 32-bit words (bit i of word i / 32; the 16-lane
-    // walk gathers them): voxel i is occupied; voxel i's block has an occupied voxel.
-    std::vector<std::uint32_t> voxel_words, block_words;
+    // Per voxel, a bit array of 32-bit words (bit i of word i / 32): voxel i's block has an
+    // occupied voxel (the scalar walk's skip).
+    std::vector<std::uint32_t> block_words;
+    // 4 bits per voxel, 8 voxels per word (voxel i at bits 4 (i % 8) of word i / 8): bit 0
+    // voxel i is occupied, bit 1 its kSubBlock^3 block has an occupied voxel, bit 2 its
+    // kBlock^3 block does. The 16-lane walk gathers one word per step.
+    std::vector<std::uint32_t> nibbles;
     OccupancyGrid() = default;
     OccupancyGrid(std::uint32_t V, std::vector<std::uint8_t> voxel_bits);
     bool block_occupied(std::uint32_t voxel) const { return (block_words[voxel >> 5] >> (voxel & 31)) & 1u; }
