@@ -240,7 +240,6 @@ OccupancyGrid::OccupancyGrid(std::uint32_t V, std::vector<std::uint8_t> voxel_bi
                     f(x + std::uint64_t(V) * (y + std::uint64_t(V) * z), x, y, z);
     };
     const std::uint64_t voxels = std::uint64_t(V) * V * V;
-    block_words.assign((voxels + 31) / 32, 0);
     nibbles.assign((voxels + 7) / 8, 0);
     for_each_voxel([&](std::uint64_t i, std::uint32_t x, std::uint32_t y, std::uint32_t z) {
         if (!((bits[i >> 3] >> (i & 7)) & 1u)) return;
@@ -249,7 +248,6 @@ OccupancyGrid::OccupancyGrid(std::uint32_t V, std::vector<std::uint8_t> voxel_bi
     for_each_voxel([&](std::uint64_t i, std::uint32_t x, std::uint32_t y, std::uint32_t z) {
         const bool occupied = (bits[i >> 3] >> (i & 7)) & 1u;
         const bool sub = blocks[0][block_of(0, x, y, z)] != 0, block = blocks[1][block_of(1, x, y, z)] != 0;
-        if (block) block_words[i >> 5] |= 1u << (i & 31);
         const std::uint32_t nibble = (occupied ? 1u : 0u) | (sub ? 2u : 0u) | (block ? 4u : 0u);
         nibbles[i >> 3] |= nibble << (4 * (i & 7));
     });

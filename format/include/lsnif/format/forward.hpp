@@ -110,23 +110,23 @@ void unit_direction(const Ray& ray, float out[3]);
 // 0 for empty slots. Writes geo.H values.
 void entry_offsets(const Geometry& geo, const RayPoints& pts, float* out);
 
-// The OCCU bit array plus, per voxel, whether its kBlock^3-voxel block has an occupied
-// voxel: what lets the DDA jump over empty space.
+// The OCCU bit array plus, per voxel, whether its kSubBlock^3 and kBlock^3 blocks have an
+// occupied voxel: what lets the DDA jump over empty space.
 struct OccupancyGrid {
     static constexpr std::uint32_t kBlock = 4;
     static constexpr std::uint32_t kSubBlock = 2;  // the 16-lane walk's finer empty blocks
     std::uint32_t V = 0;
     std::vector<std::uint8_t> bits;  // OCCU layout
-    // Per voxel, a bit array of 32-bit words (bit i of word i / 32): voxel i's block has an
-    // occupied voxel (the scalar walk's skip).
-    std::vector<std::uint32_t> block_words;
     // 4 bits per voxel, 8 voxels per word (voxel i at bits 4 (i % 8) of word i / 8): bit 0
     // voxel i is occupied, bit 1 its kSubBlock^3 block has an occupied voxel, bit 2 its
-    // kBlock^3 block does. The 16-lane walk gathers one word per step.
+    // kBlock^3 block does. The 16-lane walk gathers one word per step; the scalar walk
+    // reads bit 2 (block_occupied).
     std::vector<std::uint32_t> nibbles;
     OccupancyGrid() = default;
     OccupancyGrid(std::uint32_t V, std::vector<std::uint8_t> voxel_bits);
-    bool block_occupied(std::uint32_t voxel) const { return (block_words[voxel >> 5] >> (voxel & 31)) & 1u; }
+    bool block_occupied(std::uint32_t voxel) const {
+        return (nibbles[voxel >> 3] >> (4 * (voxel & 7) + 2)) & 1u;
+    }
 };
 
 // Fills `out` with up to geo.H occupied entry points. `occupancy` is the OCCU bit array.
