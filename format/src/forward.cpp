@@ -218,15 +218,20 @@ void accumulate_level(const Corners& c, const T* table, std::uint32_t stride, st
     }
 }
 
+// What encode_points writes besides the occupied slots' features: zeros for the empty
+// slots, then the ray inputs the model has.
+void encode_ray_inputs(const Geometry& geo, const RayPoints& pts, float* row) {
+    const std::size_t slot = std::size_t(geo.L) * geo.F;
+    std::memset(row + pts.count * slot, 0, sizeof(float) * (geo.H - pts.count) * slot);
+    if (geo.direction_width) std::memcpy(row + geo.point_width, pts.dir, sizeof(pts.dir));
+    if (geo.offset_width) entry_offsets(geo, pts, row + geo.point_width + geo.direction_width);
+}
+
 std::size_t element_size(GridElement e) {
     return e == GridElement::f32 ? 4 : e == GridElement::f16 ? 2 : 1;
 }
 
 }  // namespace
-
-namespace {
-void encode_ray_inputs(const Geometry& geo, const RayPoints& pts, float* row);
-}
 
 void encode_points(const Geometry& geo, const GridView* grid, const RayPoints& pts, float* row) {
     const std::uint32_t F = geo.F, L = geo.L;
@@ -267,15 +272,6 @@ void encode_points(const Geometry& geo, const GridView* grid, const RayPoints& p
 }
 
 namespace {
-
-// What encode_points writes besides the occupied slots' features: zeros for the empty
-// slots, then the ray inputs the model has.
-void encode_ray_inputs(const Geometry& geo, const RayPoints& pts, float* row) {
-    const std::size_t slot = std::size_t(geo.L) * geo.F;
-    std::memset(row + pts.count * slot, 0, sizeof(float) * (geo.H - pts.count) * slot);
-    if (geo.direction_width) std::memcpy(row + geo.point_width, pts.dir, sizeof(pts.dir));
-    if (geo.offset_width) entry_offsets(geo, pts, row + geo.point_width + geo.direction_width);
-}
 
 #if LSNIF_HAVE_X86
 
