@@ -280,8 +280,9 @@ json bench_infer(const BenchOptions& o) {
                     {"walk_16_lane", format::cpu_features().avx512},
                     {"walk_encode_rays_per_second", rate(walk_encode)}};
     };
-    // fp32 (the reference; the top-level figures) and, where the CPU has AVX-512 BF16, the
-    // bf16 hidden layers lsnif_open picks there.
+    // fp32 (the reference; the top-level figures) and the reduced arithmetics the CPU has:
+    // bf16 hidden layers (AVX-512 BF16) and int8 ones (AVX-512 VNNI, what lsnif_open picks
+    // there).
     const format::Runtime rt32 = format::make_runtime(model, format::MlpArithmetic::fp32);
     json r = {{"benchmark", "infer"},
               {"model", "V=32 H=18 levels 64,128 T=2^17 F=3 hidden 128x128 (v1 default)"},
@@ -293,6 +294,9 @@ json bench_infer(const BenchOptions& o) {
     const format::Runtime rt16 = format::make_runtime(model, format::MlpArithmetic::bf16);
     if (format::mlp_arithmetic(rt16.net) == format::MlpArithmetic::bf16)
         r["bf16"] = {{"through_network", run(rt16, reach)}, {"mixed_with_early_out", run(rt16, mix)}};
+    const format::Runtime rt8 = format::make_runtime(model, format::MlpArithmetic::int8);
+    if (format::mlp_arithmetic(rt8.net) == format::MlpArithmetic::int8)
+        r["int8"] = {{"through_network", run(rt8, reach)}, {"mixed_with_early_out", run(rt8, mix)}};
     return r;
 }
 
@@ -342,12 +346,13 @@ std::string bench_text(const json& r) {
             std::snprintf(buf, sizeof buf, "%-22s fp32 %10.0f rays/s (%.0f%% reach the network)", key,
                           x["rays_per_second"].get<double>(), 100 * x["network_fraction"].get<double>());
             s += buf;
-            if (r.contains("bf16")) {
-                const double b = r["bf16"][key]["rays_per_second"].get<double>();
-                std::snprintf(buf, sizeof buf, "; bf16 %10.0f rays/s (%.2fx)", b,
-                              b / x["rays_per_second"].get<double>());
-                s += buf;
-            }
+            for (const char* a : {"bf16", "int8"})
+                if (r.contains(a)) {
+                    const double b = r[a][key]["rays_per_second"].get<double>();
+                    std::snprintf(buf, sizeof buf, "; %s %10.0f rays/s (%.2fx)", a, b,
+                                  b / x["rays_per_second"].get<double>());
+                    s += buf;
+                }
             s += "\n";
         }
         const json& st = r["stages"];
@@ -357,13 +362,22 @@ std::string bench_text(const json& r) {
                      enc = st["walk_encode_rays_per_second"].get<double>(),
                      all = r.contains("bf16") ? r["bf16"]["through_network"]["rays_per_second"].get<double>()
                                               : r["through_network"]["rays_per_second"].get<double>();
+        // The MLP stage in the fastest arithmetic measured, for the line below.
+        const char* fastest = r.contains("int8") ? "int8" : r.contains("bf16") ? "bf16" : "fp32";
+        const double fastest_all = r.contains(fastest)
+                                       ? r[fastest]["through_network"]["rays_per_second"].get<double>()
+                                       : r["through_network"]["rays_per_second"].get<double>();
         std::snprintf(
             buf, sizeof buf,
             "stages, thread-ns per ray reaching the network: walk %.0f (%s; scalar walk %.0f, %.2fx), "
-            "encode %.0f, MLP + decode %.0f (%s)\n",
+            "encode %.0f, MLP + decode %.0f (%s)%s\n",
             1e9 * T / walk, st["walk_16_lane"].get<bool>() ? "16 lanes" : "scalar", 1e9 * T / walk1,
             walk / walk1, 1e9 * T * (1 / enc - 1 / walk), 1e9 * T * (1 / all - 1 / enc),
-            r.contains("bf16") ? "bf16" : "fp32");
+            r.contains("bf16") ? "bf16" : "fp32",
+            std::string(fastest) == "int8"
+                ? (", " + std::to_string(int(std::lround(1e9 * T * (1 / fastest_all - 1 / enc)))) + " (int8)")
+                      .c_str()
+                : "");
         s += buf;
     }
     return s;

@@ -87,7 +87,10 @@ bool load_objects(const SceneBenchOptions& opt, Loaded& out, std::string& error)
             error = asset.string() + ": " + lsnif_status_string(e.status) + " (" + e.message + ")";
             return false;
         }
-        if (opt.fp32) lsnif_set_arithmetic(o.model, LSNIF_ARITHMETIC_FP32, nullptr);
+        if (lsnif_set_arithmetic(o.model, opt.arithmetic, nullptr) != LSNIF_OK) {
+            error = asset.string() + ": cannot set the arithmetic " + lsnif_arithmetic_string(opt.arithmetic);
+            return false;
+        }
         std::error_code ec;
         o.lsnif_bytes = fs::file_size(asset, ec);
         out.objects.push_back(std::move(o));
@@ -254,7 +257,7 @@ json bench_rays(const SceneBenchOptions& opt, std::string& error) {
              {"ratio_lsnif_over_rtcintersect16", lsnif_rps / g.packet_rays_per_second},
              {"time_ratio_lsnif_over_rtcintersect1", g.plain_rtcintersect_rays_per_second / lsnif_rps},
              {"hit_agreement", double(agree) / double(rays.size())},
-             {"lsnif_arithmetic", lsnif_get_arithmetic(o.model) == LSNIF_ARITHMETIC_BF16 ? "bf16" : "fp32"}});
+             {"lsnif_arithmetic", lsnif_arithmetic_string(lsnif_get_arithmetic(o.model))}});
     }
     return {{"benchmark", "rays"}, {"outdir", opt.outdir}, {"objects", objects}};
 }

@@ -112,8 +112,8 @@ struct EvalScene::Impl {
     bool open_device(std::string& error);
     // Uploads one source mesh to its own Embree scene (measuring its BVH bytes) and opens
     // its shipped asset when the manifest gives one.
-    bool add_mesh(const scene::Mesh& sm, const json& manifest_mesh, const fs::path& outdir, bool fp32,
-                  std::string& error);
+    bool add_mesh(const scene::Mesh& sm, const json& manifest_mesh, const fs::path& outdir,
+                  lsnif_arithmetic arithmetic, std::string& error);
     // Instance i of the manifest (opt.instance_transforms may override its placement) into
     // the reference scene, and into the hybrid one unless its mesh is traced as an LSNIF.
     bool add_instance(std::size_t i, const json& manifest_instance, const EvalOptions& opt,
@@ -342,8 +342,8 @@ bool EvalScene::Impl::open_device(std::string& error) {
     return true;
 }
 
-bool EvalScene::Impl::add_mesh(const scene::Mesh& sm, const json& mj, const fs::path& outdir, bool fp32,
-                               std::string& error) {
+bool EvalScene::Impl::add_mesh(const scene::Mesh& sm, const json& mj, const fs::path& outdir,
+                               lsnif_arithmetic arithmetic, std::string& error) {
     Mesh m;
     m.name = sm.name;
     m.positions = sm.positions;
@@ -379,7 +379,11 @@ bool EvalScene::Impl::add_mesh(const scene::Mesh& sm, const json& mj, const fs::
             meshes.push_back(std::move(m));  // released by ~Impl
             return false;
         }
-        if (fp32) lsnif_set_arithmetic(m.model, LSNIF_ARITHMETIC_FP32, nullptr);
+        if (lsnif_set_arithmetic(m.model, arithmetic, nullptr) != LSNIF_OK) {
+            error = asset.string() + ": cannot set the arithmetic " + lsnif_arithmetic_string(arithmetic);
+            meshes.push_back(std::move(m));  // released by ~Impl
+            return false;
+        }
         std::error_code ec;
         m.lsnif_bytes = fs::file_size(asset, ec);
     }
@@ -451,7 +455,7 @@ std::unique_ptr<EvalScene> EvalScene::load(const EvalOptions& opt, std::string& 
                     "' differs from the converted geometry (geometry hash mismatch): re-run lsnif convert";
             return nullptr;
         }
-        if (!im.add_mesh(sm, mj, opt.outdir, opt.fp32, error)) return nullptr;
+        if (!im.add_mesh(sm, mj, opt.outdir, opt.arithmetic, error)) return nullptr;
     }
     im.reference = rtcNewScene(im.device);
     im.hybrid = rtcNewScene(im.device);
@@ -876,14 +880,14 @@ EvalResult render_and_compare(const EvalOptions& opt) {
         return res;
     }
     std::uint64_t lsnif_bytes = 0, bvh_replaced = 0;
-    bool bf16 = false;
+    lsnif_arithmetic arithmetic = LSNIF_ARITHMETIC_FP32;  // every model gets the same request
     for (const auto& m : im.meshes)
         if (m.model) {
             lsnif_bytes += m.lsnif_bytes, bvh_replaced += m.bvh_bytes;
-            bf16 = bf16 || lsnif_get_arithmetic(m.model) == LSNIF_ARITHMETIC_BF16;
+            arithmetic = lsnif_get_arithmetic(m.model);
         }
     json report;
-    report["lsnif_arithmetic"] = bf16 ? "bf16" : "fp32";
+    report["lsnif_arithmetic"] = lsnif_arithmetic_string(arithmetic);
     report["images"] = per;
     report["flip_mean"] = flip_mean;
     report["lsnif_pixels"] = std::count(lsnif_pixels.begin(), lsnif_pixels.end(), 1);

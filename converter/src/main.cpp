@@ -19,6 +19,7 @@
 
 #include <unistd.h>
 #include <iostream>
+#include <map>
 
 namespace {
 
@@ -446,6 +447,24 @@ struct MergeCommand {
     }
 };
 
+// --arithmetic NAME and its shorthand --fp32: the network arithmetic LSNIF models use
+// (lsnif_set_arithmetic; default auto, what lsnif_open picks).
+void add_arithmetic_options(CLI::App* s, lsnif_arithmetic& arithmetic) {
+    const std::map<std::string, lsnif_arithmetic> names{{"auto", LSNIF_ARITHMETIC_AUTO},
+                                                        {"fp32", LSNIF_ARITHMETIC_FP32},
+                                                        {"bf16", LSNIF_ARITHMETIC_BF16},
+                                                        {"int8", LSNIF_ARITHMETIC_INT8}};
+    auto* named =
+        s->add_option("--arithmetic", arithmetic,
+                      "LSNIF network arithmetic: auto (default: int8 where the CPU has AVX-512 VNNI, "
+                      "else bf16 where it has AVX-512 BF16, else fp32), fp32 (the reference), "
+                      "bf16 or int8 (each falls back where the CPU lacks it)")
+            ->transform(CLI::CheckedTransformer(names, CLI::ignore_case));
+    s->add_flag_callback(
+         "--fp32", [&arithmetic] { arithmetic = LSNIF_ARITHMETIC_FP32; }, "Same as --arithmetic fp32")
+        ->excludes(named);
+}
+
 struct EvalCommand {
     CLI::App* sub = nullptr;
     lsnif::converter::EvalOptions opt;
@@ -472,10 +491,7 @@ struct EvalCommand {
         sub->add_option("--ao-samples", opt.ao_samples, "Ambient-occlusion rays per pixel")
             ->check(CLI::Range(1u, 1024u));
         sub->add_option("--threads", opt.threads, "Worker threads (0 = all cores)");
-        sub->add_flag(
-            "--fp32", opt.fp32,
-            "Evaluate LSNIF in the fp32 reference arithmetic (default: bf16 hidden layers where the "
-            "CPU has AVX-512 BF16, as lsnif_open chooses)");
+        add_arithmetic_options(sub, opt.arithmetic);
         sub->add_flag("--json", json, "Print the report as JSON");
     }
     int run() const { return run_eval(opt, camera, light, moves, json); }
@@ -508,10 +524,7 @@ struct BenchCommand {
         }
         rays->add_option("--rays", scene.rays, "Rays per object")->check(CLI::Range(1024ull, 1ull << 26));
         rays->add_option("--repeats", scene.repeats, "Best of N")->check(CLI::Range(1u, 100u));
-        rays->add_flag(
-            "--fp32", scene.fp32,
-            "LSNIF in the fp32 reference arithmetic (default: bf16 hidden layers where the CPU has "
-            "AVX-512 BF16, as lsnif_open chooses)");
+        add_arithmetic_options(rays, scene.arithmetic);
         convert = sub->add_subcommand("convert",
                                       "Convert INPUT... into OUTDIR and print the wall time split by stage");
         convert->add_option("INPUT", convert_opt.inputs, "Scene files")->required();

@@ -317,6 +317,7 @@ lsnif_status lsnif_set_arithmetic(lsnif_model* model, lsnif_arithmetic requested
         case LSNIF_ARITHMETIC_AUTO: want = lsnif::format::best_mlp_arithmetic(); break;
         case LSNIF_ARITHMETIC_FP32: want = MlpArithmetic::fp32; break;
         case LSNIF_ARITHMETIC_BF16: want = MlpArithmetic::bf16; break;
+        case LSNIF_ARITHMETIC_INT8: want = MlpArithmetic::int8; break;
         default: return LSNIF_ERR_INVALID_ARGUMENT;
     }
     return guarded(nullptr, [&] {
@@ -326,10 +327,25 @@ lsnif_status lsnif_set_arithmetic(lsnif_model* model, lsnif_arithmetic requested
     });
 }
 
+const char* lsnif_arithmetic_string(lsnif_arithmetic arithmetic) {
+    switch (arithmetic) {
+        case LSNIF_ARITHMETIC_AUTO: return "auto";
+        case LSNIF_ARITHMETIC_FP32: return "fp32";
+        case LSNIF_ARITHMETIC_BF16: return "bf16";
+        case LSNIF_ARITHMETIC_INT8: return "int8";
+    }
+    return "unknown";
+}
+
 lsnif_arithmetic lsnif_get_arithmetic(const lsnif_model* model) {
-    return model && lsnif::format::mlp_arithmetic(model->runtime.net) == lsnif::format::MlpArithmetic::bf16
-               ? LSNIF_ARITHMETIC_BF16
-               : LSNIF_ARITHMETIC_FP32;
+    using lsnif::format::MlpArithmetic;
+    if (!model) return LSNIF_ARITHMETIC_FP32;
+    switch (lsnif::format::mlp_arithmetic(model->runtime.net)) {
+        case MlpArithmetic::bf16: return LSNIF_ARITHMETIC_BF16;
+        case MlpArithmetic::int8: return LSNIF_ARITHMETIC_INT8;
+        case MlpArithmetic::fp32: break;
+    }
+    return LSNIF_ARITHMETIC_FP32;
 }
 
 }  // extern "C"

@@ -35,12 +35,13 @@ CpuFeatures detect() {
     constexpr std::uint64_t kZmm = kYmm | bit(5) | bit(6) | bit(7);    // opmask, ZMM_Hi256, Hi16_ZMM
     constexpr std::uint64_t kTile = std::uint64_t(bit(17) | bit(18));  // XTILECFG, XTILEDATA
     if (!__get_cpuid_count(7, 0, &a, &b, &c, &d)) return f;
-    const unsigned max_subleaf = a, leaf7_ebx = b, leaf7_edx = d;
+    const unsigned max_subleaf = a, leaf7_ebx = b, leaf7_ecx = c, leaf7_edx = d;
     const bool fma = leaf1_ecx & bit(12), avx2 = leaf7_ebx & bit(5);
     f.avx2_fma = fma && avx2 && (xcr0 & kYmm) == kYmm;
     const bool avx512 = (leaf7_ebx & bit(16)) && (leaf7_ebx & bit(17)) && (leaf7_ebx & bit(30)) &&
                         (leaf7_ebx & bit(31));  // F, DQ, BW, VL
     f.avx512 = f.avx2_fma && avx512 && (xcr0 & kZmm) == kZmm;
+    f.avx512_vnni = f.avx512 && (leaf7_ecx & bit(11));
     const bool bf16 = max_subleaf >= 1 && __get_cpuid_count(7, 1, &a, &b, &c, &d) && (a & bit(5));
     f.avx512_bf16 = f.avx512 && bf16;
     const bool amx = (leaf7_edx & bit(22)) && (leaf7_edx & bit(24));  // AMX-BF16, AMX-TILE

@@ -629,12 +629,32 @@ Network make_network(const ModelDesc& desc, const std::vector<std::vector<float>
 }
 
 MlpArithmetic best_mlp_arithmetic() {
-    return cpu_features().avx512_bf16 ? MlpArithmetic::bf16 : MlpArithmetic::fp32;
+    return cpu_features().avx512_vnni   ? MlpArithmetic::int8
+           : cpu_features().avx512_bf16 ? MlpArithmetic::bf16
+                                        : MlpArithmetic::fp32;
 }
+
+namespace {
+
+bool int8_fits(const Network& net) {
+    for (std::size_t k = 0; k + 1 < net.wt.size(); ++k)
+        if (net.in[k] > kInt8MaxInputs) return false;
+    return true;
+}
+
+}  // namespace
 
 MlpArithmetic set_mlp_arithmetic(Network& net, MlpArithmetic a) {
     net.wt_vnni.clear();
-    if (a != MlpArithmetic::bf16 || !cpu_features().avx512_bf16 || net.wt.empty()) return MlpArithmetic::fp32;
+    net.wt_int8.clear();
+    if (net.wt.empty()) return MlpArithmetic::fp32;
+    if (a == MlpArithmetic::int8 && cpu_features().avx512_vnni && int8_fits(net)) {
+        // The first layer's inputs (encoded features) may be negative; later ones are ReLU outputs.
+        for (std::size_t k = 0; k + 1 < net.wt.size(); ++k)
+            net.wt_int8.push_back(make_int8_layer(net.wt[k].data(), net.in[k], net.out_padded[k], k == 0));
+        return MlpArithmetic::int8;
+    }
+    if (a == MlpArithmetic::fp32 || !cpu_features().avx512_bf16) return MlpArithmetic::fp32;
     for (std::size_t k = 0; k + 1 < net.wt.size(); ++k) {
         const std::size_t in = net.in[k], op = net.out_padded[k];
         net.wt_vnni.emplace_back(round_up(in, 32) * op);
@@ -644,31 +664,47 @@ MlpArithmetic set_mlp_arithmetic(Network& net, MlpArithmetic a) {
 }
 
 MlpArithmetic mlp_arithmetic(const Network& net) {
-    return net.wt_vnni.empty() ? MlpArithmetic::fp32 : MlpArithmetic::bf16;
+    return !net.wt_int8.empty()   ? MlpArithmetic::int8
+           : !net.wt_vnni.empty() ? MlpArithmetic::bf16
+                                  : MlpArithmetic::fp32;
 }
 
 const float* mlp_forward(const Network& net, const float* input, std::size_t n, std::vector<float>& scratch,
                          const ZeroColumns* input_zeros) {
     const std::size_t w = net.max_width_padded;
     if (scratch.size() < 2 * n * w) scratch.resize(2 * n * w);
-    const bool bf16 = !net.wt_vnni.empty();
-    thread_local std::vector<Bf16> rows;  // bf16: the current layer's input, K padded to 32
+    const MlpArithmetic arithmetic = mlp_arithmetic(net);
+    thread_local std::vector<Bf16> rows;      // bf16: the current layer's input, K padded to 32
+    thread_local Int8Rows rows8[2];           // int8: the current and the next layer's input, quantized
+    thread_local std::vector<float> unfused;  // int8: fp32 rows where a layer is too wide to fuse
     const float* src = input;
     std::size_t lda = net.in[0];
     const std::size_t layers = net.wt.size();
     for (std::size_t k = 0; k < layers; ++k) {
         float* dst = scratch.data() + (k % 2) * n * w;
-        if (bf16 && k + 1 < layers) {
+        const bool hidden = k + 1 < layers;
+        const ZeroColumns* zeros = k == 0 ? input_zeros : nullptr;
+        if (hidden && arithmetic == MlpArithmetic::int8) {
+            // The input is quantized once; each hidden layer but the last hands the next one
+            // its output already quantized, and the last writes fp32 for the output layer.
+            const Int8Layer& layer = net.wt_int8[k];
+            Int8Rows &in8 = rows8[k % 2], &out8 = rows8[(k + 1) % 2];
+            if (k == 0) quantize_rows(src, n, net.in[k], lda, layer.signed_input, in8);
+            if (k + 2 < layers)
+                gemm_int8_relu_quantized(n, in8, layer, net.bias[k].data(), out8, unfused, zeros);
+            else
+                gemm_int8(n, in8, layer, net.bias[k].data(), true, dst, net.out_padded[k], zeros);
+        } else if (hidden && arithmetic == MlpArithmetic::bf16) {
             const std::size_t kp = round_up(net.in[k], 32);
             if (rows.size() < n * kp) rows.resize(n * kp);
             pack_rows(src, n, net.in[k], lda, rows.data(), kp, n);
             // K stops at the inputs rounded to a pair: the padding beyond holds zeros.
             gemm_bf16_dp(n, net.out_padded[k], round_up(net.in[k], 2), rows.data(), kp, net.wt_vnni[k].data(),
                          2 * net.out_padded[k], dst, net.out_padded[k], {net.bias[k].data(), true, false},
-                         k == 0 ? input_zeros : nullptr);
+                         zeros);
         } else {
             dense_layer(src, n, net.in[k], lda, net.wt[k].data(), net.bias[k].data(), net.out_padded[k],
-                        k + 1 < layers, dst);
+                        hidden, dst);
         }
         src = dst;
         lda = net.out_padded[k];

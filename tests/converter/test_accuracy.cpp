@@ -261,39 +261,45 @@ void report_surface_sides(const Shipped& s, const std::string& name) {
     }
 }
 
-// The shipped asset evaluated with bf16 hidden layers (format::MlpArithmetic, what
-// lsnif_open picks on CPUs with AVX-512 BF16) against the fp32 reference on the held-out
-// rays: hit decisions agree on >= 99.5 % of the rays that reach the network, and the pooled
-// metrics move by <= 0.1 point (visibility in percent, distance in percent of the
-// diagonal, normal in degrees).
-void check_bf16_inference(const Shipped& s, const std::string& name) {
+// The shipped asset evaluated with reduced-precision hidden layers (format::MlpArithmetic:
+// bf16 on CPUs with AVX-512 BF16, int8 on CPUs with AVX-512 VNNI, what lsnif_open picks)
+// against the fp32 reference on the held-out rays: hit decisions agree on >= 99.5 % of the
+// rays that reach the network, and the pooled metrics move by <= 0.1 point (visibility in
+// percent, distance in percent of the diagonal, normal in degrees).
+void check_reduced_inference(const Shipped& s, const std::string& name,
+                             lsnif::format::MlpArithmetic arithmetic) {
     using namespace lsnif;
-    if (!format::cpu_features().avx512_bf16) {
-        MESSAGE("no AVX-512 BF16 on this machine: bf16 inference not compared (fp32 is what ships here)");
+    const std::string label = arithmetic == format::MlpArithmetic::int8 ? "int8" : "bf16";
+    const format::Runtime fp32 = format::make_runtime(s.model, format::MlpArithmetic::fp32);
+    const format::Runtime reduced = format::make_runtime(s.model, arithmetic);
+    if (format::mlp_arithmetic(reduced.net) != arithmetic) {
+        MESSAGE("this CPU lacks the instructions of " << label << " inference: not compared");
         return;
     }
-    const format::Runtime fp32 = format::make_runtime(s.model, format::MlpArithmetic::fp32);
-    const format::Runtime bf16 = format::make_runtime(s.model, format::MlpArithmetic::bf16);
-    REQUIRE(format::mlp_arithmetic(bf16.net) == format::MlpArithmetic::bf16);
     const auto& rays = s.rays;
-    std::vector<format::Hit> h32(rays.size()), h16(rays.size());
+    std::vector<format::Hit> h32(rays.size()), hr(rays.size());
     const auto s32 = format::intersect(fp32, rays, h32);
-    format::intersect(bf16, rays, h16);
+    format::intersect(reduced, rays, hr);
     std::size_t agree = 0;
-    for (std::size_t i = 0; i < rays.size(); ++i) agree += h32[i].hit == h16[i].hit;
+    for (std::size_t i = 0; i < rays.size(); ++i) agree += h32[i].hit == hr[i].hit;
     const std::size_t culled = rays.size() - s32.inferred;  // agree trivially: no inference
     const double agreement = double(agree - culled) / double(s32.inferred);
     const samples::Metrics m32 = samples::held_out_metrics(fp32, s.held),
-                           m16 = samples::held_out_metrics(bf16, s.held);
-    MESSAGE(name << " bf16 vs fp32: hit agreement " << 100 * agreement << " % of " << s32.inferred
+                           mr = samples::held_out_metrics(reduced, s.held);
+    MESSAGE(name << " " << label << " vs fp32: hit agreement " << 100 * agreement << " % of " << s32.inferred
                  << " inferred rays; pooled visibility " << 100 * m32.pooled.visibility_accuracy << " -> "
-                 << 100 * m16.pooled.visibility_accuracy << " %, distance " << m32.pooled.distance_median_pct
-                 << " -> " << m16.pooled.distance_median_pct << " %, normal " << m32.pooled.normal_median_deg
-                 << " -> " << m16.pooled.normal_median_deg << " deg");
+                 << 100 * mr.pooled.visibility_accuracy << " %, distance " << m32.pooled.distance_median_pct
+                 << " -> " << mr.pooled.distance_median_pct << " %, normal " << m32.pooled.normal_median_deg
+                 << " -> " << mr.pooled.normal_median_deg << " deg");
     CHECK(agreement >= 0.995);
-    CHECK(std::fabs(m16.pooled.visibility_accuracy - m32.pooled.visibility_accuracy) * 100 <= 0.1);
-    CHECK(std::fabs(m16.pooled.distance_median_pct - m32.pooled.distance_median_pct) <= 0.1);
-    CHECK(std::fabs(m16.pooled.normal_median_deg - m32.pooled.normal_median_deg) <= 0.1);
+    CHECK(std::fabs(mr.pooled.visibility_accuracy - m32.pooled.visibility_accuracy) * 100 <= 0.1);
+    CHECK(std::fabs(mr.pooled.distance_median_pct - m32.pooled.distance_median_pct) <= 0.1);
+    CHECK(std::fabs(mr.pooled.normal_median_deg - m32.pooled.normal_median_deg) <= 0.1);
+}
+
+void check_reduced_inference(const Shipped& s, const std::string& name) {
+    check_reduced_inference(s, name, lsnif::format::MlpArithmetic::bf16);
+    check_reduced_inference(s, name, lsnif::format::MlpArithmetic::int8);
 }
 
 }  // namespace
@@ -304,7 +310,7 @@ TEST_CASE("default preset meets the accuracy targets on CGAL's Chinese dragon") 
     const Shipped shipped = read_shipped(mesh, cgal_mesh("ChineseDragon-10kv.off"), "ChineseDragon-10kv");
     check_walks_agree(shipped, "ChineseDragon-10kv");
     report_surface_sides(shipped, "ChineseDragon-10kv");
-    check_bf16_inference(shipped, "ChineseDragon-10kv");
+    check_reduced_inference(shipped, "ChineseDragon-10kv");
 }
 
 TEST_CASE("default preset meets the accuracy targets on CGAL's armadillo") {
@@ -313,7 +319,7 @@ TEST_CASE("default preset meets the accuracy targets on CGAL's armadillo") {
     const Shipped shipped = read_shipped(mesh, cgal_mesh("armadillo.off"), "armadillo");
     check_walks_agree(shipped, "armadillo");
     report_surface_sides(shipped, "armadillo");
-    check_bf16_inference(shipped, "armadillo");
+    check_reduced_inference(shipped, "armadillo");
 }
 
 // A CAD-like assembly (BlendSwap's Peterbilt truck, CC0, 116,495 triangles in hundreds of
@@ -335,7 +341,7 @@ TEST_CASE("default preset ships a truck assembly past the gate with a margin") {
     const Shipped shipped = read_shipped(mesh, file, "peterbilt");
     check_walks_agree(shipped, "peterbilt");
     report_surface_sides(shipped, "peterbilt");
-    check_bf16_inference(shipped, "peterbilt");
+    check_reduced_inference(shipped, "peterbilt");
 }
 
 // Foliage (Scopia's Japanese maple, CC-BY 3.0, 198,396 triangles of leaves) is thin geometry

@@ -17,14 +17,17 @@ TEST_CASE("cpu_features agrees with the compiler's CPU detection on every flag")
                         has(__builtin_cpu_supports("avx512bw")) && has(__builtin_cpu_supports("avx512dq")) &&
                         has(__builtin_cpu_supports("avx512vl"));
     const bool avx512_bf16 = avx512 && has(__builtin_cpu_supports("avx512bf16"));
+    const bool avx512_vnni = avx512 && has(__builtin_cpu_supports("avx512vnni"));
     const bool amx_bf16 =
         avx512_bf16 && has(__builtin_cpu_supports("amx-tile")) && has(__builtin_cpu_supports("amx-bf16"));
     const CpuFeatures& f = cpu_features();
     MESSAGE("this CPU: avx2+fma " << f.avx2_fma << ", avx512 " << f.avx512 << ", avx512-bf16 "
-                                  << f.avx512_bf16 << ", amx-bf16 " << f.amx_bf16);
+                                  << f.avx512_bf16 << ", avx512-vnni " << f.avx512_vnni << ", amx-bf16 "
+                                  << f.amx_bf16);
     CHECK(f.avx2_fma == avx2_fma);
     CHECK(f.avx512 == avx512);
     CHECK(f.avx512_bf16 == avx512_bf16);
+    CHECK(f.avx512_vnni == avx512_vnni);
     CHECK(f.amx_bf16 == amx_bf16);
 #else
     const CpuFeatures& f = cpu_features();

@@ -19,6 +19,7 @@
 #include <fstream>
 #include <limits>
 #include <random>
+#include <string>
 
 using namespace lsnif::format;
 namespace fs = std::filesystem;
@@ -297,36 +298,45 @@ TEST_CASE("C API: quantized grid arrays, dequantization pairs, info") {
 }
 
 TEST_CASE(
-    "lsnif_set_arithmetic: auto picks bf16 exactly where AVX-512 BF16 is, fp32 always works, bf16 "
-    "results stay close to fp32") {
+    "lsnif_set_arithmetic: auto picks int8 where AVX-512 VNNI is, else bf16 where AVX-512 BF16 is, fp32 "
+    "always works, and the reduced arithmetics stay close to fp32") {
     auto q = quantize_model(shell_model(exact_desc(3), 43, 0.8f));
     REQUIRE(q.ok());
     const auto bytes = serialize(q.value()).value();
     lsnif_model* model = nullptr;
     REQUIRE(lsnif_open_memory(bytes.data(), bytes.size(), &model, nullptr) == LSNIF_OK);
-    const lsnif_arithmetic best = cpu_features().avx512_bf16 ? LSNIF_ARITHMETIC_BF16 : LSNIF_ARITHMETIC_FP32;
+    const lsnif_arithmetic bf16 = cpu_features().avx512_bf16 ? LSNIF_ARITHMETIC_BF16 : LSNIF_ARITHMETIC_FP32;
+    const lsnif_arithmetic best = cpu_features().avx512_vnni ? LSNIF_ARITHMETIC_INT8 : bf16;
     CHECK(lsnif_get_arithmetic(model) == best);  // what lsnif_open chose
     lsnif_arithmetic in_use{};
     CHECK(lsnif_set_arithmetic(model, LSNIF_ARITHMETIC_FP32, &in_use) == LSNIF_OK);
     CHECK(in_use == LSNIF_ARITHMETIC_FP32);
     CHECK(lsnif_get_arithmetic(model) == LSNIF_ARITHMETIC_FP32);
     const auto rays = random_rays(4000, 7);
-    std::vector<lsnif_hit> h32(rays.size()), h16(rays.size());
+    std::vector<lsnif_hit> h32(rays.size());
     REQUIRE(lsnif_intersect(model, rays.data(), rays.size(), h32.data()) == LSNIF_OK);
-    CHECK(lsnif_set_arithmetic(model, LSNIF_ARITHMETIC_BF16, &in_use) == LSNIF_OK);
-    CHECK(in_use == best);  // bf16 without AVX-512 BF16 falls back to fp32
-    REQUIRE(lsnif_intersect(model, rays.data(), rays.size(), h16.data()) == LSNIF_OK);
-    std::size_t agree = 0, both = 0;
-    double max_dt = 0;
-    for (std::size_t i = 0; i < rays.size(); ++i) {
-        agree += h32[i].hit == h16[i].hit;
-        if (h32[i].hit && h16[i].hit)
-            ++both, max_dt = std::max(max_dt, double(std::fabs(h32[i].t - h16[i].t)));
+    // Each reduced arithmetic, and what it falls back to on CPUs without its instructions.
+    for (const auto& [requested, expected] :
+         {std::pair{LSNIF_ARITHMETIC_BF16, bf16}, std::pair{LSNIF_ARITHMETIC_INT8, best}}) {
+        CAPTURE(lsnif_arithmetic_string(requested));
+        std::vector<lsnif_hit> h(rays.size());
+        CHECK(lsnif_set_arithmetic(model, requested, &in_use) == LSNIF_OK);
+        CHECK(in_use == expected);
+        CHECK(lsnif_get_arithmetic(model) == expected);
+        REQUIRE(lsnif_intersect(model, rays.data(), rays.size(), h.data()) == LSNIF_OK);
+        std::size_t agree = 0, both = 0;
+        double max_dt = 0;
+        for (std::size_t i = 0; i < rays.size(); ++i) {
+            agree += h32[i].hit == h[i].hit;
+            if (h32[i].hit && h[i].hit)
+                ++both, max_dt = std::max(max_dt, double(std::fabs(h32[i].t - h[i].t)));
+        }
+        MESSAGE(lsnif_arithmetic_string(in_use)
+                << " vs fp32 on a shell model: " << agree << " of " << rays.size() << " hit decisions agree; "
+                << both << " common hits, max |dt| " << max_dt);
+        CHECK(double(agree) >= 0.99 * double(rays.size()));
+        if (expected == LSNIF_ARITHMETIC_FP32) CHECK(agree == rays.size());  // same arithmetic: identical
     }
-    MESSAGE("bf16 vs fp32 on a shell model: " << agree << " of " << rays.size() << " hit decisions agree; "
-                                              << both << " common hits, max |dt| " << max_dt);
-    CHECK(double(agree) >= 0.99 * double(rays.size()));
-    if (best == LSNIF_ARITHMETIC_FP32) CHECK(agree == rays.size());  // same arithmetic: identical
     CHECK(lsnif_set_arithmetic(model, LSNIF_ARITHMETIC_AUTO, &in_use) == LSNIF_OK);
     CHECK(in_use == best);
     CHECK(lsnif_set_arithmetic(model, static_cast<lsnif_arithmetic>(7), nullptr) ==
@@ -334,6 +344,9 @@ TEST_CASE(
     CHECK(lsnif_get_arithmetic(model) == best);  // unchanged by the refused call
     CHECK(lsnif_set_arithmetic(nullptr, LSNIF_ARITHMETIC_FP32, nullptr) == LSNIF_ERR_INVALID_ARGUMENT);
     CHECK(lsnif_get_arithmetic(nullptr) == LSNIF_ARITHMETIC_FP32);
+    CHECK(std::string(lsnif_arithmetic_string(LSNIF_ARITHMETIC_INT8)) == "int8");
+    CHECK(std::string(lsnif_arithmetic_string(LSNIF_ARITHMETIC_AUTO)) == "auto");
+    CHECK(std::string(lsnif_arithmetic_string(static_cast<lsnif_arithmetic>(7))) == "unknown");
     lsnif_close(model);
 }
 

@@ -1,6 +1,7 @@
 // `lsnif bench ...`: throughput benchmarks (never timed unit tests; DEVELOPERS.md).
 #pragma once
 
+#include <lsnif/lsnif.h>
 #include <nlohmann/json.hpp>
 
 #include <cstdint>
@@ -22,7 +23,8 @@ struct SceneBenchOptions {
     std::uint64_t rays = 1u << 20;  // rays: per object, all three families
     std::uint32_t repeats = 3;      // rays: best of
     std::uint64_t seed = 12345;
-    bool fp32 = false;  // LSNIF in the fp32 reference arithmetic (default: what lsnif_open picks)
+    lsnif_arithmetic arithmetic =
+        LSNIF_ARITHMETIC_AUTO;  // LSNIF network arithmetic (auto: what lsnif_open picks)
 };
 struct ConvertOptions;
 

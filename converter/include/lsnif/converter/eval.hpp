@@ -47,7 +47,8 @@ struct EvalOptions {
     // Run-time placement changes: instance index -> object-to-world 3x4 row-major matrix.
     std::vector<std::pair<std::uint32_t, std::array<float, 12>>> instance_transforms;
     bool write_images = true;
-    bool fp32 = false;  // LSNIF in the fp32 reference arithmetic (default: what lsnif_open picks)
+    lsnif_arithmetic arithmetic =
+        LSNIF_ARITHMETIC_AUTO;  // LSNIF network arithmetic (auto: what lsnif_open picks)
     // Hybrid render only: secondary rays leaving an LSNIF instance's surface start this many of
     // its occupancy voxels (edge length in world units) away from the surface (tmin), the
     // runtime treatment docs/model.md "Rays leaving the surface, by side" measures; the

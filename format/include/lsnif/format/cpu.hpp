@@ -12,6 +12,7 @@ struct CpuFeatures {
     bool avx2_fma = false;     // AVX2 and FMA3, with the YMM state saved by the OS
     bool avx512 = false;       // AVX-512 F, BW, DQ and VL, with the opmask and ZMM states saved
     bool avx512_bf16 = false;  // avx512 and AVX512_BF16 (VDPBF16PS, VCVTNEPS2BF16)
+    bool avx512_vnni = false;  // avx512 and AVX512_VNNI (VPDPBUSD)
     // avx512_bf16, AMX-TILE and AMX-BF16, with the tile state enabled in XCR0. Linux also
     // makes a process ask for the tile state before using it (trainer/src/amx.cpp does).
     bool amx_bf16 = false;

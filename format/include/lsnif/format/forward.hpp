@@ -11,6 +11,7 @@
 
 #include <lsnif/format/bf16.hpp>
 #include <lsnif/format/container.hpp>
+#include <lsnif/format/int8.hpp>
 
 #include <algorithm>
 #include <array>
@@ -202,6 +203,9 @@ struct Network {
     // MlpArithmetic::bf16 only (empty otherwise): each hidden layer's W^T as the B operand
     // of gemm_bf16_dp (VNNI layout, K = in padded to 32, N = out_padded).
     std::vector<std::vector<Bf16>> wt_vnni;
+    // MlpArithmetic::int8 only (empty otherwise): each hidden layer's weights for gemm_int8,
+    // the first layer's with signed inputs.
+    std::vector<Int8Layer> wt_int8;
 };
 // From fp16 arrays of a model (weights [out][in] row-major).
 Network make_network(const ModelData& model);
@@ -215,22 +219,26 @@ void dense_layer(const float* A, std::size_t n, std::size_t in, std::size_t lda,
                  const float* bias, std::size_t out_padded, bool relu, float* C);
 
 // Arithmetic of the hidden layers' products. fp32 is FORMAT.md §8's reference. bf16 rounds
-// each hidden layer's input and weights to bfloat16 and accumulates in fp32 (AVX-512 BF16);
-// bias, ReLU and the output layer stay fp32 (the visibility logit and the distance are read
-// from the output layer directly, so its inputs keep full precision). Hit decisions agree
-// with fp32 on >= 99.5 % of rays (tests/format/test_bf16.cpp).
-enum class MlpArithmetic : std::uint8_t { fp32, bf16 };
-// bf16 where the CPU has AVX-512 BF16 (cpu_features().avx512_bf16), else fp32.
+// each hidden layer's input and weights to bfloat16 and accumulates in fp32 (AVX-512 BF16).
+// int8 quantizes each hidden layer's input per row and its weights per output column to 8
+// bits and sums the products exactly in int32 (AVX-512 VNNI, lsnif/format/int8.hpp). In
+// both, bias, ReLU and the output layer stay fp32 (the visibility logit and the distance are
+// read from the output layer directly, so its inputs keep full precision). Hit decisions
+// agree with fp32 on >= 99.5 % of rays and the held-out metrics move by <= 0.1 point
+// (tests/converter/test_accuracy.cpp, on the shipped assets).
+enum class MlpArithmetic : std::uint8_t { fp32, bf16, int8 };
+// The fastest the CPU runs: int8 with AVX-512 VNNI, else bf16 with AVX-512 BF16, else fp32.
 MlpArithmetic best_mlp_arithmetic();
-// Sets the arithmetic of `net` (packs or releases wt_vnni). bf16 on a machine without
-// AVX-512 BF16 gives fp32. Returns the arithmetic now in use.
+// Sets the arithmetic of `net` (packs or releases wt_vnni / wt_int8). What the CPU lacks
+// falls back: int8 to bf16 (also for a layer wider than kInt8MaxInputs), bf16 to fp32.
+// Returns the arithmetic now in use.
 MlpArithmetic set_mlp_arithmetic(Network& net, MlpArithmetic a);
 MlpArithmetic mlp_arithmetic(const Network& net);
 
 // Runs all layers in the network's arithmetic. `scratch` grows as needed; the result is n
 // rows of net.out_padded.back() floats, returned as a pointer into scratch. `input_zeros`,
 // if given, says which inputs are zero (e.g. the empty point slots, lead = count * L * F,
-// tail = point_width); the bf16 first layer skips them (same results, gemm_bf16_dp).
+// tail = point_width); the bf16 and int8 first layers skip them (same results).
 const float* mlp_forward(const Network& net, const float* input, std::size_t n, std::vector<float>& scratch,
                          const ZeroColumns* input_zeros = nullptr);
 

@@ -1,0 +1,380 @@
+// 8-bit hidden layers (lsnif/format/int8.hpp): weight and row quantization, and the product
+// on AVX-512 VNNI with a scalar path of identical results. The AVX-512 code is compiled with
+// function-level target attributes and chosen at run time, so the library builds and runs on
+// any x86-64 (and elsewhere, on the scalar paths).
+#include <lsnif/format/cpu.hpp>
+#include <lsnif/format/int8.hpp>
+
+#include <algorithm>
+#include <cmath>
+#include <cstring>
+
+#if defined(__x86_64__) && defined(__GNUC__)
+#define LSNIF_HAVE_X86 1
+#include <immintrin.h>
+#endif
+
+namespace lsnif::format {
+
+namespace {
+
+// Range of the quantized values: symmetric 127 levels each way for signed data, 255 for
+// unsigned (a ReLU's output).
+struct QuantRange {
+    float lo, hi;
+};
+constexpr QuantRange kSigned{-127.0f, 127.0f}, kUnsigned{0.0f, 255.0f};
+
+// nearbyint(v) clamped to the range; NaN -> 0. The clamp bounds are integers, so clamping
+// before or after rounding gives the same value (the vector path clamps first too).
+inline std::int32_t quantize_value(float v, QuantRange r) {
+    if (!(v == v)) return 0;
+    return std::int32_t(std::nearbyint(std::clamp(v, r.lo, r.hi)));
+}
+
+// The scale of a row or column whose largest magnitude is m, and its reciprocal for
+// quantizing. Both 0 for m = 0, so an all-zero row quantizes to zeros with scale 0.
+struct Scale {
+    float scale, inverse;
+};
+inline Scale scale_for(float m, QuantRange r) {
+    return m > 0 ? Scale{m / r.hi, r.hi / m} : Scale{0.0f, 0.0f};
+}
+
+// The largest |x| (signed) or x (unsigned) of n values; NaN is skipped (`a > m` is false).
+inline float row_max(const float* x, std::size_t n, bool signed_input) {
+    float m = 0;
+    for (std::size_t i = 0; i < n; ++i) {
+        const float a = signed_input ? std::fabs(x[i]) : x[i];
+        if (a > m) m = a;
+    }
+    return m;
+}
+
+void quantize_rows_scalar(const float* src, std::size_t n, std::size_t cols, std::size_t lds, bool signed_input,
+                          Int8Rows& out) {
+    const QuantRange range = signed_input ? kSigned : kUnsigned;
+    for (std::size_t r = 0; r < n; ++r) {
+        const float* x = src + r * lds;
+        const Scale s = scale_for(row_max(x, cols, signed_input), range);
+        std::uint8_t* q = out.q.data() + r * out.ld;
+        std::int32_t sum = 0;
+        for (std::size_t k = 0; k < cols; ++k) {
+            const std::int32_t v = quantize_value(x[k] * s.inverse, range);
+            q[k] = std::uint8_t(v);  // two's complement byte for signed values
+            sum += v;
+        }
+        std::fill(q + cols, q + out.ld, std::uint8_t(0));
+        out.scale[r] = s.scale;
+        out.sum[r] = signed_input ? sum : 0;
+    }
+}
+
+// The skippable quads of rows [r, r + rows): ZeroColumns in units of 4 inputs. Quads
+// [head, tail) are zero in every row; a quad straddling `lead` or `tail` stays in.
+struct QuadRange {
+    std::size_t head, tail;
+};
+inline QuadRange live_quads(const ZeroColumns* zeros, std::size_t r, std::size_t rows, std::size_t quads) {
+    if (!zeros) return {quads, quads};
+    std::uint32_t lead = 0;
+    for (std::size_t i = r; i < r + rows; ++i) lead = std::max(lead, zeros->lead[i]);
+    const std::size_t tail = std::min(zeros->tail / 4, quads);
+    const std::size_t head = std::min<std::size_t>((std::size_t(lead) + 3) / 4, tail);
+    return head == tail ? QuadRange{quads, quads} : QuadRange{head, tail};
+}
+
+// The row's exact integer sum turned into the layer's output: sx * sw * sum + bias, ReLU.
+inline float rescale(std::int32_t sum, float sx, float sw, float bias, bool relu) {
+    const float y = std::fma(float(sum), sx * sw, bias);
+    return relu ? (y > 0 ? y : 0.0f) : y;
+}
+
+void gemm_int8_scalar(std::size_t m, const Int8Rows& a, const Int8Layer& w, const float* bias, bool relu,
+                      float* c, std::size_t ldc) {
+    const std::size_t np = w.out_padded, quads = (w.in + 3) / 4;
+    for (std::size_t r = 0; r < m; ++r)
+        for (std::size_t j = 0; j < np; ++j) {
+            std::int32_t sum = 0;
+            for (std::size_t p = 0; p < quads; ++p)
+                for (std::size_t h = 0; h < 4; ++h) {
+                    const std::uint8_t x = a.q[r * a.ld + 4 * p + h], b = w.b[p * 4 * np + 4 * j + h];
+                    // Signed inputs: x is a two's complement byte, b = weight + 128.
+                    sum += w.signed_input ? std::int32_t(std::int8_t(x)) * std::int32_t(b)
+                                          : std::int32_t(x) * std::int32_t(std::int8_t(b));
+                }
+            if (w.signed_input) sum -= 128 * a.sum[r];
+            c[r * ldc + j] = rescale(sum, a.scale[r], w.scale[j], bias[j], relu);
+        }
+}
+
+#if LSNIF_HAVE_X86
+
+#define LSNIF_AVX512_TARGET __attribute__((target("avx512f,avx512bw,avx512vl")))
+#define LSNIF_VNNI_TARGET __attribute__((target("avx512f,avx512bw,avx512vl,avx512vnni")))
+
+// GCC 12's max, reduce and narrowing intrinsics pass a self-initialized _mm*_undefined_*()
+// as the (unused) merge source, which -W(maybe-)uninitialized reports once inlined; false
+// positives, silenced for the vector code only.
+#pragma GCC diagnostic push
+#pragma GCC diagnostic ignored "-Wmaybe-uninitialized"
+#pragma GCC diagnostic ignored "-Wuninitialized"
+
+LSNIF_AVX512_TARGET inline __mmask16 lane_mask16(std::size_t begin, std::size_t end) {
+    return begin >= end        ? __mmask16(0)
+           : end - begin >= 16 ? __mmask16(0xffff)
+                               : __mmask16((1u << (end - begin)) - 1u);
+}
+
+// The same values as quantize_rows_scalar: max is exact in any order, and x * inverse,
+// clamping, NaN -> 0 and round-to-nearest-even (VCVTPS2DQ under the default MXCSR, as
+// nearbyint under the default rounding mode) are the same operations lane by lane.
+LSNIF_AVX512_TARGET void quantize_rows_avx512(const float* src, std::size_t n, std::size_t cols, std::size_t lds,
+                                              bool signed_input, Int8Rows& out) {
+    const QuantRange range = signed_input ? kSigned : kUnsigned;
+    const __m512 lo = _mm512_set1_ps(range.lo), hi = _mm512_set1_ps(range.hi);
+    const __m512i abs_mask = _mm512_set1_epi32(0x7fffffff);
+    for (std::size_t r = 0; r < n; ++r) {
+        const float* x = src + r * lds;
+        // VMAXPS returns its second operand when either is NaN: NaN lanes keep m.
+        __m512 m = _mm512_setzero_ps();
+        for (std::size_t k = 0; k < cols; k += 16) {
+            __m512 v = _mm512_maskz_loadu_ps(lane_mask16(k, cols), x + k);
+            if (signed_input) v = _mm512_castsi512_ps(_mm512_and_si512(_mm512_castps_si512(v), abs_mask));
+            m = _mm512_max_ps(v, m);
+        }
+        const Scale s = scale_for(_mm512_reduce_max_ps(m), range);
+        const __m512 inverse = _mm512_set1_ps(s.inverse);
+        std::uint8_t* q = out.q.data() + r * out.ld;
+        __m512i sum = _mm512_setzero_si512();
+        for (std::size_t k = 0; k < out.ld; k += 16) {
+            const __mmask16 live = lane_mask16(k, cols);
+            __m512 t = _mm512_mul_ps(_mm512_maskz_loadu_ps(live, x + k), inverse);
+            t = _mm512_maskz_mov_ps(_mm512_cmp_ps_mask(t, t, _CMP_ORD_Q), t);
+            const __m512i v = _mm512_cvtps_epi32(_mm512_min_ps(_mm512_max_ps(t, lo), hi));
+            sum = _mm512_add_epi32(sum, v);
+            _mm_storeu_si128(reinterpret_cast<__m128i*>(q + k), _mm512_cvtepi32_epi8(v));
+        }
+        out.scale[r] = s.scale;
+        out.sum[r] = signed_input ? _mm512_reduce_add_epi32(sum) : 0;
+    }
+}
+
+// acc += VPDPBUSD(u, s): in each int32 lane, the four products of u's unsigned bytes with
+// s's signed bytes. Inline assembly rather than _mm512_dpbusd_epi32: GCC 12 keeps the
+// intrinsic's accumulators of a 6 x 4 block in memory (a load and a store around every
+// instruction), which halves the kernel's rate; the instruction itself is the same.
+LSNIF_VNNI_TARGET inline __m512i dpbusd(__m512i acc, __m512i u, __m512i s) {
+    __asm__("vpdpbusd %2, %1, %0" : "+v"(acc) : "v"(u), "v"(s));
+    return acc;
+}
+
+// The operands of one product, unpacked from Int8Rows and Int8Layer, and where it goes:
+// fp32 rows of C, or (next non-null) the ReLU'd rows quantized for the next layer.
+struct Int8Operands {
+    const std::uint8_t* a;     // rows layout, row stride lda
+    std::size_t lda;
+    const float* sx;           // per row
+    const std::int32_t* sum;   // per row (signed inputs)
+    const std::uint8_t* b;     // VNNI4 layout, row stride ldb = 4 * np
+    std::size_t ldb;
+    const float* sw;           // per column
+    const float* bias;         // per column
+    bool relu;
+    float* c;
+    std::size_t ldc;
+    Int8Rows* next;
+};
+
+// Row r of the next layer's input from the NV vectors of its ReLU'd values: the same
+// operations, lane by lane, as quantize_rows_avx512 on those values stored as fp32.
+template <int NV>
+LSNIF_VNNI_TARGET inline void quantize_row(const __m512 (&y)[NV], std::size_t r, Int8Rows& next) {
+    __m512 m = _mm512_setzero_ps();
+    for (int v = 0; v < NV; ++v) m = _mm512_max_ps(y[v], m);
+    const Scale s = scale_for(_mm512_reduce_max_ps(m), kUnsigned);
+    const __m512 inverse = _mm512_set1_ps(s.inverse), hi = _mm512_set1_ps(kUnsigned.hi);
+    std::uint8_t* q = next.q.data() + r * next.ld;
+    for (int v = 0; v < NV; ++v) {
+        const __m512 t = _mm512_max_ps(_mm512_mul_ps(y[v], inverse), _mm512_setzero_ps());
+        _mm_storeu_si128(reinterpret_cast<__m128i*>(q + 16 * v),
+                         _mm512_cvtepi32_epi8(_mm512_cvtps_epi32(_mm512_min_ps(t, hi))));
+    }
+    next.scale[r] = s.scale;
+    next.sum[r] = 0;
+}
+
+// One block of MB rows x NV 16-column vectors of C. VPDPBUSD multiplies the four unsigned
+// bytes of each dword of its first operand by the four signed bytes of the second and adds
+// the four products to the int32 lane: a broadcast dword of A (four inputs of one row)
+// against a VNNI4 row of B (four inputs of 16 columns). Signed inputs swap the roles (the
+// offset weights are the unsigned operand). MB x NV = 24 accumulators, NV B vectors and one
+// broadcast fit the 32 registers. Quads [head, tail) are skipped. Quantize: the block spans
+// all columns (j0 = 0, 16 NV = np) and writes o.next instead of C.
+template <int MB, int NV, bool Signed, bool Quantize>
+LSNIF_VNNI_TARGET void int8_block(std::size_t r0, std::size_t j0, std::size_t head, std::size_t tail,
+                                  std::size_t quads, const Int8Operands& o) {
+    __m512i acc[MB][NV];
+    for (int m = 0; m < MB; ++m)
+        for (int v = 0; v < NV; ++v) acc[m][v] = _mm512_setzero_si512();
+    const std::uint8_t* arow = o.a + r0 * o.lda;
+    const std::uint8_t* bcol = o.b + 4 * j0;
+    const std::size_t lda = o.lda, ldb = o.ldb;
+    const auto quad_step = [&](std::size_t p) LSNIF_VNNI_TARGET {
+        __m512i bv[NV];
+        for (int v = 0; v < NV; ++v) bv[v] = _mm512_loadu_si512(bcol + p * ldb + 64 * v);
+        for (int m = 0; m < MB; ++m) {
+            std::int32_t quad;
+            std::memcpy(&quad, arow + m * lda + 4 * p, sizeof quad);
+            const __m512i av = _mm512_set1_epi32(quad);
+            for (int v = 0; v < NV; ++v) {
+                if constexpr (Signed)
+                    acc[m][v] = dpbusd(acc[m][v], bv[v], av);
+                else
+                    acc[m][v] = dpbusd(acc[m][v], av, bv[v]);
+            }
+        }
+    };
+    for (std::size_t p = 0; p < head; ++p) quad_step(p);
+    for (std::size_t p = tail; p < quads; ++p) quad_step(p);
+    for (int m = 0; m < MB; ++m) {
+        const std::size_t r = r0 + m;
+        const __m512 sx = _mm512_set1_ps(o.sx[r]);
+        const __m512i offset = _mm512_set1_epi32(Signed ? 128 * o.sum[r] : 0);
+        __m512 y[NV];
+        for (int v = 0; v < NV; ++v) {
+            const std::size_t j = j0 + 16 * v;
+            const __m512 x = _mm512_cvtepi32_ps(_mm512_sub_epi32(acc[m][v], offset));
+            y[v] = _mm512_fmadd_ps(x, _mm512_mul_ps(sx, _mm512_loadu_ps(o.sw + j)), _mm512_loadu_ps(o.bias + j));
+            if (o.relu) y[v] = _mm512_maskz_mov_ps(_mm512_cmp_ps_mask(y[v], _mm512_setzero_ps(), _CMP_GT_OQ), y[v]);
+            if constexpr (!Quantize) _mm512_storeu_ps(o.c + r * o.ldc + j, y[v]);
+        }
+        if constexpr (Quantize) quantize_row<NV>(y, r, *o.next);
+    }
+}
+
+// Rows [0, m) of the columns [j0, j0 + 16 NV): blocks of MB rows, then single rows.
+template <int MB, int NV, bool Signed, bool Quantize>
+LSNIF_VNNI_TARGET void int8_rows(std::size_t j0, std::size_t m, std::size_t quads, const Int8Operands& o,
+                                 const ZeroColumns* zeros) {
+    std::size_t r = 0;
+    for (; r + MB <= m; r += MB) {
+        const QuadRange live = live_quads(zeros, r, MB, quads);
+        int8_block<MB, NV, Signed, Quantize>(r, j0, live.head, live.tail, quads, o);
+    }
+    for (; r < m; ++r) {
+        const QuadRange live = live_quads(zeros, r, 1, quads);
+        int8_block<1, NV, Signed, Quantize>(r, j0, live.head, live.tail, quads, o);
+    }
+}
+
+// fp32 output: 64 columns at a time (6 x 4 blocks), then 16.
+template <bool Signed>
+LSNIF_VNNI_TARGET void gemm_int8_vnni(std::size_t m, const Int8Operands& o, std::size_t n, std::size_t quads,
+                                      const ZeroColumns* zeros) {
+    std::size_t j = 0;
+    for (; j + 64 <= n; j += 64) int8_rows<6, 4, Signed, false>(j, m, quads, o, zeros);
+    for (; j < n; j += 16) int8_rows<6, 1, Signed, false>(j, m, quads, o, zeros);
+}
+
+// Quantized output: all n = 16 NV columns of a row in one block (3 x 8 blocks for the
+// default 128-wide layers), so each row's maximum is at hand in the epilogue.
+template <bool Signed>
+LSNIF_VNNI_TARGET void gemm_int8_vnni_quantized(std::size_t m, const Int8Operands& o, std::size_t n,
+                                                std::size_t quads, const ZeroColumns* zeros) {
+    switch (n / 16) {
+        case 1: return int8_rows<6, 1, Signed, true>(0, m, quads, o, zeros);
+        case 2: return int8_rows<6, 2, Signed, true>(0, m, quads, o, zeros);
+        case 3: return int8_rows<6, 3, Signed, true>(0, m, quads, o, zeros);
+        case 4: return int8_rows<6, 4, Signed, true>(0, m, quads, o, zeros);
+        case 5: return int8_rows<4, 5, Signed, true>(0, m, quads, o, zeros);
+        case 6: return int8_rows<4, 6, Signed, true>(0, m, quads, o, zeros);
+        case 7: return int8_rows<2, 7, Signed, true>(0, m, quads, o, zeros);
+        case 8: return int8_rows<2, 8, Signed, true>(0, m, quads, o, zeros);
+    }
+}
+
+#pragma GCC diagnostic pop
+
+#endif  // LSNIF_HAVE_X86
+
+}  // namespace
+
+Int8Layer make_int8_layer(const float* wt, std::size_t in, std::size_t out_padded, bool signed_input) {
+    Int8Layer layer;
+    layer.in = in;
+    layer.out_padded = out_padded;
+    layer.signed_input = signed_input;
+    const std::size_t k4 = (in + 3) / 4 * 4;
+    const std::uint8_t zero = signed_input ? 128 : 0;  // the stored form of a zero weight
+    layer.b.assign(k4 * out_padded, zero);
+    layer.scale.assign(out_padded, 0.0f);
+    for (std::size_t j = 0; j < out_padded; ++j) {
+        float m = 0;
+        for (std::size_t k = 0; k < in; ++k) m = std::max(m, std::fabs(wt[k * out_padded + j]));
+        const Scale s = scale_for(m, kSigned);
+        layer.scale[j] = s.scale;
+        for (std::size_t k = 0; k < in; ++k) {
+            const std::int32_t q = quantize_value(wt[k * out_padded + j] * s.inverse, kSigned);
+            layer.b[(k / 4) * 4 * out_padded + 4 * j + k % 4] = std::uint8_t(signed_input ? q + 128 : q);
+        }
+    }
+    return layer;
+}
+
+void quantize_rows(const float* src, std::size_t n, std::size_t cols, std::size_t lds, bool signed_input,
+                   Int8Rows& out) {
+    out.cols = cols;
+    out.ld = round_up(cols, 16);
+    if (out.q.size() < n * out.ld) out.q.resize(n * out.ld);
+    if (out.scale.size() < n) out.scale.resize(n), out.sum.resize(n);
+#if LSNIF_HAVE_X86
+    if (cpu_features().avx512) return quantize_rows_avx512(src, n, cols, lds, signed_input, out);
+#endif
+    quantize_rows_scalar(src, n, cols, lds, signed_input, out);
+}
+
+namespace {
+
+Int8Operands operands(const Int8Rows& a, const Int8Layer& layer, const float* bias, bool relu, float* c,
+                      std::size_t ldc, Int8Rows* next) {
+    return {a.q.data(), a.ld,  a.scale.data(), a.sum.data(), layer.b.data(), 4 * layer.out_padded, layer.scale.data(),
+            bias,       relu,  c,              ldc,          next};
+}
+
+}  // namespace
+
+void gemm_int8(std::size_t m, const Int8Rows& a, const Int8Layer& layer, const float* bias, bool relu, float* c,
+               std::size_t ldc, const ZeroColumns* zeros) {
+#if LSNIF_HAVE_X86
+    if (m && cpu_features().avx512_vnni) {
+        const Int8Operands o = operands(a, layer, bias, relu, c, ldc, nullptr);
+        const std::size_t quads = (layer.in + 3) / 4;
+        return layer.signed_input ? gemm_int8_vnni<true>(m, o, layer.out_padded, quads, zeros)
+                                  : gemm_int8_vnni<false>(m, o, layer.out_padded, quads, zeros);
+    }
+#endif
+    gemm_int8_scalar(m, a, layer, bias, relu, c, ldc);
+}
+
+void gemm_int8_relu_quantized(std::size_t m, const Int8Rows& a, const Int8Layer& layer, const float* bias,
+                              Int8Rows& next, std::vector<float>& scratch, const ZeroColumns* zeros) {
+    const std::size_t np = layer.out_padded;
+    next.cols = np;
+    next.ld = round_up(np, 16);
+    if (next.q.size() < m * next.ld) next.q.resize(m * next.ld);
+    if (next.scale.size() < m) next.scale.resize(m), next.sum.resize(m);
+#if LSNIF_HAVE_X86
+    if (m && np <= kInt8FusedWidth && cpu_features().avx512_vnni) {
+        const Int8Operands o = operands(a, layer, bias, true, nullptr, 0, &next);
+        const std::size_t quads = (layer.in + 3) / 4;
+        return layer.signed_input ? gemm_int8_vnni_quantized<true>(m, o, np, quads, zeros)
+                                  : gemm_int8_vnni_quantized<false>(m, o, np, quads, zeros);
+    }
+#endif
+    if (scratch.size() < m * np) scratch.resize(m * np);
+    gemm_int8(m, a, layer, bias, true, scratch.data(), np, zeros);
+    quantize_rows(scratch.data(), m, np, np, false, next);
+}
+
+}  // namespace lsnif::format

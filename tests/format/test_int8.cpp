@@ -1,0 +1,190 @@
+// The 8-bit hidden layers (lsnif/format/int8.hpp) against their definition, computed here
+// independently: per-row and per-column scales, round-to-nearest-even, exact integer sums,
+// one fused multiply-add into the bias. Whatever path the machine takes (AVX-512 VNNI or
+// scalar), its results must equal the definition bit for bit.
+#include <doctest/doctest.h>
+
+#include <lsnif/format/cpu.hpp>
+#include <lsnif/format/int8.hpp>
+
+#include <algorithm>
+#include <cmath>
+#include <cstdint>
+#include <cstring>
+#include <limits>
+#include <random>
+#include <vector>
+
+using namespace lsnif::format;
+
+namespace {
+
+// The definition of quantize_rows for one row: scale = max / range, q = rint(x * range / max)
+// clamped, NaN -> 0.
+struct RowRef {
+    std::vector<std::int32_t> q;
+    float scale = 0;
+};
+RowRef quantize_ref(const float* x, std::size_t cols, bool signed_input) {
+    const float range = signed_input ? 127.0f : 255.0f, lo = signed_input ? -127.0f : 0.0f;
+    float m = 0;
+    for (std::size_t k = 0; k < cols; ++k) {
+        const float a = signed_input ? std::fabs(x[k]) : x[k];
+        if (a > m) m = a;
+    }
+    RowRef r;
+    const float inverse = m > 0 ? range / m : 0.0f;
+    r.scale = m > 0 ? m / range : 0.0f;
+    for (std::size_t k = 0; k < cols; ++k) {
+        const float t = x[k] * inverse;
+        r.q.push_back(t != t ? 0 : std::int32_t(std::nearbyint(std::clamp(t, lo, range))));
+    }
+    return r;
+}
+
+// A layer's quantized weight (k, j) as a signed value, read back from the VNNI4 layout.
+std::int32_t weight(const Int8Layer& l, std::size_t k, std::size_t j) {
+    const std::uint8_t b = l.b[(k / 4) * 4 * l.out_padded + 4 * j + k % 4];
+    return l.signed_input ? std::int32_t(b) - 128 : std::int32_t(std::int8_t(b));
+}
+
+// The definition of gemm_int8 on already quantized rows.
+std::vector<float> product_ref(const std::vector<RowRef>& rows, const Int8Layer& l, const std::vector<float>& bias,
+                               bool relu) {
+    std::vector<float> c(rows.size() * l.out_padded);
+    for (std::size_t r = 0; r < rows.size(); ++r)
+        for (std::size_t j = 0; j < l.out_padded; ++j) {
+            std::int64_t sum = 0;
+            for (std::size_t k = 0; k < l.in; ++k) sum += std::int64_t(rows[r].q[k]) * weight(l, k, j);
+            const float y = std::fma(float(sum), rows[r].scale * l.scale[j], bias[j]);
+            c[r * l.out_padded + j] = relu ? (y > 0 ? y : 0.0f) : y;
+        }
+    return c;
+}
+
+struct Case {
+    std::size_t m, in, out_padded, tail;  // tail: ZeroColumns' end (0 = no zero columns)
+    bool signed_input;
+};
+
+std::size_t bit_equal(const std::vector<float>& a, const std::vector<float>& b) {
+    std::size_t n = 0;
+    for (std::size_t i = 0; i < a.size(); ++i) n += std::memcmp(&a[i], &b[i], sizeof(float)) == 0;
+    return n;
+}
+
+}  // namespace
+
+TEST_CASE("quantize_rows follows its definition: per-row scales, nearest even, clamping, NaN and zero rows") {
+    std::mt19937 rng(3);
+    std::uniform_real_distribution<float> u(-3.f, 3.f);
+    for (const bool signed_input : {true, false})
+        for (const std::size_t cols : {std::size_t(1), std::size_t(16), std::size_t(129), std::size_t(200)}) {
+            CAPTURE(signed_input);
+            CAPTURE(cols);
+            const std::size_t n = 9, lds = cols + 3;
+            std::vector<float> x(n * lds);
+            for (float& v : x) v = u(rng);
+            std::fill(x.begin() + 2 * lds, x.begin() + 2 * lds + cols, 0.0f);  // an all-zero row
+            x[3 * lds] = std::numeric_limits<float>::quiet_NaN();           // a NaN input
+            x[4 * lds + cols - 1] = 1e30f;                                  // one huge value
+            // Halfway cases: with the row's maximum at the range, x * inverse is exact, so
+            // k + 0.5 must round to the even neighbour.
+            for (std::size_t k = 0; k < cols; ++k) x[5 * lds + k] = float(k % 7) - 2.5f;
+            x[5 * lds] = signed_input ? 127.0f : 255.0f;
+            Int8Rows rows;
+            quantize_rows(x.data(), n, cols, lds, signed_input, rows);
+            REQUIRE(rows.cols == cols);
+            REQUIRE(rows.ld % 16 == 0);
+            for (std::size_t r = 0; r < n; ++r) {
+                CAPTURE(r);
+                const RowRef want = quantize_ref(&x[r * lds], cols, signed_input);
+                CHECK(std::memcmp(&rows.scale[r], &want.scale, sizeof(float)) == 0);
+                std::int32_t sum = 0;
+                std::size_t same = 0;
+                for (std::size_t k = 0; k < cols; ++k) {
+                    const std::uint8_t b = rows.q[r * rows.ld + k];
+                    same += (signed_input ? std::int32_t(std::int8_t(b)) : std::int32_t(b)) == want.q[k];
+                    sum += want.q[k];
+                }
+                CHECK(same == cols);
+                for (std::size_t k = cols; k < rows.ld; ++k) CHECK(rows.q[r * rows.ld + k] == 0);
+                CHECK(rows.sum[r] == (signed_input ? sum : 0));
+            }
+            CHECK(rows.scale[2] == 0.0f);  // the zero row
+        }
+}
+
+TEST_CASE("make_int8_layer keeps every weight within half a step of its column's scale") {
+    std::mt19937 rng(4);
+    std::uniform_real_distribution<float> u(-0.5f, 0.5f);
+    for (const bool signed_input : {true, false}) {
+        const std::size_t in = 37, op = 48;
+        std::vector<float> wt(in * op);
+        for (float& w : wt) w = u(rng);
+        for (std::size_t k = 0; k < in; ++k) wt[k * op + 5] = 0.0f;  // an all-zero column
+        const Int8Layer l = make_int8_layer(wt.data(), in, op, signed_input);
+        CHECK(l.b.size() == 40 * op);  // K padded to 4
+        CHECK(l.scale[5] == 0.0f);
+        for (std::size_t j = 0; j < op; ++j)
+            for (std::size_t k = 0; k < 40; ++k) {
+                const float w = k < in ? wt[k * op + j] : 0.0f;
+                CHECK(std::fabs(float(weight(l, k, j)) * l.scale[j] - w) <= 0.5f * l.scale[j] * 1.0001f);
+                CHECK(std::abs(weight(l, k, j)) <= 127);
+            }
+    }
+}
+
+TEST_CASE("the int8 product equals its definition bit for bit, skipped zero columns or not") {
+    MESSAGE("AVX-512 VNNI on this machine: " << cpu_features().avx512_vnni
+                                             << " (without it the scalar path is what is checked)");
+    std::mt19937 rng(5);
+    std::uniform_real_distribution<float> u(-1.f, 1.f);
+    // The inference shapes (129 inputs: 108 point features, then 21 ray inputs; 128 hidden)
+    // and ragged ones: K not a multiple of 4, rows not a multiple of the row block, every
+    // column count the kernel splits differently.
+    for (const Case cs : {Case{256, 129, 128, 108, true}, Case{37, 128, 128, 0, false}, Case{13, 71, 48, 51, true},
+                          Case{7, 33, 16, 33, true}, Case{11, 64, 144, 0, false}, Case{6, 5, 80, 0, false}}) {
+        CAPTURE(cs.m);
+        CAPTURE(cs.in);
+        CAPTURE(cs.out_padded);
+        std::vector<float> x(cs.m * cs.in), wt(cs.in * cs.out_padded), bias(cs.out_padded);
+        std::vector<std::uint32_t> lead(cs.m);
+        for (std::size_t r = 0; r < cs.m; ++r) {
+            lead[r] = cs.tail ? std::uint32_t(rng() % (cs.tail + 1)) : 0;
+            if (r % 3 == 0 && r > 0) lead[r] = lead[r - 1];  // runs of equal leads, as sorted rows have
+            for (std::size_t k = 0; k < cs.in; ++k) {
+                const bool zero = cs.tail && k >= lead[r] && k < cs.tail;
+                const float v = u(rng);
+                x[r * cs.in + k] = zero ? 0.0f : cs.signed_input ? v : std::fabs(v);
+            }
+        }
+        for (float& w : wt) w = u(rng);
+        for (float& b : bias) b = u(rng);
+        const Int8Layer layer = make_int8_layer(wt.data(), cs.in, cs.out_padded, cs.signed_input);
+        Int8Rows rows;
+        quantize_rows(x.data(), cs.m, cs.in, cs.in, cs.signed_input, rows);
+        std::vector<RowRef> ref;
+        for (std::size_t r = 0; r < cs.m; ++r) ref.push_back(quantize_ref(&x[r * cs.in], cs.in, cs.signed_input));
+        const ZeroColumns zeros{lead.data(), cs.tail};
+        for (const bool relu : {true, false}) {
+            CAPTURE(relu);
+            const std::vector<float> want = product_ref(ref, layer, bias, relu);
+            std::vector<float> full(want.size()), skipped(want.size());
+            gemm_int8(cs.m, rows, layer, bias.data(), relu, full.data(), cs.out_padded);
+            gemm_int8(cs.m, rows, layer, bias.data(), relu, skipped.data(), cs.out_padded,
+                      cs.tail ? &zeros : nullptr);
+            CHECK(bit_equal(full, want) == want.size());
+            CHECK(bit_equal(skipped, want) == want.size());
+        }
+        // The fused epilogue: the next layer's rows, as quantize_rows makes them from fp32.
+        std::vector<float> relu_out(cs.m * cs.out_padded), scratch;
+        gemm_int8(cs.m, rows, layer, bias.data(), true, relu_out.data(), cs.out_padded, cs.tail ? &zeros : nullptr);
+        Int8Rows want_next, next;
+        quantize_rows(relu_out.data(), cs.m, cs.out_padded, cs.out_padded, false, want_next);
+        gemm_int8_relu_quantized(cs.m, rows, layer, bias.data(), next, scratch, cs.tail ? &zeros : nullptr);
+        REQUIRE(next.ld == want_next.ld);
+        CHECK(std::memcmp(next.q.data(), want_next.q.data(), cs.m * next.ld) == 0);
+        CHECK(std::memcmp(next.scale.data(), want_next.scale.data(), cs.m * sizeof(float)) == 0);
+    }
+}
