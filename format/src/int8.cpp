@@ -51,8 +51,8 @@ inline float row_max(const float* x, std::size_t n, bool signed_input) {
     return m;
 }
 
-void quantize_rows_scalar(const float* src, std::size_t n, std::size_t cols, std::size_t lds, bool signed_input,
-                          Int8Rows& out) {
+void quantize_rows_scalar(const float* src, std::size_t n, std::size_t cols, std::size_t lds,
+                          bool signed_input, Int8Rows& out) {
     const QuantRange range = signed_input ? kSigned : kUnsigned;
     for (std::size_t r = 0; r < n; ++r) {
         const float* x = src + r * lds;
@@ -128,34 +128,53 @@ LSNIF_AVX512_TARGET inline __mmask16 lane_mask16(std::size_t begin, std::size_t 
 
 // The same values as quantize_rows_scalar: max is exact in any order, and x * inverse,
 // clamping, NaN -> 0 and round-to-nearest-even (VCVTPS2DQ under the default MXCSR, as
-// nearbyint under the default rounding mode) are the same operations lane by lane.
-LSNIF_AVX512_TARGET void quantize_rows_avx512(const float* src, std::size_t n, std::size_t cols, std::size_t lds,
-                                              bool signed_input, Int8Rows& out) {
+// nearbyint under the default rounding mode) are the same operations lane by lane; the
+// scales of 16 rows are two correctly rounded vector divisions (VDIVPS), as scale_for's
+// scalar ones. In three passes over the rows (maxima, scales, quantization), so no row
+// waits on its own maximum and division.
+LSNIF_AVX512_TARGET void quantize_rows_avx512(const float* src, std::size_t n, std::size_t cols,
+                                              std::size_t lds, bool signed_input, Int8Rows& out) {
     const QuantRange range = signed_input ? kSigned : kUnsigned;
     const __m512 lo = _mm512_set1_ps(range.lo), hi = _mm512_set1_ps(range.hi);
     const __m512i abs_mask = _mm512_set1_epi32(0x7fffffff);
+    const std::size_t vectors = out.ld / 16;
+    const __mmask16 tail = lane_mask16(16 * (vectors - 1), cols);  // the last vector's live lanes
+    const auto load = [&](const float* x, std::size_t v) LSNIF_AVX512_TARGET {
+        return v + 1 < vectors ? _mm512_loadu_ps(x + 16 * v) : _mm512_maskz_loadu_ps(tail, x + 16 * v);
+    };
+    float* maxima = out.scale.data();  // each row's maximum, then its scale
+    thread_local std::vector<float> inverses;
+    if (inverses.size() < n + 16) inverses.resize(n + 16);
     for (std::size_t r = 0; r < n; ++r) {
         const float* x = src + r * lds;
         // VMAXPS returns its second operand when either is NaN: NaN lanes keep m.
         __m512 m = _mm512_setzero_ps();
-        for (std::size_t k = 0; k < cols; k += 16) {
-            __m512 v = _mm512_maskz_loadu_ps(lane_mask16(k, cols), x + k);
-            if (signed_input) v = _mm512_castsi512_ps(_mm512_and_si512(_mm512_castps_si512(v), abs_mask));
-            m = _mm512_max_ps(v, m);
+        for (std::size_t v = 0; v < vectors; ++v) {
+            __m512 xv = load(x, v);
+            if (signed_input) xv = _mm512_castsi512_ps(_mm512_and_si512(_mm512_castps_si512(xv), abs_mask));
+            m = _mm512_max_ps(xv, m);
         }
-        const Scale s = scale_for(_mm512_reduce_max_ps(m), range);
-        const __m512 inverse = _mm512_set1_ps(s.inverse);
+        maxima[r] = _mm512_reduce_max_ps(m);
+    }
+    for (std::size_t r = 0; r < n; r += 16) {
+        const __mmask16 rows = lane_mask16(r, n);
+        const __m512 m = _mm512_maskz_loadu_ps(rows, maxima + r);
+        const __mmask16 live = _mm512_cmp_ps_mask(m, _mm512_setzero_ps(), _CMP_GT_OQ);  // scale_for's m > 0
+        _mm512_mask_storeu_ps(inverses.data() + r, rows, _mm512_maskz_div_ps(live, hi, m));
+        _mm512_mask_storeu_ps(maxima + r, rows, _mm512_maskz_div_ps(live, m, hi));
+    }
+    for (std::size_t r = 0; r < n; ++r) {
+        const float* x = src + r * lds;
+        const __m512 inverse = _mm512_set1_ps(inverses[r]);
         std::uint8_t* q = out.q.data() + r * out.ld;
         __m512i sum = _mm512_setzero_si512();
-        for (std::size_t k = 0; k < out.ld; k += 16) {
-            const __mmask16 live = lane_mask16(k, cols);
-            __m512 t = _mm512_mul_ps(_mm512_maskz_loadu_ps(live, x + k), inverse);
+        for (std::size_t v = 0; v < vectors; ++v) {
+            __m512 t = _mm512_mul_ps(load(x, v), inverse);
             t = _mm512_maskz_mov_ps(_mm512_cmp_ps_mask(t, t, _CMP_ORD_Q), t);
-            const __m512i v = _mm512_cvtps_epi32(_mm512_min_ps(_mm512_max_ps(t, lo), hi));
-            sum = _mm512_add_epi32(sum, v);
-            _mm_storeu_si128(reinterpret_cast<__m128i*>(q + k), _mm512_cvtepi32_epi8(v));
+            const __m512i qv = _mm512_cvtps_epi32(_mm512_min_ps(_mm512_max_ps(t, lo), hi));
+            sum = _mm512_add_epi32(sum, qv);
+            _mm_storeu_si128(reinterpret_cast<__m128i*>(q + 16 * v), _mm512_cvtepi32_epi8(qv));
         }
-        out.scale[r] = s.scale;
         out.sum[r] = signed_input ? _mm512_reduce_add_epi32(sum) : 0;
     }
 }
@@ -172,14 +191,14 @@ LSNIF_VNNI_TARGET inline __m512i dpbusd(__m512i acc, __m512i u, __m512i s) {
 // The operands of one product, unpacked from Int8Rows and Int8Layer, and where it goes:
 // fp32 rows of C, or (next non-null) the ReLU'd rows quantized for the next layer.
 struct Int8Operands {
-    const std::uint8_t* a;     // rows layout, row stride lda
+    const std::uint8_t* a;  // rows layout, row stride lda
     std::size_t lda;
-    const float* sx;           // per row
-    const std::int32_t* sum;   // per row (signed inputs)
-    const std::uint8_t* b;     // VNNI4 layout, row stride ldb = 4 * np
+    const float* sx;          // per row
+    const std::int32_t* sum;  // per row (signed inputs)
+    const std::uint8_t* b;    // VNNI4 layout, row stride ldb = 4 * np
     std::size_t ldb;
-    const float* sw;           // per column
-    const float* bias;         // per column
+    const float* sw;    // per column
+    const float* bias;  // per column
     bool relu;
     float* c;
     std::size_t ldc;
@@ -245,8 +264,10 @@ LSNIF_VNNI_TARGET void int8_block(std::size_t r0, std::size_t j0, std::size_t he
         for (int v = 0; v < NV; ++v) {
             const std::size_t j = j0 + 16 * v;
             const __m512 x = _mm512_cvtepi32_ps(_mm512_sub_epi32(acc[m][v], offset));
-            y[v] = _mm512_fmadd_ps(x, _mm512_mul_ps(sx, _mm512_loadu_ps(o.sw + j)), _mm512_loadu_ps(o.bias + j));
-            if (o.relu) y[v] = _mm512_maskz_mov_ps(_mm512_cmp_ps_mask(y[v], _mm512_setzero_ps(), _CMP_GT_OQ), y[v]);
+            y[v] =
+                _mm512_fmadd_ps(x, _mm512_mul_ps(sx, _mm512_loadu_ps(o.sw + j)), _mm512_loadu_ps(o.bias + j));
+            if (o.relu)
+                y[v] = _mm512_maskz_mov_ps(_mm512_cmp_ps_mask(y[v], _mm512_setzero_ps(), _CMP_GT_OQ), y[v]);
             if constexpr (!Quantize) _mm512_storeu_ps(o.c + r * o.ldc + j, y[v]);
         }
         if constexpr (Quantize) quantize_row<NV>(y, r, *o.next);
@@ -338,14 +359,24 @@ namespace {
 
 Int8Operands operands(const Int8Rows& a, const Int8Layer& layer, const float* bias, bool relu, float* c,
                       std::size_t ldc, Int8Rows* next) {
-    return {a.q.data(), a.ld,  a.scale.data(), a.sum.data(), layer.b.data(), 4 * layer.out_padded, layer.scale.data(),
-            bias,       relu,  c,              ldc,          next};
+    return {a.q.data(),
+            a.ld,
+            a.scale.data(),
+            a.sum.data(),
+            layer.b.data(),
+            4 * layer.out_padded,
+            layer.scale.data(),
+            bias,
+            relu,
+            c,
+            ldc,
+            next};
 }
 
 }  // namespace
 
-void gemm_int8(std::size_t m, const Int8Rows& a, const Int8Layer& layer, const float* bias, bool relu, float* c,
-               std::size_t ldc, const ZeroColumns* zeros) {
+void gemm_int8(std::size_t m, const Int8Rows& a, const Int8Layer& layer, const float* bias, bool relu,
+               float* c, std::size_t ldc, const ZeroColumns* zeros) {
 #if LSNIF_HAVE_X86
     if (m && cpu_features().avx512_vnni) {
         const Int8Operands o = operands(a, layer, bias, relu, c, ldc, nullptr);

@@ -49,8 +49,8 @@ std::int32_t weight(const Int8Layer& l, std::size_t k, std::size_t j) {
 }
 
 // The definition of gemm_int8 on already quantized rows.
-std::vector<float> product_ref(const std::vector<RowRef>& rows, const Int8Layer& l, const std::vector<float>& bias,
-                               bool relu) {
+std::vector<float> product_ref(const std::vector<RowRef>& rows, const Int8Layer& l,
+                               const std::vector<float>& bias, bool relu) {
     std::vector<float> c(rows.size() * l.out_padded);
     for (std::size_t r = 0; r < rows.size(); ++r)
         for (std::size_t j = 0; j < l.out_padded; ++j) {
@@ -86,8 +86,8 @@ TEST_CASE("quantize_rows follows its definition: per-row scales, nearest even, c
             std::vector<float> x(n * lds);
             for (float& v : x) v = u(rng);
             std::fill(x.begin() + 2 * lds, x.begin() + 2 * lds + cols, 0.0f);  // an all-zero row
-            x[3 * lds] = std::numeric_limits<float>::quiet_NaN();           // a NaN input
-            x[4 * lds + cols - 1] = 1e30f;                                  // one huge value
+            x[3 * lds] = std::numeric_limits<float>::quiet_NaN();              // a NaN input
+            x[4 * lds + cols - 1] = 1e30f;                                     // one huge value
             // Halfway cases: with the row's maximum at the range, x * inverse is exact, so
             // k + 0.5 must round to the even neighbour.
             for (std::size_t k = 0; k < cols; ++k) x[5 * lds + k] = float(k % 7) - 2.5f;
@@ -143,8 +143,9 @@ TEST_CASE("the int8 product equals its definition bit for bit, skipped zero colu
     // The inference shapes (129 inputs: 108 point features, then 21 ray inputs; 128 hidden)
     // and ragged ones: K not a multiple of 4, rows not a multiple of the row block, every
     // column count the kernel splits differently.
-    for (const Case cs : {Case{256, 129, 128, 108, true}, Case{37, 128, 128, 0, false}, Case{13, 71, 48, 51, true},
-                          Case{7, 33, 16, 33, true}, Case{11, 64, 144, 0, false}, Case{6, 5, 80, 0, false}}) {
+    for (const Case cs :
+         {Case{256, 129, 128, 108, true}, Case{37, 128, 128, 0, false}, Case{13, 71, 48, 51, true},
+          Case{7, 33, 16, 33, true}, Case{11, 64, 144, 0, false}, Case{6, 5, 80, 0, false}}) {
         CAPTURE(cs.m);
         CAPTURE(cs.in);
         CAPTURE(cs.out_padded);
@@ -165,7 +166,8 @@ TEST_CASE("the int8 product equals its definition bit for bit, skipped zero colu
         Int8Rows rows;
         quantize_rows(x.data(), cs.m, cs.in, cs.in, cs.signed_input, rows);
         std::vector<RowRef> ref;
-        for (std::size_t r = 0; r < cs.m; ++r) ref.push_back(quantize_ref(&x[r * cs.in], cs.in, cs.signed_input));
+        for (std::size_t r = 0; r < cs.m; ++r)
+            ref.push_back(quantize_ref(&x[r * cs.in], cs.in, cs.signed_input));
         const ZeroColumns zeros{lead.data(), cs.tail};
         for (const bool relu : {true, false}) {
             CAPTURE(relu);
@@ -179,7 +181,8 @@ TEST_CASE("the int8 product equals its definition bit for bit, skipped zero colu
         }
         // The fused epilogue: the next layer's rows, as quantize_rows makes them from fp32.
         std::vector<float> relu_out(cs.m * cs.out_padded), scratch;
-        gemm_int8(cs.m, rows, layer, bias.data(), true, relu_out.data(), cs.out_padded, cs.tail ? &zeros : nullptr);
+        gemm_int8(cs.m, rows, layer, bias.data(), true, relu_out.data(), cs.out_padded,
+                  cs.tail ? &zeros : nullptr);
         Int8Rows want_next, next;
         quantize_rows(relu_out.data(), cs.m, cs.out_padded, cs.out_padded, false, want_next);
         gemm_int8_relu_quantized(cs.m, rows, layer, bias.data(), next, scratch, cs.tail ? &zeros : nullptr);

@@ -42,11 +42,11 @@ inline constexpr std::size_t kInt8MaxInputs = 16384;
 
 // One hidden layer's weights for gemm_int8.
 struct Int8Layer {
-    std::size_t in = 0;            // K: inputs
-    std::size_t out_padded = 0;    // N: outputs, a multiple of 16
-    bool signed_input = false;     // the layer's inputs may be negative (see above)
-    std::vector<std::uint8_t> b;   // VNNI4 layout, round_up(in, 4) / 4 rows of 4 * out_padded bytes
-    std::vector<float> scale;      // sw[n], out_padded values (0 for all-zero columns)
+    std::size_t in = 0;           // K: inputs
+    std::size_t out_padded = 0;   // N: outputs, a multiple of 16
+    bool signed_input = false;    // the layer's inputs may be negative (see above)
+    std::vector<std::uint8_t> b;  // VNNI4 layout, round_up(in, 4) / 4 rows of 4 * out_padded bytes
+    std::vector<float> scale;     // sw[n], out_padded values (0 for all-zero columns)
 };
 
 // Quantizes W^T (`wt`: in x out_padded, row-major fp32, the Network layout). Non-finite
@@ -56,9 +56,9 @@ Int8Layer make_int8_layer(const float* wt, std::size_t in, std::size_t out_padde
 // A layer's input quantized row by row (A operand).
 struct Int8Rows {
     std::size_t cols = 0, ld = 0;
-    std::vector<std::uint8_t> q;     // rows layout
-    std::vector<float> scale;        // sx[r]
-    std::vector<std::int32_t> sum;   // sum_k qx[r][k] (signed inputs; 0 otherwise)
+    std::vector<std::uint8_t> q;    // rows layout
+    std::vector<float> scale;       // sx[r]
+    std::vector<std::int32_t> sum;  // sum_k qx[r][k] (signed inputs; 0 otherwise)
 };
 
 // Quantizes rows [0, n) of `src` (cols values each, row stride lds) into `out`, growing its
@@ -73,8 +73,8 @@ void quantize_rows(const float* src, std::size_t n, std::size_t cols, std::size_
 // quantized rows of a.cols == layer.in inputs with layer.signed_input's convention; `bias`
 // has out_padded values; `zeros`, if given, true of the unquantized input (zero inputs
 // quantize to 0). Only the m x n region of C is written. Thread-safe.
-void gemm_int8(std::size_t m, const Int8Rows& a, const Int8Layer& layer, const float* bias, bool relu, float* c,
-               std::size_t ldc, const ZeroColumns* zeros = nullptr);
+void gemm_int8(std::size_t m, const Int8Rows& a, const Int8Layer& layer, const float* bias, bool relu,
+               float* c, std::size_t ldc, const ZeroColumns* zeros = nullptr);
 
 // The widest layer gemm_int8_relu_quantized quantizes in its kernel's epilogue (wider ones
 // go through fp32 rows and quantize_rows: the same bytes, slower).
@@ -85,6 +85,7 @@ inline constexpr std::size_t kInt8FusedWidth = 128;
 // writing C (`scratch` holds it only on the paths that need it). Bit-identical to that pair
 // of calls for finite inputs.
 void gemm_int8_relu_quantized(std::size_t m, const Int8Rows& a, const Int8Layer& layer, const float* bias,
-                              Int8Rows& next, std::vector<float>& scratch, const ZeroColumns* zeros = nullptr);
+                              Int8Rows& next, std::vector<float>& scratch,
+                              const ZeroColumns* zeros = nullptr);
 
 }  // namespace lsnif::format
