@@ -11,6 +11,8 @@
 #if defined(__x86_64__) && defined(__GNUC__)
 #define LSNIF_HAVE_X86 1
 #include <immintrin.h>
+
+#include "avx512_transpose.hpp"
 #endif
 
 namespace lsnif::format {
@@ -90,38 +92,6 @@ LSNIF_BF16_TARGET void pack_vnni_avx512(const float* src, std::size_t k, std::si
         }
 }
 
-// In-register transpose of a 16 x 16 matrix of dwords (rows r[0..15] -> columns).
-// GCC 12's unpack/shuffle intrinsics pass a self-initialized _mm512_undefined_epi32() as the
-// (unused) merge source, which -Wmaybe-uninitialized reports once inlined; a false positive.
-#pragma GCC diagnostic push
-#pragma GCC diagnostic ignored "-Wmaybe-uninitialized"
-LSNIF_BF16_TARGET inline void transpose16(__m512i r[16]) {
-    __m512i t[16], u[16];
-    for (int i = 0; i < 8; ++i) {
-        t[2 * i] = _mm512_unpacklo_epi32(r[2 * i], r[2 * i + 1]);
-        t[2 * i + 1] = _mm512_unpackhi_epi32(r[2 * i], r[2 * i + 1]);
-    }
-    // u[4i + q], 128-bit lane L: rows 4i..4i+3 at column 4L + q.
-    for (int i = 0; i < 4; ++i) {
-        u[4 * i + 0] = _mm512_unpacklo_epi64(t[4 * i], t[4 * i + 2]);
-        u[4 * i + 1] = _mm512_unpackhi_epi64(t[4 * i], t[4 * i + 2]);
-        u[4 * i + 2] = _mm512_unpacklo_epi64(t[4 * i + 1], t[4 * i + 3]);
-        u[4 * i + 3] = _mm512_unpackhi_epi64(t[4 * i + 1], t[4 * i + 3]);
-    }
-    // Column 4L + q gathers lane L of u[q], u[4 + q], u[8 + q], u[12 + q].
-    for (int q = 0; q < 4; ++q) {
-        const __m512i v0 = _mm512_shuffle_i32x4(u[q], u[4 + q], 0x44);
-        const __m512i v1 = _mm512_shuffle_i32x4(u[q], u[4 + q], 0xee);
-        const __m512i v2 = _mm512_shuffle_i32x4(u[8 + q], u[12 + q], 0x44);
-        const __m512i v3 = _mm512_shuffle_i32x4(u[8 + q], u[12 + q], 0xee);
-        r[q] = _mm512_shuffle_i32x4(v0, v2, 0x88);
-        r[4 + q] = _mm512_shuffle_i32x4(v0, v2, 0xdd);
-        r[8 + q] = _mm512_shuffle_i32x4(v1, v3, 0x88);
-        r[12 + q] = _mm512_shuffle_i32x4(v1, v3, 0xdd);
-    }
-}
-#pragma GCC diagnostic pop
-
 // Blocks of 32 source rows x 16 columns: row pairs become dwords (as in the VNNI packer),
 // then a 16 x 16 dword transpose turns them into 16 destination rows of 32 bf16.
 // Requires ldd % 32 == 0 and cols_pad % 16 == 0 (the caller checks).
@@ -137,7 +107,7 @@ LSNIF_BF16_TARGET void pack_transposed_avx512(const float* src, std::size_t rows
                 d[p] = interleave_pairs(load_row(src + r * lds + c0, r < rows, m),
                                         load_row(src + (r + 1) * lds + c0, r + 1 < rows, m));
             }
-            transpose16(d);
+            detail::transpose16(d);
             for (std::size_t j = 0; j < 16; ++j) _mm512_storeu_si512(dst + (c0 + j) * ldd + r0, d[j]);
         }
 }

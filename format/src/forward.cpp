@@ -15,6 +15,8 @@
 #if defined(__x86_64__) && defined(__GNUC__)
 #define LSNIF_HAVE_X86 1
 #include <immintrin.h>
+
+#include "avx512_transpose.hpp"
 // GCC 12's AVX-512 intrinsics start from _mm*_undefined_*(), which -Wmaybe-uninitialized
 // reports as a use of an uninitialized value (a false positive).
 #pragma GCC diagnostic ignored "-Wmaybe-uninitialized"
@@ -588,6 +590,49 @@ __attribute__((target("avx512f,avx512vl,avx2,fma"))) void dense_narrow_avx512(
     }
 }
 
+// The output layer with rows in lanes: 16 rows at a time, their inputs transposed in
+// registers 16 at a time, so each FMA computes one output of 16 rows and only the OUTS real
+// outputs cost anything (the kernels above spend a 16-wide FMA per input on 5 real outputs).
+// Per row and output: bias, then fma over inputs 0, 1, ..., as dense_narrow_avx512, so the
+// real columns are the same bit for bit; padding columns are written as zeros. Requires
+// outp == 16; rows beyond the last full block of 16 go to dense_narrow_avx512. (Two groups
+// of 16 rows, for twice the independent FMA chains, measured no faster: the transposed
+// inputs of both no longer fit the registers.)
+template <int OUTS>
+__attribute__((target("avx512f,avx512vl,avx2,fma"))) void dense_output_avx512(const float* A, std::size_t n,
+                                                                              std::size_t in, std::size_t lda,
+                                                                              const float* wt,
+                                                                              const float* bias, float* C) {
+    constexpr std::size_t kOutp = 16;
+    std::size_t r0 = 0;
+    for (; r0 + 16 <= n; r0 += 16) {
+        __m512 acc[OUTS];
+        for (int o = 0; o < OUTS; ++o) acc[o] = _mm512_set1_ps(bias[o]);
+        // Inputs k0 .. k0 + kn - 1 of the 16 rows, one FMA per input and output.
+        const auto block = [&](std::size_t k0, std::size_t kn)
+            __attribute__((target("avx512f,avx512vl,avx2,fma"))) {
+            const __mmask16 live = __mmask16((1u << kn) - 1u);
+            __m512i t[16];
+            for (std::size_t i = 0; i < 16; ++i)
+                t[i] = _mm512_castps_si512(_mm512_maskz_loadu_ps(live, A + (r0 + i) * lda + k0));
+            detail::transpose16(t);  // t[j]: input k0 + j of the 16 rows
+            for (std::size_t j = 0; j < kn; ++j)
+                for (int o = 0; o < OUTS; ++o)
+                    acc[o] = _mm512_fmadd_ps(_mm512_castsi512_ps(t[j]),
+                                             _mm512_set1_ps(wt[(k0 + j) * kOutp + o]), acc[o]);
+        };
+        std::size_t k0 = 0;
+        for (; k0 + 16 <= in; k0 += 16) block(k0, 16);
+        if (k0 < in) block(k0, in - k0);
+        __m512i rows[16];
+        for (int o = 0; o < 16; ++o)
+            rows[o] = o < OUTS ? _mm512_castps_si512(acc[o]) : _mm512_setzero_si512();
+        detail::transpose16(rows);  // rows[i]: the 16 outputs of row r0 + i
+        for (std::size_t i = 0; i < 16; ++i) _mm512_storeu_si512(C + (r0 + i) * kOutp, rows[i]);
+    }
+    if (r0 < n) dense_narrow_avx512(A + r0 * lda, n - r0, in, lda, wt, bias, kOutp, false, C + r0 * kOutp);
+}
+
 using DenseFn = void (*)(const float*, std::size_t, std::size_t, std::size_t, const float*, const float*,
                          std::size_t, bool, float*);
 
@@ -605,6 +650,17 @@ void dense_layer(const float* A, std::size_t n, std::size_t in, std::size_t lda,
     if (out_padded < 64 && fn == dense_avx512)
         return dense_narrow_avx512(A, n, in, lda, wt, bias, out_padded, relu, C);
     fn(A, n, in, lda, wt, bias, out_padded, relu, C);
+}
+
+void dense_output_layer(const float* A, std::size_t n, std::size_t in, std::size_t lda, const float* wt,
+                        const float* bias, std::size_t out_padded, std::size_t outs, float* C) {
+    if (out_padded == 16 && cpu_features().avx512) switch (outs) {
+            case 5: return dense_output_avx512<5>(A, n, in, lda, wt, bias, C);  // FORMAT.md: one material
+            case 6: return dense_output_avx512<6>(A, n, in, lda, wt, bias, C);
+            case 7: return dense_output_avx512<7>(A, n, in, lda, wt, bias, C);
+            case 8: return dense_output_avx512<8>(A, n, in, lda, wt, bias, C);
+        }
+    dense_layer(A, n, in, lda, wt, bias, out_padded, false, C);
 }
 
 Network make_network(const ModelData& m) {
@@ -702,9 +758,12 @@ const float* mlp_forward(const Network& net, const float* input, std::size_t n, 
             gemm_bf16_dp(n, net.out_padded[k], round_up(net.in[k], 2), rows.data(), kp, net.wt_vnni[k].data(),
                          2 * net.out_padded[k], dst, net.out_padded[k], {net.bias[k].data(), true, false},
                          zeros);
+        } else if (hidden) {
+            dense_layer(src, n, net.in[k], lda, net.wt[k].data(), net.bias[k].data(), net.out_padded[k], true,
+                        dst);
         } else {
-            dense_layer(src, n, net.in[k], lda, net.wt[k].data(), net.bias[k].data(), net.out_padded[k],
-                        hidden, dst);
+            dense_output_layer(src, n, net.in[k], lda, net.wt[k].data(), net.bias[k].data(),
+                               net.out_padded[k], net.out[k], dst);
         }
         src = dst;
         lda = net.out_padded[k];

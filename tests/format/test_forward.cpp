@@ -408,6 +408,35 @@ TEST_CASE("narrow layers (16 to 48 outputs) equal the wide kernel's columns bit 
             }
 }
 
+TEST_CASE("the output layer kernel equals dense_layer on the real outputs bit for bit") {
+    // Rows in vector lanes for blocks of 16 rows (only the real outputs computed), the
+    // narrow kernel for the rest: every row count around the block size, inputs that are
+    // and are not a multiple of 16, and output counts with and without a specialization.
+    std::mt19937 rng(13);
+    std::uniform_real_distribution<float> u(-1.f, 1.f);
+    for (const std::size_t n : {std::size_t(1), std::size_t(15), std::size_t(16), std::size_t(17),
+                                std::size_t(47), std::size_t(256)})
+        for (const std::size_t in : {std::size_t(128), std::size_t(37)})
+            for (const std::size_t outs : {std::size_t(5), std::size_t(8), std::size_t(9)}) {
+                CAPTURE(n);
+                CAPTURE(in);
+                CAPTURE(outs);
+                const std::size_t op = 16, lda = in + 3;
+                std::vector<float> A(n * lda), wt(in * op, 0.f), bias(op, 0.f);
+                for (auto& x : A) x = u(rng);
+                for (std::size_t i = 0; i < in; ++i)
+                    for (std::size_t o = 0; o < outs; ++o) wt[i * op + o] = u(rng);
+                for (std::size_t o = 0; o < outs; ++o) bias[o] = u(rng);
+                std::vector<float> got(n * op, -1.f), want(n * op);
+                dense_output_layer(A.data(), n, in, lda, wt.data(), bias.data(), op, outs, got.data());
+                dense_layer(A.data(), n, in, lda, wt.data(), bias.data(), op, false, want.data());
+                std::size_t same = 0;
+                for (std::size_t r = 0; r < n; ++r)
+                    same += std::memcmp(&got[r * op], &want[r * op], outs * sizeof(float)) == 0;
+                CHECK(same == n);
+            }
+}
+
 TEST_CASE("dense_layer matches a naive reference, including ragged sizes") {
     std::mt19937 rng(5);
     std::uniform_real_distribution<float> u(-1.f, 1.f);

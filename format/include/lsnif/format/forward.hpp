@@ -218,6 +218,12 @@ Network make_network(const ModelDesc& desc, const std::vector<std::vector<float>
 void dense_layer(const float* A, std::size_t n, std::size_t in, std::size_t lda, const float* wt,
                  const float* bias, std::size_t out_padded, bool relu, float* C);
 
+// The output layer: dense_layer without ReLU, whose first `outs` columns it equals bit for
+// bit; the padding columns [outs, out_padded) hold zeros or dense_layer's values (both are
+// never read). Faster for out_padded == 16 (rows in vector lanes, only real outputs computed).
+void dense_output_layer(const float* A, std::size_t n, std::size_t in, std::size_t lda, const float* wt,
+                        const float* bias, std::size_t out_padded, std::size_t outs, float* C);
+
 // Arithmetic of the hidden layers' products. fp32 is FORMAT.md §8's reference. bf16 rounds
 // each hidden layer's input and weights to bfloat16 and accumulates in fp32 (AVX-512 BF16).
 // int8 quantizes each hidden layer's input per row and its weights per output column to 8
