@@ -181,8 +181,13 @@ void init_rayhit(const lsnif_ray& r, RTCRayHit& rh) {
     rh.hit.instID[0] = RTC_INVALID_GEOMETRY_ID;
 }
 
-// Ray-box slab test on [tmin, tmax]: the cheap cull before a network query.
+// Ray-box slab test on [tmin, tmax]: the cheap cull before a network query. A ray that
+// starts inside the box with tmin <= 0 <= tmax meets it at t = 0 (every secondary ray
+// leaving an LSNIF object's surface): answered without the three divisions.
 bool hits_box(const lsnif_ray& r, const std::array<float, 6>& b, float tmax) {
+    const bool inside = r.org[0] >= b[0] && r.org[0] <= b[3] && r.org[1] >= b[1] && r.org[1] <= b[4] &&
+                        r.org[2] >= b[2] && r.org[2] <= b[5];
+    if (inside && r.tmin <= 0.0f && tmax >= 0.0f) return true;
     float t0 = r.tmin, t1 = tmax;
     for (int a = 0; a < 3; ++a) {
         const float inv = 1.0f / r.dir[a];
