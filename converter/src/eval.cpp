@@ -269,16 +269,17 @@ void EvalScene::occluded(bool hybrid, std::span<const lsnif_ray> rays, std::span
     if (!hybrid) return;
     std::vector<lsnif_ray> batch;
     std::vector<std::uint32_t> idx;
-    std::vector<lsnif_hit> out(kBatch);
+    std::vector<std::uint8_t> out(kBatch);
     for (const std::uint32_t inst : im.lsnif_instances) {
         const Impl::Instance& in = im.instances[inst];
         const lsnif_model* model = im.meshes[in.mesh].model;
+        // The any-hit query: a hit within the ray's [tmin, tmax] (lsnif.h), as rtcOccluded1.
         auto flush = [&] {
             if (batch.empty()) return;
-            if (lsnif_intersect_instance(model, in.transform.data(), batch.data(), batch.size(),
-                                         out.data()) == LSNIF_OK)
+            if (lsnif_occluded_instance(model, in.transform.data(), batch.data(), batch.size(), out.data()) ==
+                LSNIF_OK)
                 for (std::size_t k = 0; k < batch.size(); ++k)
-                    if (out[k].hit && out[k].t >= batch[k].tmin && out[k].t <= batch[k].tmax) occ[idx[k]] = 1;
+                    if (out[k]) occ[idx[k]] = 1;
             batch.clear();
             idx.clear();
         };

@@ -267,9 +267,25 @@ lsnif_status lsnif_intersect(const lsnif_model* model, const lsnif_ray* rays, si
     });
 }
 
-lsnif_status lsnif_intersect_instance(const lsnif_model* model, const float m[12], const lsnif_ray* rays,
-                                      size_t count, lsnif_hit* hits) {
-    if (!model || !m || (count && (!rays || !hits))) return LSNIF_ERR_INVALID_ARGUMENT;
+lsnif_status lsnif_occluded(const lsnif_model* model, const lsnif_ray* rays, size_t count,
+                            uint8_t* occluded) {
+    if (!model || (count && (!rays || !occluded))) return LSNIF_ERR_INVALID_ARGUMENT;
+    return guarded(nullptr, [&] {
+        lsnif::format::occluded(model->runtime, {reinterpret_cast<const lsnif::format::Ray*>(rays), count},
+                                {occluded, count});
+        return LSNIF_OK;
+    });
+}
+
+}  // extern "C"
+
+namespace {
+
+// World-space rays against an instance: each chunk of rays mapped to object space by the
+// inverse of `m` (affine maps preserve the ray parameter), then `query(local, n, base)`.
+// LSNIF_ERR_INVALID_ARGUMENT for a singular or non-finite matrix.
+template <class Query>
+lsnif_status for_object_space(const float m[12], const lsnif_ray* rays, size_t count, Query&& query) {
     const auto inverse = lsnif::base::invert_linear(m);  // translation m[3], m[7], m[11]
     if (!inverse) return LSNIF_ERR_INVALID_ARGUMENT;
     const auto& inv = inverse->inv;
@@ -290,6 +306,21 @@ lsnif_status lsnif_intersect_instance(const lsnif_model* model, const float m[12
                 o.tmin = w.tmin;
                 o.tmax = w.tmax;
             }
+            query(local, n, base, inv);
+        }
+        return LSNIF_OK;
+    });
+}
+
+}  // namespace
+
+extern "C" {
+
+lsnif_status lsnif_intersect_instance(const lsnif_model* model, const float m[12], const lsnif_ray* rays,
+                                      size_t count, lsnif_hit* hits) {
+    if (!model || !m || (count && (!rays || !hits))) return LSNIF_ERR_INVALID_ARGUMENT;
+    return for_object_space(
+        m, rays, count, [&](const lsnif_ray* local, std::size_t n, std::size_t base, const auto& inv) {
             lsnif::format::intersect(model->runtime, {reinterpret_cast<const lsnif::format::Ray*>(local), n},
                                      {reinterpret_cast<lsnif::format::Hit*>(hits + base), n});
             for (std::size_t i = 0; i < n; ++i) {
@@ -304,9 +335,17 @@ lsnif_status lsnif_intersect_instance(const lsnif_model* model, const float m[12
                 len = std::sqrt(len);
                 for (int c = 0; c < 3; ++c) h.normal[c] = len > 0 ? float(nw[c] / len) : 0.0f;
             }
-        }
-        return LSNIF_OK;
-    });
+        });
+}
+
+lsnif_status lsnif_occluded_instance(const lsnif_model* model, const float m[12], const lsnif_ray* rays,
+                                     size_t count, uint8_t* occluded) {
+    if (!model || !m || (count && (!rays || !occluded))) return LSNIF_ERR_INVALID_ARGUMENT;
+    return for_object_space(
+        m, rays, count, [&](const lsnif_ray* local, std::size_t n, std::size_t base, const auto&) {
+            lsnif::format::occluded(model->runtime, {reinterpret_cast<const lsnif::format::Ray*>(local), n},
+                                    {occluded + base, n});
+        });
 }
 
 lsnif_status lsnif_set_arithmetic(lsnif_model* model, lsnif_arithmetic requested, lsnif_arithmetic* in_use) {

@@ -655,7 +655,8 @@ void dense_layer(const float* A, std::size_t n, std::size_t in, std::size_t lda,
 void dense_output_layer(const float* A, std::size_t n, std::size_t in, std::size_t lda, const float* wt,
                         const float* bias, std::size_t out_padded, std::size_t outs, float* C) {
     if (out_padded == 16 && cpu_features().avx512) switch (outs) {
-            case 5: return dense_output_avx512<5>(A, n, in, lda, wt, bias, C);  // FORMAT.md: one material
+            case 1: return dense_output_avx512<1>(A, n, in, lda, wt, bias, C);  // the visibility logit alone
+            case 5: return dense_output_avx512<5>(A, n, in, lda, wt, bias, C);  // no materials
             case 6: return dense_output_avx512<6>(A, n, in, lda, wt, bias, C);
             case 7: return dense_output_avx512<7>(A, n, in, lda, wt, bias, C);
             case 8: return dense_output_avx512<8>(A, n, in, lda, wt, bias, C);
@@ -726,7 +727,7 @@ MlpArithmetic mlp_arithmetic(const Network& net) {
 }
 
 const float* mlp_forward(const Network& net, const float* input, std::size_t n, std::vector<float>& scratch,
-                         const ZeroColumns* input_zeros) {
+                         const ZeroColumns* input_zeros, std::size_t outputs) {
     const std::size_t w = net.max_width_padded;
     if (scratch.size() < 2 * n * w) scratch.resize(2 * n * w);
     const MlpArithmetic arithmetic = mlp_arithmetic(net);
@@ -763,7 +764,8 @@ const float* mlp_forward(const Network& net, const float* input, std::size_t n, 
                         dst);
         } else {
             dense_output_layer(src, n, net.in[k], lda, net.wt[k].data(), net.bias[k].data(),
-                               net.out_padded[k], net.out[k], dst);
+                               net.out_padded[k],
+                               outputs ? std::min<std::size_t>(outputs, net.out[k]) : net.out[k], dst);
         }
         src = dst;
         lda = net.out_padded[k];
@@ -846,7 +848,15 @@ void sort_by_count(const RayPoints* pts, std::span<std::uint32_t> which, std::ui
 
 }  // namespace
 
-IntersectStats intersect(const Runtime& rt, std::span<const Ray> rays, std::span<Hit> hits) {
+namespace {
+
+// The pass intersect() and occluded() share: walk, encode and evaluate the network on chunks
+// of 256 rays. `miss(i)` is called for each ray that never reaches the network (invalid or
+// culled), `finish(i, pts, row)` for each other one with its trace and output row, and
+// returns whether it hit. `outputs`: the leading output columns the caller reads (0 = all).
+template <class Miss, class Finish>
+IntersectStats run_pass(const Runtime& rt, std::span<const Ray> rays, std::size_t outputs, Miss&& miss,
+                        Finish&& finish) {
     constexpr std::size_t kChunk = 256;
     thread_local std::vector<RayPoints> pts;
     thread_local std::vector<TraceStatus> status;
@@ -868,7 +878,7 @@ IntersectStats intersect(const Runtime& rt, std::span<const Ray> rays, std::span
         std::size_t k = 0;
         for (std::size_t i = 0; i < n; ++i) {
             if (status[i] != TraceStatus::ok) {
-                hits[base + i] = Hit{kInf, {0, 0, 0}, 0, 0};
+                miss(base + i);
                 if (status[i] == TraceStatus::invalid)
                     ++st.invalid;
                 else
@@ -885,14 +895,35 @@ IntersectStats intersect(const Runtime& rt, std::span<const Ray> rays, std::span
         for (std::size_t j = 0; j < k; ++j) lead[j] = pts[which[j]].count * geo.L * geo.F;
         const ZeroColumns empty_slots{lead.data(), geo.point_width};
         st.inferred += k;
-        const float* out = mlp_forward(rt.net, input.data(), k, scratch, &empty_slots);
-        for (std::size_t j = 0; j < k; ++j) {
-            const std::size_t i = base + which[j];
-            hits[i] = decode_output(geo, pts[which[j]], rays[i], out + j * outp);
-            st.hits += hits[i].hit;
-        }
+        const float* out = mlp_forward(rt.net, input.data(), k, scratch, &empty_slots, outputs);
+        for (std::size_t j = 0; j < k; ++j)
+            st.hits += finish(base + which[j], pts[which[j]], out + j * outp) ? 1 : 0;
     }
     return st;
+}
+
+}  // namespace
+
+IntersectStats intersect(const Runtime& rt, std::span<const Ray> rays, std::span<Hit> hits) {
+    return run_pass(
+        rt, rays, 0,
+        [&](std::size_t i) {
+            hits[i] = Hit{kInf, {0, 0, 0}, 0, 0};
+        },
+        [&](std::size_t i, const RayPoints& p, const float* row) {
+            hits[i] = decode_output(rt.geo, p, rays[i], row);
+            return hits[i].hit != 0;
+        });
+}
+
+IntersectStats occluded(const Runtime& rt, std::span<const Ray> rays, std::span<std::uint8_t> occluded) {
+    // decode_output's hit decision, on the one output column it reads.
+    return run_pass(
+        rt, rays, OutputLayout::visibility + 1, [&](std::size_t i) { occluded[i] = 0; },
+        [&](std::size_t i, const RayPoints& p, const float* row) {
+            occluded[i] = (p.count > 0 && row[OutputLayout::visibility] > 0.0f) ? 1 : 0;
+            return occluded[i] != 0;
+        });
 }
 
 }  // namespace lsnif::format

@@ -332,6 +332,16 @@ TEST_CASE("every C API call follows its documented NULL rule") {
     CHECK(lsnif_intersect_instance(m, nullptr, &ray, 1, &hit) == LSNIF_ERR_INVALID_ARGUMENT);
     CHECK(lsnif_intersect_instance(nullptr, identity, &ray, 1, &hit) == LSNIF_ERR_INVALID_ARGUMENT);
     CHECK(lsnif_intersect_instance(m, identity, nullptr, 0, nullptr) == LSNIF_OK);
+    std::uint8_t occluded = 7;
+    CHECK(lsnif_occluded(nullptr, &ray, 1, &occluded) == LSNIF_ERR_INVALID_ARGUMENT);
+    CHECK(lsnif_occluded(m, nullptr, 1, &occluded) == LSNIF_ERR_INVALID_ARGUMENT);
+    CHECK(lsnif_occluded(m, &ray, 1, nullptr) == LSNIF_ERR_INVALID_ARGUMENT);
+    CHECK(lsnif_occluded(m, nullptr, 0, nullptr) == LSNIF_OK);
+    CHECK(lsnif_occluded_instance(m, nullptr, &ray, 1, &occluded) == LSNIF_ERR_INVALID_ARGUMENT);
+    CHECK(lsnif_occluded_instance(nullptr, identity, &ray, 1, &occluded) == LSNIF_ERR_INVALID_ARGUMENT);
+    CHECK(lsnif_occluded_instance(m, identity, &ray, 1, nullptr) == LSNIF_ERR_INVALID_ARGUMENT);
+    CHECK(lsnif_occluded_instance(m, identity, nullptr, 0, nullptr) == LSNIF_OK);
+    CHECK(occluded == 7);  // refused calls write nothing
     std::uint32_t count = 9;
     CHECK(lsnif_scan_memory(nullptr, 4, nullptr, nullptr, 0, &count, nullptr) == LSNIF_ERR_INVALID_ARGUMENT);
     CHECK(lsnif_scan_memory(bytes.data(), bytes.size(), nullptr, nullptr, 1, &count, nullptr) ==

@@ -318,7 +318,8 @@ TEST_CASE(
     // Each reduced arithmetic, and what it falls back to on CPUs without its instructions.
     for (const auto& [requested, expected] :
          {std::pair{LSNIF_ARITHMETIC_BF16, bf16}, std::pair{LSNIF_ARITHMETIC_INT8, best}}) {
-        CAPTURE(lsnif_arithmetic_string(requested));
+        const std::string name = lsnif_arithmetic_string(requested);
+        CAPTURE(name);
         std::vector<lsnif_hit> h(rays.size());
         CHECK(lsnif_set_arithmetic(model, requested, &in_use) == LSNIF_OK);
         CHECK(in_use == expected);
@@ -336,6 +337,26 @@ TEST_CASE(
                 << both << " common hits, max |dt| " << max_dt);
         CHECK(double(agree) >= 0.99 * double(rays.size()));
         if (expected == LSNIF_ARITHMETIC_FP32) CHECK(agree == rays.size());  // same arithmetic: identical
+        // The any-hit query decides exactly as the closest-hit one, also under an instance
+        // (scaled by 2, translated): same arithmetic, only the visibility output computed.
+        std::vector<std::uint8_t> occ(rays.size(), 7);
+        REQUIRE(lsnif_occluded(model, rays.data(), rays.size(), occ.data()) == LSNIF_OK);
+        std::size_t same = 0;
+        for (std::size_t i = 0; i < rays.size(); ++i) same += occ[i] == h[i].hit;
+        CHECK(same == rays.size());
+        const float to_world[12] = {2, 0, 0, 0.5f, 0, 2, 0, -1, 0, 0, 2, 3};
+        std::vector<lsnif_ray> world(rays);
+        for (lsnif_ray& r : world)
+            for (int a = 0; a < 3; ++a) r.org[a] = 2 * r.org[a] + to_world[4 * a + 3], r.dir[a] *= 2;
+        std::vector<lsnif_hit> wh(rays.size());
+        REQUIRE(lsnif_intersect_instance(model, to_world, world.data(), world.size(), wh.data()) == LSNIF_OK);
+        REQUIRE(lsnif_occluded_instance(model, to_world, world.data(), world.size(), occ.data()) == LSNIF_OK);
+        same = 0;
+        std::size_t hits = 0;
+        for (std::size_t i = 0; i < rays.size(); ++i) same += occ[i] == wh[i].hit, hits += occ[i];
+        CHECK(same == rays.size());
+        CHECK(hits > rays.size() / 20);  // the comparison covers hits and misses
+        CHECK(hits < rays.size() - rays.size() / 20);
     }
     CHECK(lsnif_set_arithmetic(model, LSNIF_ARITHMETIC_AUTO, &in_use) == LSNIF_OK);
     CHECK(in_use == best);

@@ -301,6 +301,15 @@ LSNIF_API lsnif_status lsnif_intersect(const lsnif_model* model, const lsnif_ray
 LSNIF_API lsnif_status lsnif_intersect_instance(const lsnif_model* model, const float object_to_world[12],
                                                 const lsnif_ray* rays, size_t count, lsnif_hit* hits);
 
+/* Any-hit queries (shadow and ambient-occlusion rays): occluded[i] = 1 when ray i hits the
+ * object within [tmin, tmax], else 0 — the decision lsnif_intersect reports as `hit`, bit
+ * for bit, without computing the hit's distance, normal and material. Same rules as
+ * lsnif_intersect and lsnif_intersect_instance; `occluded` may be NULL only when count is 0. */
+LSNIF_API lsnif_status lsnif_occluded(const lsnif_model* model, const lsnif_ray* rays, size_t count,
+                                      uint8_t* occluded);
+LSNIF_API lsnif_status lsnif_occluded_instance(const lsnif_model* model, const float object_to_world[12],
+                                               const lsnif_ray* rays, size_t count, uint8_t* occluded);
+
 /* ---- Arithmetic of the network --------------------------------------------------- */
 
 typedef enum lsnif_arithmetic {

@@ -244,9 +244,11 @@ MlpArithmetic mlp_arithmetic(const Network& net);
 // Runs all layers in the network's arithmetic. `scratch` grows as needed; the result is n
 // rows of net.out_padded.back() floats, returned as a pointer into scratch. `input_zeros`,
 // if given, says which inputs are zero (e.g. the empty point slots, lead = count * L * F,
-// tail = point_width); the bf16 and int8 first layers skip them (same results).
+// tail = point_width); the bf16 and int8 first layers skip them (same results). `outputs`
+// > 0: the caller reads only the first `outputs` columns of each result row (the others are
+// unspecified); 0 = all.
 const float* mlp_forward(const Network& net, const float* input, std::size_t n, std::vector<float>& scratch,
-                         const ZeroColumns* input_zeros = nullptr);
+                         const ZeroColumns* input_zeros = nullptr, std::size_t outputs = 0);
 
 // ---- decode -------------------------------------------------------------------------------
 
@@ -298,5 +300,9 @@ struct IntersectStats {
 // Object-space batch. Single-threaded: callers parallelize across batches (renderers
 // bring their own thread pools). Invalid rays (zero direction...) report a miss.
 IntersectStats intersect(const Runtime& rt, std::span<const Ray> rays, std::span<Hit> hits);
+// The any-hit query of the same batch: occluded[i] = hits[i].hit of intersect(), computed
+// without the hit's distance, normal and material (only the visibility output). Same
+// threading rules.
+IntersectStats occluded(const Runtime& rt, std::span<const Ray> rays, std::span<std::uint8_t> occluded);
 
 }  // namespace lsnif::format
