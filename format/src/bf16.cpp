@@ -159,19 +159,6 @@ LSNIF_BF16_TARGET void dp_block(std::size_t r0, std::size_t j0, std::size_t n, s
         }
 }
 
-// The pairs of rows [r, r + rows) that ZeroColumns does not rule out: [0, head), [tail, pairs).
-struct PairRange {
-    std::size_t head, tail;
-};
-inline PairRange live_pairs(const ZeroColumns* zeros, std::size_t r, std::size_t rows, std::size_t pairs) {
-    if (!zeros) return {pairs, pairs};
-    std::uint32_t lead = 0;
-    for (std::size_t i = r; i < r + rows; ++i) lead = std::max(lead, zeros->lead[i]);
-    const std::size_t tail = zeros->tail / 2;  // a pair straddling `tail` stays in
-    const std::size_t head = std::min<std::size_t>((lead + 1) / 2, tail);
-    return head == tail ? PairRange{pairs, pairs} : PairRange{head, tail};
-}
-
 template <int NV>
 LSNIF_BF16_TARGET void dp_columns(std::size_t j0, std::size_t m, std::size_t n, std::size_t pairs,
                                   const Bf16* a, std::size_t lda, const Bf16* b, std::size_t ldb, float* c,
@@ -179,11 +166,11 @@ LSNIF_BF16_TARGET void dp_columns(std::size_t j0, std::size_t m, std::size_t n, 
     constexpr std::size_t MB = 6;
     std::size_t r = 0;
     for (; r + MB <= m; r += MB) {
-        const PairRange live = live_pairs(zeros, r, MB, pairs);
+        const LiveGroups live = live_groups(zeros, r, MB, pairs, 2);
         dp_block<MB, NV>(r, j0, n, live.head, live.tail, pairs, a, lda, b, ldb, c, ldc, e);
     }
     for (; r < m; ++r) {
-        const PairRange live = live_pairs(zeros, r, 1, pairs);
+        const LiveGroups live = live_groups(zeros, r, 1, pairs, 2);
         dp_block<1, NV>(r, j0, n, live.head, live.tail, pairs, a, lda, b, ldb, c, ldc, e);
     }
 }

@@ -70,20 +70,6 @@ void quantize_rows_scalar(const float* src, std::size_t n, std::size_t cols, std
     }
 }
 
-// The skippable quads of rows [r, r + rows): ZeroColumns in units of 4 inputs. Quads
-// [head, tail) are zero in every row; a quad straddling `lead` or `tail` stays in.
-struct QuadRange {
-    std::size_t head, tail;
-};
-inline QuadRange live_quads(const ZeroColumns* zeros, std::size_t r, std::size_t rows, std::size_t quads) {
-    if (!zeros) return {quads, quads};
-    std::uint32_t lead = 0;
-    for (std::size_t i = r; i < r + rows; ++i) lead = std::max(lead, zeros->lead[i]);
-    const std::size_t tail = std::min(zeros->tail / 4, quads);
-    const std::size_t head = std::min<std::size_t>((std::size_t(lead) + 3) / 4, tail);
-    return head == tail ? QuadRange{quads, quads} : QuadRange{head, tail};
-}
-
 // The row's exact integer sum turned into the layer's output: sx * sw * sum + bias, ReLU.
 inline float rescale(std::int32_t sum, float sx, float sw, float bias, bool relu) {
     const float y = std::fma(float(sum), sx * sw, bias);
@@ -280,11 +266,11 @@ LSNIF_VNNI_TARGET void int8_rows(std::size_t j0, std::size_t m, std::size_t quad
                                  const ZeroColumns* zeros) {
     std::size_t r = 0;
     for (; r + MB <= m; r += MB) {
-        const QuadRange live = live_quads(zeros, r, MB, quads);
+        const LiveGroups live = live_groups(zeros, r, MB, quads, 4);
         int8_block<MB, NV, Signed, Quantize>(r, j0, live.head, live.tail, quads, o);
     }
     for (; r < m; ++r) {
-        const QuadRange live = live_quads(zeros, r, 1, quads);
+        const LiveGroups live = live_groups(zeros, r, 1, quads, 4);
         int8_block<1, NV, Signed, Quantize>(r, j0, live.head, live.tail, quads, o);
     }
 }

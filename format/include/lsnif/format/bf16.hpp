@@ -83,6 +83,24 @@ struct ZeroColumns {
     std::size_t tail;
 };
 
+// What a product over groups of `width` consecutive columns (pairs for bf16, quads for int8)
+// must visit for rows [r, r + rows): groups [0, head) and [tail, groups); the groups between
+// are zero in every one of these rows (a group straddling a row's lead or the tail stays
+// in). Without `zeros`: every group (head = tail = groups).
+struct LiveGroups {
+    std::size_t head, tail;
+};
+inline LiveGroups live_groups(const ZeroColumns* zeros, std::size_t r, std::size_t rows, std::size_t groups,
+                              std::size_t width) {
+    if (!zeros) return {groups, groups};
+    std::uint32_t lead = 0;
+    for (std::size_t i = r; i < r + rows; ++i) lead = lead > zeros->lead[i] ? lead : zeros->lead[i];
+    const std::size_t tail = zeros->tail / width < groups ? zeros->tail / width : groups;
+    const std::size_t up = (std::size_t(lead) + width - 1) / width;
+    const std::size_t head = up < tail ? up : tail;
+    return head == tail ? LiveGroups{groups, groups} : LiveGroups{head, tail};
+}
+
 // C[m x n] = epilogue(A[m x k] B[k x n]) with fp32 accumulation of bf16 products, A in the
 // rows layout, B in the VNNI layout. Contract: k even (packers pad K to 32; k may stop
 // short of the padding, which is zero); `a` readable for m rows of lda >= k elements; `b`
