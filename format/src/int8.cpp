@@ -341,6 +341,7 @@ void quantize_rows(const float* src, std::size_t n, std::size_t cols, std::size_
     quantize_rows_scalar(src, n, cols, lds, signed_input, out);
 }
 
+#if LSNIF_HAVE_X86
 namespace {
 
 Int8Operands operands(const Int8Rows& a, const Int8Layer& layer, const float* bias, bool relu, float* c,
@@ -360,6 +361,7 @@ Int8Operands operands(const Int8Rows& a, const Int8Layer& layer, const float* bi
 }
 
 }  // namespace
+#endif
 
 void gemm_int8(std::size_t m, const Int8Rows& a, const Int8Layer& layer, const float* bias, bool relu,
                float* c, std::size_t ldc, const ZeroColumns* zeros) {
