@@ -282,7 +282,8 @@ lsnif_status lsnif_occluded(const lsnif_model* model, const lsnif_ray* rays, siz
 namespace {
 
 // World-space rays against an instance: each chunk of rays mapped to object space by the
-// inverse of `m` (affine maps preserve the ray parameter), then `query(local, n, base)`.
+// inverse of `m` (affine maps preserve the ray parameter), then `query(local, n, base, inv)`
+// for rays [base, base + n) (inv: the inverse of m's linear part, which maps normals back).
 // LSNIF_ERR_INVALID_ARGUMENT for a singular or non-finite matrix.
 template <class Query>
 lsnif_status for_object_space(const float m[12], const lsnif_ray* rays, size_t count, Query&& query) {
