@@ -778,7 +778,7 @@ const float* mlp_forward(const Network& net, const float* input, std::size_t n, 
 Hit decode_output(const Geometry& geo, const RayPoints& pts, const Ray& ray, const float* o) {
     using Out = OutputLayout;
     Hit h{};
-    h.hit = (pts.count > 0 && o[Out::visibility] > 0.0f) ? 1u : 0u;
+    h.hit = hit_decision(pts, o) ? 1u : 0u;
     const float dlen = std::sqrt(ray.dir[0] * ray.dir[0] + ray.dir[1] * ray.dir[1] + ray.dir[2] * ray.dir[2]);
     const float t = decode_distance(geo, pts, dlen, o[Out::distance]);
     h.t = h.hit ? std::clamp(t, pts.t_near, pts.t_far) : kInf;
@@ -917,11 +917,10 @@ IntersectStats intersect(const Runtime& rt, std::span<const Ray> rays, std::span
 }
 
 IntersectStats occluded(const Runtime& rt, std::span<const Ray> rays, std::span<std::uint8_t> occluded) {
-    // decode_output's hit decision, on the one output column it reads.
     return run_pass(
         rt, rays, OutputLayout::visibility + 1, [&](std::size_t i) { occluded[i] = 0; },
         [&](std::size_t i, const RayPoints& p, const float* row) {
-            occluded[i] = (p.count > 0 && row[OutputLayout::visibility] > 0.0f) ? 1 : 0;
+            occluded[i] = hit_decision(p, row) ? 1 : 0;
             return occluded[i] != 0;
         });
 }

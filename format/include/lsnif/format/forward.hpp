@@ -256,6 +256,11 @@ const float* mlp_forward(const Network& net, const float* input, std::size_t n, 
 // the distance encoding, clamped to the clipped segment; normal normalized (−dir if
 // degenerate).
 Hit decode_output(const Geometry& geo, const RayPoints& pts, const Ray& ray, const float* out_row);
+// decode_output's hit decision alone: the ray crossed an occupied voxel and the visibility
+// logit is positive. The any-hit query (occluded) reads nothing else.
+inline bool hit_decision(const RayPoints& pts, const float* out_row) {
+    return pts.count > 0 && out_row[OutputLayout::visibility] > 0.0f;
+}
 
 // The distance encoding of FORMAT.md §6.2 both ways. `t` is the ray parameter, `y` the
 // network's distance output, `dir_length` = |ray.dir|; `pts` is the ray's trace (count > 0).
