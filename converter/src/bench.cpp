@@ -359,25 +359,22 @@ std::string bench_text(const json& r) {
         const double T = r["threads"].get<int>();
         const double walk1 = st["walk_scalar_rays_per_second"].get<double>(),
                      walk = st["walk_rays_per_second"].get<double>(),
-                     enc = st["walk_encode_rays_per_second"].get<double>(),
-                     all = r.contains("bf16") ? r["bf16"]["through_network"]["rays_per_second"].get<double>()
-                                              : r["through_network"]["rays_per_second"].get<double>();
-        // The MLP stage in the fastest arithmetic measured, for the line below.
-        const char* fastest = r.contains("int8") ? "int8" : r.contains("bf16") ? "bf16" : "fp32";
-        const double fastest_all = r.contains(fastest)
-                                       ? r[fastest]["through_network"]["rays_per_second"].get<double>()
-                                       : r["through_network"]["rays_per_second"].get<double>();
+                     enc = st["walk_encode_rays_per_second"].get<double>();
+        // The MLP + decode stage of each reduced arithmetic measured (fp32 where none was).
+        std::string mlp;
+        const auto stage = [&](const json& through, const char* name) {
+            const double ns = 1e9 * T * (1 / through["rays_per_second"].get<double>() - 1 / enc);
+            mlp += (mlp.empty() ? "" : ", ") + std::to_string(int(std::lround(ns))) + " (" + name + ")";
+        };
+        for (const char* a : {"bf16", "int8"})
+            if (r.contains(a)) stage(r[a]["through_network"], a);
+        if (mlp.empty()) stage(r["through_network"], "fp32");
         std::snprintf(
             buf, sizeof buf,
             "stages, thread-ns per ray reaching the network: walk %.0f (%s; scalar walk %.0f, %.2fx), "
-            "encode %.0f, MLP + decode %.0f (%s)%s\n",
+            "encode %.0f, MLP + decode %s\n",
             1e9 * T / walk, st["walk_16_lane"].get<bool>() ? "16 lanes" : "scalar", 1e9 * T / walk1,
-            walk / walk1, 1e9 * T * (1 / enc - 1 / walk), 1e9 * T * (1 / all - 1 / enc),
-            r.contains("bf16") ? "bf16" : "fp32",
-            std::string(fastest) == "int8"
-                ? (", " + std::to_string(int(std::lround(1e9 * T * (1 / fastest_all - 1 / enc)))) + " (int8)")
-                      .c_str()
-                : "");
+            walk / walk1, 1e9 * T * (1 / enc - 1 / walk), mlp.c_str());
         s += buf;
     }
     return s;
