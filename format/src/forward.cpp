@@ -414,6 +414,51 @@ bool encode_batch_supported(const Geometry& geo, const GridView* grid) {
     return true;
 }
 
+// A first point whose features another row's first point already gets: copied after
+// encoding, from float offset `from` of the rows to `to`.
+struct SharedPoint {
+    std::int32_t from, to;
+};
+
+// Calls add(j, 0) for the first point of every row j of `which` that has points, except
+// where another row already gets the same features: the same ray listed twice, or the ray
+// just before it (which[j] - 1) in the batch with a first point of the same grid
+// coordinates bit for bit — rays leaving one surface point one after the other, as a
+// renderer's ambient-occlusion and shadow rays from one shading point do. Features are a
+// function of the coordinates alone, so such a row copies the other row's instead of
+// encoding them again: the same bits. Returns the copies to make (float offsets of the
+// rows' first slots, each source encoded; valid until the thread's next call).
+template <class Add>
+const std::vector<SharedPoint>& shared_first_points(const Geometry& geo, const RayPoints* pts,
+                                                    std::span<const std::uint32_t> which, Add&& add) {
+    constexpr std::uint32_t kNone = ~0u;
+    thread_local std::vector<SharedPoint> shared;
+    thread_local std::vector<std::uint32_t> row_of, root;  // per ray: its first row, the row it copies
+    shared.clear();
+    std::uint32_t top = 0;
+    for (const std::uint32_t r : which) top = std::max(top, r);
+    row_of.assign(std::size_t(top) + 1, kNone);
+    root.resize(std::size_t(top) + 1);
+    for (std::uint32_t j = 0; j < which.size(); ++j)
+        if (row_of[which[j]] == kNone) row_of[which[j]] = j;
+    for (std::uint32_t r = 0; r <= top; ++r) {
+        root[r] = kNone;
+        if (row_of[r] == kNone || !pts[r].count) continue;
+        const bool same = r > 0 && root[r - 1] != kNone &&
+                          std::memcmp(pts[r].g[0], pts[r - 1].g[0], sizeof(pts[r].g[0])) == 0;
+        root[r] = same ? root[r - 1] : row_of[r];
+    }
+    for (std::uint32_t j = 0; j < which.size(); ++j) {
+        const std::uint32_t r = which[j];
+        if (!pts[r].count) continue;
+        if (root[r] == j)
+            add(j, 0);
+        else
+            shared.push_back({std::int32_t(root[r] * geo.input_width), std::int32_t(j * geo.input_width)});
+    }
+    return shared;
+}
+
 LSNIF_AVX512 void encode_batch_avx512(const Geometry& geo, const GridView* grid, const RayPoints* pts,
                                       std::span<const std::uint32_t> which, float* rows) {
     thread_local PointList pl;
@@ -436,11 +481,12 @@ LSNIF_AVX512 void encode_batch_avx512(const Geometry& geo, const GridView* grid,
         for (std::uint32_t h = 1; h < p.count; ++h) add(j, h);
         encode_ray_inputs(geo, p, rows + j * geo.input_width);
     }
-    for (std::size_t j = 0; j < which.size(); ++j)
-        if (pts[which[j]].count) add(j, 0);
+    const std::vector<SharedPoint>& shared = shared_first_points(geo, pts, which, add);
+    pl.n = i;
     for (std::uint32_t l = 0; l < geo.L; ++l)
-        for (std::size_t b = 0; b < total; b += 16)
+        for (std::size_t b = 0; b < pl.n; b += 16)
             encode_level16(geo, geo.levels[l], grid[l], l, pl, b, rows);
+    for (const SharedPoint& c : shared) std::memcpy(rows + c.to, rows + c.from, slot * sizeof(float));
 }
 
 #undef LSNIF_AVX512
