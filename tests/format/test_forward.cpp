@@ -281,85 +281,89 @@ TEST_CASE(
     ModelDesc d = desc_with(32, {-1.f, 0.5f, 2.f}, {3.f, 1.5f, 4.5f});
     d.level_resolution = {64, 40, 8};
     d.log2_table_size = 12;
-    d.max_points = 7;
     d.ray_inputs = kRayInputDirection | kRayInputEntryOffsets;
-    std::mt19937 rng(11);
-    std::uniform_real_distribution<float> u(0.f, 32.f), value(-2.f, 2.f);
-    std::uniform_int_distribution<int> plane(0, 32), byte(0, 255), count(0, 7);
-    // Rays whose points lie on voxel faces (one coordinate an integer, 0 and V included),
-    // inside cells, and on lattice vertices; counts from 0 to H, in a scrambled order.
-    std::vector<RayPoints> pts(203);
-    for (std::size_t r = 0; r < pts.size(); ++r) {
-        RayPoints& p = pts[r];
-        p.count = std::uint32_t(count(rng));
-        for (std::uint32_t h = 0; h < p.count; ++h) {
-            for (int a = 0; a < 3; ++a) p.g[h][a] = u(rng);
-            const int kind = int((r + h) % 5);
-            if (kind < 3) p.g[h][kind] = float(plane(rng));
-            if (kind == 3)
-                for (int a = 0; a < 3; ++a) p.g[h][a] = float(plane(rng));
-            p.t[h] = float(h);
-        }
-        const float dir[3] = {value(rng), value(rng), value(rng)};
-        unit_direction(Ray{{0, 0, 0}, 0, {dir[0], dir[1], dir[2] + 3.f}, 1}, p.dir);
-    }
-    // Runs of rays leaving one point (the encoder encodes such a first point once): rays
-    // 3k+1 and 3k+2 start where ray 3k does (their other points differ); ray 3k's first
-    // point shares two coordinates with ray 3k-1's, one of them x, z or y.
-    std::size_t runs = 0;
-    for (std::size_t r = 1; r < pts.size(); ++r) {
-        if (!pts[r].count || !pts[r - 1].count) continue;
-        if (r % 3) {
-            std::copy(pts[r - 1].g[0], pts[r - 1].g[0] + 3, pts[r].g[0]);
-            ++runs;
-        } else {
-            for (int a = 0; a < 3; ++a)
-                if (a != int(r / 3 % 3)) pts[r].g[0][a] = pts[r - 1].g[0][a];
-        }
-    }
-    REQUIRE(runs > 50);
-    // Every ray, scrambled, one twice; and every ray but each 4th, so some rays' neighbours
-    // that share their first point are missing from the batch.
-    std::vector<std::uint32_t> all(pts.size()), some;
-    for (std::size_t j = 0; j < all.size(); ++j) all[j] = std::uint32_t((j * 89) % pts.size());
-    all.push_back(5);
-    for (const std::uint32_t r : all)
-        if (r % 4) some.push_back(r);
-
-    for (const std::uint32_t F : {1u, 2u, 3u, 4u}) {
-        d.features_per_level = F;
-        const Geometry geo = make_geometry(d);
-        REQUIRE(geo.levels[2].dense);
-        REQUIRE_FALSE(geo.levels[1].aligned);
-        std::vector<std::vector<float>> f32(geo.L);
-        std::vector<std::vector<std::uint16_t>> f16(geo.L);
-        std::vector<std::vector<std::uint8_t>> u8(geo.L);
-        std::vector<GridView> f32_views, f16_views, u8_views;
-        for (std::uint32_t l = 0; l < geo.L; ++l) {
-            const std::size_t entries = d.level_entries(l);
-            for (std::size_t e = 0; e < entries * F; ++e) f32[l].push_back(value(rng));
-            for (std::size_t e = 0; e < entries * 4; ++e) f16[l].push_back(float_to_half(value(rng)));
-            for (std::size_t e = 0; e < entries * 4; ++e) u8[l].push_back(std::uint8_t(byte(rng)));
-            f32_views.push_back({f32[l].data(), F, GridElement::f32});
-            f16_views.push_back({f16[l].data(), 4, GridElement::f16});
-            u8_views.push_back({u8[l].data(), 4, GridElement::u8, 0.0123f * float(l + 1), -1.5f});
-        }
-        for (const auto* views : {&f32_views, &f16_views, &u8_views})
-            for (const auto* batch : {&all, &some}) {
-                const std::vector<std::uint32_t>& which = *batch;
-                CAPTURE(F);
-                CAPTURE(int((*views)[0].element));
-                CAPTURE(which.size());
-                std::vector<float> rows(which.size() * geo.input_width, -7.0f), row(geo.input_width);
-                encode_batch(geo, views->data(), pts.data(), which, rows.data());
-                std::size_t same = 0;
-                for (std::size_t j = 0; j < which.size(); ++j) {
-                    encode_points(geo, views->data(), pts[which[j]], row.data());
-                    same += std::memcmp(row.data(), rows.data() + j * geo.input_width,
-                                        row.size() * sizeof(float)) == 0;
-                }
-                CHECK(same == which.size());
+    // H = 7, 18 and 37: one, two and three vectors of entry offsets, the last partial.
+    for (const std::uint32_t H : {7u, 18u, 37u}) {
+        CAPTURE(H);
+        d.max_points = H;
+        std::mt19937 rng(11 + H);
+        std::uniform_real_distribution<float> u(0.f, 32.f), value(-2.f, 2.f);
+        std::uniform_int_distribution<int> plane(0, 32), byte(0, 255), count(0, int(H));
+        // Rays whose points lie on voxel faces (one coordinate an integer, 0 and V included),
+        // inside cells, and on lattice vertices; counts from 0 to H, in a scrambled order.
+        std::vector<RayPoints> pts(203);
+        for (std::size_t r = 0; r < pts.size(); ++r) {
+            RayPoints& p = pts[r];
+            p.count = std::uint32_t(count(rng));
+            for (std::uint32_t h = 0; h < p.count; ++h) {
+                for (int a = 0; a < 3; ++a) p.g[h][a] = u(rng);
+                const int kind = int((r + h) % 5);
+                if (kind < 3) p.g[h][kind] = float(plane(rng));
+                if (kind == 3)
+                    for (int a = 0; a < 3; ++a) p.g[h][a] = float(plane(rng));
+                p.t[h] = float(h);
             }
+            const float dir[3] = {value(rng), value(rng), value(rng)};
+            unit_direction(Ray{{0, 0, 0}, 0, {dir[0], dir[1], dir[2] + 3.f}, 1}, p.dir);
+        }
+        // Runs of rays leaving one point (the encoder encodes such a first point once): rays
+        // 3k+1 and 3k+2 start where ray 3k does (their other points differ); ray 3k's first
+        // point shares two coordinates with ray 3k-1's, one of them x, z or y.
+        std::size_t runs = 0;
+        for (std::size_t r = 1; r < pts.size(); ++r) {
+            if (!pts[r].count || !pts[r - 1].count) continue;
+            if (r % 3) {
+                std::copy(pts[r - 1].g[0], pts[r - 1].g[0] + 3, pts[r].g[0]);
+                ++runs;
+            } else {
+                for (int a = 0; a < 3; ++a)
+                    if (a != int(r / 3 % 3)) pts[r].g[0][a] = pts[r - 1].g[0][a];
+            }
+        }
+        REQUIRE(runs > 50);
+        // Every ray, scrambled, one twice; and every ray but each 4th, so some rays' neighbours
+        // that share their first point are missing from the batch.
+        std::vector<std::uint32_t> all(pts.size()), some;
+        for (std::size_t j = 0; j < all.size(); ++j) all[j] = std::uint32_t((j * 89) % pts.size());
+        all.push_back(5);
+        for (const std::uint32_t r : all)
+            if (r % 4) some.push_back(r);
+
+        for (const std::uint32_t F : {1u, 2u, 3u, 4u}) {
+            d.features_per_level = F;
+            const Geometry geo = make_geometry(d);
+            REQUIRE(geo.levels[2].dense);
+            REQUIRE_FALSE(geo.levels[1].aligned);
+            std::vector<std::vector<float>> f32(geo.L);
+            std::vector<std::vector<std::uint16_t>> f16(geo.L);
+            std::vector<std::vector<std::uint8_t>> u8(geo.L);
+            std::vector<GridView> f32_views, f16_views, u8_views;
+            for (std::uint32_t l = 0; l < geo.L; ++l) {
+                const std::size_t entries = d.level_entries(l);
+                for (std::size_t e = 0; e < entries * F; ++e) f32[l].push_back(value(rng));
+                for (std::size_t e = 0; e < entries * 4; ++e) f16[l].push_back(float_to_half(value(rng)));
+                for (std::size_t e = 0; e < entries * 4; ++e) u8[l].push_back(std::uint8_t(byte(rng)));
+                f32_views.push_back({f32[l].data(), F, GridElement::f32});
+                f16_views.push_back({f16[l].data(), 4, GridElement::f16});
+                u8_views.push_back({u8[l].data(), 4, GridElement::u8, 0.0123f * float(l + 1), -1.5f});
+            }
+            for (const auto* views : {&f32_views, &f16_views, &u8_views})
+                for (const auto* batch : {&all, &some}) {
+                    const std::vector<std::uint32_t>& which = *batch;
+                    CAPTURE(F);
+                    CAPTURE(int((*views)[0].element));
+                    CAPTURE(which.size());
+                    std::vector<float> rows(which.size() * geo.input_width, -7.0f), row(geo.input_width);
+                    encode_batch(geo, views->data(), pts.data(), which, rows.data());
+                    std::size_t same = 0;
+                    for (std::size_t j = 0; j < which.size(); ++j) {
+                        encode_points(geo, views->data(), pts[which[j]], row.data());
+                        same += std::memcmp(row.data(), rows.data() + j * geo.input_width,
+                                            row.size() * sizeof(float)) == 0;
+                    }
+                    CHECK(same == which.size());
+                }
+        }
     }
 }
 
