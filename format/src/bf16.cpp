@@ -118,11 +118,11 @@ LSNIF_BF16_TARGET void pack_transposed_avx512(const float* src, std::size_t rows
 // of A (the bf16 pair A[r][2p], A[r][2p+1]) with B's VNNI row p (16 such pairs) and adds
 // both products to each fp32 lane: the VNNI layout the AMX path uses serves here unchanged.
 // With MB = 6, NV = 4: 24 accumulators, 4 B vectors and one broadcast in 29 of 32 registers.
-// The block runs over pairs [0, head) and [tail, pairs) (head <= tail <= pairs): the rows'
-// pairs in between are zero (ZeroColumns) and add nothing.
+// The block runs over pairs [0, head) and [tail, end) (head <= tail <= end <= pairs, from
+// live_groups): the rows' other pairs are zero (ZeroColumns) and add nothing.
 template <int MB, int NV>
 LSNIF_BF16_TARGET void dp_block(std::size_t r0, std::size_t j0, std::size_t n, std::size_t head,
-                                std::size_t tail, std::size_t pairs, const Bf16* a, std::size_t lda,
+                                std::size_t tail, std::size_t end, const Bf16* a, std::size_t lda,
                                 const Bf16* b, std::size_t ldb, float* c, std::size_t ldc,
                                 const Epilogue& e) {
     __m512 acc[MB][NV];
@@ -146,7 +146,7 @@ LSNIF_BF16_TARGET void dp_block(std::size_t r0, std::size_t j0, std::size_t n, s
         }
     };
     for (std::size_t p = 0; p < head; ++p) pair_step(p);
-    for (std::size_t p = tail; p < pairs; ++p) pair_step(p);
+    for (std::size_t p = tail; p < end; ++p) pair_step(p);
     for (int m = 0; m < MB; ++m)
         for (int v = 0; v < NV; ++v) {
             // ReLU as a masked move: x > 0 ? x : +0, like dense_layer (GCC 12 warns falsely
@@ -167,11 +167,11 @@ LSNIF_BF16_TARGET void dp_columns(std::size_t j0, std::size_t m, std::size_t n, 
     std::size_t r = 0;
     for (; r + MB <= m; r += MB) {
         const LiveGroups live = live_groups(zeros, r, MB, pairs, 2);
-        dp_block<MB, NV>(r, j0, n, live.head, live.tail, pairs, a, lda, b, ldb, c, ldc, e);
+        dp_block<MB, NV>(r, j0, n, live.head, live.tail, live.end, a, lda, b, ldb, c, ldc, e);
     }
     for (; r < m; ++r) {
         const LiveGroups live = live_groups(zeros, r, 1, pairs, 2);
-        dp_block<1, NV>(r, j0, n, live.head, live.tail, pairs, a, lda, b, ldb, c, ldc, e);
+        dp_block<1, NV>(r, j0, n, live.head, live.tail, live.end, a, lda, b, ldb, c, ldc, e);
     }
 }
 

@@ -450,7 +450,9 @@ LSNIF_AVX512 void entry_offsets_avx512(const Geometry& geo, const RayPoints& pts
         high[a] = _mm512_load_si512(kXyzSplit.high[a]);
     }
     const __m512 diagonal = _mm512_set1_ps(geo.diagonal);
-    for (std::uint32_t k0 = 0; k0 < geo.H; k0 += 16) {
+    const std::uint32_t count = std::min(pts.count, geo.H);
+    std::uint32_t k0 = 0;
+    for (; k0 < count; k0 += 16) {  // vectors with a live slot; the rest are zeros
         const float* g = pts.g[k0];
         const __m512 v0 = _mm512_loadu_ps(g), v1 = _mm512_loadu_ps(g + 16), v2 = _mm512_loadu_ps(g + 32);
         __m512 d[3];
@@ -459,13 +461,12 @@ LSNIF_AVX512 void entry_offsets_avx512(const Geometry& geo, const RayPoints& pts
                                                         kXyzSplit.from_high[a], high[a], v2);
             d[a] = _mm512_mul_ps(_mm512_sub_ps(x, _mm512_set1_ps(pts.g[0][a])), _mm512_set1_ps(geo.cell[a]));
         }
-        const std::uint32_t n = std::min(16u, geo.H - k0);
-        const std::uint32_t live = pts.count > k0 ? std::min(16u, pts.count - k0) : 0u;
-        const __mmask16 m = __mmask16((1u << live) - 1u);
+        const __mmask16 live = __mmask16((1u << std::min(16u, count - k0)) - 1u);
         const __m512 s = _mm512_fmadd_ps(d[2], d[2], _mm512_fmadd_ps(d[1], d[1], _mm512_mul_ps(d[0], d[0])));
-        const __m512 o = _mm512_maskz_div_ps(m, _mm512_maskz_sqrt_ps(m, s), diagonal);
-        _mm512_mask_storeu_ps(out + k0, __mmask16((1u << n) - 1u), o);
+        const __m512 o = _mm512_maskz_div_ps(live, _mm512_maskz_sqrt_ps(live, s), diagonal);
+        _mm512_mask_storeu_ps(out + k0, __mmask16((1u << std::min(16u, geo.H - k0)) - 1u), o);
     }
+    if (k0 < geo.H) std::memset(out + k0, 0, (geo.H - k0) * sizeof(float));
 }
 
 // A first point whose features another row's first point already gets: copied after
@@ -961,13 +962,14 @@ IntersectStats run_pass(const Runtime& rt, std::span<const Ray> rays, std::size_
     thread_local std::vector<RayPoints> pts;
     thread_local std::vector<TraceStatus> status;
     thread_local std::vector<float> input, scratch;
-    thread_local std::vector<std::uint32_t> which, lead;
+    thread_local std::vector<std::uint32_t> which, lead, rest;
     const Geometry& geo = rt.geo;
     pts.resize(kChunk);
     status.resize(kChunk);
     input.resize(kChunk * geo.input_width);
     which.resize(kChunk);
     lead.resize(kChunk);
+    rest.resize(kChunk);
     const auto grid = rt.grid_views();
     const std::size_t outp = rt.net.out_padded.back();
     IntersectStats st;
@@ -992,8 +994,14 @@ IntersectStats run_pass(const Runtime& rt, std::span<const Ray> rays, std::size_
         // runs of empty slots.
         sort_by_count(pts.data(), std::span(which.data(), k), geo.H);
         encode_batch(geo, grid.data(), pts.data(), std::span(which.data(), k), input.data());
-        for (std::size_t j = 0; j < k; ++j) lead[j] = pts[which[j]].count * geo.L * geo.F;
-        const ZeroColumns empty_slots{lead.data(), geo.point_width};
+        for (std::size_t j = 0; j < k; ++j) {
+            lead[j] = pts[which[j]].count * geo.L * geo.F;
+            rest[j] = pts[which[j]].count;
+        }
+        // Zero: the empty slots' features and, where the model has entry offsets (the last
+        // inputs), the empty slots' offsets.
+        const ZeroColumns empty_slots{lead.data(), geo.point_width, geo.offset_width ? rest.data() : nullptr,
+                                      std::size_t(geo.point_width) + geo.direction_width};
         st.inferred += k;
         const float* out = mlp_forward(rt.net, input.data(), k, scratch, &empty_slots, outputs);
         for (std::size_t j = 0; j < k; ++j)

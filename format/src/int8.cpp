@@ -191,8 +191,11 @@ struct Int8Operands {
     Int8Rows* next;
 };
 
-// Row r of the next layer's input from the NV vectors of its ReLU'd values: the same
-// operations, lane by lane, as quantize_rows_avx512 on those values stored as fp32.
+// Row r of the next layer's input from the NV vectors of its values before the ReLU: the same
+// bytes, lane by lane, as quantize_rows_avx512 on the ReLU'd values stored as fp32. The ReLU
+// is in the operations already: the maximum starts from +0 (VMAXPS keeps it against NaN and
+// negative lanes, so the row's maximum is that of the ReLU'd row), and max(y * inverse, +0)
+// is +0 wherever the ReLU gives +0 (y <= 0, -0 or NaN; inverse >= 0).
 template <int NV>
 LSNIF_VNNI_TARGET inline void quantize_row(const __m512 (&y)[NV], std::size_t r, Int8Rows& next) {
     __m512 m = _mm512_setzero_ps();
@@ -214,11 +217,12 @@ LSNIF_VNNI_TARGET inline void quantize_row(const __m512 (&y)[NV], std::size_t r,
 // the four products to the int32 lane: a broadcast dword of A (four inputs of one row)
 // against a VNNI4 row of B (four inputs of 16 columns). Signed inputs swap the roles (the
 // offset weights are the unsigned operand). MB x NV = 24 accumulators, NV B vectors and one
-// broadcast fit the 32 registers. Quads [head, tail) are skipped. Quantize: the block spans
-// all columns (j0 = 0, 16 NV = np) and writes o.next instead of C.
+// broadcast fit the 32 registers. The block visits quads [0, head) and [tail, end) (from
+// live_groups; the others are zero). Quantize: the block spans all columns (j0 = 0,
+// 16 NV = np) and writes o.next instead of C.
 template <int MB, int NV, bool Signed, bool Quantize>
 LSNIF_VNNI_TARGET void int8_block(std::size_t r0, std::size_t j0, std::size_t head, std::size_t tail,
-                                  std::size_t quads, const Int8Operands& o) {
+                                  std::size_t end, const Int8Operands& o) {
     __m512i acc[MB][NV];
     for (int m = 0; m < MB; ++m)
         for (int v = 0; v < NV; ++v) acc[m][v] = _mm512_setzero_si512();
@@ -241,7 +245,7 @@ LSNIF_VNNI_TARGET void int8_block(std::size_t r0, std::size_t j0, std::size_t he
         }
     };
     for (std::size_t p = 0; p < head; ++p) quad_step(p);
-    for (std::size_t p = tail; p < quads; ++p) quad_step(p);
+    for (std::size_t p = tail; p < end; ++p) quad_step(p);
     for (int m = 0; m < MB; ++m) {
         const std::size_t r = r0 + m;
         const __m512 sx = _mm512_set1_ps(o.sx[r]);
@@ -252,7 +256,7 @@ LSNIF_VNNI_TARGET void int8_block(std::size_t r0, std::size_t j0, std::size_t he
             const __m512 x = _mm512_cvtepi32_ps(_mm512_sub_epi32(acc[m][v], offset));
             y[v] =
                 _mm512_fmadd_ps(x, _mm512_mul_ps(sx, _mm512_loadu_ps(o.sw + j)), _mm512_loadu_ps(o.bias + j));
-            if (o.relu)
+            if (o.relu && !Quantize)  // quantize_row applies it
                 y[v] = _mm512_maskz_mov_ps(_mm512_cmp_ps_mask(y[v], _mm512_setzero_ps(), _CMP_GT_OQ), y[v]);
             if constexpr (!Quantize) _mm512_storeu_ps(o.c + r * o.ldc + j, y[v]);
         }
@@ -267,11 +271,11 @@ LSNIF_VNNI_TARGET void int8_rows(std::size_t j0, std::size_t m, std::size_t quad
     std::size_t r = 0;
     for (; r + MB <= m; r += MB) {
         const LiveGroups live = live_groups(zeros, r, MB, quads, 4);
-        int8_block<MB, NV, Signed, Quantize>(r, j0, live.head, live.tail, quads, o);
+        int8_block<MB, NV, Signed, Quantize>(r, j0, live.head, live.tail, live.end, o);
     }
     for (; r < m; ++r) {
         const LiveGroups live = live_groups(zeros, r, 1, quads, 4);
-        int8_block<1, NV, Signed, Quantize>(r, j0, live.head, live.tail, quads, o);
+        int8_block<1, NV, Signed, Quantize>(r, j0, live.head, live.tail, live.end, o);
     }
 }
 

@@ -376,28 +376,37 @@ TEST_CASE("the bf16 product skips the zero columns ZeroColumns names, with the s
     std::uniform_real_distribution<float> u(-1.f, 1.f);
     // The inference shapes (129 inputs: 108 point features, then 21 ray inputs) and ragged
     // ones: odd lead and tail, rows not a multiple of the 6-row block, leads in any order.
+    // A second zero run from rest_start + rest[r] to the end (the entry offsets; 0 = none).
     struct Shape {
-        std::size_t m, n, in, tail;
+        std::size_t m, n, in, tail, rest_start;
     };
-    for (const Shape sh :
-         {Shape{256, 128, 129, 108}, Shape{37, 128, 129, 108}, Shape{13, 48, 71, 51}, Shape{7, 16, 33, 33}}) {
+    for (const Shape sh : {Shape{256, 128, 129, 108, 111}, Shape{37, 128, 129, 108, 0},
+                           Shape{13, 48, 71, 51, 52}, Shape{7, 16, 33, 33, 0}}) {
         CAPTURE(sh.m);
         CAPTURE(sh.in);
+        CAPTURE(sh.rest_start);
         const std::size_t kp = round_up(sh.in, 32), n = sh.n;
-        std::vector<std::uint32_t> lead(sh.m);
+        std::vector<std::uint32_t> lead(sh.m), rest(sh.m);
         std::vector<float> A(sh.m * sh.in), W(sh.in * n), bias(round_up(n, 16));
         for (std::size_t r = 0; r < sh.m; ++r) {
             lead[r] = std::uint32_t(rng() % (sh.tail + 1));
-            if (r % 3 == 0 && r > 0) lead[r] = lead[r - 1];  // runs of equal leads, as sorted rows have
-            for (std::size_t c = 0; c < sh.in; ++c)
-                A[r * sh.in + c] = (c >= lead[r] && c < sh.tail) ? 0.0f : u(rng);
+            rest[r] = sh.rest_start ? std::uint32_t(rng() % (sh.in - sh.rest_start + 1)) : 0;
+            if (r % 3 == 0 && r > 0) {  // runs of equal leads, as sorted rows have
+                lead[r] = lead[r - 1];
+                rest[r] = rest[r - 1];
+            }
+            for (std::size_t c = 0; c < sh.in; ++c) {
+                const bool zero =
+                    (c >= lead[r] && c < sh.tail) || (sh.rest_start && c >= sh.rest_start + rest[r]);
+                A[r * sh.in + c] = zero ? 0.0f : u(rng);
+            }
         }
         for (float& w : W) w = u(rng);
         for (float& b : bias) b = u(rng);
         std::vector<Bf16> a(sh.m * kp), b(kp / 2 * 2 * round_up(n, 16));
         pack_rows(A.data(), sh.m, sh.in, sh.in, a.data(), kp, sh.m);
         pack_vnni(W.data(), sh.in, n, n, b.data(), 2 * round_up(n, 16), kp);
-        const ZeroColumns zeros{lead.data(), sh.tail};
+        const ZeroColumns zeros{lead.data(), sh.tail, sh.rest_start ? rest.data() : nullptr, sh.rest_start};
         for (const bool relu : {true, false}) {
             std::vector<float> full(sh.m * n), skipped(sh.m * n);
             gemm_bf16_dp(sh.m, n, kp, a.data(), kp, b.data(), 2 * round_up(n, 16), full.data(), n,

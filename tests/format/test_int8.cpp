@@ -65,6 +65,7 @@ std::vector<float> product_ref(const std::vector<RowRef>& rows, const Int8Layer&
 struct Case {
     std::size_t m, in, out_padded, tail;  // tail: ZeroColumns' end (0 = no zero columns)
     bool signed_input;
+    std::size_t rest_start = 0;  // ZeroColumns' second run (0 = none)
 };
 
 std::size_t bit_equal(const std::vector<float>& a, const std::vector<float>& b) {
@@ -140,22 +141,29 @@ TEST_CASE("the int8 product equals its definition bit for bit, skipped zero colu
                                              << " (without it the scalar path is what is checked)");
     std::mt19937 rng(5);
     std::uniform_real_distribution<float> u(-1.f, 1.f);
-    // The inference shapes (129 inputs: 108 point features, then 21 ray inputs; 128 hidden)
-    // and ragged ones: K not a multiple of 4, rows not a multiple of the row block, every
-    // column count the kernel splits differently.
-    for (const Case cs :
-         {Case{256, 129, 128, 108, true}, Case{37, 128, 128, 0, false}, Case{13, 71, 48, 51, true},
-          Case{7, 33, 16, 33, true}, Case{11, 64, 144, 0, false}, Case{6, 5, 80, 0, false}}) {
+    // The inference shapes (129 inputs: 108 point features, then 21 ray inputs, the last 18
+    // the entry offsets; 128 hidden) and ragged ones: K not a multiple of 4, rows not a
+    // multiple of the row block, every column count the kernel splits differently, zero runs
+    // ending inside a quad.
+    for (const Case cs : {Case{256, 129, 128, 108, true, 111}, Case{256, 129, 128, 108, true},
+                          Case{37, 128, 128, 0, false}, Case{13, 71, 48, 51, true, 53},
+                          Case{7, 33, 16, 33, true}, Case{11, 64, 144, 0, false}, Case{6, 5, 80, 0, false}}) {
         CAPTURE(cs.m);
         CAPTURE(cs.in);
+        CAPTURE(cs.rest_start);
         CAPTURE(cs.out_padded);
         std::vector<float> x(cs.m * cs.in), wt(cs.in * cs.out_padded), bias(cs.out_padded);
-        std::vector<std::uint32_t> lead(cs.m);
+        std::vector<std::uint32_t> lead(cs.m), rest(cs.m);
         for (std::size_t r = 0; r < cs.m; ++r) {
             lead[r] = cs.tail ? std::uint32_t(rng() % (cs.tail + 1)) : 0;
-            if (r % 3 == 0 && r > 0) lead[r] = lead[r - 1];  // runs of equal leads, as sorted rows have
+            rest[r] = cs.rest_start ? std::uint32_t(rng() % (cs.in - cs.rest_start + 1)) : 0;
+            if (r % 3 == 0 && r > 0) {  // runs of equal leads, as sorted rows have
+                lead[r] = lead[r - 1];
+                rest[r] = rest[r - 1];
+            }
             for (std::size_t k = 0; k < cs.in; ++k) {
-                const bool zero = cs.tail && k >= lead[r] && k < cs.tail;
+                const bool zero = cs.tail && ((k >= lead[r] && k < cs.tail) ||
+                                              (cs.rest_start && k >= cs.rest_start + rest[r]));
                 const float v = u(rng);
                 x[r * cs.in + k] = zero ? 0.0f : cs.signed_input ? v : std::fabs(v);
             }
@@ -168,7 +176,7 @@ TEST_CASE("the int8 product equals its definition bit for bit, skipped zero colu
         std::vector<RowRef> ref;
         for (std::size_t r = 0; r < cs.m; ++r)
             ref.push_back(quantize_ref(&x[r * cs.in], cs.in, cs.signed_input));
-        const ZeroColumns zeros{lead.data(), cs.tail};
+        const ZeroColumns zeros{lead.data(), cs.tail, cs.rest_start ? rest.data() : nullptr, cs.rest_start};
         for (const bool relu : {true, false}) {
             CAPTURE(relu);
             const std::vector<float> want = product_ref(ref, layer, bias, relu);

@@ -74,31 +74,44 @@ struct Epilogue {
 };
 
 // Columns of A that hold zeros, which a product may skip: row r of A is zero in columns
-// [lead[r], tail) (lead: m values). The kernel skips them per block of rows up to the
-// block's largest lead, so callers put rows with alike leads next to each other. Skipping
-// changes nothing but the sign of an exactly zero sum (+0 instead of -0): each skipped
-// term is a product of zeros with finite weights.
+// [lead[r], tail) (lead: m values) and, when `rest` is given (m values), from column
+// rest_start + rest[r] to the end of the row, padding included (tail <= rest_start). The
+// inference input has both: the empty slots' features after a ray's points, and its entry
+// offsets after its point count. The kernel skips them per block of rows up to the block's
+// largest lead and rest, so callers put rows with alike ones next to each other. Skipping
+// changes nothing but the sign of an exactly zero sum (+0 instead of -0): each skipped term
+// is a product of zeros with finite weights.
 struct ZeroColumns {
     const std::uint32_t* lead;
     std::size_t tail;
+    const std::uint32_t* rest = nullptr;
+    std::size_t rest_start = 0;
 };
 
 // What a product over groups of `width` consecutive columns (pairs for bf16, quads for int8)
-// must visit for rows [r, r + rows): groups [0, head) and [tail, groups); the groups between
-// are zero in every one of these rows (a group straddling a row's lead or the tail stays
-// in). Without `zeros`: every group (head = tail = groups).
+// must visit for rows [r, r + rows): groups [0, head) and [tail, end); the others are zero
+// in every one of these rows (a group straddling a row's lead, the tail or a row's rest
+// stays in). Without `zeros`: every group (head = tail = end = groups).
 struct LiveGroups {
-    std::size_t head, tail;
+    std::size_t head, tail, end;
 };
 inline LiveGroups live_groups(const ZeroColumns* zeros, std::size_t r, std::size_t rows, std::size_t groups,
                               std::size_t width) {
-    if (!zeros) return {groups, groups};
-    std::uint32_t lead = 0;
-    for (std::size_t i = r; i < r + rows; ++i) lead = lead > zeros->lead[i] ? lead : zeros->lead[i];
+    if (!zeros) return {groups, groups, groups};
+    std::uint32_t lead = 0, rest = 0;
+    for (std::size_t i = r; i < r + rows; ++i) {
+        lead = lead > zeros->lead[i] ? lead : zeros->lead[i];
+        if (zeros->rest) rest = rest > zeros->rest[i] ? rest : zeros->rest[i];
+    }
     const std::size_t tail = zeros->tail / width < groups ? zeros->tail / width : groups;
     const std::size_t up = (std::size_t(lead) + width - 1) / width;
     const std::size_t head = up < tail ? up : tail;
-    return head == tail ? LiveGroups{groups, groups} : LiveGroups{head, tail};
+    std::size_t end = groups;
+    if (zeros->rest) {
+        const std::size_t live = (zeros->rest_start + rest + width - 1) / width;
+        end = live < tail ? tail : live < groups ? live : groups;
+    }
+    return head == tail ? LiveGroups{end, end, end} : LiveGroups{head, tail, end};
 }
 
 // C[m x n] = epilogue(A[m x k] B[k x n]) with fp32 accumulation of bf16 products, A in the

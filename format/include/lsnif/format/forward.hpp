@@ -244,7 +244,8 @@ MlpArithmetic mlp_arithmetic(const Network& net);
 // Runs all layers in the network's arithmetic. `scratch` grows as needed; the result is n
 // rows of net.out_padded.back() floats, returned as a pointer into scratch. `input_zeros`,
 // if given, says which inputs are zero (e.g. the empty point slots, lead = count * L * F,
-// tail = point_width); the bf16 and int8 first layers skip them (same results). `outputs`
+// tail = point_width, and their entry offsets, rest = count from the offsets' first column);
+// the bf16 and int8 first layers skip them (same results). `outputs`
 // > 0: the caller reads only the first `outputs` columns of each result row (the others are
 // unspecified); 0 = all.
 const float* mlp_forward(const Network& net, const float* input, std::size_t n, std::vector<float>& scratch,
