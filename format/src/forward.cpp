@@ -221,15 +221,12 @@ void accumulate_level(const Corners& c, const T* table, std::uint32_t stride, st
 }
 
 // What encode_points writes besides the occupied slots' features: zeros for the empty
-// slots, then the ray inputs the model has (the entry offsets by `offsets`, entry_offsets or
-// a function of the same results).
-using EntryOffsetsFn = void (*)(const Geometry&, const RayPoints&, float*);
-void encode_ray_inputs(const Geometry& geo, const RayPoints& pts, float* row,
-                       EntryOffsetsFn offsets = entry_offsets) {
+// slots, then the ray inputs the model has.
+void encode_ray_inputs(const Geometry& geo, const RayPoints& pts, float* row) {
     const std::size_t slot = std::size_t(geo.L) * geo.F;
     std::memset(row + pts.count * slot, 0, sizeof(float) * (geo.H - pts.count) * slot);
     if (geo.direction_width) std::memcpy(row + geo.point_width, pts.dir, sizeof(pts.dir));
-    if (geo.offset_width) offsets(geo, pts, row + geo.point_width + geo.direction_width);
+    if (geo.offset_width) entry_offsets(geo, pts, row + geo.point_width + geo.direction_width);
 }
 
 std::size_t element_size(GridElement e) {
@@ -417,58 +414,6 @@ bool encode_batch_supported(const Geometry& geo, const GridView* grid) {
     return true;
 }
 
-// Lane i of axis a takes element 3 i + a of 48 floats (16 points' xyz): from the first 32
-// by a two-source permute, from the last 16 (the lanes in from_high) by a one-source one.
-struct XyzSplit {
-    alignas(64) std::int32_t low[3][16];
-    alignas(64) std::int32_t high[3][16];
-    std::uint16_t from_high[3];
-};
-constexpr XyzSplit make_xyz_split() {
-    XyzSplit x{};
-    for (int a = 0; a < 3; ++a)
-        for (int i = 0; i < 16; ++i) {
-            const int e = 3 * i + a;
-            x.low[a][i] = e < 32 ? e : 0;
-            x.high[a][i] = e < 32 ? 0 : e - 32;
-            if (e >= 32) x.from_high[a] = std::uint16_t(x.from_high[a] | (1u << i));
-        }
-    return x;
-}
-constexpr XyzSplit kXyzSplit = make_xyz_split();
-
-// entry_offsets() for 16 slots per vector, without a branch on the slot count: the same
-// IEEE operations lane by lane (subtraction, product, the two fused multiply-adds, square
-// root and division are correctly rounded alike), so the same bits. The slots' coordinates
-// are read 16 at a time from RayPoints::g (kMaxPoints, a multiple of 16, slots: every read
-// stays inside it).
-LSNIF_AVX512 void entry_offsets_avx512(const Geometry& geo, const RayPoints& pts, float* out) {
-    static_assert(kMaxPoints % 16 == 0);
-    __m512i low[3], high[3];
-    for (int a = 0; a < 3; ++a) {
-        low[a] = _mm512_load_si512(kXyzSplit.low[a]);
-        high[a] = _mm512_load_si512(kXyzSplit.high[a]);
-    }
-    const __m512 diagonal = _mm512_set1_ps(geo.diagonal);
-    const std::uint32_t count = std::min(pts.count, geo.H);
-    std::uint32_t k0 = 0;
-    for (; k0 < count; k0 += 16) {  // vectors with a live slot; the rest are zeros
-        const float* g = pts.g[k0];
-        const __m512 v0 = _mm512_loadu_ps(g), v1 = _mm512_loadu_ps(g + 16), v2 = _mm512_loadu_ps(g + 32);
-        __m512 d[3];
-        for (int a = 0; a < 3; ++a) {
-            const __m512 x = _mm512_mask_permutexvar_ps(_mm512_permutex2var_ps(v0, low[a], v1),
-                                                        kXyzSplit.from_high[a], high[a], v2);
-            d[a] = _mm512_mul_ps(_mm512_sub_ps(x, _mm512_set1_ps(pts.g[0][a])), _mm512_set1_ps(geo.cell[a]));
-        }
-        const __mmask16 live = __mmask16((1u << std::min(16u, count - k0)) - 1u);
-        const __m512 s = _mm512_fmadd_ps(d[2], d[2], _mm512_fmadd_ps(d[1], d[1], _mm512_mul_ps(d[0], d[0])));
-        const __m512 o = _mm512_maskz_div_ps(live, _mm512_maskz_sqrt_ps(live, s), diagonal);
-        _mm512_mask_storeu_ps(out + k0, __mmask16((1u << std::min(16u, geo.H - k0)) - 1u), o);
-    }
-    if (k0 < geo.H) std::memset(out + k0, 0, (geo.H - k0) * sizeof(float));
-}
-
 // A first point whose features another row's first point already gets: copied after
 // encoding, from float offset `from` of the rows to `to`.
 struct SharedPoint {
@@ -534,7 +479,7 @@ LSNIF_AVX512 void encode_batch_avx512(const Geometry& geo, const GridView* grid,
     for (std::size_t j = 0; j < which.size(); ++j) {
         const RayPoints& p = pts[which[j]];
         for (std::uint32_t h = 1; h < p.count; ++h) add(j, h);
-        encode_ray_inputs(geo, p, rows + j * geo.input_width, entry_offsets_avx512);
+        encode_ray_inputs(geo, p, rows + j * geo.input_width);
     }
     const std::vector<SharedPoint>& shared = shared_first_points(geo, pts, which, add);
     pl.n = i;

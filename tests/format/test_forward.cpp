@@ -282,7 +282,7 @@ TEST_CASE(
     d.level_resolution = {64, 40, 8};
     d.log2_table_size = 12;
     d.ray_inputs = kRayInputDirection | kRayInputEntryOffsets;
-    // H = 7, 18 and 37: one, two and three vectors of entry offsets, the last partial.
+    // H = 7, 18 (the default) and 37 points per ray.
     for (const std::uint32_t H : {7u, 18u, 37u}) {
         CAPTURE(H);
         d.max_points = H;
