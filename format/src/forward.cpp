@@ -507,15 +507,16 @@ void encode_batch(const Geometry& geo, const GridView* grid, const RayPoints* pt
 }
 
 void entry_offsets(const Geometry& geo, const RayPoints& pts, float* out) {
-    for (std::uint32_t k = 0; k < geo.H; ++k) {
-        if (k >= pts.count) {
-            out[k] = 0.0f;
-            continue;
-        }
+    // Slot 0's offset, from the first entry to itself, is sqrt(+0) / diagonal = +0 for the
+    // walk's finite coordinates: written, not computed.
+    const std::uint32_t n = std::min(pts.count, geo.H);
+    out[0] = 0.0f;
+    for (std::uint32_t k = 1; k < n; ++k) {
         float d[3];
         for (int a = 0; a < 3; ++a) d[a] = (pts.g[k][a] - pts.g[0][a]) * geo.cell[a];
         out[k] = std::sqrt(std::fma(d[2], d[2], std::fma(d[1], d[1], d[0] * d[0]))) / geo.diagonal;
     }
+    std::fill(out + std::max(n, 1u), out + geo.H, 0.0f);
 }
 
 // ---- MLP --------------------------------------------------------------------------------
