@@ -446,20 +446,36 @@ LSNIF_AVX512 std::uint32_t start_walks(const Geometry& geo, const Ray* rays, int
     return live;
 }
 
-// Lane `to` of L takes the walk in lane `from` of Q.
-void move_lane(Lanes& L, int to, const Lanes& Q, int from) {
-    for (int a = 0; a < 3; ++a) {
-        L.go[a][to] = Q.go[a][from];
-        L.gd[a][to] = Q.gd[a][from];
-        L.inv[a][to] = Q.inv[a][from];
-        L.enter[a][to] = Q.enter[a][from];
-        L.exit[a][to] = Q.exit[a][from];
-        L.cell[a][to] = Q.cell[a][from];
-        L.step[a][to] = Q.step[a][from];
+// The `count` lowest set bits of m.
+inline std::uint32_t lowest_bits(std::uint32_t m, int count) {
+    std::uint32_t r = 0;
+    for (int i = 0; i < count; ++i) {
+        r |= m & (0u - m);
+        m &= m - 1;
     }
-    L.t_near[to] = Q.t_near[from];
-    L.t_far[to] = Q.t_far[from];
-    L.ray[to] = Q.ray[from];
+    return r;
+}
+
+// The lanes `to` of L take the walks in the lanes `from` of Q, in order (the i-th lowest of
+// `from` into the i-th lowest of `to`; as many of each): one compress and one expand per
+// field, 16 lanes at a time, instead of a scalar copy of 23 fields per lane.
+LSNIF_AVX512 inline void move_lanes(Lanes& L, __mmask16 to, const Lanes& Q, __mmask16 from) {
+    const auto move = [&](void* dst, const void* src) LSNIF_AVX512 {
+        const __m512i v = _mm512_maskz_compress_epi32(from, _mm512_loadu_si512(src));
+        _mm512_storeu_si512(dst, _mm512_mask_expand_epi32(_mm512_loadu_si512(dst), to, v));
+    };
+    for (int a = 0; a < 3; ++a) {
+        move(L.go[a], Q.go[a]);
+        move(L.gd[a], Q.gd[a]);
+        move(L.inv[a], Q.inv[a]);
+        move(L.enter[a], Q.enter[a]);
+        move(L.exit[a], Q.exit[a]);
+        move(L.cell[a], Q.cell[a]);
+        move(L.step[a], Q.step[a]);
+    }
+    move(L.t_near, Q.t_near);
+    move(L.t_far, Q.t_far);
+    move(L.ray, Q.ray);
 }
 
 // Walks started 16 rays at a time (start_walks), handed to lanes as they free up.
@@ -468,25 +484,28 @@ struct StartQueue {
     std::uint32_t ready = 0;  // lanes of `started` not yet handed out
 };
 
-// Puts started walks into the free lanes of L (not in `live`), starting rays[next..] 16 at
-// a time as the queue runs dry, until every lane is busy or the rays run out. Returns the
-// new live mask.
+// Puts started walks into the free lanes of L (not in `live`), the lowest free lane taking
+// the lowest started walk, starting rays[next..] 16 at a time as the queue runs dry, until
+// every lane is busy or the rays run out. Returns the new live mask.
 LSNIF_AVX512 std::uint32_t refill(const Geometry& geo, std::span<const Ray> rays, std::size_t& next,
                                   RayPoints* out, TraceStatus* status, StartQueue& q, Lanes& L,
                                   std::uint32_t live) {
-    for (int lane = 0; lane < kLanes; ++lane) {
-        if (live & (1u << lane)) continue;
-        while (!q.ready && next < rays.size()) {
+    std::uint32_t free = ~live & ((1u << kLanes) - 1u);
+    while (free) {
+        if (!q.ready) {
+            if (next >= rays.size()) break;
             const int n = int(std::min<std::size_t>(kLanes, rays.size() - next));
             q.ready = start_walks(geo, rays.data() + next, n, std::uint32_t(next), out + next, status + next,
                                   q.started);
             next += std::size_t(n);
+            continue;
         }
-        if (!q.ready) break;
-        const int from = std::countr_zero(q.ready);
-        q.ready &= q.ready - 1;
-        move_lane(L, lane, q.started, from);
-        live |= 1u << lane;
+        const int count = std::min(std::popcount(free), std::popcount(q.ready));
+        const std::uint32_t to = lowest_bits(free, count), from = lowest_bits(q.ready, count);
+        move_lanes(L, __mmask16(to), q.started, __mmask16(from));
+        q.ready &= ~from;
+        free &= ~to;
+        live |= to;
     }
     return live;
 }
