@@ -634,13 +634,14 @@ LSNIF_AVX512 inline __mmask16 visit_cell(Axis (&ax)[3], __mmask16 vis, __mmask16
     const __mmask16 beyond = _mm512_mask_cmp_ps_mask(vis, exit, t_far, _CMP_GT_OQ);
     over |= beyond;
     vis &= ~beyond;
+    // The scalar walk steps the tied axes in order and stops at the first that leaves the
+    // grid; here they step together (three independent chains, as in skip_empty_block): a
+    // lane that leaves on one axis is over, whatever the other axes then did.
+    __mmask16 m[3];
 #pragma GCC unroll 3
-    for (int a = 0; a < 3; ++a) {
-        const __mmask16 m = _mm512_mask_cmp_ps_mask(vis, ax[a].exit, exit, _CMP_EQ_OQ);
-        const __mmask16 left = step_axis(ax[a], m, vV);
-        over |= left;
-        vis &= ~left;
-    }
+    for (int a = 0; a < 3; ++a) m[a] = _mm512_mask_cmp_ps_mask(vis, ax[a].exit, exit, _CMP_EQ_OQ);
+#pragma GCC unroll 3
+    for (int a = 0; a < 3; ++a) over |= step_axis(ax[a], m[a], vV);
     return over;
 }
 
