@@ -288,8 +288,10 @@ typedef struct lsnif_hit {
 /* Intersects `count` object-space rays. Rays that cross no occupied voxel are misses
  * without inference. Runs on the calling thread; concurrent calls on the same model
  * are safe (renderers parallelize across batches). Batches of >= 256 rays amortize
- * the network evaluation best. `model` must not be NULL; `rays` and `hits` may be NULL
- * only when count is 0. */
+ * the network evaluation best, and rays leaving one point (a shading point's shadow and
+ * ambient-occlusion rays) cost less when they follow each other in the batch: they share
+ * their first feature point's encoding (same results in any order). `model` must not be
+ * NULL; `rays` and `hits` may be NULL only when count is 0. */
 LSNIF_API lsnif_status lsnif_intersect(const lsnif_model* model, const lsnif_ray* rays, size_t count,
                                        lsnif_hit* hits);
 
