@@ -8,10 +8,11 @@ namespace lsnif::format::detail {
 
 // Rows r[0..15] (16 dwords each) become columns: afterwards r[j] holds element j of every
 // former row. GCC 12's unpack/shuffle intrinsics pass a self-initialized
-// _mm512_undefined_epi32() as the (unused) merge source, which -Wmaybe-uninitialized
-// reports once inlined; a false positive.
+// _mm512_undefined_epi32() as the (unused) merge source, which -W(maybe-)uninitialized
+// reports once inlined (the sanitizer build says -Wuninitialized); a false positive.
 #pragma GCC diagnostic push
 #pragma GCC diagnostic ignored "-Wmaybe-uninitialized"
+#pragma GCC diagnostic ignored "-Wuninitialized"
 __attribute__((target("avx512f"))) inline void transpose16(__m512i r[16]) {
     __m512i t[16], u[16];
     for (int i = 0; i < 8; ++i) {
