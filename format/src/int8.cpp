@@ -195,18 +195,21 @@ struct Int8Operands {
 // bytes, lane by lane, as quantize_rows_avx512 on the ReLU'd values stored as fp32. The ReLU
 // is in the operations already: the maximum starts from +0 (VMAXPS keeps it against NaN and
 // negative lanes, so the row's maximum is that of the ReLU'd row), and max(y * inverse, +0)
-// is +0 wherever the ReLU gives +0 (y <= 0, -0 or NaN; inverse >= 0).
+// is +0 wherever the ReLU gives +0 (y <= 0, -0 or NaN; inverse >= 0). The clamp to 255 is
+// VPMOVUSDB's unsigned saturation: t = max(y * inverse, +0) is in [0, +inf], and VCVTPS2DQ
+// turns t > 255 into an integer above 255 or, from 2^31 on, 0x80000000 — both saturate to
+// 255, as min(t, 255) would have given.
 template <int NV>
 LSNIF_VNNI_TARGET inline void quantize_row(const __m512 (&y)[NV], std::size_t r, Int8Rows& next) {
     __m512 m = _mm512_setzero_ps();
     for (int v = 0; v < NV; ++v) m = _mm512_max_ps(y[v], m);
     const Scale s = scale_for(_mm512_reduce_max_ps(m), kUnsigned);
-    const __m512 inverse = _mm512_set1_ps(s.inverse), hi = _mm512_set1_ps(kUnsigned.hi);
+    const __m512 inverse = _mm512_set1_ps(s.inverse);
     std::uint8_t* q = next.q.data() + r * next.ld;
     for (int v = 0; v < NV; ++v) {
         const __m512 t = _mm512_max_ps(_mm512_mul_ps(y[v], inverse), _mm512_setzero_ps());
         _mm_storeu_si128(reinterpret_cast<__m128i*>(q + 16 * v),
-                         _mm512_cvtepi32_epi8(_mm512_cvtps_epi32(_mm512_min_ps(t, hi))));
+                         _mm512_cvtusepi32_epi8(_mm512_cvtps_epi32(t)));
     }
     next.scale[r] = s.scale;
     next.sum[r] = 0;
@@ -218,14 +221,17 @@ LSNIF_VNNI_TARGET inline void quantize_row(const __m512 (&y)[NV], std::size_t r,
 // against a VNNI4 row of B (four inputs of 16 columns). Signed inputs swap the roles (the
 // offset weights are the unsigned operand). MB x NV = 24 accumulators, NV B vectors and one
 // broadcast fit the 32 registers. The block visits quads [0, head) and [tail, end) (from
-// live_groups; the others are zero). Quantize: the block spans all columns (j0 = 0,
-// 16 NV = np) and writes o.next instead of C.
+// live_groups; the others are zero). Signed inputs' correction, -128 times the row's sum of
+// inputs, is where the accumulators start (int32 sums are exact in any order). Quantize: the
+// block spans all columns (j0 = 0, 16 NV = np) and writes o.next instead of C.
 template <int MB, int NV, bool Signed, bool Quantize>
 LSNIF_VNNI_TARGET void int8_block(std::size_t r0, std::size_t j0, std::size_t head, std::size_t tail,
                                   std::size_t end, const Int8Operands& o) {
     __m512i acc[MB][NV];
-    for (int m = 0; m < MB; ++m)
-        for (int v = 0; v < NV; ++v) acc[m][v] = _mm512_setzero_si512();
+    for (int m = 0; m < MB; ++m) {
+        const __m512i start = _mm512_set1_epi32(Signed ? -128 * o.sum[r0 + m] : 0);
+        for (int v = 0; v < NV; ++v) acc[m][v] = start;
+    }
     const std::uint8_t* arow = o.a + r0 * o.lda;
     const std::uint8_t* bcol = o.b + 4 * j0;
     const std::size_t lda = o.lda, ldb = o.ldb;
@@ -249,11 +255,10 @@ LSNIF_VNNI_TARGET void int8_block(std::size_t r0, std::size_t j0, std::size_t he
     for (int m = 0; m < MB; ++m) {
         const std::size_t r = r0 + m;
         const __m512 sx = _mm512_set1_ps(o.sx[r]);
-        const __m512i offset = _mm512_set1_epi32(Signed ? 128 * o.sum[r] : 0);
         __m512 y[NV];
         for (int v = 0; v < NV; ++v) {
             const std::size_t j = j0 + 16 * v;
-            const __m512 x = _mm512_cvtepi32_ps(_mm512_sub_epi32(acc[m][v], offset));
+            const __m512 x = _mm512_cvtepi32_ps(acc[m][v]);
             y[v] =
                 _mm512_fmadd_ps(x, _mm512_mul_ps(sx, _mm512_loadu_ps(o.sw + j)), _mm512_loadu_ps(o.bias + j));
             if (o.relu && !Quantize)  // quantize_row applies it

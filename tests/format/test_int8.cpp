@@ -199,3 +199,34 @@ TEST_CASE("the int8 product equals its definition bit for bit, skipped zero colu
         CHECK(std::memcmp(next.scale.data(), want_next.scale.data(), cs.m * sizeof(float)) == 0);
     }
 }
+
+TEST_CASE(
+    "the fused quantization gives quantize_rows' bytes when a row's maximum is denormal (inverse scale "
+    "overflows to infinity)") {
+    // Zero input rows leave each output at its bias: here positive denormals, zeros and
+    // negatives, so a row's maximum is ~1e-40, 255 / max overflows and y * inverse is +inf
+    // (or NaN for y = 0): the bytes must saturate to 255 and 0 as quantize_rows' clamp does.
+    for (const std::size_t out_padded : {std::size_t(64), std::size_t(128)}) {
+        CAPTURE(out_padded);
+        const std::size_t m = 7, in = 33;
+        std::vector<float> x(m * in, 0.0f), wt(in * out_padded), bias(out_padded);
+        std::mt19937 rng(9);
+        std::uniform_real_distribution<float> u(-1.f, 1.f);
+        for (float& w : wt) w = u(rng);
+        for (std::size_t j = 0; j < out_padded; ++j)
+            bias[j] = j % 3 == 0 ? 1e-40f * float(j % 5 + 1) : j % 3 == 1 ? 0.0f : -float(j);
+        const Int8Layer layer = make_int8_layer(wt.data(), in, out_padded, true);
+        Int8Rows rows, want_next, next;
+        quantize_rows(x.data(), m, in, in, true, rows);
+        std::vector<float> relu_out(m * out_padded), scratch;
+        gemm_int8(m, rows, layer, bias.data(), true, relu_out.data(), out_padded);
+        REQUIRE(std::isinf(255.0f / relu_out[0 * out_padded + 0]));
+        quantize_rows(relu_out.data(), m, out_padded, out_padded, false, want_next);
+        gemm_int8_relu_quantized(m, rows, layer, bias.data(), next, scratch);
+        std::size_t saturated = 0;
+        for (std::size_t j = 0; j < out_padded; ++j) saturated += want_next.q[j] == 255;
+        CHECK(saturated == (out_padded + 2) / 3);  // every positive denormal column
+        CHECK(std::memcmp(next.q.data(), want_next.q.data(), m * next.ld) == 0);
+        CHECK(std::memcmp(next.scale.data(), want_next.scale.data(), m * sizeof(float)) == 0);
+    }
+}
