@@ -308,7 +308,8 @@ TEST_CASE(
         }
         // Runs of rays leaving one point (the encoder encodes such a first point once): rays
         // 3k+1 and 3k+2 start where ray 3k does (their other points differ); ray 3k's first
-        // point shares two coordinates with ray 3k-1's, one of them x, z or y.
+        // point differs from ray 3k-1's in one coordinate only (x, y or z in turn), which a
+        // comparison of fewer than the three would take for a shared point.
         std::size_t runs = 0;
         for (std::size_t r = 1; r < pts.size(); ++r) {
             if (!pts[r].count || !pts[r - 1].count) continue;
