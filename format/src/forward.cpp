@@ -466,7 +466,6 @@ LSNIF_AVX512 void encode_batch_avx512(const Geometry& geo, const GridView* grid,
     for (const std::uint32_t r : which) total += pts[r].count;
     for (auto& v : pl.g) v.resize(total);
     pl.out.resize(total);
-    pl.n = total;
     const std::size_t slot = std::size_t(geo.L) * geo.F;
     std::size_t i = 0;
     // The rays' first points last: a ray that starts inside a voxel has one there with 8
@@ -482,7 +481,7 @@ LSNIF_AVX512 void encode_batch_avx512(const Geometry& geo, const GridView* grid,
         encode_ray_inputs(geo, p, rows + j * geo.input_width);
     }
     const std::vector<SharedPoint>& shared = shared_first_points(geo, pts, which, add);
-    pl.n = i;
+    pl.n = i;  // at most total: shared first points are copied, not listed
     for (std::uint32_t l = 0; l < geo.L; ++l)
         for (std::size_t b = 0; b < pl.n; b += 16)
             encode_level16(geo, geo.levels[l], grid[l], l, pl, b, rows);
