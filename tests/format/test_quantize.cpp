@@ -484,8 +484,14 @@ TEST_CASE("a ray's result does not depend on its batch: rays leaving one point i
         std::vector<std::uint8_t> occ_batch(n), occ_mixed(n), occ_alone(n);
         REQUIRE(lsnif_intersect(model, rays.data(), n, batch.data()) == LSNIF_OK);
         REQUIRE(lsnif_occluded(model, rays.data(), n, occ_batch.data()) == LSNIF_OK);
-        REQUIRE(lsnif_intersect(model, shuffled.data(), n, mixed.data()) == LSNIF_OK);
-        REQUIRE(lsnif_occluded(model, shuffled.data(), n, occ_mixed.data()) == LSNIF_OK);
+        std::vector<lsnif_hit> mixed_order(n);
+        std::vector<std::uint8_t> occ_mixed_order(n);
+        REQUIRE(lsnif_intersect(model, shuffled.data(), n, mixed_order.data()) == LSNIF_OK);
+        REQUIRE(lsnif_occluded(model, shuffled.data(), n, occ_mixed_order.data()) == LSNIF_OK);
+        for (std::size_t i = 0; i < n; ++i) {  // back to the rays' order
+            mixed[perm[i]] = mixed_order[i];
+            occ_mixed[perm[i]] = occ_mixed_order[i];
+        }
         for (std::size_t i = 0; i < n; ++i) {
             REQUIRE(lsnif_intersect(model, &rays[i], 1, &alone[i]) == LSNIF_OK);
             REQUIRE(lsnif_occluded(model, &rays[i], 1, &occ_alone[i]) == LSNIF_OK);
@@ -493,10 +499,8 @@ TEST_CASE("a ray's result does not depend on its batch: rays leaving one point i
         std::size_t same = 0, hits = 0;
         for (std::size_t i = 0; i < n; ++i) {
             same += std::memcmp(&batch[i], &alone[i], sizeof(lsnif_hit)) == 0 &&
-                    std::memcmp(&mixed[std::find(perm.begin(), perm.end(), i) - perm.begin()], &alone[i],
-                                sizeof(lsnif_hit)) == 0 &&
-                    occ_batch[i] == occ_alone[i] &&
-                    occ_mixed[std::find(perm.begin(), perm.end(), i) - perm.begin()] == occ_alone[i];
+                    std::memcmp(&mixed[i], &alone[i], sizeof(lsnif_hit)) == 0 &&
+                    occ_batch[i] == occ_alone[i] && occ_mixed[i] == occ_alone[i];
             hits += alone[i].hit;
         }
         CHECK(same == n);
