@@ -358,20 +358,21 @@ static std::string recipe_key(const Preset& p, std::uint32_t threads) {
 }
 
 // The rules that decide which weights ship: the target with its stop margins, the abort
-// rule, the validation checks and the sizing ladder. Part of the asset key, since they decide
+// rule, the validation checks, the sizing ladder and pruning. Part of the asset key, since they decide
 // how many steps the weights saw and which size and encoding was kept.
 static std::string stop_key(const Target& t, const Preset& p) {
     const TargetStop& s = p.target_stop;
     const EarlyAbort& a = p.early_abort;
     const Sizing& z = p.sizing;
     char buf[320];
-    std::snprintf(buf, sizeof buf,
-                  "target%g,%g,%g|stop%u,%g,%g,%g|abort%llu,%g,%g,%g|checks%u,%llu|sizing%d,%d,%g,%u,%g",
-                  t.visibility, t.distance_pct, t.normal_deg, s.consecutive, s.visibility_margin,
-                  s.distance_factor, s.normal_margin_deg, (unsigned long long)a.min_samples,
-                  a.visibility_headroom, a.normal_headroom_deg, a.distance_factor, p.validation_checks,
-                  (unsigned long long)p.validation_rays, int(z.explore_smaller), int(z.quantize),
-                  z.curve_slack, p.classify.min_log2_table_size, p.classify.min_memory_ratio);
+    std::snprintf(
+        buf, sizeof buf,
+        "target%g,%g,%g|stop%u,%g,%g,%g|abort%llu,%g,%g,%g|checks%u,%llu|sizing%d,%d,%g,%u,%g|prune%d",
+        t.visibility, t.distance_pct, t.normal_deg, s.consecutive, s.visibility_margin, s.distance_factor,
+        s.normal_margin_deg, (unsigned long long)a.min_samples, a.visibility_headroom, a.normal_headroom_deg,
+        a.distance_factor, p.validation_checks, (unsigned long long)p.validation_rays, int(z.explore_smaller),
+        int(z.quantize), z.curve_slack, p.classify.min_log2_table_size, p.classify.min_memory_ratio,
+        int(p.prune_inactive));
     return buf;
 }
 
@@ -464,6 +465,7 @@ bool resolve_preset(const ConvertOptions& opt, Preset& preset, std::string& erro
         preset.target_stop.consecutive = 0;
     }
     if (opt.no_give_up) preset.early_abort.min_samples = std::numeric_limits<std::uint64_t>::max();
+    if (opt.keep_inactive) preset.prune_inactive = false;
     return true;
 }
 
@@ -691,6 +693,11 @@ Trained train_rung(const Run& run, const scene::Mesh& mesh, Candidate& c, const 
     rec.add_seconds("train", st.train.seconds - validation_seconds);
     rec.add_seconds("validate", validation_seconds);
     t.model = tr.export_model("{}");
+    if (p.prune_inactive) {
+        const auto tp = Clock::now();
+        t.pruned = remove_inactive_neurons(t.model, active_neurons(t.model, rays.validation, run.threads));
+        rec.add_seconds("prune", seconds_since(tp));
+    }
     t.seconds = seconds_since(t0);
     return t;
 }
@@ -738,6 +745,7 @@ json candidate_json(const Option& o, const Trained& t) {
     if (t.target_met_at) j["stopped"] = "the validation curve met the target";
     if (!t.abandoned.empty()) j["stopped"] = "given up: " + t.abandoned.front();
     if (!t.fell_behind.empty()) j["stopped"] = "given up: " + t.fell_behind;
+    if (!t.pruned.empty()) j["pruned_neurons"] = t.pruned;
     return j;
 }
 

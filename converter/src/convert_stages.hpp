@@ -2,7 +2,8 @@
 //   resolve_preset; per mesh, plan_mesh: classify -> voxelize_mesh -> worth_an_lsnif and the
 //   BVH's bytes; then convert_meshes, per candidate in conversion_order() until the memory
 //   budget is met, convert_candidate: asset_key -> (reusable_metrics -> shipped |
-//   draw_measure_rays -> size_to_target [train_rung -> gate per rung, choose_option] ->
+//   draw_measure_rays -> size_to_target [train_rung (-> active_neurons -> remove_inactive_neurons)
+//   -> gate per rung, choose_option] ->
 //   asset_metadata -> encode_asset -> memory_rule_failure -> write_asset -> shipped);
 //   finally scene_memory, manifest_json -> write_manifest (manifest.hpp).
 // A stage that decides "simple" returns nothing (or false) and records its reason in the
@@ -114,7 +115,9 @@ struct Trained {
     std::uint32_t target_met_at = 0;
     // Why a smaller rung was given up against the larger rung's curve (falls_behind).
     std::string fell_behind;
-    double seconds = 0;  // wall time of this rung: drawing, preparing, training, validating
+    double seconds = 0;  // wall time of this rung: drawing, preparing, training, validating, pruning
+    // Hidden neurons removed from `model` per layer (Preset::prune_inactive); empty when off.
+    std::vector<std::uint32_t> pruned;
 };
 
 // A model that may ship: a trained rung's fp16 export, or its 8-bit quantization.
@@ -185,6 +188,22 @@ MeasureRays draw_measure_rays(const Run& run, const scene::Mesh& mesh, Candidate
 Trained train_rung(const Run& run, const scene::Mesh& mesh, Candidate& c, const format::ModelDesc& desc,
                    const voxelize::Occupancy& occ, const MeasureRays& rays, std::uint32_t steps,
                    const json& larger, MeshRecord& rec);
+
+// Prune, part 1 (docs/model.md "Inactive neurons"): per hidden layer of `model`, whether
+// each neuron's ReLU output is positive for at least one of `rays` that reaches the network,
+// through the reader's walk, encoding and fp32 layers. The same for any `threads`.
+std::vector<std::vector<std::uint8_t>> active_neurons(const format::ModelData& model,
+                                                      std::span<const samples::Sample> rays,
+                                                      std::uint32_t threads);
+
+// Prune, part 2: removes from `model` every hidden neuron that `active` (active_neurons of
+// this model) marks inactive: its row of the layer's weights, its bias and its column of the
+// next layer's weights; a layer keeps at least one neuron. For a ray on which every removed
+// neuron outputs zero, the fp32 forward pass gives the same outputs before and after (the
+// dropped terms were zeros; the order of the others is unchanged). Returns the neurons
+// removed per hidden layer.
+std::vector<std::uint32_t> remove_inactive_neurons(format::ModelData& model,
+                                                   const std::vector<std::vector<std::uint8_t>>& active);
 
 // Gate: held-out metrics of the trained model and the verdict, as the manifest records
 // them ({"held_out_rays", "families", "gate": {"passed", "reasons"?}}).

@@ -298,6 +298,9 @@ struct ConvertSettings {
         sub->add_flag("--no-give-up", opt.no_give_up,
                       "Train to the end of the budget even when the validation curve shows the gate is out "
                       "of reach (to measure hard geometry); the gate still decides what ships");
+        sub->add_flag("--keep-inactive", opt.keep_inactive,
+                      "Ship each trained network whole: do not remove the hidden neurons that no validation "
+                      "ray activates (docs/model.md \"Inactive neurons\")");
         sub->add_flag("--dry-run", opt.dry_run,
                       "Import and classify only: print the plan (class, reasons, model size), write nothing");
     }

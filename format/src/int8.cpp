@@ -284,13 +284,21 @@ LSNIF_VNNI_TARGET void int8_rows(std::size_t j0, std::size_t m, std::size_t quad
     }
 }
 
-// fp32 output: 64 columns at a time (6 x 4 blocks), then 16.
+// fp32 output. 80 and 96 columns (a pruned layer, docs/model.md "Inactive neurons") in one
+// block of all columns (4 x 5, 4 x 6: each quad's B vectors loaded once for 4 rows); other
+// widths 64 columns at a time (6 x 4 blocks), then the rest in one block of 6 rows.
 template <bool Signed>
 LSNIF_VNNI_TARGET void gemm_int8_vnni(std::size_t m, const Int8Operands& o, std::size_t n, std::size_t quads,
                                       const ZeroColumns* zeros) {
+    if (n == 80) return int8_rows<4, 5, Signed, false>(0, m, quads, o, zeros);
+    if (n == 96) return int8_rows<4, 6, Signed, false>(0, m, quads, o, zeros);
     std::size_t j = 0;
     for (; j + 64 <= n; j += 64) int8_rows<6, 4, Signed, false>(j, m, quads, o, zeros);
-    for (; j < n; j += 16) int8_rows<6, 1, Signed, false>(j, m, quads, o, zeros);
+    switch ((n - j) / 16) {
+        case 1: return int8_rows<6, 1, Signed, false>(j, m, quads, o, zeros);
+        case 2: return int8_rows<6, 2, Signed, false>(j, m, quads, o, zeros);
+        case 3: return int8_rows<6, 3, Signed, false>(j, m, quads, o, zeros);
+    }
 }
 
 // Quantized output: all n = 16 NV columns of a row in one block (3 x 8 blocks for the

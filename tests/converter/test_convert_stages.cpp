@@ -5,8 +5,11 @@
 #include "../test_data.hpp"
 
 #include <lsnif/converter/manifest.hpp>
+#include <lsnif/format/forward.hpp>
+#include <lsnif/format/half.hpp>
 #include "convert_stages.hpp"
 
+#include <algorithm>
 #include <cmath>
 #include <fstream>
 #include <limits>
@@ -210,6 +213,9 @@ TEST_CASE("asset_key changes with the geometry and every setting that changes th
     ConvertOptions o6 = o;
     o6.no_give_up = true;
     CHECK(asset_key(make_run(o6, run.outdir), mesh, desc) != key);
+    ConvertOptions o7 = o;
+    o7.keep_inactive = true;
+    CHECK(asset_key(make_run(o7, run.outdir), mesh, desc) != key);
     // The normal loss's shape and smoothing.
     Run cosine = make_run(o, run.outdir);
     cosine.preset.train.normal_loss = lsnif::trainer::NormalLoss::cosine;
@@ -443,4 +449,114 @@ TEST_CASE("shard_owners deals the costliest candidates first to the least loaded
     for (std::size_t i = planned.size(); i-- > 0;) reversed.push_back(std::move(planned[i]));
     const std::vector<std::uint32_t> again = shard_owners(run, reversed);
     for (std::size_t i = 0; i < owner.size(); ++i) CHECK(again[owner.size() - 1 - i] == owner[i]);
+}
+
+namespace {
+
+// The reader's fp32 answers for the samples' rays.
+std::vector<format::Hit> answers(const format::ModelData& model, std::span<const samples::Sample> samples) {
+    const format::Runtime rt = format::make_runtime(model, format::MlpArithmetic::fp32);
+    std::vector<format::Ray> rays;
+    for (const samples::Sample& s : samples) rays.push_back(s.ray);
+    std::vector<format::Hit> hits(rays.size());
+    format::intersect(rt, rays, hits);
+    return hits;
+}
+
+std::size_t same_answers(const std::vector<format::Hit>& a, const std::vector<format::Hit>& b) {
+    std::size_t n = 0;
+    for (std::size_t i = 0; i < a.size(); ++i)
+        n += a[i].hit == b[i].hit && a[i].t == b[i].t && a[i].normal[0] == b[i].normal[0] &&
+             a[i].normal[1] == b[i].normal[1] && a[i].normal[2] == b[i].normal[2];
+    return n;
+}
+
+// Makes hidden neuron j of layer k output zero for every input: zero weights, bias -1.
+void silence(format::ModelData& m, std::uint32_t k, std::uint32_t j) {
+    const std::uint32_t in = m.desc.layer_shape(k).second;
+    std::fill_n(m.weights[k].begin() + std::size_t(j) * in, in, format::float_to_half(0.0f));
+    m.biases[k][j] = format::float_to_half(-1.0f);
+}
+
+}  // namespace
+
+TEST_CASE(
+    "pruning removes exactly the neurons no validation ray activates, and the network answers those rays "
+    "as before") {
+    const scene::Mesh mesh = dragon();
+    ConvertOptions o = options("smoke");
+    o.keep_inactive = true;  // train_rung ships the whole network; the stages run by hand below
+    const Run run = make_run(o, fresh_dir("stages_prune"));
+    MeshRecord rec;
+    Prepared p = prepare(run, mesh, rec);
+    const Trained t =
+        train_rung(run, mesh, p.c, p.c.desc, p.occ, p.rays, run.preset.train.steps, json::array(), rec);
+    CHECK(t.pruned.empty());
+    REQUIRE(t.model.desc.hidden_width == run.preset.model.hidden_width);
+    const std::size_t layers = t.model.desc.hidden_width.size();
+    REQUIRE(layers == 2);
+
+    format::ModelData model = t.model;
+    silence(model, 0, 3);
+    silence(model, 1, 0);
+    silence(model, 1, 17);
+    const auto active = active_neurons(model, p.rays.validation, 2);
+    CHECK(active_neurons(model, p.rays.validation, 1) == active);  // whatever the threads
+    REQUIRE(active.size() == layers);
+    std::vector<std::uint32_t> inactive(layers, 0);
+    for (std::size_t k = 0; k < layers; ++k) {
+        REQUIRE(active[k].size() == model.desc.hidden_width[k]);
+        for (const std::uint8_t a : active[k]) inactive[k] += a ? 0 : 1;
+    }
+    CHECK(active[0][3] == 0);
+    CHECK(active[1][0] == 0);
+    CHECK(active[1][17] == 0);
+    MESSAGE("inactive neurons beside the silenced ones: " << inactive[0] - 1 << ", " << inactive[1] - 2);
+
+    format::ModelData pruned = model;
+    const std::vector<std::uint32_t> removed = remove_inactive_neurons(pruned, active);
+    CHECK(removed == inactive);
+    for (std::size_t k = 0; k < layers; ++k)
+        CHECK(pruned.desc.hidden_width[k] == model.desc.hidden_width[k] - inactive[k]);
+    CHECK_FALSE(format::validate_model(pruned));
+    REQUIRE(format::serialize(pruned).ok());
+    CHECK(pruned.desc.parameter_count() < model.desc.parameter_count());
+    // Every validation ray gets the same answer, bit for bit: the removed terms were zeros.
+    const auto before = answers(model, p.rays.validation), after = answers(pruned, p.rays.validation);
+    CHECK(same_answers(before, after) == before.size());
+
+    // Removing a neuron that some ray does activate changes answers: the comparison above
+    // can fail.
+    auto wrong = active;
+    std::size_t busiest = 0;
+    for (std::size_t j = 0; j < wrong[1].size(); ++j)
+        if (wrong[1][j]) busiest = j;
+    wrong[1][busiest] = 0;
+    format::ModelData damaged = model;
+    remove_inactive_neurons(damaged, wrong);
+    CHECK(same_answers(before, answers(damaged, p.rays.validation)) < before.size());
+
+    // A layer no ray activates keeps one neuron (a width is at least 1).
+    std::vector<std::vector<std::uint8_t>> none = active;
+    std::fill(none[1].begin(), none[1].end(), std::uint8_t(0));
+    format::ModelData narrow = model;
+    remove_inactive_neurons(narrow, none);
+    CHECK(narrow.desc.hidden_width[1] == 1);
+    CHECK_FALSE(format::validate_model(narrow));
+
+    // In the pipeline (the preset's default): train_rung ships the pruned network and says so.
+    const ConvertOptions prune_opt = options("smoke");
+    const Run pruning = make_run(prune_opt, run.outdir);
+    REQUIRE(pruning.preset.prune_inactive);
+    const Trained tp =
+        train_rung(pruning, mesh, p.c, p.c.desc, p.occ, p.rays, run.preset.train.steps, json::array(), rec);
+    REQUIRE(tp.pruned.size() == layers);
+    const auto natural = active_neurons(t.model, p.rays.validation, 2);
+    for (std::size_t k = 0; k < layers; ++k) {
+        const auto off = std::uint32_t(std::count(natural[k].begin(), natural[k].end(), std::uint8_t(0)));
+        CHECK(tp.pruned[k] == off);  // the same training (same seed, threads), pruned
+        CHECK(tp.model.desc.hidden_width[k] == run.preset.model.hidden_width[k] - tp.pruned[k]);
+    }
+    CHECK(same_answers(answers(t.model, p.rays.validation), answers(tp.model, p.rays.validation)) ==
+          p.rays.validation.size());
 }

@@ -143,11 +143,14 @@ TEST_CASE("the int8 product equals its definition bit for bit, skipped zero colu
     std::uniform_real_distribution<float> u(-1.f, 1.f);
     // The inference shapes (129 inputs: 108 point features, then 21 ray inputs, the last 18
     // the entry offsets; 128 hidden) and ragged ones: K not a multiple of 4, rows not a
-    // multiple of the row block, every column count the kernel splits differently, zero runs
+    // multiple of the row block, every column count the kernel splits differently (80 and 96
+    // in one block, as pruned layers have; 64-column blocks then 16, 32 or 48), zero runs
     // ending inside a quad.
-    for (const Case cs : {Case{256, 129, 128, 108, true, 111}, Case{256, 129, 128, 108, true},
-                          Case{37, 128, 128, 0, false}, Case{13, 71, 48, 51, true, 53},
-                          Case{7, 33, 16, 33, true}, Case{11, 64, 144, 0, false}, Case{6, 5, 80, 0, false}}) {
+    for (const Case cs :
+         {Case{256, 129, 128, 108, true, 111}, Case{256, 129, 128, 108, true}, Case{37, 128, 128, 0, false},
+          Case{13, 71, 48, 51, true, 53}, Case{7, 33, 16, 33, true}, Case{11, 64, 144, 0, false},
+          Case{6, 5, 80, 0, false}, Case{50, 128, 80, 0, false}, Case{29, 128, 96, 0, false},
+          Case{19, 128, 160, 0, false}, Case{23, 40, 176, 0, false}}) {
         CAPTURE(cs.m);
         CAPTURE(cs.in);
         CAPTURE(cs.rest_start);

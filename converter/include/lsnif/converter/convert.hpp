@@ -137,6 +137,10 @@ struct Preset {
     // The curve is recorded in the manifest; the held-out set stays untouched until the gate.
     std::uint64_t validation_rays = 1u << 13;
     std::uint32_t validation_checks = 10;
+    // Inactive neurons (docs/model.md "Inactive neurons"): after training, every hidden
+    // neuron whose ReLU output is zero on all `validation_rays` is removed with its weights,
+    // so the shipped network is only as wide as the object uses (smaller and faster to run).
+    bool prune_inactive = true;
     ClassifyRule classify;
     Gate gate;
     EarlyAbort early_abort;
@@ -198,6 +202,9 @@ struct ConvertOptions {
     // gate is out of reach (EarlyAbort off), to measure how far hard geometry gets. The gate
     // still decides what ships.
     bool no_give_up = false;
+    // --keep-inactive: ship the trained network whole (Preset::prune_inactive off), to
+    // measure what pruning changes.
+    bool keep_inactive = false;
     Target target;  // --target: judged and reported per shipped asset
     // --memory-budget: the scene's memory in bytes (every mesh once: BVHs of the meshes that
     // stay BVH plus LSNIF assets) that conversion aims at; candidates are converted in order
