@@ -491,6 +491,10 @@ struct EvalCommand {
                         "Hybrid only: secondary rays leaving an LSNIF object start this many of its voxels "
                         "from the surface (0 = off; docs/model.md)")
             ->check(CLI::Range(0.0f, 4.0f));
+        sub->add_option("--timing-repeats", opt.timing_repeats,
+                        "Trace each row's secondary rays this many times per tracer, alternating, and keep "
+                        "each tracer's fastest for the time ratio (default 3; docs/eval.md \"Timing\")")
+            ->check(CLI::Range(1u, 100u));
         sub->add_option("--ao-samples", opt.ao_samples, "Ambient-occlusion rays per pixel")
             ->check(CLI::Range(1u, 1024u));
         sub->add_option("--threads", opt.threads, "Worker threads (0 = all cores)");
@@ -575,6 +579,11 @@ int main(int argc, char** argv) {
     CLI::App app{"lsnif: convert scenes into LSNIF neural intersection assets and check them"};
     // The build identity keys the cache (docs/pipeline.md "Cache keys"): CI keys its cache
     // action on this output (examples/ci/lsnif-ci cache-key).
+    // Usage errors CLI11 finds (a value out of range, an unknown option) read like ours:
+    // "error: ..." on one line, then where to look.
+    app.failure_message([](const CLI::App*, const CLI::Error& e) {
+        return "error: " + std::string(e.what()) + "\nRun with --help for more information.\n";
+    });
     app.set_version_flag("--version", [] {
         return "lsnif " + std::string(LSNIF_VERSION_STRING) + "\nbuild identity " +
                lsnif::converter::build_identity();

@@ -58,7 +58,8 @@ std::vector<std::uint16_t> keep_rows(const std::vector<std::uint16_t>& w, std::s
                                      const std::vector<std::uint32_t>& keep) {
     std::vector<std::uint16_t> out;
     out.reserve(keep.size() * cols);
-    for (const std::uint32_t r : keep) out.insert(out.end(), w.begin() + r * cols, w.begin() + (r + 1) * cols);
+    for (const std::uint32_t r : keep)
+        out.insert(out.end(), w.begin() + r * cols, w.begin() + (r + 1) * cols);
     return out;
 }
 std::vector<std::uint16_t> keep_columns(const std::vector<std::uint16_t>& w, std::size_t cols,

@@ -29,14 +29,20 @@ for kind in reference hybrid flip; do
   done
 done
 [[ -s $work/img/report.json ]] || bad "no report.json"
-"$lsnif" eval "$out" --width 32 --height 24 --ao-samples 1 --images "$work/img2" --json >"$work/eval.json" || bad "eval --json exited $?"
+"$lsnif" eval "$out" --width 32 --height 24 --ao-samples 1 --timing-repeats 2 --images "$work/img2" --json >"$work/eval.json" || bad "eval --json exited $?"
 python3 - "$work/eval.json" <<'PY' || bad "eval JSON"
 import json, sys
 r = json.load(open(sys.argv[1]))
 assert r["lsnif_instances"] == 1, r
+assert r["timing_repeats"] == 2, r
 for e in ("shadow", "ao", "reflection"):
     assert 0.0 <= r["images"][e]["flip_mean"] <= 1.0
 PY
+# No timing at all is a usage error (exit 2), nothing rendered.
+"$lsnif" eval "$out" --timing-repeats 0 --images "$work/img4" 2>"$work/err"; rc=$?
+[[ $rc == 2 ]] || bad "--timing-repeats 0 exit $rc"
+grep -q "^error: --timing-repeats" "$work/err" || bad "--timing-repeats 0 message: $(cat "$work/err")"
+[[ ! -e $work/img4 ]] || bad "--timing-repeats 0 still rendered"
 # Bad camera string: usage error (exit 2), one error line, nothing rendered.
 "$lsnif" eval "$out" --camera 1,2,x --images "$work/img3" 2>"$work/err"; rc=$?
 [[ $rc == 2 ]] || bad "bad --camera exit $rc"

@@ -221,6 +221,22 @@ TEST_CASE("eval renders, compares with FLIP, and camera and light change without
         CHECK(file_bytes(l_dir / "hybrid_ao.png") != file_bytes(a_dir / "hybrid_ao.png"));
     }
 
+    // One trace per row instead of the fastest of three: the same pictures byte for byte (the
+    // repeats only time), and the report says how the time was taken.
+    {
+        EvalOptions once = o;
+        once.timing_repeats = 1;
+        once.images_dir = (fs::path(LSNIF_TEST_WORK_DIR) / "eval_images_once").string();
+        fs::remove_all(once.images_dir);
+        const EvalResult r1 = render_and_compare(once);
+        REQUIRE_MESSAGE(r1.ok(), (r1.errors.empty() ? "" : r1.errors[0]));
+        CHECK(r1.report["timing_repeats"] == 1);
+        CHECK(ra["timing_repeats"] == 3);
+        CHECK(r1.report["timings"]["secondary_hybrid"].get<double>() > 0.0);
+        for (const char* f : {"hybrid_combined.png", "hybrid_ao.png", "reference_reflection.png"})
+            CHECK(file_bytes(fs::path(once.images_dir) / f) == file_bytes(fs::path(o.images_dir) / f));
+    }
+
     // A moved camera and light, same assets: different pictures, assets untouched.
     const auto c = ra["camera"];
     EvalCamera cam;

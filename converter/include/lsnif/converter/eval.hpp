@@ -54,6 +54,11 @@ struct EvalOptions {
     // runtime treatment docs/model.md "Rays leaving the surface, by side" measures; the
     // reference keeps tmin = 0, so the images show what it costs and what it fixes. 0 = off.
     float surface_tmin_voxels = 0.0f;
+    // Times each row's secondary rays this many times per tracer (the two alternating) and
+    // keeps each tracer's fastest: the time ratio then leaves out the stalls a shared host
+    // puts into one run (docs/eval.md "Timing"). Both tracers are deterministic, so every
+    // repeat gives the same images. >= 1.
+    std::uint32_t timing_repeats = 3;
 };
 
 struct EvalResult {
