@@ -8,10 +8,8 @@
 #include <algorithm>
 #include <cstring>
 
-#if defined(__x86_64__) && defined(__GNUC__)
-#define LSNIF_HAVE_X86 1
-#include <immintrin.h>
-
+#include "x86.hpp"
+#if LSNIF_HAVE_X86
 #include "avx512_transpose.hpp"
 #endif
 
@@ -214,7 +212,8 @@ void pack_vnni(const float* src, std::size_t k, std::size_t n, std::size_t lds, 
 }
 
 void gemm_bf16_dp(std::size_t m, std::size_t n, std::size_t k, const Bf16* a, std::size_t lda, const Bf16* b,
-                  std::size_t ldb, float* c, std::size_t ldc, const Epilogue& e, const ZeroColumns* zeros) {
+                  std::size_t ldb, float* c, std::size_t ldc, const Epilogue& e,
+                  [[maybe_unused]] const ZeroColumns* zeros) {
 #if LSNIF_HAVE_X86
     if (m && n && cpu_features().avx512_bf16) return gemm_dp(m, n, k, a, lda, b, ldb, c, ldc, e, zeros);
 #endif

@@ -2,10 +2,7 @@
 // and leaf 7 sub-leaves 0 and 1; XCR0 state components: vol. 1 §13.1.
 #include <lsnif/format/cpu.hpp>
 
-#if defined(__x86_64__) || defined(__i386__)
-#define LSNIF_HAVE_X86 1
-#include <cpuid.h>
-#endif
+#include "x86.hpp"
 
 namespace lsnif::format {
 

@@ -12,10 +12,8 @@
 #include <cstring>
 #include <limits>
 
-#if defined(__x86_64__) && defined(__GNUC__)
-#define LSNIF_HAVE_X86 1
-#include <immintrin.h>
-
+#include "x86.hpp"
+#if LSNIF_HAVE_X86
 #include "avx512_transpose.hpp"
 // GCC 12's AVX-512 intrinsics start from _mm*_undefined_*(), which -Wmaybe-uninitialized
 // reports as a use of an uninitialized value (a false positive).
@@ -596,10 +594,14 @@ void add_layer(Network& net, std::uint32_t in, std::uint32_t out, const float* w
         }                                                                                               \
     }
 
+LSNIF_DENSE_KERNEL(dense_generic, , 4)
+#if LSNIF_HAVE_X86
 LSNIF_DENSE_KERNEL(dense_avx512, __attribute__((target("avx512f,avx512vl,avx2,fma"))), 16)
 LSNIF_DENSE_KERNEL(dense_avx2, __attribute__((target("avx2,fma"))), 8)
-LSNIF_DENSE_KERNEL(dense_generic, , 4)
+#endif
 #undef LSNIF_DENSE_KERNEL
+
+#if LSNIF_HAVE_X86
 
 // Narrow layers (outputs padded to 16, 32 or 48, e.g. the output layer), where the kernel
 // above would fall back to its generic loop: one weight vector per input feeds 8 rows, the
@@ -679,12 +681,16 @@ __attribute__((target("avx512f,avx512vl,avx2,fma"))) void dense_output_avx512(co
     if (r0 < n) dense_narrow_avx512(A + r0 * lda, n - r0, in, lda, wt, bias, kOutp, false, C + r0 * kOutp);
 }
 
+#endif  // LSNIF_HAVE_X86
+
 using DenseFn = void (*)(const float*, std::size_t, std::size_t, std::size_t, const float*, const float*,
                          std::size_t, bool, float*);
 
 DenseFn pick_dense() {
+#if LSNIF_HAVE_X86
     if (cpu_features().avx512) return dense_avx512;
     if (cpu_features().avx2_fma) return dense_avx2;
+#endif
     return dense_generic;
 }
 
@@ -693,13 +699,16 @@ DenseFn pick_dense() {
 void dense_layer(const float* A, std::size_t n, std::size_t in, std::size_t lda, const float* wt,
                  const float* bias, std::size_t out_padded, bool relu, float* C) {
     static const DenseFn fn = pick_dense();
+#if LSNIF_HAVE_X86
     if (out_padded < 64 && fn == dense_avx512)
         return dense_narrow_avx512(A, n, in, lda, wt, bias, out_padded, relu, C);
+#endif
     fn(A, n, in, lda, wt, bias, out_padded, relu, C);
 }
 
 void dense_output_layer(const float* A, std::size_t n, std::size_t in, std::size_t lda, const float* wt,
                         const float* bias, std::size_t out_padded, std::size_t outs, float* C) {
+#if LSNIF_HAVE_X86
     if (out_padded == 16 && cpu_features().avx512) switch (outs) {
             case 1: return dense_output_avx512<1>(A, n, in, lda, wt, bias, C);  // the visibility logit alone
             case 5: return dense_output_avx512<5>(A, n, in, lda, wt, bias, C);  // no materials
@@ -707,6 +716,9 @@ void dense_output_layer(const float* A, std::size_t n, std::size_t in, std::size
             case 7: return dense_output_avx512<7>(A, n, in, lda, wt, bias, C);
             case 8: return dense_output_avx512<8>(A, n, in, lda, wt, bias, C);
         }
+#else
+    (void)outs;  // the portable path computes every column
+#endif
     dense_layer(A, n, in, lda, wt, bias, out_padded, false, C);
 }
 

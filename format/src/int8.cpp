@@ -9,10 +9,7 @@
 #include <cmath>
 #include <cstring>
 
-#if defined(__x86_64__) && defined(__GNUC__)
-#define LSNIF_HAVE_X86 1
-#include <immintrin.h>
-#endif
+#include "x86.hpp"
 
 namespace lsnif::format {
 
@@ -381,7 +378,7 @@ Int8Operands operands(const Int8Rows& a, const Int8Layer& layer, const float* bi
 #endif
 
 void gemm_int8(std::size_t m, const Int8Rows& a, const Int8Layer& layer, const float* bias, bool relu,
-               float* c, std::size_t ldc, const ZeroColumns* zeros) {
+               float* c, std::size_t ldc, [[maybe_unused]] const ZeroColumns* zeros) {
 #if LSNIF_HAVE_X86
     if (m && cpu_features().avx512_vnni) {
         const Int8Operands o = operands(a, layer, bias, relu, c, ldc, nullptr);

@@ -12,9 +12,8 @@
 #include <cstddef>
 #include <limits>
 
-#if defined(__x86_64__) && defined(__GNUC__)
-#define LSNIF_HAVE_X86 1
-#include <immintrin.h>
+#include "x86.hpp"
+#if LSNIF_HAVE_X86
 // GCC 12's AVX-512 intrinsics start from _mm512_undefined_*(), which its
 // -W(maybe-)uninitialized reports as a use of an uninitialized value (a false positive).
 #pragma GCC diagnostic ignored "-Wmaybe-uninitialized"

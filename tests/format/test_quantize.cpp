@@ -332,7 +332,7 @@ TEST_CASE(
             if (h32[i].hit && h[i].hit)
                 ++both, max_dt = std::max(max_dt, double(std::fabs(h32[i].t - h[i].t)));
         }
-        MESSAGE(lsnif_arithmetic_string(in_use)
+        MESSAGE(std::string(lsnif_arithmetic_string(in_use))
                 << " vs fp32 on a shell model: " << agree << " of " << rays.size() << " hit decisions agree; "
                 << both << " common hits, max |dt| " << max_dt);
         CHECK(double(agree) >= 0.99 * double(rays.size()));
