@@ -163,6 +163,20 @@ TEST_CASE("hybrid tracing applies the instance transform at run time, like Embre
     CHECK(std::count(occ_hyb.begin(), occ_hyb.end(), 1) == 0);
 }
 
+namespace {
+
+// render_and_compare(o) into a fresh LSNIF_TEST_WORK_DIR/images (o.images_dir is set), which
+// must succeed.
+EvalResult render_into(EvalOptions& o, const std::string& images) {
+    o.images_dir = (fs::path(LSNIF_TEST_WORK_DIR) / images).string();
+    fs::remove_all(o.images_dir);
+    EvalResult r = render_and_compare(o);
+    REQUIRE_MESSAGE(r.ok(), (r.errors.empty() ? "" : r.errors[0]));
+    return r;
+}
+
+}  // namespace
+
 TEST_CASE("eval renders, compares with FLIP, and camera and light change without re-conversion") {
     const fs::path dir = converted_dragon();
     const json manifest = json::parse(file_bytes(dir / "manifest.json"));
@@ -175,10 +189,7 @@ TEST_CASE("eval renders, compares with FLIP, and camera and light change without
     o.height = 72;
     o.ao_samples = 4;
     o.threads = 2;
-    o.images_dir = (fs::path(LSNIF_TEST_WORK_DIR) / "eval_images_a").string();
-    fs::remove_all(o.images_dir);
-    const EvalResult a = render_and_compare(o);
-    REQUIRE_MESSAGE(a.ok(), (a.errors.empty() ? "" : a.errors[0]));
+    const EvalResult a = render_into(o, "eval_images_a");
     const json& ra = a.report;
     CHECK(ra["lsnif_instances"] == 1);
     // The dragon is the only mesh, so its pixels are the frame's covered ones.
@@ -210,10 +221,7 @@ TEST_CASE("eval renders, compares with FLIP, and camera and light change without
     {
         EvalOptions later = o;
         later.surface_tmin_voxels = 0.5f;
-        later.images_dir = (fs::path(LSNIF_TEST_WORK_DIR) / "eval_images_later").string();
-        fs::remove_all(later.images_dir);
-        const EvalResult l = render_and_compare(later);
-        REQUIRE_MESSAGE(l.ok(), (l.errors.empty() ? "" : l.errors[0]));
+        const EvalResult l = render_into(later, "eval_images_later");
         CHECK(l.report["surface_tmin_voxels"] == 0.5);
         CHECK(ra["surface_tmin_voxels"] == 0.0);
         const fs::path a_dir = o.images_dir, l_dir = later.images_dir;
@@ -226,10 +234,7 @@ TEST_CASE("eval renders, compares with FLIP, and camera and light change without
     {
         EvalOptions once = o;
         once.timing_repeats = 1;
-        once.images_dir = (fs::path(LSNIF_TEST_WORK_DIR) / "eval_images_once").string();
-        fs::remove_all(once.images_dir);
-        const EvalResult r1 = render_and_compare(once);
-        REQUIRE_MESSAGE(r1.ok(), (r1.errors.empty() ? "" : r1.errors[0]));
+        const EvalResult r1 = render_into(once, "eval_images_once");
         CHECK(r1.report["timing_repeats"] == 1);
         CHECK(ra["timing_repeats"] == 3);
         CHECK(r1.report["timings"]["secondary_hybrid"].get<double>() > 0.0);
@@ -247,10 +252,7 @@ TEST_CASE("eval renders, compares with FLIP, and camera and light change without
     o.camera = cam;
     o.light = {c["target"][0].get<float>(), c["target"][1].get<float>() - 500.0f,
                c["target"][2].get<float>()};
-    o.images_dir = (fs::path(LSNIF_TEST_WORK_DIR) / "eval_images_b").string();
-    fs::remove_all(o.images_dir);
-    const EvalResult b = render_and_compare(o);
-    REQUIRE_MESSAGE(b.ok(), (b.errors.empty() ? "" : b.errors[0]));
+    const EvalResult b = render_into(o, "eval_images_b");
     CHECK(b.report["camera"]["eye"] != ra["camera"]["eye"]);
     CHECK(b.report["light"] != ra["light"]);
     CHECK(file_bytes(fs::path(o.images_dir) / "reference_shadow.png") !=
