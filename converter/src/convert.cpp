@@ -358,8 +358,9 @@ static std::string recipe_key(const Preset& p, std::uint32_t threads) {
 }
 
 // The rules that decide which weights ship: the target with its stop margins, the abort
-// rule, the validation checks, the sizing ladder and pruning. Part of the asset key, since they decide
-// how many steps the weights saw and which size and encoding was kept.
+// rule, the validation checks, the sizing ladder and pruning. Part of the asset key, since
+// they decide how many steps the weights saw, which size and encoding was kept and which of
+// its neurons.
 static std::string stop_key(const Target& t, const Preset& p) {
     const TargetStop& s = p.target_stop;
     const EarlyAbort& a = p.early_abort;

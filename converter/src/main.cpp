@@ -577,13 +577,13 @@ struct BenchCommand {
 
 int main(int argc, char** argv) {
     CLI::App app{"lsnif: convert scenes into LSNIF neural intersection assets and check them"};
-    // The build identity keys the cache (docs/pipeline.md "Cache keys"): CI keys its cache
-    // action on this output (examples/ci/lsnif-ci cache-key).
     // Usage errors CLI11 finds (a value out of range, an unknown option) read like ours:
     // "error: ..." on one line, then where to look.
     app.failure_message([](const CLI::App*, const CLI::Error& e) {
         return "error: " + std::string(e.what()) + "\nRun with --help for more information.\n";
     });
+    // The build identity keys the cache (docs/pipeline.md "Cache keys"): CI keys its cache
+    // action on this output (examples/ci/lsnif-ci cache-key).
     app.set_version_flag("--version", [] {
         return "lsnif " + std::string(LSNIF_VERSION_STRING) + "\nbuild identity " +
                lsnif::converter::build_identity();
