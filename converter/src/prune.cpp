@@ -108,10 +108,10 @@ std::vector<std::uint32_t> remove_inactive_neurons(format::ModelData& model,
         if (keep.empty()) keep.push_back(0);  // a layer keeps one neuron (FORMAT.md: width >= 1)
         if (keep.size() == width) continue;
         const std::uint32_t in = model.desc.layer_shape(std::uint32_t(k)).second;
-        const std::uint32_t next_in = width;
         model.weights[k] = keep_rows(model.weights[k], in, keep);
         model.biases[k] = keep_rows(model.biases[k], 1, keep);
-        model.weights[k + 1] = keep_columns(model.weights[k + 1], next_in, keep);
+        // Layer k + 1 still reads `width` inputs until its columns are dropped.
+        model.weights[k + 1] = keep_columns(model.weights[k + 1], width, keep);
         model.desc.hidden_width[k] = std::uint32_t(keep.size());
         removed[k] = width - std::uint32_t(keep.size());
     }

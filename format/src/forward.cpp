@@ -707,7 +707,8 @@ void dense_layer(const float* A, std::size_t n, std::size_t in, std::size_t lda,
 }
 
 void dense_output_layer(const float* A, std::size_t n, std::size_t in, std::size_t lda, const float* wt,
-                        const float* bias, std::size_t out_padded, std::size_t outs, float* C) {
+                        const float* bias, std::size_t out_padded, [[maybe_unused]] std::size_t outs,
+                        float* C) {
 #if LSNIF_HAVE_X86
     if (out_padded == 16 && cpu_features().avx512) switch (outs) {
             case 1: return dense_output_avx512<1>(A, n, in, lda, wt, bias, C);  // the visibility logit alone
@@ -716,8 +717,6 @@ void dense_output_layer(const float* A, std::size_t n, std::size_t in, std::size
             case 7: return dense_output_avx512<7>(A, n, in, lda, wt, bias, C);
             case 8: return dense_output_avx512<8>(A, n, in, lda, wt, bias, C);
         }
-#else
-    (void)outs;  // the portable path computes every column
 #endif
     dense_layer(A, n, in, lda, wt, bias, out_padded, false, C);
 }

@@ -528,10 +528,10 @@ TEST_CASE(
     // Removing a neuron that some ray does activate changes answers: the comparison above
     // can fail.
     auto wrong = active;
-    std::size_t busiest = 0;
+    std::size_t last_active = 0;
     for (std::size_t j = 0; j < wrong[1].size(); ++j)
-        if (wrong[1][j]) busiest = j;
-    wrong[1][busiest] = 0;
+        if (wrong[1][j]) last_active = j;
+    wrong[1][last_active] = 0;
     format::ModelData damaged = model;
     remove_inactive_neurons(damaged, wrong);
     CHECK(same_answers(before, answers(damaged, p.rays.validation)) < before.size());
