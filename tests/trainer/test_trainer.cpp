@@ -227,32 +227,39 @@ TEST_CASE("the chord normal loss is sqrt(2 (1 - cos) + eps^2) - eps of the cosin
 TEST_CASE("grid gradients are the same bit for bit for any thread count, and cleared after use") {
     // Every hash row has one owning thread that sums the samples in batch order, so the grid
     // gradient does not depend on how the batch or the rows are split. small_desc's levels
-    // have 729 and 1,024 rows: with 3 threads the middle share straddles both.
-    const format::ModelDesc d = small_desc();
-    SpheresSource src = two_spheres(d);
-    std::vector<Sample> raw;
-    src.generate(5, 900, raw);
-    std::vector<std::vector<float>> want;
-    for (const std::uint32_t threads : {1u, 2u, 3u, 5u}) {
-        CAPTURE(threads);
-        TrainConfig cfg;
-        cfg.threads = threads;
-        cfg.seed = 4;
-        cfg.mlp_precision = MlpPrecision::fp32;
-        Trainer tr(d, src.occupancy(d), cfg);
-        for (auto& level : tr.grid())
-            for (std::size_t i = 0; i < level.size(); ++i) level[i] = 0.3f * float(std::cos(double(i) * 0.7));
-        const auto batch = tr.reachable(raw);
-        Gradients first, second;
-        tr.loss_and_gradients(batch, &first);
-        tr.loss_and_gradients(batch, &second);  // nothing left over from the first call
-        CHECK(first.grid == second.grid);
-        std::size_t nonzero = 0;
-        for (const auto& level : first.grid)
-            for (const float x : level) nonzero += x != 0.0f;
-        CHECK(nonzero > 500);
-        if (want.empty()) want = first.grid;
-        CHECK(first.grid == want);
+    // have 729 and 1,024 rows: with 2 threads each owns one level, with 3 and 5 every level's
+    // rows are split. With three levels (a coarse dense one below the voxel grid, whose
+    // points have 8 corners), 2 threads own whole levels dealt by estimated cost.
+    format::ModelDesc three = small_desc();
+    three.level_resolution = {4, 8, 16};
+    for (const format::ModelDesc& d : {small_desc(), three}) {
+        CAPTURE(d.level_count());
+        SpheresSource src = two_spheres(d);
+        std::vector<Sample> raw;
+        src.generate(5, 900, raw);
+        std::vector<std::vector<float>> want;
+        for (const std::uint32_t threads : {1u, 2u, 3u, 5u}) {
+            CAPTURE(threads);
+            TrainConfig cfg;
+            cfg.threads = threads;
+            cfg.seed = 4;
+            cfg.mlp_precision = MlpPrecision::fp32;
+            Trainer tr(d, src.occupancy(d), cfg);
+            for (auto& level : tr.grid())
+                for (std::size_t i = 0; i < level.size(); ++i)
+                    level[i] = 0.3f * float(std::cos(double(i) * 0.7));
+            const auto batch = tr.reachable(raw);
+            Gradients first, second;
+            tr.loss_and_gradients(batch, &first);
+            tr.loss_and_gradients(batch, &second);  // nothing left over from the first call
+            CHECK(first.grid == second.grid);
+            std::size_t nonzero = 0;
+            for (const auto& level : first.grid)
+                for (const float x : level) nonzero += x != 0.0f;
+            CHECK(nonzero > 500);
+            if (want.empty()) want = first.grid;
+            CHECK(first.grid == want);
+        }
     }
 }
 

@@ -146,23 +146,46 @@ struct alignas(128) Work {
     LossParts loss;
 };
 
+// Relative cost of one level's pass in scatter_grid_gradients: every sample's corners are
+// computed and the live ones added. Faces of an aligned level lie on lattice planes (4
+// corners for most points, 8 otherwise), and a table larger than a core's L2 (1 MiB on the
+// machines we measure) makes the additions miss cache. Calibrated on the dragon and the
+// armadillo (docs/model.md "Coarse levels": per-level pass times of one run).
+double scatter_cost(const format::ModelDesc& desc, std::uint32_t level) {
+    const bool aligned = desc.level_resolution[level] % desc.grid_resolution == 0;
+    const std::uint64_t table_bytes = desc.level_entries(level) * desc.features_per_level * sizeof(float);
+    return (aligned ? 2.0 : 3.0) + (table_bytes > (std::uint64_t{1} << 20) ? 1.0 : 0.0);
+}
+
 // The share of grid rows each of T threads owns (Impl::owned): [first, last) per level.
+// A thread that owns rows of a level passes over every sample's corners on that level, so
+// with at least as many levels as threads each thread owns whole levels, dealt costliest
+// first to the thread with the least estimated work (scatter_cost); otherwise every
+// level's rows are split evenly. Which thread adds a row's gradients does not change them
+// (each row adds its samples in batch order), so the assignment never changes the weights.
 std::vector<std::vector<std::pair<std::size_t, std::size_t>>> owned_rows(const format::ModelDesc& desc,
                                                                          std::uint32_t T) {
-    std::size_t total = 0;
-    for (std::uint32_t l = 0; l < desc.level_count(); ++l) total += desc.level_entries(l);
-    const std::size_t per = (total + T - 1) / T;
-    std::vector<std::vector<std::pair<std::size_t, std::size_t>>> owned(T);
-    for (std::uint32_t t = 0; t < T; ++t) {
-        const std::size_t b = std::min(total, t * per), e = std::min(total, b + per);
-        std::size_t offset = 0;
-        for (std::uint32_t l = 0; l < desc.level_count(); ++l) {
-            const std::size_t n = desc.level_entries(l);
-            const std::size_t first = std::clamp(b, offset, offset + n) - offset;
-            const std::size_t last = std::clamp(e, offset, offset + n) - offset;
-            owned[t].emplace_back(first, std::max(first, last));
-            offset += n;
+    const std::uint32_t L = desc.level_count();
+    std::vector<std::vector<std::pair<std::size_t, std::size_t>>> owned(
+        T, std::vector<std::pair<std::size_t, std::size_t>>(L, {0, 0}));
+    if (L >= T) {
+        std::vector<std::uint32_t> order(L);
+        for (std::uint32_t l = 0; l < L; ++l) order[l] = l;
+        std::stable_sort(order.begin(), order.end(), [&](std::uint32_t a, std::uint32_t b) {
+            return scatter_cost(desc, a) > scatter_cost(desc, b);
+        });
+        std::vector<double> load(T, 0.0);
+        for (const std::uint32_t l : order) {
+            const auto t = std::uint32_t(std::min_element(load.begin(), load.end()) - load.begin());
+            owned[t][l] = {0, desc.level_entries(l)};
+            load[t] += scatter_cost(desc, l);
         }
+        return owned;
+    }
+    for (std::uint32_t l = 0; l < L; ++l) {
+        const std::size_t n = desc.level_entries(l), per = (n + T - 1) / T;
+        for (std::uint32_t t = 0; t < T; ++t)
+            owned[t][l] = {std::min(n, t * per), std::min(n, (t + 1) * per)};
     }
     return owned;
 }
@@ -334,13 +357,23 @@ std::vector<Sample> Trainer::reachable(std::span<const Sample> samples) const {
 
 namespace {
 
-// Forward of one sub-chunk: trace + encode into w.x, layers into w.act. Rows whose ray
-// does not reach the network get count = 0 (all-zero input).
-// Encoding and layers for rows whose w.pts are filled.
+// Encodes rows 0..n-1 of the sub-chunk (w.pts) into w.x with the reader's batch encoder:
+// encode_points' values bit for bit (forward.hpp), 16 points per vector where the CPU has
+// AVX-512, so a coarse level's 8-corner points cost a vector step rather than a scalar loop.
+void encode_rows(const Geometry& geo, const std::vector<format::GridView>& grid, std::size_t n, Work& w) {
+    static const std::vector<std::uint32_t> identity = [] {
+        std::vector<std::uint32_t> v(kSub);
+        for (std::uint32_t i = 0; i < kSub; ++i) v[i] = i;
+        return v;
+    }();
+    format::encode_batch(geo, grid.data(), w.pts.data(), std::span(identity).first(n), w.x.data());
+}
+
+// Encoding and layers for rows whose w.pts are filled. Rows whose ray does not reach the
+// network have count = 0 (all-zero point features).
 void forward_layers(const Geometry& geo, const std::vector<format::GridView>& grid,
                     const format::Network& net, std::size_t n, Work& w) {
-    for (std::size_t r = 0; r < n; ++r)
-        format::encode_points(geo, grid.data(), w.pts[r], w.x.data() + r * geo.input_width);
+    encode_rows(geo, grid, n, w);
     const float* src = w.x.data();
     std::size_t lda = geo.input_width;
     for (std::size_t k = 0; k < net.wt.size(); ++k) {
@@ -364,8 +397,7 @@ void forward_layers(const Geometry& geo, const std::vector<format::GridView>& gr
 void forward_layers_bf16(const Geometry& geo, const std::vector<format::GridView>& grid,
                          const format::Network& net, const std::vector<detail::Bf16Buffer>& wf, std::size_t n,
                          Work& w) {
-    for (std::size_t r = 0; r < n; ++r)
-        format::encode_points(geo, grid.data(), w.pts[r], w.x.data() + r * geo.input_width);
+    encode_rows(geo, grid, n, w);
     const float* src = w.x.data();
     std::size_t lda = geo.input_width;
     for (std::size_t k = 0; k < net.wt.size(); ++k) {
@@ -388,6 +420,8 @@ void forward_layers_bf16(const Geometry& geo, const std::vector<format::GridView
     }
 }
 
+// Forward of one sub-chunk of raw samples: trace, then forward_layers. Rays that do not
+// reach the network get count = 0.
 void forward_chunk(const Geometry& geo, const std::uint8_t* occ, const std::vector<format::GridView>& grid,
                    const format::Network& net, std::span<const Sample> rows, Work& w) {
     for (std::size_t r = 0; r < rows.size(); ++r)
