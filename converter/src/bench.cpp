@@ -54,7 +54,8 @@ analytic::SpheresSource bench_scene(const format::ModelDesc& d) {
 }
 
 format::ModelDesc v1_desc() {
-    format::ModelDesc d;  // docs/architecture.md §3 defaults: V=32, H=18, 64/128, T=2^17, F=3, 2x128
+    format::ModelDesc d;  // the v1 model (docs/model.md "Coarse levels" for the presets): V=32, H=18, 64/128,
+                          // T=2^17, F=3, 2x128
     d.box_min = {-1.f, -1.f, -1.f};
     d.box_max = {1.f, 1.f, 1.f};
     return d;
@@ -188,7 +189,7 @@ json bench_train(const BenchOptions& o) {
         }
     }
     return {{"benchmark", "train"},
-            {"model", "V=32 H=18 levels 64,128 T=2^17 F=3 hidden 128x128 (v1 default)"},
+            {"model", "V=32 H=18 levels 64,128 T=2^17 F=3 hidden 128x128 (v1)"},
             {"cpu", cpu_model()},
             {"threads", o.threads},
             {"bf16_available", bf16_available},
@@ -285,7 +286,7 @@ json bench_infer(const BenchOptions& o) {
     // there).
     const format::Runtime rt32 = format::make_runtime(model, format::MlpArithmetic::fp32);
     json r = {{"benchmark", "infer"},
-              {"model", "V=32 H=18 levels 64,128 T=2^17 F=3 hidden 128x128 (v1 default)"},
+              {"model", "V=32 H=18 levels 64,128 T=2^17 F=3 hidden 128x128 (v1)"},
               {"cpu", cpu_model()},
               {"threads", o.threads},
               {"through_network", run(rt32, reach)},

@@ -1,8 +1,9 @@
 // Accuracy targets of `lsnif convert` (issues #4, #12) on real meshes with the *default*
 // preset and automatic classification (the asset that ships, sized to the target):
 // held-out rays that reach the network, the three ray families pooled in equal shares,
-// visibility accuracy >= 97 %, median distance error <= 1 % of the box diagonal, median
-// shading-normal error <= 15 degrees. Every family's figures are printed, as is the
+// meet the default target (visibility accuracy >= 97.8 %, median distance error <= 0.6 % of
+// the box diagonal, median shading-normal error <= 9 degrees), and the surface family's
+// visibility is at least 97 %. Every family's figures are printed, as is the
 // geometric-normal error.
 //
 // Beyond CGAL's scans, two models of sweethome3d-furniture's catalogues: a truck assembly,
@@ -101,10 +102,15 @@ void print_families(const nlohmann::json& mesh) {
 
 void check_targets(const nlohmann::json& mesh) {
     print_families(mesh);
+    // The default target (converter::Target), and the surface family — the shadow, AO and
+    // reflection rays a renderer shoots from the object itself — at 97 % on its own
+    // (issue #15 item 1; docs/model.md "Coarse levels").
+    const lsnif::converter::Target target;
     const auto& p = mesh["metrics"]["families"]["pooled"];
-    CHECK(p["visibility_accuracy"].get<double>() >= 0.97);
-    CHECK(p["distance_error_median_pct"].get<double>() <= 1.0);
-    CHECK(p["normal_error_median_deg"].get<double>() <= 15.0);
+    CHECK(p["visibility_accuracy"].get<double>() >= target.visibility);
+    CHECK(p["distance_error_median_pct"].get<double>() <= target.distance_pct);
+    CHECK(p["normal_error_median_deg"].get<double>() <= target.normal_deg);
+    CHECK(mesh["metrics"]["families"]["surface"]["visibility_accuracy"].get<double>() >= 0.97);
     // The geometric normal is reported, not gated: it is the faceted orientation the
     // network never trains on.
     CHECK(p["geometric_normal_error_median_deg"].get<double>() > 0.0);
@@ -323,7 +329,7 @@ TEST_CASE("default preset meets the accuracy targets on CGAL's armadillo") {
 }
 
 // A CAD-like assembly (BlendSwap's Peterbilt truck, CC0, 116,495 triangles in hundreds of
-// parts: thin panels, wheels, chrome trim) ships, but short of the 97 % target
+// parts: thin panels, wheels, chrome trim) ships, but short of the default target
 // (BENCHMARKS.md "More real meshes"): the gate's figures with a margin over them, and the
 // shipped asset's walk and bf16 inference checked like the CGAL meshes'.
 TEST_CASE("default preset ships a truck assembly past the gate with a margin") {

@@ -188,7 +188,7 @@ int main(int argc, char** argv) {
     extra.extra_sections.push_back({make_tag("XTRA"), false, {'o', 'p', 't', 'i', 'o', 'n', 'a', 'l'}});
     write(out / "valid" / "unknown_optional_section.lsnif", bytes_of(serialize(tiny, extra)));
 
-    ModelDesc v1;  // the v1 default dimensions of docs/architecture.md §3 (grid zero: keeps the file small)
+    ModelDesc v1;  // the v1 dimensions (ModelDesc defaults; grid zero: keeps the file small)
     v1.box_min = {-0.5f, 0.0f, -0.25f};
     v1.box_max = {0.5f, 1.25f, 0.25f};
     write(out / "valid" / "v1_default.lsnif", bytes_of(serialize(make_model(v1, "v1-default", 3, true))));
