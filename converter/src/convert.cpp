@@ -400,15 +400,13 @@ bool find_preset(const std::string& name, Preset& p) {
     // every seed (docs/model.md "Ray inputs").
     p.model.ray_inputs = format::kRayInputDirection | format::kRayInputEntryOffsets;
     // Levels 16, 32 and 128 instead of v1's 64 and 128: the two coarse levels are dense
-    // (17^3 and 33^3 rows), so the grid is a third smaller, and every held-out metric
-    // improves on CGAL's dragon and armadillo, three seeds each (docs/model.md "Coarse
-    // levels": visibility +0.3 to +0.5 points, normals 2-4 degrees).
+    // (17^3 and 33^3 rows), so the grid is smaller, and on CGAL's dragon and armadillo every
+    // held-out metric of three seeds beats v1's (docs/model.md "Coarse levels").
     p.model.level_resolution = {16, 32, 128};
-    // At most 14 entry points instead of 18: the third level made inference ~13 % slower
-    // (the coarse level's points have up to 8 live corners, the first layer 54 more
-    // inputs); 14 points give that back in `lsnif eval` with held-out metrics within a
-    // seed's noise (docs/model.md "Coarse levels"). Rays cross 7.4 occupied voxels on
-    // average on CGAL's dragon.
+    // At most 14 entry points instead of 18: the third level makes inference slower (a
+    // coarse level's points have up to 8 live corners, the first layer has more inputs);
+    // fewer slots give part of that back, with held-out metrics within a seed's noise
+    // (docs/model.md "Coarse levels").
     p.model.max_points = 14;
     if (name == "default") {
         // 1200 steps: a conversion in under 20 s on a 2-core machine (issue #14). With the
