@@ -151,10 +151,9 @@ struct alignas(128) Work {
 // corners for most points, 8 otherwise), and a table larger than a core's L2 (1 MiB on the
 // machines we measure) makes the additions miss cache. Calibrated on the dragon and the
 // armadillo (docs/model.md "Coarse levels": per-level pass times of one run).
-double scatter_cost(const format::ModelDesc& desc, std::uint32_t level) {
-    const bool aligned = desc.level_resolution[level] % desc.grid_resolution == 0;
+double scatter_cost(const format::ModelDesc& desc, const Geometry& geo, std::uint32_t level) {
     const std::uint64_t table_bytes = desc.level_entries(level) * desc.features_per_level * sizeof(float);
-    return (aligned ? 2.0 : 3.0) + (table_bytes > (std::uint64_t{1} << 20) ? 1.0 : 0.0);
+    return (geo.levels[level].aligned ? 2.0 : 3.0) + (table_bytes > (std::uint64_t{1} << 20) ? 1.0 : 0.0);
 }
 
 // The share of grid rows each of T threads owns (Impl::owned): [first, last) per level.
@@ -164,21 +163,25 @@ double scatter_cost(const format::ModelDesc& desc, std::uint32_t level) {
 // level's rows are split evenly. Which thread adds a row's gradients does not change them
 // (each row adds its samples in batch order), so the assignment never changes the weights.
 std::vector<std::vector<std::pair<std::size_t, std::size_t>>> owned_rows(const format::ModelDesc& desc,
+                                                                         const Geometry& geo,
                                                                          std::uint32_t T) {
     const std::uint32_t L = desc.level_count();
     std::vector<std::vector<std::pair<std::size_t, std::size_t>>> owned(
         T, std::vector<std::pair<std::size_t, std::size_t>>(L, {0, 0}));
     if (L >= T) {
+        std::vector<double> cost(L);
         std::vector<std::uint32_t> order(L);
-        for (std::uint32_t l = 0; l < L; ++l) order[l] = l;
-        std::stable_sort(order.begin(), order.end(), [&](std::uint32_t a, std::uint32_t b) {
-            return scatter_cost(desc, a) > scatter_cost(desc, b);
-        });
+        for (std::uint32_t l = 0; l < L; ++l) {
+            cost[l] = scatter_cost(desc, geo, l);
+            order[l] = l;
+        }
+        std::stable_sort(order.begin(), order.end(),
+                         [&](std::uint32_t a, std::uint32_t b) { return cost[a] > cost[b]; });
         std::vector<double> load(T, 0.0);
         for (const std::uint32_t l : order) {
             const auto t = std::uint32_t(std::min_element(load.begin(), load.end()) - load.begin());
             owned[t][l] = {0, desc.level_entries(l)};
-            load[t] += scatter_cost(desc, l);
+            load[t] += cost[l];
         }
         return owned;
     }
@@ -322,7 +325,7 @@ Trainer::Trainer(const format::ModelDesc& desc, std::vector<std::uint8_t> occupa
             w.g_vnni.resize(std::size_t(pad32(kSub)) * maxw);
         }
     }
-    im.owned = owned_rows(desc, threads_);
+    im.owned = owned_rows(desc, geo_, threads_);
 }
 
 Trainer::~Trainer() {
@@ -357,9 +360,10 @@ std::vector<Sample> Trainer::reachable(std::span<const Sample> samples) const {
 
 namespace {
 
-// Encodes rows 0..n-1 of the sub-chunk (w.pts) into w.x with the reader's batch encoder:
-// encode_points' values bit for bit (forward.hpp), 16 points per vector where the CPU has
-// AVX-512, so a coarse level's 8-corner points cost a vector step rather than a scalar loop.
+// Encodes rows 0..n-1 (n <= kSub) of the sub-chunk (w.pts) into w.x with the reader's
+// batch encoder, so training and reading share one encoder: encode_points' values bit for
+// bit (forward.hpp). Measured as fast as the per-ray loop it replaced (BENCHMARKS.md
+// "Coarse levels").
 void encode_rows(const Geometry& geo, const std::vector<format::GridView>& grid, std::size_t n, Work& w) {
     static const std::vector<std::uint32_t> identity = [] {
         std::vector<std::uint32_t> v(kSub);
