@@ -287,7 +287,7 @@ struct ConvertSettings {
         sub->add_option(
             "--target", target,
             "Accuracy asked of every asset: VIS,DIST,NORMAL (held-out visibility %, median distance "
-            "error % of the diagonal, median normal error in degrees; default 97.8,0.6,9)");
+            "error % of the diagonal, median normal error in degrees; default 98.5,0.6,8)");
         sub->add_option("--memory-budget", memory_budget,
                         "Scene memory to fit, in bytes (K, M, G: powers of 1024): candidates are converted "
                         "in order of BVH bytes saved per asset byte until the scene (BVHs + assets, each "

@@ -1,9 +1,9 @@
 // Accuracy targets of `lsnif convert` (issues #4, #12) on real meshes with the *default*
 // preset and automatic classification (the asset that ships, sized to the target):
 // held-out rays that reach the network, the three ray families pooled in equal shares,
-// meet the default target (visibility accuracy >= 97.8 %, median distance error <= 0.6 % of
-// the box diagonal, median shading-normal error <= 9 degrees), and the surface family's
-// visibility is at least 97 %. Every family's figures are printed, as is the
+// meet the default target, issue #15's (visibility accuracy >= 98.5 %, median distance error
+// <= 0.6 % of the box diagonal, median shading-normal error <= 8 degrees), and the surface
+// family's visibility is at least 97.5 %. Every family's figures are printed, as is the
 // geometric-normal error.
 //
 // Beyond CGAL's scans, two models of sweethome3d-furniture's catalogues: a truck assembly,
@@ -103,14 +103,14 @@ void print_families(const nlohmann::json& mesh) {
 void check_targets(const nlohmann::json& mesh) {
     print_families(mesh);
     // The default target (converter::Target), and the surface family — the shadow, AO and
-    // reflection rays a renderer shoots from the object itself — at 97 % on its own
-    // (issue #15 item 1; docs/model.md "Coarse levels").
+    // reflection rays a renderer shoots from the object itself — at 97.5 % on its own
+    // (issue #15 item 1; docs/model.md "A 64^3 grid").
     const lsnif::converter::Target target;
     const auto& p = mesh["metrics"]["families"]["pooled"];
     CHECK(p["visibility_accuracy"].get<double>() >= target.visibility);
     CHECK(p["distance_error_median_pct"].get<double>() <= target.distance_pct);
     CHECK(p["normal_error_median_deg"].get<double>() <= target.normal_deg);
-    CHECK(mesh["metrics"]["families"]["surface"]["visibility_accuracy"].get<double>() >= 0.97);
+    CHECK(mesh["metrics"]["families"]["surface"]["visibility_accuracy"].get<double>() >= 0.975);
     // The geometric normal is reported, not gated: it is the faceted orientation the
     // network never trains on.
     CHECK(p["geometric_normal_error_median_deg"].get<double>() > 0.0);
