@@ -220,11 +220,11 @@ TraceStatus trace_points(const Geometry& geo, const OccupancyGrid& occ, const Ra
 
 OccupancyGrid::OccupancyGrid(std::uint32_t V, std::vector<std::uint8_t> voxel_bits)
     : V(V), bits(std::move(voxel_bits)) {
-    // Per block size (kSubBlock, kBlock): 1 = the block has an occupied voxel.
-    const std::uint32_t size[2] = {kSubBlock, kBlock};
-    std::uint32_t nb[2];
-    std::vector<std::uint8_t> blocks[2];
-    for (int k = 0; k < 2; ++k) {
+    // Per block size (kSubBlock, kBlock, kSuperBlock): 1 = the block has an occupied voxel.
+    const std::uint32_t size[3] = {kSubBlock, kBlock, kSuperBlock};
+    std::uint32_t nb[3];
+    std::vector<std::uint8_t> blocks[3];
+    for (int k = 0; k < 3; ++k) {
         nb[k] = (V + size[k] - 1) / size[k];
         blocks[k].assign(std::size_t(nb[k]) * nb[k] * nb[k], 0);
     }
@@ -242,12 +242,14 @@ OccupancyGrid::OccupancyGrid(std::uint32_t V, std::vector<std::uint8_t> voxel_bi
     nibbles.assign((voxels + 7) / 8, 0);
     for_each_voxel([&](std::uint64_t i, std::uint32_t x, std::uint32_t y, std::uint32_t z) {
         if (!((bits[i >> 3] >> (i & 7)) & 1u)) return;
-        for (int k = 0; k < 2; ++k) blocks[k][block_of(k, x, y, z)] = 1;
+        for (int k = 0; k < 3; ++k) blocks[k][block_of(k, x, y, z)] = 1;
     });
     for_each_voxel([&](std::uint64_t i, std::uint32_t x, std::uint32_t y, std::uint32_t z) {
         const bool occupied = (bits[i >> 3] >> (i & 7)) & 1u;
-        const bool sub = blocks[0][block_of(0, x, y, z)] != 0, block = blocks[1][block_of(1, x, y, z)] != 0;
-        const std::uint32_t nibble = (occupied ? 1u : 0u) | (sub ? 2u : 0u) | (block ? 4u : 0u);
+        const bool sub = blocks[0][block_of(0, x, y, z)] != 0, block = blocks[1][block_of(1, x, y, z)] != 0,
+                   super = blocks[2][block_of(2, x, y, z)] != 0;
+        const std::uint32_t nibble =
+            (occupied ? 1u : 0u) | (sub ? 2u : 0u) | (block ? 4u : 0u) | (super ? 8u : 0u);
         nibbles[i >> 3] |= nibble << (4 * (i & 7));
     });
 }
@@ -545,9 +547,9 @@ LSNIF_AVX512 inline __m512i voxel_index(const Axis (&ax)[3], __m512i vV) {
 }
 
 // The scalar walk's empty-block branch for the lanes in `skip` (their cell's block is
-// empty; a block of 2^shift voxels a side, shift per lane: the empty kBlock^3 block, or
-// else the empty kSubBlock^3 block): leave the block at the first of its boundary planes
-// reached. Skipping any empty aligned box keeps every occupied voxel's entry, as for the
+// empty; a block of 2^shift voxels a side, shift per lane: the empty kSuperBlock^3 block,
+// or else the empty kBlock^3 block, or else the empty kSubBlock^3 block): leave the block at the first of its
+// boundary planes reached. Skipping any empty aligned box keeps every occupied voxel's entry, as for the
 // scalar walk's blocks. Returns the lanes whose walk is over (the block's exit lies beyond
 // t_far, or they left the grid).
 LSNIF_AVX512 inline __mmask16 skip_empty_block(Axis (&ax)[3], __mmask16 skip, __m512i shift, __m512 t_far,
@@ -563,21 +565,52 @@ LSNIF_AVX512 inline __mmask16 skip_empty_block(Axis (&ax)[3], __mmask16 skip, __
     }
     __mmask16 over = _mm512_mask_cmp_ps_mask(skip, block_exit, t_far, _CMP_GT_OQ);
     skip &= ~over;
-    // The scalar walk advances axis 0 fully, then 1, then 2; the axes do not depend on each
-    // other, so they advance here together (three independent chains). A lane that leaves
-    // the grid on one axis is over, whatever the other axes then did.
-    __mmask16 m[3];
+    // The scalar walk advances each axis one cell at a time while the cell's exit plane
+    // comes at or before block_exit: it ends in the first cell (along the step) whose exit
+    // is beyond block_exit, or leaves the grid. Exits grow monotonically along the step
+    // (plane_t is monotonic in k), so that cell can be found directly: a guess from the
+    // position at block_exit, corrected by the same comparison until it holds, then the
+    // cell's planes computed as stepping would have left them (enter = the previous cell's
+    // exit plane). The axes do not depend on each other; a lane that leaves the grid on one
+    // axis is over, whatever the other axes then did.
+    const __m512i zero = _mm512_setzero_si512(), one = _mm512_set1_epi32(1), minus1 = _mm512_set1_epi32(-1);
 #pragma GCC unroll 3
-    for (int a = 0; a < 3; ++a)
-        m[a] = _mm512_mask_cmp_ps_mask(skip & ax[a].moves, ax[a].exit, block_exit, _CMP_LE_OQ);
-    while (m[0] | m[1] | m[2]) {
-        __mmask16 left = 0;
-#pragma GCC unroll 3
-        for (int a = 0; a < 3; ++a) left |= step_axis(ax[a], m[a], vV);
+    for (int a = 0; a < 3; ++a) {
+        Axis& x = ax[a];
+        const __mmask16 m = _mm512_mask_cmp_ps_mask(skip & x.moves, x.exit, block_exit, _CMP_LE_OQ);
+        if (!m) continue;
+        // The guess, kept between the current cell and one cell past the grid.
+        const __m512 pos = _mm512_fmadd_ps(block_exit, x.gd, x.go);
+        __m512i c = _mm512_cvtps_epi32(_mm512_roundscale_ps(pos, _MM_FROUND_TO_NEG_INF | _MM_FROUND_NO_EXC));
+        c = _mm512_mask_max_epi32(c, x.forward, c, x.cell);
+        c = _mm512_mask_min_epi32(c, x.forward, c, vV);
+        c = _mm512_mask_min_epi32(c, ~x.forward, c, x.cell);
+        c = _mm512_mask_max_epi32(c, ~x.forward, c, minus1);
+        const auto exit_of = [&](__m512i k) LSNIF_AVX512 {
+            return plane_t(x, _mm512_mask_add_epi32(k, x.forward, k, one));
+        };
+        const auto inside = [&](__m512i k) LSNIF_AVX512 {
+            return __mmask16(_mm512_cmpge_epi32_mask(k, zero) & _mm512_cmplt_epi32_mask(k, vV));
+        };
+        // Forward while the cell (inside the grid) exits at or before block_exit...
+        for (__mmask16 adv = m;
+             (adv = _mm512_mask_cmp_ps_mask(adv & inside(c), exit_of(c), block_exit, _CMP_LE_OQ));)
+            c = _mm512_mask_add_epi32(c, adv, c, x.step);
+        // ...and back while the cell before it (not before the current one) exits beyond it.
+        for (__mmask16 back = m;;) {
+            const __m512i prev = _mm512_sub_epi32(c, x.step);
+            back = _mm512_mask_cmpneq_epi32_mask(back, c, x.cell);
+            back = _mm512_mask_cmp_ps_mask(back, exit_of(prev), block_exit, _CMP_GT_OQ);
+            if (!back) break;
+            c = _mm512_mask_mov_epi32(c, back, prev);
+        }
+        const __mmask16 left = m & ~inside(c);
         over |= left;
-#pragma GCC unroll 3
-        for (int a = 0; a < 3; ++a)
-            m[a] = _mm512_mask_cmp_ps_mask(m[a] & ~left, ax[a].exit, block_exit, _CMP_LE_OQ);
+        const __mmask16 moved = m & ~left;
+        x.cell = _mm512_mask_mov_epi32(x.cell, m, c);
+        x.enter =
+            _mm512_mask_mov_ps(x.enter, moved, plane_t(x, _mm512_mask_add_epi32(c, ~x.forward, c, one)));
+        x.exit = _mm512_mask_mov_ps(x.exit, moved, exit_of(c));
     }
     return over;
 }
@@ -700,12 +733,15 @@ LSNIF_AVX512 void trace_batch_avx512(const Geometry& geo, const OccupancyGrid& o
             const __mmask16 voxel_occupied = _mm512_test_epi32_mask(nibble, _mm512_set1_epi32(1));
             const __mmask16 sub_occupied = _mm512_test_epi32_mask(nibble, _mm512_set1_epi32(2));
             const __mmask16 block_occupied = _mm512_test_epi32_mask(nibble, _mm512_set1_epi32(4));
+            const __mmask16 super_occupied = _mm512_test_epi32_mask(nibble, _mm512_set1_epi32(8));
             const __mmask16 skip = __mmask16(live) & ~sub_occupied;
             const __mmask16 vis = __mmask16(live) & sub_occupied;
             __mmask16 over = 0;
             if (skip) {
-                const __m512i shift =
-                    _mm512_mask_blend_epi32(block_occupied, _mm512_set1_epi32(2), _mm512_set1_epi32(1));
+                // The largest empty block: 8^3 (shift 3), else 4^3, else 2^3.
+                const __m512i shift = _mm512_mask_mov_epi32(
+                    _mm512_mask_blend_epi32(super_occupied, _mm512_set1_epi32(3), _mm512_set1_epi32(2)),
+                    block_occupied, _mm512_set1_epi32(1));
                 over |= skip_empty_block(ax, skip, shift, t_far, vV);
             }
             if (vis) over |= visit_cell(ax, vis, voxel_occupied, idx, t_near, t_far, vV, L, geo.H, out);

@@ -65,8 +65,9 @@ ModelDesc shell_desc(std::uint32_t V, std::uint32_t H) {
 }
 
 // A spherical shell, dense random voxels in the x < V/2 half (walks there fill all H
-// slots) and sparse ones in the other half (empty blocks beside occupied ones).
-std::vector<std::uint8_t> shell_occupancy(const ModelDesc& d, std::uint32_t seed) {
+// slots) and sparse ones in the other half (one in `sparse`: empty blocks beside occupied
+// ones; one in 2000 leaves most 8^3 blocks there empty).
+std::vector<std::uint8_t> shell_occupancy(const ModelDesc& d, std::uint32_t seed, std::uint32_t sparse = 97) {
     std::mt19937 rng(seed);
     const std::uint32_t V = d.grid_resolution;
     std::vector<std::uint8_t> bits((d.voxel_count() + 7) / 8, 0);
@@ -74,7 +75,7 @@ std::vector<std::uint8_t> shell_occupancy(const ModelDesc& d, std::uint32_t seed
         const std::uint32_t x = i % V, y = (i / V) % V, z = std::uint32_t(i / (V * V));
         const float c = (V - 1) * 0.5f,
                     r = std::sqrt((x - c) * (x - c) + (y - c) * (y - c) + (z - c) * (z - c));
-        const bool random = rng() % (x < V / 2 ? 4 : 97) == 0;
+        const bool random = rng() % (x < V / 2 ? 4 : sparse) == 0;
         if (random || std::fabs(r - 0.3f * V) < 0.7f) bits[i >> 3] |= std::uint8_t(1u << (i & 7));
     }
     return bits;
@@ -85,15 +86,24 @@ std::vector<std::uint8_t> shell_occupancy(const ModelDesc& d, std::uint32_t seed
 TEST_CASE("the 16-lane walk returns the scalar walk's points bit for bit") {
     const std::string path = cpu_features().avx512 ? "in use" : "not available: scalar on both sides";
     MESSAGE("16-lane AVX-512 walk " << path);
-    // V = 7 and 33 leave partial blocks at the far faces; H = 1 stops walks after one point,
-    // H = 64 lets most walks run to the box's far side.
-    for (std::uint32_t V : {7u, 32u, 33u})
+    // V = 7, 33 and 61 leave partial blocks at the far faces; V = 64 and 61 with a nearly
+    // empty half skip 8^3 blocks; H = 1 stops walks after one point, H = 64 lets most walks
+    // run to the box's far side.
+    const std::pair<std::uint32_t, std::uint32_t> grids[] = {
+        {7, 97}, {32, 97}, {33, 97}, {64, 2000}, {61, 2000}};
+    for (const auto& [V, sparse] : grids)
         for (std::uint32_t H : {1u, 18u, 64u}) {
             CAPTURE(V);
             CAPTURE(H);
             const ModelDesc d = shell_desc(V, H);
             const Geometry geo = make_geometry(d);
-            const OccupancyGrid occ(V, shell_occupancy(d, 5 + V));
+            const OccupancyGrid occ(V, shell_occupancy(d, 5 + V, sparse));
+            if (sparse > 97) {  // the case is there: voxels whose whole 8^3 block is empty
+                std::size_t empty8 = 0;
+                for (std::uint64_t i = 0; i < d.voxel_count(); ++i)
+                    empty8 += ((occ.nibbles[i >> 3] >> (4 * (i & 7) + 3)) & 1u) == 0;
+                CHECK(empty8 > d.voxel_count() / 10);
+            }
             const auto rays = edge_case_rays(V, 6000, 17 + V + H);
             std::vector<RayPoints> got(rays.size());
             std::vector<TraceStatus> status(rays.size());

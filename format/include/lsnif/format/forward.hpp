@@ -111,17 +111,18 @@ void unit_direction(const Ray& ray, float out[3]);
 // 0 for empty slots. Writes geo.H values.
 void entry_offsets(const Geometry& geo, const RayPoints& pts, float* out);
 
-// The OCCU bit array plus, per voxel, whether its kSubBlock^3 and kBlock^3 blocks have an
-// occupied voxel: what lets the DDA jump over empty space.
+// The OCCU bit array plus, per voxel, whether its kSubBlock^3, kBlock^3 and kSuperBlock^3
+// blocks have an occupied voxel: what lets the DDA jump over empty space.
 struct OccupancyGrid {
     static constexpr std::uint32_t kBlock = 4;
-    static constexpr std::uint32_t kSubBlock = 2;  // the 16-lane walk's finer empty blocks
+    static constexpr std::uint32_t kSubBlock = 2;    // the 16-lane walk's finer empty blocks
+    static constexpr std::uint32_t kSuperBlock = 8;  // and its coarser ones
     std::uint32_t V = 0;
     std::vector<std::uint8_t> bits;  // OCCU layout
     // 4 bits per voxel, 8 voxels per word (voxel i at bits 4 (i % 8) of word i / 8): bit 0
     // voxel i is occupied, bit 1 its kSubBlock^3 block has an occupied voxel, bit 2 its
-    // kBlock^3 block does. The 16-lane walk gathers one word per step; the scalar walk
-    // reads bit 2 (block_occupied).
+    // kBlock^3 block does, bit 3 its kSuperBlock^3 block. The 16-lane walk gathers one word
+    // per step; the scalar walk reads bit 2 (block_occupied).
     std::vector<std::uint32_t> nibbles;
     OccupancyGrid() = default;
     OccupancyGrid(std::uint32_t V, std::vector<std::uint8_t> voxel_bits);
