@@ -410,8 +410,8 @@ bool find_preset(const std::string& name, Preset& p) {
     p.model.max_points = 14;
     // A 64^3 occupancy grid instead of 32^3: entry points twice as dense along the ray and
     // closer to the surface. On CGAL's dragon and armadillo it is what moved held-out
-    // visibility past 98.5 % (issue #15 item 1); the asset is no larger and inference no
-    // slower at the same 14 points (docs/model.md "A 64^3 grid").
+    // visibility past 98.5 % (issue #15 item 1), with the same 14 points and a smaller
+    // asset; the longer voxel walk costs tracing time (BENCHMARKS.md "A 64^3 grid").
     p.model.grid_resolution = 64;
     // Visibility weighs twice the other losses: with the finer grid the distance and normal
     // errors sit well inside the default target, and the weight turns part of that margin
