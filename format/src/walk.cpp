@@ -548,10 +548,10 @@ LSNIF_AVX512 inline __m512i voxel_index(const Axis (&ax)[3], __m512i vV) {
 
 // The scalar walk's empty-block branch for the lanes in `skip` (their cell's block is
 // empty; a block of 2^shift voxels a side, shift per lane: the empty kSuperBlock^3 block,
-// or else the empty kBlock^3 block, or else the empty kSubBlock^3 block): leave the block at the first of its
-// boundary planes reached. Skipping any empty aligned box keeps every occupied voxel's entry, as for the
-// scalar walk's blocks. Returns the lanes whose walk is over (the block's exit lies beyond
-// t_far, or they left the grid).
+// or else the empty kBlock^3 block, or else the empty kSubBlock^3 block): leave the block
+// at the first of its boundary planes reached. Skipping any empty aligned box keeps every
+// occupied voxel's entry, as for the scalar walk's blocks. Returns the lanes whose walk is
+// over (the block's exit lies beyond t_far, or they left the grid).
 LSNIF_AVX512 inline __mmask16 skip_empty_block(Axis (&ax)[3], __mmask16 skip, __m512i shift, __m512 t_far,
                                                __m512i vV) {
     const __m512i vB = _mm512_sllv_epi32(_mm512_set1_epi32(1), shift);
