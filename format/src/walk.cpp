@@ -245,11 +245,8 @@ OccupancyGrid::OccupancyGrid(std::uint32_t V, std::vector<std::uint8_t> voxel_bi
         for (int k = 0; k < 3; ++k) blocks[k][block_of(k, x, y, z)] = 1;
     });
     for_each_voxel([&](std::uint64_t i, std::uint32_t x, std::uint32_t y, std::uint32_t z) {
-        const bool occupied = (bits[i >> 3] >> (i & 7)) & 1u;
-        const bool sub = blocks[0][block_of(0, x, y, z)] != 0, block = blocks[1][block_of(1, x, y, z)] != 0,
-                   super = blocks[2][block_of(2, x, y, z)] != 0;
-        const std::uint32_t nibble =
-            (occupied ? 1u : 0u) | (sub ? 2u : 0u) | (block ? 4u : 0u) | (super ? 8u : 0u);
+        std::uint32_t nibble = (bits[i >> 3] >> (i & 7)) & 1u;
+        for (int k = 0; k < 3; ++k) nibble |= std::uint32_t(blocks[k][block_of(k, x, y, z)] != 0) << (k + 1);
         nibbles[i >> 3] |= nibble << (4 * (i & 7));
     });
 }
@@ -522,10 +519,10 @@ LSNIF_AVX512 inline __m512 plane_t(const Axis& x, __m512i k) {
     return plane_at(x.go, x.inv, k);
 }
 
-// The plane the walk leaves the cell through (cell + 1 forward, cell backward), as in
-// the scalar walk's exit_a update.
-LSNIF_AVX512 inline __m512i exit_plane(const Axis& x) {
-    return _mm512_mask_add_epi32(x.cell, x.forward, x.cell, _mm512_set1_epi32(1));
+// The plane the walk leaves cell k through (k + 1 forward, k backward), as in the scalar
+// walk's exit_a update.
+LSNIF_AVX512 inline __m512i exit_plane(const Axis& x, __m512i k) {
+    return _mm512_mask_add_epi32(k, x.forward, k, _mm512_set1_epi32(1));
 }
 
 // Steps the lanes in `m` one cell along the axis; returns the lanes that left the grid
@@ -536,7 +533,7 @@ LSNIF_AVX512 inline __mmask16 step_axis(Axis& x, __mmask16 m, __m512i vV) {
                           _mm512_mask_cmpge_epi32_mask(m, x.cell, vV);
     m &= ~out;
     x.enter = _mm512_mask_mov_ps(x.enter, m, x.exit);
-    x.exit = _mm512_mask_mov_ps(x.exit, m, plane_t(x, exit_plane(x)));
+    x.exit = _mm512_mask_mov_ps(x.exit, m, plane_t(x, exit_plane(x, x.cell)));
     return out;
 }
 
@@ -586,9 +583,7 @@ LSNIF_AVX512 inline __mmask16 skip_empty_block(Axis (&ax)[3], __mmask16 skip, __
         c = _mm512_mask_min_epi32(c, x.forward, c, vV);
         c = _mm512_mask_min_epi32(c, ~x.forward, c, x.cell);
         c = _mm512_mask_max_epi32(c, ~x.forward, c, minus1);
-        const auto exit_of = [&](__m512i k) LSNIF_AVX512 {
-            return plane_t(x, _mm512_mask_add_epi32(k, x.forward, k, one));
-        };
+        const auto exit_of = [&](__m512i k) LSNIF_AVX512 { return plane_t(x, exit_plane(x, k)); };
         const auto inside = [&](__m512i k) LSNIF_AVX512 {
             return __mmask16(_mm512_cmpge_epi32_mask(k, zero) & _mm512_cmplt_epi32_mask(k, vV));
         };
