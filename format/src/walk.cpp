@@ -329,8 +329,9 @@ LSNIF_AVX512 inline __m512i move_while(__m512i x, __mmask16 m, int delta, int of
 // start_walk() for up to 16 rays (rays[0..n)), lane j for ray first + j: the same
 // operations lane by lane (make_ray_grid's double-precision grid mapping, its axis order
 // for a miss's partial t_near / t_far, the cell search from the shared plane_t). Writes
-// each ray's RayPoints count and clipped segment (not for an invalid ray) and, for rays
-// that do not start a walk, their status. Returns the lanes that start one, filled in Q.
+// each ray's RayPoints count and clipped segment (not for an invalid ray) and its status:
+// ok for a ray that starts a walk, until trace_batch_avx512 sees it found no point.
+// Returns the lanes that start one, filled in Q.
 LSNIF_AVX512 std::uint32_t start_walks(const Geometry& geo, const Ray* rays, int n, std::uint32_t first,
                                        RayPoints* out, TraceStatus* status, Lanes& Q) {
     const __mmask16 lanes = __mmask16((1u << n) - 1);
@@ -398,7 +399,7 @@ LSNIF_AVX512 std::uint32_t start_walks(const Geometry& geo, const Ray* rays, int
         p.t_near = tn[j];
         p.t_far = tf[j];
         unit_direction(rays[j], p.dir);
-        if (miss & (1u << j)) status[j] = TraceStatus::miss;
+        status[j] = (miss & (1u << j)) ? TraceStatus::miss : TraceStatus::ok;
         Q.ray[j] = first + std::uint32_t(j);
     }
     if (!live) return 0;
@@ -553,20 +554,24 @@ LSNIF_AVX512 inline __mmask16 skip_empty_block(Axis (&ax)[3], __mmask16 skip, __
                                                __m512i vV) {
     const __m512i vB = _mm512_sllv_epi32(_mm512_set1_epi32(1), shift);
     __m512 block_exit = _mm512_set1_ps(kInf);
+    __m512i plane[3];
+    __m512 plane_at_t[3];
 #pragma GCC unroll 3
     for (int a = 0; a < 3; ++a) {
         const Axis& x = ax[a];
         const __m512i b0 = _mm512_sllv_epi32(_mm512_srlv_epi32(x.cell, shift), shift);
-        const __m512i plane = _mm512_mask_min_epi32(b0, x.forward, _mm512_add_epi32(b0, vB), vV);
-        block_exit = _mm512_mask_min_ps(block_exit, x.moves, plane_t(x, plane), block_exit);
+        plane[a] = _mm512_mask_min_epi32(b0, x.forward, _mm512_add_epi32(b0, vB), vV);
+        plane_at_t[a] = plane_t(x, plane[a]);
+        block_exit = _mm512_mask_min_ps(block_exit, x.moves, plane_at_t[a], block_exit);
     }
     __mmask16 over = _mm512_mask_cmp_ps_mask(skip, block_exit, t_far, _CMP_GT_OQ);
     skip &= ~over;
     // The scalar walk advances each axis one cell at a time while the cell's exit plane
     // comes at or before block_exit: it ends in the first cell (along the step) whose exit
     // is beyond block_exit, or leaves the grid. Exits grow monotonically along the step
-    // (plane_t is monotonic in k), so that cell can be found directly: a guess from the
-    // position at block_exit, corrected by the same comparison until it holds, then the
+    // (plane_t is monotonic in k), so that cell can be found directly: a guess (the cell
+    // past the plane for the axis whose plane is the block's exit, else the cell holding the
+    // position at block_exit), corrected by the same comparison until it holds, then the
     // cell's planes computed as stepping would have left them (enter = the previous cell's
     // exit plane). The axes do not depend on each other; a lane that leaves the grid on one
     // axis is over, whatever the other axes then did.
@@ -583,6 +588,10 @@ LSNIF_AVX512 inline __mmask16 skip_empty_block(Axis (&ax)[3], __mmask16 skip, __
         c = _mm512_mask_min_epi32(c, x.forward, c, vV);
         c = _mm512_mask_min_epi32(c, ~x.forward, c, x.cell);
         c = _mm512_mask_max_epi32(c, ~x.forward, c, minus1);
+        // The position there lies on the plane itself and rounds to either side of it: a
+        // correction loop taken at random, so the guess comes from the plane instead.
+        const __mmask16 defining = _mm512_mask_cmp_ps_mask(m, plane_at_t[a], block_exit, _CMP_EQ_OQ);
+        c = _mm512_mask_mov_epi32(c, defining, _mm512_mask_sub_epi32(plane[a], ~x.forward, plane[a], one));
         const auto exit_of = [&](__m512i k) LSNIF_AVX512 { return plane_t(x, exit_plane(x, k)); };
         const auto inside = [&](__m512i k) LSNIF_AVX512 {
             return __mmask16(_mm512_cmpge_epi32_mask(k, zero) & _mm512_cmplt_epi32_mask(k, vV));
@@ -714,8 +723,8 @@ LSNIF_AVX512 void trace_batch_avx512(const Geometry& geo, const OccupancyGrid& o
         load_axes(L, ax);
         const __m512 t_near = _mm512_load_ps(L.t_near);
         const __m512 t_far = _mm512_load_ps(L.t_far);
-        // Lanes whose walk is over leave `live`; the walks stay in registers until half the
-        // lanes are free (or no rays are left to refill them with).
+        // Lanes whose walk is over leave `live`; the walks stay in registers until a quarter
+        // of the lanes are free (or no rays are left to refill them with).
         const bool draining = next == rays.size() && !q.ready;
         do {
             // One gather reads the voxel's three occupancy bits (OccupancyGrid::nibbles).
@@ -740,15 +749,15 @@ LSNIF_AVX512 void trace_batch_avx512(const Geometry& geo, const OccupancyGrid& o
                 over |= skip_empty_block(ax, skip, shift, t_far, vV);
             }
             if (vis) over |= visit_cell(ax, vis, voxel_occupied, idx, t_near, t_far, vV, L, geo.H, out);
-            for (std::uint32_t done = over; done; done &= done - 1) {
-                const std::uint32_t i = L.ray[std::countr_zero(done)];
-                status[i] = out[i].count ? TraceStatus::ok : TraceStatus::miss;
-            }
             live &= ~std::uint32_t(over);
-        } while (live && (draining || std::popcount(live) > kLanes / 2));
+        } while (live && (draining || std::popcount(live) > kLanes * 3 / 4));
         store_axes(ax, L);
         live = refill(geo, rays, next, out, status, q, L, live);
     }
+    // A walk without a point is a miss; set once here rather than per finished lane inside
+    // the loop, where a data-dependent branch per step cost more than this pass.
+    for (std::size_t i = 0; i < rays.size(); ++i)
+        if (status[i] == TraceStatus::ok && out[i].count == 0) status[i] = TraceStatus::miss;
 }
 
 #undef LSNIF_AVX512
