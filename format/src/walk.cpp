@@ -526,97 +526,10 @@ LSNIF_AVX512 inline __m512i exit_plane(const Axis& x, __m512i k) {
     return _mm512_mask_add_epi32(k, x.forward, k, _mm512_set1_epi32(1));
 }
 
-// Steps the lanes in `m` one cell along the axis; returns the lanes that left the grid
-// (their walk is over).
-LSNIF_AVX512 inline __mmask16 step_axis(Axis& x, __mmask16 m, __m512i vV) {
-    x.cell = _mm512_mask_add_epi32(x.cell, m, x.cell, x.step);
-    const __mmask16 out = _mm512_mask_cmplt_epi32_mask(m, x.cell, _mm512_setzero_si512()) |
-                          _mm512_mask_cmpge_epi32_mask(m, x.cell, vV);
-    m &= ~out;
-    x.enter = _mm512_mask_mov_ps(x.enter, m, x.exit);
-    x.exit = _mm512_mask_mov_ps(x.exit, m, plane_t(x, exit_plane(x, x.cell)));
-    return out;
-}
-
 // Linear voxel index x + V * (y + V * z) of each lane's cell.
 LSNIF_AVX512 inline __m512i voxel_index(const Axis (&ax)[3], __m512i vV) {
     return _mm512_add_epi32(
         ax[0].cell, _mm512_mullo_epi32(vV, _mm512_add_epi32(ax[1].cell, _mm512_mullo_epi32(vV, ax[2].cell))));
-}
-
-// The scalar walk's empty-block branch for the lanes in `skip` (their cell's block is
-// empty; a block of 2^shift voxels a side, shift per lane: the empty kSuperBlock^3 block,
-// or else the empty kBlock^3 block, or else the empty kSubBlock^3 block): leave the block
-// at the first of its boundary planes reached. Skipping any empty aligned box keeps every
-// occupied voxel's entry, as for the scalar walk's blocks. Returns the lanes whose walk is
-// over (the block's exit lies beyond t_far, or they left the grid).
-LSNIF_AVX512 inline __mmask16 skip_empty_block(Axis (&ax)[3], __mmask16 skip, __m512i shift, __m512 t_far,
-                                               __m512i vV) {
-    const __m512i vB = _mm512_sllv_epi32(_mm512_set1_epi32(1), shift);
-    __m512 block_exit = _mm512_set1_ps(kInf);
-    __m512i plane[3];
-    __m512 plane_at_t[3];
-#pragma GCC unroll 3
-    for (int a = 0; a < 3; ++a) {
-        const Axis& x = ax[a];
-        const __m512i b0 = _mm512_sllv_epi32(_mm512_srlv_epi32(x.cell, shift), shift);
-        plane[a] = _mm512_mask_min_epi32(b0, x.forward, _mm512_add_epi32(b0, vB), vV);
-        plane_at_t[a] = plane_t(x, plane[a]);
-        block_exit = _mm512_mask_min_ps(block_exit, x.moves, plane_at_t[a], block_exit);
-    }
-    __mmask16 over = _mm512_mask_cmp_ps_mask(skip, block_exit, t_far, _CMP_GT_OQ);
-    skip &= ~over;
-    // The scalar walk advances each axis one cell at a time while the cell's exit plane
-    // comes at or before block_exit: it ends in the first cell (along the step) whose exit
-    // is beyond block_exit, or leaves the grid. Exits grow monotonically along the step
-    // (plane_t is monotonic in k), so that cell can be found directly: a guess (the cell
-    // past the plane for the axis whose plane is the block's exit, else the cell holding the
-    // position at block_exit), corrected by the same comparison until it holds, then the
-    // cell's planes computed as stepping would have left them (enter = the previous cell's
-    // exit plane). The axes do not depend on each other; a lane that leaves the grid on one
-    // axis is over, whatever the other axes then did.
-    const __m512i zero = _mm512_setzero_si512(), one = _mm512_set1_epi32(1), minus1 = _mm512_set1_epi32(-1);
-#pragma GCC unroll 3
-    for (int a = 0; a < 3; ++a) {
-        Axis& x = ax[a];
-        const __mmask16 m = _mm512_mask_cmp_ps_mask(skip & x.moves, x.exit, block_exit, _CMP_LE_OQ);
-        if (!m) continue;
-        // The guess, kept between the current cell and one cell past the grid.
-        const __m512 pos = _mm512_fmadd_ps(block_exit, x.gd, x.go);
-        __m512i c = _mm512_cvtps_epi32(_mm512_roundscale_ps(pos, _MM_FROUND_TO_NEG_INF | _MM_FROUND_NO_EXC));
-        c = _mm512_mask_max_epi32(c, x.forward, c, x.cell);
-        c = _mm512_mask_min_epi32(c, x.forward, c, vV);
-        c = _mm512_mask_min_epi32(c, ~x.forward, c, x.cell);
-        c = _mm512_mask_max_epi32(c, ~x.forward, c, minus1);
-        // The position there lies on the plane itself and rounds to either side of it: a
-        // correction loop taken at random, so the guess comes from the plane instead.
-        const __mmask16 defining = _mm512_mask_cmp_ps_mask(m, plane_at_t[a], block_exit, _CMP_EQ_OQ);
-        c = _mm512_mask_mov_epi32(c, defining, _mm512_mask_sub_epi32(plane[a], ~x.forward, plane[a], one));
-        const auto exit_of = [&](__m512i k) LSNIF_AVX512 { return plane_t(x, exit_plane(x, k)); };
-        const auto inside = [&](__m512i k) LSNIF_AVX512 {
-            return __mmask16(_mm512_cmpge_epi32_mask(k, zero) & _mm512_cmplt_epi32_mask(k, vV));
-        };
-        // Forward while the cell (inside the grid) exits at or before block_exit...
-        for (__mmask16 adv = m;
-             (adv = _mm512_mask_cmp_ps_mask(adv & inside(c), exit_of(c), block_exit, _CMP_LE_OQ));)
-            c = _mm512_mask_add_epi32(c, adv, c, x.step);
-        // ...and back while the cell before it (not before the current one) exits beyond it.
-        for (__mmask16 back = m;;) {
-            const __m512i prev = _mm512_sub_epi32(c, x.step);
-            back = _mm512_mask_cmpneq_epi32_mask(back, c, x.cell);
-            back = _mm512_mask_cmp_ps_mask(back, exit_of(prev), block_exit, _CMP_GT_OQ);
-            if (!back) break;
-            c = _mm512_mask_mov_epi32(c, back, prev);
-        }
-        const __mmask16 left = m & ~inside(c);
-        over |= left;
-        const __mmask16 moved = m & ~left;
-        x.cell = _mm512_mask_mov_epi32(x.cell, m, c);
-        x.enter =
-            _mm512_mask_mov_ps(x.enter, moved, plane_t(x, _mm512_mask_add_epi32(c, ~x.forward, c, one)));
-        x.exit = _mm512_mask_mov_ps(x.exit, moved, exit_of(c));
-    }
-    return over;
 }
 
 // Where the lanes in `rec` record an entry point, and which voxel.
@@ -625,59 +538,126 @@ struct Entries {
     alignas(64) std::uint32_t voxel[kLanes];
 };
 
-// The scalar walk's voxel branch for the lanes in `vis` (their cell's block is occupied):
-// record the entry point when the cell is occupied and crossed, then step every axis whose
-// boundary comes first. Returns the lanes whose walk is over (H points recorded, t_far
-// reached, or they left the grid).
-LSNIF_AVX512 inline __mmask16 visit_cell(Axis (&ax)[3], __mmask16 vis, __mmask16 voxel_occupied, __m512i idx,
-                                         __m512 t_near, __m512 t_far, __m512i vV, const Lanes& L,
-                                         std::uint32_t H, RayPoints* out) {
+// The scalar walk's visit of an occupied voxel for the lanes in `occupied` (their cell is
+// an occupied voxel): record the entry point where the ray crosses the cell inside its
+// segment (lo <= t_far, lo < exit). Returns the lanes that have recorded their H points
+// (their walk is over).
+LSNIF_AVX512 inline __mmask16 record_entries(const Axis (&ax)[3], __mmask16 occupied, __m512i idx,
+                                             __m512 t_near, __m512 t_far, const Lanes& L, std::uint32_t H,
+                                             RayPoints* out) {
     const __m512 enter = _mm512_max_ps(_mm512_max_ps(ax[2].enter, ax[1].enter), ax[0].enter);
     const __m512 exit = _mm512_min_ps(_mm512_min_ps(ax[2].exit, ax[1].exit), ax[0].exit);
     const __m512 lo = _mm512_max_ps(enter, t_near);
-    __mmask16 rec = _mm512_mask_cmp_ps_mask(vis, lo, t_far, _CMP_LE_OQ);
-    rec = _mm512_mask_cmp_ps_mask(rec, lo, exit, _CMP_LT_OQ) & voxel_occupied;
-    __mmask16 over = 0;
-    if (rec) {
-        Entries e;
+    __mmask16 rec = _mm512_mask_cmp_ps_mask(occupied, lo, t_far, _CMP_LE_OQ);
+    rec = _mm512_mask_cmp_ps_mask(rec, lo, exit, _CMP_LT_OQ);
+    __mmask16 full = 0;
+    if (!rec) return full;
+    Entries e;
 #pragma GCC unroll 3
-        for (int a = 0; a < 3; ++a) {  // entry_coordinate()
-            const Axis& x = ax[a];
-            const __m512 cell = _mm512_cvtepi32_ps(x.cell);
-            const __m512 cell1 = _mm512_cvtepi32_ps(_mm512_add_epi32(x.cell, _mm512_set1_epi32(1)));
-            const __m512 pos = _mm512_fmadd_ps(lo, x.gd, x.go);
-            // std::clamp(p, c, c + 1) = std::min(std::max(p, c), c + 1)
-            const __m512 clamped = _mm512_min_ps(cell1, _mm512_max_ps(cell, pos));
-            const __mmask16 face = _mm512_mask_cmp_ps_mask(x.moves, x.enter, lo, _CMP_EQ_OQ);
-            const __m512 plane = _mm512_mask_mov_ps(cell1, x.forward, cell);
-            _mm512_store_ps(e.g[a], _mm512_mask_mov_ps(clamped, face, plane));
-        }
-        _mm512_store_ps(e.t, lo);
-        _mm512_store_si512(e.voxel, idx);
-        for (std::uint32_t m = rec; m; m &= m - 1) {
-            const int lane = std::countr_zero(m);
-            RayPoints& p = out[L.ray[lane]];
-            const std::uint32_t k = p.count++;
-            p.t[k] = e.t[lane];
-            p.g[k][0] = e.g[0][lane];
-            p.g[k][1] = e.g[1][lane];
-            p.g[k][2] = e.g[2][lane];
-            p.voxel[k] = e.voxel[lane];
-            if (p.count == H) over |= __mmask16(1u << lane);
-        }
-        vis &= ~over;
+    for (int a = 0; a < 3; ++a) {  // entry_coordinate()
+        const Axis& x = ax[a];
+        const __m512 cell = _mm512_cvtepi32_ps(x.cell);
+        const __m512 cell1 = _mm512_cvtepi32_ps(_mm512_add_epi32(x.cell, _mm512_set1_epi32(1)));
+        const __m512 pos = _mm512_fmadd_ps(lo, x.gd, x.go);
+        // std::clamp(p, c, c + 1) = std::min(std::max(p, c), c + 1)
+        const __m512 clamped = _mm512_min_ps(cell1, _mm512_max_ps(cell, pos));
+        const __mmask16 face = _mm512_mask_cmp_ps_mask(x.moves, x.enter, lo, _CMP_EQ_OQ);
+        const __m512 plane = _mm512_mask_mov_ps(cell1, x.forward, cell);
+        _mm512_store_ps(e.g[a], _mm512_mask_mov_ps(clamped, face, plane));
     }
-    const __mmask16 beyond = _mm512_mask_cmp_ps_mask(vis, exit, t_far, _CMP_GT_OQ);
-    over |= beyond;
-    vis &= ~beyond;
-    // The scalar walk steps the tied axes in order and stops at the first that leaves the
-    // grid; here they step together (three independent chains, as in skip_empty_block): a
-    // lane that leaves on one axis is over, whatever the other axes then did.
-    __mmask16 m[3];
+    _mm512_store_ps(e.t, lo);
+    _mm512_store_si512(e.voxel, idx);
+    for (std::uint32_t m = rec; m; m &= m - 1) {
+        const int lane = std::countr_zero(m);
+        RayPoints& p = out[L.ray[lane]];
+        const std::uint32_t k = p.count++;
+        p.t[k] = e.t[lane];
+        p.g[k][0] = e.g[0][lane];
+        p.g[k][1] = e.g[1][lane];
+        p.g[k][2] = e.g[2][lane];
+        p.voxel[k] = e.voxel[lane];
+        if (p.count == H) full |= __mmask16(1u << lane);
+    }
+    return full;
+}
+
+// Moves the lanes in `m` out of the aligned box of 2^shift voxels a side around their cell
+// (shift per lane, 0 for the cell itself), at the first of its boundary planes reached, as
+// the scalar walk does: its step out of a voxel is the box of one cell, its jump over an
+// empty block the block. Skipping an empty aligned box keeps every occupied voxel's entry,
+// as for the scalar walk's blocks. Returns the lanes whose walk is over (the box's exit
+// lies beyond t_far, or they left the grid).
+LSNIF_AVX512 inline __mmask16 leave_box(Axis (&ax)[3], __mmask16 m, __m512i shift, __m512 t_far, __m512i vV) {
+    const __m512i vB = _mm512_sllv_epi32(_mm512_set1_epi32(1), shift);
+    __m512 box_exit = _mm512_set1_ps(kInf);
+    __m512i plane[3];
+    __m512 plane_at_t[3];
 #pragma GCC unroll 3
-    for (int a = 0; a < 3; ++a) m[a] = _mm512_mask_cmp_ps_mask(vis, ax[a].exit, exit, _CMP_EQ_OQ);
+    for (int a = 0; a < 3; ++a) {
+        const Axis& x = ax[a];
+        const __m512i b0 = _mm512_sllv_epi32(_mm512_srlv_epi32(x.cell, shift), shift);
+        plane[a] = _mm512_mask_min_epi32(b0, x.forward, _mm512_add_epi32(b0, vB), vV);
+        plane_at_t[a] = plane_t(x, plane[a]);
+        box_exit = _mm512_mask_min_ps(box_exit, x.moves, plane_at_t[a], box_exit);
+    }
+    __mmask16 over = _mm512_mask_cmp_ps_mask(m, box_exit, t_far, _CMP_GT_OQ);
+    m &= ~over;
+    // The scalar walk advances each axis one cell at a time while the cell's exit plane
+    // comes at or before box_exit (for the box of one cell: the axes whose exit is the
+    // cell's, edges and corners stepping together): it ends in the first cell (along the
+    // step) whose exit is beyond box_exit, or leaves the grid. Exits grow monotonically
+    // along the step (plane_t is monotonic in k), so that cell can be found directly: a
+    // guess (the cell past the plane for an axis whose plane is the box's exit, else the
+    // cell holding the position at box_exit), corrected by the same comparison until it
+    // holds, then the cell's planes as stepping would have left them (enter = the previous
+    // cell's exit plane). The axes do not depend on each other; a lane that leaves the grid
+    // on one axis is over, whatever the other axes then did.
+    const __m512i zero = _mm512_setzero_si512(), one = _mm512_set1_epi32(1), minus1 = _mm512_set1_epi32(-1);
 #pragma GCC unroll 3
-    for (int a = 0; a < 3; ++a) over |= step_axis(ax[a], m[a], vV);
+    for (int a = 0; a < 3; ++a) {
+        Axis& x = ax[a];
+        const __mmask16 moving = _mm512_mask_cmp_ps_mask(m & x.moves, x.exit, box_exit, _CMP_LE_OQ);
+        if (!moving) continue;
+        // The guess, kept between the current cell and one cell past the grid.
+        const __m512 pos = _mm512_fmadd_ps(box_exit, x.gd, x.go);
+        __m512i c = _mm512_cvtps_epi32(_mm512_roundscale_ps(pos, _MM_FROUND_TO_NEG_INF | _MM_FROUND_NO_EXC));
+        c = _mm512_mask_max_epi32(c, x.forward, c, x.cell);
+        c = _mm512_mask_min_epi32(c, x.forward, c, vV);
+        c = _mm512_mask_min_epi32(c, ~x.forward, c, x.cell);
+        c = _mm512_mask_max_epi32(c, ~x.forward, c, minus1);
+        // The position there lies on the plane itself and rounds to either side of it: a
+        // correction loop taken at random, so the guess comes from the plane instead.
+        const __mmask16 defining = _mm512_mask_cmp_ps_mask(moving, plane_at_t[a], box_exit, _CMP_EQ_OQ);
+        c = _mm512_mask_mov_epi32(c, defining, _mm512_mask_sub_epi32(plane[a], ~x.forward, plane[a], one));
+        const auto exit_of = [&](__m512i k) LSNIF_AVX512 { return plane_t(x, exit_plane(x, k)); };
+        const auto inside = [&](__m512i k) LSNIF_AVX512 {
+            return __mmask16(_mm512_cmpge_epi32_mask(k, zero) & _mm512_cmplt_epi32_mask(k, vV));
+        };
+        // Forward while the cell (inside the grid) exits at or before box_exit...
+        __m512 exit_c = exit_of(c);
+        for (__mmask16 adv = moving;
+             (adv = _mm512_mask_cmp_ps_mask(adv & inside(c), exit_c, box_exit, _CMP_LE_OQ));) {
+            c = _mm512_mask_add_epi32(c, adv, c, x.step);
+            exit_c = _mm512_mask_mov_ps(exit_c, adv, exit_of(c));
+        }
+        // ...and back while the cell before it (not before the current one) exits beyond it.
+        // The cell before's exit plane is the cell's entry plane.
+        __m512 exit_prev = exit_of(_mm512_sub_epi32(c, x.step));
+        for (__mmask16 back = moving;;) {
+            back = _mm512_mask_cmpneq_epi32_mask(back, c, x.cell);
+            back = _mm512_mask_cmp_ps_mask(back, exit_prev, box_exit, _CMP_GT_OQ);
+            if (!back) break;
+            c = _mm512_mask_sub_epi32(c, back, c, x.step);
+            exit_c = _mm512_mask_mov_ps(exit_c, back, exit_prev);
+            exit_prev = _mm512_mask_mov_ps(exit_prev, back, exit_of(_mm512_sub_epi32(c, x.step)));
+        }
+        const __mmask16 left = moving & ~inside(c);
+        over |= left;
+        const __mmask16 moved = moving & ~left;
+        x.cell = _mm512_mask_mov_epi32(x.cell, moving, c);
+        x.enter = _mm512_mask_mov_ps(x.enter, moved, exit_prev);
+        x.exit = _mm512_mask_mov_ps(x.exit, moved, exit_c);
+    }
     return over;
 }
 
@@ -710,7 +690,11 @@ LSNIF_AVX512 inline void store_axes(const Axis (&ax)[3], Lanes& L) {
 // The scalar walk for 16 rays at a time, each lane computing what walk() computes:
 // std::max(a, b) is _mm512_max_ps(b, a) and std::min(a, b) is _mm512_min_ps(b, a) for
 // every input, NaN included (MAXPS/MINPS return their second operand unless the first
-// compares greater/less), and ordered comparisons are false on NaN as in C++.
+// compares greater/less), and ordered comparisons are false on NaN as in C++. Each step
+// records the occupied voxels' entries, then moves every lane out of a box: the cell in an
+// occupied kSubBlock^3 block, else the largest empty block around it. The scalar walk's two
+// branches (voxel, empty block) are one move here, so a step costs one pass whatever mix
+// of the two its lanes need.
 LSNIF_AVX512 void trace_batch_avx512(const Geometry& geo, const OccupancyGrid& occ, std::span<const Ray> rays,
                                      RayPoints* out, TraceStatus* status) {
     Lanes L;
@@ -727,28 +711,28 @@ LSNIF_AVX512 void trace_batch_avx512(const Geometry& geo, const OccupancyGrid& o
         // of the lanes are free (or no rays are left to refill them with).
         const bool draining = next == rays.size() && !q.ready;
         do {
-            // One gather reads the voxel's three occupancy bits (OccupancyGrid::nibbles).
+            // One gather reads the voxel's occupancy bits (OccupancyGrid::nibbles).
             const __m512i idx = voxel_index(ax, vV);
             const __m512i word = _mm512_mask_i32gather_epi32(
                 _mm512_setzero_si512(), __mmask16(live), _mm512_srli_epi32(idx, 3),
                 reinterpret_cast<const int*>(occ.nibbles.data()), 4);
             const __m512i nibble =
                 _mm512_srlv_epi32(word, _mm512_slli_epi32(_mm512_and_si512(idx, _mm512_set1_epi32(7)), 2));
-            const __mmask16 voxel_occupied = _mm512_test_epi32_mask(nibble, _mm512_set1_epi32(1));
-            const __mmask16 sub_occupied = _mm512_test_epi32_mask(nibble, _mm512_set1_epi32(2));
-            const __mmask16 block_occupied = _mm512_test_epi32_mask(nibble, _mm512_set1_epi32(4));
-            const __mmask16 super_occupied = _mm512_test_epi32_mask(nibble, _mm512_set1_epi32(8));
-            const __mmask16 skip = __mmask16(live) & ~sub_occupied;
-            const __mmask16 vis = __mmask16(live) & sub_occupied;
-            __mmask16 over = 0;
-            if (skip) {
-                // The largest empty block: 8^3 (shift 3), else 4^3, else 2^3.
-                const __m512i shift = _mm512_mask_mov_epi32(
+            const auto bit = [&](int b) LSNIF_AVX512 {
+                return _mm512_test_epi32_mask(nibble, _mm512_set1_epi32(b));
+            };
+            const __mmask16 voxel_occupied = bit(1), sub_occupied = bit(2), block_occupied = bit(4),
+                            super_occupied = bit(8);
+            const __mmask16 occupied = __mmask16(live) & voxel_occupied;
+            __mmask16 over = occupied ? record_entries(ax, occupied, idx, t_near, t_far, L, geo.H, out) : 0;
+            // The box to leave: the cell in an occupied 2^3 block, else the largest empty
+            // block, 8^3 (shift 3), 4^3 (2) or 2^3 (1).
+            const __m512i shift = _mm512_mask_mov_epi32(
+                _mm512_mask_mov_epi32(
                     _mm512_mask_blend_epi32(super_occupied, _mm512_set1_epi32(3), _mm512_set1_epi32(2)),
-                    block_occupied, _mm512_set1_epi32(1));
-                over |= skip_empty_block(ax, skip, shift, t_far, vV);
-            }
-            if (vis) over |= visit_cell(ax, vis, voxel_occupied, idx, t_near, t_far, vV, L, geo.H, out);
+                    block_occupied, _mm512_set1_epi32(1)),
+                sub_occupied, _mm512_setzero_si512());
+            over |= leave_box(ax, __mmask16(live) & ~over, shift, t_far, vV);
             live &= ~std::uint32_t(over);
         } while (live && (draining || std::popcount(live) > kLanes * 3 / 4));
         store_axes(ax, L);
