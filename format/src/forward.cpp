@@ -316,6 +316,53 @@ LSNIF_AVX512 inline AxisCorners axis_corners(const LevelInfo& lv, __m512 g, std:
     return c;
 }
 
+// The live corners of 16 points at one level: per axis the corner terms and factors, the
+// lanes with both sides live, the lanes whose one live side is the upper one, and each
+// lane's count n of live corners (the product of its axes' live sides).
+struct LaneCorners {
+    AxisCorners ax[3];
+    __mmask16 both[3], upper[3];
+    __m512i n;
+};
+
+// `g` holds the points' grid coordinates per axis (lanes past the points are ignored by
+// the callers' masks).
+LSNIF_AVX512 inline LaneCorners lane_corners(const Geometry& geo, const LevelInfo& lv, const __m512 (&g)[3]) {
+    const std::uint32_t mult[3] = {lv.dense ? 1u : geo.primes[0], lv.dense ? lv.stride : geo.primes[1],
+                                   lv.dense ? lv.stride * lv.stride : geo.primes[2]};
+    LaneCorners c;
+    const __m512i one = _mm512_set1_epi32(1);
+    c.n = one;
+    for (int a = 0; a < 3; ++a) {
+        c.ax[a] = axis_corners(lv, g[a], mult[a]);
+        c.both[a] = c.ax[a].nonzero[0] & c.ax[a].nonzero[1];
+        c.upper[a] = __mmask16(~c.ax[a].nonzero[0]);
+        c.n = _mm512_mask_slli_epi32(c.n, c.both[a], c.n, 1);
+    }
+    return c;
+}
+
+// Slot s of every lane: its s-th live corner in corner order c = x + 2y + 4z (x fastest),
+// the digits of s being one bit per axis with both sides live, x first; level_corners'
+// order and values (the weight is (w_x * w_y) * w_z). Meaningful in lanes with s < n.
+LSNIF_AVX512 inline void slot_corner(const LaneCorners& c, const LevelInfo& lv, std::uint32_t s, __m512i& idx,
+                                     __m512& w) {
+    const __m512i one = _mm512_set1_epi32(1);
+    __m512i digits = _mm512_set1_epi32(int(s));
+    __m512i term[3];
+    __m512 weight[3];
+    for (int a = 0; a < 3; ++a) {
+        const __mmask16 up = (c.both[a] & _mm512_test_epi32_mask(digits, one)) | (~c.both[a] & c.upper[a]);
+        digits = _mm512_mask_srli_epi32(digits, c.both[a], digits, 1);
+        term[a] = _mm512_mask_blend_epi32(up, c.ax[a].term[0], c.ax[a].term[1]);
+        weight[a] = _mm512_mask_blend_ps(up, c.ax[a].weight[0], c.ax[a].weight[1]);
+    }
+    idx = lv.dense ? _mm512_add_epi32(_mm512_add_epi32(term[0], term[1]), term[2])
+                   : _mm512_and_si512(_mm512_xor_si512(_mm512_xor_si512(term[0], term[1]), term[2]),
+                                      _mm512_set1_epi32(int(lv.mask)));
+    w = _mm512_mul_ps(_mm512_mul_ps(weight[0], weight[1]), weight[2]);
+}
+
 // Feature f (< 4) of the rows at element offsets `off` (row * stride) of a table, for the
 // lanes in k (0 elsewhere), converted to f32 exactly as the scalar loaders do.
 LSNIF_AVX512 inline void load_features(const GridView& g, __m512i off, __mmask16 k, std::uint32_t F,
@@ -355,45 +402,18 @@ LSNIF_AVX512 void encode_level16(const Geometry& geo, const LevelInfo& lv, const
                                  std::uint32_t level, const PointList& pl, std::size_t i, float* rows) {
     const std::uint32_t F = geo.F;
     const __mmask16 lanes = pl.n - i >= 16 ? __mmask16(0xFFFF) : __mmask16((1u << (pl.n - i)) - 1);
-    const std::uint32_t mult[3] = {lv.dense ? 1u : geo.primes[0], lv.dense ? lv.stride : geo.primes[1],
-                                   lv.dense ? lv.stride * lv.stride : geo.primes[2]};
-    AxisCorners ax[3];
-    for (int a = 0; a < 3; ++a)
-        ax[a] = axis_corners(lv, _mm512_maskz_loadu_ps(lanes, pl.g[a].data() + i), mult[a]);
-    // Per axis: lanes with both sides live, and lanes whose one live side is the upper one.
-    // A lane's live corners are the product of its axes' live sides; it has n of them.
-    __mmask16 both[3], upper[3];
-    const __m512i one = _mm512_set1_epi32(1);
-    __m512i n = one;
-    for (int a = 0; a < 3; ++a) {
-        both[a] = ax[a].nonzero[0] & ax[a].nonzero[1];
-        upper[a] = __mmask16(~ax[a].nonzero[0]);
-        n = _mm512_mask_slli_epi32(n, both[a], n, 1);
-    }
-    const std::uint32_t slots = _mm512_mask_reduce_max_epu32(lanes, n);
-    const __m512i mask = _mm512_set1_epi32(int(lv.mask));
+    const __m512 points[3] = {_mm512_maskz_loadu_ps(lanes, pl.g[0].data() + i),
+                              _mm512_maskz_loadu_ps(lanes, pl.g[1].data() + i),
+                              _mm512_maskz_loadu_ps(lanes, pl.g[2].data() + i)};
+    const LaneCorners c = lane_corners(geo, lv, points);
+    const std::uint32_t slots = _mm512_mask_reduce_max_epu32(lanes, c.n);
     const __m512i stride = _mm512_set1_epi32(int(g.stride));
     __m512 acc[4] = {_mm512_setzero_ps(), _mm512_setzero_ps(), _mm512_setzero_ps(), _mm512_setzero_ps()};
-    // Slot s is each lane's s-th live corner in corner order c = x + 2y + 4z (x fastest):
-    // the digits of s, one bit per axis with both sides live, x first.
     for (std::uint32_t s = 0; s < slots; ++s) {
-        const __mmask16 k = lanes & _mm512_cmpgt_epu32_mask(n, _mm512_set1_epi32(int(s)));
-        __m512i digits = _mm512_set1_epi32(int(s));
-        __mmask16 up[3];
-        for (int a = 0; a < 3; ++a) {
-            up[a] = (both[a] & _mm512_test_epi32_mask(digits, one)) | (~both[a] & upper[a]);
-            digits = _mm512_mask_srli_epi32(digits, both[a], digits, 1);
-        }
-        __m512i term[3];
-        __m512 weight[3];
-        for (int a = 0; a < 3; ++a) {
-            term[a] = _mm512_mask_blend_epi32(up[a], ax[a].term[0], ax[a].term[1]);
-            weight[a] = _mm512_mask_blend_ps(up[a], ax[a].weight[0], ax[a].weight[1]);
-        }
-        const __m512i idx =
-            lv.dense ? _mm512_add_epi32(_mm512_add_epi32(term[0], term[1]), term[2])
-                     : _mm512_and_si512(_mm512_xor_si512(_mm512_xor_si512(term[0], term[1]), term[2]), mask);
-        const __m512 w = _mm512_mul_ps(_mm512_mul_ps(weight[0], weight[1]), weight[2]);
+        const __mmask16 k = lanes & _mm512_cmpgt_epu32_mask(c.n, _mm512_set1_epi32(int(s)));
+        __m512i idx;
+        __m512 w;
+        slot_corner(c, lv, s, idx, w);
         __m512 v[4];
         load_features(g, _mm512_mullo_epi32(idx, stride), k, F, v);
         for (std::uint32_t f = 0; f < F; ++f) acc[f] = _mm512_mask3_fmadd_ps(w, v[f], acc[f], k);
@@ -402,6 +422,24 @@ LSNIF_AVX512 void encode_level16(const Geometry& geo, const LevelInfo& lv, const
     for (std::uint32_t f = 0; f < F; ++f)
         _mm512_mask_i32scatter_ps(rows, lanes, _mm512_add_epi32(out, _mm512_set1_epi32(int(level * F + f))),
                                   acc[f], 4);
+}
+
+LSNIF_AVX512 void level_corners16_avx512(const Geometry& geo, const LevelInfo& lv, const float* x,
+                                         const float* y, const float* z, std::uint32_t count,
+                                         Corners16& out) {
+    const __mmask16 lanes = count >= 16 ? __mmask16(0xFFFF) : __mmask16((1u << count) - 1);
+    const __m512 points[3] = {_mm512_maskz_loadu_ps(lanes, x), _mm512_maskz_loadu_ps(lanes, y),
+                              _mm512_maskz_loadu_ps(lanes, z)};
+    const LaneCorners c = lane_corners(geo, lv, points);
+    _mm512_store_si512(out.n, _mm512_maskz_mov_epi32(lanes, c.n));
+    const std::uint32_t slots = _mm512_mask_reduce_max_epu32(lanes, c.n);
+    for (std::uint32_t s = 0; s < slots; ++s) {
+        __m512i idx;
+        __m512 w;
+        slot_corner(c, lv, s, idx, w);
+        _mm512_store_si512(out.index[s], idx);
+        _mm512_store_ps(out.weight[s], w);
+    }
 }
 
 // The vector encoder handles tables whose rows it can read with dword gathers.
@@ -491,6 +529,26 @@ LSNIF_AVX512 void encode_batch_avx512(const Geometry& geo, const GridView* grid,
 #endif
 
 }  // namespace
+
+void level_corners16(const Geometry& geo, const LevelInfo& lv, const float* x, const float* y, const float* z,
+                     std::uint32_t count, Corners16& out) {
+    count = std::min(count, 16u);
+#if LSNIF_HAVE_X86
+    static const bool avx512 = cpu_features().avx512;  // called per 16 points
+    if (avx512) return level_corners16_avx512(geo, lv, x, y, z, count, out);
+#endif
+    for (std::uint32_t j = 0; j < 16; ++j) out.n[j] = 0;
+    for (std::uint32_t j = 0; j < count; ++j) {
+        const float g[3] = {x[j], y[j], z[j]};
+        Corners c;
+        level_corners(geo, lv, g, c);
+        out.n[j] = c.n;
+        for (std::uint32_t s = 0; s < c.n; ++s) {
+            out.index[s][j] = c.index[s];
+            out.weight[s][j] = c.weight[s];
+        }
+    }
+}
 
 void encode_batch(const Geometry& geo, const GridView* grid, const RayPoints* pts,
                   std::span<const std::uint32_t> which, float* rows) {

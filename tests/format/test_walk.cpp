@@ -7,6 +7,7 @@
 #include <lsnif/format/cpu.hpp>
 #include <lsnif/format/forward.hpp>
 
+#include <bit>
 #include <cmath>
 #include <cstring>
 #include <limits>
@@ -185,4 +186,54 @@ TEST_CASE("the vector corner computation matches the scalar reference bit for bi
         }
     }
     CHECK(sparse > 1000);  // the dropped-corner cases are exercised
+}
+
+TEST_CASE("sixteen points' corners at once equal level_corners point by point") {
+    // The trainer's gradient scatter adds shares in level_corners' order from these: the
+    // same corners, order and weights, for full and partial batches, on hashed (aligned and
+    // not) and dense levels, with points on lattice planes and on the grid's far faces.
+    ModelDesc d = shell_desc(64, 14);
+    d.level_resolution = {16, 32, 128, 40};
+    d.log2_table_size = 16;  // 17^3 and 33^3 rows fit: levels 16 and 32 are dense; 40 and 128 hash
+    const Geometry geo = make_geometry(d);
+    REQUIRE(geo.levels[0].dense);
+    REQUIRE(!geo.levels[2].dense);
+    std::mt19937 rng(9);
+    std::uniform_real_distribution<float> u(0.f, 64.f);
+    std::uniform_int_distribution<int> plane(0, 64);
+    std::size_t points = 0, four = 0;
+    for (int batch = 0; batch < 2000; ++batch) {
+        const std::uint32_t count = batch % 7 == 0 ? std::uint32_t(batch % 16) + 1 : 16;
+        float x[16], y[16], z[16];
+        for (std::uint32_t j = 0; j < count; ++j) {
+            float g[3] = {u(rng), u(rng), u(rng)};
+            const int i = batch * 16 + int(j);
+            if (i % 2 == 0) g[i % 3] = float(plane(rng));  // on a voxel face, as entry points are
+            if (i % 23 == 0) g[(i + 1) % 3] = 64.0f;
+            x[j] = g[0], y[j] = g[1], z[j] = g[2];
+        }
+        for (std::uint32_t l = 0; l < geo.L; ++l) {
+            Corners16 got;
+            level_corners16(geo, geo.levels[l], x, y, z, count, got);
+            for (std::uint32_t j = 0; j < 16; ++j) {
+                if (j >= count) {
+                    REQUIRE(got.n[j] == 0);
+                    continue;
+                }
+                const float g[3] = {x[j], y[j], z[j]};
+                Corners want;
+                level_corners_reference(geo, geo.levels[l], g, want);
+                REQUIRE(got.n[j] == want.n);
+                four += want.n == 4;
+                ++points;
+                for (std::uint32_t s = 0; s < want.n; ++s) {
+                    REQUIRE(got.index[s][j] == want.index[s]);
+                    REQUIRE(std::bit_cast<std::uint32_t>(got.weight[s][j]) ==
+                            std::bit_cast<std::uint32_t>(want.weight[s]));
+                }
+            }
+        }
+    }
+    CHECK(points > 90000);
+    CHECK(four > points / 10);  // face points with dropped corners are exercised
 }

@@ -137,7 +137,6 @@ struct alignas(128) Work {
     // features (count x L x F); and the counts.
     std::vector<float> point_grads;
     std::vector<std::uint16_t> point_counts;
-    std::vector<format::Corners> corners;  // one sample's corners on one level
     // bf16 path only (empty in fp32): operands of the AMX products of one sub-chunk.
     detail::Bf16Buffer a_rows;  // forward A: layer input, kSub x pad32(in)
     detail::Bf16Buffer a_t;     // weight-gradient A: layer input transposed, pad16(in) x pad32(kSub)
@@ -690,51 +689,75 @@ double sum_of_squares(const float* x, std::size_t n) {
     return sum;
 }
 
+// Points of the scatter, 16 at a time: their grid coordinates (structure of arrays, what
+// level_corners16 reads), where their feature gradients on the level are, and their corners.
+struct ScatterBatch {
+    alignas(64) float x[16], y[16], z[16];
+    const float* src[16];
+    std::uint32_t count = 0;
+    format::Corners16 corners;
+};
+
 // Adds each sample's corner shares on level `level` into rows [first, last) of `table`
 // (rows x F) and marks them in `active`, the samples in the order `work` recorded them. Only
-// corners that carry weight are visited. Software-pipelined by one sample: a sample's
-// corners are computed and their rows prefetched (the table exceeds L2) while the previous
-// sample's shares are added, so each row has a sample's worth of work to arrive.
+// corners that carry weight are visited. The corners are computed 16 points at a time
+// (level_corners16) and software-pipelined by one batch: a batch's corners are computed and
+// their rows prefetched (the table exceeds L2) while the previous batch's shares are added,
+// so each row has a batch's worth of work to arrive. The shares are added point by point,
+// corner by corner, in the order level_corners gives them: the sums do not depend on the
+// batching.
 void scatter_level(const Geometry& geo, std::uint32_t level, std::pair<std::size_t, std::size_t> rows,
-                   const std::vector<Work>& work, float* table, std::uint8_t* active,
-                   std::vector<format::Corners>& corners) {
-    const std::uint32_t L = geo.L, F = geo.F, H = geo.H;
+                   const std::vector<Work>& work, float* table, std::uint8_t* active) {
+    const std::uint32_t L = geo.L, F = geo.F;
+    const format::LevelInfo& lv = geo.levels[level];
     const auto [first, last] = rows;
     const auto owned = [&](std::uint32_t index) { return index >= first && index < last; };
-    corners.resize(2 * std::size_t(H));
-    const auto stage = [&](const float* g, std::uint32_t count, format::Corners* cs) {
-        for (std::uint32_t h = 0; h < count; ++h) {
-            format::level_corners(geo, geo.levels[level], g + 3 * h, cs[h]);
-            for (std::uint32_t q = 0; q < cs[h].n; ++q)
-                if (owned(cs[h].index[q])) __builtin_prefetch(table + std::size_t(cs[h].index[q]) * F, 1);
-        }
+    const auto stage = [&](ScatterBatch& b) {
+        format::level_corners16(geo, lv, b.x, b.y, b.z, b.count, b.corners);
+        const format::Corners16& c = b.corners;
+        for (std::uint32_t j = 0; j < b.count; ++j)
+            for (std::uint32_t q = 0; q < c.n[j]; ++q)
+                if (owned(c.index[q][j])) __builtin_prefetch(table + std::size_t(c.index[q][j]) * F, 1);
     };
-    const auto add = [&](const float* dx, std::uint32_t count, const format::Corners* cs) {
-        for (std::uint32_t h = 0; h < count; ++h) {
-            const format::Corners& c = cs[h];
-            const float* src = dx + (std::size_t(h) * L + level) * F;
-            for (std::uint32_t q = 0; q < c.n; ++q) {
-                if (!owned(c.index[q])) continue;
-                float* dst = table + std::size_t(c.index[q]) * F;
-                for (std::uint32_t f = 0; f < F; ++f) dst[f] += c.weight[q] * src[f];
-                active[c.index[q]] = 1;
+    const auto add = [&](const ScatterBatch& b) {
+        const format::Corners16& c = b.corners;
+        for (std::uint32_t j = 0; j < b.count; ++j) {
+            const float* src = b.src[j];
+            for (std::uint32_t q = 0; q < c.n[j]; ++q) {
+                const std::uint32_t index = c.index[q][j];
+                if (!owned(index)) continue;
+                float* dst = table + std::size_t(index) * F;
+                for (std::uint32_t f = 0; f < F; ++f) dst[f] += c.weight[q][j] * src[f];
+                active[index] = 1;
             }
         }
     };
-    const float* pending_dx = nullptr;  // the staged sample whose shares are not added yet
-    std::uint32_t pending_count = 0, slot = 0;
+    ScatterBatch batch[2];
+    std::uint32_t cur = 0;
+    bool pending = false;  // batch[cur ^ 1] is staged and its shares are not added yet
     for (const Work& w : work) {
         const float* rec = w.point_grads.data();
         for (const std::uint16_t count : w.point_counts) {
-            stage(rec, count, corners.data() + slot * H);
-            if (pending_dx) add(pending_dx, pending_count, corners.data() + (slot ^ 1) * H);
-            pending_dx = rec + 3 * count;
-            pending_count = count;
-            slot ^= 1;
+            const float* dx = rec + 3 * count;
+            for (std::uint32_t h = 0; h < count; ++h) {
+                ScatterBatch& b = batch[cur];
+                b.x[b.count] = rec[3 * h];
+                b.y[b.count] = rec[3 * h + 1];
+                b.z[b.count] = rec[3 * h + 2];
+                b.src[b.count++] = dx + (std::size_t(h) * L + level) * F;
+                if (b.count < 16) continue;
+                stage(b);
+                if (pending) add(batch[cur ^ 1]);
+                pending = true;
+                cur ^= 1;
+                batch[cur].count = 0;
+            }
             rec += count * (3 + std::size_t(L) * F);
         }
     }
-    if (pending_dx) add(pending_dx, pending_count, corners.data() + (slot ^ 1) * H);
+    if (batch[cur].count) stage(batch[cur]);
+    if (pending) add(batch[cur ^ 1]);
+    if (batch[cur].count) add(batch[cur]);
 }
 
 }  // namespace
@@ -830,7 +853,7 @@ void Trainer::Impl::scatter_grid_gradients(const Geometry& geo) {
         for (std::uint32_t l = 0; l < geo.L; ++l) {
             const auto [first, last] = owned[t][l];
             if (first == last) continue;
-            scatter_level(geo, l, owned[t][l], work, gsum[l].data(), active[l].data(), work[t].corners);
+            scatter_level(geo, l, owned[t][l], work, gsum[l].data(), active[l].data());
             // Rows without gradient are zero, so the whole share can be summed.
             norm2 += sum_of_squares(gsum[l].data() + first * geo.F, (last - first) * geo.F);
         }

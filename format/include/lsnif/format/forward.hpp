@@ -161,6 +161,19 @@ void level_corners(const Geometry& geo, const LevelInfo& lv, const float g[3], C
 // The portable scalar level_corners, which the AVX-512 one must match bit for bit (tests).
 void level_corners_reference(const Geometry& geo, const LevelInfo& lv, const float g[3], Corners& out);
 
+// level_corners of up to 16 points at once: point j < count (at most 16) is (x[j], y[j],
+// z[j]); its corners are index[s][j] and weight[s][j] for s < n[j], in level_corners' order
+// and bit for bit its values; n[j] = 0 for j >= count, and entries past a point's n are
+// unspecified. 16 AVX-512 lanes where the CPU has it (the trainer's gradient scatter calls
+// it once per 16 points instead of level_corners per point), else level_corners per point.
+struct Corners16 {
+    alignas(64) std::uint32_t index[8][16];
+    alignas(64) float weight[8][16];
+    alignas(64) std::uint32_t n[16];
+};
+void level_corners16(const Geometry& geo, const LevelInfo& lv, const float* x, const float* y, const float* z,
+                     std::uint32_t count, Corners16& out);
+
 // Element type of a GridView.
 enum class GridElement : std::uint8_t {
     f32,  // float: the trainer's master copy
