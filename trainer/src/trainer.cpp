@@ -719,6 +719,19 @@ void scatter_level(const Geometry& geo, std::uint32_t level, std::pair<std::size
             for (std::uint32_t q = 0; q < c.n[j]; ++q)
                 if (owned(c.index[q][j])) __builtin_prefetch(table + std::size_t(c.index[q][j]) * F, 1);
     };
+    // dst[f] += weight * src[f] for f < F. The presets' F = 3 spelled out: the loop over a
+    // run-time F paid for its bounds and for checks that dst and src do not overlap on every
+    // corner. Same statement per feature, so the same rounding.
+    const auto add_share = [F](float* dst, float weight, const float* src) {
+        if (F == 3) {
+            const float s0 = src[0], s1 = src[1], s2 = src[2];
+            dst[0] += weight * s0;
+            dst[1] += weight * s1;
+            dst[2] += weight * s2;
+            return;
+        }
+        for (std::uint32_t f = 0; f < F; ++f) dst[f] += weight * src[f];
+    };
     const auto add = [&](const ScatterBatch& b) {
         const format::Corners16& c = b.corners;
         for (std::uint32_t j = 0; j < b.count; ++j) {
@@ -726,8 +739,7 @@ void scatter_level(const Geometry& geo, std::uint32_t level, std::pair<std::size
             for (std::uint32_t q = 0; q < c.n[j]; ++q) {
                 const std::uint32_t index = c.index[q][j];
                 if (!owned(index)) continue;
-                float* dst = table + std::size_t(index) * F;
-                for (std::uint32_t f = 0; f < F; ++f) dst[f] += c.weight[q][j] * src[f];
+                add_share(table + std::size_t(index) * F, c.weight[q][j], src);
                 active[index] = 1;
             }
         }
