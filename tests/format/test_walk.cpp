@@ -157,6 +157,21 @@ TEST_CASE("the 16-lane walk handles batches shorter than its lanes and empty gri
     }
 }
 
+namespace {
+
+// Point i of a sequence of grid points of a V^3 grid for the corner tests: random, with
+// coordinates on voxel faces (as entry points are) and on the far face (s == res) mixed in.
+void corner_test_point(std::mt19937& rng, std::uint32_t V, int i, float g[3]) {
+    std::uniform_real_distribution<float> u(0.f, float(V));
+    std::uniform_int_distribution<int> plane(0, int(V));
+    for (int a = 0; a < 3; ++a) g[a] = u(rng);
+    for (int a = 0; a < 3; ++a)
+        if ((i >> a) % 3 == 0) g[a] = float(plane(rng));  // on a voxel face
+    if (i % 17 == 0) g[i % 3] = float(V);
+}
+
+}  // namespace
+
 TEST_CASE("the vector corner computation matches the scalar reference bit for bit") {
     // Hashed levels (aligned and not), a dense level, and points on lattice planes, on the
     // grid's far faces (s == res) and at random.
@@ -167,14 +182,10 @@ TEST_CASE("the vector corner computation matches the scalar reference bit for bi
     REQUIRE(geo.levels[3].dense);
     REQUIRE(!geo.levels[0].dense);
     std::mt19937 rng(8);
-    std::uniform_real_distribution<float> u(0.f, 32.f);
-    std::uniform_int_distribution<int> plane(0, 32);
     std::size_t sparse = 0;
     for (int i = 0; i < 20000; ++i) {
-        float g[3] = {u(rng), u(rng), u(rng)};
-        for (int a = 0; a < 3; ++a)
-            if ((i >> a) % 3 == 0) g[a] = float(plane(rng));  // on a voxel face
-        if (i % 17 == 0) g[i % 3] = 32.0f;
+        float g[3];
+        corner_test_point(rng, 32, i, g);
         for (std::uint32_t l = 0; l < geo.L; ++l) {
             Corners got, want;
             level_corners(geo, geo.levels[l], g, got);
@@ -199,17 +210,13 @@ TEST_CASE("sixteen points' corners at once equal level_corners point by point") 
     REQUIRE(geo.levels[0].dense);
     REQUIRE(!geo.levels[2].dense);
     std::mt19937 rng(9);
-    std::uniform_real_distribution<float> u(0.f, 64.f);
-    std::uniform_int_distribution<int> plane(0, 64);
     std::size_t points = 0, four = 0;
     for (int batch = 0; batch < 2000; ++batch) {
         const std::uint32_t count = batch % 7 == 0 ? std::uint32_t(batch % 16) + 1 : 16;
         float x[16], y[16], z[16];
         for (std::uint32_t j = 0; j < count; ++j) {
-            float g[3] = {u(rng), u(rng), u(rng)};
-            const int i = batch * 16 + int(j);
-            if (i % 2 == 0) g[i % 3] = float(plane(rng));  // on a voxel face, as entry points are
-            if (i % 23 == 0) g[(i + 1) % 3] = 64.0f;
+            float g[3];
+            corner_test_point(rng, 64, batch * 16 + int(j), g);
             x[j] = g[0], y[j] = g[1], z[j] = g[2];
         }
         for (std::uint32_t l = 0; l < geo.L; ++l) {
