@@ -363,44 +363,45 @@ LSNIF_AVX512 inline void slot_corner(const LaneCorners& c, const LevelInfo& lv, 
     w = _mm512_mul_ps(_mm512_mul_ps(weight[0], weight[1]), weight[2]);
 }
 
-// Feature f (< 4) of the rows at element offsets `off` (row * stride) of a table, for the
-// lanes in k (0 elsewhere), converted to f32 exactly as the scalar loaders do.
+// Feature f (< F <= 4) of the rows at element offsets `off` (row * stride) of a table of
+// element type E, for the lanes in k (0 elsewhere), converted to f32 exactly as the scalar
+// loaders do.
+template <GridElement E>
 LSNIF_AVX512 inline void load_features(const GridView& g, __m512i off, __mmask16 k, std::uint32_t F,
                                        __m512 (&v)[4]) {
     const __m512i zero = _mm512_setzero_si512();
-    switch (g.element) {
-        case GridElement::u8: {  // one dword holds the row's features (stride >= 4)
-            const __m512i q = _mm512_mask_i32gather_epi32(zero, k, off, g.data, 1);
-            const __m512i byte = _mm512_set1_epi32(0xFF);
-            for (std::uint32_t f = 0; f < F; ++f) {
-                const __m512 x = _mm512_cvtepi32_ps(_mm512_and_si512(_mm512_srli_epi32(q, int(8 * f)), byte));
-                v[f] = _mm512_fmadd_ps(x, _mm512_set1_ps(g.scale), _mm512_set1_ps(g.offset));
-            }
-            break;
+    if constexpr (E == GridElement::u8) {  // one dword holds the row's features (stride >= 4)
+        const __m512i q = _mm512_mask_i32gather_epi32(zero, k, off, g.data, 1);
+        const __m512i byte = _mm512_set1_epi32(0xFF);
+        for (std::uint32_t f = 0; f < F; ++f) {
+            const __m512 x = _mm512_cvtepi32_ps(_mm512_and_si512(_mm512_srli_epi32(q, int(8 * f)), byte));
+            v[f] = _mm512_fmadd_ps(x, _mm512_set1_ps(g.scale), _mm512_set1_ps(g.offset));
         }
-        case GridElement::f16:  // two dwords hold halves 0-1 and 2-3 (stride >= 4)
-            for (std::uint32_t f = 0; f < F; f += 2) {
-                const __m512i h = _mm512_mask_i32gather_epi32(
-                    zero, k, _mm512_add_epi32(off, _mm512_set1_epi32(int(f))), g.data, 2);
-                v[f] = _mm512_cvtph_ps(_mm512_cvtepi32_epi16(h));
-                if (f + 1 < F) v[f + 1] = _mm512_cvtph_ps(_mm512_cvtepi32_epi16(_mm512_srli_epi32(h, 16)));
-            }
-            break;
-        case GridElement::f32:
-            for (std::uint32_t f = 0; f < F; ++f)
-                v[f] = _mm512_mask_i32gather_ps(_mm512_setzero_ps(), k,
-                                                _mm512_add_epi32(off, _mm512_set1_epi32(int(f))), g.data, 4);
-            break;
+    } else if constexpr (E == GridElement::f16) {  // two dwords hold halves 0-1 and 2-3 (stride >= 4)
+        for (std::uint32_t f = 0; f < F; f += 2) {
+            const __m512i h = _mm512_mask_i32gather_epi32(
+                zero, k, _mm512_add_epi32(off, _mm512_set1_epi32(int(f))), g.data, 2);
+            v[f] = _mm512_cvtph_ps(_mm512_cvtepi32_epi16(h));
+            if (f + 1 < F) v[f + 1] = _mm512_cvtph_ps(_mm512_cvtepi32_epi16(_mm512_srli_epi32(h, 16)));
+        }
+    } else {
+        for (std::uint32_t f = 0; f < F; ++f)
+            v[f] = _mm512_mask_i32gather_ps(_mm512_setzero_ps(), k,
+                                            _mm512_add_epi32(off, _mm512_set1_epi32(int(f))), g.data, 4);
     }
 }
 
 // One level's F features of points [i, i + 16) of `pl` (lanes past pl.n masked off),
 // written to the rows: encode_points' per-point arithmetic, 16 points per vector. Each lane
 // walks its own live corners (those level_corners keeps: no zero factor) in level_corners'
-// order, so a point on a voxel face of an aligned level costs 4 gathers, not 8.
+// order, so a point on a voxel face of an aligned level costs 4 gathers, not 8. kF = geo.F
+// known at compile time (0: read at run time) and the table's element type E let the
+// accumulators stay in registers: with a run-time F and a switch on the element type per
+// corner they lived on the stack, each corner's masked store waiting for the last.
+template <std::uint32_t kF, GridElement E>
 LSNIF_AVX512 void encode_level16(const Geometry& geo, const LevelInfo& lv, const GridView& g,
                                  std::uint32_t level, const PointList& pl, std::size_t i, float* rows) {
-    const std::uint32_t F = geo.F;
+    const std::uint32_t F = kF ? kF : geo.F;
     const __mmask16 lanes = pl.n - i >= 16 ? __mmask16(0xFFFF) : __mmask16((1u << (pl.n - i)) - 1);
     const __m512 points[3] = {_mm512_maskz_loadu_ps(lanes, pl.g[0].data() + i),
                               _mm512_maskz_loadu_ps(lanes, pl.g[1].data() + i),
@@ -415,7 +416,7 @@ LSNIF_AVX512 void encode_level16(const Geometry& geo, const LevelInfo& lv, const
         __m512 w;
         slot_corner(c, lv, s, idx, w);
         __m512 v[4];
-        load_features(g, _mm512_mullo_epi32(idx, stride), k, F, v);
+        load_features<E>(g, _mm512_mullo_epi32(idx, stride), k, F, v);
         for (std::uint32_t f = 0; f < F; ++f) acc[f] = _mm512_mask3_fmadd_ps(w, v[f], acc[f], k);
     }
     const __m512i out = _mm512_maskz_loadu_epi32(lanes, pl.out.data() + i);
@@ -440,6 +441,23 @@ LSNIF_AVX512 void level_corners16_avx512(const Geometry& geo, const LevelInfo& l
         _mm512_store_si512(out.index[s], idx);
         _mm512_store_ps(out.weight[s], w);
     }
+}
+
+// encode_level16 for a model's F and a table's element type: every preset's F = 3 compiled
+// as a constant, any other F read at run time.
+using EncodeLevel16 = void (*)(const Geometry&, const LevelInfo&, const GridView&, std::uint32_t,
+                               const PointList&, std::size_t, float*);
+template <std::uint32_t kF>
+EncodeLevel16 encode_level16_of(GridElement e) {
+    switch (e) {
+        case GridElement::u8: return encode_level16<kF, GridElement::u8>;
+        case GridElement::f16: return encode_level16<kF, GridElement::f16>;
+        case GridElement::f32: break;
+    }
+    return encode_level16<kF, GridElement::f32>;
+}
+EncodeLevel16 encode_level16_for(std::uint32_t F, GridElement e) {
+    return F == 3 ? encode_level16_of<3>(e) : encode_level16_of<0>(e);
 }
 
 // The vector encoder handles tables whose rows it can read with dword gathers.
@@ -518,9 +536,10 @@ LSNIF_AVX512 void encode_batch_avx512(const Geometry& geo, const GridView* grid,
     }
     const std::vector<SharedPoint>& shared = shared_first_points(geo, pts, which, add);
     pl.n = i;  // at most total: shared first points are copied, not listed
-    for (std::uint32_t l = 0; l < geo.L; ++l)
-        for (std::size_t b = 0; b < pl.n; b += 16)
-            encode_level16(geo, geo.levels[l], grid[l], l, pl, b, rows);
+    for (std::uint32_t l = 0; l < geo.L; ++l) {
+        const auto encode = encode_level16_for(geo.F, grid[l].element);
+        for (std::size_t b = 0; b < pl.n; b += 16) encode(geo, geo.levels[l], grid[l], l, pl, b, rows);
+    }
     for (const SharedPoint& c : shared) std::memcpy(rows + c.to, rows + c.from, slot * sizeof(float));
 }
 

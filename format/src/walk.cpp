@@ -616,8 +616,9 @@ LSNIF_AVX512 inline __mmask16 leave_box(Axis (&ax)[3], __mmask16 m, __m512i shif
 #pragma GCC unroll 3
     for (int a = 0; a < 3; ++a) {
         Axis& x = ax[a];
+        // No early exit for an axis no lane moves along: which axes move differs from step to
+        // step, and the branch cost more than the masked work it saved.
         const __mmask16 moving = _mm512_mask_cmp_ps_mask(m & x.moves, x.exit, box_exit, _CMP_LE_OQ);
-        if (!moving) continue;
         // The guess, kept between the current cell and one cell past the grid.
         const __m512 pos = _mm512_fmadd_ps(box_exit, x.gd, x.go);
         __m512i c = _mm512_cvtps_epi32(_mm512_roundscale_ps(pos, _MM_FROUND_TO_NEG_INF | _MM_FROUND_NO_EXC));
