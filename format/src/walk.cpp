@@ -277,8 +277,8 @@ namespace {
 #define LSNIF_AVX512 __attribute__((target("avx512f,avx512vl,avx512bw,avx512dq,fma")))
 
 constexpr int kLanes = 16;
-static_assert(OccupancyGrid::kBlock == 4 && OccupancyGrid::kSubBlock == 2,
-              "the 16-lane walk divides cells by a block's size with a shift of 2 or 1");
+static_assert(OccupancyGrid::kSuperBlock == 8 && OccupancyGrid::kBlock == 4 && OccupancyGrid::kSubBlock == 2,
+              "the 16-lane walk divides cells by a block's size with a shift of 3, 2 or 1");
 
 // The state of 16 walks as structure-of-arrays, and which ray each lane walks. Held in
 // registers across iterations; written back here only when lanes are refilled.
