@@ -10,6 +10,9 @@
 #include <cstring>
 
 #include "x86.hpp"
+#if LSNIF_HAVE_X86
+#include "avx512_transpose.hpp"
+#endif
 
 namespace lsnif::format {
 
@@ -315,6 +318,141 @@ LSNIF_VNNI_TARGET void gemm_int8_vnni_quantized(std::size_t m, const Int8Operand
     }
 }
 
+// ---- rows in vector lanes (mlp_int8_in_lanes) ----
+
+// acc += VPDPBUSD(u, broadcast dword at s4): the weights of one column as an embedded
+// broadcast operand ({1to16}), so no register holds them.
+LSNIF_VNNI_TARGET inline __m512i dpbusd_broadcast(__m512i acc, __m512i u, const std::uint8_t* s4) {
+    __asm__("vpdpbusd %2%{1to16%}, %1, %0"
+            : "+v"(acc)
+            : "v"(u), "m"(*reinterpret_cast<const std::int32_t*>(s4)));
+    return acc;
+}
+
+// The activations of one block of 16 rows, lanes = rows: quad p of a layer's input at a[p]
+// (four bytes of each row per dword), the rows' scales, and one layer's outputs y[j].
+struct LanesBlock {
+    __m512i* a;
+    __m512 sx;
+    __m512* y;
+};
+
+// Rows [r0, r0 + rows) of `in` (rows <= 16; the others zero) into lanes: quads [0, head)
+// and [tail, end) of `live` transposed 16 at a time. Signed rows get their bytes' top bit
+// flipped (q + 128, unsigned), which mlp_int8_in_lanes' first layer takes back through its
+// weights' quad sums.
+LSNIF_VNNI_TARGET void rows_to_lanes(const Int8Rows& in, std::size_t r0, std::size_t rows, LiveGroups live,
+                                     bool flip, LanesBlock& blk) {
+    const std::size_t quads = in.ld / 4;
+    blk.sx = _mm512_maskz_loadu_ps(lane_mask16(0, rows), in.scale.data() + r0);
+    const __m512i top = _mm512_set1_epi32(flip ? std::int32_t(0x80808080u) : 0);
+    for (std::size_t c0 = 0; c0 < live.end; c0 += 16) {
+        if (c0 >= live.head && c0 + 16 <= live.tail) continue;  // all of it skipped
+        const __mmask16 cols = lane_mask16(c0, quads);
+        __m512i t[16];
+        for (std::size_t i = 0; i < 16; ++i)
+            t[i] = i < rows ? _mm512_maskz_loadu_epi32(cols, in.q.data() + (r0 + i) * in.ld + 4 * c0)
+                            : _mm512_setzero_si512();
+        detail::transpose16(t);
+        for (std::size_t j = 0; j < 16 && c0 + j < quads; ++j) blk.a[c0 + j] = _mm512_xor_si512(t[j], top);
+    }
+}
+
+// One int8 hidden layer on a block: y[j] = sx * sw[j] * sum + bias[j] for every column j
+// (the ReLU applied when `relu`), visiting quads [0, head) and [tail, end). Returns the
+// rows' maxima of the ReLU'd outputs (VMAXPS from +0, as quantize_row). Signed: the inputs
+// arrive as q + 128, so each column's sum starts at -128 times its weights' sum over the
+// visited quads; the integer result is the same sum of q * w.
+template <bool Signed>
+LSNIF_VNNI_TARGET __m512 lanes_layer(const Int8Layer& w, const float* bias, LiveGroups live, bool relu,
+                                     LanesBlock& blk) {
+    const std::size_t np = w.out_padded, ldb = 4 * np;
+    const std::uint8_t* b = Signed ? w.w_signed.data() : w.b.data();
+    __m512 m = _mm512_setzero_ps();
+    const std::size_t visited = live.head + (live.end - live.tail);
+    for (std::size_t j0 = 0; j0 < np; j0 += 16) {
+        __m512i acc[16];
+#pragma GCC unroll 16
+        for (std::size_t j = 0; j < 16; ++j) {
+            std::int32_t start = 0;
+            if constexpr (Signed) {
+                const std::int32_t* s = w.quad_prefix.data() + j0 + j;
+                start = -128 * (s[live.head * np] + s[live.end * np] - s[live.tail * np]);
+            }
+            acc[j] = _mm512_set1_epi32(start);
+        }
+        // One loop over the visited quads (two loops, or a lambda per quad, make GCC keep
+        // the accumulators on the stack).
+        const std::size_t skip = live.tail - live.head;
+        for (std::size_t p = 0, i = 0; i < visited; ++i, ++p) {
+            p += i == live.head ? skip : 0;
+            const __m512i a = blk.a[p];
+            const std::uint8_t* bp = b + p * ldb + 4 * j0;
+#pragma GCC unroll 16
+            for (std::size_t j = 0; j < 16; ++j) acc[j] = dpbusd_broadcast(acc[j], a, bp + 4 * j);
+        }
+#pragma GCC unroll 16
+        for (std::size_t j = 0; j < 16; ++j) {
+            __m512 y = _mm512_fmadd_ps(_mm512_cvtepi32_ps(acc[j]),
+                                       _mm512_mul_ps(blk.sx, _mm512_set1_ps(w.scale[j0 + j])),
+                                       _mm512_set1_ps(bias[j0 + j]));
+            m = _mm512_max_ps(y, m);
+            if (relu) y = _mm512_maskz_mov_ps(_mm512_cmp_ps_mask(y, _mm512_setzero_ps(), _CMP_GT_OQ), y);
+            blk.y[j0 + j] = y;
+        }
+    }
+    return m;
+}
+
+// The block's np outputs before the ReLU, quantized as the next layer's unsigned input (the
+// same bytes as quantize_row: scale m / 255 and inverse 255 / m by correctly rounded vector
+// division, max(y * inverse, +0), conversion, unsigned saturation to 255), four columns per
+// dword into blk.a; the new scales into blk.sx.
+LSNIF_VNNI_TARGET void lanes_quantize(std::size_t np, __m512 m, LanesBlock& blk) {
+    const __m512 hi = _mm512_set1_ps(kUnsigned.hi);
+    const __mmask16 live = _mm512_cmp_ps_mask(m, _mm512_setzero_ps(), _CMP_GT_OQ);
+    blk.sx = _mm512_maskz_div_ps(live, m, hi);
+    const __m512 inverse = _mm512_maskz_div_ps(live, hi, m);
+    const __m512i byte_max = _mm512_set1_epi32(255);
+    for (std::size_t p = 0; p < np / 4; ++p) {
+        __m512i word = _mm512_setzero_si512();
+        for (int i = 0; i < 4; ++i) {
+            const __m512 t = _mm512_max_ps(_mm512_mul_ps(blk.y[4 * p + i], inverse), _mm512_setzero_ps());
+            const __m512i q = _mm512_min_epu32(_mm512_cvtps_epi32(t), byte_max);
+            word = _mm512_or_si512(word, _mm512_slli_epi32(q, 8 * i));
+        }
+        blk.a[p] = word;
+    }
+}
+
+// The output layer on the block's last hidden outputs: per row and output, the bias, then
+// one FMA per input in order (as dense_output_avx512), transposed back to rows of 16.
+template <int OUTS>
+LSNIF_VNNI_TARGET void lanes_output(const Int8OutputLayer& out, const LanesBlock& blk, std::size_t rows,
+                                    float* c) {
+    __m512 acc[OUTS];
+    for (int o = 0; o < OUTS; ++o) acc[o] = _mm512_set1_ps(out.bias[o]);
+    for (std::size_t k = 0; k < out.in; ++k)
+        for (int o = 0; o < OUTS; ++o)
+            acc[o] = _mm512_fmadd_ps(blk.y[k], _mm512_set1_ps(out.wt[k * 16 + o]), acc[o]);
+    __m512i t[16];
+    for (int o = 0; o < 16; ++o) t[o] = o < OUTS ? _mm512_castps_si512(acc[o]) : _mm512_setzero_si512();
+    detail::transpose16(t);
+    for (std::size_t i = 0; i < rows; ++i) _mm512_storeu_si512(c + i * 16, t[i]);
+}
+
+using LanesOutput = void (*)(const Int8OutputLayer&, const LanesBlock&, std::size_t, float*);
+LanesOutput lanes_output_for(std::size_t outs) {
+    switch (outs) {
+        case 1: return lanes_output<1>;
+        case 5: return lanes_output<5>;
+        case 6: return lanes_output<6>;
+        case 7: return lanes_output<7>;
+        case 8: return lanes_output<8>;
+    }
+    return nullptr;
+}
+
 #pragma GCC diagnostic pop
 
 #endif  // LSNIF_HAVE_X86
@@ -339,6 +477,20 @@ Int8Layer make_int8_layer(const float* wt, std::size_t in, std::size_t out_padde
             const std::int32_t q = quantize_value(wt[k * out_padded + j] * s.inverse, kSigned);
             layer.b[(k / 4) * 4 * out_padded + 4 * j + k % 4] = std::uint8_t(signed_input ? q + 128 : q);
         }
+    }
+    if (signed_input) {
+        // XOR 0x80 turns the offset byte q + 128 into q's two's complement byte.
+        layer.w_signed.resize(layer.b.size());
+        for (std::size_t i = 0; i < layer.b.size(); ++i) layer.w_signed[i] = layer.b[i] ^ 0x80u;
+        const std::size_t quads = k4 / 4;
+        layer.quad_prefix.assign((quads + 1) * out_padded, 0);
+        for (std::size_t p = 0; p < quads; ++p)
+            for (std::size_t j = 0; j < out_padded; ++j) {
+                std::int32_t sum = 0;
+                for (std::size_t h = 0; h < 4; ++h)
+                    sum += std::int32_t(layer.b[p * 4 * out_padded + 4 * j + h]) - 128;
+                layer.quad_prefix[(p + 1) * out_padded + j] = layer.quad_prefix[p * out_padded + j] + sum;
+            }
     }
     return layer;
 }
@@ -408,6 +560,52 @@ void gemm_int8_relu_quantized(std::size_t m, const Int8Rows& a, const Int8Layer&
     if (scratch.size() < m * np) scratch.resize(m * np);
     gemm_int8(m, a, layer, bias, true, scratch.data(), np, zeros);
     quantize_rows(scratch.data(), m, np, np, false, next);
+}
+
+bool mlp_int8_in_lanes(std::size_t m, const Int8Rows& input, const Int8Layer* hidden,
+                       const std::vector<float>* hidden_bias, std::size_t hidden_count,
+                       const Int8OutputLayer& out, const ZeroColumns* zeros, float* c) {
+#if LSNIF_HAVE_X86
+    if (!cpu_features().avx512_vnni || hidden_count == 0) return false;
+    const LanesOutput output = lanes_output_for(out.outs);
+    if (!output) return false;
+    std::size_t quads = input.ld / 4, width = 0;
+    for (std::size_t k = 0; k < hidden_count; ++k) {
+        quads = std::max(quads, (hidden[k].out_padded + 3) / 4);
+        width = std::max(width, hidden[k].out_padded);
+    }
+    // One block's activations: quads of 16 dwords and outputs of 16 floats, 64-byte aligned.
+    struct alignas(64) Lane {
+        std::int32_t v[16];
+    };
+    thread_local std::vector<Lane> a, y;
+    if (a.size() < quads) a.resize(quads);
+    if (y.size() < width) y.resize(width);
+    LanesBlock blk{reinterpret_cast<__m512i*>(a.data()), _mm512_setzero_ps(),
+                   reinterpret_cast<__m512*>(y.data())};
+    for (std::size_t r0 = 0; r0 < m; r0 += 16) {
+        const std::size_t rows = std::min<std::size_t>(16, m - r0);
+        const std::size_t quads0 = (hidden[0].in + 3) / 4;
+        const LiveGroups live0 = live_groups(zeros, r0, rows, quads0, 4);
+        rows_to_lanes(input, r0, rows, live0, hidden[0].signed_input, blk);
+        for (std::size_t k = 0; k < hidden_count; ++k) {
+            const Int8Layer& w = hidden[k];
+            const std::size_t q = (w.in + 3) / 4;
+            const LiveGroups live = k == 0 ? live0 : LiveGroups{q, q, q};
+            const bool last = k + 1 == hidden_count;
+            const __m512 maxima = w.signed_input
+                                      ? lanes_layer<true>(w, hidden_bias[k].data(), live, last, blk)
+                                      : lanes_layer<false>(w, hidden_bias[k].data(), live, last, blk);
+            if (!last) lanes_quantize(w.out_padded, maxima, blk);
+        }
+        output(out, blk, rows, c + r0 * 16);
+    }
+    return true;
+#else
+    (void)m, (void)input, (void)hidden, (void)hidden_bias, (void)hidden_count, (void)out, (void)zeros,
+        (void)c;
+    return false;
+#endif
 }
 
 }  // namespace lsnif::format

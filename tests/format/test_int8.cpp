@@ -5,6 +5,7 @@
 #include <doctest/doctest.h>
 
 #include <lsnif/format/cpu.hpp>
+#include <lsnif/format/forward.hpp>
 #include <lsnif/format/int8.hpp>
 
 #include <algorithm>
@@ -231,5 +232,91 @@ TEST_CASE(
         CHECK(saturated == (out_padded + 2) / 3);  // every positive denormal column
         CHECK(std::memcmp(next.q.data(), want_next.q.data(), m * next.ld) == 0);
         CHECK(std::memcmp(next.scale.data(), want_next.scale.data(), m * sizeof(float)) == 0);
+    }
+}
+
+TEST_CASE("the network with rows in vector lanes gives the layer-by-layer results bit for bit") {
+    // Shapes: the default model's (143 signed inputs with empty point slots and entry offsets
+    // -> 128 -> 98 padded to 112 -> the output layer), a third hidden layer whose input stops
+    // short of the previous padding, a single hidden layer, unsigned first inputs; row counts
+    // around the 16-row block.
+    struct Net {
+        std::vector<std::size_t> widths;  // inputs, hidden outputs (unpadded), the output layer's 16
+        std::size_t tail, rest_start;     // ZeroColumns of the input (0 = none)
+        bool signed_input;
+    };
+    std::mt19937 rng(17);
+    std::uniform_real_distribution<float> u(-1.f, 1.f);
+    for (const Net& net :
+         {Net{{143, 128, 98, 16}, 126, 129, true}, Net{{143, 128, 98, 70, 16}, 126, 129, true},
+          Net{{33, 48, 16}, 20, 0, true}, Net{{64, 80, 16}, 0, 0, false}}) {
+        const std::size_t hidden_count = net.widths.size() - 2, in = net.widths[0];
+        std::vector<Int8Layer> hidden;
+        std::vector<std::vector<float>> bias;
+        for (std::size_t k = 0; k < hidden_count; ++k) {
+            const std::size_t kin = net.widths[k], op = (net.widths[k + 1] + 15) / 16 * 16;
+            std::vector<float> wt(kin * op, 0.0f), b(op, 0.0f);
+            for (std::size_t i = 0; i < kin; ++i)
+                for (std::size_t j = 0; j < net.widths[k + 1]; ++j) wt[i * op + j] = u(rng);
+            for (std::size_t j = 0; j < net.widths[k + 1]; ++j) b[j] = 0.2f * u(rng);
+            hidden.push_back(make_int8_layer(wt.data(), kin, op, k == 0 && net.signed_input));
+            bias.push_back(b);
+        }
+        const std::size_t out_in = net.widths[hidden_count];
+        std::vector<float> out_wt(out_in * 16), out_bias(16);
+        for (float& w : out_wt) w = u(rng);
+        for (float& b : out_bias) b = u(rng);
+        for (const std::size_t m : {std::size_t(1), std::size_t(16), std::size_t(37), std::size_t(256)}) {
+            CAPTURE(in);
+            CAPTURE(hidden_count);
+            CAPTURE(m);
+            std::vector<float> x(m * in);
+            std::vector<std::uint32_t> lead(m), rest(m);
+            for (std::size_t r = 0; r < m; ++r) {
+                // Sorted by decreasing lead, as the reader's rows are.
+                lead[r] = net.tail ? std::uint32_t(net.tail - (r * net.tail) / m) : 0;
+                rest[r] = net.rest_start ? std::uint32_t(rng() % (in - net.rest_start + 1)) : 0;
+                for (std::size_t k = 0; k < in; ++k) {
+                    const bool zero = net.tail && ((k >= lead[r] && k < net.tail) ||
+                                                   (net.rest_start && k >= net.rest_start + rest[r]));
+                    const float v = u(rng);
+                    x[r * in + k] = zero ? 0.0f : net.signed_input ? v : std::fabs(v);
+                }
+            }
+            const ZeroColumns zeros{lead.data(), net.tail, net.rest_start ? rest.data() : nullptr,
+                                    net.rest_start};
+            const ZeroColumns* z = net.tail ? &zeros : nullptr;
+            Int8Rows input, rows[2];
+            quantize_rows(x.data(), m, in, in, net.signed_input, input);
+            rows[0] = input;
+            // The layer-by-layer path.
+            std::vector<float> last(m * hidden.back().out_padded), scratch;
+            for (std::size_t k = 0; k + 1 < hidden_count; ++k)
+                gemm_int8_relu_quantized(m, rows[k % 2], hidden[k], bias[k].data(), rows[(k + 1) % 2],
+                                         scratch, k == 0 ? z : nullptr);
+            gemm_int8(m, rows[(hidden_count - 1) % 2], hidden.back(), bias.back().data(), true, last.data(),
+                      hidden.back().out_padded, hidden_count == 1 ? z : nullptr);
+            for (const std::size_t outs : {std::size_t(1), std::size_t(5), std::size_t(8)}) {
+                CAPTURE(outs);
+                std::vector<float> want(m * 16), got(m * 16, -1.0f);
+                dense_output_layer(last.data(), m, out_in, hidden.back().out_padded, out_wt.data(),
+                                   out_bias.data(), 16, outs, want.data());
+                const bool ran =
+                    mlp_int8_in_lanes(m, input, hidden.data(), bias.data(), hidden_count,
+                                      {out_wt.data(), out_bias.data(), out_in, outs}, z, got.data());
+                REQUIRE(ran == cpu_features().avx512_vnni);
+                if (!ran) continue;
+                std::size_t equal = 0, zero_padding = 0;
+                for (std::size_t r = 0; r < m; ++r)
+                    for (std::size_t o = 0; o < 16; ++o) {
+                        if (o < outs)
+                            equal += std::memcmp(&got[r * 16 + o], &want[r * 16 + o], sizeof(float)) == 0;
+                        else
+                            zero_padding += got[r * 16 + o] == 0.0f;
+                    }
+                CHECK(equal == m * outs);
+                CHECK(zero_padding == m * (16 - outs));
+            }
+        }
     }
 }

@@ -47,6 +47,11 @@ struct Int8Layer {
     bool signed_input = false;    // the layer's inputs may be negative (see above)
     std::vector<std::uint8_t> b;  // VNNI4 layout, round_up(in, 4) / 4 rows of 4 * out_padded bytes
     std::vector<float> scale;     // sw[n], out_padded values (0 for all-zero columns)
+    // signed_input only, for mlp_int8_in_lanes: the weights as two's complement bytes in the
+    // VNNI4 layout, and per column n the sum of its quantized weights over quads [0, p) at
+    // quad_prefix[p * out_padded + n], p in [0, quads].
+    std::vector<std::uint8_t> w_signed;
+    std::vector<std::int32_t> quad_prefix;
 };
 
 // Quantizes W^T (`wt`: in x out_padded, row-major fp32, the Network layout). Non-finite
@@ -87,5 +92,30 @@ inline constexpr std::size_t kInt8FusedWidth = 128;
 void gemm_int8_relu_quantized(std::size_t m, const Int8Rows& a, const Int8Layer& layer, const float* bias,
                               Int8Rows& next, std::vector<float>& scratch,
                               const ZeroColumns* zeros = nullptr);
+
+// The fp32 output layer after the int8 hidden layers, for mlp_int8_in_lanes: W^T (`in` x
+// 16, the Network layout for 16 padded outputs), its 16 biases, and how many leading
+// outputs the caller reads.
+struct Int8OutputLayer {
+    const float* wt;
+    const float* bias;
+    std::size_t in, outs;
+};
+
+// A whole network, `hidden_count` int8 hidden layers (ReLU) then the fp32 output layer, 16
+// rows at a time with the rows in vector lanes: each VPDPBUSD takes four inputs of 16 rows
+// against a broadcast dword of one column's weights, so a layer's epilogue (rescale, the
+// rows' maxima, the next layer's scales and bytes) runs on 16 rows per instruction with no
+// horizontal reduction or scalar division. Writes C[r][0..16) for r < m (columns from `outs`
+// on are 0), bit for bit what the layer-by-layer path gives in the first `outs` columns:
+// gemm_int8_relu_quantized for each hidden layer but the last, gemm_int8 with ReLU for the
+// last, dense_output_layer (finite inputs; integer sums are exact in any order). Contract:
+// `input` holds m rows quantized for hidden[0] (signed or not), hidden[k].in equals the
+// previous layer's out_padded or fewer, `zeros` as in gemm_int8. Returns false and writes
+// nothing where it does not apply (no AVX-512 VNNI, hidden_count 0, out.outs outside
+// {1, 5, 6, 7, 8}); the caller then takes the layer-by-layer path.
+bool mlp_int8_in_lanes(std::size_t m, const Int8Rows& input, const Int8Layer* hidden,
+                       const std::vector<float>* hidden_bias, std::size_t hidden_count,
+                       const Int8OutputLayer& out, const ZeroColumns* zeros, float* c);
 
 }  // namespace lsnif::format
