@@ -8,6 +8,7 @@
 #include <algorithm>
 #include <cmath>
 #include <cstring>
+#include <type_traits>
 
 #include "x86.hpp"
 #if LSNIF_HAVE_X86
@@ -358,18 +359,52 @@ LSNIF_VNNI_TARGET void rows_to_lanes(const Int8Rows& in, std::size_t r0, std::si
     }
 }
 
-// One int8 hidden layer on a block: y[j] = sx * sw[j] * sum + bias[j] for every column j
-// (the ReLU applied when `relu`), visiting quads [0, head) and [tail, end). Returns the
-// rows' maxima of the ReLU'd outputs (VMAXPS from +0, as quantize_row). Signed: the inputs
-// arrive as q + 128, so each column's sum starts at -128 times its weights' sum over the
-// visited quads; the integer result is the same sum of q * w.
-template <bool Signed>
-LSNIF_VNNI_TARGET __m512 lanes_layer(const Int8Layer& w, const float* bias, LiveGroups live, bool relu,
-                                     LanesBlock& blk) {
+// The output layer's FMAs, fused into the last hidden layer's epilogue so their dependency
+// chains (OUTS of them, one FMA per input) overlap the next column block's products: per
+// row and output the bias, then one FMA per input in order, as dense_output_avx512.
+template <int OUTS>
+struct LanesOutput {
+    const Int8OutputLayer& out;
+    __m512 acc[OUTS];
+
+    LSNIF_VNNI_TARGET explicit LanesOutput(const Int8OutputLayer& o) : out(o) {
+        for (int i = 0; i < OUTS; ++i) acc[i] = _mm512_set1_ps(out.bias[i]);
+    }
+    LSNIF_VNNI_TARGET void add(std::size_t k, __m512 y) {
+        if (k >= out.in) return;
+        for (int i = 0; i < OUTS; ++i)
+            acc[i] = _mm512_fmadd_ps(y, _mm512_set1_ps(out.wt[k * 16 + i]), acc[i]);
+    }
+    // Rows r0 + [0, rows) of C, 16 columns each (those from OUTS on 0).
+    LSNIF_VNNI_TARGET void store(std::size_t rows, float* c) const {
+        __m512i t[16];
+        for (int i = 0; i < 16; ++i) t[i] = i < OUTS ? _mm512_castps_si512(acc[i]) : _mm512_setzero_si512();
+        detail::transpose16(t);
+        for (std::size_t i = 0; i < rows; ++i) _mm512_storeu_si512(c + i * 16, t[i]);
+    }
+};
+
+// One int8 hidden layer on a block: y[j] = sx * sw[j] * sum + bias[j] for every column j,
+// visiting quads [0, head) and [tail, end). OUTS = 0: a layer before the last, whose outputs
+// stay in blk.y for lanes_quantize, and which returns the rows' maxima (VMAXPS from +0, as
+// quantize_row: the maxima of the ReLU'd outputs). OUTS > 0: the last, whose ReLU'd outputs
+// go straight into the output layer's FMAs, which it writes to `c` (`rows` rows). Signed:
+// the inputs arrive as q + 128, so each column's sum starts at -128 times its weights' sum
+// over the visited quads; the integer result is the same sum of q * w.
+template <bool Signed, int OUTS>
+LSNIF_VNNI_TARGET __m512 lanes_layer(const Int8Layer& w, const float* bias, LiveGroups live, LanesBlock& blk,
+                                     const Int8OutputLayer* out = nullptr, std::size_t rows = 0,
+                                     float* c = nullptr) {
     const std::size_t np = w.out_padded, ldb = 4 * np;
     const std::uint8_t* b = Signed ? w.w_signed.data() : w.b.data();
     __m512 m = _mm512_setzero_ps();
     const std::size_t visited = live.head + (live.end - live.tail);
+    [[maybe_unused]] std::conditional_t<(OUTS > 0), LanesOutput<(OUTS > 0 ? OUTS : 1)>, int> output = [&] {
+        if constexpr (OUTS > 0)
+            return LanesOutput<OUTS>(*out);
+        else
+            return 0;
+    }();
     for (std::size_t j0 = 0; j0 < np; j0 += 16) {
         __m512i acc[16];
 #pragma GCC unroll 16
@@ -396,11 +431,16 @@ LSNIF_VNNI_TARGET __m512 lanes_layer(const Int8Layer& w, const float* bias, Live
             __m512 y = _mm512_fmadd_ps(_mm512_cvtepi32_ps(acc[j]),
                                        _mm512_mul_ps(blk.sx, _mm512_set1_ps(w.scale[j0 + j])),
                                        _mm512_set1_ps(bias[j0 + j]));
-            m = _mm512_max_ps(y, m);
-            if (relu) y = _mm512_maskz_mov_ps(_mm512_cmp_ps_mask(y, _mm512_setzero_ps(), _CMP_GT_OQ), y);
-            blk.y[j0 + j] = y;
+            if constexpr (OUTS > 0) {
+                y = _mm512_maskz_mov_ps(_mm512_cmp_ps_mask(y, _mm512_setzero_ps(), _CMP_GT_OQ), y);
+                output.add(j0 + j, y);
+            } else {
+                m = _mm512_max_ps(y, m);
+                blk.y[j0 + j] = y;
+            }
         }
     }
+    if constexpr (OUTS > 0) output.store(rows, c);
     return m;
 }
 
@@ -425,32 +465,33 @@ LSNIF_VNNI_TARGET void lanes_quantize(std::size_t np, __m512 m, LanesBlock& blk)
     }
 }
 
-// The output layer on the block's last hidden outputs: per row and output, the bias, then
-// one FMA per input in order (as dense_output_avx512), transposed back to rows of 16.
+// mlp_int8_in_lanes for an output layer of OUTS columns (blk's buffers sized by the caller).
 template <int OUTS>
-LSNIF_VNNI_TARGET void lanes_output(const Int8OutputLayer& out, const LanesBlock& blk, std::size_t rows,
-                                    float* c) {
-    __m512 acc[OUTS];
-    for (int o = 0; o < OUTS; ++o) acc[o] = _mm512_set1_ps(out.bias[o]);
-    for (std::size_t k = 0; k < out.in; ++k)
-        for (int o = 0; o < OUTS; ++o)
-            acc[o] = _mm512_fmadd_ps(blk.y[k], _mm512_set1_ps(out.wt[k * 16 + o]), acc[o]);
-    __m512i t[16];
-    for (int o = 0; o < 16; ++o) t[o] = o < OUTS ? _mm512_castps_si512(acc[o]) : _mm512_setzero_si512();
-    detail::transpose16(t);
-    for (std::size_t i = 0; i < rows; ++i) _mm512_storeu_si512(c + i * 16, t[i]);
-}
-
-using LanesOutput = void (*)(const Int8OutputLayer&, const LanesBlock&, std::size_t, float*);
-LanesOutput lanes_output_for(std::size_t outs) {
-    switch (outs) {
-        case 1: return lanes_output<1>;
-        case 5: return lanes_output<5>;
-        case 6: return lanes_output<6>;
-        case 7: return lanes_output<7>;
-        case 8: return lanes_output<8>;
+LSNIF_VNNI_TARGET void lanes_network(std::size_t m, const Int8Rows& input, const Int8Layer* hidden,
+                                     const std::vector<float>* hidden_bias, std::size_t hidden_count,
+                                     const Int8OutputLayer& out, const ZeroColumns* zeros, LanesBlock& blk,
+                                     float* c) {
+    const std::size_t quads0 = (hidden[0].in + 3) / 4;
+    for (std::size_t r0 = 0; r0 < m; r0 += 16) {
+        const std::size_t rows = std::min<std::size_t>(16, m - r0);
+        const LiveGroups live0 = live_groups(zeros, r0, rows, quads0, 4);
+        rows_to_lanes(input, r0, rows, live0, hidden[0].signed_input, blk);
+        for (std::size_t k = 0; k < hidden_count; ++k) {
+            const Int8Layer& w = hidden[k];
+            const std::size_t q = (w.in + 3) / 4;
+            const LiveGroups live = k == 0 ? live0 : LiveGroups{q, q, q};
+            const float* bias = hidden_bias[k].data();
+            if (k + 1 < hidden_count) {
+                const __m512 maxima = w.signed_input ? lanes_layer<true, 0>(w, bias, live, blk)
+                                                     : lanes_layer<false, 0>(w, bias, live, blk);
+                lanes_quantize(w.out_padded, maxima, blk);
+            } else if (w.signed_input) {
+                lanes_layer<true, OUTS>(w, bias, live, blk, &out, rows, c + r0 * 16);
+            } else {
+                lanes_layer<false, OUTS>(w, bias, live, blk, &out, rows, c + r0 * 16);
+            }
+        }
     }
-    return nullptr;
 }
 
 #pragma GCC diagnostic pop
@@ -567,8 +608,7 @@ bool mlp_int8_in_lanes(std::size_t m, const Int8Rows& input, const Int8Layer* hi
                        const Int8OutputLayer& out, const ZeroColumns* zeros, float* c) {
 #if LSNIF_HAVE_X86
     if (!cpu_features().avx512_vnni || hidden_count == 0) return false;
-    const LanesOutput output = lanes_output_for(out.outs);
-    if (!output) return false;
+    if (out.outs != 1 && (out.outs < 5 || out.outs > 8)) return false;
     std::size_t quads = input.ld / 4, width = 0;
     for (std::size_t k = 0; k < hidden_count; ++k) {
         quads = std::max(quads, (hidden[k].out_padded + 3) / 4);
@@ -583,22 +623,12 @@ bool mlp_int8_in_lanes(std::size_t m, const Int8Rows& input, const Int8Layer* hi
     if (y.size() < width) y.resize(width);
     LanesBlock blk{reinterpret_cast<__m512i*>(a.data()), _mm512_setzero_ps(),
                    reinterpret_cast<__m512*>(y.data())};
-    for (std::size_t r0 = 0; r0 < m; r0 += 16) {
-        const std::size_t rows = std::min<std::size_t>(16, m - r0);
-        const std::size_t quads0 = (hidden[0].in + 3) / 4;
-        const LiveGroups live0 = live_groups(zeros, r0, rows, quads0, 4);
-        rows_to_lanes(input, r0, rows, live0, hidden[0].signed_input, blk);
-        for (std::size_t k = 0; k < hidden_count; ++k) {
-            const Int8Layer& w = hidden[k];
-            const std::size_t q = (w.in + 3) / 4;
-            const LiveGroups live = k == 0 ? live0 : LiveGroups{q, q, q};
-            const bool last = k + 1 == hidden_count;
-            const __m512 maxima = w.signed_input
-                                      ? lanes_layer<true>(w, hidden_bias[k].data(), live, last, blk)
-                                      : lanes_layer<false>(w, hidden_bias[k].data(), live, last, blk);
-            if (!last) lanes_quantize(w.out_padded, maxima, blk);
-        }
-        output(out, blk, rows, c + r0 * 16);
+    switch (out.outs) {
+        case 1: lanes_network<1>(m, input, hidden, hidden_bias, hidden_count, out, zeros, blk, c); break;
+        case 5: lanes_network<5>(m, input, hidden, hidden_bias, hidden_count, out, zeros, blk, c); break;
+        case 6: lanes_network<6>(m, input, hidden, hidden_bias, hidden_count, out, zeros, blk, c); break;
+        case 7: lanes_network<7>(m, input, hidden, hidden_bias, hidden_count, out, zeros, blk, c); break;
+        case 8: lanes_network<8>(m, input, hidden, hidden_bias, hidden_count, out, zeros, blk, c); break;
     }
     return true;
 #else
