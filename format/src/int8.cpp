@@ -8,7 +8,6 @@
 #include <algorithm>
 #include <cmath>
 #include <cstring>
-#include <type_traits>
 
 #include "x86.hpp"
 #if LSNIF_HAVE_X86
@@ -359,89 +358,90 @@ LSNIF_VNNI_TARGET void rows_to_lanes(const Int8Rows& in, std::size_t r0, std::si
     }
 }
 
-// The output layer's FMAs, fused into the last hidden layer's epilogue so their dependency
-// chains (OUTS of them, one FMA per input) overlap the next column block's products: per
-// row and output the bias, then one FMA per input in order, as dense_output_avx512.
-template <int OUTS>
-struct LanesOutput {
-    const Int8OutputLayer& out;
-    __m512 acc[OUTS];
-
-    LSNIF_VNNI_TARGET explicit LanesOutput(const Int8OutputLayer& o) : out(o) {
-        for (int i = 0; i < OUTS; ++i) acc[i] = _mm512_set1_ps(out.bias[i]);
-    }
-    LSNIF_VNNI_TARGET void add(std::size_t k, __m512 y) {
-        if (k >= out.in) return;
-        for (int i = 0; i < OUTS; ++i)
-            acc[i] = _mm512_fmadd_ps(y, _mm512_set1_ps(out.wt[k * 16 + i]), acc[i]);
-    }
-    // Rows r0 + [0, rows) of C, 16 columns each (those from OUTS on 0).
-    LSNIF_VNNI_TARGET void store(std::size_t rows, float* c) const {
-        __m512i t[16];
-        for (int i = 0; i < 16; ++i) t[i] = i < OUTS ? _mm512_castps_si512(acc[i]) : _mm512_setzero_si512();
-        detail::transpose16(t);
-        for (std::size_t i = 0; i < rows; ++i) _mm512_storeu_si512(c + i * 16, t[i]);
-    }
-};
-
-// One int8 hidden layer on a block: y[j] = sx * sw[j] * sum + bias[j] for every column j,
-// visiting quads [0, head) and [tail, end). OUTS = 0: a layer before the last, whose outputs
-// stay in blk.y for lanes_quantize, and which returns the rows' maxima (VMAXPS from +0, as
-// quantize_row: the maxima of the ReLU'd outputs). OUTS > 0: the last, whose ReLU'd outputs
-// go straight into the output layer's FMAs, which it writes to `c` (`rows` rows). Signed:
-// the inputs arrive as q + 128, so each column's sum starts at -128 times its weights' sum
-// over the visited quads; the integer result is the same sum of q * w.
-template <bool Signed, int OUTS>
-LSNIF_VNNI_TARGET __m512 lanes_layer(const Int8Layer& w, const float* bias, LiveGroups live, LanesBlock& blk,
-                                     const Int8OutputLayer* out = nullptr, std::size_t rows = 0,
-                                     float* c = nullptr) {
+// The integer sums of the 16 columns [j0, j0 + 16) of one int8 hidden layer on a block,
+// visiting quads [0, head) and [tail, end) in one loop (two loops, or a lambda per quad, make
+// GCC keep the accumulators on the stack). Signed: the inputs arrive as q + 128, so each
+// column's sum starts at -128 times its weights' sum over the visited quads; the result is
+// the same sum of q * w.
+template <bool Signed>
+[[gnu::always_inline]] LSNIF_VNNI_TARGET inline void lanes_sums(const Int8Layer& w, LiveGroups live,
+                                                                const LanesBlock& blk, std::size_t j0,
+                                                                __m512i (&acc)[16]) {
     const std::size_t np = w.out_padded, ldb = 4 * np;
     const std::uint8_t* b = Signed ? w.w_signed.data() : w.b.data();
+#pragma GCC unroll 16
+    for (std::size_t j = 0; j < 16; ++j) {
+        std::int32_t start = 0;
+        if constexpr (Signed) {
+            const std::int32_t* s = w.quad_prefix.data() + j0 + j;
+            start = -128 * (s[live.head * np] + s[live.end * np] - s[live.tail * np]);
+        }
+        acc[j] = _mm512_set1_epi32(start);
+    }
+    const std::size_t visited = live.head + (live.end - live.tail), skip = live.tail - live.head;
+    for (std::size_t p = 0, i = 0; i < visited; ++i, ++p) {
+        p += i == live.head ? skip : 0;
+        const __m512i a = blk.a[p];
+        const std::uint8_t* bp = b + p * ldb + 4 * j0;
+#pragma GCC unroll 16
+        for (std::size_t j = 0; j < 16; ++j) acc[j] = dpbusd_broadcast(acc[j], a, bp + 4 * j);
+    }
+}
+
+// Column j's value for the block's rows before the ReLU: sx * sw[j] * sum + bias[j].
+[[gnu::always_inline]] LSNIF_VNNI_TARGET inline __m512 lanes_value(const Int8Layer& w, const float* bias,
+                                                                   const LanesBlock& blk, std::size_t j,
+                                                                   __m512i sum) {
+    return _mm512_fmadd_ps(_mm512_cvtepi32_ps(sum), _mm512_mul_ps(blk.sx, _mm512_set1_ps(w.scale[j])),
+                           _mm512_set1_ps(bias[j]));
+}
+
+// A hidden layer before the last on a block: its outputs into blk.y for lanes_quantize;
+// returns the rows' maxima (VMAXPS from +0, as quantize_row: those of the ReLU'd outputs).
+template <bool Signed>
+LSNIF_VNNI_TARGET __m512 lanes_hidden(const Int8Layer& w, const float* bias, LiveGroups live,
+                                      LanesBlock& blk) {
     __m512 m = _mm512_setzero_ps();
-    const std::size_t visited = live.head + (live.end - live.tail);
-    [[maybe_unused]] std::conditional_t<(OUTS > 0), LanesOutput<(OUTS > 0 ? OUTS : 1)>, int> output = [&] {
-        if constexpr (OUTS > 0)
-            return LanesOutput<OUTS>(*out);
-        else
-            return 0;
-    }();
-    for (std::size_t j0 = 0; j0 < np; j0 += 16) {
+    for (std::size_t j0 = 0; j0 < w.out_padded; j0 += 16) {
         __m512i acc[16];
+        lanes_sums<Signed>(w, live, blk, j0, acc);
 #pragma GCC unroll 16
         for (std::size_t j = 0; j < 16; ++j) {
-            std::int32_t start = 0;
-            if constexpr (Signed) {
-                const std::int32_t* s = w.quad_prefix.data() + j0 + j;
-                start = -128 * (s[live.head * np] + s[live.end * np] - s[live.tail * np]);
-            }
-            acc[j] = _mm512_set1_epi32(start);
-        }
-        // One loop over the visited quads (two loops, or a lambda per quad, make GCC keep
-        // the accumulators on the stack).
-        const std::size_t skip = live.tail - live.head;
-        for (std::size_t p = 0, i = 0; i < visited; ++i, ++p) {
-            p += i == live.head ? skip : 0;
-            const __m512i a = blk.a[p];
-            const std::uint8_t* bp = b + p * ldb + 4 * j0;
-#pragma GCC unroll 16
-            for (std::size_t j = 0; j < 16; ++j) acc[j] = dpbusd_broadcast(acc[j], a, bp + 4 * j);
-        }
-#pragma GCC unroll 16
-        for (std::size_t j = 0; j < 16; ++j) {
-            __m512 y = _mm512_fmadd_ps(_mm512_cvtepi32_ps(acc[j]),
-                                       _mm512_mul_ps(blk.sx, _mm512_set1_ps(w.scale[j0 + j])),
-                                       _mm512_set1_ps(bias[j0 + j]));
-            if constexpr (OUTS > 0) {
-                y = _mm512_maskz_mov_ps(_mm512_cmp_ps_mask(y, _mm512_setzero_ps(), _CMP_GT_OQ), y);
-                output.add(j0 + j, y);
-            } else {
-                m = _mm512_max_ps(y, m);
-                blk.y[j0 + j] = y;
-            }
+            const __m512 y = lanes_value(w, bias, blk, j0 + j, acc[j]);
+            m = _mm512_max_ps(y, m);
+            blk.y[j0 + j] = y;
         }
     }
-    if constexpr (OUTS > 0) output.store(rows, c);
     return m;
+}
+
+// The last hidden layer on a block with the output layer fused into its epilogue: each
+// ReLU'd output goes straight into the output layer's FMAs (per row and output the bias, then
+// one FMA per input in order, as dense_output_avx512), whose dependency chains then overlap
+// the next column block's products. Writes rows [0, rows) of `c`, 16 columns each (those
+// from OUTS on 0).
+template <bool Signed, int OUTS>
+LSNIF_VNNI_TARGET void lanes_last(const Int8Layer& w, const float* bias, LiveGroups live,
+                                  const LanesBlock& blk, const Int8OutputLayer& out, std::size_t rows,
+                                  float* c) {
+    __m512 o[OUTS];
+    for (int i = 0; i < OUTS; ++i) o[i] = _mm512_set1_ps(out.bias[i]);
+    for (std::size_t j0 = 0; j0 < w.out_padded; j0 += 16) {
+        __m512i acc[16];
+        lanes_sums<Signed>(w, live, blk, j0, acc);
+#pragma GCC unroll 16
+        for (std::size_t j = 0; j < 16; ++j) {
+            __m512 y = lanes_value(w, bias, blk, j0 + j, acc[j]);
+            y = _mm512_maskz_mov_ps(_mm512_cmp_ps_mask(y, _mm512_setzero_ps(), _CMP_GT_OQ), y);
+            if (j0 + j < out.in)
+                for (int i = 0; i < OUTS; ++i)
+                    o[i] = _mm512_fmadd_ps(y, _mm512_set1_ps(out.wt[(j0 + j) * 16 + i]), o[i]);
+        }
+    }
+    __m512i t[16];
+    for (int i = 0; i < 16; ++i) t[i] = i < OUTS ? _mm512_castps_si512(o[i]) : _mm512_setzero_si512();
+    detail::transpose16(t);
+    for (std::size_t i = 0; i < rows; ++i) _mm512_storeu_si512(c + i * 16, t[i]);
 }
 
 // The block's np outputs before the ReLU, quantized as the next layer's unsigned input (the
@@ -482,13 +482,13 @@ LSNIF_VNNI_TARGET void lanes_network(std::size_t m, const Int8Rows& input, const
             const LiveGroups live = k == 0 ? live0 : LiveGroups{q, q, q};
             const float* bias = hidden_bias[k].data();
             if (k + 1 < hidden_count) {
-                const __m512 maxima = w.signed_input ? lanes_layer<true, 0>(w, bias, live, blk)
-                                                     : lanes_layer<false, 0>(w, bias, live, blk);
+                const __m512 maxima = w.signed_input ? lanes_hidden<true>(w, bias, live, blk)
+                                                     : lanes_hidden<false>(w, bias, live, blk);
                 lanes_quantize(w.out_padded, maxima, blk);
             } else if (w.signed_input) {
-                lanes_layer<true, OUTS>(w, bias, live, blk, &out, rows, c + r0 * 16);
+                lanes_last<true, OUTS>(w, bias, live, blk, out, rows, c + r0 * 16);
             } else {
-                lanes_layer<false, OUTS>(w, bias, live, blk, &out, rows, c + r0 * 16);
+                lanes_last<false, OUTS>(w, bias, live, blk, out, rows, c + r0 * 16);
             }
         }
     }
