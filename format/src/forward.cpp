@@ -862,16 +862,17 @@ MlpArithmetic mlp_arithmetic(const Network& net) {
 
 namespace {
 
-// The int8 network after its quantized input, by mlp_int8_in_lanes into `c` (n rows of 16),
-// where the output layer is 16 wide; null where that path does not apply.
-const float* mlp_int8_forward_in_lanes(const Network& net, const Int8Rows& input, std::size_t n,
+// The int8 network from its fp32 input (row stride lda), by mlp_int8_in_lanes into `c` (n
+// rows of 16), where the output layer is 16 wide; null where that path does not apply.
+const float* mlp_int8_forward_in_lanes(const Network& net, const float* input, std::size_t lda, std::size_t n,
                                        const ZeroColumns* zeros, std::size_t outputs, float* c) {
     const std::size_t last = net.wt.size() - 1;
     if (net.out_padded[last] != 16) return nullptr;
     const Int8OutputLayer out{net.wt[last].data(), net.bias[last].data(), net.in[last],
                               outputs ? std::min<std::size_t>(outputs, net.out[last]) : net.out[last]};
-    return mlp_int8_in_lanes(n, input, net.wt_int8.data(), net.bias.data(), last, out, zeros, c) ? c
-                                                                                                 : nullptr;
+    return mlp_int8_in_lanes(n, input, lda, net.wt_int8.data(), net.bias.data(), last, out, zeros, c)
+               ? c
+               : nullptr;
 }
 
 }  // namespace
@@ -897,9 +898,10 @@ const float* mlp_forward(const Network& net, const float* input, std::size_t n, 
             const Int8Layer& layer = net.wt_int8[k];
             Int8Rows &in8 = rows8[k % 2], &out8 = rows8[(k + 1) % 2];
             if (k == 0) {
-                quantize_rows(src, n, net.in[k], lda, layer.signed_input, in8);
-                if (const float* c = mlp_int8_forward_in_lanes(net, in8, n, zeros, outputs, scratch.data()))
+                if (const float* c =
+                        mlp_int8_forward_in_lanes(net, src, lda, n, zeros, outputs, scratch.data()))
                     return c;
+                quantize_rows(src, n, net.in[k], lda, layer.signed_input, in8);
             }
             if (k + 2 < layers)
                 gemm_int8_relu_quantized(n, in8, layer, net.bias[k].data(), out8, unfused, zeros);

@@ -337,25 +337,54 @@ struct LanesBlock {
     __m512* y;
 };
 
-// Rows [r0, r0 + rows) of `in` (rows <= 16; the others zero) into lanes: quads [0, head)
-// and [tail, end) of `live` transposed 16 at a time. Signed rows get their bytes' top bit
-// flipped (q + 128, unsigned), which mlp_int8_in_lanes' first layer takes back through its
-// weights' quad sums.
-LSNIF_VNNI_TARGET void rows_to_lanes(const Int8Rows& in, std::size_t r0, std::size_t rows, LiveGroups live,
-                                     bool flip, LanesBlock& blk) {
-    const std::size_t quads = in.ld / 4;
-    blk.sx = _mm512_maskz_loadu_ps(lane_mask16(0, rows), in.scale.data() + r0);
-    const __m512i top = _mm512_set1_epi32(flip ? std::int32_t(0x80808080u) : 0);
-    for (std::size_t c0 = 0; c0 < live.end; c0 += 16) {
-        if (c0 >= live.head && c0 + 16 <= live.tail) continue;  // all of it skipped
-        const __mmask16 cols = lane_mask16(c0, quads);
+// Rows [r0, r0 + rows) of the first layer's fp32 input (`cols` columns, row stride lda;
+// rows <= 16, the others read as zero) quantized straight into lanes, with the bytes and
+// scales quantize_rows_avx512 gives them: the live 16-column chunks transposed into blk.y
+// (column j at y[j]) while the rows' maxima gather vertically (VMAXPS keeps the running
+// maximum against NaN, as there), 16 rows' scales by one division, then per live quad four
+// columns' x * inverse (NaN -> 0, clamped, rounded to nearest even) packed into a dword.
+// Columns outside quads [0, head) and [tail, end) are zero in these rows and change no
+// maximum. Signed rows get their bytes' top bit flipped (q + 128, unsigned), which the
+// first layer takes back through its weights' quad sums.
+LSNIF_VNNI_TARGET void quantize_to_lanes(const float* x, std::size_t lda, std::size_t cols, std::size_t r0,
+                                         std::size_t rows, LiveGroups live, bool signed_input,
+                                         LanesBlock& blk) {
+    const QuantRange range = signed_input ? kSigned : kUnsigned;
+    const __m512i abs_mask = _mm512_set1_epi32(signed_input ? 0x7fffffff : -1);
+    const std::size_t dead_begin = 4 * live.head, dead_end = 4 * live.tail,
+                      end = std::min(4 * live.end, cols);
+    __m512 m = _mm512_setzero_ps();
+    for (std::size_t c0 = 0; c0 < end; c0 += 16) {
+        if (c0 >= dead_begin && c0 + 16 <= dead_end) continue;  // all of it zero
+        const __mmask16 live_cols = lane_mask16(c0, cols);
         __m512i t[16];
         for (std::size_t i = 0; i < 16; ++i)
-            t[i] = i < rows ? _mm512_maskz_loadu_epi32(cols, in.q.data() + (r0 + i) * in.ld + 4 * c0)
+            t[i] = i < rows ? _mm512_castps_si512(_mm512_maskz_loadu_ps(live_cols, x + (r0 + i) * lda + c0))
                             : _mm512_setzero_si512();
         detail::transpose16(t);
-        for (std::size_t j = 0; j < 16 && c0 + j < quads; ++j) blk.a[c0 + j] = _mm512_xor_si512(t[j], top);
+        for (std::size_t j = 0; j < 16; ++j) {
+            m = _mm512_max_ps(_mm512_castsi512_ps(_mm512_and_si512(t[j], abs_mask)), m);
+            blk.y[c0 + j] = _mm512_castsi512_ps(t[j]);
+        }
     }
+    const __m512 hi = _mm512_set1_ps(range.hi), lo = _mm512_set1_ps(range.lo);
+    const __mmask16 nonzero = _mm512_cmp_ps_mask(m, _mm512_setzero_ps(), _CMP_GT_OQ);  // scale_for's m > 0
+    blk.sx = _mm512_maskz_div_ps(nonzero, m, hi);
+    const __m512 inverse = _mm512_maskz_div_ps(nonzero, hi, m);
+    const __m512i top = _mm512_set1_epi32(signed_input ? std::int32_t(0x80808080u) : 0);
+    const __m512i low_byte = _mm512_set1_epi32(0xff);
+    const auto quad = [&](std::size_t p) LSNIF_VNNI_TARGET {
+        __m512i word = _mm512_setzero_si512();
+        for (int i = 0; i < 4; ++i) {
+            __m512 v = _mm512_mul_ps(blk.y[4 * p + i], inverse);
+            v = _mm512_maskz_mov_ps(_mm512_cmp_ps_mask(v, v, _CMP_ORD_Q), v);
+            const __m512i q = _mm512_cvtps_epi32(_mm512_min_ps(_mm512_max_ps(v, lo), hi));
+            word = _mm512_or_si512(word, _mm512_slli_epi32(_mm512_and_si512(q, low_byte), 8 * i));
+        }
+        blk.a[p] = _mm512_xor_si512(word, top);
+    };
+    for (std::size_t p = 0; p < live.head; ++p) quad(p);
+    for (std::size_t p = live.tail; p < live.end; ++p) quad(p);
 }
 
 // The integer sums of the 16 columns [j0, j0 + 16) of one int8 hidden layer on a block,
@@ -467,7 +496,7 @@ LSNIF_VNNI_TARGET void lanes_quantize(std::size_t np, __m512 m, LanesBlock& blk)
 
 // mlp_int8_in_lanes for an output layer of OUTS columns (blk's buffers sized by the caller).
 template <int OUTS>
-LSNIF_VNNI_TARGET void lanes_network(std::size_t m, const Int8Rows& input, const Int8Layer* hidden,
+LSNIF_VNNI_TARGET void lanes_network(std::size_t m, const float* x, std::size_t lda, const Int8Layer* hidden,
                                      const std::vector<float>* hidden_bias, std::size_t hidden_count,
                                      const Int8OutputLayer& out, const ZeroColumns* zeros, LanesBlock& blk,
                                      float* c) {
@@ -475,7 +504,7 @@ LSNIF_VNNI_TARGET void lanes_network(std::size_t m, const Int8Rows& input, const
     for (std::size_t r0 = 0; r0 < m; r0 += 16) {
         const std::size_t rows = std::min<std::size_t>(16, m - r0);
         const LiveGroups live0 = live_groups(zeros, r0, rows, quads0, 4);
-        rows_to_lanes(input, r0, rows, live0, hidden[0].signed_input, blk);
+        quantize_to_lanes(x, lda, hidden[0].in, r0, rows, live0, hidden[0].signed_input, blk);
         for (std::size_t k = 0; k < hidden_count; ++k) {
             const Int8Layer& w = hidden[k];
             const std::size_t q = (w.in + 3) / 4;
@@ -603,13 +632,13 @@ void gemm_int8_relu_quantized(std::size_t m, const Int8Rows& a, const Int8Layer&
     quantize_rows(scratch.data(), m, np, np, false, next);
 }
 
-bool mlp_int8_in_lanes(std::size_t m, const Int8Rows& input, const Int8Layer* hidden,
+bool mlp_int8_in_lanes(std::size_t m, const float* x, std::size_t lda, const Int8Layer* hidden,
                        const std::vector<float>* hidden_bias, std::size_t hidden_count,
                        const Int8OutputLayer& out, const ZeroColumns* zeros, float* c) {
 #if LSNIF_HAVE_X86
     if (!cpu_features().avx512_vnni || hidden_count == 0) return false;
     if (out.outs != 1 && (out.outs < 5 || out.outs > 8)) return false;
-    std::size_t quads = input.ld / 4, width = 0;
+    std::size_t width = (hidden[0].in + 15) / 16 * 16, quads = width / 4;  // the input's transposed chunks
     for (std::size_t k = 0; k < hidden_count; ++k) {
         quads = std::max(quads, (hidden[k].out_padded + 3) / 4);
         width = std::max(width, hidden[k].out_padded);
@@ -624,15 +653,15 @@ bool mlp_int8_in_lanes(std::size_t m, const Int8Rows& input, const Int8Layer* hi
     LanesBlock blk{reinterpret_cast<__m512i*>(a.data()), _mm512_setzero_ps(),
                    reinterpret_cast<__m512*>(y.data())};
     switch (out.outs) {
-        case 1: lanes_network<1>(m, input, hidden, hidden_bias, hidden_count, out, zeros, blk, c); break;
-        case 5: lanes_network<5>(m, input, hidden, hidden_bias, hidden_count, out, zeros, blk, c); break;
-        case 6: lanes_network<6>(m, input, hidden, hidden_bias, hidden_count, out, zeros, blk, c); break;
-        case 7: lanes_network<7>(m, input, hidden, hidden_bias, hidden_count, out, zeros, blk, c); break;
-        case 8: lanes_network<8>(m, input, hidden, hidden_bias, hidden_count, out, zeros, blk, c); break;
+        case 1: lanes_network<1>(m, x, lda, hidden, hidden_bias, hidden_count, out, zeros, blk, c); break;
+        case 5: lanes_network<5>(m, x, lda, hidden, hidden_bias, hidden_count, out, zeros, blk, c); break;
+        case 6: lanes_network<6>(m, x, lda, hidden, hidden_bias, hidden_count, out, zeros, blk, c); break;
+        case 7: lanes_network<7>(m, x, lda, hidden, hidden_bias, hidden_count, out, zeros, blk, c); break;
+        case 8: lanes_network<8>(m, x, lda, hidden, hidden_bias, hidden_count, out, zeros, blk, c); break;
     }
     return true;
 #else
-    (void)m, (void)input, (void)hidden, (void)hidden_bias, (void)hidden_count, (void)out, (void)zeros,
+    (void)m, (void)x, (void)lda, (void)hidden, (void)hidden_bias, (void)hidden_count, (void)out, (void)zeros,
         (void)c;
     return false;
 #endif

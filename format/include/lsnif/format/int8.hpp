@@ -103,18 +103,19 @@ struct Int8OutputLayer {
 };
 
 // A whole network, `hidden_count` int8 hidden layers (ReLU) then the fp32 output layer, 16
-// rows at a time with the rows in vector lanes: each VPDPBUSD takes four inputs of 16 rows
-// against a broadcast dword of one column's weights, so a layer's epilogue (rescale, the
-// rows' maxima, the next layer's scales and bytes) runs on 16 rows per instruction with no
-// horizontal reduction or scalar division. Writes C[r][0..16) for r < m (columns from `outs`
-// on are 0), bit for bit what the layer-by-layer path gives in the first `outs` columns:
-// gemm_int8_relu_quantized for each hidden layer but the last, gemm_int8 with ReLU for the
-// last, dense_output_layer (finite inputs; integer sums are exact in any order). Contract:
-// `input` holds m rows quantized for hidden[0] (signed or not), hidden[k].in equals the
-// previous layer's out_padded or fewer, `zeros` as in gemm_int8. Returns false and writes
-// nothing where it does not apply (no AVX-512 VNNI, hidden_count 0, out.outs outside
+// rows at a time with the rows in vector lanes: the input quantized per row straight into
+// lanes, then each VPDPBUSD takes four inputs of 16 rows against a broadcast dword of one
+// column's weights, so a layer's epilogue (rescale, the rows' maxima, the next layer's scales
+// and bytes) runs on 16 rows per instruction with no horizontal reduction or scalar
+// division. Reads x[r][0..hidden[0].in) (row stride lda) for r < m; writes C[r][0..16) for
+// r < m (columns from `outs` on are 0), bit for bit what the layer-by-layer path gives in
+// the first `outs` columns: quantize_rows, gemm_int8_relu_quantized for each hidden layer
+// but the last, gemm_int8 with ReLU for the last, dense_output_layer (finite inputs;
+// integer sums are exact in any order). Contract: hidden[k].in equals the previous layer's
+// out_padded or fewer; `zeros` as in gemm_int8, true of x. Returns false and writes nothing
+// where it does not apply (no AVX-512 VNNI, hidden_count 0, out.outs outside
 // {1, 5, 6, 7, 8}); the caller then takes the layer-by-layer path.
-bool mlp_int8_in_lanes(std::size_t m, const Int8Rows& input, const Int8Layer* hidden,
+bool mlp_int8_in_lanes(std::size_t m, const float* x, std::size_t lda, const Int8Layer* hidden,
                        const std::vector<float>* hidden_bias, std::size_t hidden_count,
                        const Int8OutputLayer& out, const ZeroColumns* zeros, float* c);
 
