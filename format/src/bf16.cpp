@@ -49,11 +49,7 @@ void pack_vnni_scalar(const float* src, std::size_t k, std::size_t n, std::size_
 
 // ---- AVX-512 BF16 packers: VCVTNEPS2BF16 rounds exactly like to_bf16 --------------------
 
-LSNIF_BF16_TARGET inline __mmask16 lane_mask16(std::size_t begin, std::size_t end) {
-    return begin >= end        ? __mmask16(0)
-           : end - begin >= 16 ? __mmask16(0xffff)
-                               : __mmask16((1u << (end - begin)) - 1u);
-}
+using detail::lane_mask16;
 
 LSNIF_BF16_TARGET inline __m512 load_row(const float* row, bool valid, __mmask16 mask) {
     return valid ? _mm512_maskz_loadu_ps(mask, row) : _mm512_setzero_ps();

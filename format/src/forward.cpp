@@ -402,7 +402,7 @@ template <std::uint32_t kF, GridElement E>
 LSNIF_AVX512 void encode_level16(const Geometry& geo, const LevelInfo& lv, const GridView& g,
                                  std::uint32_t level, const PointList& pl, std::size_t i, float* rows) {
     const std::uint32_t F = kF ? kF : geo.F;
-    const __mmask16 lanes = pl.n - i >= 16 ? __mmask16(0xFFFF) : __mmask16((1u << (pl.n - i)) - 1);
+    const __mmask16 lanes = detail::lane_mask16(i, pl.n);
     const __m512 points[3] = {_mm512_maskz_loadu_ps(lanes, pl.g[0].data() + i),
                               _mm512_maskz_loadu_ps(lanes, pl.g[1].data() + i),
                               _mm512_maskz_loadu_ps(lanes, pl.g[2].data() + i)};
@@ -428,7 +428,7 @@ LSNIF_AVX512 void encode_level16(const Geometry& geo, const LevelInfo& lv, const
 LSNIF_AVX512 void level_corners16_avx512(const Geometry& geo, const LevelInfo& lv, const float* x,
                                          const float* y, const float* z, std::uint32_t count,
                                          Corners16& out) {
-    const __mmask16 lanes = count >= 16 ? __mmask16(0xFFFF) : __mmask16((1u << count) - 1);
+    const __mmask16 lanes = detail::lane_mask16(0, count);
     const __m512 points[3] = {_mm512_maskz_loadu_ps(lanes, x), _mm512_maskz_loadu_ps(lanes, y),
                               _mm512_maskz_loadu_ps(lanes, z)};
     const LaneCorners c = lane_corners(geo, lv, points);

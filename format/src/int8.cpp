@@ -106,11 +106,7 @@ void gemm_int8_scalar(std::size_t m, const Int8Rows& a, const Int8Layer& w, cons
 #pragma GCC diagnostic ignored "-Wmaybe-uninitialized"
 #pragma GCC diagnostic ignored "-Wuninitialized"
 
-LSNIF_AVX512_TARGET inline __mmask16 lane_mask16(std::size_t begin, std::size_t end) {
-    return begin >= end        ? __mmask16(0)
-           : end - begin >= 16 ? __mmask16(0xffff)
-                               : __mmask16((1u << (end - begin)) - 1u);
-}
+using detail::lane_mask16;
 
 // The same values as quantize_rows_scalar: max is exact in any order, and x * inverse,
 // clamping, NaN -> 0 and round-to-nearest-even (VCVTPS2DQ under the default MXCSR, as
@@ -494,12 +490,14 @@ LSNIF_VNNI_TARGET void lanes_quantize(std::size_t np, __m512 m, LanesBlock& blk)
     }
 }
 
-// mlp_int8_in_lanes for an output layer of OUTS columns (blk's buffers sized by the caller).
+// mlp_int8_in_lanes for an output layer of OUTS columns, with the block's buffers (64-byte
+// aligned, sized by the caller): `a` for the quads, `y` for the outputs, 16 lanes each.
 template <int OUTS>
 LSNIF_VNNI_TARGET void lanes_network(std::size_t m, const float* x, std::size_t lda, const Int8Layer* hidden,
                                      const std::vector<float>* hidden_bias, std::size_t hidden_count,
-                                     const Int8OutputLayer& out, const ZeroColumns* zeros, LanesBlock& blk,
+                                     const Int8OutputLayer& out, const ZeroColumns* zeros, void* a, void* y,
                                      float* c) {
+    LanesBlock blk{static_cast<__m512i*>(a), _mm512_setzero_ps(), static_cast<__m512*>(y)};
     const std::size_t quads0 = (hidden[0].in + 3) / 4;
     for (std::size_t r0 = 0; r0 < m; r0 += 16) {
         const std::size_t rows = std::min<std::size_t>(16, m - r0);
@@ -521,6 +519,20 @@ LSNIF_VNNI_TARGET void lanes_network(std::size_t m, const float* x, std::size_t 
             }
         }
     }
+}
+
+using LanesNetwork = void (*)(std::size_t, const float*, std::size_t, const Int8Layer*,
+                              const std::vector<float>*, std::size_t, const Int8OutputLayer&,
+                              const ZeroColumns*, void*, void*, float*);
+LanesNetwork lanes_network_for(std::size_t outs) {
+    switch (outs) {
+        case 1: return lanes_network<1>;  // the visibility logit alone
+        case 5: return lanes_network<5>;  // no materials
+        case 6: return lanes_network<6>;
+        case 7: return lanes_network<7>;
+        case 8: return lanes_network<8>;
+    }
+    return nullptr;
 }
 
 #pragma GCC diagnostic pop
@@ -636,8 +648,8 @@ bool mlp_int8_in_lanes(std::size_t m, const float* x, std::size_t lda, const Int
                        const std::vector<float>* hidden_bias, std::size_t hidden_count,
                        const Int8OutputLayer& out, const ZeroColumns* zeros, float* c) {
 #if LSNIF_HAVE_X86
-    if (!cpu_features().avx512_vnni || hidden_count == 0) return false;
-    if (out.outs != 1 && (out.outs < 5 || out.outs > 8)) return false;
+    const LanesNetwork run = lanes_network_for(out.outs);
+    if (!cpu_features().avx512_vnni || hidden_count == 0 || !run) return false;
     std::size_t width = (hidden[0].in + 15) / 16 * 16, quads = width / 4;  // the input's transposed chunks
     for (std::size_t k = 0; k < hidden_count; ++k) {
         quads = std::max(quads, (hidden[k].out_padded + 3) / 4);
@@ -650,15 +662,7 @@ bool mlp_int8_in_lanes(std::size_t m, const float* x, std::size_t lda, const Int
     thread_local std::vector<Lane> a, y;
     if (a.size() < quads) a.resize(quads);
     if (y.size() < width) y.resize(width);
-    LanesBlock blk{reinterpret_cast<__m512i*>(a.data()), _mm512_setzero_ps(),
-                   reinterpret_cast<__m512*>(y.data())};
-    switch (out.outs) {
-        case 1: lanes_network<1>(m, x, lda, hidden, hidden_bias, hidden_count, out, zeros, blk, c); break;
-        case 5: lanes_network<5>(m, x, lda, hidden, hidden_bias, hidden_count, out, zeros, blk, c); break;
-        case 6: lanes_network<6>(m, x, lda, hidden, hidden_bias, hidden_count, out, zeros, blk, c); break;
-        case 7: lanes_network<7>(m, x, lda, hidden, hidden_bias, hidden_count, out, zeros, blk, c); break;
-        case 8: lanes_network<8>(m, x, lda, hidden, hidden_bias, hidden_count, out, zeros, blk, c); break;
-    }
+    run(m, x, lda, hidden, hidden_bias, hidden_count, out, zeros, a.data(), y.data(), c);
     return true;
 #else
     (void)m, (void)x, (void)lda, (void)hidden, (void)hidden_bias, (void)hidden_count, (void)out, (void)zeros,

@@ -10,6 +10,20 @@
 #define LSNIF_HAVE_X86 1
 #include <cpuid.h>
 #include <immintrin.h>
+
+#include <cstddef>
+
+namespace lsnif::format::detail {
+
+// The mask of a 16-lane vector whose lane 0 is element `begin` of a run ending at `end`:
+// lanes [0, min(end - begin, 16)), none when end <= begin.
+inline __mmask16 lane_mask16(std::size_t begin, std::size_t end) {
+    return begin >= end        ? __mmask16(0)
+           : end - begin >= 16 ? __mmask16(0xffff)
+                               : __mmask16((1u << (end - begin)) - 1u);
+}
+
+}  // namespace lsnif::format::detail
 #else
 #define LSNIF_HAVE_X86 0
 #endif
