@@ -108,6 +108,24 @@ void gemm_int8_scalar(std::size_t m, const Int8Rows& a, const Int8Layer& w, cons
 
 using detail::lane_mask16;
 
+// scale_for on 16 maxima at once: scale m / hi and inverse hi / m, both 0 where m is not
+// > 0; VDIVPS rounds each lane as the scalar division does.
+struct Scales16 {
+    __m512 scale, inverse;
+};
+LSNIF_AVX512_TARGET inline Scales16 scales16(__m512 m, __m512 hi) {
+    const __mmask16 live = _mm512_cmp_ps_mask(m, _mm512_setzero_ps(), _CMP_GT_OQ);
+    return {_mm512_maskz_div_ps(live, m, hi), _mm512_maskz_div_ps(live, hi, m)};
+}
+
+// quantize_value(x * inverse) per lane: NaN -> 0, clamped to [lo, hi], rounded to nearest
+// even (VCVTPS2DQ under the default MXCSR, as nearbyint under the default rounding mode).
+LSNIF_AVX512_TARGET inline __m512i quantize16(__m512 x, __m512 inverse, __m512 lo, __m512 hi) {
+    __m512 t = _mm512_mul_ps(x, inverse);
+    t = _mm512_maskz_mov_ps(_mm512_cmp_ps_mask(t, t, _CMP_ORD_Q), t);
+    return _mm512_cvtps_epi32(_mm512_min_ps(_mm512_max_ps(t, lo), hi));
+}
+
 // The same values as quantize_rows_scalar: max is exact in any order, and x * inverse,
 // clamping, NaN -> 0 and round-to-nearest-even (VCVTPS2DQ under the default MXCSR, as
 // nearbyint under the default rounding mode) are the same operations lane by lane; the
@@ -140,10 +158,9 @@ LSNIF_AVX512_TARGET void quantize_rows_avx512(const float* src, std::size_t n, s
     }
     for (std::size_t r = 0; r < n; r += 16) {
         const __mmask16 rows = lane_mask16(r, n);
-        const __m512 m = _mm512_maskz_loadu_ps(rows, maxima + r);
-        const __mmask16 live = _mm512_cmp_ps_mask(m, _mm512_setzero_ps(), _CMP_GT_OQ);  // scale_for's m > 0
-        _mm512_mask_storeu_ps(inverses.data() + r, rows, _mm512_maskz_div_ps(live, hi, m));
-        _mm512_mask_storeu_ps(maxima + r, rows, _mm512_maskz_div_ps(live, m, hi));
+        const Scales16 s = scales16(_mm512_maskz_loadu_ps(rows, maxima + r), hi);
+        _mm512_mask_storeu_ps(inverses.data() + r, rows, s.inverse);
+        _mm512_mask_storeu_ps(maxima + r, rows, s.scale);
     }
     for (std::size_t r = 0; r < n; ++r) {
         const float* x = src + r * lds;
@@ -151,9 +168,7 @@ LSNIF_AVX512_TARGET void quantize_rows_avx512(const float* src, std::size_t n, s
         std::uint8_t* q = out.q.data() + r * out.ld;
         __m512i sum = _mm512_setzero_si512();
         for (std::size_t v = 0; v < vectors; ++v) {
-            __m512 t = _mm512_mul_ps(load(x, v), inverse);
-            t = _mm512_maskz_mov_ps(_mm512_cmp_ps_mask(t, t, _CMP_ORD_Q), t);
-            const __m512i qv = _mm512_cvtps_epi32(_mm512_min_ps(_mm512_max_ps(t, lo), hi));
+            const __m512i qv = quantize16(load(x, v), inverse, lo, hi);
             sum = _mm512_add_epi32(sum, qv);
             _mm_storeu_si128(reinterpret_cast<__m128i*>(q + 16 * v), _mm512_cvtepi32_epi8(qv));
         }
@@ -364,17 +379,15 @@ LSNIF_VNNI_TARGET void quantize_to_lanes(const float* x, std::size_t lda, std::s
         }
     }
     const __m512 hi = _mm512_set1_ps(range.hi), lo = _mm512_set1_ps(range.lo);
-    const __mmask16 nonzero = _mm512_cmp_ps_mask(m, _mm512_setzero_ps(), _CMP_GT_OQ);  // scale_for's m > 0
-    blk.sx = _mm512_maskz_div_ps(nonzero, m, hi);
-    const __m512 inverse = _mm512_maskz_div_ps(nonzero, hi, m);
+    const Scales16 scales = scales16(m, hi);
+    blk.sx = scales.scale;
+    const __m512 inverse = scales.inverse;
     const __m512i top = _mm512_set1_epi32(signed_input ? std::int32_t(0x80808080u) : 0);
     const __m512i low_byte = _mm512_set1_epi32(0xff);
     const auto quad = [&](std::size_t p) LSNIF_VNNI_TARGET {
         __m512i word = _mm512_setzero_si512();
         for (int i = 0; i < 4; ++i) {
-            __m512 v = _mm512_mul_ps(blk.y[4 * p + i], inverse);
-            v = _mm512_maskz_mov_ps(_mm512_cmp_ps_mask(v, v, _CMP_ORD_Q), v);
-            const __m512i q = _mm512_cvtps_epi32(_mm512_min_ps(_mm512_max_ps(v, lo), hi));
+            const __m512i q = quantize16(blk.y[4 * p + i], inverse, lo, hi);
             word = _mm512_or_si512(word, _mm512_slli_epi32(_mm512_and_si512(q, low_byte), 8 * i));
         }
         blk.a[p] = _mm512_xor_si512(word, top);
@@ -474,10 +487,9 @@ LSNIF_VNNI_TARGET void lanes_last(const Int8Layer& w, const float* bias, LiveGro
 // division, max(y * inverse, +0), conversion, unsigned saturation to 255), four columns per
 // dword into blk.a; the new scales into blk.sx.
 LSNIF_VNNI_TARGET void lanes_quantize(std::size_t np, __m512 m, LanesBlock& blk) {
-    const __m512 hi = _mm512_set1_ps(kUnsigned.hi);
-    const __mmask16 live = _mm512_cmp_ps_mask(m, _mm512_setzero_ps(), _CMP_GT_OQ);
-    blk.sx = _mm512_maskz_div_ps(live, m, hi);
-    const __m512 inverse = _mm512_maskz_div_ps(live, hi, m);
+    const Scales16 scales = scales16(m, _mm512_set1_ps(kUnsigned.hi));
+    blk.sx = scales.scale;
+    const __m512 inverse = scales.inverse;
     const __m512i byte_max = _mm512_set1_epi32(255);
     for (std::size_t p = 0; p < np / 4; ++p) {
         __m512i word = _mm512_setzero_si512();
