@@ -238,7 +238,10 @@ std::string ninja_text(const BatchOptions& options, const std::vector<PlannedObj
                       cache_dir = absolute(c.cache_dir), program = absolute(options.program);
     std::vector<std::string> inputs;
     for (const std::string& in : options.inputs) inputs.push_back(absolute(in));
-    const std::string settings = shell_line(settings_arguments(c));
+    // Each step's threads (how fast, not what): as given, else all cores.
+    std::vector<std::string> step_settings = settings_arguments(c);
+    if (c.threads) step_settings.insert(step_settings.end(), {"--threads", std::to_string(c.threads)});
+    const std::string settings = shell_line(step_settings);
     const std::string junit =
         options.junit_path.empty() ? "" : " --junit " + shell_word(absolute(options.junit_path));
     std::string t;
@@ -323,9 +326,8 @@ std::vector<std::string> expand_inputs(const std::vector<std::string>& inputs,
 }
 
 std::vector<std::string> settings_arguments(const ConvertOptions& c) {
-    std::vector<std::string> a = {"--preset",  c.preset,
-                                  "--seed",    std::to_string(c.seed),
-                                  "--threads", std::to_string(threads_per_job(c))};
+    std::vector<std::string> a = {"--preset", c.preset, "--seed", std::to_string(c.seed)};
+    if (c.arithmetic == Arithmetic::machine) a.insert(a.end(), {"--arithmetic", "machine"});
     for (const std::string& m : c.force_complex) a.insert(a.end(), {"--complex", m});
     for (const std::string& m : c.force_simple) a.insert(a.end(), {"--simple", m});
     char g[128];
@@ -570,10 +572,31 @@ std::string read_shard(const fs::path& dir, ShardManifest& out) {
     return {};
 }
 
-// Why shard `b` does not describe the same conversion as shard `a`; empty when it does.
+// "tool.version is 0.2.0 where DIR's is 0.1.0": the first field of object `key` in which
+// the two documents differ (a field one of them lacks reads as null).
+std::string field_difference(const char* key, const json& a, const json& b, const fs::path& a_dir) {
+    const json &oa = a.value(key, json::object()), &ob = b.value(key, json::object());
+    std::set<std::string> fields;
+    for (const json* o : {&oa, &ob})
+        if (o->is_object())
+            for (const auto& [k, v] : o->items()) fields.insert(k);
+    for (const std::string& f : fields) {
+        const json va = oa.is_object() ? oa.value(f, json()) : json(),
+                   vb = ob.is_object() ? ob.value(f, json()) : json();
+        if (va != vb)
+            return std::string(key) + "." + f + " is " + vb.dump() + " where " + a_dir.string() + "'s is " +
+                   va.dump();
+    }
+    return std::string("its ") + key + " differ from " + a_dir.string() + "'s";
+}
+
+// Why shard `b` does not describe the same conversion as shard `a`; empty when it does. The
+// thread count and the CPU never differ between shards' results (canonical arithmetic), so
+// shards from any machine join; another tool, another arithmetic or other settings do not.
 std::string shard_mismatch(const ShardManifest& a, const ShardManifest& b) {
-    for (const char* k : {"settings", "instances", "tool"})
-        if (a.doc[k] != b.doc[k]) return std::string("its ") + k + " differ from " + a.dir.string() + "'s";
+    for (const char* k : {"tool", "settings"})
+        if (a.doc[k] != b.doc[k]) return field_difference(k, a.doc, b.doc, a.dir);
+    if (a.doc["instances"] != b.doc["instances"]) return "its instances differ from " + a.dir.string() + "'s";
     const json &ma = a.doc["meshes"], &mb = b.doc["meshes"];
     if (ma.size() != mb.size() || a.doc["inputs"].size() != b.doc["inputs"].size())
         return "its inputs or meshes differ from " + a.dir.string() + "'s";

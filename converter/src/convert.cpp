@@ -341,19 +341,19 @@ json metrics_json(const samples::Metrics& m) {
 }
 
 // Everything else that changes the trained weights: the recipe (bump kRecipeVersion when
-// sampling or training code changes its streams or its rounding), the thread count (training is
-// deterministic per thread count) and the MLP arithmetic this machine will use.
-constexpr int kRecipeVersion = 4;
-static std::string recipe_key(const Preset& p, std::uint32_t threads) {
+// sampling or training code changes its streams) and the arithmetic (arithmetic_id: the
+// canonical arithmetic's version, or the instructions of the machine arithmetic). The thread
+// count is not part of it: it never changes a result.
+constexpr int kRecipeVersion = 5;
+static std::string recipe_key(const Preset& p, Arithmetic arithmetic) {
     const trainer::TrainConfig& c = p.train;
     char buf[512];
-    std::snprintf(buf, sizeof buf,
-                  "r%d|t%u|%s|lw%g,%g,%g,%g|g%g,%g,%g,%g|m%g,%g,%g,%g,%g|d%g,%g,%g,%g|n%d,%g", kRecipeVersion,
-                  threads, trainer::mlp_arithmetic(c.mlp_precision).c_str(), c.loss.visibility,
-                  c.loss.distance, c.loss.normal, c.loss.material, c.grid_adam.lr, c.grid_adam.beta1,
-                  c.grid_adam.beta2, c.grid_adam.eps, c.mlp_adam.lr, c.mlp_adam.beta1, c.mlp_adam.beta2,
-                  c.mlp_adam.eps, c.mlp_adam.l2, c.decay_start, c.final_lr_fraction, c.huber_delta,
-                  c.grad_clip_norm, int(c.normal_loss), c.normal_chord_epsilon);
+    std::snprintf(buf, sizeof buf, "r%d|%s|lw%g,%g,%g,%g|g%g,%g,%g,%g|m%g,%g,%g,%g,%g|d%g,%g,%g,%g|n%d,%g",
+                  kRecipeVersion, arithmetic_id(arithmetic).c_str(), c.loss.visibility, c.loss.distance,
+                  c.loss.normal, c.loss.material, c.grid_adam.lr, c.grid_adam.beta1, c.grid_adam.beta2,
+                  c.grid_adam.eps, c.mlp_adam.lr, c.mlp_adam.beta1, c.mlp_adam.beta2, c.mlp_adam.eps,
+                  c.mlp_adam.l2, c.decay_start, c.final_lr_fraction, c.huber_delta, c.grad_clip_norm,
+                  int(c.normal_loss), c.normal_chord_epsilon);
     return buf;
 }
 
@@ -490,6 +490,8 @@ bool resolve_preset(const ConvertOptions& opt, Preset& preset, std::string& erro
     }
     if (opt.no_give_up) preset.early_abort.min_samples = std::numeric_limits<std::uint64_t>::max();
     if (opt.keep_inactive) preset.prune_inactive = false;
+    preset.train.mlp_precision = opt.arithmetic == Arithmetic::machine ? trainer::MlpPrecision::automatic
+                                                                       : trainer::MlpPrecision::fp32;
     return true;
 }
 
@@ -609,7 +611,7 @@ std::string asset_key(const Run& run, const scene::Mesh& mesh, const format::Mod
            std::to_string(p.train.steps) + "|" + std::to_string(p.train.batch_size) + "|" +
            std::to_string(p.train_rays) + "/" + std::to_string(p.train_chunk_rays) + "/" +
            std::to_string(p.train_window_chunks) + "|" + model_json(desc).dump() + "|" +
-           recipe_key(p, run.threads) + "|" + stop_key(run.opt.target, p);
+           recipe_key(p, run.opt.arithmetic) + "|" + stop_key(run.opt.target, p);
 }
 
 std::optional<json> reusable_metrics(const fs::path& asset, const std::string& key) {
@@ -894,7 +896,7 @@ json asset_metadata(const Run& run, const std::string& source, const scene::Mesh
         {"model", model_json(o.model.desc)},
         {"training",
          {{"seed", run.opt.seed},
-          {"threads", run.threads},
+          {"arithmetic", arithmetic_id(run.opt.arithmetic)},
           {"steps", tres.steps},
           {"batch_size", cfg.batch_size},
           {"samples", tres.samples},
@@ -1442,7 +1444,7 @@ json manifest_json(const Run& run, const json& inputs, const json& meshes, const
         {"settings",
          {{"preset", run.preset.name},
           {"seed", run.opt.seed},
-          {"threads", run.threads},
+          {"arithmetic", arithmetic_id(run.opt.arithmetic)},
           {"forced_complex", forced_c},
           {"forced_simple", forced_s},
           {"target", target_settings(run.opt.target)}}},
@@ -1474,6 +1476,23 @@ std::string budget_conflict(const ConvertOptions& opt) {
 }
 
 }  // namespace
+
+std::string arithmetic_id(Arithmetic a) {
+    if (a == Arithmetic::machine &&
+        trainer::resolve_precision(trainer::MlpPrecision::automatic) == trainer::MlpPrecision::bf16)
+        return "machine-" + trainer::mlp_arithmetic(trainer::MlpPrecision::automatic);
+    return "canonical-" + std::to_string(kCanonicalArithmeticVersion);
+}
+
+bool parse_arithmetic(const std::string& text, Arithmetic& out) {
+    if (text == "canonical")
+        out = Arithmetic::canonical;
+    else if (text == "machine")
+        out = Arithmetic::machine;
+    else
+        return false;
+    return true;
+}
 
 std::uint32_t threads_per_job(const ConvertOptions& opt) {
     return std::max(1u, base::resolve_threads(opt.threads) / std::max(1u, opt.jobs));

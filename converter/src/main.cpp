@@ -6,6 +6,7 @@
 #include <lsnif/converter/eval.hpp>
 #include <lsnif/converter/file_tools.hpp>
 #include <lsnif/format/container.hpp>
+#include <lsnif/format/cpu.hpp>
 
 #include <CLI/CLI.hpp>
 
@@ -233,7 +234,7 @@ std::string recorded_command_line(int argc, char** argv) {
     // Where outputs go and how the work is split do not change an asset: leaving them out keeps
     // assets byte-identical between output directories. (`lsnif batch` records its settings
     // in a canonical form instead: batch.hpp, BatchOptions.)
-    static const char* const with_value[] = {"-o", "--output", "--cache", "-j", "--jobs"};
+    static const char* const with_value[] = {"-o", "--output", "--cache", "-j", "--jobs", "--threads"};
     std::string line;
     for (int i = 0; i < argc; ++i) {
         const std::string a =
@@ -255,10 +256,16 @@ std::string recorded_command_line(int argc, char** argv) {
 // The settings `lsnif convert` and `lsnif batch` share, with the same meaning.
 struct ConvertSettings {
     lsnif::converter::ConvertOptions opt;
-    std::string target, memory_budget;
+    std::string target, memory_budget, arithmetic = "canonical";
     void add_to(CLI::App* sub) {
         sub->add_option("--seed", opt.seed, "Random seed (sampling and training)");
-        sub->add_option("--threads", opt.threads, "Worker threads (0 = all cores)");
+        sub->add_option("--threads", opt.threads,
+                        "Worker threads (0 = all cores); results are the same for any count");
+        sub->add_option("--arithmetic", arithmetic,
+                        "canonical (default): fp32 in one order, the same assets on every CPU; machine: bf16 "
+                        "training products on AMX or AVX-512 BF16 where present (faster there, assets "
+                        "depend on the CPU kind and say so)")
+            ->check(CLI::IsMember({"canonical", "machine"}));
         sub->add_option("-j,--jobs", opt.jobs,
                         "Meshes converted at once, sharing the threads (each gets threads/jobs); "
                         "not with --memory-budget")
@@ -316,6 +323,7 @@ struct ConvertSettings {
             std::fprintf(stderr, "error: --memory-budget '%s': %s\n", memory_budget.c_str(), error.c_str());
             return false;
         }
+        lsnif::converter::parse_arithmetic(arithmetic, opt.arithmetic);  // CLI11 checked the value
         return true;
     }
 };
@@ -609,6 +617,10 @@ int main(int argc, char** argv) {
         // CLI11 prints the message; its own codes (105, 106, ...) become our one usage code,
         // 2, documented for every command (--help and --version stay 0).
         return app.exit(e) == 0 ? 0 : 2;
+    }
+    if (const std::string& isa = lsnif::format::isa_cap_error(); !isa.empty()) {
+        std::fprintf(stderr, "error: %s\n", isa.c_str());
+        return 2;
     }
     try {
         if (*inspect.sub) return inspect.run();

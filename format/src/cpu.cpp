@@ -4,6 +4,10 @@
 
 #include "x86.hpp"
 
+#include <cstdlib>
+#include <cstring>
+#include <iterator>
+
 namespace lsnif::format {
 
 namespace {
@@ -54,11 +58,65 @@ CpuFeatures detect() {
 
 #endif
 
+constexpr const char* kLevelNames[] = {"generic", "avx2", "avx512", "avx512bf16", "amx"};
+
+struct Cap {
+    IsaLevel level = IsaLevel::amx;
+    std::string error;
+};
+
+Cap read_cap() {
+    Cap cap;
+    const char* v = std::getenv("LSNIF_ISA");
+    if (!v || !*v) return cap;
+    for (std::uint8_t i = 0; i < std::size(kLevelNames); ++i)
+        if (std::strcmp(v, kLevelNames[i]) == 0) {
+            cap.level = IsaLevel(i);
+            return cap;
+        }
+    cap.error = std::string("LSNIF_ISA=") + v + ": not one of generic, avx2, avx512, avx512bf16, amx";
+    return cap;
+}
+
+const Cap& cap() {
+    static const Cap c = read_cap();
+    return c;
+}
+
+CpuFeatures capped(CpuFeatures f, IsaLevel level) {
+    if (level < IsaLevel::amx) f.amx_bf16 = false;
+    if (level < IsaLevel::avx512bf16) f.avx512_bf16 = false;
+    if (level < IsaLevel::avx512) f.avx512 = f.avx512_vnni = false;
+    if (level < IsaLevel::avx2) f.avx2_fma = false;
+    return f;
+}
+
 }  // namespace
 
 const CpuFeatures& cpu_features() {
-    static const CpuFeatures features = detect();  // thread-safe one-time initialization
+    static const CpuFeatures features = capped(detect(), cap().level);  // thread-safe one-time initialization
     return features;
+}
+
+const char* isa_level_name(IsaLevel level) {
+    return kLevelNames[std::size_t(level)];
+}
+
+IsaLevel isa_cap() {
+    return cap().level;
+}
+
+const std::string& isa_cap_error() {
+    return cap().error;
+}
+
+IsaLevel isa_level() {
+    const CpuFeatures& f = cpu_features();
+    return f.amx_bf16      ? IsaLevel::amx
+           : f.avx512_bf16 ? IsaLevel::avx512bf16
+           : f.avx512      ? IsaLevel::avx512
+           : f.avx2_fma    ? IsaLevel::avx2
+                           : IsaLevel::generic;
 }
 
 }  // namespace lsnif::format

@@ -6,6 +6,7 @@
 #include <lsnif/format/forward.hpp>
 #include <lsnif/format/half.hpp>
 #include <lsnif/format/quantize.hpp>
+#include <lsnif/format/simd.hpp>
 
 #include <algorithm>
 #include <cmath>
@@ -619,56 +620,59 @@ void add_layer(Network& net, std::uint32_t in, std::uint32_t out, const float* w
 
 // Register-blocked kernel: MB rows x (NV vectors of W floats) accumulators, the weight
 // vectors of one input index reused across MB rows, inputs broadcast. The same source is
-// compiled for several ISAs; vector width W is the native SIMD width of each.
-#define LSNIF_DENSE_KERNEL(NAME, TARGET, W)                                                             \
-    TARGET void NAME(const float* A, std::size_t n, std::size_t in, std::size_t lda, const float* wt,   \
-                     const float* bias, std::size_t outp, bool relu, float* C) {                        \
-        typedef float vec __attribute__((vector_size(W * 4), aligned(4)));                              \
-        constexpr std::size_t MB = 6;                                                                   \
-        constexpr std::size_t NV = 4;                                                                   \
-        std::size_t o = 0;                                                                              \
-        for (; o < outp; o += NV * W) {                                                                 \
-            const std::size_t nv = std::min<std::size_t>(NV, (outp - o) / W);                           \
-            std::size_t r = 0;                                                                          \
-            for (; r < n; r += MB) {                                                                    \
-                const std::size_t mb = std::min(MB, n - r);                                             \
-                vec acc[MB][NV];                                                                        \
-                for (std::size_t v = 0; v < nv; ++v) {                                                  \
-                    vec b0 = *reinterpret_cast<const vec*>(bias + o + v * W);                           \
-                    for (std::size_t m = 0; m < MB; ++m) acc[m][v] = b0;                                \
-                }                                                                                       \
-                if (mb == MB && nv == NV) {                                                             \
-                    for (std::size_t i = 0; i < in; ++i) {                                              \
-                        const float* wrow = wt + i * outp + o;                                          \
-                        const vec w0 = *reinterpret_cast<const vec*>(wrow);                             \
-                        const vec w1 = *reinterpret_cast<const vec*>(wrow + W);                         \
-                        const vec w2 = *reinterpret_cast<const vec*>(wrow + 2 * W);                     \
-                        const vec w3 = *reinterpret_cast<const vec*>(wrow + 3 * W);                     \
-                        for (std::size_t m = 0; m < MB; ++m) {                                          \
-                            const float a = A[(r + m) * lda + i];                                       \
-                            acc[m][0] += a * w0;                                                        \
-                            acc[m][1] += a * w1;                                                        \
-                            acc[m][2] += a * w2;                                                        \
-                            acc[m][3] += a * w3;                                                        \
-                        }                                                                               \
-                    }                                                                                   \
-                } else {                                                                                \
-                    for (std::size_t i = 0; i < in; ++i) {                                              \
-                        const float* wrow = wt + i * outp + o;                                          \
-                        for (std::size_t v = 0; v < nv; ++v) {                                          \
-                            const vec w = *reinterpret_cast<const vec*>(wrow + v * W);                  \
-                            for (std::size_t m = 0; m < mb; ++m) acc[m][v] += A[(r + m) * lda + i] * w; \
-                        }                                                                               \
-                    }                                                                                   \
-                }                                                                                       \
-                for (std::size_t m = 0; m < mb; ++m)                                                    \
-                    for (std::size_t v = 0; v < nv; ++v) {                                              \
-                        vec x = acc[m][v];                                                              \
-                        if (relu) x = x > 0.0f ? x : 0.0f;                                              \
-                        *reinterpret_cast<vec*>(C + (r + m) * outp + o + v * W) = x;                    \
-                    }                                                                                   \
-            }                                                                                           \
-        }                                                                                               \
+// compiled for several ISAs; vector width W is the native SIMD width of each. Every output
+// is its bias, then one fused multiply-add per input in input order (simd::fma), in every
+// variant: the same bits on every ISA.
+#define LSNIF_DENSE_KERNEL(NAME, TARGET, W)                                                           \
+    TARGET void NAME(const float* A, std::size_t n, std::size_t in, std::size_t lda, const float* wt, \
+                     const float* bias, std::size_t outp, bool relu, float* C) {                      \
+        using vec = simd::Vec<W>;                                                                     \
+        constexpr std::size_t MB = 6;                                                                 \
+        constexpr std::size_t NV = 4;                                                                 \
+        std::size_t o = 0;                                                                            \
+        for (; o < outp; o += NV * W) {                                                               \
+            const std::size_t nv = std::min<std::size_t>(NV, (outp - o) / W);                         \
+            std::size_t r = 0;                                                                        \
+            for (; r < n; r += MB) {                                                                  \
+                const std::size_t mb = std::min(MB, n - r);                                           \
+                vec acc[MB][NV];                                                                      \
+                for (std::size_t v = 0; v < nv; ++v) {                                                \
+                    vec b0 = *reinterpret_cast<const vec*>(bias + o + v * W);                         \
+                    for (std::size_t m = 0; m < MB; ++m) acc[m][v] = b0;                              \
+                }                                                                                     \
+                if (mb == MB && nv == NV) {                                                           \
+                    for (std::size_t i = 0; i < in; ++i) {                                            \
+                        const float* wrow = wt + i * outp + o;                                        \
+                        const vec w0 = *reinterpret_cast<const vec*>(wrow);                           \
+                        const vec w1 = *reinterpret_cast<const vec*>(wrow + W);                       \
+                        const vec w2 = *reinterpret_cast<const vec*>(wrow + 2 * W);                   \
+                        const vec w3 = *reinterpret_cast<const vec*>(wrow + 3 * W);                   \
+                        for (std::size_t m = 0; m < MB; ++m) {                                        \
+                            const float a = A[(r + m) * lda + i];                                     \
+                            acc[m][0] = simd::fma(a, w0, acc[m][0]);                                  \
+                            acc[m][1] = simd::fma(a, w1, acc[m][1]);                                  \
+                            acc[m][2] = simd::fma(a, w2, acc[m][2]);                                  \
+                            acc[m][3] = simd::fma(a, w3, acc[m][3]);                                  \
+                        }                                                                             \
+                    }                                                                                 \
+                } else {                                                                              \
+                    for (std::size_t i = 0; i < in; ++i) {                                            \
+                        const float* wrow = wt + i * outp + o;                                        \
+                        for (std::size_t v = 0; v < nv; ++v) {                                        \
+                            const vec w = *reinterpret_cast<const vec*>(wrow + v * W);                \
+                            for (std::size_t m = 0; m < mb; ++m)                                      \
+                                acc[m][v] = simd::fma(A[(r + m) * lda + i], w, acc[m][v]);            \
+                        }                                                                             \
+                    }                                                                                 \
+                }                                                                                     \
+                for (std::size_t m = 0; m < mb; ++m)                                                  \
+                    for (std::size_t v = 0; v < nv; ++v) {                                            \
+                        vec x = acc[m][v];                                                            \
+                        if (relu) x = x > 0.0f ? x : 0.0f;                                            \
+                        *reinterpret_cast<vec*>(C + (r + m) * outp + o + v * W) = x;                  \
+                    }                                                                                 \
+            }                                                                                         \
+        }                                                                                             \
     }
 
 LSNIF_DENSE_KERNEL(dense_generic, , 4)
@@ -687,7 +691,7 @@ LSNIF_DENSE_KERNEL(dense_avx2, __attribute__((target("avx2,fma"))), 8)
 __attribute__((target("avx512f,avx512vl,avx2,fma"))) void dense_narrow_avx512(
     const float* A, std::size_t n, std::size_t in, std::size_t lda, const float* wt, const float* bias,
     std::size_t outp, bool relu, float* C) {
-    typedef float vec __attribute__((vector_size(64), aligned(4)));
+    using vec = simd::F16;
     constexpr std::size_t MB = 8;
     for (std::size_t o = 0; o < outp; o += 16) {
         const vec b = *reinterpret_cast<const vec*>(bias + o);
@@ -698,12 +702,12 @@ __attribute__((target("avx512f,avx512vl,avx2,fma"))) void dense_narrow_avx512(
             if (mb == MB) {
                 for (std::size_t i = 0; i < in; ++i) {
                     const vec w = *reinterpret_cast<const vec*>(wt + i * outp + o);
-                    for (std::size_t m = 0; m < MB; ++m) acc[m] += A[(r + m) * lda + i] * w;
+                    for (std::size_t m = 0; m < MB; ++m) acc[m] = simd::fma(A[(r + m) * lda + i], w, acc[m]);
                 }
             } else {
                 for (std::size_t i = 0; i < in; ++i) {
                     const vec w = *reinterpret_cast<const vec*>(wt + i * outp + o);
-                    for (std::size_t m = 0; m < mb; ++m) acc[m] += A[(r + m) * lda + i] * w;
+                    for (std::size_t m = 0; m < mb; ++m) acc[m] = simd::fma(A[(r + m) * lda + i], w, acc[m]);
                 }
             }
             for (std::size_t m = 0; m < mb; ++m) {

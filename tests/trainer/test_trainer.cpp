@@ -224,12 +224,14 @@ TEST_CASE("the chord normal loss is sqrt(2 (1 - cos) + eps^2) - eps of the cosin
     CHECK(checked == 20);
 }
 
-TEST_CASE("grid gradients are the same bit for bit for any thread count, and cleared after use") {
-    // Every hash row has one owning thread that sums the samples in batch order, so the grid
-    // gradient does not depend on how the batch or the rows are split. small_desc's levels
-    // have 729 and 1,024 rows: with 2 threads each owns one level, with 3 and 5 every level's
-    // rows are split. With three levels (a coarse dense one below the voxel grid, whose
-    // points have 8 corners), 2 threads own whole levels dealt by estimated cost.
+TEST_CASE("loss and every gradient are the same bit for bit for any thread count, and cleared after use") {
+    // The batch is cut into chunks that depend on its size alone, each summed in row order,
+    // and the chunks are added in chunk order; every hash row has one owning thread that sums
+    // the samples in batch order. So nothing depends on how many threads share the work.
+    // small_desc's levels have 729 and 1,024 rows: with 2 threads each owns one level, with 3
+    // and 5 every level's rows are split. With three levels (a coarse dense one below the
+    // voxel grid, whose points have 8 corners), 2 threads own whole levels dealt by estimated
+    // cost. ~900 reachable rays make 3-4 chunks of 256 rows, the last one short.
     format::ModelDesc three = small_desc();
     three.level_resolution = {4, 8, 16};
     for (const format::ModelDesc& d : {small_desc(), three}) {
@@ -237,7 +239,8 @@ TEST_CASE("grid gradients are the same bit for bit for any thread count, and cle
         SpheresSource src = two_spheres(d);
         std::vector<Sample> raw;
         src.generate(5, 900, raw);
-        std::vector<std::vector<float>> want;
+        Gradients want;
+        double want_loss = 0;
         for (const std::uint32_t threads : {1u, 2u, 3u, 5u}) {
             CAPTURE(threads);
             TrainConfig cfg;
@@ -250,15 +253,20 @@ TEST_CASE("grid gradients are the same bit for bit for any thread count, and cle
                     level[i] = 0.3f * float(std::cos(double(i) * 0.7));
             const auto batch = tr.reachable(raw);
             Gradients first, second;
-            tr.loss_and_gradients(batch, &first);
+            const double loss = tr.loss_and_gradients(batch, &first).total;
             tr.loss_and_gradients(batch, &second);  // nothing left over from the first call
             CHECK(first.grid == second.grid);
+            CHECK(first.weights == second.weights);
+            CHECK(first.biases == second.biases);
             std::size_t nonzero = 0;
             for (const auto& level : first.grid)
                 for (const float x : level) nonzero += x != 0.0f;
             CHECK(nonzero > 500);
-            if (want.empty()) want = first.grid;
-            CHECK(first.grid == want);
+            if (want.grid.empty()) want = first, want_loss = loss;
+            CHECK(first.grid == want.grid);
+            CHECK(first.weights == want.weights);
+            CHECK(first.biases == want.biases);
+            CHECK(std::memcmp(&loss, &want_loss, sizeof loss) == 0);
         }
     }
 }
@@ -292,29 +300,34 @@ TEST_CASE("training forward equals the reader's forward bit for bit on exported 
     }
 }
 
-TEST_CASE("same seed and thread count give identical weights; the guard survives an absurd rate") {
+TEST_CASE("the same seed gives identical weights for any thread count; the guard survives an absurd rate") {
     const format::ModelDesc d = small_desc();
     SpheresSource src = two_spheres(d);
     std::vector<Sample> raw;
     src.generate(9, 4000, raw);
-    // Both MLP precisions (bf16 falls back to fp32 without AMX, which is then checked twice).
+    // Both MLP precisions (bf16 falls back to fp32 without a bf16 backend, which is then
+    // checked twice). A batch of 1,300 rows: five chunks of 256 and a short one.
     for (const MlpPrecision precision : {MlpPrecision::fp32, MlpPrecision::bf16}) {
         CAPTURE(precision_name(precision));
-        auto run = [&](std::uint64_t seed) {
+        auto run = [&](std::uint64_t seed, std::uint32_t threads) {
             TrainConfig cfg;
             cfg.steps = 40;
-            cfg.batch_size = 1024;
-            cfg.threads = 2;
+            cfg.batch_size = 1300;
+            cfg.threads = threads;
             cfg.seed = seed;
             cfg.mlp_precision = precision;
             Trainer tr(d, src.occupancy(d), cfg);
             tr.train(tr.reachable(raw));
             return tr.export_model("{}");
         };
-        const auto a = run(1), b = run(1), c = run(2);
-        CHECK(a.weights == b.weights);
-        CHECK(a.grid == b.grid);
-        CHECK(a.biases == b.biases);
+        const auto a = run(1, 2), c = run(2, 2);
+        for (const std::uint32_t threads : {1u, 2u, 3u, 5u}) {
+            CAPTURE(threads);
+            const auto b = run(1, threads);
+            CHECK(a.weights == b.weights);
+            CHECK(a.grid == b.grid);
+            CHECK(a.biases == b.biases);
+        }
         CHECK(a.weights != c.weights);
     }
 

@@ -3,12 +3,14 @@
 #include <lsnif/trainer/trainer.hpp>
 
 #include <lsnif/base/clock.hpp>
+#include <lsnif/base/math.hpp>
 #include <lsnif/base/parallel.hpp>
 #include <lsnif/base/random.hpp>
 #include "amx.hpp"
 #include "kernels.hpp"
 
 #include <algorithm>
+#include <atomic>
 #include <bit>
 #include <chrono>
 #include <cmath>
@@ -102,6 +104,16 @@ const char* precision_name(MlpPrecision p) {
 namespace {
 
 constexpr std::size_t kSub = 128;  // rows per sub-chunk: keeps activations in L2
+// A batch is cut into chunks of whole sub-chunks that depend on the batch size alone (never
+// on the thread count): each chunk's gradients are summed over its rows in order, and the
+// chunks are then added in chunk order, so a step gives the same bits on any number of
+// threads (threads only decide who computes which chunk). At most kMaxChunks per batch keeps
+// the per-chunk gradient buffers (~150 KB each at the default width) and their reduction
+// small; at least 2 sub-chunks per chunk keeps three threads busy on a 2048-row batch.
+constexpr std::size_t kMaxChunks = 32;
+// Grid rows per block of the gradient norm: the norm of the hash-grid gradient is summed per
+// block of this many rows, then over blocks in order, and threads own whole blocks.
+constexpr std::size_t kNormBlock = 1024;
 constexpr float kMaxParam = 1e4f;  // larger magnitudes are treated as divergence (fp16 max 65504)
 
 std::uint32_t pad16(std::uint32_t n) {
@@ -119,29 +131,44 @@ void parallel(std::uint32_t T, F&& fn) {
     base::run_on_threads(T, fn);
 }
 
+// The logistic function in the stable form for either sign, in double with base::exp (the
+// same bits on every machine), rounded once to float.
 float sigmoid(float z) {
-    return z >= 0 ? 1.0f / (1.0f + std::exp(-z)) : std::exp(z) / (1.0f + std::exp(z));
+    const double e = base::exp(-std::fabs(double(z)));
+    return float(z >= 0 ? 1.0 / (1.0 + e) : e / (1.0 + e));
 }
 
-// Per-thread buffers. Aligned so one thread's per-sample loss accumulation never shares a
-// cache line with another thread's buffer headers.
+// Rows of each chunk of a batch of `batch` rows (see kMaxChunks).
+std::size_t chunk_rows(std::size_t batch) {
+    const std::size_t per = (batch + kMaxChunks - 1) / kMaxChunks;
+    return std::max(2 * kSub, (per + kSub - 1) / kSub * kSub);
+}
+
+// Per-thread scratch of one sub-chunk's forward and backward pass. Aligned so that two
+// threads' buffer headers never share a cache line.
 struct alignas(128) Work {
     std::vector<RayPoints> pts;
     std::vector<float> x;                 // kSub x in0
     std::vector<std::vector<float>> act;  // per layer output, kSub x outp
     std::vector<float> d0, d1;            // gradient ping-pong, kSub x max padded width
-    std::vector<std::vector<float>> dwt;  // per layer, pad16(in) x outp (transposed layout)
-    std::vector<std::vector<float>> db;   // per layer, outp
-    // The thread's samples of the step, in batch order, for the grid-gradient scatter: per
-    // sample its `count` points' grid coordinates (count x 3), then the gradients of their
-    // features (count x L x F); and the counts.
-    std::vector<float> point_grads;
-    std::vector<std::uint16_t> point_counts;
-    // bf16 path only (empty in fp32): operands of the AMX products of one sub-chunk.
+    // bf16 path only (empty in fp32): operands of the bf16 products of one sub-chunk.
     detail::Bf16Buffer a_rows;  // forward A: layer input, kSub x pad32(in)
     detail::Bf16Buffer a_t;     // weight-gradient A: layer input transposed, pad16(in) x pad32(kSub)
     detail::Bf16Buffer g_rows;  // input-gradient A: G, kSub x pad32(out)
     detail::Bf16Buffer g_vnni;  // weight-gradient B: G in pair-of-rows layout, pad32(kSub)/2 x 2 outp
+};
+
+// What one chunk of a batch contributes to a step, summed over the chunk's rows in order and
+// kept apart until the step adds the chunks in chunk order.
+struct alignas(128) ChunkResult {
+    std::vector<std::vector<float>>
+        dwt;  // per layer, pad16(in) x outp (transposed layout); zero between steps
+    std::vector<std::vector<float>> db;  // per layer, outp; zero between steps
+    // The chunk's samples, in batch order, for the grid-gradient scatter: per sample its
+    // `count` points' grid coordinates (count x 3), then the gradients of their features
+    // (count x L x F); and the counts.
+    std::vector<float> point_grads;
+    std::vector<std::uint16_t> point_counts;
     LossParts loss;
 };
 
@@ -185,7 +212,9 @@ std::vector<std::vector<std::pair<std::size_t, std::size_t>>> owned_rows(const f
         return owned;
     }
     for (std::uint32_t l = 0; l < L; ++l) {
-        const std::size_t n = desc.level_entries(l), per = (n + T - 1) / T;
+        // Whole blocks of the gradient norm (kNormBlock), so a block has one owner.
+        const std::size_t n = desc.level_entries(l),
+                          per = ((n + T - 1) / T + kNormBlock - 1) / kNormBlock * kNormBlock;
         for (std::uint32_t t = 0; t < T; ++t)
             owned[t][l] = {std::min(n, t * per), std::min(n, (t + 1) * per)};
     }
@@ -195,7 +224,8 @@ std::vector<std::vector<std::pair<std::size_t, std::size_t>>> owned_rows(const f
 }  // namespace
 
 struct Trainer::Impl {
-    std::vector<Work> work;
+    std::vector<Work> work;                // per thread
+    std::vector<ChunkResult> chunks;       // per chunk of the current batch (grown on demand)
     format::Network net;                   // forward layout of the current master weights
     std::vector<std::vector<float>> wpad;  // per layer [out][pad16(in)] for dX = G W
     std::vector<float> zeros;              // bias for the backward products
@@ -209,7 +239,8 @@ struct Trainer::Impl {
     // The grid gradient of the step, per level (entries x F). Rows without gradient are
     // zero between steps: the scatter adds into them, Adam and clear_grid_gradients zero them.
     std::vector<std::vector<float>> gsum;
-    std::vector<double> gsum_norm2;  // per thread: sum of squares of its rows of gsum
+    // Per level and block of kNormBlock rows: the sum of squares of the block's rows of gsum.
+    std::vector<std::vector<double>> gsum_norm2;
     // Rows thread t owns, per level: [first, last). The levels' rows laid end to end are cut
     // into one contiguous share per thread, so every row has one writer (no per-thread
     // tables to reduce); with two threads and two levels of equal size, one level each.
@@ -237,17 +268,21 @@ struct Trainer::Impl {
     // operands (wf, wb) or zero-padded fp32 rows (wpad).
     void stage_weights(const format::ModelDesc& desc, const std::vector<std::vector<float>>& w, bool bf16);
     // Backpropagates dL/d(output) (in w.d0) through the layers of one sub-chunk of n rows,
-    // accumulating w.dwt and w.db; returns dL/d(input features), n rows of pad16(input_width)
-    // (one of w.d0/w.d1).
-    float* mlp_backward(const Geometry& geo, std::size_t n, bool bf16, Work& w) const;
-    // Sums the threads' MLP gradients into wgrad/bgrad (file layout) and clears theirs.
-    void reduce_mlp_gradients(const format::ModelDesc& desc);
-    // Adds every sample's share of dL/d(features) (the threads' point_grads) into gsum and
-    // marks the rows in `active`; thread t writes only the rows it owns, visiting the samples
-    // in batch order, so each row's sum has the same order for any thread count. Thread t
-    // then sums the squares of its rows into gsum_norm2[t] (the grid's share of the global
-    // gradient norm).
-    void scatter_grid_gradients(const Geometry& geo);
+    // accumulating the chunk's c.dwt and c.db; returns dL/d(input features), n rows of
+    // pad16(input_width) (one of w.d0/w.d1).
+    float* mlp_backward(const Geometry& geo, std::size_t n, bool bf16, Work& w, ChunkResult& c) const;
+    // Makes `count` chunk results available, with zeroed gradients.
+    void prepare_chunks(const format::ModelDesc& desc, std::size_t count);
+    // Sums the first `count` chunks' MLP gradients, in chunk order, into wgrad/bgrad (file
+    // layout) and zeroes theirs; the elements are split among `threads` threads.
+    void reduce_mlp_gradients(const format::ModelDesc& desc, std::size_t count, std::uint32_t threads);
+    // Adds every sample's share of dL/d(features) (the first `count` chunks' point_grads)
+    // into gsum and marks the rows in `active`; thread t writes only the rows it owns,
+    // visiting the samples in batch order, so each row's sum has the same order for any
+    // thread count. Thread t then sums the squares of its blocks of rows into gsum_norm2.
+    void scatter_grid_gradients(const Geometry& geo, std::size_t count);
+    // The sum of squares of gsum: gsum_norm2 added over levels and blocks in order.
+    double grid_norm2() const;
     // Zeroes gsum's active rows and clears `active` (a step that is not applied).
     void clear_grid_gradients(std::uint32_t F);
     // Copies the reduced gradients out (gradient checks), then clear_grid_gradients.
@@ -285,6 +320,7 @@ Trainer::Trainer(const format::ModelDesc& desc, std::vector<std::uint8_t> occupa
     for (std::uint32_t l = 0; l < desc.level_count(); ++l) {
         im.row_step.emplace_back(desc.level_entries(l), 0u);
         im.active.emplace_back(desc.level_entries(l), 0u);
+        im.gsum_norm2.emplace_back((desc.level_entries(l) + kNormBlock - 1) / kNormBlock, 0.0);
     }
     for (std::uint32_t k = 0; k < desc.layer_count(); ++k) {
         im.wm.emplace_back(w_[k].size(), 0.0f);
@@ -310,10 +346,6 @@ Trainer::Trainer(const format::ModelDesc& desc, std::vector<std::uint8_t> occupa
         for (std::uint32_t k = 0; k < desc.layer_count(); ++k) {
             const auto [o, i] = desc.layer_shape(k);
             w.act.emplace_back(kSub * pad16(o));
-            // pad16(i) rows: the bf16 weight-gradient product covers whole 16-row tiles (the
-            // extra rows stay zero; reductions read the first i).
-            w.dwt.emplace_back(std::size_t(pad16(i)) * pad16(o), 0.0f);
-            w.db.emplace_back(pad16(o), 0.0f);
         }
         w.d0.resize(kSub * maxw);
         w.d1.resize(kSub * maxw);
@@ -346,7 +378,7 @@ float Trainer::schedule(std::uint64_t step) const {
     const double s = double(step) / std::max(1u, cfg_.steps);
     if (s <= cfg_.decay_start) return 1.0f;
     const double u = std::min(1.0, (s - cfg_.decay_start) / std::max(1e-9, 1.0 - cfg_.decay_start));
-    return float(std::pow(double(cfg_.final_lr_fraction), u));
+    return float(base::pow(double(cfg_.final_lr_fraction), u));
 }
 
 std::vector<Sample> Trainer::reachable(std::span<const Sample> samples) const {
@@ -569,7 +601,8 @@ struct LossScale {
 // Visibility: binary cross-entropy with logits, softplus(z) - y z in its stable form.
 void visibility_loss(const Sample& s, const float* o, const LossScale& k, LossParts& loss, float* g) {
     const float y = s.hit ? 1.0f : 0.0f, z = o[OutputLayout::visibility];
-    loss.visibility += double(std::max(z, 0.0f) - z * y + std::log1p(std::exp(-std::fabs(z)))) * k.inv_b;
+    loss.visibility +=
+        (double(std::max(z, 0.0f) - z * y) + base::log1p(base::exp(-std::fabs(double(z))))) * k.inv_b;
     g[OutputLayout::visibility] = k.weight.visibility * (sigmoid(z) - y) * k.inv_b;
 }
 
@@ -613,31 +646,32 @@ void material_loss(const Sample& s, const float* o, const LossScale& k, LossPart
     float mx = logit[0];
     for (std::uint32_t m = 1; m < M; ++m) mx = std::max(mx, logit[m]);
     double sum = 0;
-    for (std::uint32_t m = 0; m < M; ++m) sum += std::exp(double(logit[m] - mx));
+    for (std::uint32_t m = 0; m < M; ++m) sum += base::exp(double(logit[m] - mx));
     const std::uint32_t target = std::min(s.material, M - 1);
-    loss.material += (std::log(sum) - double(logit[target] - mx)) * k.inv_h;
+    loss.material += (base::log(sum) - double(logit[target] - mx)) * k.inv_h;
     for (std::uint32_t m = 0; m < M; ++m)
         g[OutputLayout::material + m] =
             k.weight.material * k.inv_h *
-            (float(std::exp(double(logit[m] - mx)) / sum) - (m == target ? 1.0f : 0.0f));
+            (float(base::exp(double(logit[m] - mx)) / sum) - (m == target ? 1.0f : 0.0f));
 }
 
 // The losses of n output rows (stride outp) into w.loss, and dL/d(output) into dO (n x
 // outp, padding columns zero). Rays that miss, or that no voxel entry point reaches, train
 // visibility only.
 void output_losses(const Geometry& geo, const PreparedSet& set, std::span<const std::uint32_t> rows,
-                   const float* out, std::size_t outp, const LossScale& k, Work& w, float* dO) {
+                   const float* out, std::size_t outp, const LossScale& k, const Work& w, LossParts& loss,
+                   float* dO) {
     std::memset(dO, 0, rows.size() * outp * sizeof(float));
     for (std::size_t r = 0; r < rows.size(); ++r) {
         const Sample& s = set.samples[rows[r]];
         const float* o = out + r * outp;
         float* g = dO + r * outp;
-        visibility_loss(s, o, k, w.loss, g);
+        visibility_loss(s, o, k, loss, g);
         const RayPoints& p = w.pts[r];
         if (!s.hit || p.count == 0) continue;
-        distance_loss(geo, s, p, o, k, w.loss, g);
-        normal_loss(s, o, k, w.loss, g);
-        if (k.materials > 0) material_loss(s, o, k, w.loss, g);
+        distance_loss(geo, s, p, o, k, loss, g);
+        normal_loss(s, o, k, loss, g);
+        if (k.materials > 0) material_loss(s, o, k, loss, g);
     }
 }
 
@@ -661,18 +695,19 @@ void load_points(const PreparedSet& set, std::span<const std::uint32_t> rows, Wo
     }
 }
 
-// Appends the n rows' entry points and dL/d(point features) (dx: n rows of
-// pad16(input_width)) to w.point_grads, for Impl::scatter_grid_gradients after the pass.
-void record_point_gradients(const Geometry& geo, const float* dx, std::size_t n, Work& w) {
+// Appends the n rows' entry points (w.pts) and dL/d(point features) (dx: n rows of
+// pad16(input_width)) to c.point_grads, for Impl::scatter_grid_gradients after the pass.
+void record_point_gradients(const Geometry& geo, const float* dx, std::size_t n, const Work& w,
+                            ChunkResult& c) {
     const std::size_t ip0 = pad16(geo.input_width), per_point = std::size_t(geo.L) * geo.F;
     for (std::size_t r = 0; r < n; ++r) {
         const RayPoints& p = w.pts[r];
-        const std::size_t at = w.point_grads.size();
-        w.point_grads.resize(at + p.count * (3 + per_point));
-        float* out = w.point_grads.data() + at;
+        const std::size_t at = c.point_grads.size();
+        c.point_grads.resize(at + p.count * (3 + per_point));
+        float* out = c.point_grads.data() + at;
         std::memcpy(out, p.g, sizeof(float) * 3 * p.count);
         std::memcpy(out + 3 * p.count, dx + r * ip0, sizeof(float) * per_point * p.count);
-        w.point_counts.push_back(std::uint16_t(p.count));
+        c.point_counts.push_back(std::uint16_t(p.count));
     }
 }
 
@@ -699,7 +734,7 @@ struct ScatterBatch {
 };
 
 // Adds each sample's corner shares on level `level` into rows [first, last) of `table`
-// (rows x F) and marks them in `active`, the samples in the order `work` recorded them. Only
+// (rows x F) and marks them in `active`, the samples in the order `chunks` recorded them. Only
 // corners that carry weight are visited. The corners are computed 16 points at a time
 // (level_corners16) and software-pipelined by one batch: a batch's corners are computed and
 // their rows prefetched (the table exceeds L2) while the previous batch's shares are added,
@@ -707,7 +742,7 @@ struct ScatterBatch {
 // corner by corner, in the order level_corners gives them: the sums do not depend on the
 // batching.
 void scatter_level(const Geometry& geo, std::uint32_t level, std::pair<std::size_t, std::size_t> rows,
-                   const std::vector<Work>& work, float* table, std::uint8_t* active) {
+                   std::span<const ChunkResult> chunks, float* table, std::uint8_t* active) {
     const std::uint32_t L = geo.L, F = geo.F;
     const format::LevelInfo& lv = geo.levels[level];
     const auto [first, last] = rows;
@@ -747,7 +782,7 @@ void scatter_level(const Geometry& geo, std::uint32_t level, std::pair<std::size
     ScatterBatch batch[2];
     std::uint32_t cur = 0;
     bool pending = false;  // batch[cur ^ 1] is staged and its shares are not added yet
-    for (const Work& w : work) {
+    for (const ChunkResult& w : chunks) {
         const float* rec = w.point_grads.data();
         for (const std::uint16_t count : w.point_counts) {
             const float* dx = rec + 3 * count;
@@ -803,7 +838,8 @@ void Trainer::Impl::stage_weights(const format::ModelDesc& desc, const std::vect
     }
 }
 
-float* Trainer::Impl::mlp_backward(const Geometry& geo, std::size_t n, bool bf16, Work& w) const {
+float* Trainer::Impl::mlp_backward(const Geometry& geo, std::size_t n, bool bf16, Work& w,
+                                   ChunkResult& c) const {
     float* G = w.d0.data();
     float* other = w.d1.data();
     for (int k = int(net.wt.size()) - 1; k >= 0; --k) {
@@ -817,19 +853,19 @@ float* Trainer::Impl::mlp_backward(const Geometry& geo, std::size_t n, bool bf16
             const std::size_t np = detail::round_up(n, 32);
             detail::pack_transposed(X, n, in_k, ldx, w.a_t.data(), np, ip);
             detail::pack_vnni(G, n, outp_k, outp_k, w.g_vnni.data(), 2 * outp_k, np);
-            detail::gemm_bf16(ip, outp_k, np, w.a_t.data(), np, w.g_vnni.data(), 2 * outp_k, w.dwt[k].data(),
+            detail::gemm_bf16(ip, outp_k, np, w.a_t.data(), np, w.g_vnni.data(), 2 * outp_k, c.dwt[k].data(),
                               outp_k, true);
             // dX = G W (K = the real outputs, zero-padded to 32).
             const std::size_t kp = pad32(net.out[k]);
             detail::pack_rows(G, n, net.out[k], outp_k, w.g_rows.data(), kp, detail::round_up(n, 16));
             detail::gemm_bf16(n, ip, kp, w.g_rows.data(), kp, wb[k].data(), 2 * ip, other, ip, false);
         } else {
-            detail::outer_accumulate(X, n, in_k, ldx, G, outp_k, w.dwt[k].data());
+            detail::outer_accumulate(X, n, in_k, ldx, G, outp_k, c.dwt[k].data());
             // dX = G W (contract over the real outputs; padded columns of G are zero).
             format::dense_layer(G, n, net.out[k], outp_k, wpad[k].data(), zeros.data(), ip, false, other);
         }
         for (std::size_t r = 0; r < n; ++r)
-            for (std::size_t o = 0; o < outp_k; ++o) w.db[k][o] += G[r * outp_k + o];
+            for (std::size_t o = 0; o < outp_k; ++o) c.db[k][o] += G[r * outp_k + o];
         if (k > 0) {  // ReLU derivative of the previous layer's output
             const float* H = w.act[k - 1].data();
             for (std::size_t q = 0; q < n * ip; ++q)
@@ -840,37 +876,73 @@ float* Trainer::Impl::mlp_backward(const Geometry& geo, std::size_t n, bool bf16
     return G;
 }
 
-void Trainer::Impl::reduce_mlp_gradients(const format::ModelDesc& desc) {
-    for (std::uint32_t k = 0; k < desc.layer_count(); ++k) {
-        const auto [o, i] = desc.layer_shape(k);
-        const std::size_t op = net.out_padded[k];
-        std::fill(wgrad[k].begin(), wgrad[k].end(), 0.0f);
-        std::fill(bgrad[k].begin(), bgrad[k].end(), 0.0f);
-        for (Work& w : work) {
-            for (std::uint32_t ii = 0; ii < i; ++ii)
-                for (std::uint32_t oo = 0; oo < o; ++oo)
-                    wgrad[k][std::size_t(oo) * i + ii] += w.dwt[k][ii * op + oo];
-            for (std::uint32_t oo = 0; oo < o; ++oo) bgrad[k][oo] += w.db[k][oo];
-            std::fill(w.dwt[k].begin(), w.dwt[k].end(), 0.0f);
-            std::fill(w.db[k].begin(), w.db[k].end(), 0.0f);
+void Trainer::Impl::prepare_chunks(const format::ModelDesc& desc, std::size_t count) {
+    while (chunks.size() < count) {
+        ChunkResult& c = chunks.emplace_back();
+        for (std::uint32_t k = 0; k < desc.layer_count(); ++k) {
+            const auto [o, i] = desc.layer_shape(k);
+            // pad16(i) rows: the bf16 weight-gradient product covers whole 16-row tiles (the
+            // extra rows stay zero; reductions read the first i).
+            c.dwt.emplace_back(std::size_t(pad16(i)) * pad16(o), 0.0f);
+            c.db.emplace_back(pad16(o), 0.0f);
         }
     }
 }
 
-void Trainer::Impl::scatter_grid_gradients(const Geometry& geo) {
+void Trainer::Impl::reduce_mlp_gradients(const format::ModelDesc& desc, std::size_t count,
+                                         std::uint32_t threads) {
+    const std::uint32_t layers = desc.layer_count();
+    // Thread t sums the inputs [t i / T, (t + 1) i / T) of every layer: one row of dWt per
+    // input, over the chunks in order.
+    base::run_on_threads(threads, [&](std::uint32_t t) {
+        std::vector<float> row;
+        for (std::uint32_t k = 0; k < layers; ++k) {
+            const auto [o, i] = desc.layer_shape(k);
+            const std::size_t op = net.out_padded[k];
+            row.resize(op);
+            const std::size_t first = std::size_t(i) * t / threads, last = std::size_t(i) * (t + 1) / threads;
+            for (std::size_t ii = first; ii < last; ++ii) {
+                std::fill(row.begin(), row.end(), 0.0f);
+                for (std::size_t c = 0; c < count; ++c) {
+                    float* src = chunks[c].dwt[k].data() + ii * op;
+                    for (std::size_t oo = 0; oo < op; ++oo) row[oo] += src[oo];
+                    std::fill_n(src, op, 0.0f);
+                }
+                for (std::uint32_t oo = 0; oo < o; ++oo) wgrad[k][std::size_t(oo) * i + ii] = row[oo];
+            }
+        }
+    });
+    for (std::uint32_t k = 0; k < layers; ++k) {
+        const std::uint32_t o = desc.layer_shape(k).first;
+        std::fill(bgrad[k].begin(), bgrad[k].end(), 0.0f);
+        for (std::size_t c = 0; c < count; ++c) {
+            for (std::uint32_t oo = 0; oo < o; ++oo) bgrad[k][oo] += chunks[c].db[k][oo];
+            std::fill(chunks[c].db[k].begin(), chunks[c].db[k].end(), 0.0f);
+        }
+    }
+}
+
+void Trainer::Impl::scatter_grid_gradients(const Geometry& geo, std::size_t count) {
     const auto T = std::uint32_t(owned.size());
-    gsum_norm2.assign(T, 0.0);
+    const std::span<const ChunkResult> results(chunks.data(), count);
     base::run_on_threads(T, [&](std::uint32_t t) {
-        double norm2 = 0;
         for (std::uint32_t l = 0; l < geo.L; ++l) {
             const auto [first, last] = owned[t][l];
             if (first == last) continue;
-            scatter_level(geo, l, owned[t][l], work, gsum[l].data(), active[l].data());
-            // Rows without gradient are zero, so the whole share can be summed.
-            norm2 += sum_of_squares(gsum[l].data() + first * geo.F, (last - first) * geo.F);
+            scatter_level(geo, l, owned[t][l], results, gsum[l].data(), active[l].data());
+            // Rows without gradient are zero, so whole blocks can be summed.
+            for (std::size_t b = first; b < last; b += kNormBlock)
+                gsum_norm2[l][b / kNormBlock] =
+                    sum_of_squares(gsum[l].data() + b * geo.F, (std::min(last, b + kNormBlock) - b) * geo.F);
         }
-        gsum_norm2[t] = norm2;
     });
+}
+
+double Trainer::Impl::grid_norm2() const {
+    double sum = 0;
+    for (const auto& level : gsum_norm2)
+        for (const double block : level) sum += block;
+    return sum;
 }
 
 void Trainer::Impl::clear_grid_gradients(std::uint32_t F) {
@@ -908,41 +980,49 @@ LossParts Trainer::loss_and_gradients(const PreparedSet& set, std::span<const st
                           cfg_.normal_loss,
                           cfg_.normal_chord_epsilon,
                           desc_.material_count};
-    const std::size_t per = (B + threads_ - 1) / threads_;
-    parallel(threads_, [&](std::uint32_t t) {
+    // Chunks of the batch (chunk_rows: a function of B alone), handed out to the threads
+    // dynamically; each chunk's rows run in order, sub-chunk by sub-chunk.
+    const std::size_t per = chunk_rows(B), count = (B + per - 1) / per;
+    im.prepare_chunks(desc_, count);
+    std::atomic<std::size_t> next{0};
+    parallel(std::uint32_t(std::min<std::size_t>(threads_, count)), [&](std::uint32_t t) {
         Work& w = im.work[t];
-        w.loss = LossParts{};
-        w.point_grads.clear();
-        w.point_counts.clear();
-        const std::size_t begin = std::min(B, t * per), end = std::min(B, begin + per);
-        for (std::size_t base = begin; base < end; base += kSub) {
-            const std::size_t n = std::min(kSub, end - base);
-            const auto rows = batch.subspan(base, n);
-            load_points(set, rows, w);
-            if (bf16)
-                forward_layers_bf16(geo_, gp, im.net, im.wf, n, w);
-            else
-                forward_layers(geo_, gp, im.net, n, w);
-            output_losses(geo_, set, rows, w.act.back().data(), im.net.out_padded.back(), scale, w,
-                          w.d0.data());
-            const float* dx = im.mlp_backward(geo_, n, bf16, w);
-            record_point_gradients(geo_, dx, n, w);
+        for (std::size_t c; (c = next.fetch_add(1, std::memory_order_relaxed)) < count;) {
+            ChunkResult& chunk = im.chunks[c];
+            chunk.loss = LossParts{};
+            chunk.point_grads.clear();
+            chunk.point_counts.clear();
+            const std::size_t begin = c * per, end = std::min(B, begin + per);
+            for (std::size_t base = begin; base < end; base += kSub) {
+                const std::size_t n = std::min(kSub, end - base);
+                const auto rows = batch.subspan(base, n);
+                load_points(set, rows, w);
+                if (bf16)
+                    forward_layers_bf16(geo_, gp, im.net, im.wf, n, w);
+                else
+                    forward_layers(geo_, gp, im.net, n, w);
+                output_losses(geo_, set, rows, w.act.back().data(), im.net.out_padded.back(), scale, w,
+                              chunk.loss, w.d0.data());
+                const float* dx = im.mlp_backward(geo_, n, bf16, w, chunk);
+                record_point_gradients(geo_, dx, n, w, chunk);
+            }
         }
     });
 
-    // Reductions in thread order: deterministic for a fixed thread count.
+    // Every reduction in chunk order.
     const LossWeights& lw = cfg_.loss;
     LossParts total;
-    for (const Work& w : im.work) {
-        total.visibility += w.loss.visibility;
-        total.distance += w.loss.distance;
-        total.normal += w.loss.normal;
-        total.material += w.loss.material;
+    for (std::size_t c = 0; c < count; ++c) {
+        const LossParts& part = im.chunks[c].loss;
+        total.visibility += part.visibility;
+        total.distance += part.distance;
+        total.normal += part.normal;
+        total.material += part.material;
     }
     total.total = lw.visibility * total.visibility + lw.distance * total.distance + lw.normal * total.normal +
                   lw.material * total.material;
-    im.reduce_mlp_gradients(desc_);
-    im.scatter_grid_gradients(geo_);
+    im.reduce_mlp_gradients(desc_, count, threads_);
+    im.scatter_grid_gradients(geo_, count);
     if (grads) im.export_gradients(geo_.F, *grads);
     return total;
 }
@@ -974,11 +1054,11 @@ float Trainer::step(const PreparedSet& set, std::span<const std::uint32_t> batch
     if (!im.snap.valid) snapshot();
     const LossParts lp = loss_and_gradients(set, batch, nullptr);
     const std::uint32_t L = geo_.L, F = geo_.F;
-    // Global gradient norm (fixed summation order for a fixed thread count).
+    // Global gradient norm, in a fixed order (independent of the thread count).
     double norm2 = 0;
     for (const auto& g : im.wgrad) norm2 += sum_of_squares(g.data(), g.size());
     for (const auto& g : im.bgrad) norm2 += sum_of_squares(g.data(), g.size());
-    for (const double part : im.gsum_norm2) norm2 += part;
+    norm2 += im.grid_norm2();
     const float loss = float(lp.total);
     const bool warm = step_ >= 20;
     const bool bad = !std::isfinite(loss) || !std::isfinite(norm2) ||

@@ -2,6 +2,7 @@
 // every ray, each answer is tallied into its family, the tallies become metrics.
 #include <lsnif/samples/held_out.hpp>
 
+#include <lsnif/base/math.hpp>
 #include <lsnif/base/parallel.hpp>
 
 #include <algorithm>
@@ -45,7 +46,7 @@ struct Tally {
 };
 
 double degrees_between(double cosine) {
-    return std::acos(std::clamp(cosine, -1.0, 1.0)) * 180.0 / M_PI;
+    return base::acos(std::clamp(cosine, -1.0, 1.0)) * 180.0 / M_PI;
 }
 
 void tally_hit_errors(const Sample& s, const format::Hit& h, double diagonal, const std::array<float, 3>* gn,

@@ -60,8 +60,9 @@ BatchResult batch(const BatchOptions& options, const ConvertProgress& progress =
                   const std::function<void(const std::string&)>& on_line = {});
 
 // The command-line options that give `opt`'s settings to `lsnif convert` or `lsnif batch`
-// (the preset, seed, per-job threads, forced meshes, overrides, target, --fixed-model):
-// what a Ninja file passes to every step so that the keys it planned are the keys they use.
+// (the preset, seed, arithmetic, forced meshes, overrides, target, --fixed-model): every
+// setting that changes a result, and nothing else (threads and jobs do not). What a Ninja
+// file passes to every step so that the keys it planned are the keys they use.
 std::vector<std::string> settings_arguments(const ConvertOptions& opt);
 
 // JUnit XML of a batch: one <testcase> per mesh (classname = the input file, name = the mesh;

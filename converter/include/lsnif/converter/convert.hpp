@@ -155,6 +155,25 @@ struct Preset {
 bool find_preset(const std::string& name, Preset& out);
 std::vector<std::string> preset_names();
 
+// The arithmetic a conversion trains with (docs/pipeline.md "The same bytes everywhere").
+//   canonical  fp32 in one fixed order: the same weights, metrics and decisions on every CPU
+//              (AVX2, AVX-512, AMX machines, the portable build's scalar paths) and for any
+//              thread count. The default.
+//   machine    the MLP products of training in bf16 on Intel AMX or AVX-512 BF16 where the
+//              CPU has them (fp32 elsewhere, which is the canonical arithmetic): faster on those
+//              CPUs, but the weights depend on the CPU kind, so assets, cache keys and
+//              manifests name the instructions (arithmetic_id).
+enum class Arithmetic : std::uint8_t { canonical, machine };
+// The version of the canonical arithmetic: bumped whenever an operation whose result
+// reaches an asset or a decision (training, sampling, metrics, pruning, quantization) rounds
+// differently. Recorded in assets and manifests; part of every cache key.
+inline constexpr int kCanonicalArithmeticVersion = 1;
+// What `a` runs as on this machine: "canonical-1", or "machine-bf16/amx" /
+// "machine-bf16/avx512-bf16" (machine on a CPU without bf16 products is canonical).
+std::string arithmetic_id(Arithmetic a);
+// "canonical" or "machine" (the --arithmetic values); false for anything else.
+bool parse_arithmetic(const std::string& text, Arithmetic& out);
+
 // The reason recorded for a candidate that ConvertOptions::only_keys leaves to another job.
 inline constexpr const char* kLeftToAnotherJob = "left to another job (lsnif batch --object)";
 
@@ -162,11 +181,12 @@ struct ConvertOptions {
     std::vector<std::string> inputs;
     std::string outdir;
     std::uint64_t seed = 1;
+    // Threads and jobs decide how fast, never what: results are the same for any count.
     std::uint32_t threads = 0;  // 0 = hardware threads
-    // --jobs: candidates converted at once, each with threads / jobs threads (at least 1;
-    // training is deterministic per thread count, so the count is part of the cache key).
+    // --jobs: candidates converted at once, each with threads / jobs threads (at least 1).
     // Cannot be combined with memory_budget, which decides each conversion from the last.
     std::uint32_t jobs = 1;
+    Arithmetic arithmetic = Arithmetic::canonical;  // --arithmetic
     std::string preset = "default";
     std::vector<std::string> force_complex;  // mesh names
     std::vector<std::string> force_simple;

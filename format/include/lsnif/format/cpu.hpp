@@ -5,6 +5,7 @@
 #pragma once
 
 #include <cstdint>
+#include <string>
 
 namespace lsnif::format {
 
@@ -19,6 +20,30 @@ struct CpuFeatures {
 };
 
 // Detected on the first call (thread-safe), constant afterwards; all false on non-x86 builds.
+// Capped by the environment variable LSNIF_ISA when it is set (isa_cap below): the cap only
+// removes instruction sets, never adds one the CPU lacks.
 const CpuFeatures& cpu_features();
+
+// LSNIF_ISA caps the instruction sets every kernel may use, so that one machine can run each
+// path it supports (tests compare their bytes; a user can reproduce another machine's
+// speed). The levels, each including the ones before it:
+//   generic     no vector kernels (the portable C++ paths)
+//   avx2        AVX2 + FMA3 (x86-64-v3)
+//   avx512      AVX-512 F/BW/DQ/VL and, where present, AVX-512 VNNI (the reader's int8)
+//   avx512bf16  AVX-512 BF16
+//   amx         AMX-TILE + AMX-BF16: no cap
+// Conversion results (assets, metrics, decisions) are the same at every level; speed and
+// the reader's own int8/bf16 inference choice are not.
+enum class IsaLevel : std::uint8_t { generic, avx2, avx512, avx512bf16, amx };
+const char* isa_level_name(IsaLevel level);
+
+// The cap LSNIF_ISA asks for: amx (no cap) when the variable is unset or empty. A value that
+// names no level is reported by isa_cap_error() and leaves the features uncapped; callers
+// that can refuse to run (the lsnif command) check it first.
+IsaLevel isa_cap();
+// "" or "LSNIF_ISA=VALUE: not one of generic, avx2, avx512, avx512bf16, amx".
+const std::string& isa_cap_error();
+// The highest level cpu_features() offers (after the cap).
+IsaLevel isa_level();
 
 }  // namespace lsnif::format

@@ -7,6 +7,8 @@
 // gets correctly bias-corrected steps instead of being shrunk by a global t.
 #pragma once
 
+#include <lsnif/base/math.hpp>
+
 #include <cmath>
 #include <cstddef>
 #include <cstdint>
@@ -24,9 +26,10 @@ struct AdamConfig {
 // The bias-corrected step factor of step t (t >= 1): sqrt(1 - b2^t) / (1 - b1^t). Sparse
 // hash-row updates look it up in a table (Trainer) instead of two pow() per row, which was
 // 7 % of training time; same double arithmetic, so the same float step either way.
+// The powers by repeated squaring (base::pow_int): the same bits on every machine.
 inline double adam_bias_correction(const AdamConfig& c, std::uint32_t t) {
-    const double bc1 = 1.0 - std::pow(double(c.beta1), double(t));
-    const double bc2 = 1.0 - std::pow(double(c.beta2), double(t));
+    const double bc1 = 1.0 - base::pow_int(double(c.beta1), t);
+    const double bc2 = 1.0 - base::pow_int(double(c.beta2), t);
     return std::sqrt(bc2) / bc1;
 }
 

@@ -1,9 +1,13 @@
 // Training of one LSNIF (docs/architecture.md §3): losses, backward pass through the MLP and the
 // sparse hash-grid encoding, hand-written Adam, learning-rate schedule, gradient clipping
-// and a divergence guard. Multi-threaded on the shared pool (lsnif/base/parallel.hpp); for a fixed seed and
-// thread count every step is bit-for-bit deterministic (fixed work partition, fixed reduction order).
-// The hash-grid gradients do not even depend on the thread count: each table row is summed by
-// the one thread that owns it, over the batch in order (Adam then updates the rows in place).
+// and a divergence guard. Multi-threaded on the shared pool (lsnif/base/parallel.hpp); for a
+// fixed seed every step gives the same bits for any thread count: a batch is cut into chunks
+// that depend on its size alone, each chunk's gradients are summed over its rows in order and
+// the chunks are added in chunk order, and each hash-table row is summed by the one thread
+// that owns it, over the batch in order (Adam then updates the rows in place). Threads only
+// decide who computes which chunk. With MlpPrecision::fp32 the steps are also the same on
+// every CPU (AVX-512, AVX2, the portable paths: fused multiply-adds in one order); bf16 runs
+// on AMX or AVX-512 BF16, whose sums the other paths cannot reproduce.
 //
 // The forward computation is format/'s (trace_points, encode_points, dense_layer), so a
 // model trained here evaluates identically in a renderer once exported to fp16
@@ -77,7 +81,7 @@ std::string mlp_arithmetic(MlpPrecision requested);
 struct TrainConfig {
     std::uint32_t steps = 2000;
     std::uint32_t batch_size = 1u << 14;
-    std::uint32_t threads = 0;  // 0 = all hardware threads
+    std::uint32_t threads = 0;  // 0 = all hardware threads; never changes a result
     std::uint64_t seed = 1;
     AdamConfig grid_adam{2e-2f, 0.9f, 0.99f, 1e-10f, 0.0f};
     AdamConfig mlp_adam{1e-2f, 0.9f, 0.99f, 1e-10f, 1e-6f};
@@ -208,7 +212,7 @@ public:
     void prepare_append(std::span<const Sample> samples, PreparedSet& out) const;
 
     // Trains cfg.steps steps on random batches (with replacement) from `samples`.
-    // Deterministic for (seed, threads, samples).
+    // Deterministic for (seed, samples), whatever the thread count.
     TrainResult train(std::span<const Sample> samples, const ProgressFn& progress = {});
     // Runs steps until step() == until_step (0: cfg.steps); the schedule always spans
     // cfg.steps, so a caller may train in rounds on changing sets. Counters (samples,
