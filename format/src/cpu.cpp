@@ -93,8 +93,13 @@ CpuFeatures capped(CpuFeatures f, IsaLevel level) {
 
 }  // namespace
 
+const CpuFeatures& detected_cpu_features() {
+    static const CpuFeatures features = detect();  // thread-safe one-time initialization
+    return features;
+}
+
 const CpuFeatures& cpu_features() {
-    static const CpuFeatures features = capped(detect(), cap().level);  // thread-safe one-time initialization
+    static const CpuFeatures features = capped(detected_cpu_features(), cap().level);
     return features;
 }
 

@@ -1,6 +1,7 @@
 // lsnif::sampling: Embree ground truth against brute force, determinism, family shares,
 // surface offsets, interior rejection, normals, BVH memory and bad input. Meshes: the
 // ChineseDragon from libcgal-demo (real data) and an icosphere (analytic answers).
+#include <lsnif/format/cpu.hpp>
 #include <lsnif/sampling/sampling.hpp>
 
 #include "mesh_helpers.hpp"
@@ -167,6 +168,45 @@ TEST_CASE("same seed gives identical samples with 1 and 2 threads") {
         // A prefix of a longer request is the shorter request.
         one->generate(77, 4000, c);
         for (std::size_t i = 0; i < a.size(); ++i) REQUIRE(bit_equal(a[i], c[i]));
+    }
+}
+
+TEST_CASE("Embree is pinned to AVX2: its answers and BVH bytes on another ISA may differ") {
+    // Conversion's ground truth and BVH bytes must be the same on every machine, so the
+    // sources pin Embree's ISA (SamplingConfig::embree_isa, "avx2" by default); create()
+    // refuses a CPU without AVX2. Here, on this CPU, the pin against Embree's other kernels:
+    // the SSE kernels build 4-wide BVH nodes, so the bytes differ at least there.
+    CHECK(SamplingConfig{}.embree_isa == "avx2");
+    const TriMesh& m = dragon();
+    SamplingConfig pinned, sse;
+    pinned.embree_isa = "avx2";
+    sse.embree_isa = "sse4.2";
+    auto a = make(m, 2), b = make(m, 2, pinned), c = make(m, 2, sse);
+    std::vector<Sample> sa, sb, sc;
+    a->generate(31, 20000, sa);
+    b->generate(31, 20000, sb);
+    c->generate(31, 20000, sc);
+    std::size_t same = 0, sse_differs = 0;
+    for (std::size_t i = 0; i < sa.size(); ++i) {
+        same += bit_equal(sa[i], sb[i]);
+        sse_differs += !bit_equal(sa[i], sc[i]);
+    }
+    CHECK(same == sa.size());
+    CHECK(a->bvh_bytes() == b->bvh_bytes());
+    CHECK(c->bvh_bytes() != a->bvh_bytes());
+    MESSAGE("dragon, 20,000 rays: SSE4.2 kernels answer " << sse_differs << " differently from AVX2; BVH "
+                                                          << c->bvh_bytes() << " B against " << a->bvh_bytes()
+                                                          << " B");
+    if (lsnif::format::detected_cpu_features().avx512) {
+        SamplingConfig wide;
+        wide.embree_isa = "avx512";
+        auto d = make(m, 2, wide);
+        std::vector<Sample> sd;
+        d->generate(31, 20000, sd);
+        std::size_t differ = 0;
+        for (std::size_t i = 0; i < sa.size(); ++i) differ += !bit_equal(sa[i], sd[i]);
+        MESSAGE("AVX-512 kernels answer " << differ << " of 20,000 rays differently; BVH " << d->bvh_bytes()
+                                          << " B");
     }
 }
 

@@ -5,6 +5,8 @@
 // talks to Embree's construction API lives here, so the rest of the library only traces.
 #include "sampling_internal.hpp"
 
+#include <lsnif/format/cpu.hpp>
+
 #include <cstring>
 #include <unordered_map>
 
@@ -75,7 +77,11 @@ std::string new_device_and_scene(EmbreeSource::Impl& m) {
     // build (2 distinct counts in 12 builds of the 1.28 M-triangle dragon; 1 with one thread),
     // and reports must be reproducible. It costs ~0.2 s on that dragon's build, nothing on
     // tracing: rtcIntersect runs on the calling threads whatever the device's thread count.
-    m.device = rtcNewDevice("threads=1");
+    const std::string& isa = m.cfg.embree_isa;
+    if (isa == "avx2" && !format::detected_cpu_features().avx2_fma)
+        return "this CPU has no AVX2 and FMA: conversion pins Embree's ground truth to its AVX2 kernels "
+               "(x86-64-v3 is the floor, docs/pipeline.md \"The same bytes everywhere\")";
+    m.device = rtcNewDevice(("threads=1" + (isa.empty() ? std::string() : ",isa=" + isa)).c_str());
     if (!m.device)
         return "rtcNewDevice failed (embree error " + std::to_string(int(rtcGetDeviceError(nullptr))) + ")";
     rtcSetDeviceErrorFunction(m.device, &EmbreeSource::Impl::on_error, &m);

@@ -24,6 +24,10 @@ struct CpuFeatures {
 // removes instruction sets, never adds one the CPU lacks.
 const CpuFeatures& cpu_features();
 
+// What the CPU and OS offer, before the cap: for code outside lsnif's own kernels that must
+// make a choice the cap does not change (conversion pins Embree to AVX2 on every machine).
+const CpuFeatures& detected_cpu_features();
+
 // LSNIF_ISA caps the instruction sets every kernel may use, so that one machine can run each
 // path it supports (tests compare their bytes; a user can reproduce another machine's
 // speed). The levels, each including the ones before it:

@@ -90,6 +90,14 @@ struct SamplingConfig {
     // without this their family (c) would start rays inside the solid. 0 disables it
     // (only meshes closed as given are rejection sampled).
     float max_hole_size = 0.05f;
+    // Embree's instruction set (its device's `isa=` setting). Embree builds a different BVH
+    // per ISA (4-wide nodes for SSE, 8-wide for AVX) and rounds its ray-triangle tests with
+    // or without FMA, so a ray grazing an edge could hit on one ISA and miss on another, and
+    // the BVH's bytes (which classification weighs) differ. Conversion pins AVX2, the
+    // floor of the CPUs it runs on (x86-64-v3), so the ground truth is the same on every
+    // such machine; create() refuses a CPU without AVX2 and FMA. Tests set others to
+    // compare ("sse4.2", "avx", "avx512"); empty = Embree's own choice (the best it has).
+    std::string embree_isa = "avx2";
 };
 
 // How family (c) decides that an origin is inside the solid (after the classification
