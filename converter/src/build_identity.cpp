@@ -1,62 +1,59 @@
-// The identity of the code that converts, for cache keys (docs/pipeline.md "Cache keys").
+// The identity of the code that converts, for cache keys and manifests (docs/pipeline.md
+// "Cache keys").
 #include <lsnif/cache/cache.hpp>
 #include <lsnif/converter/convert.hpp>
 
-#include <algorithm>
+#include <embree3/rtcore.h>
+#include <zstd.h>
+#include <nlohmann/json.hpp>
+
 #include <filesystem>
-#include <fstream>
-#include <iterator>
-#include <set>
-#include <sstream>
 #include <string>
-#include <vector>
 
 namespace lsnif::converter {
 
+namespace detail {
+// Generated at build time by converter/cmake/source_digest.cmake.
+extern const char* const kSourceDigest;
+extern const char* const kCompiler;
+extern const char* const kCompileFlags;
+}  // namespace detail
+
 namespace {
 
-// Paths of the files mapped executable into this process (the executable and its shared
-// libraries), from /proc/self/maps.
-std::set<std::string> executable_mappings() {
-    std::set<std::string> paths;
-    std::ifstream maps("/proc/self/maps");
-    std::string line;
-    while (std::getline(maps, line)) {
-        std::istringstream fields(line);
-        std::string range, perms, offset, dev, inode, path;
-        fields >> range >> perms >> offset >> dev >> inode;
-        std::getline(fields >> std::ws, path);
-        if (perms.size() >= 3 && perms[2] == 'x' && !path.empty() && path[0] == '/') paths.insert(path);
-    }
-    return paths;
+// The Embree library this process runs (not the header it was compiled against: Debian may
+// upgrade the shared library alone). "unknown" when no device can be made.
+std::string embree_version() {
+    RTCDevice device = rtcNewDevice("threads=1");
+    if (!device) return "unknown";
+    const std::string v = std::to_string(rtcGetDeviceProperty(device, RTC_DEVICE_PROPERTY_VERSION));
+    rtcReleaseDevice(device);
+    return v;
 }
 
-std::string file_digest(const std::string& path) {
-    std::ifstream f(path, std::ios::binary);
-    if (!f) return "unreadable:" + path;
+ToolIdentity compute_identity() {
+    ToolIdentity id;
+    id.version = LSNIF_VERSION_STRING;
+    id.sources = detail::kSourceDigest;
+    id.compiler = detail::kCompiler;
+    id.flags = detail::kCompileFlags;
+    id.embree = embree_version();
+    id.zstd = ZSTD_versionString();
+    id.json = std::to_string(NLOHMANN_JSON_VERSION_MAJOR) + "." +
+              std::to_string(NLOHMANN_JSON_VERSION_MINOR) + "." + std::to_string(NLOHMANN_JSON_VERSION_PATCH);
     cache::Sha256 h;
-    std::vector<char> buf(1 << 20);
-    while (f.read(buf.data(), std::streamsize(buf.size())) || f.gcount() > 0)
-        h.update({reinterpret_cast<const std::uint8_t*>(buf.data()), std::size_t(f.gcount())});
-    return h.hex();
-}
-
-std::string compute_build_identity() {
-    // Digests, not paths, sorted: two machines with the same binary and the same Debian
-    // packages agree wherever the files live.
-    std::vector<std::string> digests;
-    for (const std::string& path : executable_mappings()) digests.push_back(file_digest(path));
-    std::sort(digests.begin(), digests.end());
-    cache::Sha256 h;
-    h.update("lsnif-build/1\n").update(LSNIF_VERSION_STRING).update("\n");
-    for (const std::string& d : digests) h.update(d).update("\n");
-    return h.hex();
+    h.update("lsnif-identity/1\n");
+    for (const std::string* part :
+         {&id.version, &id.sources, &id.compiler, &id.flags, &id.embree, &id.zstd, &id.json})
+        h.update(*part).update("\n");
+    id.digest = h.hex();
+    return id;
 }
 
 }  // namespace
 
-const std::string& build_identity() {
-    static const std::string id = compute_build_identity();
+const ToolIdentity& tool_identity() {
+    static const ToolIdentity id = compute_identity();
     return id;
 }
 

@@ -1069,7 +1069,7 @@ const std::string& cache_key(const Run& run, Planned& p) {
     if (!p.key.empty()) return p.key;
     const scene::Mesh& m = *p.mesh;
     cache::Sha256 h;
-    h.update("lsnif-convert-result/1\n").update(build_identity()).update("\n");
+    h.update("lsnif-convert-result/2\n").update(tool_identity().digest).update("\n");
     h.update(asset_key(run, m, p.candidate->desc))
         .update("\n")
         .update(gate_key(run.preset.gate))
@@ -1440,7 +1440,8 @@ json manifest_json(const Run& run, const json& inputs, const json& meshes, const
     json forced_c = run.opt.force_complex, forced_s = run.opt.force_simple;
     json manifest = {
         {"format", kManifestFormat},
-        {"tool", {{"name", "lsnif"}, {"version", LSNIF_VERSION_STRING}}},
+        {"tool",
+         {{"name", "lsnif"}, {"version", LSNIF_VERSION_STRING}, {"identity", tool_identity().digest}}},
         {"settings",
          {{"preset", run.preset.name},
           {"seed", run.opt.seed},

@@ -590,11 +590,14 @@ int main(int argc, char** argv) {
     app.failure_message([](const CLI::App*, const CLI::Error& e) {
         return "error: " + std::string(e.what()) + "\nRun with --help for more information.\n";
     });
-    // The build identity keys the cache (docs/pipeline.md "Cache keys"): CI keys its cache
+    // The tool's identity keys the cache (docs/pipeline.md "Cache keys"): CI keys its cache
     // action on this output (examples/ci/lsnif-ci cache-key).
     app.set_version_flag("--version", [] {
-        return "lsnif " + std::string(LSNIF_VERSION_STRING) + "\nbuild identity " +
-               lsnif::converter::build_identity();
+        const auto& id = lsnif::converter::tool_identity();
+        return "lsnif " + id.version + "\nidentity " + id.digest + "\n  sources " + id.sources +
+               "\n  compiler " + id.compiler + (id.flags.empty() ? "" : " (" + id.flags + ")") +
+               "\n  embree " + id.embree + ", zstd " + id.zstd + ", nlohmann_json " + id.json +
+               "\n  arithmetic " + lsnif::converter::arithmetic_id(lsnif::converter::Arithmetic::canonical);
     });
     app.require_subcommand(1);
     InspectCommand inspect;

@@ -302,11 +302,23 @@ bool meets_target_with_margin(const nlohmann::json& point, const Target& target,
 std::string falls_behind(const nlohmann::json& point, std::uint32_t step, const nlohmann::json& larger,
                          const Target& target, const TargetStop& stop, const Sizing& rule);
 
-// The identity of the running code: SHA-256 over the digests of the executable and every
-// shared library mapped executable into the process, and the tool's version. Any change of
-// source, compiler, flags, -march or Debian library gives another identity; computed once per
-// process (a few hundred milliseconds: it reads those files). Part of every cache key.
-const std::string& build_identity();
+// What the results of a conversion depend on besides its inputs and settings
+// (docs/pipeline.md "Cache keys" argues each part): the sources lsnif was built from, the
+// compiler and the flags a user added, and the libraries whose code reaches an asset or a
+// record. Not the thread count, the CPU, -march or the build type: the canonical arithmetic
+// gives the same bits across those (tested), so the release, portable and packaged builds
+// of one source share cache entries. Computed once per process. Part of every cache key.
+struct ToolIdentity {
+    std::string version;   // lsnif's version
+    std::string sources;   // SHA-256 of format/, trainer/, converter/, schema/ and the build files
+    std::string compiler;  // "GNU 12.2.0"
+    std::string flags;     // CMAKE_CXX_FLAGS (a -ffast-math there would change results)
+    std::string embree;    // the Embree library loaded (ground truth, BVH bytes), e.g. "31305"
+    std::string zstd;      // the zstd library loaded (the assets' compressed sections)
+    std::string json;      // nlohmann_json (numbers in metadata and records)
+    std::string digest;    // SHA-256 over all of the above
+};
+const ToolIdentity& tool_identity();
 
 // The absolute path of the running executable (/proc/self/exe); "" when it cannot be read.
 std::string executable_path();
