@@ -327,7 +327,9 @@ std::vector<std::string> expand_inputs(const std::vector<std::string>& inputs,
 
 std::vector<std::string> settings_arguments(const ConvertOptions& c) {
     std::vector<std::string> a = {"--preset", c.preset, "--seed", std::to_string(c.seed)};
-    if (c.arithmetic == Arithmetic::machine) a.insert(a.end(), {"--arithmetic", "machine"});
+    // The arithmetic as it runs here: machine on a CPU without bf16 products is canonical.
+    if (arithmetic_id(c.arithmetic) != arithmetic_id(Arithmetic::canonical))
+        a.insert(a.end(), {"--arithmetic", "machine"});
     for (const std::string& m : c.force_complex) a.insert(a.end(), {"--complex", m});
     for (const std::string& m : c.force_simple) a.insert(a.end(), {"--simple", m});
     char g[128];

@@ -1114,20 +1114,24 @@ bool restore_cached(const Run& run, Planned& p, json& record, const cache::Entry
         record["lsnif"]["reused"] = true;
     }
     for (const char* f : kSceneFields) record[f] = p.rec.entry[f];
+    // This run's own stages (classification, voxelization): the stored record has no timings.
+    if (!p.rec.timings.empty()) record["timings"] = p.rec.timings;
     // The stored measurement, so that every run this entry serves reports the same bytes.
     if (record.contains("stats") && record["stats"].contains("bvh_bytes"))
         p.bvh_bytes = record["stats"]["bvh_bytes"].get<std::uint64_t>();
     return true;
 }
 
-// The entry to store for a result just converted: the record without the scene's fields,
-// the asset's bytes as written. Empty record when the asset cannot be read back.
+// The entry to store for a result just converted: the record without the scene's fields and
+// without what differs between runs (timings: strip_run_dependent), the asset's bytes as
+// written. So an entry is a function of its key: every machine and thread count stores the
+// same bytes. Empty record when the asset cannot be read back.
 cache::Entry entry_to_store(const Run& run, const json& result, std::string& problem) {
     cache::Entry entry;
     json record = result;
     for (const char* f : kSceneFields) record.erase(f);
+    strip_run_dependent(record);
     if (record.contains("lsnif")) {
-        record["lsnif"]["reused"] = false;
         auto bytes =
             format::read_file_bytes((run.outdir / record["lsnif"]["file"].get<std::string>()).string());
         if (!bytes) {

@@ -230,11 +230,14 @@ struct ValidateCommand {
 // --json, which do not change the asset, and with the program by its name only, so the same
 // conversion run into another directory or from another build gives the same bytes (the
 // file name is already a content hash).
-std::string recorded_command_line(int argc, char** argv) {
+std::string recorded_command_line(int argc, char** argv, lsnif::converter::Arithmetic arithmetic) {
     // Where outputs go and how the work is split do not change an asset: leaving them out keeps
     // assets byte-identical between output directories. (`lsnif batch` records its settings
     // in a canonical form instead: batch.hpp, BatchOptions.)
-    static const char* const with_value[] = {"-o", "--output", "--cache", "-j", "--jobs", "--threads"};
+    // --arithmetic is added back below as it runs here (machine on a CPU without bf16 products
+    // is the canonical arithmetic).
+    static const char* const with_value[] = {"-o",     "--output",  "--cache",     "-j",
+                                             "--jobs", "--threads", "--arithmetic"};
     std::string line;
     for (int i = 0; i < argc; ++i) {
         const std::string a =
@@ -250,6 +253,9 @@ std::string recorded_command_line(int argc, char** argv) {
         }
         if (!drop) line += (line.empty() ? "" : " ") + a;
     }
+    using lsnif::converter::arithmetic_id;
+    if (arithmetic_id(arithmetic) != arithmetic_id(lsnif::converter::Arithmetic::canonical))
+        line += " --arithmetic machine";
     return line;
 }
 
@@ -345,7 +351,7 @@ struct ConvertCommand {
     }
     int run(int argc, char** argv) {
         if (!settings.finish(sub)) return 2;
-        settings.opt.command_line = recorded_command_line(argc, argv);
+        settings.opt.command_line = recorded_command_line(argc, argv, settings.opt.arithmetic);
         return run_convert(settings.opt, json);
     }
 };

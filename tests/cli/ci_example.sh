@@ -1,8 +1,9 @@
 #!/usr/bin/env bash
 # examples/ci run locally: the GitHub Actions and GitLab files parse and call the steps of
 # examples/ci/lsnif-ci with the shard count they declare; then those steps, as the CI runs them:
-# three shard processes at once into ONE shared cache directory, the merge with its JUnit
-# report, compared with a single `lsnif batch` run byte for byte (manifest and every asset).
+# three shard processes at once into ONE shared cache directory, each as on another machine
+# (1, 2 and 3 threads; LSNIF_ISA=avx2, avx512 and no cap), the merge with its JUnit report,
+# compared with a single `lsnif batch` run byte for byte (manifest and every asset).
 # The library has a malformed file: the shards go on, the merge reports it and exits 1.
 # usage: ci_example.sh LSNIF_BINARY SOURCE_DIR MESH_DIR EXAMPLE_SCENE_GLB WORK_DIR
 set -u
@@ -23,6 +24,9 @@ assert jobs["shard"]["strategy"]["matrix"]["shard"] == list(range(1, shards + 1)
 runs = lambda job: " ".join(s.get("run", "") for s in jobs[job]["steps"])
 uses = lambda job: [s.get("uses", "").split("@")[0] for s in jobs[job]["steps"]]
 assert "lsnif-ci cache-key" in runs("build")
+# Portable binaries: a -march=native build would die on runners of another CPU.
+assert "cmake --preset tools" in runs("build") and "--preset release" not in runs("build"), runs("build")
+assert "--threads" not in gh["env"]["LSNIF_OPTIONS"], gh["env"]
 assert "lsnif-ci shard ${{ matrix.shard }} ${{ env.SHARDS }}" in runs("shard")
 assert "lsnif-ci merge ${{ env.SHARDS }}" in runs("merge")
 cache = [s for s in jobs["shard"]["steps"] if s.get("uses", "").startswith("actions/cache@")]
@@ -35,6 +39,7 @@ assert 'lsnif-ci shard "$CI_NODE_INDEX" "$CI_NODE_TOTAL"' in " ".join(gl["conver
 assert 'lsnif-ci merge "$SHARDS"' in " ".join(gl["merge"]["script"])
 assert gl["merge"]["artifacts"]["reports"]["junit"] == "lsnif-out/junit.xml"
 assert gl["convert"]["cache"]["paths"] == [".lsnif-cache"]
+assert "cmake --preset tools" in " ".join(gl["build"]["script"]), gl["build"]["script"]
 PY
 
 # The library: CGAL meshes, the bundled scene, a malformed file.
@@ -42,16 +47,20 @@ cp "$meshes/ChineseDragon-10kv.off" "$meshes/armadillo.off" "$work/assets/"
 cp "$scene" "$work/assets/props/"
 printf 'OFF\n3 1 0\n0 0 0\n1 0 0\nnot a number\n3 0 1 2\n' >"$work/assets/broken.off"
 cd "$work" || exit 1
-export LSNIF=$lsnif LSNIF_LIBRARY=assets LSNIF_OPTIONS="--preset smoke --threads 1 --seed 3" \
+export LSNIF=$lsnif LSNIF_LIBRARY=assets LSNIF_OPTIONS="--preset smoke --seed 3" \
   LSNIF_CACHE=.lsnif-cache LSNIF_OUT=lsnif-out
 
 key=$("$ci" cache-key) || bad "cache-key exited $?"
 [[ $key =~ ^lsnif-[0-9a-f]{32}$ && $key == "$("$ci" cache-key)" ]] || bad "cache-key: '$key'"
 
-# Three shards at once, one shared cache directory (as on one runner, or a synced store).
+# Three shards at once, one shared cache directory (as on one runner, or a synced store), each
+# with other threads and another instruction-set cap, as on a fleet of mixed runners (a cap
+# above this CPU runs what the CPU has). --threads is not a setting: it may differ per job.
+caps=(avx2 avx512 "")
 pids=()
 for i in 1 2 3; do
-  "$ci" shard "$i" 3 >"shard$i.out" 2>"shard$i.err" &
+  LSNIF_ISA=${caps[$((i - 1))]} LSNIF_OPTIONS="$LSNIF_OPTIONS --threads $i" "$ci" shard "$i" 3 \
+    >"shard$i.out" 2>"shard$i.err" &
   pids+=($!)
 done
 for i in 1 2 3; do
@@ -72,7 +81,7 @@ PY
 
 # The same library on one machine, with a cache of its own: the same bytes (OUTDIR as deep as
 # lsnif-out/library: the manifest records input paths relative to it).
-"$lsnif" batch assets -o single/library --cache single-cache --preset smoke --threads 1 --seed 3 >/dev/null 2>&1
+"$lsnif" batch assets -o single/library --cache single-cache --preset smoke --threads 2 --seed 3 >/dev/null 2>&1
 cmp -s lsnif-out/library/manifest.json single/library/manifest.json \
   || bad "merged manifest differs from the single run's: $(diff lsnif-out/library/manifest.json single/library/manifest.json | head -10)"
 n=0

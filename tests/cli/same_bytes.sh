@@ -1,0 +1,108 @@
+#!/usr/bin/env bash
+# The same input gives the same bytes on any machine (docs/pipeline.md "The same bytes
+# everywhere"). CGAL's dragon, converted by `lsnif batch` (whose manifest has no timings) with
+# a short training run that ships whatever it learned, each run with a cache of its own:
+#   threads     --threads 2 is the reference; --threads 1, 3 and 5 write the same asset,
+#               manifest and cache entry; two meshes with -j 2 equal one job.
+#   isa CAP     LSNIF_ISA=CAP (generic, avx2, avx512, avx512bf16) writes the reference's
+#               bytes; a cap above this CPU exits 77 (CTest: skipped), naming what is missing.
+#   machine     --arithmetic machine: on a CPU with bf16 products the manifest, metadata and
+#               key name the instructions and the asset differs; capped below them
+#               (LSNIF_ISA=avx512) it is the canonical arithmetic, the reference's bytes.
+# The reference is made by whichever mode runs first and kept in WORK_ROOT/reference.
+# usage: same_bytes.sh LSNIF MESH_DIR WORK_ROOT threads|machine|isa CAP
+set -u
+lsnif=$1 meshes=$2 root=$3 mode=$4 cap=${5:-}
+fail=0
+bad() { echo "FAIL: $*"; fail=1; }
+settings=(--preset fast --steps 120 --gate-visibility 0 --seed 4 --complex ChineseDragon-10kv)
+mkdir -p "$root"
+
+# convert NAME [ENV=VALUE...] -- [lsnif batch options...]: the dragon into $root/NAME.
+convert() {
+  local name=$1
+  shift
+  local envs=()
+  while [[ $1 != -- ]]; do envs+=("$1"); shift; done
+  shift
+  rm -rf "$root/$name" "$root/$name.cache"
+  env "${envs[@]}" "$lsnif" batch "$meshes/ChineseDragon-10kv.off" -o "$root/$name" --cache "$root/$name.cache" \
+    "${settings[@]}" "$@" >"$root/$name.log" 2>&1 || bad "$name: exit $?: $(tail -3 "$root/$name.log")"
+}
+
+# same A B WHAT: the assets, manifests and cache entries of two runs are the same bytes.
+same() {
+  local a=$root/$1 b=$root/$2 n=0
+  for f in "$a"/*.lsnif; do
+    n=$((n + 1))
+    cmp -s "$f" "$b/$(basename "$f")" || bad "$3: $(basename "$f") differs"
+  done
+  ((n >= 1)) || bad "$3: $1 shipped no asset"
+  cmp -s "$a/manifest.json" "$b/manifest.json" ||
+    bad "$3: manifests differ: $(diff "$a/manifest.json" "$b/manifest.json" | head -6)"
+  (cd "$a.cache" && find . -type f | sort | xargs sha256sum) >"$root/entries_a"
+  (cd "$b.cache" && find . -type f | sort | xargs sha256sum) >"$root/entries_b"
+  cmp -s "$root/entries_a" "$root/entries_b" || bad "$3: cache entries differ"
+}
+
+# The reference, made once under a lock (the modes may run at once).
+exec 9>"$root/reference.lock"
+flock 9
+if [[ ! -f $root/reference.done ]]; then
+  convert reference -- --threads 2
+  ((fail == 0)) && touch "$root/reference.done"
+fi
+flock -u 9
+[[ -f $root/reference.done ]] || exit 1
+
+# What this CPU lacks for a cap or for bf16 products (tests/isa_required.sh).
+missing_for() { "$(dirname "$0")/../isa_required.sh" --missing "$1"; }
+
+case $mode in
+  threads)
+    for t in 1 3 5; do
+      convert "threads$t" -- --threads "$t"
+      same reference "threads$t" "--threads $t against --threads 2"
+    done
+    # Two meshes at once (-j 2, one thread each) against one job of two threads.
+    for j in 1 2; do
+      rm -rf "$root/jobs$j" "$root/jobs$j.cache"
+      "$lsnif" batch "$meshes/ChineseDragon-10kv.off" "$meshes/armadillo.off" -o "$root/jobs$j" \
+        --cache "$root/jobs$j.cache" "${settings[@]}" --complex armadillo --threads 2 -j "$j" \
+        >"$root/jobs$j.log" 2>&1 || bad "-j $j: exit $?: $(tail -3 "$root/jobs$j.log")"
+    done
+    same jobs1 jobs2 "-j 2 against -j 1"
+    ;;
+  isa)
+    why=$(missing_for "$cap") || exit 2
+    if [[ -n $why ]]; then
+      echo "SKIP: LSNIF_ISA=$cap: this CPU lacks $why"
+      exit 77
+    fi
+    convert "isa_$cap" LSNIF_ISA="$cap" -- --threads 2
+    same reference "isa_$cap" "LSNIF_ISA=$cap against no cap"
+    ;;
+  machine)
+    convert machine -- --threads 2 --arithmetic machine
+    id=$(python3 -c "import json,sys; print(json.load(open(sys.argv[1]))['settings']['arithmetic'])" \
+      "$root/machine/manifest.json")
+    if [[ -z $(missing_for avx512bf16) ]]; then
+      [[ $id == machine-bf16/* ]] || bad "--arithmetic machine on a bf16 CPU recorded '$id'"
+      "$lsnif" inspect "$root"/machine/*.lsnif | grep -q "\"arithmetic\": \"$id\"" || bad "the asset does not say $id"
+      [[ $(ls "$root/machine.cache"/v1/entries/*/) != $(ls "$root/reference.cache"/v1/entries/*/) ]] ||
+        bad "the machine arithmetic has the canonical cache key"
+      cmp -s "$root"/machine/*.lsnif "$root"/reference/*.lsnif && bad "bf16 training wrote the canonical asset"
+    else
+      echo "no AVX-512 BF16 here: --arithmetic machine is the canonical arithmetic"
+      [[ $id == canonical-* ]] || bad "--arithmetic machine without bf16 recorded '$id'"
+    fi
+    # Below the bf16 instructions, the machine arithmetic is the canonical one.
+    convert machine_capped LSNIF_ISA=avx512 -- --threads 2 --arithmetic machine
+    same reference machine_capped "--arithmetic machine under LSNIF_ISA=avx512 against canonical"
+    ;;
+  *)
+    echo "usage: same_bytes.sh LSNIF MESH_DIR WORK_ROOT threads|machine|isa CAP" >&2
+    exit 2
+    ;;
+esac
+exit $fail
