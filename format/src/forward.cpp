@@ -622,10 +622,13 @@ void add_layer(Network& net, std::uint32_t in, std::uint32_t out, const float* w
 // vectors of one input index reused across MB rows, inputs broadcast. The same source is
 // compiled for several ISAs; vector width W is the native SIMD width of each. Every output
 // is its bias, then one fused multiply-add per input in input order (simd::fma), in every
-// variant: the same bits on every ISA.
+// variant: the same bits on every ISA. Inputs that `zeros` names as zero in a whole block of
+// rows are skipped (live_groups, one column per group): exact under ReLU, which the caller
+// guarantees (dense_layer_strided). Weights have row stride ldw, C row stride ldc.
 #define LSNIF_DENSE_KERNEL(NAME, TARGET, W)                                                           \
     TARGET void NAME(const float* A, std::size_t n, std::size_t in, std::size_t lda, const float* wt, \
-                     const float* bias, std::size_t outp, bool relu, float* C) {                      \
+                     std::size_t ldw, const float* bias, std::size_t outp, bool relu, float* C,       \
+                     std::size_t ldc, const ZeroColumns* zeros) {                                     \
         using vec = simd::Vec<W>;                                                                     \
         constexpr std::size_t MB = 6;                                                                 \
         constexpr std::size_t NV = 4;                                                                 \
@@ -635,14 +638,15 @@ void add_layer(Network& net, std::uint32_t in, std::uint32_t out, const float* w
             std::size_t r = 0;                                                                        \
             for (; r < n; r += MB) {                                                                  \
                 const std::size_t mb = std::min(MB, n - r);                                           \
+                const LiveGroups live = live_groups(zeros, r, mb, in, 1);                             \
                 vec acc[MB][NV];                                                                      \
                 for (std::size_t v = 0; v < nv; ++v) {                                                \
                     vec b0 = *reinterpret_cast<const vec*>(bias + o + v * W);                         \
                     for (std::size_t m = 0; m < MB; ++m) acc[m][v] = b0;                              \
                 }                                                                                     \
                 if (mb == MB && nv == NV) {                                                           \
-                    for (std::size_t i = 0; i < in; ++i) {                                            \
-                        const float* wrow = wt + i * outp + o;                                        \
+                    const auto input = [&](std::size_t i) TARGET {                                    \
+                        const float* wrow = wt + i * ldw + o;                                         \
                         const vec w0 = *reinterpret_cast<const vec*>(wrow);                           \
                         const vec w1 = *reinterpret_cast<const vec*>(wrow + W);                       \
                         const vec w2 = *reinterpret_cast<const vec*>(wrow + 2 * W);                   \
@@ -654,22 +658,26 @@ void add_layer(Network& net, std::uint32_t in, std::uint32_t out, const float* w
                             acc[m][2] = simd::fma(a, w2, acc[m][2]);                                  \
                             acc[m][3] = simd::fma(a, w3, acc[m][3]);                                  \
                         }                                                                             \
-                    }                                                                                 \
+                    };                                                                                \
+                    for (std::size_t i = 0; i < live.head; ++i) input(i);                             \
+                    for (std::size_t i = live.tail; i < live.end; ++i) input(i);                      \
                 } else {                                                                              \
-                    for (std::size_t i = 0; i < in; ++i) {                                            \
-                        const float* wrow = wt + i * outp + o;                                        \
+                    const auto input = [&](std::size_t i) TARGET {                                    \
+                        const float* wrow = wt + i * ldw + o;                                         \
                         for (std::size_t v = 0; v < nv; ++v) {                                        \
                             const vec w = *reinterpret_cast<const vec*>(wrow + v * W);                \
                             for (std::size_t m = 0; m < mb; ++m)                                      \
                                 acc[m][v] = simd::fma(A[(r + m) * lda + i], w, acc[m][v]);            \
                         }                                                                             \
-                    }                                                                                 \
+                    };                                                                                \
+                    for (std::size_t i = 0; i < live.head; ++i) input(i);                             \
+                    for (std::size_t i = live.tail; i < live.end; ++i) input(i);                      \
                 }                                                                                     \
                 for (std::size_t m = 0; m < mb; ++m)                                                  \
                     for (std::size_t v = 0; v < nv; ++v) {                                            \
                         vec x = acc[m][v];                                                            \
                         if (relu) x = x > 0.0f ? x : 0.0f;                                            \
-                        *reinterpret_cast<vec*>(C + (r + m) * outp + o + v * W) = x;                  \
+                        *reinterpret_cast<vec*>(C + (r + m) * ldc + o + v * W) = x;                   \
                     }                                                                                 \
             }                                                                                         \
         }                                                                                             \
@@ -689,31 +697,36 @@ LSNIF_DENSE_KERNEL(dense_avx2, __attribute__((target("avx2,fma"))), 8)
 // 8 independent FMA chains that cover the FMA latency. Same operations per output in the
 // same order (bias, then input 0, 1, ...), so the same results bit for bit.
 __attribute__((target("avx512f,avx512vl,avx2,fma"))) void dense_narrow_avx512(
-    const float* A, std::size_t n, std::size_t in, std::size_t lda, const float* wt, const float* bias,
-    std::size_t outp, bool relu, float* C) {
+    const float* A, std::size_t n, std::size_t in, std::size_t lda, const float* wt, std::size_t ldw,
+    const float* bias, std::size_t outp, bool relu, float* C, std::size_t ldc, const ZeroColumns* zeros) {
     using vec = simd::F16;
     constexpr std::size_t MB = 8;
     for (std::size_t o = 0; o < outp; o += 16) {
         const vec b = *reinterpret_cast<const vec*>(bias + o);
         for (std::size_t r = 0; r < n; r += MB) {
             const std::size_t mb = std::min(MB, n - r);
+            const LiveGroups live = live_groups(zeros, r, mb, in, 1);
             vec acc[MB];
             for (std::size_t m = 0; m < MB; ++m) acc[m] = b;
             if (mb == MB) {
-                for (std::size_t i = 0; i < in; ++i) {
-                    const vec w = *reinterpret_cast<const vec*>(wt + i * outp + o);
+                const auto input = [&](std::size_t i) __attribute__((target("avx512f,avx512vl,avx2,fma"))) {
+                    const vec w = *reinterpret_cast<const vec*>(wt + i * ldw + o);
                     for (std::size_t m = 0; m < MB; ++m) acc[m] = simd::fma(A[(r + m) * lda + i], w, acc[m]);
-                }
+                };
+                for (std::size_t i = 0; i < live.head; ++i) input(i);
+                for (std::size_t i = live.tail; i < live.end; ++i) input(i);
             } else {
-                for (std::size_t i = 0; i < in; ++i) {
-                    const vec w = *reinterpret_cast<const vec*>(wt + i * outp + o);
+                const auto input = [&](std::size_t i) __attribute__((target("avx512f,avx512vl,avx2,fma"))) {
+                    const vec w = *reinterpret_cast<const vec*>(wt + i * ldw + o);
                     for (std::size_t m = 0; m < mb; ++m) acc[m] = simd::fma(A[(r + m) * lda + i], w, acc[m]);
-                }
+                };
+                for (std::size_t i = 0; i < live.head; ++i) input(i);
+                for (std::size_t i = live.tail; i < live.end; ++i) input(i);
             }
             for (std::size_t m = 0; m < mb; ++m) {
                 vec x = acc[m];
                 if (relu) x = x > 0.0f ? x : 0.0f;
-                *reinterpret_cast<vec*>(C + (r + m) * outp + o) = x;
+                *reinterpret_cast<vec*>(C + (r + m) * ldc + o) = x;
             }
         }
     }
@@ -759,13 +772,15 @@ __attribute__((target("avx512f,avx512vl,avx2,fma"))) void dense_output_avx512(co
         detail::transpose16(rows);  // rows[i]: the 16 outputs of row r0 + i
         for (std::size_t i = 0; i < 16; ++i) _mm512_storeu_si512(C + (r0 + i) * kOutp, rows[i]);
     }
-    if (r0 < n) dense_narrow_avx512(A + r0 * lda, n - r0, in, lda, wt, bias, kOutp, false, C + r0 * kOutp);
+    if (r0 < n)
+        dense_narrow_avx512(A + r0 * lda, n - r0, in, lda, wt, kOutp, bias, kOutp, false, C + r0 * kOutp,
+                            kOutp, nullptr);
 }
 
 #endif  // LSNIF_HAVE_X86
 
-using DenseFn = void (*)(const float*, std::size_t, std::size_t, std::size_t, const float*, const float*,
-                         std::size_t, bool, float*);
+using DenseFn = void (*)(const float*, std::size_t, std::size_t, std::size_t, const float*, std::size_t,
+                         const float*, std::size_t, bool, float*, std::size_t, const ZeroColumns*);
 
 DenseFn pick_dense() {
 #if LSNIF_HAVE_X86
@@ -777,14 +792,21 @@ DenseFn pick_dense() {
 
 }  // namespace
 
+void dense_layer_strided(const float* A, std::size_t n, std::size_t in, std::size_t lda, const float* wt,
+                         std::size_t ldw, const float* bias, std::size_t out, bool relu, float* C,
+                         std::size_t ldc, const ZeroColumns* zeros) {
+    static const DenseFn fn = pick_dense();
+    if (!relu) zeros = nullptr;  // skipping is exact only where ReLU makes a zero sum's sign moot
+#if LSNIF_HAVE_X86
+    if (out < 64 && fn == dense_avx512)
+        return dense_narrow_avx512(A, n, in, lda, wt, ldw, bias, out, relu, C, ldc, zeros);
+#endif
+    fn(A, n, in, lda, wt, ldw, bias, out, relu, C, ldc, zeros);
+}
+
 void dense_layer(const float* A, std::size_t n, std::size_t in, std::size_t lda, const float* wt,
                  const float* bias, std::size_t out_padded, bool relu, float* C) {
-    static const DenseFn fn = pick_dense();
-#if LSNIF_HAVE_X86
-    if (out_padded < 64 && fn == dense_avx512)
-        return dense_narrow_avx512(A, n, in, lda, wt, bias, out_padded, relu, C);
-#endif
-    fn(A, n, in, lda, wt, bias, out_padded, relu, C);
+    dense_layer_strided(A, n, in, lda, wt, out_padded, bias, out_padded, relu, C, out_padded, nullptr);
 }
 
 void dense_output_layer(const float* A, std::size_t n, std::size_t in, std::size_t lda, const float* wt,
@@ -920,8 +942,8 @@ const float* mlp_forward(const Network& net, const float* input, std::size_t n, 
                          2 * net.out_padded[k], dst, net.out_padded[k], {net.bias[k].data(), true, false},
                          zeros);
         } else if (hidden) {
-            dense_layer(src, n, net.in[k], lda, net.wt[k].data(), net.bias[k].data(), net.out_padded[k], true,
-                        dst);
+            dense_layer_strided(src, n, net.in[k], lda, net.wt[k].data(), net.out_padded[k],
+                                net.bias[k].data(), net.out_padded[k], true, dst, net.out_padded[k], zeros);
         } else {
             dense_output_layer(src, n, net.in[k], lda, net.wt[k].data(), net.bias[k].data(),
                                net.out_padded[k],

@@ -498,6 +498,67 @@ TEST_CASE("dense_layer matches a naive reference, including ragged sizes") {
     }
 }
 
+// The canonical arithmetic (docs/pipeline.md "The same bytes everywhere"): each output is its
+// bias, then one fused multiply-add per input in input order. CTest runs this under every
+// LSNIF_ISA cap (format, format_isa_avx2, format_isa_generic), so the AVX-512, AVX2 and
+// portable kernels are each held to the same definition, computed here with std::fma.
+// dense_layer_strided with ReLU skips the inputs ZeroColumns names and may compute a prefix
+// of the columns from strided weights: the same bits again.
+TEST_CASE("dense_layer is bias then fused multiply-adds in input order, bit for bit, skipping zeros or not") {
+    std::mt19937 rng(11);
+    std::uniform_real_distribution<float> u(-1.f, 1.f);
+    // (rows, inputs, outputs): the training shapes (143 inputs: 126 point features, 3
+    // directions, 14 offsets), narrow and ragged ones.
+    const int shapes[][3] = {{1, 3, 16}, {7, 143, 128}, {13, 17, 48}, {130, 143, 128}, {25, 40, 64}};
+    for (const auto& shape : shapes) {
+        const int n = shape[0], in = shape[1], out = shape[2];
+        CAPTURE(n);
+        CAPTURE(in);
+        CAPTURE(out);
+        const std::size_t op = (out + 15) / 16 * 16;
+        // Zero runs as the trainer's first layer has them: features [lead, tail), then
+        // offsets from rest_start + rest on; lead and rest per row.
+        const std::size_t tail = std::size_t(in) * 7 / 8, rest_start = tail + (in > 8 ? 3 : 0);
+        std::vector<std::uint32_t> lead(n), rest(n);
+        std::vector<float> A(std::size_t(n) * in), wt(std::size_t(in) * op), bias(op), C(n * op), S(n * op);
+        for (int r = 0; r < n; ++r) {
+            lead[r] = std::uint32_t(rng() % (tail + 1));
+            rest[r] = std::uint32_t(rng() % (std::size_t(in) - std::min<std::size_t>(in, rest_start) + 1));
+            for (int i = 0; i < in; ++i) {
+                const bool zero = (std::size_t(i) >= lead[r] && std::size_t(i) < tail) ||
+                                  std::size_t(i) >= rest_start + rest[r];
+                A[std::size_t(r) * in + i] = zero ? (rng() % 2 ? 0.0f : -0.0f) : u(rng);
+            }
+        }
+        for (auto& x : wt) x = u(rng);
+        for (auto& x : bias) x = u(rng);
+        const ZeroColumns zeros{lead.data(), tail, rest.data(), rest_start};
+        for (const bool relu : {false, true}) {
+            CAPTURE(relu);
+            dense_layer(A.data(), n, in, in, wt.data(), bias.data(), op, relu, C.data());
+            for (int r = 0; r < n; ++r)
+                for (std::size_t o = 0; o < op; ++o) {
+                    float want = bias[o];
+                    for (int i = 0; i < in; ++i)
+                        want = std::fma(A[std::size_t(r) * in + i], wt[i * op + o], want);
+                    if (relu) want = want > 0.0f ? want : 0.0f;
+                    REQUIRE(std::memcmp(&C[r * op + o], &want, sizeof want) == 0);
+                }
+            // The first 16 columns, weights strided, zero columns skipped.
+            std::fill(S.begin(), S.end(), 7.0f);
+            dense_layer_strided(A.data(), n, in, in, wt.data(), op, bias.data(), 16, relu, S.data(), 16,
+                                &zeros);
+            for (int r = 0; r < n; ++r)
+                REQUIRE(std::memcmp(&S[std::size_t(r) * 16], &C[r * op], 16 * sizeof(float)) == 0);
+            if (op > 16) {
+                dense_layer_strided(A.data(), n, in, in, wt.data(), op, bias.data(), op, relu, S.data(), op,
+                                    &zeros);
+                REQUIRE(std::memcmp(S.data(), C.data(), n * op * sizeof(float)) == 0);
+            }
+        }
+    }
+}
+
 namespace {
 
 // An empty model over the box [-1, 1]^3 (V = 8, H = 4, one level, 16 hidden units) with

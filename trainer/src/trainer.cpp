@@ -151,6 +151,12 @@ struct alignas(128) Work {
     std::vector<float> x;                 // kSub x in0
     std::vector<std::vector<float>> act;  // per layer output, kSub x outp
     std::vector<float> d0, d1;            // gradient ping-pong, kSub x max padded width
+    // The first layer's zero inputs in the sub-chunk (empty_inputs): per row, the end of its
+    // points' features and its count of entry offsets; per input column, the rows that may
+    // hold a nonzero value (a prefix: rows come in decreasing point count).
+    std::vector<std::uint32_t> lead, rest, live_rows;
+    format::ZeroColumns zeros{nullptr, 0};
+    std::vector<std::uint32_t> order;  // the chunk's batch rows in decreasing point count
     // bf16 path only (empty in fp32): operands of the bf16 products of one sub-chunk.
     detail::Bf16Buffer a_rows;  // forward A: layer input, kSub x pad32(in)
     detail::Bf16Buffer a_t;     // weight-gradient A: layer input transposed, pad16(in) x pad32(kSub)
@@ -270,7 +276,10 @@ struct Trainer::Impl {
     // Backpropagates dL/d(output) (in w.d0) through the layers of one sub-chunk of n rows,
     // accumulating the chunk's c.dwt and c.db; returns dL/d(input features), n rows of
     // pad16(input_width) (one of w.d0/w.d1).
-    float* mlp_backward(const Geometry& geo, std::size_t n, bool bf16, Work& w, ChunkResult& c) const;
+    // `ld` receives the returned rows' stride: for fp32, only the point features of the
+    // sub-chunk's fullest row are computed (what the scatter reads).
+    float* mlp_backward(const Geometry& geo, std::size_t n, bool bf16, Work& w, ChunkResult& c,
+                        std::size_t& ld) const;
     // Makes `count` chunk results available, with zeroed gradients.
     void prepare_chunks(const format::ModelDesc& desc, std::size_t count);
     // Sums the first `count` chunks' MLP gradients, in chunk order, into wgrad/bgrad (file
@@ -404,16 +413,50 @@ void encode_rows(const Geometry& geo, const std::vector<format::GridView>& grid,
     format::encode_batch(geo, grid.data(), w.pts.data(), std::span(identity).first(n), w.x.data());
 }
 
+// Describes the first layer's zero inputs of rows 0..n-1 (n <= kSub) of the sub-chunk from
+// their point counts (w.pts): the empty slots' features [count L F, point_width) and, where the
+// model has entry offsets, the empty slots' offsets; and, per input column, how many leading
+// rows may hold a nonzero value there (w.live_rows; exact when the rows come in decreasing
+// point count, as loss_and_gradients orders them, and merely loose otherwise).
+void empty_inputs(const Geometry& geo, std::size_t n, Work& w) {
+    const std::uint32_t per_point = geo.L * geo.F;
+    w.lead.resize(n);
+    w.rest.resize(n);
+    std::uint32_t counted[format::kMaxPoints + 1] = {};  // rows with count > h, as h goes down
+    for (std::size_t r = 0; r < n; ++r) {
+        const std::uint32_t count = w.pts[r].count;
+        w.lead[r] = count * per_point;
+        w.rest[r] = count;
+        ++counted[count];
+    }
+    std::uint32_t more_than[format::kMaxPoints + 1] = {};
+    for (std::uint32_t h = geo.H, above = 0; h-- > 0;) {
+        above += counted[h + 1];
+        more_than[h] = above;
+    }
+    const std::size_t rest_start = std::size_t(geo.point_width) + geo.direction_width;
+    w.live_rows.resize(geo.input_width);
+    for (std::size_t c = 0; c < geo.input_width; ++c)
+        w.live_rows[c] = c < geo.point_width ? more_than[c / per_point]
+                         : c < rest_start    ? std::uint32_t(n)
+                                             : more_than[c - rest_start];
+    w.zeros = {w.lead.data(), geo.point_width, geo.offset_width ? w.rest.data() : nullptr, rest_start};
+}
+
 // Encoding and layers for rows whose w.pts are filled. Rows whose ray does not reach the
-// network have count = 0 (all-zero point features).
+// network have count = 0 (all-zero point features). The first layer skips the inputs of
+// empty slots (empty_inputs): the same bits, since ReLU follows.
 void forward_layers(const Geometry& geo, const std::vector<format::GridView>& grid,
                     const format::Network& net, std::size_t n, Work& w) {
     encode_rows(geo, grid, n, w);
+    empty_inputs(geo, n, w);
     const float* src = w.x.data();
     std::size_t lda = geo.input_width;
     for (std::size_t k = 0; k < net.wt.size(); ++k) {
-        format::dense_layer(src, n, net.in[k], lda, net.wt[k].data(), net.bias[k].data(), net.out_padded[k],
-                            k + 1 < net.wt.size(), w.act[k].data());
+        const bool hidden = k + 1 < net.wt.size();
+        format::dense_layer_strided(src, n, net.in[k], lda, net.wt[k].data(), net.out_padded[k],
+                                    net.bias[k].data(), net.out_padded[k], hidden, w.act[k].data(),
+                                    net.out_padded[k], k == 0 ? &w.zeros : nullptr);
         src = w.act[k].data();
         lda = net.out_padded[k];
     }
@@ -675,6 +718,18 @@ void output_losses(const Geometry& geo, const PreparedSet& set, std::span<const 
     }
 }
 
+// `rows` in decreasing point count (set.count), equal counts in batch order: a counting sort,
+// the same order on every machine. Blocks of rows then share their runs of empty slots,
+// which the first layer skips (empty_inputs).
+void order_by_count(const PreparedSet& set, std::span<const std::uint32_t> rows, std::uint32_t H,
+                    std::vector<std::uint32_t>& out) {
+    std::uint32_t start[format::kMaxPoints + 2] = {};
+    for (const std::uint32_t i : rows) ++start[H - set.count[i] + 1];
+    for (std::uint32_t c = 1; c <= H + 1; ++c) start[c] += start[c - 1];
+    out.resize(rows.size());
+    for (const std::uint32_t i : rows) out[start[H - set.count[i]]++] = i;
+}
+
 // Fills w.pts[0..rows) from the prepared set: the entry points were traced once, so no DDA.
 // The rows are random draws from a set of hundreds of MB: their Sample records, which the
 // losses read after the forward pass, are requested first so the misses overlap.
@@ -695,11 +750,12 @@ void load_points(const PreparedSet& set, std::span<const std::uint32_t> rows, Wo
     }
 }
 
-// Appends the n rows' entry points (w.pts) and dL/d(point features) (dx: n rows of
-// pad16(input_width)) to c.point_grads, for Impl::scatter_grid_gradients after the pass.
-void record_point_gradients(const Geometry& geo, const float* dx, std::size_t n, const Work& w,
-                            ChunkResult& c) {
-    const std::size_t ip0 = pad16(geo.input_width), per_point = std::size_t(geo.L) * geo.F;
+// Appends the n rows' entry points (w.pts) and dL/d(point features) (dx: n rows of stride
+// ldx, each holding at least its points' features) to c.point_grads, for
+// Impl::scatter_grid_gradients after the pass.
+void record_point_gradients(const Geometry& geo, const float* dx, std::size_t ldx, std::size_t n,
+                            const Work& w, ChunkResult& c) {
+    const std::size_t ip0 = ldx, per_point = std::size_t(geo.L) * geo.F;
     for (std::size_t r = 0; r < n; ++r) {
         const RayPoints& p = w.pts[r];
         const std::size_t at = c.point_grads.size();
@@ -838,10 +894,11 @@ void Trainer::Impl::stage_weights(const format::ModelDesc& desc, const std::vect
     }
 }
 
-float* Trainer::Impl::mlp_backward(const Geometry& geo, std::size_t n, bool bf16, Work& w,
-                                   ChunkResult& c) const {
+float* Trainer::Impl::mlp_backward(const Geometry& geo, std::size_t n, bool bf16, Work& w, ChunkResult& c,
+                                   std::size_t& ld) const {
     float* G = w.d0.data();
     float* other = w.d1.data();
+    ld = pad16(geo.input_width);
     for (int k = int(net.wt.size()) - 1; k >= 0; --k) {
         const std::size_t outp_k = net.out_padded[k];
         const std::size_t in_k = net.in[k];
@@ -859,10 +916,20 @@ float* Trainer::Impl::mlp_backward(const Geometry& geo, std::size_t n, bool bf16
             const std::size_t kp = pad32(net.out[k]);
             detail::pack_rows(G, n, net.out[k], outp_k, w.g_rows.data(), kp, detail::round_up(n, 16));
             detail::gemm_bf16(n, ip, kp, w.g_rows.data(), kp, wb[k].data(), 2 * ip, other, ip, false);
-        } else {
+        } else if (k > 0) {
             detail::outer_accumulate(X, n, in_k, ldx, G, outp_k, c.dwt[k].data());
             // dX = G W (contract over the real outputs; padded columns of G are zero).
             format::dense_layer(G, n, net.out[k], outp_k, wpad[k].data(), zeros.data(), ip, false, other);
+        } else {
+            // The first layer: a column's rows past w.live_rows hold zero inputs and add
+            // nothing to dW (but the sign of a zero sum, which the chunks' reduction from +0
+            // normalizes); dX only for the point features of the fullest row (the first:
+            // rows come in decreasing point count), the only inputs with parameters behind.
+            detail::outer_accumulate(X, n, in_k, ldx, G, outp_k, c.dwt[0].data(), w.live_rows.data());
+            const std::size_t cols = pad16(w.lead[0]);
+            format::dense_layer_strided(G, n, net.out[0], outp_k, wpad[0].data(), ip, zeros.data(), cols,
+                                        false, other, cols, nullptr);
+            ld = cols;
         }
         for (std::size_t r = 0; r < n; ++r)
             for (std::size_t o = 0; o < outp_k; ++o) c.db[k][o] += G[r * outp_k + o];
@@ -993,9 +1060,10 @@ LossParts Trainer::loss_and_gradients(const PreparedSet& set, std::span<const st
             chunk.point_grads.clear();
             chunk.point_counts.clear();
             const std::size_t begin = c * per, end = std::min(B, begin + per);
-            for (std::size_t base = begin; base < end; base += kSub) {
-                const std::size_t n = std::min(kSub, end - base);
-                const auto rows = batch.subspan(base, n);
+            order_by_count(set, batch.subspan(begin, end - begin), geo_.H, w.order);
+            for (std::size_t base = 0; base < end - begin; base += kSub) {
+                const std::size_t n = std::min(kSub, end - begin - base);
+                const auto rows = std::span<const std::uint32_t>(w.order).subspan(base, n);
                 load_points(set, rows, w);
                 if (bf16)
                     forward_layers_bf16(geo_, gp, im.net, im.wf, n, w);
@@ -1003,8 +1071,9 @@ LossParts Trainer::loss_and_gradients(const PreparedSet& set, std::span<const st
                     forward_layers(geo_, gp, im.net, n, w);
                 output_losses(geo_, set, rows, w.act.back().data(), im.net.out_padded.back(), scale, w,
                               chunk.loss, w.d0.data());
-                const float* dx = im.mlp_backward(geo_, n, bf16, w, chunk);
-                record_point_gradients(geo_, dx, n, w, chunk);
+                std::size_t ldx = 0;
+                const float* dx = im.mlp_backward(geo_, n, bf16, w, chunk, ldx);
+                record_point_gradients(geo_, dx, ldx, n, w, chunk);
             }
         }
     });

@@ -228,9 +228,19 @@ Network make_network(const ModelDesc& desc, const std::vector<std::vector<float>
                      const std::vector<std::vector<float>>& biases);
 
 // C[n][0..out_padded) = act(A[n][0..in) · Wt + bias). A has row stride `lda`, C has row
-// stride out_padded. ReLU when `relu`. Vectorized for AVX-512/AVX2 with runtime dispatch.
+// stride out_padded. ReLU when `relu`. Vectorized for AVX-512/AVX2 with runtime dispatch;
+// every variant computes each output as its bias, then one fused multiply-add per input in
+// input order, so all give the same bits.
 void dense_layer(const float* A, std::size_t n, std::size_t in, std::size_t lda, const float* wt,
                  const float* bias, std::size_t out_padded, bool relu, float* C);
+// dense_layer on the first `out` columns (a multiple of 16) of weights with row stride `ldw`
+// (Wt[i][o] at wt[i * ldw + o]; bias readable for `out` values) into C with row stride
+// `ldc`. With `relu`, inputs that `zeros` names as zero (true of A) are skipped per block of
+// rows: the same results bit for bit (a skipped term only changes the sign of a zero sum,
+// which ReLU maps to +0); without `relu`, `zeros` is ignored.
+void dense_layer_strided(const float* A, std::size_t n, std::size_t in, std::size_t lda, const float* wt,
+                         std::size_t ldw, const float* bias, std::size_t out, bool relu, float* C,
+                         std::size_t ldc, const ZeroColumns* zeros);
 
 // The output layer: dense_layer without ReLU, whose first `outs` columns it equals bit for
 // bit; the padding columns [outs, out_padded) hold zeros or dense_layer's values (both are
