@@ -25,6 +25,15 @@ out=$("$lsnif" validate "$data/valid/tiny.lsnif" "$data/invalid/payload_checksum
 grep -q 'tiny.lsnif: ok' <<<"$out" || bad "mixed validate lost the ok line"
 "$lsnif" validate /nonexistent.lsnif 2>/dev/null; [[ $? == 1 ]] || bad "missing file exit code"
 
+# LSNIF_ISA: a cap that names no level is a usage error (exit 2, one error line); a level is
+# accepted, whatever this CPU has (a cap never adds an instruction set).
+LSNIF_ISA=avx9 "$lsnif" validate "$data/valid/tiny.lsnif" >/dev/null 2>"$work/isa.err"; rc=$?
+[[ $rc == 2 ]] && grep -q '^error: LSNIF_ISA=avx9: not one of generic, avx2, avx512, avx512bf16, amx$' "$work/isa.err" \
+  || bad "unknown LSNIF_ISA: exit $rc $(cat "$work/isa.err")"
+for cap in generic avx2 avx512 avx512bf16 amx; do
+  LSNIF_ISA=$cap "$lsnif" validate "$data/valid/tiny.lsnif" >/dev/null || bad "LSNIF_ISA=$cap validate exited $?"
+done
+
 # inspect: text and JSON on a valid file; clean failure on a damaged one.
 out=$("$lsnif" inspect "$data/valid/v1_default.lsnif") || bad "inspect exit $?"
 for want in "format version 1.0" "GRID" "MLPW" "108 -> 128 -> 128 -> 5" "lsnif-metadata/1"; do

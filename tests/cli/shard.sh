@@ -1,7 +1,8 @@
 #!/usr/bin/env bash
 # `lsnif batch --shard I/N` on three machines (three processes, each with its own cache), then
 # `lsnif merge`: the manifest and every asset equal a single run's, byte for byte. Incomplete
-# or repeated shard sets are refused; --jobs 2 equals one job of the same threads per mesh; bad --shard values are usage errors.
+# or repeated shard sets, and shards of another arithmetic or lsnif identity, are refused; --jobs 2
+# equals one job; bad --shard values are usage errors.
 # usage: shard.sh LSNIF_BINARY MESH_DIR EXAMPLE_SCENE_GLB WORK_DIR
 set -u
 lsnif=$1 meshes=$2 scene=$3 work=$4
@@ -60,6 +61,22 @@ same_outputs "$work/jobs2" "$work/jobs1" "-j 2 against one job"
 "$lsnif" merge "$work/shard1" "$work/shard1" "$work/shard3" -o "$work/m3" 2>"$work/err"; rc=$?
 [[ $rc == 1 ]] || bad "repeated shard: exit $rc"
 [[ ! -e $work/m2/manifest.json && ! -e $work/m3/manifest.json ]] || bad "a refused merge wrote a manifest"
+# Shards of another arithmetic or of another lsnif are refused, naming the field that differs
+# (shards of other thread counts and CPUs are not: tests/cli/ci_example.sh).
+for field in settings.arithmetic tool.identity; do
+  rm -rf "$work/other3" && cp -r "$work/shard3" "$work/other3"
+  python3 - "$work/other3/manifest.json" "$field" <<'PY'
+import json, sys
+path, field = sys.argv[1], sys.argv[2]
+doc = json.load(open(path))
+obj, key = field.split(".")
+doc[obj][key] = "machine-bf16/amx" if key == "arithmetic" else "0" * 64
+json.dump(doc, open(path, "w"), indent=2)
+PY
+  "$lsnif" merge "$work/shard1" "$work/shard2" "$work/other3" -o "$work/m5" 2>"$work/err"; rc=$?
+  [[ $rc == 1 ]] && grep -q "$field is " "$work/err" || bad "a shard of another $field: exit $rc $(cat "$work/err")"
+  [[ ! -e $work/m5/manifest.json ]] || bad "a refused merge (another $field) wrote a manifest"
+done
 "$lsnif" merge "$work/single" -o "$work/m4" 2>"$work/err"; rc=$?
 [[ $rc == 1 ]] && grep -q "not written by lsnif batch --shard" "$work/err" || bad "unsharded input: exit $rc"
 # Usage errors.

@@ -1,6 +1,7 @@
 // lsnif::base: the shared helpers (thread pool, random numbers, affine transforms, result).
 #include <lsnif/base/affine.hpp>
 #include <lsnif/base/huge_pages.hpp>
+#include <lsnif/base/math.hpp>
 #include <lsnif/base/parallel.hpp>
 #include <lsnif/base/random.hpp>
 #include <lsnif/base/result.hpp>
@@ -153,5 +154,67 @@ TEST_CASE("allocate_large: large blocks on 2 MiB boundaries, small ones from ope
         std::memset(p, 0xA5, n);  // every byte writable (ASan checks the bounds)
         CHECK(p[n - 1] == 0xA5);
         lsnif::base::free_large(p, n);
+    }
+}
+
+// base/math.hpp: lsnif's own elementary functions, which give the same bits on every machine
+// because they use +, -, *, / and sqrt alone. Here: that they are accurate (against the C
+// library, which is accurate but may round differently elsewhere) and right at the edges.
+TEST_CASE("base::exp, log, log1p, pow, acos agree with the C library to a few units in the last place") {
+    const auto ulps = [](double got, double want) {
+        if (got == want) return 0.0;
+        return std::fabs(got - want) / std::fabs(std::nextafter(want, INFINITY) - want);
+    };
+    double worst_exp = 0, worst_log = 0, worst_log1p = 0, worst_pow = 0, worst_acos = 0;
+    lsnif::base::SplitMix64 rng{12345};
+    for (int i = 0; i < 200000; ++i) {
+        const double u = double(rng.next() >> 11) * 0x1p-53;  // [0, 1)
+        const double x = -700.0 + 1400.0 * u;
+        worst_exp = std::max(worst_exp, ulps(lsnif::base::exp(x), std::exp(x)));
+        const double y = std::ldexp(0.5 + u, int(rng.next() % 400) - 200);
+        worst_log = std::max(worst_log, ulps(lsnif::base::log(y), std::log(y)));
+        const double z = (u - 0.5) * std::ldexp(1.0, -int(rng.next() % 40));
+        worst_log1p = std::max(worst_log1p, ulps(lsnif::base::log1p(z), std::log1p(z)));
+        const double a = 0.01 + u, b = double(rng.next() % 1000) / 1000.0;
+        worst_pow = std::max(worst_pow, ulps(lsnif::base::pow(a, b), std::pow(a, b)));
+        const double c = 2.0 * u - 1.0;
+        worst_acos = std::max(worst_acos, ulps(lsnif::base::acos(c), std::acos(c)));
+    }
+    MESSAGE("largest differences in ulps: exp " << worst_exp << ", log " << worst_log << ", log1p "
+                                                << worst_log1p << ", pow " << worst_pow << ", acos "
+                                                << worst_acos);
+    CHECK(worst_exp <= 4);
+    CHECK(worst_log <= 4);
+    CHECK(worst_log1p <= 4);
+    CHECK(worst_pow <= 16);  // exp(b log a): log a's rounding, scaled by b
+    CHECK(worst_acos <= 8);  // the series of asin, summed term by term
+    // Exact and edge values.
+    CHECK(lsnif::base::exp(0.0) == 1.0);
+    CHECK(lsnif::base::exp(800.0) == INFINITY);
+    CHECK(lsnif::base::exp(-800.0) == 0.0);
+    CHECK(std::isnan(lsnif::base::exp(NAN)));
+    CHECK(lsnif::base::exp(-740.0) > 0.0);  // subnormal, rounded by ldexp
+    CHECK(ulps(lsnif::base::exp(-740.0), std::exp(-740.0)) <= 1);
+    CHECK(lsnif::base::log(1.0) == 0.0);
+    CHECK(lsnif::base::log(0.0) == -INFINITY);
+    CHECK(std::isnan(lsnif::base::log(-1.0)));
+    CHECK(lsnif::base::log(INFINITY) == INFINITY);
+    CHECK(ulps(lsnif::base::log(0x1p-1070), std::log(0x1p-1070)) <= 4);  // subnormal argument
+    CHECK(lsnif::base::log1p(0.0) == 0.0);
+    CHECK(std::isnan(lsnif::base::log1p(-2.0)));
+    CHECK(lsnif::base::pow(0.1, 0.0) == 1.0);
+    CHECK(lsnif::base::pow(0.0, 0.5) == 0.0);
+    CHECK(lsnif::base::acos(1.0) == 0.0);
+    CHECK(ulps(lsnif::base::acos(-1.0), std::acos(-1.0)) <= 1);
+    CHECK(ulps(lsnif::base::acos(0.0), std::acos(0.0)) <= 1);
+    CHECK(std::isnan(lsnif::base::acos(1.5)));
+    // pow_int is repeated squaring: exact for small integer powers; each squaring doubles
+    // the relative error, so Adam's 0.99^4800 is good to ~1e-12 (its bias correction needs
+    // far less).
+    CHECK(lsnif::base::pow_int(3.0, 5) == 243.0);
+    CHECK(lsnif::base::pow_int(0.9, 0) == 1.0);
+    for (const std::uint64_t t : {1u, 7u, 100u, 1200u, 4800u}) {
+        const double want = std::pow(0.99, double(t));
+        CHECK(std::fabs(lsnif::base::pow_int(0.99, t) - want) <= 1e-12 * want);
     }
 }
