@@ -9,8 +9,8 @@
 #   machine     --arithmetic machine: on a CPU with bf16 products the manifest, metadata and
 #               key name the instructions and the asset differs; capped below them
 #               (LSNIF_ISA=avx512) it is the canonical arithmetic, the reference's bytes.
-# The reference is made by whichever mode runs first and kept in WORK_ROOT/reference.
-# usage: same_bytes.sh LSNIF MESH_DIR WORK_ROOT threads|machine|isa CAP
+#   reference   the --threads 2 run the others compare with (WORK_ROOT/reference), made first.
+# usage: same_bytes.sh LSNIF MESH_DIR WORK_ROOT reference|threads|machine|isa CAP
 set -u
 lsnif=$1 meshes=$2 root=$3 mode=$4 cap=${5:-}
 fail=0
@@ -40,20 +40,18 @@ same() {
   ((n >= 1)) || bad "$3: $1 shipped no asset"
   cmp -s "$a/manifest.json" "$b/manifest.json" ||
     bad "$3: manifests differ: $(diff "$a/manifest.json" "$b/manifest.json" | head -6)"
-  (cd "$a.cache" && find . -type f | sort | xargs sha256sum) >"$root/entries_a"
-  (cd "$b.cache" && find . -type f | sort | xargs sha256sum) >"$root/entries_b"
-  cmp -s "$root/entries_a" "$root/entries_b" || bad "$3: cache entries differ"
+  (cd "$a.cache" && find . -type f | sort | xargs sha256sum) >"$b.entries_a"
+  (cd "$b.cache" && find . -type f | sort | xargs sha256sum) >"$b.entries_b"
+  cmp -s "$b.entries_a" "$b.entries_b" || bad "$3: cache entries differ"
 }
 
-# The reference, made once under a lock (the modes may run at once).
-exec 9>"$root/reference.lock"
-flock 9
-if [[ ! -f $root/reference.done ]]; then
+# The reference: made by mode "reference" (CTest's fixture, first), read by the others.
+if [[ $mode == reference ]]; then
+  rm -rf "$root" && mkdir -p "$root"
   convert reference -- --threads 2
-  ((fail == 0)) && touch "$root/reference.done"
+  exit $fail
 fi
-flock -u 9
-[[ -f $root/reference.done ]] || exit 1
+[[ -d $root/reference && -d $root/reference.cache ]] || { echo "FAIL: no reference in $root (run mode reference first)"; exit 1; }
 
 # What this CPU lacks for a cap or for bf16 products (tests/isa_required.sh).
 missing_for() { "$(dirname "$0")/../isa_required.sh" --missing "$1"; }
@@ -101,7 +99,7 @@ case $mode in
     same reference machine_capped "--arithmetic machine under LSNIF_ISA=avx512 against canonical"
     ;;
   *)
-    echo "usage: same_bytes.sh LSNIF MESH_DIR WORK_ROOT threads|machine|isa CAP" >&2
+    echo "usage: same_bytes.sh LSNIF MESH_DIR WORK_ROOT reference|threads|machine|isa CAP" >&2
     exit 2
     ;;
 esac
