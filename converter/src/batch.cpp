@@ -3,6 +3,7 @@
 #include <lsnif/cache/cache.hpp>
 #include <lsnif/converter/batch.hpp>
 #include <lsnif/converter/manifest.hpp>
+#include <lsnif/converter/settings.hpp>
 #include <lsnif/format/container.hpp>
 #include <lsnif/scene/scene.hpp>
 
@@ -323,31 +324,6 @@ std::vector<std::string> expand_inputs(const std::vector<std::string>& inputs,
         if (seen.insert(ec ? s : id).second) unique.push_back(s);
     }
     return unique;
-}
-
-std::vector<std::string> settings_arguments(const ConvertOptions& c) {
-    std::vector<std::string> a = {"--preset", c.preset, "--seed", std::to_string(c.seed)};
-    // The arithmetic as it runs here: machine on a CPU without bf16 products is canonical.
-    if (arithmetic_id(c.arithmetic) != arithmetic_id(Arithmetic::canonical))
-        a.insert(a.end(), {"--arithmetic", "machine"});
-    for (const std::string& m : c.force_complex) a.insert(a.end(), {"--complex", m});
-    for (const std::string& m : c.force_simple) a.insert(a.end(), {"--simple", m});
-    char g[128];
-    if (c.gate_min_visibility >= 0) {
-        std::snprintf(g, sizeof g, "%.17g", c.gate_min_visibility);
-        a.insert(a.end(), {"--gate-visibility", g});
-    }
-    const std::pair<const char*, std::uint32_t> overrides[] = {
-        {"--steps", c.steps},           {"--batch", c.batch_size},     {"--log2-table", c.log2_table_size},
-        {"--max-points", c.max_points}, {"--grid", c.grid_resolution}, {"--hidden", c.hidden_width}};
-    for (const auto& [name, value] : overrides)
-        if (value > 0) a.insert(a.end(), {name, std::to_string(value)});
-    std::snprintf(g, sizeof g, "%.17g,%.17g,%.17g", 100 * c.target.visibility, c.target.distance_pct,
-                  c.target.normal_deg);
-    a.insert(a.end(), {"--target", g});
-    if (c.fixed_model) a.push_back("--fixed-model");
-    if (c.no_ray_inputs) a.push_back("--no-ray-inputs");
-    return a;
 }
 
 namespace {

@@ -5,6 +5,7 @@
 #include <lsnif/converter/file_tools.hpp>
 #include <lsnif/converter/gltf_out.hpp>
 #include <lsnif/converter/manifest.hpp>
+#include <lsnif/converter/settings.hpp>
 #include <lsnif/format/forward.hpp>
 #include <lsnif/format/quantize.hpp>
 #include <lsnif/samples/held_out.hpp>
@@ -611,7 +612,8 @@ std::string asset_key(const Run& run, const scene::Mesh& mesh, const format::Mod
            std::to_string(p.train.steps) + "|" + std::to_string(p.train.batch_size) + "|" +
            std::to_string(p.train_rays) + "/" + std::to_string(p.train_chunk_rays) + "/" +
            std::to_string(p.train_window_chunks) + "|" + model_json(desc).dump() + "|" +
-           recipe_key(p, run.opt.arithmetic) + "|" + stop_key(run.opt.target, p);
+           recipe_key(p, run.opt.arithmetic) + "|" + stop_key(run.opt.target, p) + "|" +
+           mesh_settings_key(run.opt);
 }
 
 std::optional<json> reusable_metrics(const fs::path& asset, const std::string& key) {
@@ -1441,18 +1443,11 @@ MeshRecord new_record(const scene::Scene& sc, std::size_t in, std::size_t k, std
 
 json manifest_json(const Run& run, const json& inputs, const json& meshes, const json& instances,
                    const json& memory) {
-    json forced_c = run.opt.force_complex, forced_s = run.opt.force_simple;
     json manifest = {
         {"format", kManifestFormat},
         {"tool",
          {{"name", "lsnif"}, {"version", LSNIF_VERSION_STRING}, {"identity", tool_identity().digest}}},
-        {"settings",
-         {{"preset", run.preset.name},
-          {"seed", run.opt.seed},
-          {"arithmetic", arithmetic_id(run.opt.arithmetic)},
-          {"forced_complex", forced_c},
-          {"forced_simple", forced_s},
-          {"target", target_settings(run.opt.target)}}},
+        {"settings", settings_json(run.opt)},
         {"inputs", inputs},
         {"meshes", meshes},
         {"instances", instances},
@@ -1460,7 +1455,6 @@ json manifest_json(const Run& run, const json& inputs, const json& meshes, const
          {{"location", "inputs"},
           {"note", "simple meshes are read from their input file (meshes[].input, meshes[].source_mesh)"}}},
         {"scene_memory", memory}};
-    if (run.opt.memory_budget > 0) manifest["settings"]["memory_budget"] = run.opt.memory_budget;
     return manifest;
 }
 

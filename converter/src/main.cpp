@@ -5,6 +5,7 @@
 #include <lsnif/converter/convert.hpp>
 #include <lsnif/converter/eval.hpp>
 #include <lsnif/converter/file_tools.hpp>
+#include <lsnif/converter/settings.hpp>
 #include <lsnif/format/container.hpp>
 #include <lsnif/format/cpu.hpp>
 
@@ -15,6 +16,7 @@
 #include <cmath>
 #include <cstdio>
 #include <cstdlib>
+#include <deque>
 #include <filesystem>
 #include <set>
 
@@ -259,77 +261,48 @@ std::string recorded_command_line(int argc, char** argv, lsnif::converter::Arith
     return line;
 }
 
-// The settings `lsnif convert` and `lsnif batch` share, with the same meaning.
+// The settings `lsnif convert` and `lsnif batch` share, with the same meaning: every row of
+// the settings table (lsnif/converter/settings.hpp), registered as CLI11 options that collect
+// the text; finish() hands each value to its row, which checks it.
 struct ConvertSettings {
     lsnif::converter::ConvertOptions opt;
-    std::string target, memory_budget, arithmetic = "canonical";
+    std::deque<std::vector<std::string>> values;  // per row: the values of a repeated setting, in order
+    std::deque<std::string> value;                // per row: the value of a single one
+    std::deque<std::int64_t> flags;               // per row: how often a flag was given
+    std::vector<CLI::Option*> options;            // per row
     void add_to(CLI::App* sub) {
-        sub->add_option("--seed", opt.seed, "Random seed (sampling and training)");
-        sub->add_option("--threads", opt.threads,
-                        "Worker threads (0 = all cores); results are the same for any count");
-        sub->add_option("--arithmetic", arithmetic,
-                        "canonical (default): fp32 in one order, the same assets on every CPU; machine: bf16 "
-                        "training products on AMX or AVX-512 BF16 where present (faster there, assets "
-                        "depend on the CPU kind and say so)")
-            ->check(CLI::IsMember({"canonical", "machine"}));
-        sub->add_option("-j,--jobs", opt.jobs,
-                        "Meshes converted at once, sharing the threads (each gets threads/jobs); "
-                        "not with --memory-budget")
-            ->check(CLI::Range(1u, 256u));
-        sub->add_option("--preset", opt.preset, "default, fast, quality or smoke (pipeline check)");
-        sub->add_option("--complex", opt.force_complex, "Force a mesh (by name) to become an LSNIF");
-        sub->add_option("--simple", opt.force_simple, "Force a mesh (by name) to stay BVH");
-        sub->add_option("--gate-visibility", opt.gate_min_visibility,
-                        "Override the pooled held-out visibility accuracy an asset needs (0..1)")
-            ->check(CLI::Range(0.0, 1.0));
-        sub->add_option("--steps", opt.steps, "Override the preset's training steps")
-            ->check(CLI::Range(1u, 1000000u));
-        sub->add_option("--batch", opt.batch_size, "Override the preset's batch size (rays per step)")
-            ->check(CLI::Range(64u, 1u << 20));
-        sub->add_option("--log2-table", opt.log2_table_size, "Override T = 2^N hash-table rows per level")
-            ->check(CLI::Range(10u, 24u));
-        sub->add_option("--max-points", opt.max_points, "Override H, voxel entry points per ray")
-            ->check(CLI::Range(1u, 64u));
-        sub->add_option("--grid", opt.grid_resolution, "Override V, occupancy grid resolution")
-            ->check(CLI::Range(4u, 256u));
-        sub->add_option("--hidden", opt.hidden_width, "Override the hidden layers' width")
-            ->check(CLI::Range(16u, 512u));
-        sub->add_flag("--no-ray-inputs", opt.no_ray_inputs,
-                      "The network sees its points' features only, not the ray's direction and entry "
-                      "offsets (container 1.0/1.1 files, for comparisons)");
-        sub->add_option(
-            "--target", target,
-            "Accuracy asked of every asset: VIS,DIST,NORMAL (held-out visibility %, median distance "
-            "error % of the diagonal, median normal error in degrees; default 98.5,0.6,8)");
-        sub->add_option("--memory-budget", memory_budget,
-                        "Scene memory to fit, in bytes (K, M, G: powers of 1024): candidates are converted "
-                        "in order of BVH bytes saved per asset byte until the scene (BVHs + assets, each "
-                        "mesh once) fits; the rest stay BVH");
-        sub->add_flag("--fixed-model", opt.fixed_model,
-                      "Train the preset's model (after the memory rule) for the whole budget: no smaller "
-                      "sizes, no 8-bit option, no stop at the target (for sweeps and comparisons)");
-        sub->add_flag("--no-give-up", opt.no_give_up,
-                      "Train to the end of the budget even when the validation curve shows the gate is out "
-                      "of reach (to measure hard geometry); the gate still decides what ships");
-        sub->add_flag("--keep-inactive", opt.keep_inactive,
-                      "Ship each trained network whole: do not remove the hidden neurons that no validation "
-                      "ray activates (docs/model.md \"Inactive neurons\")");
-        sub->add_flag("--dry-run", opt.dry_run,
-                      "Import and classify only: print the plan (class, reasons, model size), write nothing");
+        for (const lsnif::converter::Setting& s : lsnif::converter::settings_table()) {
+            const std::string help = std::string(s.help) + " [default: " + s.default_text + "]";
+            std::int64_t& flag = flags.emplace_back(0);
+            std::vector<std::string>& many = values.emplace_back();
+            std::string& one = value.emplace_back();
+            if (!s.value)
+                options.push_back(sub->add_flag(s.names, flag, help));
+            else if (s.repeated)  // one value per occurrence: `--complex a lib/` leaves lib/ an input
+                options.push_back(
+                    sub->add_option(s.names, many, help)->type_name(s.value)->allow_extra_args(false));
+            else
+                options.push_back(sub->add_option(s.names, one, help)->type_name(s.value));
+        }
     }
-    // The values CLI11 cannot check; false (after printing the error) is a usage error.
-    bool finish(const CLI::App* sub) {
-        std::string error;
-        if (!target.empty() && !lsnif::converter::parse_target(target, opt.target, error)) {
-            std::fprintf(stderr, "error: --target '%s': %s\n", target.c_str(), error.c_str());
-            return false;
+    // Applies what was given; false (after printing the error) is a usage error.
+    bool finish() {
+        const auto& table = lsnif::converter::settings_table();
+        for (std::size_t k = 0; k < table.size(); ++k) {
+            const lsnif::converter::Setting& s = table[k];
+            if (options[k]->count() == 0) continue;
+            const std::vector<std::string> given = !s.value     ? std::vector<std::string>{""}
+                                                   : s.repeated ? values[k]
+                                                                : std::vector<std::string>{value[k]};
+            for (const std::string& v : given) {
+                std::string error;
+                if (!s.set(opt, v, error)) {
+                    std::fprintf(stderr, "error: %s '%s': %s\n", lsnif::converter::long_name(s).c_str(),
+                                 v.c_str(), error.c_str());
+                    return false;
+                }
+            }
         }
-        if (sub->count("--memory-budget") > 0 &&
-            !lsnif::converter::parse_byte_size(memory_budget, opt.memory_budget, error)) {
-            std::fprintf(stderr, "error: --memory-budget '%s': %s\n", memory_budget.c_str(), error.c_str());
-            return false;
-        }
-        lsnif::converter::parse_arithmetic(arithmetic, opt.arithmetic);  // CLI11 checked the value
         return true;
     }
 };
@@ -350,7 +323,7 @@ struct ConvertCommand {
         settings.add_to(sub);
     }
     int run(int argc, char** argv) {
-        if (!settings.finish(sub)) return 2;
+        if (!settings.finish()) return 2;
         settings.opt.command_line = recorded_command_line(argc, argv, settings.opt.arithmetic);
         return run_convert(settings.opt, json);
     }
@@ -383,11 +356,12 @@ struct BatchCommand {
                         "Plan only, and write a Ninja build file with one edge per object to convert "
                         "(run it with ninja -f FILE)");
         sub->add_option("--object", settings.opt.only_keys,
-                        "Convert only the candidate with this cache key (a step of the --ninja file)");
+                        "Convert only the candidate with this cache key (a step of the --ninja file)")
+            ->allow_extra_args(false);
         settings.add_to(sub);
     }
     int run() {
-        if (!settings.finish(sub)) return 2;
+        if (!settings.finish()) return 2;
         std::string error;
         if (sub->count("--shard") > 0 && !lsnif::converter::parse_shard(shard, settings.opt.shard_index,
                                                                         settings.opt.shard_count, error)) {

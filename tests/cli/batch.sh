@@ -88,6 +88,20 @@ cmp -s "$work/engine_cold/manifest.json" "$work/engine_warm/manifest.json" || ba
 python3 -c "import json,sys; m=json.load(open(sys.argv[1])); assert len(m['meshes']) == 29 and len(m['instances']) == 67" \
   "$work/engine_warm/manifest.json" || bad "engine: not 29 meshes and 67 instances"
 
+# A repeated setting takes one value per occurrence: the directory after `--complex NAME` is an
+# input, wherever it stands (the dry runs plan the library and print a line per mesh).
+for order in before after; do
+  if [[ $order == before ]]; then
+    args=("$work/lib" --complex armadillo --complex bunny)
+  else
+    args=(--complex armadillo "$work/lib")
+  fi
+  "$lsnif" batch "${args[@]}" -o "$work/order_$order" --cache "$work/cache" --preset smoke --dry-run \
+    >"$work/order_$order.out" 2>"$work/order_$order.err"; rc=$?
+  [[ $rc == 0 ]] && grep -q "armadillo" "$work/order_$order.out" \
+    || bad "--complex with the input $order: exit $rc $(cat "$work/order_$order.err" "$work/order_$order.out" | head -5)"
+done
+
 # Inputs that name nothing: a failure naming them, exit 1. Usage errors: exit 2.
 run nothing "$work/empty" "$work/missing.off"; [[ $rc == 1 ]] || bad "nothing: exit $rc"
 grep -q "empty: no scene files" "$work/nothing.err" || bad "empty directory not reported: $(cat "$work/nothing.err")"

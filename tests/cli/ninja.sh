@@ -67,6 +67,18 @@ grep -q "plan the library again" "$work/changed.log" || bad "Ninja did not plan 
   || bad "changed run: $(ran "$work/changed.log" | tr '\n' ';')"
 grep -q "cache: 0 found, 1 stored" "$work/changed.log" || bad "the changed mesh was not converted"
 
+# Every setting that changes a result reaches the steps: a plan made with the flags added last
+# (the settings table drives both the plan's keys and the steps' arguments) converts, where a
+# step that computed another key would fail with "plan again".
+mkdir -p "$work/one" && cp "$meshes/armadillo.off" "$work/one/"
+"$lsnif" batch "$work/one" -o "$work/flags_out" --cache "$work/flags_cache" "${settings[@]}" --keep-inactive \
+  --no-give-up --fixed-model --steps 30 --ninja "$work/flags.ninja" >/dev/null 2>"$work/flags_plan.err" \
+  || bad "plan with flags: $(cat "$work/flags_plan.err")"
+for f in --keep-inactive --no-give-up --fixed-model; do
+  grep -q -- "^settings = .*$f" "$work/flags.ninja" || bad "the steps do not pass $f: $(grep settings "$work/flags.ninja")"
+done
+ninja -f "$work/flags.ninja" >"$work/flags.log" 2>&1 || bad "the flagged plan's steps failed: $(tail -5 "$work/flags.log")"
+
 # Usage errors, and a step whose key is not in the plan.
 "$lsnif" batch "$work/lib" -o "$work/out" --cache "$work/cache" --ninja "$work/x.ninja" --shard 1/2 2>"$work/err"; rc=$?
 [[ $rc == 2 ]] && grep -q "cannot be combined" "$work/err" || bad "--ninja --shard: exit $rc $(cat "$work/err")"

@@ -5,6 +5,7 @@
 #include "../test_data.hpp"
 
 #include <lsnif/converter/manifest.hpp>
+#include <lsnif/converter/settings.hpp>
 #include <lsnif/format/forward.hpp>
 #include <lsnif/format/half.hpp>
 #include "convert_stages.hpp"
@@ -13,6 +14,7 @@
 #include <cmath>
 #include <fstream>
 #include <limits>
+#include <map>
 
 using namespace lsnif;
 using namespace lsnif::converter;
@@ -177,6 +179,86 @@ TEST_CASE(
     REQUIRE(forced.has_value());
     CHECK(worth_an_lsnif(run, mesh, *forced, forced_rec));
     CHECK(forced_rec.reasons.back().find("forced complex") == 0);
+}
+
+// The settings table drives what a batch records and what a Ninja step passes on
+// (settings_arguments): every setting that changes a result must survive that round trip,
+// or a step computes another key than its plan ("plan again").
+TEST_CASE("every setting survives settings_arguments and back, and every mesh setting changes the key") {
+    // An example value per row: a row without one fails here, so a new setting brings its check.
+    const std::map<std::string, std::string> example = {{"--preset", "fast"},
+                                                        {"--seed", "9"},
+                                                        {"--arithmetic", "machine"},
+                                                        {"--complex", "ChineseDragon-10kv"},
+                                                        {"--simple", "armadillo"},
+                                                        {"--gate-visibility", "0.5"},
+                                                        {"--steps", "7"},
+                                                        {"--batch", "128"},
+                                                        {"--log2-table", "11"},
+                                                        {"--max-points", "5"},
+                                                        {"--grid", "16"},
+                                                        {"--hidden", "24"},
+                                                        {"--no-ray-inputs", ""},
+                                                        {"--target", "90,2,20"},
+                                                        {"--memory-budget", "64M"},
+                                                        {"--fixed-model", ""},
+                                                        {"--no-give-up", ""},
+                                                        {"--keep-inactive", ""},
+                                                        {"--threads", "3"},
+                                                        {"--jobs", "2"},
+                                                        {"--dry-run", ""}};
+    const scene::Mesh mesh = dragon();
+    const fs::path dir = fresh_dir("settings_round_trip");
+    const ConvertOptions base = options("smoke");
+    const auto key_of = [&](const ConvertOptions& o) {
+        const Run run = make_run(o, dir);
+        return asset_key(run, mesh, run.preset.model);
+    };
+    const std::string base_key = key_of(base);
+    const bool bf16_here = arithmetic_id(Arithmetic::machine) != arithmetic_id(Arithmetic::canonical);
+    std::size_t mesh_rows = 0;
+    for (const Setting& s : settings_table()) {
+        const std::string name = long_name(s);
+        CAPTURE(name);
+        REQUIRE_MESSAGE(example.count(name), "no example value for " << name);
+        ConvertOptions given = base;
+        std::string error;
+        REQUIRE_MESSAGE(s.set(given, example.at(name), error), error);
+        const std::vector<std::string> args = settings_arguments(given);
+        // What a step rebuilds from the recorded arguments alone (run settings are its own).
+        ConvertOptions rebuilt;
+        rebuilt.threads = given.threads;
+        rebuilt.jobs = given.jobs;
+        rebuilt.dry_run = given.dry_run;
+        REQUIRE_MESSAGE(apply_settings_arguments(args, rebuilt, error), error);
+        CHECK(settings_arguments(rebuilt) == args);
+        CHECK(mesh_settings_key(rebuilt) == mesh_settings_key(given));
+        CHECK(settings_json(rebuilt) == settings_json(given));
+        CHECK(key_of(rebuilt) == key_of(given));
+        switch (s.scope) {
+            case SettingScope::mesh:
+                ++mesh_rows;
+                if (name != "--arithmetic" || bf16_here) CHECK(key_of(given) != base_key);
+                break;
+            case SettingScope::scene:  // recorded, but a mesh's key does not hold the scene's choices
+                CHECK(args != settings_arguments(base));
+                CHECK(key_of(given) == base_key);
+                break;
+            case SettingScope::run:  // neither recorded nor keyed
+                CHECK(args == settings_arguments(base));
+                CHECK(key_of(given) == base_key);
+                break;
+        }
+    }
+    CHECK(mesh_rows >= 15);
+    // Bad values and unknown options are errors that name the option.
+    ConvertOptions o;
+    std::string error;
+    CHECK_FALSE(apply_settings_arguments({"--steps", "0"}, o, error));
+    CHECK(error.find("--steps '0'") != std::string::npos);
+    CHECK_FALSE(apply_settings_arguments({"--colour", "red"}, o, error));
+    CHECK(error.find("--colour") != std::string::npos);
+    CHECK_FALSE(apply_settings_arguments({"--seed"}, o, error));
 }
 
 TEST_CASE("asset_key changes with the geometry and every setting that changes the weights, and only then") {

@@ -59,12 +59,6 @@ std::vector<std::string> expand_inputs(const std::vector<std::string>& inputs,
 BatchResult batch(const BatchOptions& options, const ConvertProgress& progress = {},
                   const std::function<void(const std::string&)>& on_line = {});
 
-// The command-line options that give `opt`'s settings to `lsnif convert` or `lsnif batch`
-// (the preset, seed, arithmetic, forced meshes, overrides, target, --fixed-model): every
-// setting that changes a result, and nothing else (threads and jobs do not). What a Ninja
-// file passes to every step so that the keys it planned are the keys they use.
-std::vector<std::string> settings_arguments(const ConvertOptions& opt);
-
 // JUnit XML of a batch: one <testcase> per mesh (classname = the input file, name = the mesh;
 // passed when converted or kept as BVH with its reason in <system-out>; <failure> when its
 // asset could not be written), and one failed <testcase> per input that could not be read.

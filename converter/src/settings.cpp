@@ -1,0 +1,286 @@
+// The settings table (lsnif/converter/settings.hpp).
+#include <lsnif/converter/settings.hpp>
+
+#include <charconv>
+#include <cinttypes>
+#include <cstdio>
+
+namespace lsnif::converter {
+
+using nlohmann::json;
+
+namespace {
+
+// A whole number in [lo, hi], written in decimal.
+template <class T>
+bool parse_count(const std::string& text, T lo, T hi, T& out, std::string& error) {
+    T v{};
+    const auto [end, ec] = std::from_chars(text.data(), text.data() + text.size(), v);
+    if (text.empty() || ec != std::errc() || end != text.data() + text.size() || v < lo || v > hi) {
+        error = "expected a whole number from " + std::to_string(lo) + " to " + std::to_string(hi);
+        return false;
+    }
+    out = v;
+    return true;
+}
+
+// "%.17g": a double that reads back as the same double.
+std::string exact(double v) {
+    char buf[32];
+    std::snprintf(buf, sizeof buf, "%.17g", v);
+    return buf;
+}
+
+std::vector<std::string> unless_zero(std::uint64_t v) {
+    return v ? std::vector<std::string>{std::to_string(v)} : std::vector<std::string>{};
+}
+
+json json_unless_zero(std::uint64_t v) {
+    return v ? json(v) : json();
+}
+
+// A model or training override: 0 = the preset's value.
+#define LSNIF_OVERRIDE(NAME, VALUE, KEY, FIELD, LO, HI, HELP)                 \
+    Setting {                                                                 \
+        NAME, VALUE, false, SettingScope::mesh, KEY, "the preset's", HELP,    \
+            [](ConvertOptions& o, const std::string& v, std::string& e) {     \
+                return parse_count<std::uint32_t>(v, LO, HI, o.FIELD, e);     \
+            },                                                                \
+            [](const ConvertOptions& o) { return unless_zero(o.FIELD); },     \
+            [](const ConvertOptions& o) { return json_unless_zero(o.FIELD); } \
+    }
+
+// A flag that is off by default.
+#define LSNIF_FLAG(NAME, KEY, FIELD, SCOPE, HELP)                                               \
+    Setting {                                                                                   \
+        NAME, nullptr, false, SCOPE, KEY, "off", HELP,                                          \
+            [](ConvertOptions& o, const std::string&, std::string&) { return o.FIELD = true; }, \
+            [](const ConvertOptions& o) {                                                       \
+                return o.FIELD ? std::vector<std::string>{""} : std::vector<std::string>{};     \
+            },                                                                                  \
+            [](const ConvertOptions& o) { return o.FIELD ? json(true) : json(); }               \
+    }
+
+std::vector<Setting> make_table() {
+    return {
+        Setting{"--preset", "NAME", false, SettingScope::mesh, "preset", "default",
+                "default, fast, quality or smoke (pipeline check)",
+                [](ConvertOptions& o, const std::string& v, std::string& e) {
+                    Preset p;
+                    if (find_preset(v, p)) return o.preset = v, true;
+                    e = "not a preset (default, fast, quality, smoke)";
+                    return false;
+                },
+                [](const ConvertOptions& o) { return std::vector<std::string>{o.preset}; },
+                [](const ConvertOptions& o) { return json(o.preset); }},
+        Setting{"--seed", "N", false, SettingScope::mesh, "seed", "1", "Random seed (sampling and training)",
+                [](ConvertOptions& o, const std::string& v, std::string& e) {
+                    return parse_count<std::uint64_t>(v, 0, UINT64_MAX, o.seed, e);
+                },
+                [](const ConvertOptions& o) { return std::vector<std::string>{std::to_string(o.seed)}; },
+                [](const ConvertOptions& o) { return json(o.seed); }},
+        Setting{"--arithmetic", "canonical|machine", false, SettingScope::mesh, "arithmetic", "canonical",
+                "canonical: fp32 in one order, the same assets on every CPU and thread count; machine: bf16 "
+                "training products on AMX or AVX-512 BF16 where present (faster there; the assets depend on "
+                "the CPU kind and say so)",
+                [](ConvertOptions& o, const std::string& v, std::string& e) {
+                    if (parse_arithmetic(v, o.arithmetic)) return true;
+                    e = "expected canonical or machine";
+                    return false;
+                },
+                // As it runs here: machine on a CPU without bf16 products is the canonical arithmetic.
+                [](const ConvertOptions& o) {
+                    return arithmetic_id(o.arithmetic) != arithmetic_id(Arithmetic::canonical)
+                               ? std::vector<std::string>{"machine"}
+                               : std::vector<std::string>{};
+                },
+                [](const ConvertOptions& o) { return json(arithmetic_id(o.arithmetic)); }},
+        Setting{"--complex", "NAME", true, SettingScope::scene, "forced_complex", "none",
+                "Force a mesh (by name) to become an LSNIF; once per mesh",
+                [](ConvertOptions& o, const std::string& v, std::string&) {
+                    o.force_complex.push_back(v);
+                    return true;
+                },
+                [](const ConvertOptions& o) { return o.force_complex; },
+                [](const ConvertOptions& o) { return json(o.force_complex); }},
+        Setting{"--simple", "NAME", true, SettingScope::scene, "forced_simple", "none",
+                "Force a mesh (by name) to stay BVH; once per mesh",
+                [](ConvertOptions& o, const std::string& v, std::string&) {
+                    o.force_simple.push_back(v);
+                    return true;
+                },
+                [](const ConvertOptions& o) { return o.force_simple; },
+                [](const ConvertOptions& o) { return json(o.force_simple); }},
+        Setting{"--gate-visibility", "FRACTION", false, SettingScope::mesh, "gate_visibility", "the preset's",
+                "Override the pooled held-out visibility accuracy an asset needs (0..1)",
+                [](ConvertOptions& o, const std::string& v, std::string& e) {
+                    double x = 0;
+                    const auto [end, ec] = std::from_chars(v.data(), v.data() + v.size(), x);
+                    if (v.empty() || ec != std::errc() || end != v.data() + v.size() || !(x >= 0 && x <= 1)) {
+                        e = "expected a fraction from 0 to 1";
+                        return false;
+                    }
+                    o.gate_min_visibility = x;
+                    return true;
+                },
+                [](const ConvertOptions& o) {
+                    return o.gate_min_visibility >= 0 ? std::vector<std::string>{exact(o.gate_min_visibility)}
+                                                      : std::vector<std::string>{};
+                },
+                [](const ConvertOptions& o) {
+                    return o.gate_min_visibility >= 0 ? json(o.gate_min_visibility) : json();
+                }},
+        LSNIF_OVERRIDE("--steps", "N", "steps", steps, 1u, 1000000u, "Override the preset's training steps"),
+        LSNIF_OVERRIDE("--batch", "RAYS", "batch", batch_size, 64u, 1u << 20,
+                       "Override the preset's batch size (rays per step)"),
+        LSNIF_OVERRIDE("--log2-table", "N", "log2_table", log2_table_size, 10u, 24u,
+                       "Override T = 2^N hash-table rows per level"),
+        LSNIF_OVERRIDE("--max-points", "H", "max_points", max_points, 1u, 64u,
+                       "Override H, voxel entry points per ray"),
+        LSNIF_OVERRIDE("--grid", "V", "grid", grid_resolution, 4u, 256u,
+                       "Override V, occupancy grid resolution"),
+        LSNIF_OVERRIDE("--hidden", "WIDTH", "hidden", hidden_width, 16u, 512u,
+                       "Override the hidden layers' width"),
+        LSNIF_FLAG("--no-ray-inputs", "no_ray_inputs", no_ray_inputs, SettingScope::mesh,
+                   "The network sees its points' features only, not the ray's direction and entry offsets "
+                   "(container 1.0/1.1 files, for comparisons)"),
+        Setting{"--target", "VIS,DIST,NORMAL", false, SettingScope::mesh, "target", "98.5,0.6,8",
+                "Accuracy asked of every asset: held-out visibility %, median distance error % of the "
+                "diagonal, median normal error in degrees",
+                [](ConvertOptions& o, const std::string& v, std::string& e) {
+                    return parse_target(v, o.target, e);
+                },
+                [](const ConvertOptions& o) {
+                    return std::vector<std::string>{exact(100 * o.target.visibility) + "," +
+                                                    exact(o.target.distance_pct) + "," +
+                                                    exact(o.target.normal_deg)};
+                },
+                [](const ConvertOptions& o) {
+                    return json{{"visibility", o.target.visibility},
+                                {"distance_pct", o.target.distance_pct},
+                                {"normal_deg", o.target.normal_deg}};
+                }},
+        Setting{"--memory-budget", "BYTES", false, SettingScope::scene, "memory_budget", "none",
+                "Scene memory to fit, in bytes (K, M, G: powers of 1024): candidates are converted in order "
+                "of BVH bytes saved per asset byte until the scene (BVHs + assets, each mesh once) fits; the "
+                "rest stay BVH",
+                [](ConvertOptions& o, const std::string& v, std::string& e) {
+                    return parse_byte_size(v, o.memory_budget, e);
+                },
+                [](const ConvertOptions& o) { return unless_zero(o.memory_budget); },
+                [](const ConvertOptions& o) { return json_unless_zero(o.memory_budget); }},
+        LSNIF_FLAG("--fixed-model", "fixed_model", fixed_model, SettingScope::mesh,
+                   "Train the preset's model (after the memory rule) for the whole budget: no smaller sizes, "
+                   "no 8-bit option, no stop at the target (for sweeps and comparisons)"),
+        LSNIF_FLAG("--no-give-up", "no_give_up", no_give_up, SettingScope::mesh,
+                   "Train to the end of the budget even when the validation curve shows the gate is out of "
+                   "reach (to measure hard geometry); the gate still decides what ships"),
+        LSNIF_FLAG("--keep-inactive", "keep_inactive", keep_inactive, SettingScope::mesh,
+                   "Ship each trained network whole: do not remove the hidden neurons that no validation ray "
+                   "activates (docs/model.md \"Inactive neurons\")"),
+        Setting{"--threads", "N", false, SettingScope::run, nullptr, "0: all cores",
+                "Worker threads; results are the same for any count",
+                [](ConvertOptions& o, const std::string& v, std::string& e) {
+                    return parse_count<std::uint32_t>(v, 0u, 4096u, o.threads, e);
+                },
+                [](const ConvertOptions& o) { return unless_zero(o.threads); },
+                [](const ConvertOptions&) { return json(); }},
+        Setting{"-j,--jobs", "JOBS", false, SettingScope::run, nullptr, "1",
+                "Meshes converted at once, sharing the threads (each gets threads/jobs); not with "
+                "--memory-budget",
+                [](ConvertOptions& o, const std::string& v, std::string& e) {
+                    return parse_count<std::uint32_t>(v, 1u, 256u, o.jobs, e);
+                },
+                [](const ConvertOptions& o) {
+                    return o.jobs > 1 ? std::vector<std::string>{std::to_string(o.jobs)}
+                                      : std::vector<std::string>{};
+                },
+                [](const ConvertOptions&) { return json(); }},
+        LSNIF_FLAG("--dry-run", nullptr, dry_run, SettingScope::run,
+                   "Import and classify only: print the plan (class, reasons, model size, cache key), write "
+                   "nothing"),
+    };
+}
+
+#undef LSNIF_OVERRIDE
+#undef LSNIF_FLAG
+
+const Setting* find_setting(const std::string& name) {
+    for (const Setting& s : settings_table())
+        if (long_name(s) == name) return &s;
+    return nullptr;
+}
+
+}  // namespace
+
+const std::vector<Setting>& settings_table() {
+    static const std::vector<Setting> table = make_table();
+    return table;
+}
+
+std::string long_name(const Setting& s) {
+    const std::string names = s.names;
+    const std::size_t comma = names.rfind(',');
+    return comma == std::string::npos ? names : names.substr(comma + 1);
+}
+
+std::vector<std::string> settings_arguments(const ConvertOptions& opt) {
+    std::vector<std::string> args;
+    for (const Setting& s : settings_table()) {
+        if (s.scope == SettingScope::run) continue;
+        for (const std::string& v : s.get(opt)) {
+            args.push_back(long_name(s));
+            if (s.value) args.push_back(v);
+        }
+    }
+    return args;
+}
+
+bool apply_settings_arguments(const std::vector<std::string>& args, ConvertOptions& opt, std::string& error) {
+    for (std::size_t i = 0; i < args.size(); ++i) {
+        const Setting* s = find_setting(args[i]);
+        if (!s) {
+            error = "'" + args[i] + "' is not a setting";
+            return false;
+        }
+        std::string value;
+        if (s->value) {
+            if (i + 1 == args.size()) {
+                error = args[i] + " needs a value";
+                return false;
+            }
+            value = args[++i];
+        }
+        std::string why;
+        if (!s->set(opt, value, why)) {
+            error = args[s->value ? i - 1 : i] + " '" + value + "': " + why;
+            return false;
+        }
+    }
+    return true;
+}
+
+std::string mesh_settings_key(const ConvertOptions& opt) {
+    std::string key;
+    for (const Setting& s : settings_table()) {
+        if (s.scope != SettingScope::mesh) continue;
+        for (const std::string& v : s.get(opt)) {
+            if (!key.empty()) key.append(" ");
+            key.append(long_name(s));
+            if (s.value) key.append(" ").append(v);
+        }
+    }
+    return key;
+}
+
+json settings_json(const ConvertOptions& opt) {
+    json j = json::object();
+    for (const Setting& s : settings_table()) {
+        if (!s.manifest) continue;
+        json v = s.to_json(opt);
+        if (!v.is_null()) j[s.manifest] = std::move(v);
+    }
+    return j;
+}
+
+}  // namespace lsnif::converter
