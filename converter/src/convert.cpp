@@ -137,6 +137,30 @@ json family_json(const samples::FamilyMetrics& f) {
             {"culled_fraction", f.culled_fraction}};
 }
 
+// family_json read back (asset metadata of an earlier run): every field present and of its
+// type, or nothing. No field defaults: a decision never reads a value nobody measured.
+std::optional<samples::FamilyMetrics> family_from_json(const json& j) {
+    if (!j.is_object()) return std::nullopt;
+    samples::FamilyMetrics f;
+    const std::pair<const char*, double*> numbers[] = {
+        {"visibility_accuracy", &f.visibility_accuracy},
+        {"false_hit_rate", &f.false_hit_rate},
+        {"false_miss_rate", &f.false_miss_rate},
+        {"distance_error_median_pct", &f.distance_median_pct},
+        {"distance_error_p95_pct", &f.distance_p95_pct},
+        {"normal_error_median_deg", &f.normal_median_deg},
+        {"normal_error_p95_deg", &f.normal_p95_deg},
+        {"geometric_normal_error_median_deg", &f.geometric_normal_median_deg},
+        {"culled_fraction", &f.culled_fraction}};
+    for (const auto& [key, field] : numbers) {
+        if (!j.contains(key) || !j[key].is_number()) return std::nullopt;
+        *field = j[key].get<double>();
+    }
+    if (!j.contains("rays") || !j["rays"].is_number_unsigned()) return std::nullopt;
+    f.rays = j["rays"].get<std::uint64_t>();
+    return f;
+}
+
 json model_json(const format::ModelDesc& d) {
     return {{"grid_resolution", d.grid_resolution},
             {"max_points", d.max_points},
@@ -252,12 +276,10 @@ bool parse_byte_size(const std::string& text, std::uint64_t& bytes, std::string&
     return true;
 }
 
-std::vector<std::string> target_misses(const json& families, const Target& t) {
+std::vector<std::string> target_misses(const samples::FamilyMetrics& p, const Target& t) {
     std::vector<std::string> misses;
-    const json& p = families.at("pooled");
     char buf[160];
-    const double vis = p.value("visibility_accuracy", 0.0), dist = p.value("distance_error_median_pct", 0.0),
-                 normal = p.value("normal_error_median_deg", 0.0);
+    const double vis = p.visibility_accuracy, dist = p.distance_median_pct, normal = p.normal_median_deg;
     if (vis < t.visibility) {
         std::snprintf(buf, sizeof buf, "visibility %.2f %% < target %.2f %%", 100 * vis, 100 * t.visibility);
         misses.push_back(buf);
@@ -275,24 +297,34 @@ std::vector<std::string> target_misses(const json& families, const Target& t) {
     return misses;
 }
 
-std::vector<std::string> early_abort_reasons(const json& point, std::uint64_t samples, const Gate& g,
-                                             const EarlyAbort& rule) {
+json validation_json(std::span<const ValidationPoint> curve) {
+    json j = json::array();
+    for (const ValidationPoint& p : curve)
+        j.push_back({{"step", p.step},
+                     {"visibility", p.visibility},
+                     {"distance_pct", p.distance_pct},
+                     {"normal_deg", p.normal_deg}});
+    return j;
+}
+
+std::vector<std::string> early_abort_reasons(const ValidationPoint& point, std::uint64_t samples,
+                                             const Gate& g, const EarlyAbort& rule) {
     std::vector<std::string> why;
     if (samples < rule.min_samples) return why;
     char buf[200];
-    const double vis = point.value("visibility", 0.0);
+    const double vis = point.visibility;
     if (vis + rule.visibility_headroom < g.min_visibility) {
         std::snprintf(buf, sizeof buf, "validation visibility %.1f %% cannot reach the gate's %.1f %%",
                       100 * vis, 100 * g.min_visibility);
         why.push_back(buf);
     }
-    const double normal = point.value("normal_deg", 180.0);
+    const double normal = point.normal_deg;
     if (normal - rule.normal_headroom_deg > g.max_normal_median_deg) {
         std::snprintf(buf, sizeof buf, "validation normal error %.1f deg cannot reach the gate's %.1f deg",
                       normal, g.max_normal_median_deg);
         why.push_back(buf);
     }
-    const double dist = point.value("distance_pct", 100.0);
+    const double dist = point.distance_pct;
     if (dist * rule.distance_factor > g.max_distance_median_pct) {
         std::snprintf(buf, sizeof buf, "validation distance error %.2f %% cannot reach the gate's %.2f %%",
                       dist, g.max_distance_median_pct);
@@ -306,25 +338,26 @@ Target effective_target(const Target& t, const Gate& g) {
             std::min(t.normal_deg, g.max_normal_median_deg)};
 }
 
-bool meets_target_with_margin(const json& point, const Target& t, const TargetStop& rule) {
-    return point.value("visibility", 0.0) >= t.visibility + rule.visibility_margin &&
-           point.value("distance_pct", 100.0) <= t.distance_pct * rule.distance_factor &&
-           point.value("normal_deg", 180.0) <= t.normal_deg - rule.normal_margin_deg;
+bool meets_target_with_margin(const ValidationPoint& point, const Target& t, const TargetStop& rule) {
+    return point.visibility >= t.visibility + rule.visibility_margin &&
+           point.distance_pct <= t.distance_pct * rule.distance_factor &&
+           point.normal_deg <= t.normal_deg - rule.normal_margin_deg;
 }
 
-std::string falls_behind(const json& point, std::uint32_t step, const json& larger, const Target& target,
-                         const TargetStop& stop, const Sizing& rule) {
-    // The larger rung's visibility at the last check at or before `step`, and the most it
-    // gained from there on.
-    const json* at = nullptr;
-    for (const json& q : larger)
-        if (q.value("step", 0u) <= step) at = &q;
-    if (!at || larger.back().value("step", 0u) < step) return {};
+std::string falls_behind(const ValidationPoint& point, std::span<const ValidationPoint> larger,
+                         const Target& target, const TargetStop& stop, const Sizing& rule) {
+    // The larger rung's visibility at the last check at or before the point's step, and the
+    // most it gained from there on.
+    const std::uint32_t step = point.step;
+    const ValidationPoint* at = nullptr;
+    for (const ValidationPoint& q : larger)
+        if (q.step <= step) at = &q;
+    if (!at || larger.back().step < step) return {};
     double best = 0;
-    for (const json& q : larger)
-        if (q.value("step", 0u) >= at->value("step", 0u)) best = std::max(best, q.value("visibility", 0.0));
-    const double gain = best - at->value("visibility", 0.0);
-    const double vis = point.value("visibility", 0.0), needed = target.visibility + stop.visibility_margin;
+    for (const ValidationPoint& q : larger)
+        if (q.step >= at->step) best = std::max(best, q.visibility);
+    const double gain = best - at->visibility;
+    const double vis = point.visibility, needed = target.visibility + stop.visibility_margin;
     if (vis + gain + rule.curve_slack >= needed) return {};
     char buf[240];
     std::snprintf(buf, sizeof buf,
@@ -616,7 +649,7 @@ std::string asset_key(const Run& run, const scene::Mesh& mesh, const format::Mod
            mesh_settings_key(run.opt);
 }
 
-std::optional<json> reusable_metrics(const fs::path& asset, const std::string& key) {
+std::optional<Reused> reusable_metrics(const fs::path& asset, const std::string& key) {
     std::error_code ec;
     if (!fs::exists(asset, ec)) return std::nullopt;
     auto bytes = format::read_file_bytes(asset.string());
@@ -627,16 +660,16 @@ std::optional<json> reusable_metrics(const fs::path& asset, const std::string& k
     if (!meta.is_object() || !meta.contains("metrics") || !meta["metrics"].contains("gate") ||
         meta.value("extensions", json::object()).value("lsnif_convert_key", "") != key)
         return std::nullopt;
-    return meta["metrics"];
+    const json& families = meta["metrics"].value("families", json());
+    const auto pooled = family_from_json(families.is_object() ? families.value("pooled", json()) : json());
+    if (!pooled) return std::nullopt;  // not metrics this version writes: convert again
+    return Reused{meta["metrics"], *pooled};
 }
 
-json validation_point(std::uint32_t step, const format::ModelData& model,
-                      std::span<const samples::Sample> rays, std::uint32_t threads) {
+ValidationPoint validation_point(std::uint32_t step, const format::ModelData& model,
+                                 std::span<const samples::Sample> rays, std::uint32_t threads) {
     const samples::Metrics m = samples::held_out_metrics(format::make_runtime(model), rays, threads);
-    return {{"step", step},
-            {"visibility", m.pooled.visibility_accuracy},
-            {"distance_pct", m.pooled.distance_median_pct},
-            {"normal_deg", m.pooled.normal_median_deg}};
+    return {step, m.pooled.visibility_accuracy, m.pooled.distance_median_pct, m.pooled.normal_median_deg};
 }
 
 MeasureRays draw_measure_rays(const Run& run, const scene::Mesh& mesh, Candidate& c, MeshRecord& rec) {
@@ -655,7 +688,7 @@ MeasureRays draw_measure_rays(const Run& run, const scene::Mesh& mesh, Candidate
 
 Trained train_rung(const Run& run, const scene::Mesh& mesh, Candidate& c, const format::ModelDesc& desc,
                    const voxelize::Occupancy& occ, const MeasureRays& rays, std::uint32_t steps,
-                   const json& larger, MeshRecord& rec) {
+                   std::span<const ValidationPoint> larger, MeshRecord& rec) {
     const auto t0 = Clock::now();
     Trained t;
     t.config = run.preset.train;
@@ -682,14 +715,14 @@ Trained train_rung(const Run& run, const scene::Mesh& mesh, Candidate& c, const 
     // cannot catch up; stop when the target is met (TargetStop).
     const Target aim = effective_target(run.opt.target, p.gate);
     auto decide = [&](std::uint32_t step, std::uint32_t of) {
-        const json& point = t.validation.back();
+        const ValidationPoint& point = t.validation.back();
         t.abandoned =
             early_abort_reasons(point, std::uint64_t(step) * t.config.batch_size, p.gate, p.early_abort);
         if (!t.abandoned.empty()) {
             t.abandoned_at = step;
             return false;
         }
-        t.fell_behind = falls_behind(point, step, larger, aim, p.target_stop, p.sizing);
+        t.fell_behind = falls_behind(point, larger, aim, p.target_stop, p.sizing);
         if (!t.fell_behind.empty()) return false;
         met_in_a_row = meets_target_with_margin(point, aim, p.target_stop) ? met_in_a_row + 1 : 0;
         if (p.target_stop.consecutive && met_in_a_row >= p.target_stop.consecutive && step < of) {
@@ -731,12 +764,11 @@ Trained train_rung(const Run& run, const scene::Mesh& mesh, Candidate& c, const 
 }
 
 json gate(const Run& run, const scene::Mesh& mesh, const format::ModelData& model, const Trained& t,
-          const MeasureRays& rays, MeshRecord& rec) {
+          const MeasureRays& rays, samples::Metrics& m, MeshRecord& rec) {
     const auto t0 = Clock::now();
     run.report({mesh.name, "evaluate"});
     const format::Runtime rt = format::make_runtime(model);
-    const samples::Metrics m =
-        samples::held_out_metrics(rt, rays.held_out, run.threads, rays.held_out_geometric_normals);
+    m = samples::held_out_metrics(rt, rays.held_out, run.threads, rays.held_out_geometric_normals);
     json metrics = {{"held_out_rays", rays.held_out.size()}, {"families", metrics_json(m)}};
     std::vector<std::string> reasons = gate_failures(m, run.preset.gate);
     if (t.stream.train.diverged) reasons.push_back(t.stream.train.message);
@@ -769,7 +801,7 @@ json candidate_json(const Option& o, const Trained& t) {
               {"memory_rule_passed", o.memory_ok},
               {"outcome", o.outcome}};
     // The curve is the training's: recorded once, with the rung's fp16 export.
-    if (d.grid_encoding == format::GridEncoding::fp16) j["validation"] = t.validation;
+    if (d.grid_encoding == format::GridEncoding::fp16) j["validation"] = validation_json(t.validation);
     if (t.target_met_at) j["stopped"] = "the validation curve met the target";
     if (!t.abandoned.empty()) j["stopped"] = "given up: " + t.abandoned.front();
     if (!t.fell_behind.empty()) j["stopped"] = "given up: " + t.fell_behind;
@@ -783,9 +815,9 @@ Option measure_option(const Run& run, const scene::Mesh& mesh, const Candidate& 
     Option o;
     o.rung = rung;
     o.model = std::move(model);
-    o.metrics = gate(run, mesh, o.model, t, rays, rec);
-    o.target_met = o.metrics["gate"]["passed"].get<bool>() &&
-                   target_misses(o.metrics["families"], run.opt.target).empty();
+    o.metrics = gate(run, mesh, o.model, t, rays, o.held_out, rec);
+    o.target_met =
+        o.metrics["gate"]["passed"].get<bool>() && target_misses(o.held_out.pooled, run.opt.target).empty();
     auto bytes = format::serialize(o.model);
     o.bytes = bytes ? bytes->size() : 0;
     o.memory_ok = bytes && memory_rule_failure(run, c, o.bytes).empty();
@@ -800,7 +832,8 @@ Sized size_to_target(const Run& run, const scene::Mesh& mesh, Candidate& c, cons
     format::ModelDesc desc = c.desc;
     std::uint32_t budget = p.train.steps;  // steps left to all rungs
     for (;;) {
-        const json larger = sized.rungs.empty() ? json::array() : sized.rungs.back().validation;
+        const std::vector<ValidationPoint> larger =
+            sized.rungs.empty() ? std::vector<ValidationPoint>{} : sized.rungs.back().validation;
         sized.rungs.push_back(train_rung(run, mesh, c, desc, occ, rays, budget, larger, rec));
         const std::size_t rung = sized.rungs.size() - 1;
         const Trained& t = sized.rungs[rung];
@@ -1019,7 +1052,7 @@ json convert_candidate(const Run& run, Planned& p, std::vector<std::string>& err
     const std::string file = hex16(fnv1a64(key)) + ".lsnif";
     const fs::path asset = run.outdir / file;
     if (auto previous = reusable_metrics(asset, key))
-        return shipped(run, std::move(*previous), file, asset, true, rec);
+        return shipped(run, std::move(previous->metrics), previous->pooled, file, asset, true, rec);
 
     const MeasureRays rays = draw_measure_rays(run, mesh, c, rec);
     Sized sized = size_to_target(run, mesh, c, *p.occupancy, rays, rec);
@@ -1028,7 +1061,7 @@ json convert_candidate(const Run& run, Planned& p, std::vector<std::string>& err
     Option& o = sized.options[sized.chosen.value_or(0)];
     const Trained& t = sized.rungs[o.rung];
     const json& metrics = o.metrics;
-    rec.entry["validation"] = t.validation;
+    rec.entry["validation"] = validation_json(t.validation);
     if (t.target_met_at)
         rec.entry["stopped_early"] = {{"step", t.target_met_at},
                                       {"steps", t.config.steps},
@@ -1048,7 +1081,7 @@ json convert_candidate(const Run& run, Planned& p, std::vector<std::string>& err
         errors.push_back(source + ": mesh '" + mesh.name + "': " + err);
         return rec.simple("the asset could not be written: " + err);
     }
-    return shipped(run, metrics, file, asset, false, rec);
+    return shipped(run, metrics, o.held_out.pooled, file, asset, false, rec);
 }
 
 // The gate's rules, for cache keys: they decide which option ships.
@@ -1408,9 +1441,9 @@ json scene_memory(const Run& run, const std::vector<json>& entries) {
     return j;
 }
 
-json shipped(const Run& run, json metrics, const std::string& file, const fs::path& asset, bool reused,
-             MeshRecord& rec) {
-    rec.entry["target"] = target_json(run.opt.target, target_misses(metrics["families"], run.opt.target));
+json shipped(const Run& run, json metrics, const samples::FamilyMetrics& pooled, const std::string& file,
+             const fs::path& asset, bool reused, MeshRecord& rec) {
+    rec.entry["target"] = target_json(run.opt.target, target_misses(pooled, run.opt.target));
     rec.entry["metrics"] = std::move(metrics);
     std::error_code ec;
     rec.entry["lsnif"] = {{"file", file}, {"bytes", fs::file_size(asset, ec)}, {"reused", reused}};

@@ -14,6 +14,7 @@
 #include <lsnif/converter/convert.hpp>
 #include <lsnif/format/container.hpp>
 #include <lsnif/mesh/mesh.hpp>
+#include <lsnif/samples/held_out.hpp>
 #include <lsnif/samples/sample.hpp>
 #include <lsnif/sampling/sampling.hpp>
 #include <lsnif/scene/scene.hpp>
@@ -106,7 +107,7 @@ struct Trained {
     format::ModelData model;  // model.desc is the rung's
     trainer::TrainConfig config;
     trainer::StreamedResult stream;
-    json validation = json::array();  // [{"step", "visibility", "distance_pct", "normal_deg"}]
+    std::vector<ValidationPoint> validation;  // the curve, one point per check
     // Why training was given up at step `abandoned_at` (EarlyAbort); empty when it ran to the end.
     std::vector<std::string> abandoned;
     std::uint32_t abandoned_at = 0;
@@ -122,14 +123,15 @@ struct Trained {
 
 // A model that may ship: a trained rung's fp16 export, or its 8-bit quantization.
 struct Option {
-    std::size_t rung = 0;     // into Sized::rungs: the training it comes from
-    format::ModelData model;  // metadata filled only for the chosen one (encode_asset)
-    json metrics;             // gate() on the held-out rays
-    std::uint64_t bytes = 0;  // serialized without metadata
-    bool target_met = false;  // passes the gate and meets --target on held-out rays
-    bool memory_ok = false;   // beats the BVH by ClassifyRule::min_memory_ratio (or forced)
-    double seconds = 0;       // measuring (and, for the fp16 option, training) it
-    std::string outcome;      // chosen and why, or why not (choose_option)
+    std::size_t rung = 0;       // into Sized::rungs: the training it comes from
+    format::ModelData model;    // metadata filled only for the chosen one (encode_asset)
+    json metrics;               // gate() on the held-out rays, as the manifest records them
+    samples::Metrics held_out;  // the same, typed: what decisions read
+    std::uint64_t bytes = 0;    // serialized without metadata
+    bool target_met = false;    // passes the gate and meets --target on held-out rays
+    bool memory_ok = false;     // beats the BVH by ClassifyRule::min_memory_ratio (or forced)
+    double seconds = 0;         // measuring (and, for the fp16 option, training) it
+    std::string outcome;        // chosen and why, or why not (choose_option)
 };
 
 // Every rung tried for a mesh, largest first, and every option they gave.
@@ -143,8 +145,8 @@ struct Sized {
 
 // The validation point of a model at `step`: pooled metrics of `rays` through the reader's
 // forward pass (format::intersect on the fp16 export), as the manifest records it.
-json validation_point(std::uint32_t step, const format::ModelData& model,
-                      std::span<const samples::Sample> rays, std::uint32_t threads);
+ValidationPoint validation_point(std::uint32_t step, const format::ModelData& model,
+                                 std::span<const samples::Sample> rays, std::uint32_t threads);
 
 // The preset with the command line's overrides applied; false (and `error`) for an
 // unknown preset name.
@@ -173,9 +175,14 @@ bool worth_an_lsnif(const Run& run, const scene::Mesh& mesh, const Candidate& c,
 // is named by its hash, so an unchanged mesh finds its asset again.
 std::string asset_key(const Run& run, const scene::Mesh& mesh, const format::ModelDesc& desc);
 
-// Reuse: the held-out metrics of an existing asset written for exactly this key, or
-// nothing (absent, unreadable, or another key).
-std::optional<json> reusable_metrics(const fs::path& asset, const std::string& key);
+// Reuse: the held-out metrics of an existing asset written for exactly this key (as its
+// metadata records them, and the pooled ones read back), or nothing (absent, unreadable,
+// another key, or metrics this version does not write).
+struct Reused {
+    json metrics;
+    samples::FamilyMetrics pooled;
+};
+std::optional<Reused> reusable_metrics(const fs::path& asset, const std::string& key);
 
 // Draws the held-out and validation rays (seeded by the run's seed, not by the rung).
 MeasureRays draw_measure_rays(const Run& run, const scene::Mesh& mesh, Candidate& c, MeshRecord& rec);
@@ -187,7 +194,7 @@ MeasureRays draw_measure_rays(const Run& run, const scene::Mesh& mesh, Candidate
 // met (TargetStop). Timings accumulate in `rec`.
 Trained train_rung(const Run& run, const scene::Mesh& mesh, Candidate& c, const format::ModelDesc& desc,
                    const voxelize::Occupancy& occ, const MeasureRays& rays, std::uint32_t steps,
-                   const json& larger, MeshRecord& rec);
+                   std::span<const ValidationPoint> larger, MeshRecord& rec);
 
 // Prune, part 1 (docs/model.md "Inactive neurons"): per hidden layer of `model`, whether
 // each neuron's ReLU output is positive for at least one of `rays` that reaches the network,
@@ -207,9 +214,10 @@ std::vector<std::uint32_t> remove_inactive_neurons(format::ModelData& model,
 
 // Gate: held-out metrics of the trained model and the verdict, as the manifest records
 // them ({"held_out_rays", "families", "gate": {"passed", "reasons"?}}).
-// `model` is `t`'s fp16 export or its quantization; `t` supplies the training verdicts.
+// `model` is `t`'s fp16 export or its quantization; `t` supplies the training verdicts. The
+// metrics also go to `held_out`, typed, for the decisions that read them.
 json gate(const Run& run, const scene::Mesh& mesh, const format::ModelData& model, const Trained& t,
-          const MeasureRays& rays, MeshRecord& rec);
+          const MeasureRays& rays, samples::Metrics& held_out, MeshRecord& rec);
 
 // The manifest's record of one option: size, encoding, bytes, steps, seconds, held-out
 // metrics, verdicts, outcome, why training stopped and (fp16 option) the rung's curve.
@@ -258,8 +266,8 @@ std::string write_asset(const Run& run, const scene::Mesh& mesh, std::span<const
 std::string memory_rule_failure(const Run& run, const Candidate& c, std::uint64_t asset_bytes);
 
 // The entry of a mesh whose asset ships (just written, or reused).
-json shipped(const Run& run, json metrics, const std::string& file, const fs::path& asset, bool reused,
-             MeshRecord& rec);
+json shipped(const Run& run, json metrics, const samples::FamilyMetrics& pooled, const std::string& file,
+             const fs::path& asset, bool reused, MeshRecord& rec);
 
 // The entry of a mesh none of whose rungs passes the gate.
 json below_gate(const json& metrics, bool abandoned, MeshRecord& rec);

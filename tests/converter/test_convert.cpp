@@ -671,9 +671,9 @@ TEST_CASE("giving up early: each rule on its own, and never before the curve can
     const Gate gate;  // 95 %, 2 % of the diagonal, 30 deg
     const EarlyAbort rule;
     // The dragon's first default-preset check (docs/model.md "Deciding early"): trains on.
-    const json dragon = {{"visibility", 0.9443}, {"distance_pct", 1.45}, {"normal_deg", 24.3}};
+    const ValidationPoint dragon{240, 0.9443, 1.45, 24.3};
     CHECK(early_abort_reasons(dragon, 240u * 8192u, gate, rule).empty());
-    auto one = [&](json point, const char* expected) {
+    auto one = [&](ValidationPoint point, const char* expected) {
         const auto why = early_abort_reasons(point, rule.min_samples, gate, rule);
         CAPTURE(expected);
         REQUIRE(why.size() == 1);
@@ -681,16 +681,11 @@ TEST_CASE("giving up early: each rule on its own, and never before the curve can
         // The same point before min_samples training samples: too early to judge.
         CHECK(early_abort_reasons(point, rule.min_samples - 1, gate, rule).empty());
     };
-    one({{"visibility", 0.8999}, {"distance_pct", 1.0}, {"normal_deg", 20.0}},
-        "validation visibility 90.0 % cannot reach the gate's 95.0 %");
-    one({{"visibility", 0.96}, {"distance_pct", 1.0}, {"normal_deg", 50.5}},
-        "validation normal error 50.5 deg cannot reach the gate's 30.0 deg");
-    one({{"visibility", 0.96}, {"distance_pct", 6.0}, {"normal_deg", 20.0}},
-        "validation distance error 6.00 % cannot reach the gate's 2.00 %");
+    one({0, 0.8999, 1.0, 20.0}, "validation visibility 90.0 % cannot reach the gate's 95.0 %");
+    one({0, 0.96, 1.0, 50.5}, "validation normal error 50.5 deg cannot reach the gate's 30.0 deg");
+    one({0, 0.96, 6.0, 20.0}, "validation distance error 6.00 % cannot reach the gate's 2.00 %");
     // Just inside the headrooms: still reachable.
-    CHECK(early_abort_reasons({{"visibility", 0.901}, {"distance_pct", 5.7}, {"normal_deg", 49.9}},
-                              rule.min_samples, gate, rule)
-              .empty());
+    CHECK(early_abort_reasons({0, 0.901, 5.7, 49.9}, rule.min_samples, gate, rule).empty());
 }
 
 TEST_CASE("--target: parsed as VIS,DIST,NORMAL, bad values named, misses listed rule by rule") {
@@ -717,39 +712,35 @@ TEST_CASE("--target: parsed as VIS,DIST,NORMAL, bad values named, misses listed 
     bad("97,,15", "'' is not a number");
     bad("97,1,nan", "'nan' is not a number");
 
-    const json families = {{"pooled",
-                            {{"visibility_accuracy", 0.965},
-                             {"distance_error_median_pct", 1.2},
-                             {"normal_error_median_deg", 14.0}}}};
-    const auto misses = target_misses(families, Target{0.97, 1.0, 15.0});
+    lsnif::samples::FamilyMetrics pooled;
+    pooled.visibility_accuracy = 0.965;
+    pooled.distance_median_pct = 1.2;
+    pooled.normal_median_deg = 14.0;
+    const auto misses = target_misses(pooled, Target{0.97, 1.0, 15.0});
     REQUIRE(misses.size() == 2);
     CHECK(misses[0] == "visibility 96.50 % < target 97.00 %");
     CHECK(misses[1] == "median distance error 1.2 % > target 1 %");
-    CHECK(target_misses(families, Target{0.96, 1.5, 20}).empty());
+    CHECK(target_misses(pooled, Target{0.96, 1.5, 20}).empty());
 }
 
 TEST_CASE("stopping at the target: every rule needs its margin for the validation set's noise") {
     const Target target{0.97, 1.0, 15.0};  // the default before the coarse levels
     const TargetStop rule;
     // The blob's default-preset checks at steps 720 and 960 (docs/model.md "Deciding early").
-    CHECK(meets_target_with_margin({{"visibility", 0.9741}, {"distance_pct", 0.84}, {"normal_deg", 10.6}},
-                                   target, rule));
-    CHECK(meets_target_with_margin({{"visibility", 0.9752}, {"distance_pct", 0.808}, {"normal_deg", 9.9}},
-                                   target, rule));
+    CHECK(meets_target_with_margin({720, 0.9741, 0.84, 10.6}, target, rule));
+    CHECK(meets_target_with_margin({960, 0.9752, 0.808, 9.9}, target, rule));
     // The dragon at 1680 steps meets the bare target but not its margin: trains on.
-    CHECK_FALSE(meets_target_with_margin(
-        {{"visibility", 0.9714}, {"distance_pct", 0.879}, {"normal_deg", 13.6}}, target, rule));
-    const json good = {{"visibility", 0.975}, {"distance_pct", 0.8}, {"normal_deg", 10.0}};
-    auto with = [&](const char* key, double v) {
-        json p = good;
-        p[key] = v;
+    CHECK_FALSE(meets_target_with_margin({1680, 0.9714, 0.879, 13.6}, target, rule));
+    const ValidationPoint good{0, 0.975, 0.8, 10.0};
+    auto with = [&](double ValidationPoint::*field, double v) {
+        ValidationPoint p = good;
+        p.*field = v;
         return meets_target_with_margin(p, target, rule);
     };
-    CHECK(with("visibility", 0.9731));
-    CHECK_FALSE(with("visibility", 0.9729));
-    CHECK(with("distance_pct", 0.9));
-    CHECK_FALSE(with("distance_pct", 0.901));
-    CHECK(with("normal_deg", 14.0));
-    CHECK_FALSE(with("normal_deg", 14.01));
-    CHECK_FALSE(meets_target_with_margin(json::object(), target, rule));  // nothing measured: never met
+    CHECK(with(&ValidationPoint::visibility, 0.9731));
+    CHECK_FALSE(with(&ValidationPoint::visibility, 0.9729));
+    CHECK(with(&ValidationPoint::distance_pct, 0.9));
+    CHECK_FALSE(with(&ValidationPoint::distance_pct, 0.901));
+    CHECK(with(&ValidationPoint::normal_deg, 14.0));
+    CHECK_FALSE(with(&ValidationPoint::normal_deg, 14.01));
 }

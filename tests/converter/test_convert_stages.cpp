@@ -337,7 +337,10 @@ TEST_CASE("reusable_metrics: an asset is reused only when it is intact and was w
     const std::string key = asset_key(run, mesh, c->desc);
     const auto metrics = reusable_metrics(asset, key);
     REQUIRE(metrics.has_value());
-    CHECK(metrics->contains("gate"));
+    CHECK(metrics->metrics.contains("gate"));
+    // The pooled metrics read back are the ones the report shows.
+    CHECK(metrics->pooled.visibility_accuracy ==
+          m["metrics"]["families"]["pooled"]["visibility_accuracy"].get<double>());
     CHECK_FALSE(reusable_metrics(asset, key + "x").has_value());
     CHECK_FALSE(reusable_metrics(dir / "absent.lsnif", key).has_value());
 
@@ -476,12 +479,10 @@ TEST_CASE("falls_behind: a smaller size is given up when the larger one's later 
     const TargetStop stop;                 // +0.3 points
     const Sizing rule;                     // 1 point of slack
     // The blob's default-preset curve at 2^17 rows (docs/model.md "Sizing to the target").
-    const json larger = json::array({{{"step", 240}, {"visibility", 0.9573}},
-                                     {{"step", 480}, {"visibility", 0.9689}},
-                                     {{"step", 720}, {"visibility", 0.9741}},
-                                     {{"step", 960}, {"visibility", 0.9752}}});
+    const std::vector<ValidationPoint> larger = {
+        {240, 0.9573, 0, 0}, {480, 0.9689, 0, 0}, {720, 0.9741, 0, 0}, {960, 0.9752, 0, 0}};
     auto at = [&](std::uint32_t step, double vis) {
-        return falls_behind({{"visibility", vis}}, step, larger, target, stop, rule);
+        return falls_behind({step, vis, 0, 0}, larger, target, stop, rule);
     };
     // At step 240 the larger gained 1.79 points afterwards: 94.4 + 1.79 + 1 < 97.3.
     CHECK(at(240, 0.944) ==
@@ -494,8 +495,7 @@ TEST_CASE("falls_behind: a smaller size is given up when the larger one's later 
     CHECK(at(720, 0.9625).empty());
     CHECK(at(1200, 0.90).empty());  // beyond the larger curve: not judged
     CHECK(at(100, 0.50).empty());   // before its first check: not judged
-    CHECK(falls_behind({{"visibility", 0.5}}, 240, json::array(), target, stop, rule)
-              .empty());  // the first rung
+    CHECK(falls_behind({240, 0.5, 0, 0}, {}, target, stop, rule).empty());  // the first rung
 }
 
 TEST_CASE("shard_owners deals the costliest candidates first to the least loaded shard, in any input order") {
@@ -577,8 +577,7 @@ TEST_CASE(
     const Run run = make_run(o, fresh_dir("stages_prune"));
     MeshRecord rec;
     Prepared p = prepare(run, mesh, rec);
-    const Trained t =
-        train_rung(run, mesh, p.c, p.c.desc, p.occ, p.rays, run.preset.train.steps, json::array(), rec);
+    const Trained t = train_rung(run, mesh, p.c, p.c.desc, p.occ, p.rays, run.preset.train.steps, {}, rec);
     CHECK(t.pruned.empty());
     REQUIRE(t.model.desc.hidden_width == run.preset.model.hidden_width);
     const std::size_t layers = t.model.desc.hidden_width.size();
@@ -637,7 +636,7 @@ TEST_CASE(
     const Run pruning = make_run(prune_opt, run.outdir);
     REQUIRE(pruning.preset.prune_inactive);
     const Trained tp =
-        train_rung(pruning, mesh, p.c, p.c.desc, p.occ, p.rays, run.preset.train.steps, json::array(), rec);
+        train_rung(pruning, mesh, p.c, p.c.desc, p.occ, p.rays, run.preset.train.steps, {}, rec);
     REQUIRE(tp.pruned.size() == layers);
     const auto natural = active_neurons(t.model, p.rays.validation, 2);
     for (std::size_t k = 0; k < layers; ++k) {

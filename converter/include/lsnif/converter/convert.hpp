@@ -278,28 +278,37 @@ std::uint32_t threads_per_job(const ConvertOptions& options);
 // The accuracy gate's verdict on held-out metrics: one "held-out ..." reason per failed
 // rule (the text the manifest's reasons carry after "gate: "); empty means the asset ships.
 std::vector<std::string> gate_failures(const samples::Metrics& metrics, const Gate& gate);
-// What a held-out "families" document (the manifest's metrics.families) misses of `target`:
-// one line per missed rule, empty when the target is met.
-std::vector<std::string> target_misses(const nlohmann::json& families, const Target& target);
-// Why a validation point (pooled "visibility", "distance_pct", "normal_deg", after
-// `samples` training samples) shows that training cannot reach `gate`; empty when it may
-// (or when fewer than rule.min_samples samples were seen).
-std::vector<std::string> early_abort_reasons(const nlohmann::json& point, std::uint64_t samples,
+// What pooled held-out metrics miss of `target`: one line per missed rule, empty when the
+// target is met.
+std::vector<std::string> target_misses(const samples::FamilyMetrics& pooled, const Target& target);
+
+// One check of the validation curve (docs/model.md "Validation curve and deciding early"):
+// pooled metrics of the validation rays after `step` steps. The manifest's candidates carry
+// the curve as [{"step", "visibility", "distance_pct", "normal_deg"}] (validation_json).
+struct ValidationPoint {
+    std::uint32_t step = 0;
+    double visibility = 0;    // fraction of rays whose hit or miss is right
+    double distance_pct = 0;  // median distance error, % of the box diagonal
+    double normal_deg = 0;    // median normal error, degrees
+};
+nlohmann::json validation_json(std::span<const ValidationPoint> curve);
+
+// Why a validation point, after `samples` training samples, shows that training cannot
+// reach `gate`; empty when it may (or when fewer than rule.min_samples samples were seen).
+std::vector<std::string> early_abort_reasons(const ValidationPoint& point, std::uint64_t samples,
                                              const Gate& gate, const EarlyAbort& rule);
 
 // The target training aims at: `target`, made at least as strict as `gate` on each pooled
 // rule, since a model that meets a lenient target below the gate still may not ship.
 Target effective_target(const Target& target, const Gate& gate);
 
-// Whether a validation point (pooled "visibility", "distance_pct", "normal_deg") meets
-// `target` with the margins of `rule`.
-bool meets_target_with_margin(const nlohmann::json& point, const Target& target, const TargetStop& rule);
+// Whether a validation point meets `target` with the margins of `rule`.
+bool meets_target_with_margin(const ValidationPoint& point, const Target& target, const TargetStop& rule);
 
-// Why a smaller rung, at a validation point (pooled "visibility", ...) after `step` steps,
-// cannot catch up with the target given the larger rung's validation curve `larger` (the
-// manifest's [{"step", "visibility", ...}]); empty when it may. Only steps within the
-// larger curve are judged.
-std::string falls_behind(const nlohmann::json& point, std::uint32_t step, const nlohmann::json& larger,
+// Why a smaller rung, at a validation point, cannot catch up with the target given the larger
+// rung's validation curve `larger`; empty when it may. Only steps within the larger curve are
+// judged.
+std::string falls_behind(const ValidationPoint& point, std::span<const ValidationPoint> larger,
                          const Target& target, const TargetStop& stop, const Sizing& rule);
 
 // What the results of a conversion depend on besides its inputs and settings
