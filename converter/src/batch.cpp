@@ -94,17 +94,15 @@ std::string xml_escaped(const std::string& s) {
     return out;
 }
 
-// Whether a mesh's entry records a failure of this run (its asset could not be encoded or
-// written), as opposed to a decision to keep it as BVH.
+// Whether a mesh's entry records a failure of this run (class "failed": its asset could not
+// be encoded or written), as opposed to a decision to keep it as BVH.
 bool mesh_failed(const json& m) {
-    const auto& reasons = m.value("reasons", std::vector<std::string>{});
-    return !reasons.empty() && reasons.back().rfind("the asset could not be", 0) == 0;
+    return m.at("class") == "failed";
 }
 
-// An entry `lsnif batch --object` left to another job: neither converted nor decided here.
+// An entry `lsnif batch --object` left to another job (class "deferred").
 bool left_to_another_job(const json& m) {
-    const auto& reasons = m.value("reasons", std::vector<std::string>{});
-    return !reasons.empty() && reasons.back() == kLeftToAnotherJob;
+    return m.at("class") == "deferred";
 }
 
 double mesh_seconds(const json& m) {

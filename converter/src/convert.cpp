@@ -1071,7 +1071,7 @@ json convert_candidate(const Run& run, Planned& p, std::vector<std::string>& err
     auto bytes = encode_asset(o, asset_metadata(run, source, mesh, c, o, t, key));
     if (!bytes) {
         errors.push_back(source + ": mesh '" + mesh.name + "': " + bytes.error().message);
-        return rec.simple("the asset could not be encoded: " + bytes.error().message);
+        return rec.failed("the asset could not be encoded: " + bytes.error().message);
     }
     if (std::string why = memory_rule_failure(run, c, bytes->size()); !why.empty()) {
         rec.entry["metrics"] = metrics;
@@ -1079,7 +1079,7 @@ json convert_candidate(const Run& run, Planned& p, std::vector<std::string>& err
     }
     if (std::string err = write_asset(run, mesh, *bytes, asset, rec); !err.empty()) {
         errors.push_back(source + ": mesh '" + mesh.name + "': " + err);
-        return rec.simple("the asset could not be written: " + err);
+        return rec.failed("the asset could not be written: " + err);
     }
     return shipped(run, metrics, o.held_out.pooled, file, asset, false, rec);
 }
@@ -1193,7 +1193,7 @@ json convert_cached(const Run& run, Planned& p, std::vector<std::string>& errors
         if (why.empty()) {
             if (!restore_cached(run, p, record, found.entry, why)) {
                 errors.push_back(p.source + ": mesh '" + p.mesh->name + "': " + why);
-                return p.rec.simple("the asset could not be written: " + why);
+                return p.rec.failed("the asset could not be written: " + why);
             }
             ++counts.hits;
             return record;
@@ -1304,7 +1304,7 @@ Settled settle_candidate(const Run& run, Planned& p, std::uint32_t owner, std::u
         s.entry = p.rec.simple("converted by shard " + std::to_string(owner) + " of " +
                                std::to_string(run.opt.shard_count));
     } else if (!only.empty() && std::find(only.begin(), only.end(), cache_key(run, p)) == only.end()) {
-        s.entry = p.rec.simple(kLeftToAnotherJob);
+        s.entry = p.rec.deferred(kLeftToAnotherJob);
     } else if (budget > 0 && total <= budget && !p.forced()) {
         s.entry = p.rec.simple(fits_without_it(total, budget));
     } else {

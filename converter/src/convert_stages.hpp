@@ -70,6 +70,17 @@ struct MeshRecord {
         reasons.push_back(why);
         return finish("simple");
     }
+    // This run could not produce the mesh's result (its asset could not be encoded or
+    // written): not a decision, and not cached. A renderer draws the mesh from its BVH.
+    json failed(const std::string& why) {
+        reasons.push_back(why);
+        return finish("failed");
+    }
+    // Left to another job (lsnif batch --object): neither converted nor decided here.
+    json deferred(const std::string& why) {
+        reasons.push_back(why);
+        return finish("deferred");
+    }
     json finish(const char* cls) {
         entry["class"] = cls;
         entry["reasons"] = reasons;

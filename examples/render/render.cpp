@@ -13,7 +13,7 @@
 //   inputs[i].path       the source file, relative to OUTDIR (resolve it as OUTDIR/path: the
 //                        converted scene works from any working directory and can be moved
 //                        together with its sources)
-//   meshes[i].class      "complex" (trace its .lsnif) or "simple" (trace the source mesh)
+//   meshes[i].class      "complex" (trace its .lsnif), else "simple" or "failed" (trace the source mesh)
 //   meshes[i].lsnif.file the asset, relative to OUTDIR, shared by all instances of the mesh
 //   meshes[i].input / source_mesh   where the simple geometry is (the renderer's importer
 //                                   reads it; here lsnif::scene stands in for that importer)

@@ -235,13 +235,30 @@ TEST_CASE("convert a real mesh: asset, metadata, manifest, reuse") {
     // Same input, seed and thread count converted from scratch into another directory: the
     // same file name and the same bytes (no wall time or output path inside the asset).
     const fs::path out2 = fresh_dir("dragon_again");
-    const ConvertResult third = convert(smoke({kDragon}, out2));
+    ConvertOptions cached = smoke({kDragon}, out2);
+    cached.cache_dir = fresh_dir("dragon_cache").string();
+    const ConvertResult third = convert(cached);
     REQUIRE(third.ok());
     REQUIRE(third.manifest["meshes"][0]["lsnif"]["reused"] == false);
     const fs::path asset2 = out2 / third.manifest["meshes"][0]["lsnif"]["file"].get<std::string>();
     CHECK(asset2.filename() == asset.filename());
     CHECK(read_bytes(asset2) == read_bytes(asset));
     CHECK(read_bytes(asset).size() > 1000);
+
+    // An asset that cannot be written (its name is taken by a directory) is a failure, not a
+    // decision: class "failed" with the reason, an error naming the file and mesh, no asset.
+    const fs::path out3 = fresh_dir("dragon_unwritable");
+    fs::create_directories(out3 / asset.filename() / "in_the_way");
+    cached.outdir = out3.string();
+    const ConvertResult blocked = convert(cached);  // a cache hit: the restore writes the asset
+    REQUIRE(blocked.errors.size() == 1);
+    CHECK(blocked.errors[0].find("ChineseDragon-10kv") != std::string::npos);
+    const json& f = blocked.manifest["meshes"][0];
+    CHECK(f["class"] == "failed");
+    CHECK(f["reasons"].back().get<std::string>().rfind("the asset could not be written", 0) == 0);
+    CHECK_FALSE(f.contains("lsnif"));
+    CHECK_MESSAGE(violations(manifest_schema(), blocked.manifest).empty(),
+                  violations(manifest_schema(), blocked.manifest));
 }
 
 TEST_CASE("an asset below the accuracy gate is not shipped: the mesh stays BVH with reasons") {
