@@ -40,6 +40,13 @@ namespace lsnif::converter::stages {
 using nlohmann::json;
 namespace fs = std::filesystem;
 
+// JSON of the records (records.cpp): a 3-vector, one family's held-out metrics (and read
+// back strictly: every field present and of its type, or nothing), the model's description.
+json vec3(const std::array<float, 3>& v);
+json family_json(const samples::FamilyMetrics& f);
+std::optional<samples::FamilyMetrics> family_from_json(const json& j);
+json model_json(const format::ModelDesc& d);
+
 // What a run shares between its meshes.
 struct Run {
     const ConvertOptions& opt;

@@ -1,9 +1,12 @@
 // The settings table (lsnif/converter/settings.hpp).
 #include <lsnif/converter/settings.hpp>
 
+#include <cctype>
 #include <charconv>
 #include <cinttypes>
+#include <cmath>
 #include <cstdio>
+#include <cstring>
 
 namespace lsnif::converter {
 
@@ -61,6 +64,7 @@ json json_unless_zero(std::uint64_t v) {
             [](const ConvertOptions& o) { return o.FIELD ? json(true) : json(); }               \
     }
 
+// One row per setting, in --help's order: a table, as long as the settings are many.
 std::vector<Setting> make_table() {
     return {
         Setting{"--preset", "NAME", false, SettingScope::mesh, "preset", "default",
@@ -212,6 +216,78 @@ const Setting* find_setting(const std::string& name) {
 }
 
 }  // namespace
+
+bool parse_target(const std::string& text, Target& target, std::string& error) {
+    double v[3];
+    std::size_t pos = 0;
+    for (int i = 0; i < 3; ++i) {
+        const std::size_t end = text.find(',', pos);
+        if ((end == std::string::npos) != (i == 2)) {
+            error = "expected VIS,DIST,NORMAL (three numbers, e.g. 97,1.0,15)";
+            return false;
+        }
+        const std::string part = text.substr(pos, end == std::string::npos ? std::string::npos : end - pos);
+        char* stop = nullptr;
+        v[i] = std::strtod(part.c_str(), &stop);
+        if (part.empty() || *stop != '\0' || !std::isfinite(v[i])) {
+            error = "'" + part + "' is not a number (expected VIS,DIST,NORMAL, e.g. 97,1.0,15)";
+            return false;
+        }
+        pos = end + 1;
+    }
+    char why[160] = "";
+    if (!(v[0] > 0 && v[0] <= 100))
+        std::snprintf(why, sizeof why, "visibility %g %% is outside (0, 100]", v[0]);
+    else if (!(v[1] > 0 && v[1] <= 100))
+        std::snprintf(why, sizeof why, "distance error %g %% of the diagonal is outside (0, 100]", v[1]);
+    else if (!(v[2] > 0 && v[2] <= 180))
+        std::snprintf(why, sizeof why, "normal error %g degrees is outside (0, 180]", v[2]);
+    if (why[0]) {
+        error = why;
+        return false;
+    }
+    target = {v[0] / 100.0, v[1], v[2]};
+    return true;
+}
+
+bool parse_byte_size(const std::string& text, std::uint64_t& bytes, std::string& error) {
+    std::size_t digits = 0;
+    while (digits < text.size() &&
+           (std::isdigit(static_cast<unsigned char>(text[digits])) || text[digits] == '.'))
+        ++digits;
+    double value = 0;
+    const std::string number = text.substr(0, digits);
+    const auto [end, ec] = std::from_chars(number.data(), number.data() + number.size(), value);
+    if (number.empty() || ec != std::errc() || end != number.data() + number.size()) {
+        error = "expected a byte count such as 1500000, 512K, 64MiB or 1.5G";
+        return false;
+    }
+    std::string unit;
+    for (char ch : text.substr(digits)) unit += char(std::tolower(static_cast<unsigned char>(ch)));
+    double scale = 1;
+    const std::string prefixes = "kmgt";  // 1024^1 .. 1024^4
+    if (const std::size_t k = unit.empty() ? std::string::npos : prefixes.find(unit[0]);
+        k != std::string::npos) {
+        scale = std::ldexp(1.0, 10 * int(k + 1));
+        unit.erase(0, 1);
+        if (unit == "ib") unit = "b";
+    }
+    if (!unit.empty() && unit != "b") {
+        error = "unknown unit '" + text.substr(digits) + "' (use K, M, G or T: powers of 1024)";
+        return false;
+    }
+    const double total = std::floor(value * scale);
+    if (!(total >= 1)) {
+        error = "must be at least 1 byte";
+        return false;
+    }
+    if (total > 9.2e18) {
+        error = "more than 2^63 bytes";
+        return false;
+    }
+    bytes = std::uint64_t(total);
+    return true;
+}
 
 const std::vector<Setting>& settings_table() {
     static const std::vector<Setting> table = make_table();

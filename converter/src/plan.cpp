@@ -1,0 +1,315 @@
+// Planning a mesh: classification, voxelization, the memory rule, and the order, shards and
+// memory of a run's candidates (convert_stages.hpp has the contracts).
+#include <lsnif/base/clock.hpp>
+#include "convert_stages.hpp"
+
+#include <cinttypes>
+
+namespace lsnif::converter {
+
+using nlohmann::json;
+using Clock = std::chrono::steady_clock;
+using base::seconds_since;
+using namespace stages;
+
+namespace stages {
+
+namespace {
+
+// Index-connected components (vertices shared by index), union-find with path halving.
+std::size_t count_components(const scene::Mesh& m) {
+    std::vector<std::uint32_t> parent(m.vertex_count());
+    std::iota(parent.begin(), parent.end(), 0u);
+    auto find = [&](std::uint32_t x) {
+        while (parent[x] != x) x = parent[x] = parent[parent[x]];
+        return x;
+    };
+    std::vector<std::uint8_t> used(m.vertex_count(), 0);
+    for (std::size_t t = 0; t < m.triangle_count(); ++t) {
+        const std::uint32_t a = m.indices[3 * t], b = m.indices[3 * t + 1], c = m.indices[3 * t + 2];
+        used[a] = used[b] = used[c] = 1;
+        parent[find(a)] = find(b);
+        parent[find(b)] = find(c);
+    }
+    std::size_t n = 0;
+    for (std::uint32_t v = 0; v < parent.size(); ++v) n += used[v] && find(v) == v;
+    return n;
+}
+
+double surface_area(const scene::Mesh& m) {
+    double area = 0;
+    for (std::size_t t = 0; t < m.triangle_count(); ++t) {
+        const float* p0 = &m.positions[3 * std::size_t(m.indices[3 * t])];
+        const float* p1 = &m.positions[3 * std::size_t(m.indices[3 * t + 1])];
+        const float* p2 = &m.positions[3 * std::size_t(m.indices[3 * t + 2])];
+        const double e1[3] = {double(p1[0]) - p0[0], double(p1[1]) - p0[1], double(p1[2]) - p0[2]};
+        const double e2[3] = {double(p2[0]) - p0[0], double(p2[1]) - p0[1], double(p2[2]) - p0[2]};
+        const double c[3] = {e1[1] * e2[2] - e1[2] * e2[1], e1[2] * e2[0] - e1[0] * e2[2],
+                             e1[0] * e2[1] - e1[1] * e2[0]};
+        area += 0.5 * std::sqrt(c[0] * c[0] + c[1] * c[1] + c[2] * c[2]);
+    }
+    return area;
+}
+
+// Estimate of an asset's bytes for `d` with its grid stored as `encoding`, before training:
+// header, table, occupancy and fp16 MLP uncompressed, 2 KiB of metadata, and the grid -
+// uncompressed for fp16 (zstd gains under 10 % on it), divided by kU8GridCompression for
+// 8 bits. Only a plan: the memory rule is checked again on the bytes actually chosen.
+// zstd compressed trained 8-bit grids 1.51-2.18x on the meshes of BENCHMARKS.md "Sizing to
+// the target"; the estimate assumes less.
+constexpr double kU8GridCompression = 1.4;
+
+std::uint64_t lsnif_bytes_estimate(format::ModelDesc d, format::GridEncoding encoding) {
+    d.grid_encoding = encoding;
+    const std::uint64_t mlp_values = d.parameter_count() - d.grid_value_count();
+    const double grid = encoding == format::GridEncoding::u8_affine
+                            ? double(d.grid_raw_size()) / kU8GridCompression
+                            : double(d.grid_raw_size());
+    return 64 + 64 * 5 + (d.voxel_count() + 7) / 8 + std::uint64_t(grid) + mlp_values * 2 + 2048;
+}
+
+// The smallest grid encoding the preset may ship.
+format::GridEncoding smallest_encoding(const Preset& p) {
+    return p.sizing.quantize ? format::GridEncoding::u8_affine : format::GridEncoding::fp16;
+}
+
+}  // namespace
+
+std::string range_problem(const mesh::Box& box) {
+    double extent = 0, coord = 0;
+    for (int a = 0; a < 3; ++a) {
+        extent = std::max(extent, double(box.max[a]) - box.min[a]);
+        coord = std::max({coord, std::fabs(double(box.min[a])), std::fabs(double(box.max[a]))});
+    }
+    if (extent >= kMinModelExtent && extent <= kMaxModelExtent && coord <= kMaxModelExtent) return {};
+    char why[200];
+    std::snprintf(why, sizeof why,
+                  "box extent %.3g (coordinates up to %.3g) is outside the range LSNIF models in "
+                  "single precision [%g, %g]",
+                  extent, coord, kMinModelExtent, kMaxModelExtent);
+    return why;
+}
+
+std::optional<Candidate> classify(const Run& run, const scene::Mesh& mesh, bool forced_complex,
+                                  MeshRecord& rec) {
+    const auto t0 = Clock::now();
+    run.report({mesh.name, "classify"});
+    Candidate c;
+    c.forced = forced_complex;
+    const ClassifyRule& rule = run.preset.classify;
+    c.view = view_of(mesh);
+    auto box = voxelize::padded_box(c.view);
+    if (!box) {
+        rec.reasons.push_back("cannot bound the mesh: " + box.error().message);
+        return std::nullopt;
+    }
+    c.box = *box;
+    if (std::string why = range_problem(c.box); !why.empty()) {
+        rec.reasons.push_back(why);
+        return std::nullopt;
+    }
+    c.desc = run.preset.model;
+    c.desc.box_min = c.box.min;
+    c.desc.box_max = c.box.max;
+    sampling::SamplingConfig scfg;
+    scfg.threads = run.threads;
+    std::string serr;
+    c.source = sampling::EmbreeSource::create(c.view, c.box, scfg, serr);
+    if (!c.source) {
+        rec.reasons.push_back("Embree could not build the mesh: " + serr);
+        return std::nullopt;
+    }
+    const std::uint64_t bvh = c.source->bvh_bytes();
+    // Size the tables to the mesh (ClassifyRule): halve T while the asset would not beat
+    // the BVH. Levels dense at the preset size stay dense (fewer rows than T).
+    if (!c.forced)
+        while (c.desc.log2_table_size > rule.min_log2_table_size &&
+               double(bvh) < rule.min_memory_ratio *
+                                 double(lsnif_bytes_estimate(c.desc, smallest_encoding(run.preset))))
+            --c.desc.log2_table_size;
+    const double ext[3] = {double(c.box.max[0]) - c.box.min[0], double(c.box.max[1]) - c.box.min[1],
+                           double(c.box.max[2]) - c.box.min[2]};
+    const double box_area = 2 * (ext[0] * ext[1] + ext[1] * ext[2] + ext[0] * ext[2]);
+    rec.stats = {{"box_min", vec3(c.box.min)},
+                 {"box_max", vec3(c.box.max)},
+                 {"area_ratio", surface_area(mesh) / box_area},
+                 {"components", count_components(mesh)},
+                 {"closed", c.source->is_closed()},
+                 {"solid", c.source->rejects_interior()},
+                 {"log2_table_size", c.desc.log2_table_size},
+                 {"bvh_bytes", bvh},
+                 {"lsnif_bytes_estimate", lsnif_bytes_estimate(c.desc, smallest_encoding(run.preset))}};
+    rec.timings["classify"] = seconds_since(t0);
+    return c;
+}
+
+std::optional<voxelize::Occupancy> voxelize_mesh(const Run& run, const scene::Mesh& mesh, const Candidate& c,
+                                                 MeshRecord& rec) {
+    const auto t0 = Clock::now();
+    run.report({mesh.name, "voxelize"});
+    voxelize::Options vopt;
+    vopt.threads = run.threads;
+    auto occ = voxelize::voxelize(c.view, c.box, c.desc.grid_resolution, vopt);
+    if (!occ) {
+        rec.reasons.push_back("voxelization failed: " + occ.error().message);
+        return std::nullopt;
+    }
+    rec.stats["occupied_fraction"] = double(occ->count()) / double(c.desc.voxel_count());
+    rec.timings["voxelize"] = seconds_since(t0);
+    return std::move(*occ);
+}
+
+bool worth_an_lsnif(const Run& run, const scene::Mesh& mesh, const Candidate& c, MeshRecord& rec) {
+    const std::uint64_t bvh = c.source->bvh_bytes(),
+                        est = lsnif_bytes_estimate(c.desc, smallest_encoding(run.preset));
+    const double ratio = double(bvh) / double(est);
+    const ClassifyRule& rule = run.preset.classify;
+    char why[200];
+    std::snprintf(why, sizeof why, "Embree BVH %" PRIu64 " bytes vs LSNIF %" PRIu64 " bytes (%.2fx)", bvh,
+                  est, ratio);
+    rec.reasons.push_back(why);
+    if (!c.forced && ratio < rule.min_memory_ratio) {
+        std::snprintf(why, sizeof why, "memory benefit %.2fx below the %.2fx threshold", ratio,
+                      rule.min_memory_ratio);
+        rec.reasons.push_back(why);
+        return false;
+    }
+    if (c.forced)
+        rec.reasons.push_back("forced complex by --complex " + mesh.name);
+    else
+        rec.reasons.push_back(std::to_string(mesh.triangle_count()) + " triangles");
+    if (c.desc.log2_table_size != run.preset.model.log2_table_size)
+        rec.reasons.push_back("hash tables sized to 2^" + std::to_string(c.desc.log2_table_size) +
+                              " rows (preset 2^" + std::to_string(run.preset.model.log2_table_size) +
+                              ") to beat the BVH's memory");
+    return true;
+}
+
+std::string memory_rule_failure(const Run& run, const Candidate& c, std::uint64_t asset_bytes) {
+    const double ratio = double(c.source->bvh_bytes()) / double(std::max<std::uint64_t>(1, asset_bytes));
+    if (c.forced || ratio >= run.preset.classify.min_memory_ratio) return {};
+    char why[200];
+    std::snprintf(why, sizeof why,
+                  "the chosen asset (%" PRIu64 " bytes) is only %.2fx smaller than the BVH (%.2fx needed)",
+                  asset_bytes, ratio, run.preset.classify.min_memory_ratio);
+    return why;
+}
+
+// The classification half of plan_mesh: the entry of a mesh that stays BVH, or null for
+// a candidate (p.candidate and p.occupancy set).
+json plan_decision(const Run& run, const scene::Mesh& mesh, Planned& p) {
+    MeshRecord& rec = p.rec;
+    if (run.forced(run.opt.force_simple, mesh.name))
+        return rec.simple("forced simple by --simple " + mesh.name);
+    const ClassifyRule& rule = run.preset.classify;
+    const bool forced_complex = run.forced(run.opt.force_complex, mesh.name);
+    if (mesh.triangle_count() < rule.min_triangles && !forced_complex)
+        return rec.simple(std::to_string(mesh.triangle_count()) + " triangles < " +
+                          std::to_string(rule.min_triangles) + ": a BVH is small and exact");
+    p.candidate = classify(run, mesh, forced_complex, rec);
+    if (!p.candidate) return rec.finish("simple");
+    p.occupancy = voxelize_mesh(run, mesh, *p.candidate, rec);
+    if (!p.occupancy || !worth_an_lsnif(run, mesh, *p.candidate, rec)) return rec.finish("simple");
+    return nullptr;
+}
+
+Planned plan_mesh(const Run& run, const std::string& source, const scene::Mesh& mesh, MeshRecord rec,
+                  std::vector<std::string>& warnings) {
+    Planned p;
+    p.mesh = &mesh;
+    p.source = source;
+    p.rec = std::move(rec);
+    p.decided = plan_decision(run, mesh, p);
+    if (p.candidate && p.candidate->source) {
+        p.bvh_bytes = p.candidate->source->bvh_bytes();
+    } else {
+        std::string error;
+        if (auto bytes = sampling::measure_bvh_bytes(view_of(mesh), error))
+            p.bvh_bytes = *bytes;
+        else
+            warnings.push_back(source + ": mesh '" + mesh.name +
+                               "': its BVH could not be measured (counted as 0 bytes): " + error);
+    }
+    if (p.decided.is_null()) {
+        p.estimate = lsnif_bytes_estimate(p.candidate->desc, smallest_encoding(run.preset));
+    } else {
+        p.candidate.reset();  // a mesh that stays BVH needs no Embree scene any more
+        p.occupancy.reset();
+    }
+    return p;
+}
+
+// Estimated BVH bytes saved per asset byte: the budget's conversion order.
+double saving_per_byte(const Planned& p) {
+    return (double(p.bvh_bytes) - double(p.estimate)) / double(std::max<std::uint64_t>(1, p.estimate));
+}
+
+std::vector<std::size_t> conversion_order(const std::vector<Planned>& planned, bool budgeted) {
+    std::vector<std::size_t> order;
+    for (std::size_t i = 0; i < planned.size(); ++i)
+        if (planned[i].decided.is_null()) order.push_back(i);
+    if (budgeted)
+        std::stable_sort(order.begin(), order.end(), [&](std::size_t a, std::size_t b) {
+            if (planned[a].forced() != planned[b].forced()) return planned[a].forced();
+            return saving_per_byte(planned[a]) > saving_per_byte(planned[b]);
+        });
+    return order;
+}
+
+std::uint64_t bytes_after(const Planned& p, const json& entry) {
+    if (entry.value("class", "") != "complex") return p.bvh_bytes;
+    if (entry.contains("lsnif")) return entry["lsnif"]["bytes"].get<std::uint64_t>();
+    return p.estimate;  // a dry run's plan
+}
+
+// The constants were measured on the 2-core reference machine (docs/pipeline.md "Shards").
+// Training dominates and scales with steps x batch; drawing the rays scales with triangles.
+// Integer arithmetic: every shard must compute the same estimate on any machine.
+std::uint64_t estimated_cost_ms(const Run& run, const Planned& p) {
+    const std::uint64_t samples = std::uint64_t(run.preset.train.steps) * run.preset.train.batch_size;
+    return 4200 + samples * 255 / 100000 + std::uint64_t(p.mesh->triangle_count()) * 18 / 10000;
+}
+
+// Longest processing time first: within 4/3 of the best split of the estimated work. Ties
+// go to the lowest shard index, so the split is a function of the inputs and settings alone.
+std::vector<std::uint32_t> shard_owners(const Run& run, std::vector<Planned>& planned) {
+    std::vector<std::uint32_t> owner(planned.size(), 0);
+    if (run.opt.shard_count == 0) return owner;
+    struct Job {
+        std::uint64_t cost;
+        std::string key;
+        std::size_t index;
+    };
+    std::vector<Job> jobs;
+    for (std::size_t i = 0; i < planned.size(); ++i)
+        if (planned[i].decided.is_null())
+            jobs.push_back({estimated_cost_ms(run, planned[i]), cache_key(run, planned[i]), i});
+    std::sort(jobs.begin(), jobs.end(),
+              [](const Job& a, const Job& b) { return a.cost != b.cost ? a.cost > b.cost : a.key < b.key; });
+    std::vector<std::uint64_t> load(run.opt.shard_count, 0);
+    for (const Job& j : jobs) {
+        const auto least = std::size_t(std::min_element(load.begin(), load.end()) - load.begin());
+        load[least] += j.cost;
+        owner[j.index] = std::uint32_t(least) + 1;
+    }
+    return owner;
+}
+
+json scene_memory(const Run& run, const std::vector<json>& entries) {
+    std::uint64_t before = 0, after = 0;
+    for (const json& e : entries) {
+        before += e["memory"]["before"].get<std::uint64_t>();
+        after += e["memory"]["after"].get<std::uint64_t>();
+    }
+    json j = {{"before", before}, {"after", after}};
+    if (run.opt.memory_budget > 0) {
+        j["budget"] = run.opt.memory_budget;
+        j["fits"] = after <= run.opt.memory_budget;
+    }
+    if (run.opt.dry_run) j["estimated"] = true;
+    return j;
+}
+
+}  // namespace stages
+
+}  // namespace lsnif::converter
