@@ -11,63 +11,77 @@ std::vector<std::string> preset_names() {
     return {"default", "fast", "quality", "smoke"};
 }
 
+namespace {
+
+// The model and training an asset is converted with unless a preset or an option says
+// otherwise, every value written out. docs/architecture.md §3 describes the model;
+// docs/model.md has the measurements behind the choices, in the sections named here.
+Preset shipped_default() {
+    Preset p;
+    p.name = "default";
+    format::ModelDesc& m = p.model;      // its box and material count are the mesh's
+    m.grid_resolution = 64;              // "A 64³ grid"
+    m.max_points = 14;                   // "Coarse levels": fewer slots, as accurate
+    m.level_resolution = {16, 32, 128};  // "Coarse levels": two dense coarse levels and one hashed
+    m.features_per_level = 3;
+    m.log2_table_size = 17;  // the largest rung; sizing tries smaller tables ("Sizing to the target")
+    m.hash_primes = {1u, 2654435761u, 805459861u};  // the spatial hash of instant-ngp (Müller et al. 2022)
+    m.hidden_width = {128, 128};
+    m.activation = 0;  // ReLU
+    m.distance_encoding = LSNIF_DISTANCE_FIRST_ENTRY_DIAGONAL;
+    m.grid_encoding = format::GridEncoding::fp16;  // each rung is also measured in 8 bits
+    m.ray_inputs = format::kRayInputDirection | format::kRayInputEntryOffsets;  // "Ray inputs"
+    trainer::TrainConfig& t = p.train;  // its threads, seed and arithmetic are the options'
+    t.steps = 1200;  // at most: training stops at the target ("Validation curve and deciding early")
+    t.batch_size = 1u << 13;
+    t.grid_adam = {2e-2f, 0.9f, 0.99f, 1e-10f, 0.0f};  // "Optimizer"
+    t.mlp_adam = {1e-2f, 0.9f, 0.99f, 1e-10f, 1e-6f};
+    t.decay_start = 0.6f;  // "Coarse levels": the schedule
+    t.final_lr_fraction = 0.1f;
+    t.huber_delta = 0.01f;
+    t.normal_loss = trainer::NormalLoss::chord;  // "The normal loss"
+    t.normal_chord_epsilon = 0.01f;
+    t.grad_clip_norm = 10.0f;
+    t.loss = {2.0f, 4.0f, 0.7f,
+              0.1f};  // visibility ("A 64³ grid"), distance, normal ("The normal loss"), material
+    t.divergence_factor = 8.0f;
+    t.snapshot_interval = 50;
+    t.max_rollbacks = 8;
+    p.train_rays = 1u << 23;  // distinct rays, streamed in rounds ("Training data in rounds")
+    p.train_chunk_rays = 1u << 20;
+    p.train_window_chunks = 2;
+    p.eval_rays = 1u << 16;
+    p.validation_rays = 1u << 13;
+    p.validation_checks = 10;
+    p.prune_inactive = true;  // "Inactive neurons"
+    p.classify = {2000, 2.0, 15};
+    p.gate = {0.95, 0.90, 2.0, 30.0, 100};
+    p.early_abort = {1500000, 0.05, 20.0, 0.35};
+    p.target_stop = {2, 0.003, 0.9, 1.0};
+    p.sizing = {true, true, 0.01};
+    return p;
+}
+
+}  // namespace
+
 bool find_preset(const std::string& name, Preset& p) {
-    p = Preset{};
+    p = shipped_default();
     p.name = name;
-    // v1 model of docs/architecture.md §3 in every preset; presets trade training time for accuracy.
-    // Measured on the dragon (BENCHMARKS.md "Conversion", 2^23 streamed rays, bf16 MLP):
-    // at equal samples, more and smaller steps win slightly (1200 x 16384: 97.21 %, 0.90 %,
-    // 14.1 deg in 77 s of training; 2400 x 8192: 97.46 %, 0.85 %, 12.8 deg in 83 s).
-    p.train.batch_size = 1u << 13;
-    // The normal loss is the smoothed chord (trainer.hpp NormalLoss) at weight 0.7: on CGAL's
-    // dragon and armadillo at the full budget the median normal error drops 1.1-1.4 degrees
-    // with visibility and distance as good or better than the cosine loss at weight 2
-    // (docs/model.md "The normal loss").
-    p.train.normal_loss = trainer::NormalLoss::chord;
-    p.train.loss.normal = 0.7f;
-    // The MLP also sees the ray's unit direction and its entry points' offsets along it:
-    // on CGAL's dragon and armadillo, three seeds each, every held-out metric improved on
-    // every seed (docs/model.md "Ray inputs").
-    p.model.ray_inputs = format::kRayInputDirection | format::kRayInputEntryOffsets;
-    // Levels 16, 32 and 128 instead of v1's 64 and 128: the two coarse levels are dense
-    // (17^3 and 33^3 rows), so the grid is smaller, and on CGAL's dragon and armadillo every
-    // held-out metric of three seeds beats v1's (docs/model.md "Coarse levels").
-    p.model.level_resolution = {16, 32, 128};
-    // At most 14 entry points instead of 18: the third level makes inference slower (a
-    // coarse level's points have up to 8 live corners, the first layer has more inputs);
-    // fewer slots give part of that back, with held-out metrics within a seed's noise
-    // (docs/model.md "Coarse levels").
-    p.model.max_points = 14;
-    // A 64^3 occupancy grid instead of 32^3: entry points twice as dense along the ray and
-    // closer to the surface. On CGAL's dragon and armadillo it is what moved held-out
-    // visibility past 98.5 % (issue #15 item 1), with the same 14 points and a smaller
-    // asset; the longer voxel walk costs tracing time (BENCHMARKS.md "A 64^3 grid").
-    p.model.grid_resolution = 64;
-    // Visibility weighs twice the other losses: with the finer grid the distance and normal
-    // errors sit well inside the default target, and the weight turns part of that margin
-    // into visibility (docs/model.md "A 64^3 grid").
-    p.train.loss.visibility = 2.0f;
-    // The learning rate decays from 60 % of the steps (was 40 %) to 10 % of its start (was
-    // 5 %): with the coarse levels the model still gains from the higher rate, most of all
-    // on the surface family (docs/model.md "Coarse levels", the schedule).
-    p.train.decay_start = 0.6f;
-    p.train.final_lr_fraction = 0.1f;
-    if (name == "default") {
-        // 1200 steps: a conversion in under 20 s on a 2-core machine (issue #14). With the
-        // chord normal loss and the ray inputs the fixed model reaches at 1200 steps what
-        // the cosine loss reached at 2400 (BENCHMARKS.md "Conversion in 20 s").
-        p.train.steps = 1200;
-        p.train_rays = 1u << 23;
-    } else if (name == "fast") {
+    if (name == "default") return true;
+    // The same model, trained for more or fewer rays per step and steps.
+    if (name == "fast") {
         p.train.batch_size = 1u << 14;
         p.train.steps = 300;
         p.train_rays = 1u << 21;
-    } else if (name == "quality") {
+        return true;
+    }
+    if (name == "quality") {
         p.train.batch_size = 1u << 12;
         p.train.steps = 4800;
-        p.train_rays = 1u << 23;
-    } else if (name == "smoke") {
-        // Pipeline check in seconds (tests, CI): a small model and a lenient gate that only
+        return true;
+    }
+    if (name == "smoke") {
+        // A pipeline check in seconds (tests, CI): a small model and a lenient gate that only
         // rejects an untrained network. Not for shipping assets.
         p.model.grid_resolution = 16;
         p.model.max_points = 8;
@@ -81,11 +95,10 @@ bool find_preset(const std::string& name, Preset& p) {
         p.train_chunk_rays = 1u << 14;  // two rounds: exercises the streaming path
         p.eval_rays = 1u << 13;
         p.classify.min_triangles = 100;
-        p.gate = {0.75, 0.6, 25.0, 90.0};
-    } else {
-        return false;
+        p.gate = {0.75, 0.6, 25.0, 90.0, 100};
+        return true;
     }
-    return true;
+    return false;
 }
 
 namespace stages {
