@@ -1,5 +1,6 @@
 // The `lsnif` command. Only this file prints "error: ..." and chooses exit codes;
 // everything it calls reports through return values.
+#include <lsnif/base/parallel.hpp>
 #include <lsnif/converter/batch.hpp>
 #include <lsnif/converter/bench.hpp>
 #include <lsnif/converter/convert.hpp>
@@ -25,6 +26,9 @@
 #include <map>
 
 namespace {
+
+// What --threads means for every subcommand that takes it.
+constexpr const char* kThreadsHelp = "Worker threads (0: all cores)";
 
 // "x,y,z,..." into exactly n finite floats.
 bool parse_floats(const std::string& s, std::size_t n, float* out) {
@@ -295,8 +299,10 @@ struct ConvertSettings {
                                                    : s.repeated ? values[k]
                                                                 : std::vector<std::string>{value[k]};
             for (const std::string& v : given) {
-                std::string error;
-                if (!s.set(opt, v, error)) {
+                std::string error, warning;
+                const bool ok = s.set(opt, v, error, warning);
+                if (!warning.empty()) std::fprintf(stderr, "warning: %s\n", warning.c_str());
+                if (!ok) {
                     std::fprintf(stderr, "error: %s '%s': %s\n", lsnif::converter::long_name(s).c_str(),
                                  v.c_str(), error.c_str());
                     return false;
@@ -411,6 +417,7 @@ struct MergeCommand {
     CLI::App* sub = nullptr;
     std::vector<std::string> shards;
     std::string outdir, junit;
+    bool json = false;
     void add_to(CLI::App& app) {
         sub = app.add_subcommand(
             "merge",
@@ -420,10 +427,20 @@ struct MergeCommand {
         sub->add_option("-o,--output", outdir, "Output directory")->required();
         sub->add_option("--junit", junit,
                         "Write JUnit XML of the whole library here: one test case per asset");
+        sub->add_flag("--json", json, "Print a machine-readable summary");
     }
     int run() const {
         const auto r = lsnif::converter::merge(shards, outdir);
         for (const auto& e : r.errors) std::fprintf(stderr, "error: %s\n", e.c_str());
+        if (json) {
+            nlohmann::json summary = {{"shards", shards}, {"output", outdir}, {"errors", r.errors}};
+            if (r.errors.empty()) {
+                summary["manifest"] = outdir + "/manifest.json";
+                summary["meshes"] = r.manifest["meshes"].size();
+                summary["scene_memory"] = r.manifest["scene_memory"];
+            }
+            std::cout << summary.dump(2) << "\n";
+        }
         if (!r.errors.empty()) return 1;
         if (!junit.empty()) {
             if (const auto e = lsnif::format::write_text_atomically(
@@ -432,8 +449,9 @@ struct MergeCommand {
                 return 1;
             }
         }
-        std::cout << "merged " << shards.size() << " shards: " << r.manifest["meshes"].size()
-                  << " meshes into " << outdir << "/manifest.json\n";
+        if (!json)
+            std::cout << "merged " << shards.size() << " shards: " << r.manifest["meshes"].size()
+                      << " meshes into " << outdir << "/manifest.json\n";
         return 0;
     }
 };
@@ -461,6 +479,7 @@ struct EvalCommand {
     lsnif::converter::EvalOptions opt;
     std::string camera, light;
     std::vector<std::string> moves;
+    std::uint32_t old_repeats = 3;  // --timing-repeats
     bool json = false;
     void add_to(CLI::App& app) {
         sub = app.add_subcommand("eval",
@@ -479,17 +498,26 @@ struct EvalCommand {
                         "Hybrid only: secondary rays leaving an LSNIF object start this many of its voxels "
                         "from the surface (0 = off; docs/model.md)")
             ->check(CLI::Range(0.0f, 4.0f));
-        sub->add_option("--timing-repeats", opt.timing_repeats,
+        sub->add_option("--repeats", opt.timing_repeats,
                         "Trace each row's secondary rays this many times per tracer, alternating, and keep "
-                        "each tracer's fastest for the time ratio (default 3; docs/eval.md \"Timing\")")
+                        "each tracer's fastest for the time ratio (docs/eval.md \"Timing\")")
+            ->check(CLI::Range(1u, 100u));
+        // The earlier name, kept for scripts that use it.
+        sub->add_option("--timing-repeats", old_repeats, "Deprecated: --repeats")
             ->check(CLI::Range(1u, 100u));
         sub->add_option("--ao-samples", opt.ao_samples, "Ambient-occlusion rays per pixel")
             ->check(CLI::Range(1u, 1024u));
-        sub->add_option("--threads", opt.threads, "Worker threads (0 = all cores)");
+        sub->add_option("--threads", opt.threads, kThreadsHelp)->check(CLI::Range(0, 4096));
         add_arithmetic_options(sub, opt.arithmetic);
         sub->add_flag("--json", json, "Print the report as JSON");
     }
-    int run() const { return run_eval(opt, camera, light, moves, json); }
+    int run() {
+        if (sub->count("--timing-repeats") > 0) {
+            std::fprintf(stderr, "warning: --timing-repeats is deprecated: use --repeats\n");
+            if (sub->count("--repeats") == 0) opt.timing_repeats = old_repeats;
+        }
+        return run_eval(opt, camera, light, moves, json);
+    }
 };
 
 struct BenchCommand {
@@ -498,6 +526,7 @@ struct BenchCommand {
     lsnif::converter::BenchOptions opt;
     lsnif::converter::SceneBenchOptions scene;
     lsnif::converter::ConvertOptions convert_opt;
+    std::uint32_t threads = 0;  // --threads of every bench subcommand but convert
     bool json = false;
     void add_to(CLI::App& app) {
         sub = app.add_subcommand("bench", "Throughput benchmarks (see BENCHMARKS.md)");
@@ -515,7 +544,7 @@ struct BenchCommand {
             s->add_option("OUTDIR", scene.outdir, "A `lsnif convert` output directory")->required();
             s->add_option("--source", scene.sources, "The converted inputs (default: the manifest's paths)");
             s->add_flag("--json", json, "Machine-readable output");
-            s->add_option("--threads", scene.threads, "Worker threads")->check(CLI::Range(1, 256));
+            s->add_option("--threads", threads, kThreadsHelp)->check(CLI::Range(0, 4096));
         }
         rays->add_option("--rays", scene.rays, "Rays per object")->check(CLI::Range(1024ull, 1ull << 26));
         rays->add_option("--repeats", scene.repeats, "Best of N")->check(CLI::Range(1u, 100u));
@@ -525,7 +554,7 @@ struct BenchCommand {
         convert->add_option("INPUT", convert_opt.inputs, "Scene files")->required();
         convert->add_option("-o,--output", convert_opt.outdir, "Output directory")->required();
         convert->add_option("--preset", convert_opt.preset, "Preset");
-        convert->add_option("--threads", convert_opt.threads, "Worker threads (0 = all cores)");
+        convert->add_option("--threads", convert_opt.threads, kThreadsHelp)->check(CLI::Range(0, 4096));
         convert->add_option("--complex", convert_opt.force_complex,
                             "Force a mesh (by name) to become an LSNIF");
         convert->add_flag("--json", json, "Machine-readable output");
@@ -535,11 +564,13 @@ struct BenchCommand {
     // subcommand's name.
     void add_common(CLI::App* s) {
         s->add_flag("--json", json, "Machine-readable output");
-        s->add_option("--threads", opt.threads, "Worker threads")->check(CLI::Range(1, 256));
+        s->add_option("--threads", threads, kThreadsHelp)->check(CLI::Range(0, 4096));
         s->add_option("--seconds", opt.min_seconds, "Minimum seconds per measurement")
             ->check(CLI::Range(0.01, 600.0));
     }
-    int run() const {
+    int run() {
+        // One meaning of --threads everywhere: 0 (the default) is every core.
+        opt.threads = scene.threads = lsnif::base::resolve_threads(threads);
         nlohmann::json report;
         std::string err;
         if (*train)
@@ -565,6 +596,9 @@ struct BenchCommand {
 
 int main(int argc, char** argv) {
     CLI::App app{"lsnif: convert scenes into LSNIF neural intersection assets and check them"};
+    // Every option's --help line shows its default (the settings table's rows say theirs in
+    // words: ConvertSettings).
+    app.option_defaults()->always_capture_default();
     // Usage errors CLI11 finds (a value out of range, an unknown option) read like ours:
     // "error: ..." on one line, then where to look.
     app.failure_message([](const CLI::App*, const CLI::Error& e) {

@@ -43,25 +43,27 @@ json json_unless_zero(std::uint64_t v) {
 }
 
 // A model or training override: 0 = the preset's value.
-#define LSNIF_OVERRIDE(NAME, VALUE, KEY, FIELD, LO, HI, HELP)                 \
-    Setting {                                                                 \
-        NAME, VALUE, false, SettingScope::mesh, KEY, "the preset's", HELP,    \
-            [](ConvertOptions& o, const std::string& v, std::string& e) {     \
-                return parse_count<std::uint32_t>(v, LO, HI, o.FIELD, e);     \
-            },                                                                \
-            [](const ConvertOptions& o) { return unless_zero(o.FIELD); },     \
-            [](const ConvertOptions& o) { return json_unless_zero(o.FIELD); } \
+#define LSNIF_OVERRIDE(NAME, VALUE, KEY, FIELD, LO, HI, HELP)                           \
+    Setting {                                                                           \
+        NAME, VALUE, false, SettingScope::mesh, KEY, "the preset's", HELP,              \
+            [](ConvertOptions& o, const std::string& v, std::string& e, std::string&) { \
+                return parse_count<std::uint32_t>(v, LO, HI, o.FIELD, e);               \
+            },                                                                          \
+            [](const ConvertOptions& o) { return unless_zero(o.FIELD); },               \
+            [](const ConvertOptions& o) { return json_unless_zero(o.FIELD); }           \
     }
 
 // A flag that is off by default.
-#define LSNIF_FLAG(NAME, KEY, FIELD, SCOPE, HELP)                                               \
-    Setting {                                                                                   \
-        NAME, nullptr, false, SCOPE, KEY, "off", HELP,                                          \
-            [](ConvertOptions& o, const std::string&, std::string&) { return o.FIELD = true; }, \
-            [](const ConvertOptions& o) {                                                       \
-                return o.FIELD ? std::vector<std::string>{""} : std::vector<std::string>{};     \
-            },                                                                                  \
-            [](const ConvertOptions& o) { return o.FIELD ? json(true) : json(); }               \
+#define LSNIF_FLAG(NAME, KEY, FIELD, SCOPE, HELP)                                           \
+    Setting {                                                                               \
+        NAME, nullptr, false, SCOPE, KEY, "off", HELP,                                      \
+            [](ConvertOptions& o, const std::string&, std::string&, std::string&) {         \
+                return o.FIELD = true;                                                      \
+            },                                                                              \
+            [](const ConvertOptions& o) {                                                   \
+                return o.FIELD ? std::vector<std::string>{""} : std::vector<std::string>{}; \
+            },                                                                              \
+            [](const ConvertOptions& o) { return o.FIELD ? json(true) : json(); }           \
     }
 
 // One row per setting, in --help's order: a table, as long as the settings are many.
@@ -69,7 +71,7 @@ std::vector<Setting> make_table() {
     return {
         Setting{"--preset", "NAME", false, SettingScope::mesh, "preset", "default",
                 "default, fast, quality or smoke (pipeline check)",
-                [](ConvertOptions& o, const std::string& v, std::string& e) {
+                [](ConvertOptions& o, const std::string& v, std::string& e, std::string&) {
                     Preset p;
                     if (find_preset(v, p)) return o.preset = v, true;
                     e = "not a preset (default, fast, quality, smoke)";
@@ -78,7 +80,7 @@ std::vector<Setting> make_table() {
                 [](const ConvertOptions& o) { return std::vector<std::string>{o.preset}; },
                 [](const ConvertOptions& o) { return json(o.preset); }},
         Setting{"--seed", "N", false, SettingScope::mesh, "seed", "1", "Random seed (sampling and training)",
-                [](ConvertOptions& o, const std::string& v, std::string& e) {
+                [](ConvertOptions& o, const std::string& v, std::string& e, std::string&) {
                     return parse_count<std::uint64_t>(v, 0, UINT64_MAX, o.seed, e);
                 },
                 [](const ConvertOptions& o) { return std::vector<std::string>{std::to_string(o.seed)}; },
@@ -87,7 +89,7 @@ std::vector<Setting> make_table() {
                 "canonical: fp32 in one order, the same assets on every CPU and thread count; machine: bf16 "
                 "training products on AMX or AVX-512 BF16 where present (faster there; the assets depend on "
                 "the CPU kind and say so)",
-                [](ConvertOptions& o, const std::string& v, std::string& e) {
+                [](ConvertOptions& o, const std::string& v, std::string& e, std::string&) {
                     if (parse_arithmetic(v, o.arithmetic)) return true;
                     e = "expected canonical or machine";
                     return false;
@@ -101,7 +103,7 @@ std::vector<Setting> make_table() {
                 [](const ConvertOptions& o) { return json(arithmetic_id(o.arithmetic)); }},
         Setting{"--complex", "NAME", true, SettingScope::scene, "forced_complex", "none",
                 "Force a mesh (by name) to become an LSNIF; once per mesh",
-                [](ConvertOptions& o, const std::string& v, std::string&) {
+                [](ConvertOptions& o, const std::string& v, std::string&, std::string&) {
                     o.force_complex.push_back(v);
                     return true;
                 },
@@ -109,27 +111,36 @@ std::vector<Setting> make_table() {
                 [](const ConvertOptions& o) { return json(o.force_complex); }},
         Setting{"--simple", "NAME", true, SettingScope::scene, "forced_simple", "none",
                 "Force a mesh (by name) to stay BVH; once per mesh",
-                [](ConvertOptions& o, const std::string& v, std::string&) {
+                [](ConvertOptions& o, const std::string& v, std::string&, std::string&) {
                     o.force_simple.push_back(v);
                     return true;
                 },
                 [](const ConvertOptions& o) { return o.force_simple; },
                 [](const ConvertOptions& o) { return json(o.force_simple); }},
-        Setting{"--gate-visibility", "FRACTION", false, SettingScope::mesh, "gate_visibility", "the preset's",
-                "Override the pooled held-out visibility accuracy an asset needs (0..1)",
-                [](ConvertOptions& o, const std::string& v, std::string& e) {
+        Setting{"--gate-visibility", "PERCENT", false, SettingScope::mesh, "gate_visibility", "the preset's",
+                "Override the pooled held-out visibility an asset needs to ship, in percent (as --target's)",
+                [](ConvertOptions& o, const std::string& v, std::string& e, std::string& warning) {
                     double x = 0;
                     const auto [end, ec] = std::from_chars(v.data(), v.data() + v.size(), x);
-                    if (v.empty() || ec != std::errc() || end != v.data() + v.size() || !(x >= 0 && x <= 1)) {
-                        e = "expected a fraction from 0 to 1";
+                    if (v.empty() || ec != std::errc() || end != v.data() + v.size() ||
+                        !(x >= 0 && x <= 100)) {
+                        e = "expected a percentage from 0 to 100";
                         return false;
                     }
-                    o.gate_min_visibility = x;
+                    // It took a fraction before: a value in (0, 1] cannot be meant as a percentage
+                    // (no asset is worth shipping at 1 % visibility), so it is read as one.
+                    if (x > 0 && x <= 1) {
+                        warning = "--gate-visibility takes a percentage now: " + v + " read as " +
+                                  exact(100 * x) + " %";
+                        x *= 100;
+                    }
+                    o.gate_min_visibility = x / 100;
                     return true;
                 },
                 [](const ConvertOptions& o) {
-                    return o.gate_min_visibility >= 0 ? std::vector<std::string>{exact(o.gate_min_visibility)}
-                                                      : std::vector<std::string>{};
+                    return o.gate_min_visibility >= 0
+                               ? std::vector<std::string>{exact(100 * o.gate_min_visibility)}
+                               : std::vector<std::string>{};
                 },
                 [](const ConvertOptions& o) {
                     return o.gate_min_visibility >= 0 ? json(o.gate_min_visibility) : json();
@@ -151,7 +162,7 @@ std::vector<Setting> make_table() {
         Setting{"--target", "VIS,DIST,NORMAL", false, SettingScope::mesh, "target", "98.5,0.6,8",
                 "Accuracy asked of every asset: held-out visibility %, median distance error % of the "
                 "diagonal, median normal error in degrees",
-                [](ConvertOptions& o, const std::string& v, std::string& e) {
+                [](ConvertOptions& o, const std::string& v, std::string& e, std::string&) {
                     return parse_target(v, o.target, e);
                 },
                 [](const ConvertOptions& o) {
@@ -168,7 +179,7 @@ std::vector<Setting> make_table() {
                 "Scene memory to fit, in bytes (K, M, G: powers of 1024): candidates are converted in order "
                 "of BVH bytes saved per asset byte until the scene (BVHs + assets, each mesh once) fits; the "
                 "rest stay BVH",
-                [](ConvertOptions& o, const std::string& v, std::string& e) {
+                [](ConvertOptions& o, const std::string& v, std::string& e, std::string&) {
                     return parse_byte_size(v, o.memory_budget, e);
                 },
                 [](const ConvertOptions& o) { return unless_zero(o.memory_budget); },
@@ -184,7 +195,7 @@ std::vector<Setting> make_table() {
                    "activates (docs/model.md \"Inactive neurons\")"),
         Setting{"--threads", "N", false, SettingScope::run, nullptr, "0: all cores",
                 "Worker threads; results are the same for any count",
-                [](ConvertOptions& o, const std::string& v, std::string& e) {
+                [](ConvertOptions& o, const std::string& v, std::string& e, std::string&) {
                     return parse_count<std::uint32_t>(v, 0u, 4096u, o.threads, e);
                 },
                 [](const ConvertOptions& o) { return unless_zero(o.threads); },
@@ -192,7 +203,7 @@ std::vector<Setting> make_table() {
         Setting{"-j,--jobs", "JOBS", false, SettingScope::run, nullptr, "1",
                 "Meshes converted at once, sharing the threads (each gets threads/jobs); not with "
                 "--memory-budget",
-                [](ConvertOptions& o, const std::string& v, std::string& e) {
+                [](ConvertOptions& o, const std::string& v, std::string& e, std::string&) {
                     return parse_count<std::uint32_t>(v, 1u, 256u, o.jobs, e);
                 },
                 [](const ConvertOptions& o) {
@@ -327,8 +338,8 @@ bool apply_settings_arguments(const std::vector<std::string>& args, ConvertOptio
             }
             value = args[++i];
         }
-        std::string why;
-        if (!s->set(opt, value, why)) {
+        std::string why, warning;  // a canonical form is never a deprecated one
+        if (!s->set(opt, value, why, warning)) {
             error = args[s->value ? i - 1 : i] + " '" + value + "': " + why;
             return false;
         }

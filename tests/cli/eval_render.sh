@@ -29,7 +29,7 @@ for kind in reference hybrid flip; do
   done
 done
 [[ -s $work/img/report.json ]] || bad "no report.json"
-"$lsnif" eval "$out" --width 32 --height 24 --ao-samples 1 --timing-repeats 2 --images "$work/img2" --json >"$work/eval.json" || bad "eval --json exited $?"
+"$lsnif" eval "$out" --width 32 --height 24 --ao-samples 1 --repeats 2 --images "$work/img2" --json >"$work/eval.json" || bad "eval --json exited $?"
 python3 - "$work/eval.json" <<'PY' || bad "eval JSON"
 import json, sys
 r = json.load(open(sys.argv[1]))
@@ -39,10 +39,16 @@ for e in ("shadow", "ao", "reflection"):
     assert 0.0 <= r["images"][e]["flip_mean"] <= 1.0
 PY
 # No timing at all is a usage error (exit 2), nothing rendered.
-"$lsnif" eval "$out" --timing-repeats 0 --images "$work/img4" 2>"$work/err"; rc=$?
-[[ $rc == 2 ]] || bad "--timing-repeats 0 exit $rc"
-grep -q "^error: --timing-repeats" "$work/err" || bad "--timing-repeats 0 message: $(cat "$work/err")"
-[[ ! -e $work/img4 ]] || bad "--timing-repeats 0 still rendered"
+"$lsnif" eval "$out" --repeats 0 --images "$work/img4" 2>"$work/err"; rc=$?
+[[ $rc == 2 ]] || bad "--repeats 0 exit $rc"
+grep -q "^error: --repeats" "$work/err" || bad "--repeats 0 message: $(cat "$work/err")"
+[[ ! -e $work/img4 ]] || bad "--repeats 0 still rendered"
+# The earlier name still works, with a warning.
+"$lsnif" eval "$out" --width 16 --height 12 --ao-samples 1 --timing-repeats 1 --images "$work/img5" --json \
+  >"$work/old.json" 2>"$work/old.err" || bad "--timing-repeats exited $?"
+grep -q "^warning: --timing-repeats is deprecated" "$work/old.err" || bad "no deprecation warning: $(cat "$work/old.err")"
+python3 -c "import json,sys; assert json.load(open(sys.argv[1]))['timing_repeats'] == 1" "$work/old.json" \
+  || bad "--timing-repeats 1 not applied"
 # Bad camera string: usage error (exit 2), one error line, nothing rendered.
 "$lsnif" eval "$out" --camera 1,2,x --images "$work/img3" 2>"$work/err"; rc=$?
 [[ $rc == 2 ]] || bad "bad --camera exit $rc"

@@ -40,8 +40,13 @@ for k, d in enumerate(docs, start=1):
 assert len(owners) >= 3 and all(len(v) == 1 for v in owners.values()), owners
 assert len({next(iter(v)) for v in owners.values()}) == 3, owners  # every shard has work
 PY
-"$lsnif" merge "$work/shard1" "$work/shard2" "$work/shard3" -o "$work/merged" >/dev/null 2>"$work/merge.err" \
-  || bad "merge exited $?: $(cat "$work/merge.err")"
+"$lsnif" merge "$work/shard1" "$work/shard2" "$work/shard3" -o "$work/merged" --json >"$work/merge.json" \
+  2>"$work/merge.err" || bad "merge exited $?: $(cat "$work/merge.err")"
+python3 -c "
+import json, sys
+s = json.load(open(sys.argv[1]))
+assert s['errors'] == [] and s['meshes'] >= 3 and s['manifest'].endswith('merged/manifest.json'), s" "$work/merge.json" \
+  || bad "merge --json: $(cat "$work/merge.json")"
 "$lsnif" batch "${inputs[@]}" -o "$work/single" --cache "$work/cache_single" "${settings[@]}" >/dev/null 2>&1 \
   || bad "single run exited $?"
 same_outputs "$work/merged" "$work/single" "merged shards against a single run"

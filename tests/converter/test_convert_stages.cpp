@@ -191,7 +191,7 @@ TEST_CASE("every setting survives settings_arguments and back, and every mesh se
                                                         {"--arithmetic", "machine"},
                                                         {"--complex", "ChineseDragon-10kv"},
                                                         {"--simple", "armadillo"},
-                                                        {"--gate-visibility", "0.5"},
+                                                        {"--gate-visibility", "50"},
                                                         {"--steps", "7"},
                                                         {"--batch", "128"},
                                                         {"--log2-table", "11"},
@@ -222,8 +222,9 @@ TEST_CASE("every setting survives settings_arguments and back, and every mesh se
         CAPTURE(name);
         REQUIRE_MESSAGE(example.count(name), "no example value for " << name);
         ConvertOptions given = base;
-        std::string error;
-        REQUIRE_MESSAGE(s.set(given, example.at(name), error), error);
+        std::string error, warning;
+        REQUIRE_MESSAGE(s.set(given, example.at(name), error, warning), error);
+        CHECK(warning.empty());
         const std::vector<std::string> args = settings_arguments(given);
         // What a step rebuilds from the recorded arguments alone (run settings are its own).
         ConvertOptions rebuilt;
@@ -259,6 +260,22 @@ TEST_CASE("every setting survives settings_arguments and back, and every mesh se
     CHECK_FALSE(apply_settings_arguments({"--colour", "red"}, o, error));
     CHECK(error.find("--colour") != std::string::npos);
     CHECK_FALSE(apply_settings_arguments({"--seed"}, o, error));
+    // Percentages everywhere: --gate-visibility as --target. Its earlier fractions are still
+    // read, with a warning.
+    const Setting& gate = *std::find_if(settings_table().begin(), settings_table().end(),
+                                        [](const Setting& s) { return long_name(s) == "--gate-visibility"; });
+    for (const auto& [text, deprecated] : {std::pair{"95", false}, std::pair{"0.95", true}}) {
+        ConvertOptions g;
+        std::string e, warning;
+        REQUIRE(gate.set(g, text, e, warning));
+        CHECK(g.gate_min_visibility == doctest::Approx(0.95));
+        CHECK(warning.empty() != deprecated);
+    }
+    ConvertOptions g;
+    std::string e, warning;
+    CHECK_FALSE(gate.set(g, "101", e, warning));
+    CHECK(gate.set(g, "0", e, warning));  // 0: ships whatever trained (tests, packages)
+    CHECK(g.gate_min_visibility == 0.0);
 }
 
 TEST_CASE("asset_key changes with the geometry and every setting that changes the weights, and only then") {

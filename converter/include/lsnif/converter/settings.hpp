@@ -32,8 +32,9 @@ struct Setting {
     const char* default_text;  // what --help shows as the default
     const char* help;
     // Reads one value (a flag: "") into `opt`; false with `error` (without the option's name)
-    // for a value the setting does not take.
-    bool (*set)(ConvertOptions& opt, const std::string& value, std::string& error);
+    // for a value the setting does not take. `warning` (empty unless set) tells the user of a
+    // deprecated form that was still understood.
+    bool (*set)(ConvertOptions& opt, const std::string& value, std::string& error, std::string& warning);
     // The values the command line would give for `opt`, in a canonical form; empty when `opt`
     // has the default (nothing to write); {""} for a flag that is on.
     std::vector<std::string> (*get)(const ConvertOptions& opt);
