@@ -12,7 +12,7 @@
 # Then a multi-input run with good and bad inputs must convert the good ones, report every
 # bad one, and exit 1.
 # usage: bad_inputs.sh LSNIF_BINARY CGAL_ARCHIVE WORK_DIR [TIMEOUT_SECONDS]
-set -u
+set -uo pipefail
 lsnif=$1 archive=$2 work=$3 limit=${4:-300}
 src=$(cd "$(dirname "$0")/.." && pwd)
 fail=0 runs=0 errors=0 oks=0 gltfs=()

@@ -3,7 +3,7 @@
 # file; JUnit XML; the exit codes; a warm run converts nothing; one changed mesh converts
 # exactly that mesh; a deleted input leaves the manifest.
 # usage: batch.sh LSNIF_BINARY MESH_DIR WORK_DIR
-set -u
+set -uo pipefail
 lsnif=$1 meshes=$2 work=$3
 fail=0
 bad() { echo "FAIL: $*"; fail=1; }

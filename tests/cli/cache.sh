@@ -3,7 +3,7 @@
 # both succeed with identical assets; a third run finds everything; two `lsnif batch` runs
 # at once agree byte for byte; a cache path that cannot be a directory is an error naming it.
 # usage: cache.sh LSNIF_BINARY MESH_DIR WORK_DIR
-set -u
+set -uo pipefail
 lsnif=$1 meshes=$2 work=$3
 fail=0
 bad() { echo "FAIL: $*"; fail=1; }

@@ -6,7 +6,7 @@
 # compared with a single `lsnif batch` run byte for byte (manifest and every asset).
 # The library has a malformed file: the shards go on, the merge reports it and exits 1.
 # usage: ci_example.sh LSNIF_BINARY SOURCE_DIR MESH_DIR EXAMPLE_SCENE_GLB WORK_DIR
-set -u
+set -uo pipefail
 lsnif=$1 src=$2 meshes=$3 scene=$4 work=$5
 fail=0
 bad() { echo "FAIL: $*"; fail=1; }

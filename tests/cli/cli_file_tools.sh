@@ -2,7 +2,7 @@
 # End-to-end checks of `lsnif inspect` and `lsnif validate` as processes: exit codes,
 # one `error:` line per problem, and no signal on damaged input.
 # usage: cli_file_tools.sh LSNIF_BINARY DATA_DIR WORK_DIR
-set -u
+set -uo pipefail
 lsnif=$1 data=$2 work=$3
 fail=0
 bad() { echo "FAIL: $*"; fail=1; }

@@ -5,7 +5,7 @@
 # look at. Then: a malformed scene (exit 1, an error line) and usage errors (exit 2).
 # Needs chromium (scripts/setup --browser, which scripts/test runs).
 # usage: convert_scene.sh LSNIF_BINARY SOURCE_DIR EXAMPLE_SCENE_GLB WORK_DIR
-set -u
+set -uo pipefail
 lsnif=$1 src=$2 scene=$3 work=$4
 fail=0
 bad() { echo "FAIL: $*"; fail=1; }

@@ -2,7 +2,7 @@
 # End to end as processes: convert CGAL's dragon (smoke preset), then `lsnif eval`,
 # `lsnif bench memory` and the reference renderer examples/render on the result.
 # usage: eval_render.sh LSNIF_BINARY RENDER_BINARY MESH WORK_DIR
-set -u
+set -uo pipefail
 lsnif=$1 render=$2 mesh=$3 work=$4
 fail=0
 bad() { echo "FAIL: $*"; fail=1; }

@@ -5,7 +5,7 @@
 # mesh converts exactly that object; a malformed file fails the library step alone; usage
 # errors. Needs ninja (ninja-build, installed by scripts/setup).
 # usage: ninja.sh LSNIF_BINARY MESH_DIR EXAMPLE_SCENE_GLB WORK_DIR
-set -u
+set -uo pipefail
 lsnif=$1 meshes=$2 scene=$3 work=$4
 fail=0
 bad() { echo "FAIL: $*"; fail=1; }

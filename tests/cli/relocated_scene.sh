@@ -6,7 +6,7 @@
 # misses, inputs that are gone, an older manifest format and a damaged manifest — each a
 # clear one-line error (exit 1) and no output file, never an abort.
 # usage: relocated_scene.sh LSNIF_BINARY RENDER_BINARY EXAMPLE_SCENE_GLB WORK_DIR
-set -u
+set -uo pipefail
 lsnif=$1 render=$2 scene=$3 work=$4
 fail=0
 bad() { echo "FAIL: $*"; fail=1; }

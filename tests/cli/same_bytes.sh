@@ -11,7 +11,7 @@
 #               (LSNIF_ISA=avx512) it is the canonical arithmetic, the reference's bytes.
 #   reference   the --threads 2 run the others compare with (WORK_ROOT/reference), made first.
 # usage: same_bytes.sh LSNIF MESH_DIR WORK_ROOT reference|threads|machine|isa CAP
-set -u
+set -uo pipefail
 lsnif=$1 meshes=$2 root=$3 mode=$4 cap=${5:-}
 fail=0
 bad() { echo "FAIL: $*"; fail=1; }

@@ -4,7 +4,7 @@
 # or repeated shard sets, and shards of another arithmetic or lsnif identity, are refused; --jobs 2
 # equals one job; bad --shard values are usage errors.
 # usage: shard.sh LSNIF_BINARY MESH_DIR EXAMPLE_SCENE_GLB WORK_DIR
-set -u
+set -uo pipefail
 lsnif=$1 meshes=$2 scene=$3 work=$4
 fail=0
 bad() { echo "FAIL: $*"; fail=1; }

@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # Regenerates the golden files and requires them byte-identical to the committed ones.
 # usage: compare.sh GEN_GOLDEN COMMITTED_DATA_DIR WORK_DIR
-set -u
+set -uo pipefail
 gen=$1 committed=$2 work=$3
 rm -rf "$work" && "$gen" "$work" || exit 1
 fail=0

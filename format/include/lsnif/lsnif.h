@@ -318,7 +318,7 @@ typedef enum lsnif_arithmetic {
     /* The fastest of INT8, BF16 and FP32 the CPU supports. What lsnif_open_* choose. */
     LSNIF_ARITHMETIC_AUTO = 0,
     /* The reference of FORMAT.md §8: every product in fp32. Same results on every machine
-     * (up to the compiler's fused multiply-adds). */
+     * (fused multiply-adds in one order on every CPU: docs/pipeline.md). */
     LSNIF_ARITHMETIC_FP32 = 1,
     /* Hidden layers with bfloat16 operands and fp32 accumulation (AVX-512 BF16); bias,
      * ReLU and the output layer in fp32. Faster; hit decisions agree with FP32 on >= 99.5 %
