@@ -9,6 +9,8 @@
 #   * on failure print an "error: FILE: ..." line naming the file and leave no OUTDIR,
 #   * on success leave only manifest.json and .lsnif files (no temporaries), and print any
 #     skipped content as "warning:" lines.
+# Which files are rejected and which convert is compared with tests/cli/bad_inputs.expected:
+# an importer change that starts rejecting a file (or accepting a broken one) fails here.
 # Then a multi-input run with good and bad inputs must convert the good ones, report every
 # bad one, and exit 1.
 # usage: bad_inputs.sh LSNIF_BINARY CGAL_ARCHIVE WORK_DIR [TIMEOUT_SECONDS]
@@ -61,6 +63,14 @@ cat >"$work/in/huge_scale_node.gltf" <<'GLTF'
  "accessors":[{"bufferView":0,"componentType":5126,"count":3,"type":"VEC3","min":[0,0,0],"max":[1,1,0]}]}
 GLTF
 
+# A file's name in the outcome list: where it comes from, without this machine's paths.
+label() {
+  local f=$1
+  f=${f#/usr/share/assimp/models/}
+  f=${f#$work/cgal/data/meshes/}
+  f=${f#$work/in/}
+  echo "$f"
+}
 check_one() {  # FILE
   local file=$1 out=$work/out_$runs
   runs=$((runs + 1))
@@ -71,10 +81,12 @@ check_one() {  # FILE
   if ((rc != 0 && rc != 1)); then bad "$file: exit status $rc (signal or abort)"; head -5 "$work/stderr"; return; fi
   if ((rc == 1)); then
     errors=$((errors + 1))
+    echo "rejected $(label "$file")" >>"$work/outcomes"
     grep -q "^error: .*$(basename "$file")" "$work/stderr" || { bad "$file: no error line naming the file"; head -3 "$work/stderr"; }
     [[ -e $out ]] && bad "$file: failed but left $out behind"
   else
     oks=$((oks + 1))
+    echo "converted $(label "$file")" >>"$work/outcomes"
     [[ -f $out/manifest.json ]] || bad "$file: succeeded without a manifest"
     local stray
     stray=$(find "$out" -mindepth 1 ! -name manifest.json ! -name '*.lsnif' ! -name scene.gltf ! -name scene.bin)
@@ -88,6 +100,11 @@ check_one() {  # FILE
 
 while IFS= read -r -d '' f; do check_one "$f"; done < <(
   find /usr/share/assimp/models/glTF2 /usr/share/assimp/models/invalid "$work/cgal" "$work/in" -type f -print0 | sort -z)
+
+expected=$src/cli/bad_inputs.expected
+sort "$work/outcomes" >"$work/outcomes.sorted"
+diff "$expected" "$work/outcomes.sorted" >"$work/outcomes.diff" ||
+  bad "outcomes differ from $(basename "$expected") (< expected, > this run): $(head -20 "$work/outcomes.diff")"
 
 # Several inputs, some bad: the good ones are converted, each bad one is reported, exit 1.
 good1=/usr/share/assimp/models/glTF2/BoxTextured-glTF/BoxTextured.gltf

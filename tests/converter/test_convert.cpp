@@ -163,11 +163,10 @@ TEST_CASE("convert a real mesh: asset, metadata, manifest, reuse") {
     // The asset passes the same validation a user runs (structure, schema, consistency).
     const ValidationReport v = validate_file(asset.string());
     CHECK_MESSAGE(v.valid(), v.to_text());
-    // Every family was measured and no true hit was culled by the occupancy.
-    for (const char* f : {"outside", "surface", "interior"}) {
-        CHECK(m["metrics"]["families"][f]["rays"].get<std::uint64_t>() > 100);
-        CHECK(m["metrics"]["families"][f]["visibility_accuracy"].get<double>() > 0.6);
-    }
+    // Every family was measured on thousands of held-out rays (the smoke preset's 8,192 in
+    // three families, less the culled ones): far more than the gate's floor of 100.
+    for (const char* f : {"outside", "surface", "interior"})
+        CHECK(m["metrics"]["families"][f]["rays"].get<std::uint64_t>() > 1000);
     // The validation curve: the smoke preset's checks at evenly spaced steps, up to the last,
     // on rays apart from the held-out ones; a trained model ends better than it started.
     Preset smoke_preset;
@@ -650,7 +649,7 @@ TEST_CASE("ten seeds: every held-out metric finite, spread bounded (smoke preset
     }
     MESSAGE("pooled visibility over 10 seeds: " << 100 * lo << " .. " << 100 * hi << " %");
     CHECK(hi - lo < 0.05);
-    CHECK(lo > 0.7);
+    CHECK(lo > 0.8);  // above the smoke gate's 75 %, which a shipped asset passes anyway
 }
 
 TEST_CASE("the gate: each rule fails on its own, and an unmeasured family is a failure") {
