@@ -94,39 +94,23 @@ std::string xml_escaped(const std::string& s) {
     return out;
 }
 
-// Whether a mesh's entry records a failure of this run (class "failed": its asset could not
-// be encoded or written), as opposed to a decision to keep it as BVH.
-bool mesh_failed(const json& m) {
-    return m.at("class") == "failed";
+// The mesh's last reason, or its decision's name where it has none.
+std::string last_reason(const MeshOutcome& m) {
+    return m.reasons.empty() ? std::string(decision_name(m.decision)) : m.reasons.back();
 }
 
-// An entry `lsnif batch --object` left to another job (class "deferred").
-bool left_to_another_job(const json& m) {
-    return m.at("class") == "deferred";
-}
-
-double mesh_seconds(const json& m) {
-    double s = 0;
-    const json timings = m.value("timings", json::object());  // items() would dangle on a temporary
-    for (const auto& [stage, t] : timings.items()) s += t.get<double>();
-    return s;
-}
-
-std::string asset_line(const json& m, const std::string& input) {
+std::string asset_line(const MeshOutcome& m, const std::string& input) {
     char buf[512];
-    const std::string who = input + ": " + m["name"].get<std::string>();
-    if (mesh_failed(m))
-        std::snprintf(buf, sizeof buf, "failed   %s: %s", who.c_str(),
-                      m["reasons"].back().get<std::string>().c_str());
-    else if (m.contains("lsnif"))
+    const std::string who = input + ": " + m.name;
+    if (m.cls() == MeshClass::failed)
+        std::snprintf(buf, sizeof buf, "failed   %s: %s", who.c_str(), last_reason(m).c_str());
+    else if (m.asset)
         std::snprintf(buf, sizeof buf, "lsnif    %s: %s, %" PRIu64 " bytes, held-out visibility %.2f %%%s",
-                      who.c_str(), m["lsnif"]["file"].get<std::string>().c_str(),
-                      m["lsnif"]["bytes"].get<std::uint64_t>(),
-                      100 * m["metrics"]["families"]["pooled"]["visibility_accuracy"].get<double>(),
-                      m["lsnif"].value("reused", false) ? " (reused)" : "");
+                      who.c_str(), m.asset->file.c_str(), m.asset->bytes,
+                      100 * m.held_out->metrics.pooled.visibility_accuracy,
+                      m.asset->reused.value_or(false) ? " (reused)" : "");
     else
-        std::snprintf(buf, sizeof buf, "bvh      %s: %s", who.c_str(),
-                      m["reasons"].back().get<std::string>().c_str());
+        std::snprintf(buf, sizeof buf, "bvh      %s: %s", who.c_str(), last_reason(m).c_str());
     return buf;
 }
 
@@ -350,12 +334,10 @@ void plan_ninja(const BatchOptions& options, const ConvertProgress& progress, Ba
         return;
     }
     std::map<std::string, PlannedObject> unique;
-    const json& report = r.convert.report;
-    for (const json& m : report.value("meshes", json::array()))
-        if (m.contains("cache_key"))
-            unique.emplace(m["cache_key"].get<std::string>(),
-                           PlannedObject{m["cache_key"], r.scenes.at(m["input"].get<std::size_t>()),
-                                         m["name"], m["estimated_ms"].get<std::uint64_t>()});
+    for (const MeshOutcome& m : r.convert.meshes)
+        if (m.cache_key)
+            unique.emplace(*m.cache_key,
+                           PlannedObject{*m.cache_key, r.scenes.at(m.input), m.name, *m.estimated_ms});
     std::vector<PlannedObject> objects;
     for (auto& [key, o] : unique) objects.push_back(std::move(o));
     std::stable_sort(objects.begin(), objects.end(), [](const PlannedObject& a, const PlannedObject& b) {
@@ -411,8 +393,8 @@ BatchResult batch(const BatchOptions& options, const ConvertProgress& progress,
         c.command_line = "lsnif batch " + shell_line(settings_arguments(c));
         c.write_gltf = false;  // a library, not a scene
         const auto forward = [&](const ProgressEvent& e) {
-            if (e.stage == "done" && e.entry && on_line && !left_to_another_job(*e.entry))
-                on_line(asset_line(*e.entry, r.scenes.at(e.entry->at("input").get<std::size_t>())));
+            if (e.stage == "done" && e.outcome && on_line && e.outcome->cls() != MeshClass::deferred)
+                on_line(asset_line(*e.outcome, r.scenes.at(e.outcome->input)));
             if (progress) progress(e);
         };
         r.convert = convert(c, forward);
@@ -420,17 +402,15 @@ BatchResult batch(const BatchOptions& options, const ConvertProgress& progress,
             r.exit = BatchExit::usage;
             return r;
         }
-        const json& report = r.convert.report;
-        for (const json& in : report.value("inputs", json::array()))
-            if (in["status"] == "error") {
-                r.lines.push_back("failed   " + in["error"].get<std::string>());
+        for (const InputRecord& in : r.convert.inputs)
+            if (!in.ok()) {
+                r.lines.push_back("failed   " + *in.error);
                 ++failed;
             }
-        for (const json& m : report.value("meshes", json::array())) {
-            if (left_to_another_job(m)) continue;
-            const std::string input = report["inputs"][m["input"].get<std::size_t>()]["given"];
-            r.lines.push_back(asset_line(m, input));
-            mesh_failed(m) ? ++failed : m.contains("lsnif") ? ++converted : ++bvh;
+        for (const MeshOutcome& m : r.convert.meshes) {
+            if (m.cls() == MeshClass::deferred) continue;
+            r.lines.push_back(asset_line(m, r.convert.inputs.at(m.input).given));
+            m.cls() == MeshClass::failed ? ++failed : m.asset ? ++converted : ++bvh;
         }
         // Errors that concern the run and no input or mesh (the manifest could not be written).
         const std::size_t attributed = failed - r.input_errors.size();
@@ -482,14 +462,13 @@ std::string junit_xml(const BatchResult& r) {
         cases += "    </testcase>\n";
     };
     for (const std::string& e : r.input_errors) add_case("inputs", e.substr(0, e.find(':')), 0, e, "");
-    // No scene to convert: convert() never ran and its report is null.
-    const json report = r.convert.report.is_object() ? r.convert.report : json::object();
-    for (const json& in : report.value("inputs", json::array()))
-        if (in["status"] == "error") add_case(in["given"], "import", 0, in["error"], "");
-    for (const json& m : report.value("meshes", json::array())) {
-        const std::string input = report["inputs"][m["input"].get<std::size_t>()]["given"];
+    for (const InputRecord& in : r.convert.inputs)
+        if (!in.ok()) add_case(in.given, "import", 0, *in.error, "");
+    for (const MeshOutcome& m : r.convert.meshes) {
+        const std::string& input = r.convert.inputs.at(m.input).given;
         const std::string line = asset_line(m, input);
-        add_case(input, m["name"], mesh_seconds(m), mesh_failed(m) ? line : "", mesh_failed(m) ? "" : line);
+        const bool failed = m.cls() == MeshClass::failed;
+        add_case(input, m.name, m.timings.total(), failed ? line : "", failed ? "" : line);
     }
     char head[256];
     std::snprintf(head, sizeof head,
@@ -500,10 +479,10 @@ std::string junit_xml(const BatchResult& r) {
            "  </testsuite>\n</testsuites>\n";
 }
 
-std::string manifest_junit_xml(const json& manifest) {
+std::string merge_junit_xml(const MergeResult& merged) {
     BatchResult r;
-    r.convert.report = {{"inputs", manifest.value("inputs", json::array())},
-                        {"meshes", manifest.value("meshes", json::array())}};
+    r.convert.inputs = merged.inputs;
+    r.convert.meshes = merged.meshes;
     return junit_xml(r);
 }
 
@@ -526,25 +505,46 @@ bool parse_shard(const std::string& text, std::uint32_t& index, std::uint32_t& c
 
 namespace {
 
-// A shard's manifest, read and checked for the shard record merge needs.
+// A shard's manifest, read and checked for the shard record merge needs; its inputs and
+// meshes typed (a batch manifest is reproducible: no timings).
 struct ShardManifest {
     fs::path dir;
     json doc;
     std::uint32_t index = 0, count = 0;
+    std::vector<InputRecord> inputs;
+    std::vector<MeshOutcome> meshes;
 };
 
 std::string read_shard(const fs::path& dir, ShardManifest& out) {
     const fs::path path = dir / "manifest.json";
+    const std::string where = path.string() + ": ";
     std::ifstream f(path);
-    if (!f) return path.string() + ": cannot read (not an lsnif batch output directory?)";
-    json doc = json::parse(f, nullptr, false);
-    if (!doc.is_object() || doc.value("format", "") != kManifestFormat || !doc.contains("meshes"))
-        return path.string() + ": not an lsnif manifest of format " + kManifestFormat;
-    if (!doc.contains("shard") || !doc["shard"].is_object())
-        return path.string() + ": not written by lsnif batch --shard";
-    out = {dir, std::move(doc), 0, 0};
-    out.index = out.doc["shard"].value("index", 0u);
-    out.count = out.doc["shard"].value("count", 0u);
+    if (!f) return where + "cannot read (not an lsnif batch output directory?)";
+    out.dir = dir;
+    out.doc = json::parse(f, nullptr, false);
+    const json& doc = out.doc;
+    if (!doc.is_object() || doc.value("format", json()) != kManifestFormat || !doc.contains("meshes") ||
+        !doc["meshes"].is_array() || !doc.contains("inputs") || !doc["inputs"].is_array())
+        return where + "not an lsnif manifest of format " + kManifestFormat;
+    const json& shard = doc.value("shard", json());
+    if (!shard.is_object() || !shard.value("index", json()).is_number_unsigned() ||
+        !shard.value("count", json()).is_number_unsigned())
+        return where + "not written by lsnif batch --shard";
+    out.index = shard["index"].get<std::uint32_t>();
+    out.count = shard["count"].get<std::uint32_t>();
+    for (std::size_t i = 0; i < doc["inputs"].size(); ++i) {
+        auto in = input_from_json(doc["inputs"][i]);
+        if (!in) return where + "inputs[" + std::to_string(i) + "]." + in.error();
+        out.inputs.push_back(std::move(*in));
+    }
+    for (std::size_t i = 0; i < doc["meshes"].size(); ++i) {
+        auto m = outcome_from_json(doc["meshes"][i], OutcomeFields::reproducible);
+        if (!m) return where + "meshes[" + std::to_string(i) + "]." + m.error();
+        if (m->input >= out.inputs.size())
+            return where + "meshes[" + std::to_string(i) + "].input: no such input";
+        if (!m->memory) return where + "meshes[" + std::to_string(i) + "].memory: missing";
+        out.meshes.push_back(std::move(*m));
+    }
     return {};
 }
 
@@ -571,19 +571,62 @@ std::string field_difference(const char* key, const json& a, const json& b, cons
 // shards from any machine join; another tool, another arithmetic or other settings do not.
 std::string shard_mismatch(const ShardManifest& a, const ShardManifest& b) {
     for (const char* k : {"tool", "settings"})
-        if (a.doc[k] != b.doc[k]) return field_difference(k, a.doc, b.doc, a.dir);
-    if (a.doc["instances"] != b.doc["instances"]) return "its instances differ from " + a.dir.string() + "'s";
-    const json &ma = a.doc["meshes"], &mb = b.doc["meshes"];
-    if (ma.size() != mb.size() || a.doc["inputs"].size() != b.doc["inputs"].size())
+        if (a.doc.value(k, json()) != b.doc.value(k, json())) return field_difference(k, a.doc, b.doc, a.dir);
+    if (a.doc.value("instances", json()) != b.doc.value("instances", json()))
+        return "its instances differ from " + a.dir.string() + "'s";
+    if (a.meshes.size() != b.meshes.size() || a.inputs.size() != b.inputs.size())
         return "its inputs or meshes differ from " + a.dir.string() + "'s";
-    for (std::size_t i = 0; i < a.doc["inputs"].size(); ++i)
-        if (a.doc["inputs"][i]["given"] != b.doc["inputs"][i]["given"])
-            return "its inputs differ from " + a.dir.string() + "'s";
-    for (std::size_t i = 0; i < ma.size(); ++i)
-        for (const char* k : {"name", "geometry_hash", "input", "source_mesh", "shard"})
-            if (ma[i].value(k, json()) != mb[i].value(k, json()))
-                return "mesh " + std::to_string(i) + " differs from " + a.dir.string() + "'s (" + k + ")";
+    for (std::size_t i = 0; i < a.inputs.size(); ++i)
+        if (a.inputs[i].given != b.inputs[i].given) return "its inputs differ from " + a.dir.string() + "'s";
+    for (std::size_t i = 0; i < a.meshes.size(); ++i) {
+        const MeshOutcome &x = a.meshes[i], &y = b.meshes[i];
+        const char* differs = x.name != y.name                     ? "name"
+                              : x.geometry_hash != y.geometry_hash ? "geometry_hash"
+                              : x.input != y.input                 ? "input"
+                              : x.source_mesh != y.source_mesh     ? "source_mesh"
+                              : x.shard != y.shard                 ? "shard"
+                                                                   : nullptr;
+        if (differs)
+            return "mesh " + std::to_string(i) + " differs from " + a.dir.string() + "'s (" + differs + ")";
+    }
     return {};
+}
+
+// The shards in index order, or errors when they are not a complete, consistent set.
+std::vector<const ShardManifest*> shard_set(const std::vector<ShardManifest>& shards,
+                                            std::vector<std::string>& errors) {
+    std::vector<const ShardManifest*> by_index(shards.size() + 1, nullptr);
+    for (const ShardManifest& s : shards) {
+        if (s.count != shards.size() || s.index < 1 || s.index > s.count || by_index[s.index]) {
+            errors.push_back((s.dir / "manifest.json").string() + ": shard " + std::to_string(s.index) + "/" +
+                             std::to_string(s.count) + " does not complete a set of " +
+                             std::to_string(shards.size()) + " shards, each given once");
+            continue;
+        }
+        by_index[s.index] = &s;
+        if (std::string why = shard_mismatch(shards[0], s); !why.empty())
+            errors.push_back((s.dir / "manifest.json").string() + ": " + why);
+    }
+    return by_index;
+}
+
+// Mesh `i` from the shard that converted it, its asset copied into `outdir`.
+MeshOutcome take_mesh(const std::vector<const ShardManifest*>& by_index, const ShardManifest& first,
+                      std::size_t i, const std::string& outdir, std::vector<std::string>& errors) {
+    const MeshOutcome& here = first.meshes[i];
+    if (!here.shard) return here;
+    const ShardManifest& owner = *by_index.at(*here.shard);
+    MeshOutcome m = owner.meshes[i];
+    m.shard.reset();
+    if (m.asset) {
+        auto bytes = format::read_file_bytes((owner.dir / m.asset->file).string());
+        if (!bytes)
+            errors.push_back(bytes.error().message);
+        else if (const format::Error e =
+                     format::write_bytes_atomically((fs::path(outdir) / m.asset->file).string(), *bytes))
+            errors.push_back(e.message);
+    }
+    return m;
 }
 
 }  // namespace
@@ -594,54 +637,31 @@ MergeResult merge(const std::vector<std::string>& shard_dirs, const std::string&
     for (std::size_t k = 0; k < shard_dirs.size(); ++k)
         if (std::string e = read_shard(shard_dirs[k], shards[k]); !e.empty()) r.errors.push_back(e);
     if (!r.errors.empty()) return r;
-    std::vector<const ShardManifest*> by_index(shards.size() + 1, nullptr);
-    for (const ShardManifest& s : shards) {
-        if (s.count != shards.size() || s.index < 1 || s.index > s.count || by_index[s.index]) {
-            r.errors.push_back((s.dir / "manifest.json").string() + ": shard " + std::to_string(s.index) +
-                               "/" + std::to_string(s.count) + " does not complete a set of " +
-                               std::to_string(shards.size()) + " shards, each given once");
-            continue;
-        }
-        by_index[s.index] = &s;
-        if (std::string why = shard_mismatch(shards[0], s); !why.empty())
-            r.errors.push_back((s.dir / "manifest.json").string() + ": " + why);
-    }
+    const std::vector<const ShardManifest*> by_index = shard_set(shards, r.errors);
     if (!r.errors.empty()) return r;
 
     std::error_code ec;
     fs::create_directories(outdir, ec);  // assets are copied in as their entries are taken
-    json merged = shards[0].doc;
-    merged.erase("shard");
-    std::uint64_t before = 0, after = 0;
-    for (std::size_t i = 0; i < merged["meshes"].size(); ++i) {
-        json& m = merged["meshes"][i];
-        if (m.contains("shard")) {
-            const ShardManifest& owner = *by_index[m["shard"].get<std::uint32_t>()];
-            m = owner.doc["meshes"][i];
-            m.erase("shard");
-            if (m.contains("lsnif")) {
-                const std::string file = m["lsnif"]["file"];
-                auto bytes = format::read_file_bytes((owner.dir / file).string());
-                if (!bytes) {
-                    r.errors.push_back(bytes.error().message);
-                    continue;
-                }
-                if (const format::Error e =
-                        format::write_bytes_atomically((fs::path(outdir) / file).string(), *bytes))
-                    r.errors.push_back(e.message);
-            }
-        }
-        before += m["memory"]["before"].get<std::uint64_t>();
-        after += m["memory"]["after"].get<std::uint64_t>();
+    const ShardManifest& first = shards[0];
+    for (std::size_t i = 0; i < first.meshes.size(); ++i)
+        r.meshes.push_back(take_mesh(by_index, first, i, outdir, r.errors));
+    r.inputs = first.inputs;
+    for (InputRecord& in : r.inputs) {
+        fs::path p = in.path;
+        if (p.is_relative()) p = first.dir / p;
+        in.path = manifest_relative_path(p, outdir);
     }
-    for (json& in : merged["inputs"]) {
-        fs::path p = in["path"].get<std::string>();
-        if (p.is_relative()) p = shards[0].dir / p;
-        in["path"] = manifest_relative_path(p, outdir);
-    }
-    merged["scene_memory"]["before"] = before;
-    merged["scene_memory"]["after"] = after;
     if (!r.errors.empty()) return r;
+    json merged = first.doc;
+    merged.erase("shard");
+    merged["inputs"] = json::array();
+    for (const InputRecord& in : r.inputs) merged["inputs"].push_back(input_json(in));
+    merged["meshes"] = json::array();
+    for (const MeshOutcome& m : r.meshes)
+        merged["meshes"].push_back(outcome_json(m, OutcomeFields::reproducible));
+    const SceneMemory memory = scene_memory(r.meshes, 0, false);
+    merged["scene_memory"]["before"] = memory.before;
+    merged["scene_memory"]["after"] = memory.after;
     if (std::string e = write_manifest(outdir, merged); !e.empty()) {
         r.errors.push_back(e);
         return r;

@@ -5,8 +5,10 @@
 #include <lsnif/converter/bench.hpp>
 #include <lsnif/converter/convert.hpp>
 #include <lsnif/converter/manifest.hpp>
+
 #include <lsnif/sampling/sampling.hpp>
 #include <lsnif/scene/scene.hpp>
+#include <map>
 
 #include <embree3/rtcore.h>
 
@@ -37,7 +39,6 @@ struct Object {
 
 struct Loaded {
     std::vector<Object> objects;
-    json manifest;
     ~Loaded() {
         for (auto& o : objects)
             if (o.model) lsnif_close(o.model);
@@ -47,18 +48,12 @@ struct Loaded {
 bool load_objects(const SceneBenchOptions& opt, Loaded& out, std::string& error) {
     LoadedManifest loaded;
     if (!load_manifest(opt.outdir, opt.sources, loaded, error)) return false;
-    out.manifest = std::move(loaded.doc);
     const fs::path& mp = loaded.path;
     const std::vector<std::string>& sources = loaded.sources;
     std::vector<std::optional<scene::Scene>> scenes(sources.size());
-    for (const json& m : out.manifest["meshes"]) {
-        if (m.value("class", "") != "complex" || !m.contains("lsnif")) continue;
-        const std::size_t input = m.value("input", std::size_t(0)),
-                          src = m.value("source_mesh", std::size_t(0));
-        if (input >= sources.size()) {
-            error = mp.string() + ": mesh '" + m.value("name", "") + "' refers to a missing input";
-            return false;
-        }
+    for (const MeshOutcome& m : loaded.meshes) {
+        if (m.cls() != MeshClass::complex || !m.asset || !m.stats) continue;
+        const std::size_t input = m.input, src = m.source_mesh;
         if (!scenes[input]) {
             auto r = scene::import_scene(sources[input]);
             if (!r.ok()) {
@@ -68,20 +63,18 @@ bool load_objects(const SceneBenchOptions& opt, Loaded& out, std::string& error)
             scenes[input] = std::move(r.scene);
         }
         if (src >= scenes[input]->meshes.size() ||
-            scene::geometry_hash(scenes[input]->meshes[src]) != m.value("geometry_hash", "")) {
-            error = sources[input] + ": mesh '" + m.value("name", "") +
+            scene::geometry_hash(scenes[input]->meshes[src]) != m.geometry_hash) {
+            error = sources[input] + ": mesh '" + m.name +
                     "' differs from the converted geometry (geometry hash mismatch)";
             return false;
         }
         Object o;
-        o.name = m.value("name", "");
+        o.name = m.name;
         o.mesh = scenes[input]->meshes[src];
-        for (int a = 0; a < 3; ++a) {
-            o.box.min[a] = m["stats"]["box_min"][a].get<float>();
-            o.box.max[a] = m["stats"]["box_max"][a].get<float>();
-        }
-        o.instances = m.value("instances", 1u);
-        const fs::path asset = fs::path(opt.outdir) / m["lsnif"]["file"].get<std::string>();
+        o.box.min = m.stats->box_min;
+        o.box.max = m.stats->box_max;
+        o.instances = std::uint32_t(m.instances);
+        const fs::path asset = fs::path(opt.outdir) / m.asset->file;
         lsnif_error e{};
         if (lsnif_open_file(asset.c_str(), &o.model, &e) != LSNIF_OK) {
             error = asset.string() + ": " + lsnif_status_string(e.status) + " (" + e.message + ")";
@@ -272,19 +265,22 @@ json bench_convert(const ConvertOptions& copt, std::string& error) {
         return {};
     }
     json objects = json::array();
-    json totals = json::object();
-    for (const json& m : r.report["meshes"]) {
-        if (!m.contains("timings")) continue;
-        json t = m["timings"];
-        for (const auto& [k, v] : t.items()) totals[k] = totals.value(k, 0.0) + v.get<double>();
-        objects.push_back({{"name", m["name"]},
-                           {"class", m["class"]},
-                           {"triangles", m.value("triangles", 0)},
-                           {"timings", t}});
+    std::map<std::string, double> totals;
+    for (const MeshOutcome& m : r.meshes) {
+        json t = json::object();
+        for (std::size_t k = 0; k < kStageCount; ++k) {
+            const std::optional<double>& seconds = m.timings.seconds[k];
+            if (!seconds) continue;
+            const std::string stage(stage_name(Stage(k)));
+            t[stage] = *seconds;
+            totals[stage] += *seconds;
+        }
+        objects.push_back(
+            {{"name", m.name}, {"class", class_name(m.cls())}, {"triangles", m.triangles}, {"timings", t}});
     }
     json out = {{"benchmark", "convert"}, {"preset", o.preset}, {"threads", o.threads},
                 {"wall_seconds", wall},   {"objects", objects}, {"stage_totals", totals}};
-    if (r.report.contains("timings")) out["run_timings"] = r.report["timings"];
+    out["run_timings"] = {{"import", r.import_seconds}};
     return out;
 }
 

@@ -26,10 +26,9 @@ std::string fits_without_it(std::uint64_t total, std::uint64_t budget) {
            std::to_string(budget) + " bytes with this mesh as BVH)";
 }
 
-// What settling one candidate produced; kept apart per candidate so that concurrent jobs
-// (--jobs) never share a vector, and merged in candidate order afterwards.
+// What settling one candidate produced besides its outcome (p.out); kept apart per candidate
+// so that concurrent jobs (--jobs) never share a vector, and merged in candidate order afterwards.
 struct Settled {
-    json entry;
     std::uint64_t after = 0;
     std::vector<std::string> errors, warnings;
     CacheCounts counts;
@@ -43,22 +42,22 @@ Settled settle_candidate(const Run& run, Planned& p, std::uint32_t owner, std::u
     const std::uint64_t budget = run.opt.memory_budget;
     const std::vector<std::string>& only = run.opt.only_keys;
     if (run.opt.shard_count > 0 && owner != run.opt.shard_index) {
-        s.entry = p.rec.simple("converted by shard " + std::to_string(owner) + " of " +
-                               std::to_string(run.opt.shard_count));
+        p.out.settle(Decision::other_shard, "converted by shard " + std::to_string(owner) + " of " +
+                                                std::to_string(run.opt.shard_count));
     } else if (!only.empty() && std::find(only.begin(), only.end(), cache_key(run, p)) == only.end()) {
-        s.entry = p.rec.deferred(kLeftToAnotherJob);
+        p.out.settle(Decision::left_to_another_job, kLeftToAnotherJob);
     } else if (budget > 0 && total <= budget && !p.forced()) {
-        s.entry = p.rec.simple(fits_without_it(total, budget));
+        p.out.settle(Decision::budget_met, fits_without_it(total, budget));
     } else {
-        s.entry = convert_cached(run, p, s.errors, s.warnings, s.counts);
-        s.after = bytes_after(p, s.entry);
+        convert_cached(run, p, s.errors, s.warnings, s.counts);
+        s.after = bytes_after(p);
     }
-    if (run.opt.shard_count > 0) s.entry["shard"] = owner;
+    if (run.opt.shard_count > 0) p.out.shard = owner;
     if (run.opt.dry_run) {
-        s.entry["cache_key"] = cache_key(run, p);
-        s.entry["estimated_ms"] = estimated_cost_ms(run, p);
+        p.out.cache_key = cache_key(run, p);
+        p.out.estimated_ms = estimated_cost_ms(run, p);
     }
-    run.report({p.mesh->name, "done", 0, 0, 0, 0, &s.entry});
+    run.report({p.mesh->name, "done", 0, 0, 0, 0, &p.out});
     p.candidate.reset();  // its Embree scene (the largest thing a candidate holds)
     p.occupancy.reset();
     return s;
@@ -106,40 +105,38 @@ std::vector<Settled> settle_candidates(const Run& run, std::vector<Planned>& pla
     return settled;
 }
 
-std::vector<json> convert_meshes(const Run& run, std::vector<Planned>& planned,
-                                 std::vector<std::string>& errors, std::vector<std::string>& warnings,
-                                 CacheCounts& counts) {
-    std::vector<json> entries(planned.size());
+std::vector<MeshOutcome> convert_meshes(const Run& run, std::vector<Planned>& planned,
+                                        std::vector<std::string>& errors, std::vector<std::string>& warnings,
+                                        CacheCounts& counts) {
     std::vector<std::uint64_t> after(planned.size());
     for (std::size_t i = 0; i < planned.size(); ++i) {
         after[i] = planned[i].bvh_bytes;
-        if (planned[i].decided.is_null()) continue;
-        entries[i] = planned[i].decided;
-        run.report({planned[i].mesh->name, "done", 0, 0, 0, 0, &entries[i]});
+        if (planned[i].decided) run.report({planned[i].mesh->name, "done", 0, 0, 0, 0, &planned[i].out});
     }
     const std::vector<std::size_t> order = conversion_order(planned, run.opt.memory_budget > 0);
     std::vector<Settled> settled = settle_candidates(run, planned, order, after);
     for (std::size_t i : order) {
-        entries[i] = std::move(settled[i].entry);
         errors.insert(errors.end(), settled[i].errors.begin(), settled[i].errors.end());
         warnings.insert(warnings.end(), settled[i].warnings.begin(), settled[i].warnings.end());
         counts.hits += settled[i].counts.hits;
         counts.stored += settled[i].counts.stored;
         counts.corrupt += settled[i].counts.corrupt;
     }
+    std::vector<MeshOutcome> outcomes;
+    outcomes.reserve(planned.size());
     for (std::size_t i = 0; i < planned.size(); ++i) {
-        json memory = {{"before", planned[i].bvh_bytes}, {"after", after[i]}};
-        if (run.opt.dry_run && entries[i]["class"] == "complex") memory["estimated"] = true;
-        entries[i]["memory"] = memory;
+        MeshOutcome& o = outcomes.emplace_back(std::move(planned[i].out));
+        o.memory =
+            MeshMemory{planned[i].bvh_bytes, after[i], run.opt.dry_run && o.cls() == MeshClass::complex};
     }
-    return entries;
+    return outcomes;
 }
 
 // The cache keys of the candidates; call before convert_meshes, which releases them.
 std::set<std::string> candidate_keys(const Run& run, std::vector<Planned>& planned) {
     std::set<std::string> keys;
     for (Planned& p : planned)
-        if (p.decided.is_null()) keys.insert(cache_key(run, p));
+        if (!p.decided) keys.insert(cache_key(run, p));
     return keys;
 }
 
@@ -160,7 +157,7 @@ void check_selected_stored(const Run& run, const cache::Store& store, const std:
 std::string unreachable_budget(const Run& run, const std::vector<Planned>& planned) {
     std::uint64_t fixed = 0;
     for (const Planned& p : planned)
-        if (!p.decided.is_null()) fixed += p.bvh_bytes;
+        if (p.decided) fixed += p.bvh_bytes;
     if (run.opt.memory_budget == 0 || run.opt.memory_budget >= fixed) return {};
     return "--memory-budget " + std::to_string(run.opt.memory_budget) +
            " bytes is below the BVHs of the meshes that stay BVH in any case (" + std::to_string(fixed) +
@@ -168,20 +165,18 @@ std::string unreachable_budget(const Run& run, const std::vector<Planned>& plann
            "conversion can meet it";
 }
 
-MeshRecord new_record(const scene::Scene& sc, std::size_t in, std::size_t k, std::size_t id) {
+MeshOutcome new_outcome(const scene::Scene& sc, std::size_t in, std::size_t k, std::size_t id) {
     const scene::Mesh& mesh = sc.meshes[k];
-    std::size_t instances = 0;
-    for (const auto& i : sc.instances) instances += i.mesh == k;
-    MeshRecord rec;
-    rec.entry = {{"id", id},
-                 {"name", mesh.name},
-                 {"input", in},
-                 {"source_mesh", k},
-                 {"triangles", mesh.triangle_count()},
-                 {"vertices", mesh.vertex_count()},
-                 {"geometry_hash", scene::geometry_hash(mesh)},
-                 {"instances", instances}};
-    return rec;
+    MeshOutcome o;
+    o.id = id;
+    o.name = mesh.name;
+    o.input = in;
+    o.source_mesh = k;
+    o.triangles = mesh.triangle_count();
+    o.vertices = mesh.vertex_count();
+    o.geometry_hash = scene::geometry_hash(mesh);
+    for (const auto& i : sc.instances) o.instances += i.mesh == k;
+    return o;
 }
 
 }  // namespace stages
@@ -251,12 +246,11 @@ ConvertProgress serialized(const ConvertProgress& progress, std::uint32_t jobs) 
 
 // Every input imported and its meshes planned (classified, voxelized; decided or candidates).
 struct Imported {
-    json inputs = json::array(), instances = json::array();  // as the manifest records them
+    json instances = json::array();   // as the manifest records them
     std::deque<scene::Scene> scenes;  // every input stays imported: candidates borrow their meshes
     std::vector<GltfSource> sources;  // per input, for scene.gltf
     std::vector<Planned> planned;
     std::size_t ok_inputs = 0;
-    double import_seconds = 0;
 };
 
 // Imports one input, plans its meshes and records its instances; an input that cannot be
@@ -266,29 +260,25 @@ void import_input(const Run& run, std::size_t in, Imported& im, ConvertResult& r
     run.report({path, "import"});
     const auto t0 = Clock::now();
     auto imported = scene::import_scene(path);
-    im.import_seconds += seconds_since(t0);
-    json in_json = {{"path", manifest_relative_path(path, run.outdir)}, {"given", path}};
+    res.import_seconds += seconds_since(t0);
+    InputRecord& record = res.inputs.emplace_back();
+    record.path = manifest_relative_path(path, run.outdir);
+    record.given = path;
     im.sources.push_back({path, nullptr});
     if (!imported.ok()) {
         res.errors.push_back(imported.error);
-        in_json["status"] = "error";
-        in_json["error"] = imported.error;
-        im.inputs.push_back(in_json);
+        record.error = imported.error;
         return;
     }
     ++im.ok_inputs;
     const scene::Scene& sc = im.scenes.emplace_back(std::move(imported.scene));
     im.sources.back().scene = &sc;
-    in_json["status"] = "ok";
-    if (!sc.warnings.empty()) {
-        in_json["warnings"] = sc.warnings;
-        for (const auto& w : sc.warnings) res.warnings.push_back(path + ": " + w);
-    }
-    im.inputs.push_back(in_json);
+    record.warnings = sc.warnings;
+    for (const auto& w : sc.warnings) res.warnings.push_back(path + ": " + w);
     const std::size_t first_id = im.planned.size();
     for (std::size_t k = 0; k < sc.meshes.size(); ++k)
         im.planned.push_back(
-            plan_mesh(run, path, sc.meshes[k], new_record(sc, in, k, im.planned.size()), res.warnings));
+            plan_mesh(run, path, sc.meshes[k], new_outcome(sc, in, k, im.planned.size()), res.warnings));
     for (const auto& i : sc.instances)
         im.instances.push_back({{"mesh", first_id + i.mesh},
                                 {"name", i.node_name},
@@ -297,36 +287,42 @@ void import_input(const Run& run, std::size_t in, Imported& im, ConvertResult& r
 
 // The machine-readable report of a run (--json): what every stage decided, the memory, the
 // errors and warnings, the import time and the cache's counts.
-json run_report(const Run& run, const Imported& im, const json& meshes, const json& memory,
-                const ConvertResult& res, const cache::Store* store, const CacheCounts& counts) {
-    json report = {{"inputs", im.inputs},    {"meshes", meshes},     {"instances", im.instances.size()},
-                   {"scene_memory", memory}, {"errors", res.errors}, {"warnings", res.warnings}};
-    report["timings"] = {{"import", im.import_seconds}};  // per-mesh stages are in meshes[].timings
+json run_report(const Run& run, const ConvertResult& res) {
+    json inputs = json::array(), meshes = json::array();
+    for (const InputRecord& in : res.inputs) inputs.push_back(input_json(in));
+    for (const MeshOutcome& o : res.meshes) meshes.push_back(outcome_json(o));
+    json report = {{"inputs", inputs},
+                   {"meshes", meshes},
+                   {"instances", res.instances},
+                   {"errors", res.errors},
+                   {"warnings", res.warnings}};
+    if (res.memory) report["scene_memory"] = scene_memory_json(*res.memory);
+    report["timings"] = {{"import", res.import_seconds}};  // per-mesh stages are in meshes[].timings
     if (run.opt.dry_run) report["dry_run"] = true;
-    if (store)
+    if (res.cache)
         report["cache"] = {{"directory", run.opt.cache_dir},
-                           {"hits", counts.hits},
-                           {"stored", counts.stored},
-                           {"corrupt", counts.corrupt}};
+                           {"hits", res.cache->hits},
+                           {"stored", res.cache->stored},
+                           {"corrupt", res.cache->corrupt}};
+    if (!res.manifest_path.empty()) report["manifest"] = res.manifest_path;
+    if (!res.gltf_path.empty()) report["gltf"] = res.gltf_path;
     return report;
 }
 
 // The manifest (and scene.gltf) of a finished run into OUTDIR; errors into `res`.
-void write_outputs(const Run& run, const Imported& im, const json& meshes, const json& memory,
-                   ConvertResult& res) {
-    json manifest_meshes = meshes;
-    if (run.opt.reproducible_manifest)
-        for (json& m : manifest_meshes) strip_run_dependent(m);
-    res.manifest = manifest_json(run, im.inputs, manifest_meshes, im.instances, memory);
+void write_outputs(const Run& run, const Imported& im, ConvertResult& res) {
+    const OutcomeFields fields =
+        run.opt.reproducible_manifest ? OutcomeFields::reproducible : OutcomeFields::all;
+    res.manifest = manifest_json(run, res.inputs, res.meshes, im.instances, *res.memory, fields);
     if (run.opt.shard_count > 0)
         res.manifest["shard"] = {{"index", run.opt.shard_index}, {"count", run.opt.shard_count}};
     if (std::string e = write_manifest(run.outdir, res.manifest); !e.empty()) res.errors.push_back(e);
-    res.report["manifest"] = (run.outdir / "manifest.json").string();
+    res.manifest_path = (run.outdir / "manifest.json").string();
     if (run.opt.write_gltf) {
-        if (std::string e = write_scene_gltf(run.outdir, im.sources, res.manifest); !e.empty())
+        if (std::string e = write_scene_gltf(run.outdir, im.sources, res.meshes); !e.empty())
             res.errors.push_back(e);
         else
-            res.report["gltf"] = (run.outdir / "scene.gltf").string();
+            res.gltf_path = (run.outdir / "scene.gltf").string();
     }
 }
 
@@ -334,6 +330,7 @@ void write_outputs(const Run& run, const Imported& im, const json& meshes, const
 
 ConvertResult convert(const ConvertOptions& opt, const ConvertProgress& progress) {
     ConvertResult res;
+    res.dry_run = opt.dry_run;
     Preset preset;
     std::string error;
     if (!resolve_preset(opt, preset, error)) {
@@ -351,6 +348,7 @@ ConvertResult convert(const ConvertOptions& opt, const ConvertProgress& progress
                   store};
     Imported im;
     for (std::size_t in = 0; in < opt.inputs.size(); ++in) import_input(run, in, im, res);
+    res.instances = im.instances.size();
     if (std::string why = unreachable_budget(run, im.planned); !why.empty()) {
         res.errors.push_back(why);
         res.usage_error = true;
@@ -359,19 +357,21 @@ ConvertResult convert(const ConvertOptions& opt, const ConvertProgress& progress
     CacheCounts counts;
     const std::set<std::string> keys =
         opt.only_keys.empty() ? std::set<std::string>() : candidate_keys(run, im.planned);
-    const std::vector<json> entries = convert_meshes(run, im.planned, res.errors, res.warnings, counts);
-    const json meshes = entries, memory = scene_memory(run, entries);
-    if (memory.contains("fits") && !memory["fits"].get<bool>())
-        res.warnings.push_back("the scene needs " + std::to_string(memory["after"].get<std::uint64_t>()) +
+    res.meshes = convert_meshes(run, im.planned, res.errors, res.warnings, counts);
+    res.memory = scene_memory(res.meshes, opt.memory_budget, opt.dry_run);
+    if (store) res.cache = counts;
+    if (!res.memory->fits())
+        res.warnings.push_back("the scene needs " + std::to_string(res.memory->after) +
                                " bytes, over the memory budget of " + std::to_string(opt.memory_budget) +
                                " bytes, with every candidate that passed converted");
-    res.report = run_report(run, im, meshes, memory, res, store.get(), counts);
-    if (im.ok_inputs == 0 || opt.dry_run) return res;  // nothing converted, or a plan: leave OUTDIR untouched
-    if (!opt.only_keys.empty()) {                      // one job's share: its cache entries, no manifest
-        if (store) check_selected_stored(run, *store, keys, res.errors);
-        return res;
+    if (im.ok_inputs > 0 && !opt.dry_run) {
+        if (!opt.only_keys.empty()) {  // one job's share: its cache entries, no manifest
+            if (store) check_selected_stored(run, *store, keys, res.errors);
+        } else {
+            write_outputs(run, im, res);
+        }
     }
-    write_outputs(run, im, meshes, memory, res);
+    res.report = run_report(run, res);
     return res;
 }
 

@@ -6,12 +6,14 @@
 //   -> gate per rung, choose_option] ->
 //   asset_metadata -> encode_asset -> memory_rule_failure -> write_asset -> shipped);
 //   finally scene_memory, manifest_json -> write_manifest (manifest.hpp).
-// A stage that decides "simple" returns nothing (or false) and records its reason in the
-// mesh's MeshRecord. Internal to the converter: exposed so that each stage is tested on its
-// own (tests/converter/test_convert_stages.cpp); not installed, not an API.
+// A stage that decides the mesh stays BVH returns nothing (or false) and settles the mesh's
+// MeshOutcome (lsnif/converter/outcome.hpp) with the decision and its reason. Internal to the converter:
+// exposed so that each stage is tested on its own (tests/converter/test_convert_stages.cpp); not installed,
+// not an API.
 #pragma once
 
 #include <lsnif/converter/convert.hpp>
+#include <lsnif/converter/outcome.hpp>
 #include <lsnif/format/container.hpp>
 #include <lsnif/mesh/mesh.hpp>
 #include <lsnif/samples/held_out.hpp>
@@ -40,11 +42,7 @@ namespace lsnif::converter::stages {
 using nlohmann::json;
 namespace fs = std::filesystem;
 
-// JSON of the records (records.cpp): a 3-vector, one family's held-out metrics (and read
-// back strictly: every field present and of its type, or nothing), the model's description.
-json vec3(const std::array<float, 3>& v);
-json family_json(const samples::FamilyMetrics& f);
-std::optional<samples::FamilyMetrics> family_from_json(const json& j);
+// The model's description as the asset's metadata and asset keys record it (records.cpp).
 json model_json(const format::ModelDesc& d);
 
 // What a run shares between its meshes.
@@ -60,40 +58,6 @@ struct Run {
     }
     bool forced(const std::vector<std::string>& names, const std::string& mesh) const {
         return std::find(names.begin(), names.end(), mesh) != names.end();
-    }
-};
-
-// A mesh's manifest entry while it moves through the stages.
-struct MeshRecord {
-    json entry;  // id, name, input, counts, geometry hash, instance count
-    std::vector<std::string> reasons;
-    json stats;  // null until classification measured the mesh
-    json timings = json::object();
-
-    void add_seconds(const char* stage, double seconds) {
-        timings[stage] = timings.value(stage, 0.0) + seconds;
-    }
-    json simple(const std::string& why) {
-        reasons.push_back(why);
-        return finish("simple");
-    }
-    // This run could not produce the mesh's result (its asset could not be encoded or
-    // written): not a decision, and not cached. A renderer draws the mesh from its BVH.
-    json failed(const std::string& why) {
-        reasons.push_back(why);
-        return finish("failed");
-    }
-    // Left to another job (lsnif batch --object): neither converted nor decided here.
-    json deferred(const std::string& why) {
-        reasons.push_back(why);
-        return finish("deferred");
-    }
-    json finish(const char* cls) {
-        entry["class"] = cls;
-        entry["reasons"] = reasons;
-        if (!stats.is_null()) entry["stats"] = stats;
-        entry["timings"] = timings;
-        return entry;
     }
 };
 
@@ -141,24 +105,21 @@ struct Trained {
 
 // A model that may ship: a trained rung's fp16 export, or its 8-bit quantization.
 struct Option {
-    std::size_t rung = 0;       // into Sized::rungs: the training it comes from
-    format::ModelData model;    // metadata filled only for the chosen one (encode_asset)
-    json metrics;               // gate() on the held-out rays, as the manifest records them
-    samples::Metrics held_out;  // the same, typed: what decisions read
-    std::uint64_t bytes = 0;    // serialized without metadata
-    bool target_met = false;    // passes the gate and meets --target on held-out rays
-    bool memory_ok = false;     // beats the BVH by ClassifyRule::min_memory_ratio (or forced)
-    double seconds = 0;         // measuring (and, for the fp16 option, training) it
-    std::string outcome;        // chosen and why, or why not (choose_option)
+    std::size_t rung = 0;     // into Sized::rungs: the training it comes from
+    format::ModelData model;  // metadata filled only for the chosen one (encode_asset)
+    HeldOut held_out;         // gate() on the held-out rays
+    std::uint64_t bytes = 0;  // serialized without metadata
+    bool target_met = false;  // passes the gate and meets --target on held-out rays
+    bool memory_ok = false;   // beats the BVH by ClassifyRule::min_memory_ratio (or forced)
+    double seconds = 0;       // measuring (and, for the fp16 option, training) it
+    CandidateOutcome outcome = CandidateOutcome::misses_target;  // chosen and why, or why not (choose_option)
 };
 
 // Every rung tried for a mesh, largest first, and every option they gave.
 struct Sized {
     std::vector<Trained> rungs;
     std::vector<Option> options;        // per rung: fp16, then u8_affine (Sizing::quantize)
-    json candidates = json::array();    // the manifest's "candidates", one per option
     std::optional<std::size_t> chosen;  // into options; none when nothing may ship
-    std::string why;                    // why `chosen` won
 };
 
 // The validation point of a model at `step`: pooled metrics of `rays` through the reader's
@@ -175,44 +136,40 @@ bool resolve_preset(const ConvertOptions& opt, Preset& preset, std::string& erro
 std::string range_problem(const mesh::Box& box);
 
 // Classify: bounds, float range, Embree's BVH size, the table size that beats it and the
-// geometry statistics. Returns nothing when the mesh stays simple (reason recorded).
-// `forced_complex` (--complex) skips the table sizing. Contract: `rec.stats` is set whenever
+// geometry statistics. Returns nothing when the mesh stays simple (decision settled).
+// `forced_complex` (--complex) skips the table sizing. Contract: `out.stats` is set whenever
 // Embree built the mesh.
 std::optional<Candidate> classify(const Run& run, const scene::Mesh& mesh, bool forced_complex,
-                                  MeshRecord& rec);
+                                  MeshOutcome& out);
 
 // Voxelize: the conservative occupancy grid of the candidate's model.
 std::optional<voxelize::Occupancy> voxelize_mesh(const Run& run, const scene::Mesh& mesh, const Candidate& c,
-                                                 MeshRecord& rec);
+                                                 MeshOutcome& out);
 
 // The memory rule: an LSNIF must beat the BVH by min_memory_ratio (unless forced). Records
-// the comparison; false when the mesh stays simple (reason recorded).
-bool worth_an_lsnif(const Run& run, const scene::Mesh& mesh, const Candidate& c, MeshRecord& rec);
+// the comparison; false when the mesh stays simple (decision settled).
+bool worth_an_lsnif(const Run& run, const scene::Mesh& mesh, const Candidate& c, MeshOutcome& out);
 
 // The asset's content key: geometry and every setting that changes the weights. The file
 // is named by its hash, so an unchanged mesh finds its asset again.
 std::string asset_key(const Run& run, const scene::Mesh& mesh, const format::ModelDesc& desc);
 
 // Reuse: the held-out metrics of an existing asset written for exactly this key (as its
-// metadata records them, and the pooled ones read back), or nothing (absent, unreadable,
-// another key, or metrics this version does not write).
-struct Reused {
-    json metrics;
-    samples::FamilyMetrics pooled;
-};
-std::optional<Reused> reusable_metrics(const fs::path& asset, const std::string& key);
+// metadata records them), or nothing (absent, unreadable, another key, or metrics this
+// version does not write).
+std::optional<HeldOut> reusable_metrics(const fs::path& asset, const std::string& key);
 
 // Draws the held-out and validation rays (seeded by the run's seed, not by the rung).
-MeasureRays draw_measure_rays(const Run& run, const scene::Mesh& mesh, Candidate& c, MeshRecord& rec);
+MeasureRays draw_measure_rays(const Run& run, const scene::Mesh& mesh, Candidate& c, MeshOutcome& out);
 
 // Trains `desc` (a rung: the candidate's model with another table size) for at most `steps`
 // steps on streamed rays, checking the validation curve `validation_checks` times: it gives
 // up when the gate is out of reach (EarlyAbort) or when, as a smaller rung, it falls behind
 // `larger` (the previous rung's curve; empty for the first), and stops once the target is
-// met (TargetStop). Timings accumulate in `rec`.
+// met (TargetStop). Timings and training statistics accumulate in `out`.
 Trained train_rung(const Run& run, const scene::Mesh& mesh, Candidate& c, const format::ModelDesc& desc,
                    const voxelize::Occupancy& occ, const MeasureRays& rays, std::uint32_t steps,
-                   std::span<const ValidationPoint> larger, MeshRecord& rec);
+                   std::span<const ValidationPoint> larger, MeshOutcome& out);
 
 // Prune, part 1 (docs/model.md "Inactive neurons"): per hidden layer of `model`, whether
 // each neuron's ReLU output is positive for at least one of `rays` that reaches the network,
@@ -230,26 +187,24 @@ std::vector<std::vector<std::uint8_t>> active_neurons(const format::ModelData& m
 std::vector<std::uint32_t> remove_inactive_neurons(format::ModelData& model,
                                                    const std::vector<std::vector<std::uint8_t>>& active);
 
-// Gate: held-out metrics of the trained model and the verdict, as the manifest records
-// them ({"held_out_rays", "families", "gate": {"passed", "reasons"?}}).
-// `model` is `t`'s fp16 export or its quantization; `t` supplies the training verdicts. The
-// metrics also go to `held_out`, typed, for the decisions that read them.
-json gate(const Run& run, const scene::Mesh& mesh, const format::ModelData& model, const Trained& t,
-          const MeasureRays& rays, samples::Metrics& held_out, MeshRecord& rec);
+// Gate: held-out metrics of the trained model and the verdict. `model` is `t`'s fp16 export
+// or its quantization; `t` supplies the training verdicts (divergence, giving up).
+HeldOut gate(const Run& run, const scene::Mesh& mesh, const format::ModelData& model, const Trained& t,
+             const MeasureRays& rays, MeshOutcome& out);
 
-// The manifest's record of one option: size, encoding, bytes, steps, seconds, held-out
-// metrics, verdicts, outcome, why training stopped and (fp16 option) the rung's curve.
-json candidate_json(const Option& o, const Trained& t);
+// The manifest's record of one option of `of`: size, encoding, bytes, steps, seconds,
+// held-out metrics, verdicts, outcome, why training stopped and (fp16 option) the rung's curve.
+CandidateRecord candidate_record(const Option& o, const Trained& t, std::size_t of);
 
 // Measures `model` (from rung `rung`, trained as `t`) as an option: held-out metrics, the
 // target, serialized bytes and the memory rule.
 Option measure_option(const Run& run, const scene::Mesh& mesh, const Candidate& c, std::size_t rung,
-                      format::ModelData model, const Trained& t, const MeasureRays& rays, MeshRecord& rec);
+                      format::ModelData model, const Trained& t, const MeasureRays& rays, MeshOutcome& out);
 
 // Measures rung `rung` of `sized` in every encoding of rung_encodings() and appends the
 // options to sized.options.
 void add_options(const Run& run, const scene::Mesh& mesh, const Candidate& c, std::size_t rung,
-                 const MeasureRays& rays, Sized& sized, MeshRecord& rec);
+                 const MeasureRays& rays, Sized& sized, MeshOutcome& out);
 
 // The grid encodings each rung is measured in: fp16, and u8_affine when Sizing::quantize.
 std::vector<format::GridEncoding> rung_encodings(const Preset& p);
@@ -260,7 +215,7 @@ std::string option_summary(const Option& o);
 // The ladder (Sizing): trains c.desc, then each smaller table size while the previous one
 // met the target and the preset's step budget has at least as many steps left as it used.
 Sized size_to_target(const Run& run, const scene::Mesh& mesh, Candidate& c, const voxelize::Occupancy& occ,
-                     const MeasureRays& rays, MeshRecord& rec);
+                     const MeasureRays& rays, MeshOutcome& out);
 
 // Picks the smallest option (bytes) that passes the gate and the memory rule and meets the
 // target; else the first rung's smallest option that passes both; else none. Writes every
@@ -277,33 +232,30 @@ format::Result<std::vector<std::uint8_t>> encode_asset(Option& o, const json& me
 
 // Write: the bytes through a temporary file and a rename. Returns the error, if any.
 std::string write_asset(const Run& run, const scene::Mesh& mesh, std::span<const std::uint8_t> bytes,
-                        const fs::path& asset, MeshRecord& rec);
+                        const fs::path& asset, MeshOutcome& out);
 
 // The memory rule on the asset actually chosen: why it does not beat the BVH by
 // ClassifyRule::min_memory_ratio, or an empty string (also for a forced mesh).
 std::string memory_rule_failure(const Run& run, const Candidate& c, std::uint64_t asset_bytes);
 
-// The entry of a mesh whose asset ships (just written, or reused).
-json shipped(const Run& run, json metrics, const samples::FamilyMetrics& pooled, const std::string& file,
-             const fs::path& asset, bool reused, MeshRecord& rec);
+// Settles a mesh whose asset ships (just written, or reused): its metrics, the target's
+// verdict and the file.
+void shipped(const Run& run, HeldOut metrics, const std::string& file, const fs::path& asset, bool reused,
+             MeshOutcome& out);
 
-// The entry of a mesh none of whose rungs passes the gate.
-json below_gate(const json& metrics, bool abandoned, MeshRecord& rec);
+// Settles a mesh none of whose rungs passes the gate (`abandoned`: given up during training).
+void below_gate(const HeldOut& metrics, bool abandoned, MeshOutcome& out);
 
-// The manifest's verdict on the target for one shipped asset: the target and whether it
-// was met ({"visibility", "distance_pct", "normal_deg", "met", "misses"?}).
-json target_json(const Target& target, const std::vector<std::string>& misses);
-
-// A mesh after classification (plan_mesh): decided (it stays BVH; `decided` is its final
-// manifest entry) or a candidate that convert_candidate may still turn into an LSNIF. The
-// scene's memory is counted from these before anything is trained (scene_memory).
+// A mesh after classification (plan_mesh): decided (it stays BVH; `out` is settled) or a
+// candidate that convert_candidate may still turn into an LSNIF. The scene's memory is
+// counted from these before anything is trained.
 struct Planned {
-    const scene::Mesh* mesh = nullptr;  // borrowed from the imported scene, alive for the run
-    std::string source;                 // the input file, as given
-    MeshRecord rec;
+    const scene::Mesh* mesh = nullptr;   // borrowed from the imported scene, alive for the run
+    std::string source;                  // the input file, as given
+    MeshOutcome out;                     // settled once decided
     std::optional<Candidate> candidate;  // a candidate's model and Embree scene
     std::optional<voxelize::Occupancy> occupancy;
-    json decided;                 // the entry of a mesh that stays BVH; null for a candidate
+    bool decided = false;         // stays BVH whatever happens next (`out` settled by the plan)
     std::uint64_t bvh_bytes = 0;  // the mesh's own BVH: what it costs while it stays BVH
     std::uint64_t estimate = 0;   // a candidate's estimated asset bytes (lsnif_bytes_estimate)
     std::string key;              // its cache key once cache_key computed it ("" until then)
@@ -313,18 +265,13 @@ struct Planned {
 // Classification of one mesh (--simple, triangle count, classify, voxelize_mesh,
 // worth_an_lsnif) and the bytes of its BVH. A mesh whose BVH cannot be measured counts 0
 // bytes, with a warning appended to `warnings`.
-Planned plan_mesh(const Run& run, const std::string& source, const scene::Mesh& mesh, MeshRecord rec,
+Planned plan_mesh(const Run& run, const std::string& source, const scene::Mesh& mesh, MeshOutcome out,
                   std::vector<std::string>& warnings);
 
 // A candidate through the remaining stages (reuse, sizing, gate, encoding, memory rule,
-// writing): its manifest entry. In a dry run, the entry of the plan ("complex"). Errors that
+// writing), which settle p.out. In a dry run, the plan (Decision::planned). Errors that
 // concern the run (an asset that could not be written) are appended to `errors`.
-json convert_candidate(const Run& run, Planned& p, std::vector<std::string>& errors);
-
-// What the cache did in a run (the report's "cache").
-struct CacheCounts {
-    std::size_t hits = 0, stored = 0, corrupt = 0;
-};
+void convert_candidate(const Run& run, Planned& p, std::vector<std::string>& errors);
 
 // The cache key of a candidate's result (docs/pipeline.md "Cache keys"): SHA-256 over the
 // build identity, every setting that changes the result (asset_key's, the gate, whether the
@@ -334,10 +281,10 @@ struct CacheCounts {
 // while p.candidate is set.
 const std::string& cache_key(const Run& run, Planned& p);
 
-// convert_candidate through run.cache: a hit restores the stored entry (and writes its
+// convert_candidate through run.cache: a hit restores the stored outcome (and writes its
 // asset into OUTDIR); a miss converts and stores the result; a corrupt entry is reported in
 // `warnings`, converted again and replaced. Without a cache, convert_candidate.
-json convert_cached(const Run& run, Planned& p, std::vector<std::string>& errors,
+void convert_cached(const Run& run, Planned& p, std::vector<std::string>& errors,
                     std::vector<std::string>& warnings, CacheCounts& counts);
 
 // A candidate's estimated conversion time in milliseconds on the reference machine
@@ -350,41 +297,35 @@ std::uint64_t estimated_cost_ms(const Run& run, const Planned& p);
 // assignment, whatever the order of `planned`.
 std::vector<std::uint32_t> shard_owners(const Run& run, std::vector<Planned>& planned);
 
-// Drops from a manifest entry what differs between runs of the same conversion: timings,
-// whether the asset was reused, the candidates' seconds (ConvertOptions::reproducible_manifest).
-void strip_run_dependent(json& entry);
-
 // Order in which candidates (indices into `planned`) are converted: the scene's order, or
 // with a memory budget, forced meshes first, then by estimated BVH bytes saved per asset
 // byte, highest first (ties in scene order).
 std::vector<std::size_t> conversion_order(const std::vector<Planned>& planned, bool budgeted);
 
-// The bytes a mesh costs once its entry is decided: its asset's when it became an LSNIF
-// (the estimate in a dry run), else its BVH's.
-std::uint64_t bytes_after(const Planned& p, const json& entry);
+// The bytes a mesh costs once it is settled: its asset's when it became an LSNIF (the
+// estimate in a dry run), else its BVH's.
+std::uint64_t bytes_after(const Planned& p);
 
-// Every mesh's manifest entry (indexed like `planned`) with its "memory" {before, after}:
+// Every mesh's outcome (indexed like `planned`) with its memory {before, after}:
 // candidates converted in conversion_order() until the scene's total (every mesh once,
 // instances share it) fits run.opt.memory_budget; the ones left stay BVH with the reason.
 // Without a budget every candidate is converted. Releases each candidate's Embree scene
 // once it is done.
-std::vector<json> convert_meshes(const Run& run, std::vector<Planned>& planned,
-                                 std::vector<std::string>& errors, std::vector<std::string>& warnings,
-                                 CacheCounts& counts);
+std::vector<MeshOutcome> convert_meshes(const Run& run, std::vector<Planned>& planned,
+                                        std::vector<std::string>& errors, std::vector<std::string>& warnings,
+                                        CacheCounts& counts);
 
 // Why run.opt.memory_budget cannot be met whatever is converted: it is below the BVH bytes
 // of the meshes that are not candidates. Empty when it can (or when there is no budget).
 std::string unreachable_budget(const Run& run, const std::vector<Planned>& planned);
 
-// The scene's memory from the entries' "memory": {"before", "after"} in bytes, and with a
-// budget {"budget", "fits"}; "estimated" in a dry run.
-json scene_memory(const Run& run, const std::vector<json>& entries);
+// The outcome of mesh k of input `in` before any stage ran: where it is, its counts.
+MeshOutcome new_outcome(const scene::Scene& sc, std::size_t in, std::size_t k, std::size_t id);
 
-// The manifest entry of mesh k of input `in` before any stage ran.
-MeshRecord new_record(const scene::Scene& sc, std::size_t in, std::size_t k, std::size_t id);
-
-// The manifest document (schema/manifest.schema.json).
-json manifest_json(const Run& run, const json& inputs, const json& meshes, const json& instances,
-                   const json& memory);
+// The manifest document (schema/manifest.schema.json); meshes written with `fields`
+// (OutcomeFields::reproducible for ConvertOptions::reproducible_manifest).
+json manifest_json(const Run& run, const std::vector<InputRecord>& inputs,
+                   const std::vector<MeshOutcome>& meshes, const json& instances, const SceneMemory& memory,
+                   OutcomeFields fields);
 
 }  // namespace lsnif::converter::stages

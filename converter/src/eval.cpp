@@ -112,7 +112,7 @@ struct EvalScene::Impl {
     bool open_device(std::string& error);
     // Uploads one source mesh to its own Embree scene (measuring its BVH bytes) and opens
     // its shipped asset when the manifest gives one.
-    bool add_mesh(const scene::Mesh& sm, const json& manifest_mesh, const fs::path& outdir,
+    bool add_mesh(const scene::Mesh& sm, const MeshOutcome& outcome, const fs::path& outdir,
                   lsnif_arithmetic arithmetic, std::string& error);
     // Instance i of the manifest (opt.instance_transforms may override its placement) into
     // the reference scene, and into the hybrid one unless its mesh is traced as an LSNIF.
@@ -296,11 +296,11 @@ void EvalScene::occluded(bool hybrid, std::span<const lsnif_ray> rays, std::span
 namespace {
 
 // The source scene of every input that converted; an input that failed in convert
-// ("status" other than "ok") contributed no meshes and stays empty.
+// (InputRecord::error) contributed no meshes and stays empty.
 bool import_sources(const LoadedManifest& loaded, std::vector<scene::Scene>& scenes, std::string& error) {
     scenes.assign(loaded.sources.size(), {});
     for (std::size_t s = 0; s < loaded.sources.size(); ++s) {
-        if (loaded.doc["inputs"][s].value("status", "") != "ok") continue;
+        if (!loaded.inputs[s].ok()) continue;
         auto r = scene::import_scene(loaded.sources[s]);
         if (!r.ok()) {
             error = loaded.path.string() + ": input " + std::to_string(s) + ": " + r.error;
@@ -348,7 +348,7 @@ bool EvalScene::Impl::open_device(std::string& error) {
     return true;
 }
 
-bool EvalScene::Impl::add_mesh(const scene::Mesh& sm, const json& mj, const fs::path& outdir,
+bool EvalScene::Impl::add_mesh(const scene::Mesh& sm, const MeshOutcome& mo, const fs::path& outdir,
                                lsnif_arithmetic arithmetic, std::string& error) {
     Mesh m;
     m.name = sm.name;
@@ -376,8 +376,8 @@ bool EvalScene::Impl::add_mesh(const scene::Mesh& sm, const json& mj, const fs::
     rtcReleaseGeometry(g);
     rtcCommitScene(m.scene);
     m.bvh_bytes = memory - before;
-    if (mj.value("class", "") == "complex" && mj.contains("lsnif") && mj["lsnif"].contains("file")) {
-        const fs::path asset = outdir / mj["lsnif"]["file"].get<std::string>();
+    if (mo.cls() == MeshClass::complex && mo.asset) {
+        const fs::path asset = outdir / mo.asset->file;
         lsnif_error err{};
         if (lsnif_open_file(asset.c_str(), &m.model, &err) != LSNIF_OK) {
             error = asset.string() + ": cannot open the asset: " + lsnif_status_string(err.status) + " (" +
@@ -400,11 +400,18 @@ bool EvalScene::Impl::add_mesh(const scene::Mesh& sm, const json& mj, const fs::
 bool EvalScene::Impl::add_instance(std::size_t i, const json& ij, const EvalOptions& opt,
                                    const std::string& manifest_path, std::string& error) {
     Instance in;
-    in.mesh = ij.value("mesh", 0u);
-    if (in.mesh >= meshes.size() || !ij.contains("transform") || ij["transform"].size() != 12) {
+    const auto malformed = [&] {
+        const json& t = ij.is_object() ? ij.value("transform", json()) : json();
+        if (!ij.is_object() || !ij.value("mesh", json()).is_number_unsigned() || !t.is_array() ||
+            t.size() != 12)
+            return true;
+        return std::any_of(t.begin(), t.end(), [](const json& x) { return !x.is_number(); });
+    };
+    if (malformed() || ij["mesh"].get<std::uint64_t>() >= meshes.size()) {
         error = manifest_path + ": instance " + std::to_string(i) + " is malformed";
         return false;
     }
+    in.mesh = ij["mesh"].get<std::uint32_t>();
     for (int k = 0; k < 12; ++k) in.transform[k] = ij["transform"][k].get<float>();
     for (const auto& [which, m] : opt.instance_transforms)
         if (which == i) in.transform = m;
@@ -446,22 +453,20 @@ std::unique_ptr<EvalScene> EvalScene::load(const EvalOptions& opt, std::string& 
     auto impl = std::make_unique<Impl>();
     Impl& im = *impl;
     if (!im.open_device(error)) return nullptr;
-    for (const json& mj : loaded.doc["meshes"]) {
-        const std::size_t input = mj.value("input", std::size_t(0)),
-                          src = mj.value("source_mesh", std::size_t(0));
+    for (const MeshOutcome& mo : loaded.meshes) {
+        const std::size_t input = mo.input, src = mo.source_mesh;
         if (input >= scenes.size() || src >= scenes[input].meshes.size()) {
-            error = manifest_path + ": mesh '" + mj.value("name", "") + "' refers to input " +
-                    std::to_string(input) + " mesh " + std::to_string(src) +
-                    ", which the source does not have";
+            error = manifest_path + ": mesh '" + mo.name + "' refers to input " + std::to_string(input) +
+                    " mesh " + std::to_string(src) + ", which the source does not have";
             return nullptr;
         }
         const scene::Mesh& sm = scenes[input].meshes[src];
-        if (scene::geometry_hash(sm) != mj.value("geometry_hash", "")) {
+        if (scene::geometry_hash(sm) != mo.geometry_hash) {
             error = loaded.sources[input] + ": mesh '" + sm.name +
                     "' differs from the converted geometry (geometry hash mismatch): re-run lsnif convert";
             return nullptr;
         }
-        if (!im.add_mesh(sm, mj, opt.outdir, opt.arithmetic, error)) return nullptr;
+        if (!im.add_mesh(sm, mo, opt.outdir, opt.arithmetic, error)) return nullptr;
     }
     im.reference = rtcNewScene(im.device);
     im.hybrid = rtcNewScene(im.device);

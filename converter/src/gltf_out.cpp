@@ -218,19 +218,19 @@ std::string kept_document(const GltfSource& source, const fs::path& outdir, json
     return {};
 }
 
-// Every manifest mesh shipped as an LSNIF gets the extension on its glTF mesh.
-void tag_meshes(json& doc, const MeshIndex& index, const json& manifest) {
+// Every mesh shipped as an LSNIF gets the extension on its glTF mesh.
+void tag_meshes(json& doc, const MeshIndex& index, const std::vector<MeshOutcome>& meshes) {
     bool any = false;
-    for (const json& m : manifest.at("meshes")) {
-        if (!m.contains("lsnif")) continue;
-        const auto it = index.find({m["input"].get<std::size_t>(), m["source_mesh"].get<std::size_t>()});
+    for (const MeshOutcome& m : meshes) {
+        if (!m.asset || !m.held_out) continue;
+        const auto it = index.find({std::size_t(m.input), std::size_t(m.source_mesh)});
         if (it == index.end() || it->second >= doc["meshes"].size()) continue;
         doc["meshes"][it->second]["extensions"][kGltfExtension] = {
-            {"uri", percent_encoded(m["lsnif"]["file"].get<std::string>())},
-            {"byteLength", m["lsnif"]["bytes"]},
-            {"geometryHash", m["geometry_hash"]},
-            {"manifestMesh", m["id"]},
-            {"heldOutVisibility", m["metrics"]["families"]["pooled"]["visibility_accuracy"]}};
+            {"uri", percent_encoded(m.asset->file)},
+            {"byteLength", m.asset->bytes},
+            {"geometryHash", m.geometry_hash},
+            {"manifestMesh", m.id},
+            {"heldOutVisibility", m.held_out->metrics.pooled.visibility_accuracy}};
         any = true;
     }
     if (!any) return;
@@ -249,7 +249,7 @@ bool is_gltf_path(const std::string& path) {
 }  // namespace
 
 std::string write_scene_gltf(const fs::path& outdir, const std::vector<GltfSource>& sources,
-                             const json& manifest) {
+                             const std::vector<MeshOutcome>& meshes) {
     json doc;
     std::vector<std::uint8_t> bin;
     MeshIndex index;
@@ -258,7 +258,7 @@ std::string write_scene_gltf(const fs::path& outdir, const std::vector<GltfSourc
     } else {
         doc = built_document(sources, bin, index);
     }
-    tag_meshes(doc, index, manifest);
+    tag_meshes(doc, index, meshes);
     if (!bin.empty())
         if (const format::Error e = format::write_bytes_atomically((outdir / "scene.bin").string(), bin))
             return e.message;

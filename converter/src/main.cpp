@@ -436,22 +436,22 @@ struct MergeCommand {
             nlohmann::json summary = {{"shards", shards}, {"output", outdir}, {"errors", r.errors}};
             if (r.errors.empty()) {
                 summary["manifest"] = outdir + "/manifest.json";
-                summary["meshes"] = r.manifest["meshes"].size();
+                summary["meshes"] = r.meshes.size();
                 summary["scene_memory"] = r.manifest["scene_memory"];
             }
             std::cout << summary.dump(2) << "\n";
         }
         if (!r.errors.empty()) return 1;
         if (!junit.empty()) {
-            if (const auto e = lsnif::format::write_text_atomically(
-                    junit, lsnif::converter::manifest_junit_xml(r.manifest))) {
+            if (const auto e =
+                    lsnif::format::write_text_atomically(junit, lsnif::converter::merge_junit_xml(r))) {
                 std::fprintf(stderr, "error: %s\n", e.message.c_str());
                 return 1;
             }
         }
         if (!json)
-            std::cout << "merged " << shards.size() << " shards: " << r.manifest["meshes"].size()
-                      << " meshes into " << outdir << "/manifest.json\n";
+            std::cout << "merged " << shards.size() << " shards: " << r.meshes.size() << " meshes into "
+                      << outdir << "/manifest.json\n";
         return 0;
     }
 };

@@ -21,6 +21,35 @@ fs::path physical_location(const fs::path& p, bool is_file) {
     return is_file ? dir / abs.filename() : dir;
 }
 
+// The typed inputs and meshes of out.doc; false (and which field is wrong) for an entry that
+// is not what this lsnif writes.
+bool read_entries(LoadedManifest& out, std::string& error) {
+    const json &inputs = out.doc["inputs"], &meshes = out.doc["meshes"];
+    out.inputs.clear();
+    out.meshes.clear();
+    for (std::size_t i = 0; i < inputs.size(); ++i) {
+        auto in = input_from_json(inputs[i]);
+        if (!in) {
+            error = "inputs[" + std::to_string(i) + "]." + in.error();
+            return false;
+        }
+        out.inputs.push_back(std::move(*in));
+    }
+    for (std::size_t i = 0; i < meshes.size(); ++i) {
+        auto m = outcome_from_json(meshes[i]);
+        if (!m) {
+            error = "meshes[" + std::to_string(i) + "]." + m.error();
+            return false;
+        }
+        if (m->input >= out.inputs.size()) {
+            error = "meshes[" + std::to_string(i) + "].input: no input " + std::to_string(m->input);
+            return false;
+        }
+        out.meshes.push_back(std::move(*m));
+    }
+    return true;
+}
+
 }  // namespace
 
 std::string write_manifest(const fs::path& outdir, const nlohmann::json& manifest) {
@@ -66,6 +95,10 @@ bool load_manifest(const fs::path& outdir, const std::vector<std::string>& sourc
             return false;
         }
     const json& inputs = out.doc["inputs"];
+    if (!read_entries(out, error)) {
+        error = where + ": " + error;
+        return false;
+    }
     if (!sources.empty()) {
         if (sources.size() != inputs.size()) {
             error = where + ": the conversion had " + std::to_string(inputs.size()) +
@@ -76,14 +109,13 @@ bool load_manifest(const fs::path& outdir, const std::vector<std::string>& sourc
         return true;
     }
     out.sources.clear();
-    for (std::size_t i = 0; i < inputs.size(); ++i) {
-        const json& p = inputs[i].is_object() ? inputs[i].value("path", json()) : json();
-        if (!p.is_string() || p.get<std::string>().empty()) {
+    for (std::size_t i = 0; i < out.inputs.size(); ++i) {
+        if (out.inputs[i].path.empty()) {
             error = where + ": input " + std::to_string(i) + " has no path";
             return false;
         }
         // operator/ keeps an absolute right-hand side as it is: the rule's one exception.
-        out.sources.push_back((outdir / p.get<std::string>()).string());
+        out.sources.push_back((outdir / out.inputs[i].path).string());
     }
     return true;
 }

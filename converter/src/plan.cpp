@@ -91,7 +91,7 @@ std::string range_problem(const mesh::Box& box) {
 }
 
 std::optional<Candidate> classify(const Run& run, const scene::Mesh& mesh, bool forced_complex,
-                                  MeshRecord& rec) {
+                                  MeshOutcome& out) {
     const auto t0 = Clock::now();
     run.report({mesh.name, "classify"});
     Candidate c;
@@ -100,12 +100,12 @@ std::optional<Candidate> classify(const Run& run, const scene::Mesh& mesh, bool 
     c.view = view_of(mesh);
     auto box = voxelize::padded_box(c.view);
     if (!box) {
-        rec.reasons.push_back("cannot bound the mesh: " + box.error().message);
+        out.settle(Decision::not_modelable, "cannot bound the mesh: " + box.error().message);
         return std::nullopt;
     }
     c.box = *box;
     if (std::string why = range_problem(c.box); !why.empty()) {
-        rec.reasons.push_back(why);
+        out.settle(Decision::not_modelable, why);
         return std::nullopt;
     }
     c.desc = run.preset.model;
@@ -116,7 +116,7 @@ std::optional<Candidate> classify(const Run& run, const scene::Mesh& mesh, bool 
     std::string serr;
     c.source = sampling::EmbreeSource::create(c.view, c.box, scfg, serr);
     if (!c.source) {
-        rec.reasons.push_back("Embree could not build the mesh: " + serr);
+        out.settle(Decision::not_modelable, "Embree could not build the mesh: " + serr);
         return std::nullopt;
     }
     const std::uint64_t bvh = c.source->bvh_bytes();
@@ -130,36 +130,37 @@ std::optional<Candidate> classify(const Run& run, const scene::Mesh& mesh, bool 
     const double ext[3] = {double(c.box.max[0]) - c.box.min[0], double(c.box.max[1]) - c.box.min[1],
                            double(c.box.max[2]) - c.box.min[2]};
     const double box_area = 2 * (ext[0] * ext[1] + ext[1] * ext[2] + ext[0] * ext[2]);
-    rec.stats = {{"box_min", vec3(c.box.min)},
-                 {"box_max", vec3(c.box.max)},
-                 {"area_ratio", surface_area(mesh) / box_area},
-                 {"components", count_components(mesh)},
-                 {"closed", c.source->is_closed()},
-                 {"solid", c.source->rejects_interior()},
-                 {"log2_table_size", c.desc.log2_table_size},
-                 {"bvh_bytes", bvh},
-                 {"lsnif_bytes_estimate", lsnif_bytes_estimate(c.desc, smallest_encoding(run.preset))}};
-    rec.timings["classify"] = seconds_since(t0);
+    MeshStats& stats = out.stats.emplace();
+    stats.box_min = c.box.min;
+    stats.box_max = c.box.max;
+    stats.area_ratio = surface_area(mesh) / box_area;
+    stats.components = count_components(mesh);
+    stats.closed = c.source->is_closed();
+    stats.solid = c.source->rejects_interior();
+    stats.log2_table_size = c.desc.log2_table_size;
+    stats.bvh_bytes = bvh;
+    stats.lsnif_bytes_estimate = lsnif_bytes_estimate(c.desc, smallest_encoding(run.preset));
+    out.timings.add(Stage::classify, seconds_since(t0));
     return c;
 }
 
 std::optional<voxelize::Occupancy> voxelize_mesh(const Run& run, const scene::Mesh& mesh, const Candidate& c,
-                                                 MeshRecord& rec) {
+                                                 MeshOutcome& out) {
     const auto t0 = Clock::now();
     run.report({mesh.name, "voxelize"});
     voxelize::Options vopt;
     vopt.threads = run.threads;
     auto occ = voxelize::voxelize(c.view, c.box, c.desc.grid_resolution, vopt);
     if (!occ) {
-        rec.reasons.push_back("voxelization failed: " + occ.error().message);
+        out.settle(Decision::voxelization_failed, "voxelization failed: " + occ.error().message);
         return std::nullopt;
     }
-    rec.stats["occupied_fraction"] = double(occ->count()) / double(c.desc.voxel_count());
-    rec.timings["voxelize"] = seconds_since(t0);
+    out.stats->occupied_fraction = double(occ->count()) / double(c.desc.voxel_count());
+    out.timings.add(Stage::voxelize, seconds_since(t0));
     return std::move(*occ);
 }
 
-bool worth_an_lsnif(const Run& run, const scene::Mesh& mesh, const Candidate& c, MeshRecord& rec) {
+bool worth_an_lsnif(const Run& run, const scene::Mesh& mesh, const Candidate& c, MeshOutcome& out) {
     const std::uint64_t bvh = c.source->bvh_bytes(),
                         est = lsnif_bytes_estimate(c.desc, smallest_encoding(run.preset));
     const double ratio = double(bvh) / double(est);
@@ -167,19 +168,19 @@ bool worth_an_lsnif(const Run& run, const scene::Mesh& mesh, const Candidate& c,
     char why[200];
     std::snprintf(why, sizeof why, "Embree BVH %" PRIu64 " bytes vs LSNIF %" PRIu64 " bytes (%.2fx)", bvh,
                   est, ratio);
-    rec.reasons.push_back(why);
+    out.reasons.push_back(why);
     if (!c.forced && ratio < rule.min_memory_ratio) {
         std::snprintf(why, sizeof why, "memory benefit %.2fx below the %.2fx threshold", ratio,
                       rule.min_memory_ratio);
-        rec.reasons.push_back(why);
+        out.settle(Decision::no_memory_benefit, why);
         return false;
     }
     if (c.forced)
-        rec.reasons.push_back("forced complex by --complex " + mesh.name);
+        out.reasons.push_back("forced complex by --complex " + mesh.name);
     else
-        rec.reasons.push_back(std::to_string(mesh.triangle_count()) + " triangles");
+        out.reasons.push_back(std::to_string(mesh.triangle_count()) + " triangles");
     if (c.desc.log2_table_size != run.preset.model.log2_table_size)
-        rec.reasons.push_back("hash tables sized to 2^" + std::to_string(c.desc.log2_table_size) +
+        out.reasons.push_back("hash tables sized to 2^" + std::to_string(c.desc.log2_table_size) +
                               " rows (preset 2^" + std::to_string(run.preset.model.log2_table_size) +
                               ") to beat the BVH's memory");
     return true;
@@ -195,30 +196,34 @@ std::string memory_rule_failure(const Run& run, const Candidate& c, std::uint64_
     return why;
 }
 
-// The classification half of plan_mesh: the entry of a mesh that stays BVH, or null for
-// a candidate (p.candidate and p.occupancy set).
-json plan_decision(const Run& run, const scene::Mesh& mesh, Planned& p) {
-    MeshRecord& rec = p.rec;
-    if (run.forced(run.opt.force_simple, mesh.name))
-        return rec.simple("forced simple by --simple " + mesh.name);
+// The classification half of plan_mesh: whether the mesh stays BVH whatever happens next
+// (p.out settled), else a candidate (p.candidate and p.occupancy set).
+bool plan_decision(const Run& run, const scene::Mesh& mesh, Planned& p) {
+    MeshOutcome& out = p.out;
+    if (run.forced(run.opt.force_simple, mesh.name)) {
+        out.settle(Decision::forced_simple, "forced simple by --simple " + mesh.name);
+        return true;
+    }
     const ClassifyRule& rule = run.preset.classify;
     const bool forced_complex = run.forced(run.opt.force_complex, mesh.name);
-    if (mesh.triangle_count() < rule.min_triangles && !forced_complex)
-        return rec.simple(std::to_string(mesh.triangle_count()) + " triangles < " +
-                          std::to_string(rule.min_triangles) + ": a BVH is small and exact");
-    p.candidate = classify(run, mesh, forced_complex, rec);
-    if (!p.candidate) return rec.finish("simple");
-    p.occupancy = voxelize_mesh(run, mesh, *p.candidate, rec);
-    if (!p.occupancy || !worth_an_lsnif(run, mesh, *p.candidate, rec)) return rec.finish("simple");
-    return nullptr;
+    if (mesh.triangle_count() < rule.min_triangles && !forced_complex) {
+        out.settle(Decision::few_triangles, std::to_string(mesh.triangle_count()) + " triangles < " +
+                                                std::to_string(rule.min_triangles) +
+                                                ": a BVH is small and exact");
+        return true;
+    }
+    p.candidate = classify(run, mesh, forced_complex, out);
+    if (!p.candidate) return true;
+    p.occupancy = voxelize_mesh(run, mesh, *p.candidate, out);
+    return !p.occupancy || !worth_an_lsnif(run, mesh, *p.candidate, out);
 }
 
-Planned plan_mesh(const Run& run, const std::string& source, const scene::Mesh& mesh, MeshRecord rec,
+Planned plan_mesh(const Run& run, const std::string& source, const scene::Mesh& mesh, MeshOutcome out,
                   std::vector<std::string>& warnings) {
     Planned p;
     p.mesh = &mesh;
     p.source = source;
-    p.rec = std::move(rec);
+    p.out = std::move(out);
     p.decided = plan_decision(run, mesh, p);
     if (p.candidate && p.candidate->source) {
         p.bvh_bytes = p.candidate->source->bvh_bytes();
@@ -230,7 +235,7 @@ Planned plan_mesh(const Run& run, const std::string& source, const scene::Mesh& 
             warnings.push_back(source + ": mesh '" + mesh.name +
                                "': its BVH could not be measured (counted as 0 bytes): " + error);
     }
-    if (p.decided.is_null()) {
+    if (!p.decided) {
         p.estimate = lsnif_bytes_estimate(p.candidate->desc, smallest_encoding(run.preset));
     } else {
         p.candidate.reset();  // a mesh that stays BVH needs no Embree scene any more
@@ -247,7 +252,7 @@ double saving_per_byte(const Planned& p) {
 std::vector<std::size_t> conversion_order(const std::vector<Planned>& planned, bool budgeted) {
     std::vector<std::size_t> order;
     for (std::size_t i = 0; i < planned.size(); ++i)
-        if (planned[i].decided.is_null()) order.push_back(i);
+        if (!planned[i].decided) order.push_back(i);
     if (budgeted)
         std::stable_sort(order.begin(), order.end(), [&](std::size_t a, std::size_t b) {
             if (planned[a].forced() != planned[b].forced()) return planned[a].forced();
@@ -256,9 +261,9 @@ std::vector<std::size_t> conversion_order(const std::vector<Planned>& planned, b
     return order;
 }
 
-std::uint64_t bytes_after(const Planned& p, const json& entry) {
-    if (entry.value("class", "") != "complex") return p.bvh_bytes;
-    if (entry.contains("lsnif")) return entry["lsnif"]["bytes"].get<std::uint64_t>();
+std::uint64_t bytes_after(const Planned& p) {
+    if (p.out.cls() != MeshClass::complex) return p.bvh_bytes;
+    if (p.out.asset) return p.out.asset->bytes;
     return p.estimate;  // a dry run's plan
 }
 
@@ -282,7 +287,7 @@ std::vector<std::uint32_t> shard_owners(const Run& run, std::vector<Planned>& pl
     };
     std::vector<Job> jobs;
     for (std::size_t i = 0; i < planned.size(); ++i)
-        if (planned[i].decided.is_null())
+        if (!planned[i].decided)
             jobs.push_back({estimated_cost_ms(run, planned[i]), cache_key(run, planned[i]), i});
     std::sort(jobs.begin(), jobs.end(),
               [](const Job& a, const Job& b) { return a.cost != b.cost ? a.cost > b.cost : a.key < b.key; });
@@ -293,21 +298,6 @@ std::vector<std::uint32_t> shard_owners(const Run& run, std::vector<Planned>& pl
         owner[j.index] = std::uint32_t(least) + 1;
     }
     return owner;
-}
-
-json scene_memory(const Run& run, const std::vector<json>& entries) {
-    std::uint64_t before = 0, after = 0;
-    for (const json& e : entries) {
-        before += e["memory"]["before"].get<std::uint64_t>();
-        after += e["memory"]["after"].get<std::uint64_t>();
-    }
-    json j = {{"before", before}, {"after", after}};
-    if (run.opt.memory_budget > 0) {
-        j["budget"] = run.opt.memory_budget;
-        j["fits"] = after <= run.opt.memory_budget;
-    }
-    if (run.opt.dry_run) j["estimated"] = true;
-    return j;
 }
 
 }  // namespace stages

@@ -26,11 +26,38 @@ std::string human_bytes(std::uint64_t bytes) {
 }
 
 // "BVH 84.1 MiB -> 406.2 KiB": a mesh's or the scene's memory before and after conversion.
-std::string memory_text(const json& memory) {
-    const std::uint64_t before = memory["before"].get<std::uint64_t>(),
-                        after = memory["after"].get<std::uint64_t>();
-    return human_bytes(before) + " -> " + human_bytes(after) +
-           (memory.value("estimated", false) ? " (est.)" : "");
+std::string memory_text(std::uint64_t before, std::uint64_t after, bool estimated) {
+    return human_bytes(before) + " -> " + human_bytes(after) + (estimated ? " (est.)" : "");
+}
+
+// The lines of a shipped mesh after its summary: target, early stop, each family's metrics.
+std::string shipped_text(const MeshOutcome& m) {
+    std::string s;
+    char buf[512];
+    const samples::FamilyMetrics& p = m.held_out->metrics.pooled;
+    std::snprintf(buf, sizeof buf, "  %s  vis %.2f%%  dist %.3f%%  normal %.1f deg%s", m.asset->file.c_str(),
+                  100 * p.visibility_accuracy, p.distance_median_pct, p.normal_median_deg,
+                  m.asset->reused.value_or(false) ? " (reused)" : "");
+    s += buf;
+    if (m.target && !m.target->misses.empty())
+        s += "\n           target missed, gate passed: " + m.target->misses[0];
+    if (m.stopped_early) {
+        std::snprintf(buf, sizeof buf,
+                      "\n           trained %u of %u steps: the validation curve met the target",
+                      m.stopped_early->step, m.stopped_early->steps);
+        s += buf;
+    }
+    for (int f = 0; f < samples::kFamilyCount; ++f) {
+        const samples::FamilyMetrics& x = m.held_out->metrics.family[f];
+        std::snprintf(buf, sizeof buf,
+                      "\n           %-8s vis %.2f%%  dist %.3f%% (p95 %.2f%%)  normal %.1f deg (p95 "
+                      "%.1f)  culled %.0f%%",
+                      samples::family_name(samples::Family(f)), 100 * x.visibility_accuracy,
+                      x.distance_median_pct, x.distance_p95_pct, x.normal_median_deg, x.normal_p95_deg,
+                      100 * x.culled_fraction);
+        s += buf;
+    }
+    return s;
 }
 
 }  // namespace
@@ -38,64 +65,33 @@ std::string memory_text(const json& memory) {
 std::string convert_text(const ConvertResult& r) {
     std::string s;
     char buf[512];
-    if (!r.report.contains("meshes")) return s;
-    for (const json& m : r.report["meshes"]) {
+    if (r.inputs.empty()) return s;  // nothing was imported (the options were refused)
+    for (const MeshOutcome& m : r.meshes) {
+        const std::string memory =
+            m.memory ? memory_text(m.memory->before, m.memory->after, m.memory->estimated) : std::string();
         std::snprintf(buf, sizeof buf, "%-8s %-24s %9" PRIu64 " tris  x%-3" PRIu64 "  %-28s",
-                      m["class"].get<std::string>().c_str(),
-                      m["name"].get<std::string>().substr(0, 24).c_str(), m["triangles"].get<std::uint64_t>(),
-                      m.value("instances", std::uint64_t(0)),
-                      m.contains("memory") ? memory_text(m["memory"]).c_str() : "");
+                      std::string(class_name(m.cls())).c_str(), m.name.substr(0, 24).c_str(), m.triangles,
+                      m.instances, memory.c_str());
         s += buf;
-        if (m.contains("lsnif")) {
-            const json& p = m["metrics"]["families"]["pooled"];
-            std::snprintf(
-                buf, sizeof buf, "  %s  vis %.2f%%  dist %.3f%%  normal %.1f deg%s",
-                m["lsnif"]["file"].get<std::string>().c_str(), 100 * p["visibility_accuracy"].get<double>(),
-                p["distance_error_median_pct"].get<double>(), p["normal_error_median_deg"].get<double>(),
-                m["lsnif"]["reused"].get<bool>() ? " (reused)" : "");
-            s += buf;
-            if (m.contains("target") && !m["target"]["met"].get<bool>())
-                s +=
-                    "\n           target missed, gate passed: " + m["target"]["misses"][0].get<std::string>();
-            if (m.contains("stopped_early")) {
-                std::snprintf(buf, sizeof buf,
-                              "\n           trained %u of %u steps: the validation curve met the target",
-                              m["stopped_early"]["step"].get<unsigned>(),
-                              m["stopped_early"]["steps"].get<unsigned>());
-                s += buf;
-            }
-            const json& fam = m["metrics"]["families"];
-            for (const char* f : {"outside", "surface", "interior"}) {
-                std::snprintf(buf, sizeof buf,
-                              "\n           %-8s vis %.2f%%  dist %.3f%% (p95 %.2f%%)  normal %.1f deg (p95 "
-                              "%.1f)  culled %.0f%%",
-                              f, 100 * fam[f]["visibility_accuracy"].get<double>(),
-                              fam[f]["distance_error_median_pct"].get<double>(),
-                              fam[f]["distance_error_p95_pct"].get<double>(),
-                              fam[f]["normal_error_median_deg"].get<double>(),
-                              fam[f]["normal_error_p95_deg"].get<double>(),
-                              100 * fam[f]["culled_fraction"].get<double>());
-                s += buf;
-            }
-        } else if (!m["reasons"].empty()) {
-            s += "  " + m["reasons"].back().get<std::string>();
-        }
+        if (m.asset)
+            s += shipped_text(m);
+        else if (!m.reasons.empty())
+            s += "  " + m.reasons.back();
         s += "\n";
     }
-    std::snprintf(buf, sizeof buf, "%zu meshes, %" PRIu64 " instances\n", r.report["meshes"].size(),
-                  r.report["instances"].get<std::uint64_t>());
+    std::snprintf(buf, sizeof buf, "%zu meshes, %zu instances\n", r.meshes.size(), r.instances);
     s += buf;
-    if (r.report.contains("scene_memory")) {
-        const json& mem = r.report["scene_memory"];
-        s += "scene memory (each mesh once): " + memory_text(mem);
-        if (mem.contains("budget"))
-            s += std::string(", budget ") + human_bytes(mem["budget"].get<std::uint64_t>()) +
-                 (mem["fits"].get<bool>() ? ": fits" : ": over budget");
+    if (r.memory) {
+        s += "scene memory (each mesh once): " +
+             memory_text(r.memory->before, r.memory->after, r.memory->estimated);
+        if (r.memory->budget)
+            s += ", budget " + human_bytes(*r.memory->budget) +
+                 (r.memory->fits() ? ": fits" : ": over budget");
         s += "\n";
     }
-    if (r.report.contains("manifest")) s += "manifest: " + r.report["manifest"].get<std::string>() + "\n";
-    if (r.report.contains("gltf")) s += "glTF: " + r.report["gltf"].get<std::string>() + "\n";
-    if (r.report.value("dry_run", false)) s += "dry run: nothing written\n";
+    if (!r.manifest_path.empty()) s += "manifest: " + r.manifest_path + "\n";
+    if (!r.gltf_path.empty()) s += "glTF: " + r.gltf_path + "\n";
+    if (r.dry_run) s += "dry run: nothing written\n";
     return s;
 }
 

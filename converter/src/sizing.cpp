@@ -84,21 +84,20 @@ std::string asset_key(const Run& run, const scene::Mesh& mesh, const format::Mod
            mesh_settings_key(run.opt);
 }
 
-std::optional<Reused> reusable_metrics(const fs::path& asset, const std::string& key) {
+std::optional<HeldOut> reusable_metrics(const fs::path& asset, const std::string& key) {
     std::error_code ec;
     if (!fs::exists(asset, ec)) return std::nullopt;
     auto bytes = format::read_file_bytes(asset.string());
     if (!bytes) return std::nullopt;
     auto model = format::read_model(*bytes);
     if (!model) return std::nullopt;
-    json meta = json::parse(model->metadata_json, nullptr, false);
-    if (!meta.is_object() || !meta.contains("metrics") || !meta["metrics"].contains("gate") ||
-        meta.value("extensions", json::object()).value("lsnif_convert_key", "") != key)
+    const json meta = json::parse(model->metadata_json, nullptr, false);
+    if (!meta.is_object() || !meta.contains("extensions") || !meta["extensions"].is_object() ||
+        meta["extensions"].value("lsnif_convert_key", json()) != key || !meta.contains("metrics"))
         return std::nullopt;
-    const json& families = meta["metrics"].value("families", json());
-    const auto pooled = family_from_json(families.is_object() ? families.value("pooled", json()) : json());
-    if (!pooled) return std::nullopt;  // not metrics this version writes: convert again
-    return Reused{meta["metrics"], *pooled};
+    auto metrics = held_out_from_json(meta["metrics"]);
+    if (!metrics) return std::nullopt;  // not metrics this version writes: convert again
+    return std::move(*metrics);
 }
 
 ValidationPoint validation_point(std::uint32_t step, const format::ModelData& model,
@@ -107,7 +106,7 @@ ValidationPoint validation_point(std::uint32_t step, const format::ModelData& mo
     return {step, m.pooled.visibility_accuracy, m.pooled.distance_median_pct, m.pooled.normal_median_deg};
 }
 
-MeasureRays draw_measure_rays(const Run& run, const scene::Mesh& mesh, Candidate& c, MeshRecord& rec) {
+MeasureRays draw_measure_rays(const Run& run, const scene::Mesh& mesh, Candidate& c, MeshOutcome& out) {
     const auto t0 = Clock::now();
     run.report({mesh.name, "sample"});
     MeasureRays rays;
@@ -117,13 +116,13 @@ MeasureRays draw_measure_rays(const Run& run, const scene::Mesh& mesh, Candidate
     for (std::size_t i = 0; i < extras.size(); ++i)
         rays.held_out_geometric_normals[i] = extras[i].geometric_normal;
     c.source->generate(run.opt.seed * 2 + 1 + 0x27d4eb2full, run.preset.validation_rays, rays.validation);
-    rec.add_seconds("sample", seconds_since(t0));
+    out.timings.add(Stage::sample, seconds_since(t0));
     return rays;
 }
 
 Trained train_rung(const Run& run, const scene::Mesh& mesh, Candidate& c, const format::ModelDesc& desc,
                    const voxelize::Occupancy& occ, const MeasureRays& rays, std::uint32_t steps,
-                   std::span<const ValidationPoint> larger, MeshRecord& rec) {
+                   std::span<const ValidationPoint> larger, MeshOutcome& out) {
     const auto t0 = Clock::now();
     Trained t;
     t.config = run.preset.train;
@@ -182,77 +181,77 @@ Trained train_rung(const Run& run, const scene::Mesh& mesh, Candidate& c, const 
         return true;
     });
     const trainer::StreamedResult& st = t.stream;
-    rec.stats["mean_occupied_per_ray"] = st.rays_reaching ? st.entry_points / double(st.rays_reaching) : 0.0;
-    rec.stats["training_rays"] = rec.stats.value("training_rays", std::uint64_t(0)) + st.rays_drawn;
-    rec.add_seconds("sample", st.generate_seconds);
-    rec.add_seconds("prepare", st.prepare_seconds);
-    rec.add_seconds("train", st.train.seconds - validation_seconds);
-    rec.add_seconds("validate", validation_seconds);
+    out.stats->mean_occupied_per_ray = st.rays_reaching ? st.entry_points / double(st.rays_reaching) : 0.0;
+    out.stats->training_rays = out.stats->training_rays.value_or(0) + st.rays_drawn;
+    out.timings.add(Stage::sample, st.generate_seconds);
+    out.timings.add(Stage::prepare, st.prepare_seconds);
+    out.timings.add(Stage::train, st.train.seconds - validation_seconds);
+    out.timings.add(Stage::validate, validation_seconds);
     t.model = tr.export_model("{}");
     if (p.prune_inactive) {
         const auto tp = Clock::now();
         t.pruned = remove_inactive_neurons(t.model, active_neurons(t.model, rays.validation, run.threads));
-        rec.add_seconds("prune", seconds_since(tp));
+        out.timings.add(Stage::prune, seconds_since(tp));
     }
     t.seconds = seconds_since(t0);
     return t;
 }
 
-json gate(const Run& run, const scene::Mesh& mesh, const format::ModelData& model, const Trained& t,
-          const MeasureRays& rays, samples::Metrics& m, MeshRecord& rec) {
+HeldOut gate(const Run& run, const scene::Mesh& mesh, const format::ModelData& model, const Trained& t,
+             const MeasureRays& rays, MeshOutcome& out) {
     const auto t0 = Clock::now();
     run.report({mesh.name, "evaluate"});
     const format::Runtime rt = format::make_runtime(model);
-    m = samples::held_out_metrics(rt, rays.held_out, run.threads, rays.held_out_geometric_normals);
-    json metrics = {{"held_out_rays", rays.held_out.size()}, {"families", metrics_json(m)}};
-    std::vector<std::string> reasons = gate_failures(m, run.preset.gate);
+    HeldOut h;
+    h.rays = rays.held_out.size();
+    h.metrics = samples::held_out_metrics(rt, rays.held_out, run.threads, rays.held_out_geometric_normals);
+    std::vector<std::string>& reasons = h.gate.reasons;
+    reasons = gate_failures(h.metrics, run.preset.gate);
     if (t.stream.train.diverged) reasons.push_back(t.stream.train.message);
     for (const std::string& why : t.abandoned)
         reasons.push_back("training given up at step " + std::to_string(t.abandoned_at) + " of " +
                           std::to_string(t.config.steps) + ": " + why);
-    json verdict = {{"passed", reasons.empty()}};
-    if (!reasons.empty()) verdict["reasons"] = reasons;
-    metrics["gate"] = verdict;
-    rec.add_seconds("evaluate", seconds_since(t0));
-    return metrics;
+    h.gate.passed = reasons.empty();
+    out.timings.add(Stage::evaluate, seconds_since(t0));
+    return h;
 }
 
-json candidate_json(const Option& o, const Trained& t) {
+CandidateRecord candidate_record(const Option& o, const Trained& t, std::size_t of) {
     const format::ModelDesc& d = o.model.desc;
-    const json& p = o.metrics["families"]["pooled"];
-    json j = {{"log2_table_size", d.log2_table_size},
-              {"hidden_width", d.hidden_width},
-              {"grid", grid_encoding_name(std::uint32_t(d.grid_encoding))},
-              {"bytes", o.bytes},
-              {"steps", t.stream.train.steps},
-              {"steps_planned", t.config.steps},
-              {"seconds", o.seconds},
-              {"held_out",
-               {{"visibility", p["visibility_accuracy"]},
-                {"distance_pct", p["distance_error_median_pct"]},
-                {"normal_deg", p["normal_error_median_deg"]}}},
-              {"gate_passed", o.metrics["gate"]["passed"]},
-              {"target_met", o.target_met},
-              {"memory_rule_passed", o.memory_ok},
-              {"outcome", o.outcome}};
+    const samples::FamilyMetrics& p = o.held_out.metrics.pooled;
+    CandidateRecord c;
+    c.log2_table_size = d.log2_table_size;
+    c.hidden_width = d.hidden_width;
+    c.grid = d.grid_encoding;
+    c.bytes = o.bytes;
+    c.steps = t.stream.train.steps;
+    c.steps_planned = t.config.steps;
+    c.seconds = o.seconds;
+    c.visibility = p.visibility_accuracy;
+    c.distance_pct = p.distance_median_pct;
+    c.normal_deg = p.normal_median_deg;
+    c.gate_passed = o.held_out.gate.passed;
+    c.target_met = o.target_met;
+    c.memory_rule_passed = o.memory_ok;
+    c.outcome = o.outcome;
+    c.of = of;
     // The curve is the training's: recorded once, with the rung's fp16 export.
-    if (d.grid_encoding == format::GridEncoding::fp16) j["validation"] = validation_json(t.validation);
-    if (t.target_met_at) j["stopped"] = "the validation curve met the target";
-    if (!t.abandoned.empty()) j["stopped"] = "given up: " + t.abandoned.front();
-    if (!t.fell_behind.empty()) j["stopped"] = "given up: " + t.fell_behind;
-    if (!t.pruned.empty()) j["pruned_neurons"] = t.pruned;
-    return j;
+    if (d.grid_encoding == format::GridEncoding::fp16) c.validation = t.validation;
+    if (t.target_met_at) c.stop = StopKind::target_met;
+    if (!t.abandoned.empty()) c.stop = StopKind::given_up, c.stop_why = t.abandoned.front();
+    if (!t.fell_behind.empty()) c.stop = StopKind::given_up, c.stop_why = t.fell_behind;
+    c.pruned_neurons = t.pruned;
+    return c;
 }
 
 Option measure_option(const Run& run, const scene::Mesh& mesh, const Candidate& c, std::size_t rung,
-                      format::ModelData model, const Trained& t, const MeasureRays& rays, MeshRecord& rec) {
+                      format::ModelData model, const Trained& t, const MeasureRays& rays, MeshOutcome& out) {
     const auto t0 = Clock::now();
     Option o;
     o.rung = rung;
     o.model = std::move(model);
-    o.metrics = gate(run, mesh, o.model, t, rays, o.held_out, rec);
-    o.target_met =
-        o.metrics["gate"]["passed"].get<bool>() && target_misses(o.held_out.pooled, run.opt.target).empty();
+    o.held_out = gate(run, mesh, o.model, t, rays, out);
+    o.target_met = o.held_out.gate.passed && target_misses(o.held_out.metrics.pooled, run.opt.target).empty();
     auto bytes = format::serialize(o.model);
     o.bytes = bytes ? bytes->size() : 0;
     o.memory_ok = bytes && memory_rule_failure(run, c, o.bytes).empty();
@@ -261,7 +260,7 @@ Option measure_option(const Run& run, const scene::Mesh& mesh, const Candidate& 
 }
 
 Sized size_to_target(const Run& run, const scene::Mesh& mesh, Candidate& c, const voxelize::Occupancy& occ,
-                     const MeasureRays& rays, MeshRecord& rec) {
+                     const MeasureRays& rays, MeshOutcome& out) {
     Sized sized;
     const Preset& p = run.preset;
     format::ModelDesc desc = c.desc;
@@ -269,11 +268,11 @@ Sized size_to_target(const Run& run, const scene::Mesh& mesh, Candidate& c, cons
     for (;;) {
         const std::vector<ValidationPoint> larger =
             sized.rungs.empty() ? std::vector<ValidationPoint>{} : sized.rungs.back().validation;
-        sized.rungs.push_back(train_rung(run, mesh, c, desc, occ, rays, budget, larger, rec));
+        sized.rungs.push_back(train_rung(run, mesh, c, desc, occ, rays, budget, larger, out));
         const std::size_t rung = sized.rungs.size() - 1;
         const Trained& t = sized.rungs[rung];
         const std::size_t first = sized.options.size();
-        add_options(run, mesh, c, rung, rays, sized, rec);
+        add_options(run, mesh, c, rung, rays, sized, out);
         bool met = false, fits = false;  // some option meets the target / beats the BVH
         for (std::size_t i = first; i < sized.options.size(); ++i) {
             met = met || sized.options[i].target_met;
@@ -290,12 +289,11 @@ Sized size_to_target(const Run& run, const scene::Mesh& mesh, Candidate& c, cons
         --desc.log2_table_size;
     }
     choose_option(sized);
-    for (const Option& o : sized.options) sized.candidates.push_back(candidate_json(o, sized.rungs[o.rung]));
     return sized;
 }
 
 void add_options(const Run& run, const scene::Mesh& mesh, const Candidate& c, std::size_t rung,
-                 const MeasureRays& rays, Sized& sized, MeshRecord& rec) {
+                 const MeasureRays& rays, Sized& sized, MeshOutcome& out) {
     const Trained& t = sized.rungs[rung];
     for (const format::GridEncoding e : rung_encodings(run.preset)) {
         format::ModelData model = t.model;
@@ -304,7 +302,7 @@ void add_options(const Run& run, const scene::Mesh& mesh, const Candidate& c, st
             if (!quantized) continue;  // cannot happen for a valid fp16 export; then fp16 only
             model = std::move(*quantized);
         }
-        Option o = measure_option(run, mesh, c, rung, std::move(model), t, rays, rec);
+        Option o = measure_option(run, mesh, c, rung, std::move(model), t, rays, out);
         if (e == format::GridEncoding::fp16) o.seconds += t.seconds;  // the training is the fp16 option's
         sized.options.push_back(std::move(o));
     }
@@ -320,30 +318,29 @@ void choose_option(Sized& sized) {
     auto smaller = [&](std::size_t i) {
         return !sized.chosen || sized.options[i].bytes < sized.options[*sized.chosen].bytes;
     };
-    auto passes = [&](const Option& o) { return o.memory_ok && o.metrics["gate"]["passed"].get<bool>(); };
+    auto passes = [&](const Option& o) { return o.memory_ok && o.held_out.gate.passed; };
+    CandidateOutcome why = CandidateOutcome::chosen_meets_target;
     for (std::size_t i = 0; i < n; ++i)
         if (passes(sized.options[i]) && sized.options[i].target_met && smaller(i)) sized.chosen = i;
-    if (sized.chosen) {
-        sized.why = "the smallest of " + std::to_string(n) + " candidates that meets the target";
-    } else {
+    if (!sized.chosen) {
         // No option meets the target: the most accurate model, the first rung's, ships if
         // it passes the gate, in its smallest encoding that does.
+        why = CandidateOutcome::chosen_passes_gate;
         for (std::size_t i = 0; i < n; ++i)
             if (sized.options[i].rung == 0 && passes(sized.options[i]) && smaller(i)) sized.chosen = i;
-        if (sized.chosen) sized.why = "no candidate meets the target; the largest passes the gate";
     }
     for (std::size_t i = 0; i < n; ++i) {
         Option& o = sized.options[i];
         if (sized.chosen == i)
-            o.outcome = "chosen: " + sized.why;
-        else if (!o.metrics["gate"]["passed"].get<bool>())
-            o.outcome = "fails the gate";
+            o.outcome = why;
+        else if (!o.held_out.gate.passed)
+            o.outcome = CandidateOutcome::fails_gate;
         else if (!o.memory_ok)
-            o.outcome = "fails the memory rule";
+            o.outcome = CandidateOutcome::fails_memory_rule;
         else if (o.target_met)
-            o.outcome = "meets the target, but a smaller candidate does too";
+            o.outcome = CandidateOutcome::smaller_meets_target;
         else
-            o.outcome = "misses the target";
+            o.outcome = CandidateOutcome::misses_target;
     }
 }
 
@@ -358,8 +355,8 @@ json asset_metadata(const Run& run, const std::string& source, const scene::Mesh
          {{"name", mesh.name},
           {"source", source},
           {"source_hash", scene::geometry_hash(mesh)},
-          {"box_min", vec3(c.box.min)},
-          {"box_max", vec3(c.box.max)},
+          {"box_min", c.box.min},
+          {"box_max", c.box.max},
           {"triangle_count", mesh.triangle_count()},
           {"vertex_count", mesh.vertex_count()},
           {"closed", c.source->is_closed()}}},
@@ -383,7 +380,7 @@ json asset_metadata(const Run& run, const std::string& source, const scene::Mesh
           {"final_loss", std::isfinite(tres.final_loss) ? tres.final_loss : 0.0f},
           {"preset", run.preset.name},
           {"divergence_rollbacks", tres.rollbacks}}},
-        {"metrics", o.metrics},
+        {"metrics", held_out_json(o.held_out)},
         {"extensions", {{"lsnif_convert_key", key}}}};
 }
 
@@ -400,74 +397,78 @@ std::string option_summary(const Option& o) {
 }
 
 std::string write_asset(const Run& run, const scene::Mesh& mesh, std::span<const std::uint8_t> bytes,
-                        const fs::path& asset, MeshRecord& rec) {
+                        const fs::path& asset, MeshOutcome& out) {
     const auto t0 = Clock::now();
     run.report({mesh.name, "write"});
     std::error_code ec;
     fs::create_directories(run.outdir, ec);
     const format::Error e = format::write_bytes_atomically(asset.string(), bytes);
-    rec.add_seconds("write", seconds_since(t0));
+    out.timings.add(Stage::write, seconds_since(t0));
     return e ? e.message : std::string();
 }
 
-json convert_candidate(const Run& run, Planned& p, std::vector<std::string>& errors) {
+void convert_candidate(const Run& run, Planned& p, std::vector<std::string>& errors) {
     const scene::Mesh& mesh = *p.mesh;
     const std::string& source = p.source;
-    MeshRecord& rec = p.rec;
+    MeshOutcome& out = p.out;
     Candidate& c = *p.candidate;
-    if (run.opt.dry_run) return rec.finish("complex");  // the plan only: no sampling, training or files
-
+    if (run.opt.dry_run) {
+        out.settle(Decision::planned);  // the plan only: no sampling, training or files
+        return;
+    }
     const std::string key = asset_key(run, mesh, c.desc);
     const std::string file = hex16(fnv1a64(key)) + ".lsnif";
     const fs::path asset = run.outdir / file;
     if (auto previous = reusable_metrics(asset, key))
-        return shipped(run, std::move(previous->metrics), previous->pooled, file, asset, true, rec);
+        return shipped(run, std::move(*previous), file, asset, true, out);
 
-    const MeasureRays rays = draw_measure_rays(run, mesh, c, rec);
-    Sized sized = size_to_target(run, mesh, c, *p.occupancy, rays, rec);
-    rec.entry["candidates"] = sized.candidates;
+    const MeasureRays rays = draw_measure_rays(run, mesh, c, out);
+    Sized sized = size_to_target(run, mesh, c, *p.occupancy, rays, out);
+    for (const Option& o : sized.options)
+        out.candidates.push_back(candidate_record(o, sized.rungs[o.rung], sized.options.size()));
     // The chosen option, or the first rung's fp16 model when none may ship.
     Option& o = sized.options[sized.chosen.value_or(0)];
     const Trained& t = sized.rungs[o.rung];
-    const json& metrics = o.metrics;
-    rec.entry["validation"] = validation_json(t.validation);
-    if (t.target_met_at)
-        rec.entry["stopped_early"] = {{"step", t.target_met_at},
-                                      {"steps", t.config.steps},
-                                      {"reason", "validation curve met the target"}};
-    if (!sized.chosen) return below_gate(metrics, !t.abandoned.empty(), rec);
-    rec.reasons.push_back(option_summary(o) + ": " + sized.why);
+    out.validation = t.validation;
+    if (t.target_met_at) out.stopped_early = StoppedEarly{t.target_met_at, t.config.steps};
+    if (!sized.chosen) return below_gate(o.held_out, !t.abandoned.empty(), out);
+    out.reasons.push_back(option_summary(o) + ": " + choice_text(o.outcome, sized.options.size()));
     auto bytes = encode_asset(o, asset_metadata(run, source, mesh, c, o, t, key));
     if (!bytes) {
         errors.push_back(source + ": mesh '" + mesh.name + "': " + bytes.error().message);
-        return rec.failed("the asset could not be encoded: " + bytes.error().message);
+        out.settle(Decision::encode_failed, "the asset could not be encoded: " + bytes.error().message);
+        return;
     }
     if (std::string why = memory_rule_failure(run, c, bytes->size()); !why.empty()) {
-        rec.entry["metrics"] = metrics;
-        return rec.simple(why);
+        out.held_out = o.held_out;
+        out.settle(Decision::asset_not_smaller, why);
+        return;
     }
-    if (std::string err = write_asset(run, mesh, *bytes, asset, rec); !err.empty()) {
+    if (std::string err = write_asset(run, mesh, *bytes, asset, out); !err.empty()) {
         errors.push_back(source + ": mesh '" + mesh.name + "': " + err);
-        return rec.failed("the asset could not be written: " + err);
+        out.settle(Decision::write_failed, "the asset could not be written: " + err);
+        return;
     }
-    return shipped(run, metrics, o.held_out.pooled, file, asset, false, rec);
+    shipped(run, o.held_out, file, asset, false, out);
 }
 
-json shipped(const Run& run, json metrics, const samples::FamilyMetrics& pooled, const std::string& file,
-             const fs::path& asset, bool reused, MeshRecord& rec) {
-    rec.entry["target"] = target_json(run.opt.target, target_misses(pooled, run.opt.target));
-    rec.entry["metrics"] = std::move(metrics);
+void shipped(const Run& run, HeldOut metrics, const std::string& file, const fs::path& asset, bool reused,
+             MeshOutcome& out) {
+    out.target = TargetVerdict{run.opt.target, target_misses(metrics.metrics.pooled, run.opt.target)};
+    out.held_out = std::move(metrics);
     std::error_code ec;
-    rec.entry["lsnif"] = {{"file", file}, {"bytes", fs::file_size(asset, ec)}, {"reused", reused}};
-    return rec.finish("complex");
+    const auto bytes = fs::file_size(asset, ec);
+    out.asset = AssetFile{file, ec ? 0 : std::uint64_t(bytes), reused};
+    out.settle(Decision::shipped);
 }
 
-json below_gate(const json& metrics, bool abandoned, MeshRecord& rec) {
-    rec.entry["metrics"] = metrics;
-    for (const auto& r : metrics["gate"].value("reasons", std::vector<std::string>{}))
-        rec.reasons.push_back("gate: " + r);
-    return rec.simple(abandoned ? "decided early from the validation curve: stays BVH"
-                                : "held-out accuracy below the gate: stays BVH");
+void below_gate(const HeldOut& metrics, bool abandoned, MeshOutcome& out) {
+    out.held_out = metrics;
+    for (const std::string& r : metrics.gate.reasons) out.reasons.push_back("gate: " + r);
+    if (abandoned)
+        out.settle(Decision::decided_early, "decided early from the validation curve: stays BVH");
+    else
+        out.settle(Decision::below_gate, "held-out accuracy below the gate: stays BVH");
 }
 
 }  // namespace stages

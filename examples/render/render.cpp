@@ -188,8 +188,11 @@ void HybridScene::load_manifest(const fs::path& outdir) {
     std::ifstream mf(manifest_path_);
     const json manifest = json::parse(mf, nullptr, false);
     if (!mf || !manifest.is_object()) throw Failure(manifest_path_.string() + ": cannot read");
-    if (manifest.value("format", "") != "lsnif-manifest/2")
-        throw Failure(manifest_path_.string() + ": not a lsnif-manifest/2 manifest (re-run lsnif convert)");
+    // Formats 2 and 3 agree on everything read here (3 adds each mesh's decision).
+    const std::string format = manifest.value("format", "");
+    if (format != "lsnif-manifest/2" && format != "lsnif-manifest/3")
+        throw Failure(manifest_path_.string() +
+                      ": not a lsnif-manifest/2 or /3 manifest (re-run lsnif convert)");
     const std::vector<lsnif::scene::Scene> inputs = load_inputs(manifest, outdir);
     for (const json& m : manifest.at("meshes")) {
         const std::size_t input = m.at("input").get<std::size_t>(),

@@ -8,6 +8,7 @@
 #include <lsnif/converter/file_tools.hpp>
 #include <lsnif/converter/gltf_out.hpp>
 #include <lsnif/converter/json_schema.hpp>
+#include <lsnif/converter/manifest.hpp>
 #include <lsnif/scene/scene.hpp>
 
 #include <algorithm>
@@ -157,6 +158,15 @@ TEST_CASE("convert a real mesh: asset, metadata, manifest, reuse") {
     const json& m = manifest["meshes"][0];
     CHECK(m["triangles"] == 19994);
     REQUIRE(m["class"] == "complex");
+    CHECK(m["decision"] == "shipped");
+    // The manifest read back (load_manifest: every entry strictly) writes the same entries.
+    LoadedManifest loaded;
+    std::string load_error;
+    REQUIRE_MESSAGE(load_manifest(out, {}, loaded, load_error), load_error);
+    REQUIRE(loaded.meshes.size() == 1);
+    CHECK(outcome_json(loaded.meshes[0]) == m);
+    CHECK(loaded.meshes[0].decision == r.meshes[0].decision);
+    CHECK(input_json(loaded.inputs[0]) == manifest["inputs"][0]);
     CHECK(m["stats"]["bvh_bytes"].get<std::uint64_t>() > 0);
     CHECK(m["stats"]["occupied_fraction"].get<double>() > 0.0);
     const fs::path asset = out / m["lsnif"]["file"].get<std::string>();

@@ -107,16 +107,18 @@ TEST_CASE("classify sizes the hash tables to beat the BVH, unless forced, and me
     ConvertOptions o = options("default");
     o.log2_table_size = 18;  // the 8-bit 2^18 model's estimate is more than half the dragon's BVH
     const Run run = make_run(o, fresh_dir("stages_classify"));
-    MeshRecord rec;
-    const auto c = classify(run, mesh, false, rec);
+    MeshOutcome out;
+    const auto c = classify(run, mesh, false, out);
     REQUIRE(c.has_value());
     REQUIRE(c->source);
     CHECK(c->desc.log2_table_size < run.preset.model.log2_table_size);  // a 10k-vertex mesh: smaller tables
     CHECK(c->desc.log2_table_size >= run.preset.classify.min_log2_table_size);
     CHECK(c->desc.box_min == c->box.min);
-    CHECK(rec.stats["bvh_bytes"].get<std::uint64_t>() > 0);
-    CHECK(rec.stats["components"].get<std::size_t>() >= 1);
-    CHECK(rec.stats["area_ratio"].get<double>() > 0);
+    REQUIRE(out.stats.has_value());
+    CHECK(out.stats->bvh_bytes > 0);
+    CHECK(out.stats->components >= 1);
+    CHECK(out.stats->area_ratio > 0);
+    CHECK(out.stats->box_min == c->box.min);
     std::size_t outside = 0;  // the padded box strictly holds every vertex
     for (std::size_t v = 0; v < mesh.vertex_count(); ++v)
         for (int a = 0; a < 3; ++a)
@@ -124,8 +126,8 @@ TEST_CASE("classify sizes the hash tables to beat the BVH, unless forced, and me
                 !(mesh.positions[v * 3 + a] > c->box.min[a] && mesh.positions[v * 3 + a] < c->box.max[a]);
     CHECK(outside == 0);
 
-    MeshRecord forced_rec;
-    const auto forced = classify(run, mesh, true, forced_rec);
+    MeshOutcome forced_out;
+    const auto forced = classify(run, mesh, true, forced_out);
     REQUIRE(forced.has_value());
     CHECK(forced->forced);
     CHECK(forced->desc.log2_table_size == run.preset.model.log2_table_size);
@@ -139,17 +141,20 @@ TEST_CASE("classify keeps a mesh it cannot model as BVH, with the reason") {
     far.positions = {1e20f, 0, 0, 1e20f * 1.0001f, 0, 0, 1e20f, 1, 0};
     far.normals = {0, 0, 1, 0, 0, 1, 0, 0, 1};
     far.indices = {0, 1, 2};
-    MeshRecord rec;
-    CHECK_FALSE(classify(run, far, false, rec).has_value());
-    REQUIRE(rec.reasons.size() == 1);
-    CHECK(rec.reasons[0].find("outside the range LSNIF models in single precision") != std::string::npos);
+    MeshOutcome out;
+    CHECK_FALSE(classify(run, far, false, out).has_value());
+    CHECK(out.decision == Decision::not_modelable);
+    CHECK(out.cls() == MeshClass::simple);
+    REQUIRE(out.reasons.size() == 1);
+    CHECK(out.reasons[0].find("outside the range LSNIF models in single precision") != std::string::npos);
 
     scene::Mesh nan = far;  // a non-finite vertex: the box cannot be computed
     nan.positions[4] = std::numeric_limits<float>::quiet_NaN();
-    MeshRecord nan_rec;
-    CHECK_FALSE(classify(run, nan, false, nan_rec).has_value());
-    REQUIRE(nan_rec.reasons.size() == 1);
-    CHECK(nan_rec.reasons[0].find("cannot bound the mesh") == 0);
+    MeshOutcome nan_out;
+    CHECK_FALSE(classify(run, nan, false, nan_out).has_value());
+    CHECK(nan_out.decision == Decision::not_modelable);
+    REQUIRE(nan_out.reasons.size() == 1);
+    CHECK(nan_out.reasons[0].find("cannot bound the mesh") == 0);
 }
 
 TEST_CASE(
@@ -157,28 +162,30 @@ TEST_CASE(
     const scene::Mesh mesh = dragon();
     ConvertOptions o = options("default");
     Run run = make_run(o, fresh_dir("stages_memory"));
-    MeshRecord rec;
-    const auto c = classify(run, mesh, false, rec);
+    MeshOutcome out;
+    const auto c = classify(run, mesh, false, out);
     REQUIRE(c.has_value());
-    const auto occ = voxelize_mesh(run, mesh, *c, rec);
+    const auto occ = voxelize_mesh(run, mesh, *c, out);
     REQUIRE(occ.has_value());
-    const double fraction = rec.stats["occupied_fraction"].get<double>();
+    REQUIRE(out.stats->occupied_fraction.has_value());
+    const double fraction = *out.stats->occupied_fraction;
     CHECK(fraction > 0.01);
     CHECK(fraction < 0.5);
     CHECK(occ->count() == std::uint64_t(std::llround(fraction * double(c->desc.voxel_count()))));
 
-    CHECK(worth_an_lsnif(run, mesh, *c, rec));  // sized to beat the BVH by min_memory_ratio
+    CHECK(worth_an_lsnif(run, mesh, *c, out));  // sized to beat the BVH by min_memory_ratio
     run.preset.classify.min_memory_ratio = 1e9;
-    MeshRecord strict;
+    MeshOutcome strict;
     CHECK_FALSE(worth_an_lsnif(run, mesh, *c, strict));
+    CHECK(strict.decision == Decision::no_memory_benefit);
     REQUIRE(strict.reasons.size() == 2);
     CHECK(strict.reasons[1].find("below the") != std::string::npos);
 
-    MeshRecord forced_rec;
-    const auto forced = classify(run, mesh, true, forced_rec);
+    MeshOutcome forced_out;
+    const auto forced = classify(run, mesh, true, forced_out);
     REQUIRE(forced.has_value());
-    CHECK(worth_an_lsnif(run, mesh, *forced, forced_rec));
-    CHECK(forced_rec.reasons.back().find("forced complex") == 0);
+    CHECK(worth_an_lsnif(run, mesh, *forced, forced_out));
+    CHECK(forced_out.reasons.back().find("forced complex") == 0);
 }
 
 // The settings table drives what a batch records and what a Ninja step passes on
@@ -347,17 +354,16 @@ TEST_CASE("reusable_metrics: an asset is reused only when it is intact and was w
     REQUIRE(fs::exists(asset));
 
     const Run run = make_run(o, dir);
-    MeshRecord rec;
+    MeshOutcome rec;
     const scene::Mesh mesh = dragon();
     const auto c = classify(run, mesh, true, rec);
     REQUIRE(c.has_value());
     const std::string key = asset_key(run, mesh, c->desc);
     const auto metrics = reusable_metrics(asset, key);
     REQUIRE(metrics.has_value());
-    CHECK(metrics->metrics.contains("gate"));
-    // The pooled metrics read back are the ones the report shows.
-    CHECK(metrics->pooled.visibility_accuracy ==
-          m["metrics"]["families"]["pooled"]["visibility_accuracy"].get<double>());
+    // The metrics read back are the ones the report shows, every field.
+    CHECK(held_out_json(*metrics) == m["metrics"]);
+    CHECK(metrics->gate.passed);
     CHECK_FALSE(reusable_metrics(asset, key + "x").has_value());
     CHECK_FALSE(reusable_metrics(dir / "absent.lsnif", key).has_value());
 
@@ -389,13 +395,21 @@ struct Prepared {
     voxelize::Occupancy occ;
     MeasureRays rays;
 };
-Prepared prepare(const Run& run, const scene::Mesh& mesh, MeshRecord& rec) {
-    auto c = classify(run, mesh, false, rec);
+Prepared prepare(const Run& run, const scene::Mesh& mesh, MeshOutcome& out) {
+    auto c = classify(run, mesh, false, out);
     REQUIRE(c.has_value());
-    auto occ = voxelize_mesh(run, mesh, *c, rec);
+    auto occ = voxelize_mesh(run, mesh, *c, out);
     REQUIRE(occ.has_value());
-    MeasureRays rays = draw_measure_rays(run, mesh, *c, rec);
+    MeasureRays rays = draw_measure_rays(run, mesh, *c, out);
     return {std::move(*c), std::move(*occ), std::move(rays)};
+}
+
+// The manifest's `candidates` of a sizing, as the manifest writes them (outcome_json).
+json candidates_json(const Sized& sized) {
+    MeshOutcome o;
+    for (const Option& opt : sized.options)
+        o.candidates.push_back(candidate_record(opt, sized.rungs[opt.rung], sized.options.size()));
+    return outcome_json(o)["candidates"];
 }
 
 }  // namespace
@@ -408,17 +422,18 @@ TEST_CASE("size_to_target walks down the ladder while each size meets the target
     Run run = make_run(o, fresh_dir("stages_ladder"));
     run.preset.classify.min_log2_table_size = 10;  // the smoke model's 2^12 rows, then 2^11 and 2^10
     run.preset.gate = {0.5, 0.3, 50.0, 90.0};      // training aims at the stricter of target and gate
-    MeshRecord rec;
+    MeshOutcome rec;
     Prepared p = prepare(run, mesh, rec);
     REQUIRE(p.c.desc.log2_table_size == 12);
     const Sized sized = size_to_target(run, mesh, p.c, p.occ, p.rays, rec);
-    REQUIRE_MESSAGE(sized.rungs.size() == 3, sized.candidates.dump());
+    const json candidates = candidates_json(sized);
+    REQUIRE_MESSAGE(sized.rungs.size() == 3, candidates.dump());
     REQUIRE(sized.options.size() == 6);  // each size in fp16 and 8-bit
-    REQUIRE(sized.candidates.size() == 6);
+    REQUIRE(candidates.size() == 6);
     std::uint32_t budget = run.preset.train.steps, steps_trained = 0;
     for (std::size_t i = 0; i < 3; ++i) {
-        const json& fp16 = sized.candidates[2 * i];
-        const json& u8 = sized.candidates[2 * i + 1];
+        const json& fp16 = candidates[2 * i];
+        const json& u8 = candidates[2 * i + 1];
         CAPTURE(fp16.dump());
         CHECK(fp16["log2_table_size"] == 12 - i);
         CHECK(u8["log2_table_size"] == 12 - i);
@@ -436,8 +451,7 @@ TEST_CASE("size_to_target walks down the ladder while each size meets the target
         CHECK(fp16["steps_planned"] == budget);  // what the larger sizes left of the budget
         CHECK(fp16["stopped"] == "the validation curve met the target");
         if (i > 0)
-            CHECK(fp16["bytes"].get<std::uint64_t>() <
-                  sized.candidates[2 * i - 2]["bytes"].get<std::uint64_t>());
+            CHECK(fp16["bytes"].get<std::uint64_t>() < candidates[2 * i - 2]["bytes"].get<std::uint64_t>());
         budget -= fp16["steps"].get<std::uint32_t>();
         steps_trained += fp16["steps"].get<std::uint32_t>();
     }
@@ -447,9 +461,8 @@ TEST_CASE("size_to_target walks down the ladder while each size meets the target
     REQUIRE(sized.chosen.has_value());
     const std::size_t expected = sized.options[5].target_met ? 5 : 4;
     CHECK(*sized.chosen == expected);
-    CHECK(sized.candidates[expected]["outcome"] ==
-          "chosen: the smallest of 6 candidates that meets the target");
-    CHECK(sized.candidates[0]["outcome"] == "meets the target, but a smaller candidate does too");
+    CHECK(candidates[expected]["outcome"] == "chosen: the smallest of 6 candidates that meets the target");
+    CHECK(candidates[0]["outcome"] == "meets the target, but a smaller candidate does too");
 
     // --fixed-model: the preset's model, fp16, trained to the end of the budget.
     ConvertOptions fixed_opt = o;
@@ -458,9 +471,10 @@ TEST_CASE("size_to_target walks down the ladder while each size meets the target
     fixed.preset.classify.min_log2_table_size = 10;
     fixed.preset.gate = run.preset.gate;
     const Sized one = size_to_target(fixed, mesh, p.c, p.occ, p.rays, rec);
+    const json one_candidates = candidates_json(one);
     REQUIRE(one.options.size() == 1);
-    CHECK(one.candidates[0]["grid"] == "fp16");
-    CHECK(one.candidates[0]["steps"] == fixed.preset.train.steps);
+    CHECK(one_candidates[0]["grid"] == "fp16");
+    CHECK(one_candidates[0]["steps"] == fixed.preset.train.steps);
     CHECK(one.chosen == 0u);
 }
 
@@ -472,23 +486,27 @@ TEST_CASE(
     REQUIRE(parse_target("99.9,0.01,1", o.target, error));
     Run run = make_run(o, fresh_dir("stages_ladder_missed"));
     run.preset.classify.min_log2_table_size = 10;
-    MeshRecord rec;
+    MeshOutcome rec;
     Prepared p = prepare(run, mesh, rec);
     const Sized sized = size_to_target(run, mesh, p.c, p.occ, p.rays, rec);
     REQUIRE(sized.rungs.size() == 1);
     REQUIRE(sized.options.size() == 2);
-    CHECK(sized.candidates[0]["target_met"] == false);
-    CHECK(sized.candidates[0]["steps"] == run.preset.train.steps);  // nothing stopped it
+    const json candidates = candidates_json(sized);
+    CHECK(candidates[0]["target_met"] == false);
+    CHECK(candidates[0]["steps"] == run.preset.train.steps);  // nothing stopped it
     // The largest size, in its smaller encoding when that passes the gate.
     REQUIRE(sized.chosen.has_value());
-    CHECK(*sized.chosen == (sized.candidates[1]["gate_passed"].get<bool>() ? 1u : 0u));
-    CHECK(sized.why == "no candidate meets the target; the largest passes the gate");
+    CHECK(*sized.chosen == (candidates[1]["gate_passed"].get<bool>() ? 1u : 0u));
+    CHECK(sized.options[*sized.chosen].outcome == CandidateOutcome::chosen_passes_gate);
+    CHECK(candidates[*sized.chosen]["outcome"] ==
+          "chosen: no candidate meets the target; the largest passes the gate");
 
     // Below the gate too: nothing ships.
     run.preset.gate.min_visibility = 0.9999;
     const Sized none = size_to_target(run, mesh, p.c, p.occ, p.rays, rec);
+    const json none_candidates = candidates_json(none);
     CHECK_FALSE(none.chosen.has_value());
-    CHECK(none.candidates[0]["outcome"] == "fails the gate");
+    CHECK(none_candidates[0]["outcome"] == "fails the gate");
 }
 
 TEST_CASE("falls_behind: a smaller size is given up when the larger one's later gain cannot close its gap") {
@@ -532,7 +550,7 @@ TEST_CASE("shard_owners deals the costliest candidates first to the least loaded
         planned[i].mesh = &meshes[i];
         planned[i].source = "library.glb";
         if (i == 7)
-            planned[i].decided = json{{"class", "simple"}};
+            planned[i].decided = true;
         else
             planned[i].candidate.emplace();
     }
@@ -592,7 +610,7 @@ TEST_CASE(
     ConvertOptions o = options("smoke");
     o.keep_inactive = true;  // train_rung ships the whole network; the stages run by hand below
     const Run run = make_run(o, fresh_dir("stages_prune"));
-    MeshRecord rec;
+    MeshOutcome rec;
     Prepared p = prepare(run, mesh, rec);
     const Trained t = train_rung(run, mesh, p.c, p.c.desc, p.occ, p.rays, run.preset.train.steps, {}, rec);
     CHECK(t.pruned.empty());

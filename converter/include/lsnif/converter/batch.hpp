@@ -64,16 +64,18 @@ BatchResult batch(const BatchOptions& options, const ConvertProgress& progress =
 // asset could not be written), and one failed <testcase> per input that could not be read.
 std::string junit_xml(const BatchResult& result);
 
-// JUnit XML of a manifest written by `lsnif batch` or `lsnif merge` (the same test cases as
-// junit_xml; times are 0, since such manifests carry no timings): what `lsnif merge --junit`
-// writes for the whole library.
-std::string manifest_junit_xml(const nlohmann::json& manifest);
+// JUnit XML of a merged library (the same test cases as junit_xml; times are 0, since batch
+// manifests carry no timings): what `lsnif merge --junit` writes.
+struct MergeResult;
+std::string merge_junit_xml(const MergeResult& merged);
 
 // "I/N" (1 <= I <= N <= 10000) into a shard index and count; false with a one-line error.
 bool parse_shard(const std::string& text, std::uint32_t& index, std::uint32_t& count, std::string& error);
 
 struct MergeResult {
     nlohmann::json manifest;          // what was written to OUTDIR/manifest.json (null on failure)
+    std::vector<InputRecord> inputs;  // the library's inputs and meshes, as in `manifest`
+    std::vector<MeshOutcome> meshes;
     std::vector<std::string> errors;  // "PATH: problem"; nothing is written when not empty
 };
 

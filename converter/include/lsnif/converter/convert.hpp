@@ -5,6 +5,8 @@
 // collected per input and per mesh; the CLI decides what to print and the exit code.
 #pragma once
 
+#include <lsnif/converter/outcome.hpp>
+#include <lsnif/converter/rules.hpp>
 #include <lsnif/format/container.hpp>
 #include <lsnif/samples/held_out.hpp>
 #include <lsnif/trainer/trainer.hpp>
@@ -13,107 +15,17 @@
 
 #include <cstdint>
 #include <functional>
+#include <optional>
 #include <string>
 #include <vector>
 
 namespace lsnif::converter {
-
-// Classification thresholds (documented in README "Classification").
-//
-// Model sizing ("never model more than a scene needs"): the preset's hash-table size
-// 2^log2_table_size is the largest a mesh gets. It is halved while the .lsnif would not beat
-// the BVH by min_memory_ratio, down to 2^min_log2_table_size; a mesh that still does not
-// benefit stays BVH. `--complex NAME` skips this sizing and the memory rule: the mesh starts
-// at the preset's model, and only the target (Sizing) makes it smaller.
-struct ClassifyRule {
-    std::uint64_t min_triangles = 2000;  // fewer: the BVH is tiny and exact; keep it
-    // An approximation must at least halve the memory of what it replaces: a 10-30 % saving is
-    // not worth ~3 % wrong visibility (2CylinderEngine has four 7-11k-triangle parts at 1.1-1.8x).
-    double min_memory_ratio = 2.0;           // BVH bytes must be at least this x the .lsnif bytes
-    std::uint32_t min_log2_table_size = 15;  // smallest table sizing may choose (2^15 rows)
-};
-
-// Held-out accuracy an asset must reach to ship (docs/architecture.md §3 "Gate").
-struct Gate {
-    double min_visibility = 0.95;          // pooled visibility accuracy
-    double min_family_visibility = 0.90;   // every family
-    double max_distance_median_pct = 2.0;  // pooled, % of the box diagonal
-    double max_normal_median_deg = 30.0;   // pooled, against the shading normal
-    // Every family must have at least this many held-out rays that reach the network: a
-    // family the occupancy culls almost entirely (degenerate sampling, e.g. coordinates at
-    // the edge of float range) is unmeasured, and an unmeasured asset is not shipped.
-    std::uint64_t min_family_rays = 100;
-};
-
-// The accuracy a user asks of every shipped asset (`--target VIS,DIST,NORMAL`), on pooled
-// held-out rays: visibility accuracy at least `visibility`, median distance error at most
-// `distance_pct` % of the box diagonal, median shading-normal error at most `normal_deg`.
-// Stricter than the gate, which is the floor below which nothing ships: an asset may pass
-// the gate and miss the target, and the manifest says so (issue #12 sizes models to it).
-// The default is issue #15's accuracy for the default preset on CGAL's dragon and
-// armadillo (docs/model.md "A 64^3 grid"): sizing keeps the full model for them, and the
-// early stop (TargetStop's margins beyond it) rarely cuts their training short.
-struct Target {
-    double visibility = 0.985;
-    double distance_pct = 0.6;
-    double normal_deg = 8.0;
-};
-
-// "VIS,DIST,NORMAL" (VIS in percent, e.g. "97,1.0,15") into `target`. False with a
-// one-line `error` for anything else: not three finite numbers, VIS outside (0, 100],
-// DIST outside (0, 100], NORMAL outside (0, 180].
-bool parse_target(const std::string& text, Target& target, std::string& error);
 
 // A byte count such as "1500000", "512K", "64MiB" or "1.5G" into `bytes` (K, M, G, T are
 // powers of 1024; an optional "B" or "iB" after them; case-insensitive). False with a
 // one-line `error` for anything else: empty, negative, zero, not a number, trailing text,
 // or more than 2^63 bytes.
 bool parse_byte_size(const std::string& text, std::uint64_t& bytes, std::string& error);
-
-// Giving up early (docs/model.md "Deciding early"): at a validation check, once training
-// has seen at least `min_samples` samples, an object is abandoned (it stays BVH) when even
-// the largest improvement measured from such a point to the end of training could not
-// bring its validation curve to the gate. The headrooms are the largest changes measured
-// after ~2 M samples on CGAL's dragon and armadillo and the hard-geometry suite, with margin.
-struct EarlyAbort {
-    std::uint64_t min_samples = 1500000;  // before this the curve is too steep to judge
-    double visibility_headroom = 0.05;    // measured at most 4.3 points (the hairball)
-    double normal_headroom_deg = 20.0;    // measured at most 14.9 degrees (the cards)
-    double distance_factor = 0.35;        // final / checked median: measured at least 0.46
-};
-
-// Stopping when the target is met (docs/model.md "Deciding early"): training ends at a
-// validation check when this check and the `consecutive - 1` checks before it all meet the
-// target with margins for the noise of the validation set (2^13 rays: about +-0.25 points of
-// visibility between seeds), so that the held-out measure of the shipped model meets it too.
-// Training an object further than its target only spends time: a user who wants more asks
-// for more with --target.
-struct TargetStop {
-    std::uint32_t consecutive = 2;     // checks in a row: one good check may be noise; 0: never stop
-    double visibility_margin = 0.003;  // validation visibility >= target + margin
-    double distance_factor = 0.9;      // validation median distance <= factor x target
-    double normal_margin_deg = 1.0;    // validation median normal <= target - margin
-};
-
-// Sizing to the target (docs/model.md "Sizing to the target"): the ladder is the preset's
-// table size 2^log2_table_size halved down to 2^ClassifyRule::min_log2_table_size. A mesh's
-// first rung is the largest that passes the memory rule; when it meets the target, the next
-// smaller rung is trained from the steps left of the preset's budget, and so on while each
-// smaller rung meets the target. The smallest asset that meets the target ships; so sizing
-// never trains more steps than the fixed model did.
-struct Sizing {
-    bool explore_smaller = true;  // false: train the first rung only (the pre-#12 behaviour)
-    // Also measure every rung with its hash-grid features quantized to 8 bits (FORMAT.md
-    // §6.4.1): the grid's bytes halve, and the option ships when it still meets the target.
-    bool quantize = true;
-    // A smaller rung is given up at a validation check when its visibility, plus the most
-    // the larger rung's curve gained after the same step, plus this slack, stays below the
-    // visibility that TargetStop asks for: it would not catch up within its budget. A smaller
-    // rung runs a shorter schedule and gains more late: the blob's 2^16 rung gained 2.25
-    // points after step 288 where its 2^17 rung had gained 1.79 after step 240 (docs/model.md
-    // "Sizing to the target"); the slack covers that difference twice.
-    double curve_slack = 0.01;
-};
 
 // Box extents (largest axis of the padded box, in the mesh's units) that LSNIF models in
 // single precision: squared distances and dot products of box-sized vectors stay inside
@@ -251,21 +163,34 @@ struct ProgressEvent {
     std::uint32_t step = 0, steps = 0;
     float loss = 0;
     double eta_seconds = 0;
-    // Stage "done": the mesh's finished manifest entry (without "memory"), valid during the
-    // call only. Sent once per mesh, as soon as it is decided or converted.
-    const nlohmann::json* entry = nullptr;
+    // Stage "done": the mesh's settled outcome (without its memory), valid during the call
+    // only. Sent once per mesh, as soon as it is decided or converted.
+    const MeshOutcome* outcome = nullptr;
 };
 using ConvertProgress = std::function<void(const ProgressEvent&)>;
 
+// What the cache did in a run.
+struct CacheCounts {
+    std::size_t hits = 0, stored = 0, corrupt = 0;
+};
+
 struct ConvertResult {
-    nlohmann::json manifest;          // what was written to OUTDIR/manifest.json (empty if nothing)
-    nlohmann::json report;            // machine-readable report (--json)
-    std::vector<std::string> errors;  // "FILE: problem", one per failed input
+    std::vector<InputRecord> inputs;    // every input, in the order given
+    std::vector<MeshOutcome> meshes;    // every mesh of the inputs that imported, with its memory
+    std::size_t instances = 0;          // instances of those meshes in the scene
+    std::optional<SceneMemory> memory;  // set once the meshes were settled
+    double import_seconds = 0;
+    std::optional<CacheCounts> cache;      // with --cache
+    std::string manifest_path, gltf_path;  // what was written; empty if nothing
+    nlohmann::json manifest;               // what was written to OUTDIR/manifest.json (empty if nothing)
+    nlohmann::json report;                 // the machine-readable report (--json), from the above
+    std::vector<std::string> errors;       // "FILE: problem", one per failed input
     std::vector<std::string> warnings;
     // The options cannot be met whatever conversion does (a --memory-budget below the bytes
     // of the meshes that stay BVH in any case): `errors` says why, nothing was written, and
     // the CLI exits 2 as for any other usage error.
     bool usage_error = false;
+    bool dry_run = false;
     bool ok() const { return errors.empty(); }
 };
 
@@ -274,42 +199,6 @@ ConvertResult convert(const ConvertOptions& options, const ConvertProgress& prog
 // The threads each conversion of convert(options) uses: --threads (0 = the hardware's)
 // shared by --jobs, at least 1.
 std::uint32_t threads_per_job(const ConvertOptions& options);
-
-// The accuracy gate's verdict on held-out metrics: one "held-out ..." reason per failed
-// rule (the text the manifest's reasons carry after "gate: "); empty means the asset ships.
-std::vector<std::string> gate_failures(const samples::Metrics& metrics, const Gate& gate);
-// What pooled held-out metrics miss of `target`: one line per missed rule, empty when the
-// target is met.
-std::vector<std::string> target_misses(const samples::FamilyMetrics& pooled, const Target& target);
-
-// One check of the validation curve (docs/model.md "Validation curve and deciding early"):
-// pooled metrics of the validation rays after `step` steps. The manifest's candidates carry
-// the curve as [{"step", "visibility", "distance_pct", "normal_deg"}] (validation_json).
-struct ValidationPoint {
-    std::uint32_t step = 0;
-    double visibility = 0;    // fraction of rays whose hit or miss is right
-    double distance_pct = 0;  // median distance error, % of the box diagonal
-    double normal_deg = 0;    // median normal error, degrees
-};
-nlohmann::json validation_json(std::span<const ValidationPoint> curve);
-
-// Why a validation point, after `samples` training samples, shows that training cannot
-// reach `gate`; empty when it may (or when fewer than rule.min_samples samples were seen).
-std::vector<std::string> early_abort_reasons(const ValidationPoint& point, std::uint64_t samples,
-                                             const Gate& gate, const EarlyAbort& rule);
-
-// The target training aims at: `target`, made at least as strict as `gate` on each pooled
-// rule, since a model that meets a lenient target below the gate still may not ship.
-Target effective_target(const Target& target, const Gate& gate);
-
-// Whether a validation point meets `target` with the margins of `rule`.
-bool meets_target_with_margin(const ValidationPoint& point, const Target& target, const TargetStop& rule);
-
-// Why a smaller rung, at a validation point, cannot catch up with the target given the larger
-// rung's validation curve `larger`; empty when it may. Only steps within the larger curve are
-// judged.
-std::string falls_behind(const ValidationPoint& point, std::span<const ValidationPoint> larger,
-                         const Target& target, const TargetStop& stop, const Sizing& rule);
 
 // What the results of a conversion depend on besides its inputs and settings
 // (docs/pipeline.md "Cache keys" argues each part): the sources lsnif was built from, the
@@ -334,8 +223,5 @@ std::string executable_path();
 
 // Human-readable summary of a report (what `lsnif convert` prints).
 std::string convert_text(const ConvertResult& result);
-
-// Held-out metrics as the metadata schema stores them.
-nlohmann::json metrics_json(const samples::Metrics& m);
 
 }  // namespace lsnif::converter

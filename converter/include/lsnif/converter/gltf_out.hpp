@@ -6,6 +6,8 @@
 // Library code: never prints or exits.
 #pragma once
 
+#include <lsnif/converter/outcome.hpp>
+
 #include <lsnif/scene/scene.hpp>
 
 #include <nlohmann/json.hpp>
@@ -26,9 +28,9 @@ struct GltfSource {
     const scene::Scene* scene = nullptr;
 };
 
-// Writes OUTDIR/scene.gltf and OUTDIR/scene.bin for `manifest` (the document convert() wrote
-// into `outdir`, whose inputs are `sources` in order). Returns "" or "PATH: problem"; on
-// failure nothing partial is left (each file is written to a temporary and renamed).
+// Writes OUTDIR/scene.gltf and OUTDIR/scene.bin for the manifest convert() wrote into
+// `outdir` (its meshes' outcomes `meshes`, whose inputs are `sources` in order). Returns "" or "PATH:
+// problem"; on failure nothing partial is left (each file is written to a temporary and renamed).
 //
 // One glTF input that imported: that document, kept whole (nodes, materials, textures,
 // extras), its meshes tagged; buffer and image URIs made relative to OUTDIR again; a .glb's
@@ -36,6 +38,6 @@ struct GltfSource {
 // built from the imported scenes, one root node per input holding its instances, one
 // primitive per material used, positions, normals and 32-bit indices in scene.bin.
 std::string write_scene_gltf(const std::filesystem::path& outdir, const std::vector<GltfSource>& sources,
-                             const nlohmann::json& manifest);
+                             const std::vector<MeshOutcome>& meshes);
 
 }  // namespace lsnif::converter

@@ -15,11 +15,13 @@
 #include <string>
 #include <vector>
 
+#include <lsnif/converter/outcome.hpp>
+
 #include <nlohmann/json.hpp>
 
 namespace lsnif::converter {
 
-inline constexpr const char* kManifestFormat = "lsnif-manifest/2";
+inline constexpr const char* kManifestFormat = "lsnif-manifest/3";
 
 // The form `inputs[].path` records for `input` (as given, relative to the current working
 // directory or absolute) in a manifest written into `manifest_dir`: relative to
@@ -36,10 +38,13 @@ std::string write_manifest(const std::filesystem::path& outdir, const nlohmann::
 struct LoadedManifest {
     std::filesystem::path path;        // OUTDIR/manifest.json
     nlohmann::json doc;                // the parsed manifest: an object with inputs, meshes, instances
+    std::vector<InputRecord> inputs;   // doc's inputs and meshes, read strictly (outcome_from_json)
+    std::vector<MeshOutcome> meshes;   // each mesh's `input` names one of `inputs`
     std::vector<std::string> sources;  // per input: the file to import, usable from the current directory
 };
 
-// Reads OUTDIR/manifest.json and checks its format tag and top-level shape. `sources`
+// Reads OUTDIR/manifest.json and checks its format tag, its top-level shape and every input
+// and mesh entry (an error names the first faulty field, "meshes[2].lsnif.file: missing"). `sources`
 // overrides where the inputs are (one per manifest input, relative to the current directory,
 // e.g. from `--source`); empty means the manifest's own paths, resolved from its directory.
 // A manifest of an older format is refused with a message that says to re-run convert.
