@@ -1,6 +1,6 @@
 // `lsnif batch` (batch.hpp): inputs expanded, one convert() run with the cache, and the
 // reports a CI system reads.
-#include <lsnif/cache/cache.hpp>
+#include <lsnif/cache/remote.hpp>
 #include <lsnif/converter/batch.hpp>
 #include <lsnif/converter/manifest.hpp>
 #include <lsnif/converter/settings.hpp>
@@ -218,7 +218,7 @@ std::string ninja_text(const BatchOptions& options, const std::vector<PlannedObj
                        const std::vector<std::string>& scenes, const cache::Store& store) {
     const ConvertOptions& c = options.convert;
     const std::string file = absolute(options.ninja_path), outdir = absolute(c.outdir),
-                      cache_dir = absolute(c.cache_dir), program = absolute(options.program);
+                      cache_dir = absolute(c.cache), program = absolute(options.program);
     std::vector<std::string> inputs;
     for (const std::string& in : options.inputs) inputs.push_back(absolute(in));
     // Each step's threads (how fast, not what): as given, else all cores.
@@ -273,11 +273,13 @@ std::string ninja_problem(const BatchOptions& options) {
         return "--ninja cannot be combined with --shard, --memory-budget or --object: Ninja schedules "
                "every object itself";
     if (options.program.empty()) return "--ninja needs the path of the lsnif executable";
+    if (cache::is_url(c.cache) || !c.cache_local.empty())
+        return "--ninja needs --cache to be a directory: its edges' outputs are the cache's entry files";
     for (const std::string& in : options.inputs) {
         std::error_code ec;
         if (!fs::is_directory(in, ec)) continue;
         const fs::path dir = absolute(in);
-        for (const std::string& out : {options.ninja_path, c.outdir, c.cache_dir})
+        for (const std::string& out : {options.ninja_path, c.outdir, c.cache})
             if (inside(absolute(out), dir))
                 return out + ": inside the input directory " + in +
                        " (writing there would make Ninja plan again on every run)";
@@ -317,7 +319,7 @@ void plan_ninja(const BatchOptions& options, const ConvertProgress& progress, Ba
         r.exit = BatchExit::usage;
         return;
     }
-    auto store = cache::Store::open(absolute(options.convert.cache_dir));  // entry paths go in the file
+    auto store = cache::Store::open(absolute(options.convert.cache));  // entry paths go in the file
     if (!store) {
         r.convert.errors.push_back(store.error().message);
         r.exit = BatchExit::failed;

@@ -2,7 +2,7 @@
 // manifest; see convert.hpp for the contracts.
 #include <lsnif/base/clock.hpp>
 #include <lsnif/base/parallel.hpp>
-#include <lsnif/cache/cache.hpp>
+#include <lsnif/cache/remote.hpp>
 #include <lsnif/converter/convert.hpp>
 #include <lsnif/converter/gltf_out.hpp>
 #include <lsnif/converter/manifest.hpp>
@@ -141,7 +141,7 @@ std::set<std::string> candidate_keys(const Run& run, std::vector<Planned>& plann
 }
 
 // --object: every selected key names a candidate, and its result is in the cache.
-void check_selected_stored(const Run& run, const cache::Store& store, const std::set<std::string>& keys,
+void check_selected_stored(const Run& run, const cache::Cache& store, const std::set<std::string>& keys,
                            std::vector<std::string>& errors) {
     for (const std::string& key : run.opt.only_keys) {
         std::error_code ec;
@@ -149,8 +149,8 @@ void check_selected_stored(const Run& run, const cache::Store& store, const std:
             errors.push_back("--object " + key +
                              ": no candidate of the inputs has this cache key (the inputs, the settings "
                              "or the build changed since it was planned: plan again)");
-        else if (!fs::exists(store.entry_path(key), ec))
-            errors.push_back("--object " + key + ": the result is not in the cache " + store.root().string());
+        else if (!store.has(key))
+            errors.push_back("--object " + key + ": the result is not in the cache " + store.describe());
     }
 }
 
@@ -222,15 +222,16 @@ namespace {
 
 // The cache a run reads and writes, or null without --cache (or for a dry run); false (and
 // an error) when the directory cannot be opened.
-bool open_cache(const ConvertOptions& opt, std::shared_ptr<const cache::Store>& store,
+bool open_cache(const ConvertOptions& opt, std::shared_ptr<const cache::Cache>& store,
                 std::vector<std::string>& errors) {
-    if (opt.cache_dir.empty() || opt.dry_run) return true;
-    auto opened = cache::Store::open(opt.cache_dir);
+    if (opt.cache.empty() || opt.dry_run) return true;
+    auto opened = cache::Cache::open(
+        {opt.cache, opt.cache_local, opt.cache_read_only, opt.cache_timeout, opt.cache_token});
     if (!opened) {
         errors.push_back(opened.error().message);
         return false;
     }
-    store = std::make_shared<const cache::Store>(std::move(*opened));
+    store = std::make_shared<const cache::Cache>(std::move(*opened));
     return true;
 }
 
@@ -300,7 +301,7 @@ json run_report(const Run& run, const ConvertResult& res) {
     report["timings"] = {{"import", res.import_seconds}};  // per-mesh stages are in meshes[].timings
     if (run.opt.dry_run) report["dry_run"] = true;
     if (res.cache)
-        report["cache"] = {{"directory", run.opt.cache_dir},
+        report["cache"] = {{"location", run.cache->describe()},
                            {"hits", res.cache->hits},
                            {"stored", res.cache->stored},
                            {"corrupt", res.cache->corrupt}};
@@ -337,8 +338,11 @@ ConvertResult convert(const ConvertOptions& opt, const ConvertProgress& progress
         res.errors.push_back(error);
         return res;
     }
-    std::shared_ptr<const cache::Store> store;
-    if (!open_cache(opt, store, res.errors)) return res;
+    std::shared_ptr<const cache::Cache> store;
+    if (!open_cache(opt, store, res.errors)) {
+        res.usage_error = !opt.cache.empty() && cache::is_url(opt.cache);  // a URL it cannot use
+        return res;
+    }
     if (std::string why = budget_conflict(opt); !why.empty()) {
         res.errors.push_back(why);
         res.usage_error = true;

@@ -1,6 +1,6 @@
 // The cache glue of a conversion: keys, restoring a stored result, storing a new one
 // (docs/pipeline.md "The cache"; convert_stages.hpp has the contracts).
-#include <lsnif/cache/cache.hpp>
+#include <lsnif/cache/remote.hpp>
 #include "convert_stages.hpp"
 
 namespace lsnif::converter {
@@ -107,6 +107,7 @@ void convert_cached(const Run& run, Planned& p, std::vector<std::string>& errors
     if (!run.cache || run.opt.dry_run) return convert_candidate(run, p, errors);
     const std::string& key = cache_key(run, p);
     const cache::Lookup found = run.cache->get(key);
+    for (std::string& w : run.cache->take_warnings()) warnings.push_back(std::move(w));
     if (found.status == cache::Status::corrupt) {
         ++counts.corrupt;
         warnings.push_back("corrupt cache entry, converting again: " + found.problem);
@@ -123,7 +124,7 @@ void convert_cached(const Run& run, Planned& p, std::vector<std::string>& errors
             return;
         }
         ++counts.corrupt;
-        warnings.push_back("unusable cache entry, converting again: " + run.cache->entry_path(key).string() +
+        warnings.push_back("unusable cache entry, converting again: " + key + " in " + run.cache->describe() +
                            ": " + stored.error());
     }
     const std::size_t errors_before = errors.size();
@@ -132,10 +133,11 @@ void convert_cached(const Run& run, Planned& p, std::vector<std::string>& errors
     cache::Entry entry;
     std::string problem;
     auto stored = entry_to_store(run, p.out, entry, problem) ? run.cache->put(key, entry)
-                                                             : cache::Result<void>(cache::Error{problem});
+                                                             : cache::Result<bool>(cache::Error{problem});
+    for (std::string& w : run.cache->take_warnings()) warnings.push_back(std::move(w));
     if (!stored)
         warnings.push_back("not cached: " + stored.error().message);
-    else
+    else if (*stored)
         ++counts.stored;
 }
 

@@ -34,7 +34,7 @@
 #include <vector>
 
 namespace lsnif::cache {
-class Store;
+class Cache;
 }
 
 namespace lsnif::converter::stages {
@@ -52,7 +52,7 @@ struct Run {
     std::uint32_t threads;
     fs::path outdir;
     ConvertProgress progress;
-    std::shared_ptr<const cache::Store> cache;  // --cache; null without
+    std::shared_ptr<const cache::Cache> cache;  // --cache; null without
     void report(const ProgressEvent& e) const {
         if (progress) progress(e);
     }

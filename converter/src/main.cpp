@@ -232,31 +232,42 @@ struct ValidateCommand {
     int run() const { return run_validate(paths, json); }
 };
 
-// The command line recorded in each asset's metadata: without the output directory and
-// --json, which do not change the asset, and with the program by its name only, so the same
-// conversion run into another directory or from another build gives the same bytes (the
-// file name is already a content hash).
+// Whether `arg` gives option `name` ("--cache", "--cache=DIR"; for a one-letter "-j" also
+// "-j2"), and whether its value is the next argument.
+bool gives_option(const std::string& arg, const std::string& name, bool takes_value, bool& value_follows) {
+    value_follows = false;
+    if (arg == name) return value_follows = takes_value, true;
+    if (takes_value && arg.rfind(name + "=", 0) == 0) return true;
+    return takes_value && name.size() == 2 && arg.size() > 2 && arg.rfind(name, 0) == 0 && arg[2] != '-';
+}
+
+// The command line recorded in each asset's metadata: without the output directory, --json and
+// the run settings (threads, jobs, the cache: settings.hpp, SettingScope::run), which do not
+// change the asset, and with the program by its name only, so the same conversion run into
+// another directory or from another build gives the same bytes (the file name is already a
+// content hash). --arithmetic is written as it runs here (machine on a CPU without bf16
+// products is the canonical arithmetic). `lsnif batch` records its settings in a canonical
+// form instead (batch.hpp, BatchOptions).
 std::string recorded_command_line(int argc, char** argv, lsnif::converter::Arithmetic arithmetic) {
-    // Where outputs go and how the work is split do not change an asset: leaving them out keeps
-    // assets byte-identical between output directories. (`lsnif batch` records its settings
-    // in a canonical form instead: batch.hpp, BatchOptions.)
-    // --arithmetic is added back below as it runs here (machine on a CPU without bf16 products
-    // is the canonical arithmetic).
-    static const char* const with_value[] = {"-o",     "--output",  "--cache",     "-j",
-                                             "--jobs", "--threads", "--arithmetic"};
+    std::vector<std::pair<std::string, bool>> dropped = {
+        {"-o", true}, {"--output", true}, {"--json", false}, {"--arithmetic", true}};
+    for (const lsnif::converter::Setting& s : lsnif::converter::settings_table()) {
+        if (s.scope != lsnif::converter::SettingScope::run) continue;
+        std::string names = s.names;
+        for (std::size_t start = 0; start <= names.size();) {
+            const std::size_t comma = std::min(names.find(',', start), names.size());
+            dropped.emplace_back(names.substr(start, comma - start), s.value != nullptr);
+            start = comma + 1;
+        }
+    }
     std::string line;
     for (int i = 0; i < argc; ++i) {
         const std::string a =
             i == 0 ? std::filesystem::path(argv[0]).filename().string() : std::string(argv[i]);
-        bool drop = a == "--json" || (a.size() > 2 && (a.rfind("-o", 0) == 0 || a.rfind("-j", 0) == 0) &&
-                                      a[2] != '-');  // -oDIR, -j2
-        for (const char* o : with_value) {
-            if (a == o) {
-                ++i;  // and its value
-                drop = true;
-            }
-            drop = drop || a.rfind(std::string(o) + "=", 0) == 0;
-        }
+        bool drop = false, value_follows = false;
+        for (const auto& [name, takes_value] : dropped)
+            if (i > 0 && !drop && gives_option(a, name, takes_value, value_follows)) drop = true;
+        if (value_follows) ++i;
         if (!drop) line += (line.empty() ? "" : " ") + a;
     }
     using lsnif::converter::arithmetic_id;
@@ -289,8 +300,11 @@ struct ConvertSettings {
                 options.push_back(sub->add_option(s.names, one, help)->type_name(s.value));
         }
     }
-    // Applies what was given; false (after printing the error) is a usage error.
+    // Applies what was given, and the cache server's token from the environment (never from
+    // the command line, where other users and logs see it); false (after printing the error)
+    // is a usage error.
     bool finish() {
+        if (const char* token = std::getenv("LSNIF_CACHE_TOKEN")) opt.cache_token = token;
         const auto& table = lsnif::converter::settings_table();
         for (std::size_t k = 0; k < table.size(); ++k) {
             const lsnif::converter::Setting& s = table[k];
@@ -323,9 +337,6 @@ struct ConvertCommand {
         sub->add_option("INPUT", settings.opt.inputs, "Scene files")->required();
         sub->add_option("-o,--output", settings.opt.outdir, "Output directory")->required();
         sub->add_flag("--json", json, "Print a machine-readable report");
-        sub->add_option("--cache", settings.opt.cache_dir,
-                        "Content-addressed cache of conversion results shared between runs, processes "
-                        "and machines (created if absent)");
         settings.add_to(sub);
     }
     int run(int argc, char** argv) {
@@ -351,8 +362,6 @@ struct BatchCommand {
                "Scene files, directories (searched for scene files) or list files (one path per line)")
             ->required();
         sub->add_option("-o,--output", settings.opt.outdir, "Output directory")->required();
-        sub->add_option("--cache", settings.opt.cache_dir, "Cache directory shared between runs and machines")
-            ->required();
         sub->add_option("--junit", batch.junit_path, "Write JUnit XML here: one test case per asset");
         sub->add_option("--shard", shard,
                         "I/N: convert only this shard's share of the candidates (lsnif merge joins the N "
@@ -368,6 +377,10 @@ struct BatchCommand {
     }
     int run() {
         if (!settings.finish()) return 2;
+        if (settings.opt.cache.empty()) {
+            std::fprintf(stderr, "error: --cache is required: a directory or an http(s):// cache server\n");
+            return 2;
+        }
         std::string error;
         if (sub->count("--shard") > 0 && !lsnif::converter::parse_shard(shard, settings.opt.shard_index,
                                                                         settings.opt.shard_count, error)) {

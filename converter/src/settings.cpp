@@ -214,6 +214,38 @@ std::vector<Setting> make_table() {
         LSNIF_FLAG("--dry-run", nullptr, dry_run, SettingScope::run,
                    "Import and classify only: print the plan (class, reasons, model size, cache key), write "
                    "nothing"),
+        Setting{"--cache", "DIR|URL", false, SettingScope::run, nullptr, "none (lsnif batch: required)",
+                "Cache of conversion results shared between runs, processes and machines: a directory "
+                "(created if absent) or an http(s):// server that stores what is PUT (docs/pipeline.md)",
+                [](ConvertOptions& o, const std::string& v, std::string& e, std::string&) {
+                    if (v.empty()) return e = "expected a directory or an http(s):// URL", false;
+                    return o.cache = v, true;
+                },
+                [](const ConvertOptions&) { return std::vector<std::string>{}; },
+                [](const ConvertOptions&) { return json(); }},
+        Setting{"--cache-local", "DIR", false, SettingScope::run, nullptr, "none",
+                "With a cache server: a directory in front of it, read first and filled from it",
+                [](ConvertOptions& o, const std::string& v, std::string& e, std::string&) {
+                    if (v.empty()) return e = "expected a directory", false;
+                    return o.cache_local = v, true;
+                },
+                [](const ConvertOptions&) { return std::vector<std::string>{}; },
+                [](const ConvertOptions&) { return json(); }},
+        LSNIF_FLAG("--cache-read-only", nullptr, cache_read_only, SettingScope::run,
+                   "Read the cache server, never write to it (e.g. builds of untrusted changes); a "
+                   "--cache-local directory is still filled"),
+        Setting{"--cache-timeout", "SECONDS", false, SettingScope::run, nullptr, "10",
+                "Per request to the cache server, connecting included; a request is tried 3 times (0.25 "
+                "and 0.5 s apart), then the server is not asked again in this run",
+                [](ConvertOptions& o, const std::string& v, std::string& e, std::string&) {
+                    double x = 0;
+                    const auto [end, ec] = std::from_chars(v.data(), v.data() + v.size(), x);
+                    if (v.empty() || ec != std::errc() || end != v.data() + v.size() || !(x > 0 && x <= 3600))
+                        return e = "expected seconds in (0, 3600]", false;
+                    return o.cache_timeout = x, true;
+                },
+                [](const ConvertOptions&) { return std::vector<std::string>{}; },
+                [](const ConvertOptions&) { return json(); }},
     };
 }
 

@@ -1,6 +1,7 @@
 #include <doctest/doctest.h>
 
 #include <lsnif/cache/cache.hpp>
+#include <lsnif/cache/remote.hpp>
 #include "../test_data.hpp"
 
 #include <sys/wait.h>
@@ -37,6 +38,22 @@ Store open_store(const fs::path& dir) {
 std::vector<char> file_bytes(const fs::path& p) {
     std::ifstream f(p, std::ios::binary);
     return {std::istreambuf_iterator<char>(f), std::istreambuf_iterator<char>()};
+}
+
+RemoteOptions server(const std::string& url, double timeout_seconds = 10) {
+    RemoteOptions o;
+    o.url = url;
+    o.timeout_seconds = timeout_seconds;
+    return o;
+}
+
+CacheOptions cache_at(const std::string& location, const std::string& local = {},
+                      double timeout_seconds = 10) {
+    CacheOptions o;
+    o.location = location;
+    o.local = local;
+    o.timeout_seconds = timeout_seconds;
+    return o;
 }
 
 void write_bytes(const fs::path& p, const std::vector<char>& bytes) {
@@ -188,4 +205,77 @@ TEST_CASE("a cache directory that cannot be created is an error naming it") {
     auto s = Store::open(dir);
     REQUIRE_FALSE(s.ok());
     CHECK(s.error().message.find(dir.string()) == 0);
+}
+
+TEST_CASE("encode_entry and decode_entry: the bytes every level stores, verified on the way back") {
+    const std::string key = std::string(64, 'a');
+    const Entry e{"{\"class\":\"simple\"}", {1, 2, 3, 4}};
+    const std::vector<std::uint8_t> bytes = encode_entry(key, e);
+    CHECK(bytes.size() == kEntryHeaderSize + e.record.size() + e.payload.size());
+    auto back = decode_entry(bytes, key);
+    REQUIRE(back.ok());
+    CHECK(*back == e);
+    CHECK(decode_entry(bytes, std::string(64, 'b')).error().message == "stored under the wrong key");
+    std::vector<std::uint8_t> torn = bytes;
+    torn.resize(torn.size() - 1);
+    CHECK(decode_entry(torn, key).error().message.find("do not match the file's") != std::string::npos);
+    const std::string html = "<html>502 Bad Gateway</html>";  // what a proxy may answer instead
+    CHECK_FALSE(decode_entry({reinterpret_cast<const std::uint8_t*>(html.data()), html.size()}, key).ok());
+}
+
+TEST_CASE("a --cache value is a directory or an http(s) URL, never a URL taken for a directory") {
+    CHECK(is_url("http://host/x"));
+    CHECK(is_url("https://host:8443/"));
+    CHECK(is_url("s3://bucket/x"));
+    CHECK(is_url("git+ssh://h/x"));
+    CHECK_FALSE(is_url("cache"));
+    CHECK_FALSE(is_url("/abs/dir"));
+    CHECK_FALSE(is_url("./http:/x"));
+    CHECK_FALSE(is_url("://x"));
+    CHECK_FALSE(is_url("1ab://x"));
+    for (const char* url :
+         {"http://127.0.0.1:8080/cache", "https://cache.example.org/lsnif/", "http://[::1]:80/c"})
+        CHECK_MESSAGE(Remote::open(server(url)).ok(), url);
+    const std::pair<const char*, const char*> refused[] = {
+        {"ftp://host/x", "not an http:// or https:// URL"},
+        {"s3://bucket/x", "not an http:// or https:// URL"},
+        {"http://", "no host"},
+        {"http://:80/x", "no host"},
+        {"http://u:p@host/x", "credentials in the URL"},
+        {"http://host/x?a=1", "a query or fragment"},
+        {"http://host:0/x", "port '0' is not 1..65535"},
+        {"http://host:99999/x", "port '99999' is not 1..65535"},
+        {"http://host:8a/x", "port '8a' is not 1..65535"},
+        {"http://host/a b", "white space"}};
+    for (const auto& [url, why] : refused) {
+        auto r = Remote::open(server(url));
+        REQUIRE_MESSAGE(!r.ok(), url);
+        CHECK_MESSAGE(r.error().message.find(why) != std::string::npos, r.error().message);
+        CHECK(r.error().message.rfind(std::string("--cache ") + url, 0) == 0);
+    }
+    CHECK_FALSE(Remote::open(server("http://host/x", 0)).ok());  // a timeout of 0
+    const std::filesystem::path cwd = std::filesystem::current_path();
+    std::filesystem::current_path(lsnif::test::fresh_dir(LSNIF_CACHE_WORK_DIR, "url_not_dir", true));
+    CHECK_FALSE(Cache::open(cache_at("s3://bucket/x")).ok());
+    CHECK_FALSE(std::filesystem::exists("s3:"));
+    CHECK_FALSE(Cache::open(cache_at("dir", "local")).ok());  // a local level goes in front of a server only
+    std::filesystem::current_path(cwd);
+}
+
+TEST_CASE("a cache server that cannot be reached is unavailable, once, and puts are not lost locally") {
+    // Port 9 (discard) on the loopback: nothing listens in a test sandbox, the connection is refused.
+    auto cache = Cache::open(cache_at("http://127.0.0.1:9/c", fresh_dir("unreachable_local").string(), 2));
+    REQUIRE(cache.ok());
+    const std::string key(64, 'c');
+    const Lookup miss = cache->get(key);
+    CHECK(miss.status == Status::unavailable);
+    auto stored = cache->put(key, Entry{"r", {}});
+    REQUIRE(stored.ok());
+    CHECK(*stored);  // the local level took it
+    const std::vector<std::string> warnings = cache->take_warnings();
+    REQUIRE(warnings.size() == 1);  // one for the get and the put
+    CHECK(warnings[0].find("cache server is unavailable") != std::string::npos);
+    CHECK(cache->get(key).status == Status::hit);  // from the local level, the server not asked
+    CHECK(cache->take_warnings().empty());
+    CHECK(cache->describe().find("http://127.0.0.1:9/c") == 0);
 }

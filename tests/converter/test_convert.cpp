@@ -245,7 +245,7 @@ TEST_CASE("convert a real mesh: asset, metadata, manifest, reuse") {
     // same file name and the same bytes (no wall time or output path inside the asset).
     const fs::path out2 = fresh_dir("dragon_again");
     ConvertOptions cached = smoke({kDragon}, out2);
-    cached.cache_dir = fresh_dir("dragon_cache").string();
+    cached.cache = fresh_dir("dragon_cache").string();
     const ConvertResult third = convert(cached);
     REQUIRE(third.ok());
     REQUIRE(third.manifest["meshes"][0]["lsnif"]["reused"] == false);
@@ -487,7 +487,7 @@ TEST_CASE("--cache: a warm run converts nothing; damaged entries are rebuilt; se
     const fs::path cache = fresh_dir("cache_store");
     const std::vector<std::string> inputs = {kDragon, std::string(LSNIF_TEST_MESH_DIR) + "/armadillo.off"};
     ConvertOptions o = smoke(inputs, fresh_dir("cache_cold"));
-    o.cache_dir = cache.string();
+    o.cache = cache.string();
     const ConvertResult cold = convert(o);
     REQUIRE_MESSAGE(cold.ok(), (cold.errors.empty() ? "" : cold.errors[0]));
     CHECK(cold.report["cache"]["stored"] == 2);

@@ -213,7 +213,11 @@ TEST_CASE("every setting survives settings_arguments and back, and every mesh se
                                                         {"--keep-inactive", ""},
                                                         {"--threads", "3"},
                                                         {"--jobs", "2"},
-                                                        {"--dry-run", ""}};
+                                                        {"--dry-run", ""},
+                                                        {"--cache", "http://127.0.0.1:9/cache"},
+                                                        {"--cache-local", "local-cache"},
+                                                        {"--cache-read-only", ""},
+                                                        {"--cache-timeout", "2.5"}};
     const scene::Mesh mesh = dragon();
     const fs::path dir = fresh_dir("settings_round_trip");
     const ConvertOptions base = options("smoke");

@@ -105,14 +105,6 @@ std::string entry_problem(std::span<const std::uint8_t> bytes, std::string_view 
     return {};
 }
 
-// Built by appending: GCC 12 warns falsely (-Wrestrict) on "'" + std::string(view) + "...".
-std::string not_a_key(std::string_view key) {
-    std::string s = "'";
-    s.append(key);
-    s.append("' is not a cache key (64 lowercase hexadecimal digits)");
-    return s;
-}
-
 }  // namespace
 
 std::string Sha256::hex() {
@@ -122,6 +114,14 @@ std::string Sha256::hex() {
 
 std::string sha256_hex(std::span<const std::uint8_t> bytes) {
     return Sha256().update(bytes).hex();
+}
+
+// Built by appending: GCC 12 warns falsely (-Wrestrict) on "'" + std::string(view) + "...".
+std::string not_a_key(std::string_view key) {
+    std::string s = "'";
+    s.append(key);
+    s.append("' is not a cache key (64 lowercase hexadecimal digits)");
+    return s;
 }
 
 bool valid_key(std::string_view key) {
@@ -143,6 +143,30 @@ fs::path Store::entry_path(std::string_view key) const {
     return root_ / "entries" / std::string(key.substr(0, 2)) / (std::string(key) + ".entry");
 }
 
+std::vector<std::uint8_t> encode_entry(std::string_view key, const Entry& entry) {
+    std::vector<std::uint8_t> bytes(kEntryHeaderSize);
+    std::memcpy(bytes.data(), kMagic, sizeof kMagic);
+    put_u64(bytes.data() + 8, entry.record.size());
+    put_u64(bytes.data() + 16, entry.payload.size());
+    std::memcpy(bytes.data() + 56, key.data(), 64);
+    const std::span<const std::uint8_t> record(reinterpret_cast<const std::uint8_t*>(entry.record.data()),
+                                               entry.record.size());
+    const auto sum = entry_checksum(key, bytes.data() + 8, record, entry.payload);
+    std::memcpy(bytes.data() + 24, sum.data(), sum.size());
+    bytes.insert(bytes.end(), record.begin(), record.end());
+    bytes.insert(bytes.end(), entry.payload.begin(), entry.payload.end());
+    return bytes;
+}
+
+Result<Entry> decode_entry(std::span<const std::uint8_t> bytes, std::string_view key) {
+    if (std::string problem = entry_problem(bytes, key); !problem.empty()) return Error{problem};
+    const std::uint64_t r = get_u64(bytes.data() + 8);
+    Entry entry;
+    entry.record.assign(reinterpret_cast<const char*>(bytes.data()) + kEntryHeaderSize, r);
+    entry.payload.assign(bytes.begin() + std::ptrdiff_t(kEntryHeaderSize + r), bytes.end());
+    return entry;
+}
+
 Lookup Store::get(std::string_view key) const {
     Lookup out;
     if (!valid_key(key)) {
@@ -154,17 +178,15 @@ Lookup Store::get(std::string_view key) const {
     std::error_code ec;
     if (!fs::exists(path, ec)) return out;  // miss
     auto bytes = read_all(path);
-    std::string problem = bytes ? entry_problem(*bytes, key) : bytes.error().message;
-    if (!problem.empty()) {
+    auto entry = bytes ? decode_entry(*bytes, key) : Result<Entry>(bytes.error());
+    if (!entry) {
         out.status = Status::corrupt;
-        out.problem = path.string() + ": " + problem;
+        out.problem = bytes ? path.string() + ": " + entry.error().message : entry.error().message;
         fs::remove(path, ec);  // a concurrent put() may have replaced it: that only costs a rebuild
         return out;
     }
-    const std::uint64_t r = get_u64(bytes->data() + 8);
     out.status = Status::hit;
-    out.entry.record.assign(reinterpret_cast<const char*>(bytes->data()) + kEntryHeaderSize, r);
-    out.entry.payload.assign(bytes->begin() + std::ptrdiff_t(kEntryHeaderSize + r), bytes->end());
+    out.entry = std::move(*entry);
     return out;
 }
 

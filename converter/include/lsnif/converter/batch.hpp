@@ -28,7 +28,7 @@ struct BatchOptions {
     // for scene files, in path order), or list files (any other file: one path per line,
     // relative to the list file's directory; blank lines and lines starting with '#' skipped).
     std::vector<std::string> inputs;
-    // outdir and cache_dir required; every `lsnif convert` setting. Assets record the command
+    // outdir and cache required; every `lsnif convert` setting. Assets record the command
     // "lsnif batch SETTINGS" (settings_arguments: canonical, inputs and outputs left out, the
     // asset's source is in its metadata), so that a single run, shards, --jobs and the steps
     // of a Ninja file write the same bytes; command_line is not used.

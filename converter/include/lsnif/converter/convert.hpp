@@ -109,9 +109,17 @@ struct ConvertOptions {
     // Import and classify only; report the plan (each candidate's cache key and estimated
     // conversion time with it: `cache_key`, `estimated_ms`), write nothing.
     bool dry_run = false;
-    // --cache DIR: a content-addressed store (lsnif::cache) of every candidate's result,
-    // shared between runs, processes and machines; empty = none (docs/pipeline.md).
-    std::string cache_dir;
+    // --cache DIR|URL: a content-addressed store (lsnif::cache) of every candidate's result,
+    // shared between runs, processes and machines: a directory or an http(s) server; empty =
+    // none (docs/pipeline.md). --cache-local: a directory in front of a server.
+    // --cache-read-only: never write to the server. --cache-timeout: seconds per request.
+    std::string cache;
+    std::string cache_local;
+    bool cache_read_only = false;
+    double cache_timeout = 10;
+    // The server's bearer token (LSNIF_CACHE_TOKEN, read by the command line): sent to the
+    // server, never recorded, printed or keyed.
+    std::string cache_token;
     // --shard I/N (`lsnif batch`): convert only the candidates this shard owns (the candidates
     // of all inputs, costliest first by an estimate of their conversion time, ties by cache
     // key, each dealt to the shard with the least estimated work); the others are recorded as

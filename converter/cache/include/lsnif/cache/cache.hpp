@@ -1,5 +1,6 @@
 // lsnif::cache — a content-addressed store of conversion results, shared between runs,
-// processes and machines (docs/pipeline.md "The cache").
+// processes and machines (docs/pipeline.md "The cache"): a directory (Store), an HTTP(S)
+// server (Remote, lsnif/cache/remote.hpp) or both, a directory in front of a server (Cache).
 //
 // A result is stored under a key that the caller derives from everything that determines it
 // (the converter hashes the geometry, the settings and the tool's build identity with
@@ -56,6 +57,8 @@ std::string sha256_hex(std::span<const std::uint8_t> bytes);
 
 // What a key must look like: 64 lowercase hexadecimal digits (a SHA-256).
 bool valid_key(std::string_view key);
+// Why `key` is not valid_key ("'K' is not a cache key (...)"), the message every level gives.
+std::string not_a_key(std::string_view key);
 
 // One stored result: a record (UTF-8 text; the converter stores JSON) and an optional
 // payload (the converter stores the .lsnif bytes; empty when the object stays BVH).
@@ -65,12 +68,24 @@ struct Entry {
     bool operator==(const Entry&) const = default;
 };
 
-enum class Status { hit, miss, corrupt };
+// The bytes of `entry` stored under `key` (valid_key, sizes at most kMaxEntrySize): the
+// entry file layout below. Every level stores exactly these bytes.
+std::vector<std::uint8_t> encode_entry(std::string_view key, const Entry& entry);
+// The entry in `bytes` if they are a whole, intact entry stored under `key`; otherwise what
+// is wrong with them (truncated, torn, altered, another key, not an entry at all).
+Result<Entry> decode_entry(std::span<const std::uint8_t> bytes, std::string_view key);
+
+enum class Status {
+    hit,
+    miss,
+    corrupt,      // the stored bytes are not an intact entry for the key: never used
+    unavailable,  // the server could not be asked (down, slow, refusing): a miss, with a warning
+};
 
 struct Lookup {
     Status status = Status::miss;
     Entry entry;          // when hit
-    std::string problem;  // when corrupt: "FILE: what is wrong" (the file was removed)
+    std::string problem;  // when corrupt or unavailable: "FILE or URL: what is wrong"
 };
 
 class Store {
