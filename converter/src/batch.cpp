@@ -6,6 +6,7 @@
 #include <lsnif/converter/settings.hpp>
 #include <lsnif/format/container.hpp>
 #include <lsnif/scene/scene.hpp>
+#include "batch_internal.hpp"
 
 #include <algorithm>
 #include <cctype>
@@ -22,6 +23,40 @@ namespace lsnif::converter {
 
 namespace fs = std::filesystem;
 using nlohmann::json;
+using namespace batch_detail;
+
+namespace batch_detail {
+
+std::string shell_word(const std::string& w) {
+    const bool plain = !w.empty() && std::all_of(w.begin(), w.end(), [](char c) {
+        return std::isalnum(static_cast<unsigned char>(c)) || std::strchr("/._-+=,:@%", c);
+    });
+    if (plain) return w;
+    std::string out = "'";
+    for (char c : w) {
+        if (c == '\'') out += "'\\'";  // close, an escaped quote, reopen
+        out += c;
+    }
+    out += '\'';
+    return out;
+}
+
+std::string shell_line(const std::vector<std::string>& words) {
+    std::string line;
+    for (const std::string& w : words) {
+        if (!line.empty()) line += ' ';
+        line += shell_word(w);
+    }
+    return line;
+}
+
+std::string absolute(const std::string& p) {
+    std::error_code ec;
+    const fs::path a = fs::absolute(p, ec);
+    return (ec ? fs::path(p) : a).lexically_normal().string();
+}
+
+}  // namespace batch_detail
 
 namespace {
 
@@ -114,21 +149,6 @@ std::string asset_line(const MeshOutcome& m, const std::string& input) {
     return buf;
 }
 
-// A word for /bin/sh, single-quoted unless it needs no quoting.
-std::string shell_word(const std::string& w) {
-    const bool plain = !w.empty() && std::all_of(w.begin(), w.end(), [](char c) {
-        return std::isalnum(static_cast<unsigned char>(c)) || std::strchr("/._-+=,:@%", c);
-    });
-    if (plain) return w;
-    std::string out = "'";
-    for (char c : w) {
-        if (c == '\'') out += "'\\'";  // close, an escaped quote, reopen
-        out += c;
-    }
-    out += '\'';
-    return out;
-}
-
 // A path in a Ninja `build` line: '$', ' ', ':' and newlines escaped (ninja_syntax's rules).
 std::string ninja_path(const std::string& p) {
     std::string out;
@@ -149,32 +169,11 @@ std::string ninja_value(const std::string& v) {
     return out;
 }
 
-std::string shell_line(const std::vector<std::string>& words) {
-    std::string line;
-    for (const std::string& w : words) {
-        if (!line.empty()) line += ' ';
-        line += shell_word(w);
-    }
-    return line;
-}
-
-std::string absolute(const std::string& p) {
-    std::error_code ec;
-    const fs::path a = fs::absolute(p, ec);
-    return (ec ? fs::path(p) : a).lexically_normal().string();
-}
-
 // Whether `p` lies inside directory `dir` (both absolute and normal).
 bool inside(const fs::path& p, const fs::path& dir) {
     const auto rel = p.lexically_relative(dir);
     return !rel.empty() && *rel.begin() != "..";
 }
-
-// One unique candidate of the plan: what its Ninja edge converts.
-struct PlannedObject {
-    std::string key, source, mesh;
-    std::uint64_t estimated_ms = 0;
-};
 
 // What the Ninja file's regenerate edge watches: the scene files, list files and every
 // directory searched (a file added or removed changes its directory's time).
@@ -325,39 +324,21 @@ void plan_ninja(const BatchOptions& options, const ConvertProgress& progress, Ba
         r.exit = BatchExit::failed;
         return;
     }
-    // Absolute paths, as the Ninja file's steps give them: a source path is part of each key.
-    for (std::string& scene : r.scenes) scene = absolute(scene);
-    ConvertOptions c = options.convert;
-    c.inputs = r.scenes;
-    c.dry_run = true;
-    r.convert = convert(c, progress);
-    if (r.convert.usage_error) {
-        r.exit = BatchExit::usage;
-        return;
-    }
-    std::map<std::string, PlannedObject> unique;
-    for (const MeshOutcome& m : r.convert.meshes)
-        if (m.cache_key)
-            unique.emplace(*m.cache_key,
-                           PlannedObject{*m.cache_key, r.scenes.at(m.input), m.name, *m.estimated_ms});
-    std::vector<PlannedObject> objects;
-    for (auto& [key, o] : unique) objects.push_back(std::move(o));
-    std::stable_sort(objects.begin(), objects.end(), [](const PlannedObject& a, const PlannedObject& b) {
-        return a.estimated_ms > b.estimated_ms;  // costliest first, then by key
-    });
+    const auto objects = plan_library(options.convert, progress, r);
+    if (!objects) return;
     const std::string file = absolute(options.ninja_path);
     std::error_code ec;
     fs::create_directories(fs::path(file).parent_path(), ec);
     // The depfile first: a Ninja file is never there without what it depends on.
     for (const auto& [path, text] :
          {std::pair{file + ".d", depfile_text(file, plan_dependencies(options, r.scenes))},
-          std::pair{file, ninja_text(options, objects, r.scenes, *store)}})
+          std::pair{file, ninja_text(options, *objects, r.scenes, *store)}})
         if (const format::Error e = format::write_text_atomically(path, text)) {
             r.convert.errors.push_back(e.message);
             r.exit = BatchExit::failed;
             return;
         }
-    r.lines.push_back("planned  " + std::to_string(objects.size()) +
+    r.lines.push_back("planned  " + std::to_string(objects->size()) +
                       " objects to convert: " + options.ninja_path);
     // Inputs that cannot be read fail in the library step, where CI sees them; failing here
     // would stop Ninja each time it plans again.
@@ -370,39 +351,66 @@ void plan_ninja(const BatchOptions& options, const ConvertProgress& progress, Ba
     r.exit = BatchExit::ok;
 }
 
+// The summary of a run that planned (--ninja, --plan FILE): what was planned, no counts.
+void plan_summary(const BatchResult& r, const char* what, const std::string& file, BatchResult& out) {
+    out.summary = {{"scenes", r.scenes},
+                   {"lines", r.lines},
+                   {"errors", r.input_errors},
+                   {"warnings", r.convert.warnings},
+                   {what, file}};
+    for (const std::string& e : r.convert.errors) out.summary["errors"].push_back(e);
+    out.summary["exit_code"] = int(r.exit);
+}
+
 }  // namespace
 
-BatchResult batch(const BatchOptions& options, const ConvertProgress& progress,
-                  const std::function<void(const std::string&)>& on_line) {
-    BatchResult r;
-    r.scenes = expand_inputs(options.inputs, r.input_errors);
-    for (const std::string& e : r.input_errors) r.lines.push_back("failed   " + e);
-    std::size_t converted = 0, bvh = 0, failed = r.input_errors.size();
-    if (!options.ninja_path.empty()) {
-        plan_ninja(options, progress, r);
-        r.summary = {{"scenes", r.scenes},
-                     {"lines", r.lines},
-                     {"errors", r.input_errors},
-                     {"warnings", r.convert.warnings},
-                     {"ninja", options.ninja_path}};
-        for (const std::string& e : r.convert.errors) r.summary["errors"].push_back(e);
-        r.summary["exit_code"] = int(r.exit);
-        return r;
+namespace batch_detail {
+
+std::optional<std::vector<PlannedObject>> plan_library(ConvertOptions c, const ConvertProgress& progress,
+                                                       BatchResult& r) {
+    for (std::string& scene : r.scenes) scene = absolute(scene);
+    c.inputs = r.scenes;
+    c.dry_run = true;
+    r.convert = convert(c, progress);
+    if (r.convert.usage_error) {
+        r.exit = BatchExit::usage;
+        return std::nullopt;
     }
+    std::map<std::string, PlannedObject> unique;
+    for (const MeshOutcome& m : r.convert.meshes)
+        if (m.cache_key)
+            unique.emplace(*m.cache_key, PlannedObject{*m.cache_key, r.scenes.at(m.input), m.name,
+                                                       std::size_t(m.input), *m.estimated_ms});
+    std::vector<PlannedObject> objects;
+    for (auto& [key, o] : unique) objects.push_back(std::move(o));
+    std::stable_sort(objects.begin(), objects.end(), [](const PlannedObject& a, const PlannedObject& b) {
+        return a.estimated_ms > b.estimated_ms;  // costliest first, then by key
+    });
+    return objects;
+}
+
+void convert_library(const BatchOptions& options, ConvertOptions c, const ConvertProgress& progress,
+                     const std::function<void(const std::string&)>& on_line, BatchResult& r) {
+    std::size_t converted = 0, bvh = 0, failed = r.input_errors.size();
     if (!r.scenes.empty()) {
-        ConvertOptions c = options.convert;
         c.inputs = r.scenes;
         c.command_line = "lsnif batch " + shell_line(settings_arguments(c));
         c.write_gltf = false;  // a library, not a scene
+        // One object's job (--object, --from-plan --task) reports its objects: the meshes that
+        // classification decided belong to the library's own run.
+        const bool objects_only = !c.only_keys.empty();
+        const auto reported = [objects_only](const MeshOutcome& m) {
+            return m.cls() != MeshClass::deferred && !(objects_only && decided_in_plan(m.decision));
+        };
         const auto forward = [&](const ProgressEvent& e) {
-            if (e.stage == "done" && e.outcome && on_line && e.outcome->cls() != MeshClass::deferred)
+            if (e.stage == "done" && e.outcome && on_line && reported(*e.outcome))
                 on_line(asset_line(*e.outcome, r.scenes.at(e.outcome->input)));
             if (progress) progress(e);
         };
         r.convert = convert(c, forward);
         if (r.convert.usage_error) {
             r.exit = BatchExit::usage;
-            return r;
+            return;
         }
         for (const InputRecord& in : r.convert.inputs)
             if (!in.ok()) {
@@ -410,7 +418,7 @@ BatchResult batch(const BatchOptions& options, const ConvertProgress& progress,
                 ++failed;
             }
         for (const MeshOutcome& m : r.convert.meshes) {
-            if (m.cls() == MeshClass::deferred) continue;
+            if (!reported(m)) continue;
             r.lines.push_back(asset_line(m, r.convert.inputs.at(m.input).given));
             m.cls() == MeshClass::failed ? ++failed : m.asset ? ++converted : ++bvh;
         }
@@ -439,6 +447,29 @@ BatchResult batch(const BatchOptions& options, const ConvertProgress& progress,
             r.exit = BatchExit::failed;
             r.summary["exit_code"] = int(r.exit);
         }
+    }
+}
+
+}  // namespace batch_detail
+
+BatchResult batch(const BatchOptions& options, const ConvertProgress& progress,
+                  const std::function<void(const std::string&)>& on_line) {
+    BatchResult r;
+    if (!options.from_plan.empty()) {  // the plan names the inputs
+        run_from_plan(options, progress, on_line, r);
+        if (r.summary.is_null()) plan_summary(r, "from_plan", options.from_plan, r);
+        return r;
+    }
+    r.scenes = expand_inputs(options.inputs, r.input_errors);
+    for (const std::string& e : r.input_errors) r.lines.push_back("failed   " + e);
+    if (!options.ninja_path.empty()) {
+        plan_ninja(options, progress, r);
+        plan_summary(r, "ninja", options.ninja_path, r);
+    } else if (!options.plan_path.empty()) {
+        write_plan(options, progress, r);
+        plan_summary(r, "plan", options.plan_path, r);
+    } else {
+        convert_library(options, options.convert, progress, on_line, r);
     }
     return r;
 }

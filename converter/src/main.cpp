@@ -300,6 +300,15 @@ struct ConvertSettings {
                 options.push_back(sub->add_option(s.names, one, help)->type_name(s.value));
         }
     }
+    // The recorded settings (scopes mesh and scene) given on the command line, by name.
+    std::vector<std::string> given_recorded() const {
+        std::vector<std::string> names;
+        const auto& table = lsnif::converter::settings_table();
+        for (std::size_t k = 0; k < table.size(); ++k)
+            if (table[k].scope != lsnif::converter::SettingScope::run && options[k]->count() > 0)
+                names.push_back(lsnif::converter::long_name(table[k]));
+        return names;
+    }
     // Applies what was given, and the cache server's token from the environment (never from
     // the command line, where other users and logs see it); false (after printing the error)
     // is a usage error.
@@ -351,17 +360,17 @@ struct BatchCommand {
     lsnif::converter::BatchOptions batch;
     ConvertSettings settings;
     std::string shard;
+    std::uint32_t task = 0;
     bool json = false;
     void add_to(CLI::App& app) {
         sub = app.add_subcommand(
             "batch",
             "Convert an asset library through a shared cache, for CI: one line per asset, "
             "JUnit XML, exit 0 (all converted or rightly BVH), 1 (some failed), 2 (usage)");
-        sub->add_option(
-               "INPUT", batch.inputs,
-               "Scene files, directories (searched for scene files) or list files (one path per line)")
-            ->required();
-        sub->add_option("-o,--output", settings.opt.outdir, "Output directory")->required();
+        sub->add_option("INPUT", batch.inputs,
+                        "Scene files, directories (searched for scene files) or list files (one path per "
+                        "line); none with --from-plan, whose plan names them");
+        sub->add_option("-o,--output", settings.opt.outdir, "Output directory (not with --plan)");
         sub->add_option("--junit", batch.junit_path, "Write JUnit XML here: one test case per asset");
         sub->add_option("--shard", shard,
                         "I/N: convert only this shard's share of the candidates (lsnif merge joins the N "
@@ -373,14 +382,42 @@ struct BatchCommand {
         sub->add_option("--object", settings.opt.only_keys,
                         "Convert only the candidate with this cache key (a step of the --ninja file)")
             ->allow_extra_args(false);
+        sub->add_option("--plan", batch.plan_path,
+                        "Plan only, and write the library's plan here: every input with its SHA-256, every "
+                        "object to convert as a task (0..N-1, costliest first) with its cache key");
+        sub->add_option("--from-plan", batch.from_plan,
+                        "Convert from a plan without planning the library again: with --task K one object, "
+                        "with --shard I/N a share of the tasks, alone the whole library through the cache "
+                        "(writing the manifest)");
+        sub->add_option("--task", task, "K: the plan's task K (with --from-plan), e.g. $SLURM_ARRAY_TASK_ID");
         settings.add_to(sub);
+    }
+    // Why the options cannot go together; empty when they can.
+    std::string conflict() const {
+        const bool plan = !batch.plan_path.empty(), from = !batch.from_plan.empty();
+        const bool has_task = sub->count("--task") > 0, has_shard = sub->count("--shard") > 0;
+        if (plan + from + !batch.ninja_path.empty() + !settings.opt.only_keys.empty() > 1)
+            return "--plan, --from-plan, --ninja and --object are different ways to run: give one";
+        if (has_task && !from) return "--task needs --from-plan";
+        if (has_task && has_shard) return "--task and --shard: give one";
+        if (from && !batch.inputs.empty()) return "--from-plan: the plan names the inputs, give none";
+        if (!from && batch.inputs.empty()) return "INPUT is required";
+        if (!plan && settings.opt.outdir.empty()) return "--output is required";
+        if (!plan && settings.opt.cache.empty())
+            return "--cache is required: a directory or an http(s):// cache server";
+        if (from)
+            for (const std::string& name : settings.given_recorded())
+                return "--from-plan: the plan fixes the settings, " + name +
+                       " cannot change them (plan again)";
+        return {};
     }
     int run() {
         if (!settings.finish()) return 2;
-        if (settings.opt.cache.empty()) {
-            std::fprintf(stderr, "error: --cache is required: a directory or an http(s):// cache server\n");
+        if (const std::string why = conflict(); !why.empty()) {
+            std::fprintf(stderr, "error: %s\n", why.c_str());
             return 2;
         }
+        if (sub->count("--task") > 0) batch.task = task;
         std::string error;
         if (sub->count("--shard") > 0 && !lsnif::converter::parse_shard(shard, settings.opt.shard_index,
                                                                         settings.opt.shard_count, error)) {
@@ -407,7 +444,7 @@ struct BatchCommand {
         }
         if (json) {
             std::cout << r.summary.dump(2) << "\n";
-        } else if (!batch.ninja_path.empty()) {
+        } else if (!r.summary.contains("assets")) {  // a plan (--ninja, --plan) or nothing to do
             for (const auto& line : r.lines) std::cout << line << "\n";
         } else {
             for (const auto& line : r.lines)  // what was not streamed: the inputs that failed

@@ -1,6 +1,7 @@
 // Planning a mesh: classification, voxelization, the memory rule, and the order, shards and
 // memory of a run's candidates (convert_stages.hpp has the contracts).
 #include <lsnif/base/clock.hpp>
+#include <lsnif/converter/batch.hpp>
 #include "convert_stages.hpp"
 
 #include <cinttypes>
@@ -275,8 +276,8 @@ std::uint64_t estimated_cost_ms(const Run& run, const Planned& p) {
     return 4200 + samples * 255 / 100000 + std::uint64_t(p.mesh->triangle_count()) * 18 / 10000;
 }
 
-// Longest processing time first: within 4/3 of the best split of the estimated work. Ties
-// go to the lowest shard index, so the split is a function of the inputs and settings alone.
+// Longest processing time first (deal_to_shards); equal costs in key order, so the split is
+// a function of the inputs and settings alone.
 std::vector<std::uint32_t> shard_owners(const Run& run, std::vector<Planned>& planned) {
     std::vector<std::uint32_t> owner(planned.size(), 0);
     if (run.opt.shard_count == 0) return owner;
@@ -291,15 +292,24 @@ std::vector<std::uint32_t> shard_owners(const Run& run, std::vector<Planned>& pl
             jobs.push_back({estimated_cost_ms(run, planned[i]), cache_key(run, planned[i]), i});
     std::sort(jobs.begin(), jobs.end(),
               [](const Job& a, const Job& b) { return a.cost != b.cost ? a.cost > b.cost : a.key < b.key; });
-    std::vector<std::uint64_t> load(run.opt.shard_count, 0);
-    for (const Job& j : jobs) {
-        const auto least = std::size_t(std::min_element(load.begin(), load.end()) - load.begin());
-        load[least] += j.cost;
-        owner[j.index] = std::uint32_t(least) + 1;
-    }
+    std::vector<std::uint64_t> costs;
+    for (const Job& j : jobs) costs.push_back(j.cost);
+    const std::vector<std::uint32_t> shard = deal_to_shards(costs, run.opt.shard_count);
+    for (std::size_t k = 0; k < jobs.size(); ++k) owner[jobs[k].index] = shard[k] + 1;
     return owner;
 }
 
 }  // namespace stages
+
+std::vector<std::uint32_t> deal_to_shards(const std::vector<std::uint64_t>& costs, std::uint32_t count) {
+    std::vector<std::uint32_t> shard(costs.size(), 0);
+    std::vector<std::uint64_t> load(std::max(1u, count), 0);
+    for (std::size_t k = 0; k < costs.size(); ++k) {
+        const auto least = std::size_t(std::min_element(load.begin(), load.end()) - load.begin());
+        load[least] += costs[k];
+        shard[k] = std::uint32_t(least);
+    }
+    return shard;
+}
 
 }  // namespace lsnif::converter

@@ -5,12 +5,14 @@
 // Library code: never prints or exits; the CLI decides.
 #pragma once
 
+#include <lsnif/base/result.hpp>
 #include <lsnif/converter/convert.hpp>
 
 #include <nlohmann/json.hpp>
 
 #include <cstdint>
 #include <functional>
+#include <optional>
 #include <string>
 #include <vector>
 
@@ -38,7 +40,44 @@ struct BatchOptions {
     // one edge per unique candidate (docs/pipeline.md "Ninja"); `program` is the lsnif
     // executable its commands run (an absolute path).
     std::string ninja_path, program;
+    // --plan FILE: plan only, and write the library's plan (LibraryPlan) for --from-plan.
+    std::string plan_path;
+    // --from-plan FILE: convert from a plan without planning the library again, after
+    // checking that the tool and every input it needs are the ones planned. With `task`, that
+    // one object (`lsnif batch --from-plan FILE --task K`, one task of a scheduler); with
+    // convert.shard_count, that shard's share of the tasks; with neither, the whole library
+    // through the cache, writing its manifest (the assembly step). The plan fixes every
+    // recorded setting: convert holds only the run's own (cache, threads, output).
+    std::string from_plan;
+    std::optional<std::uint32_t> task;
 };
+
+// A library's plan (docs/pipeline.md "Plan once"), written by --plan, read by --from-plan.
+struct PlannedInput {
+    std::string path;    // absolute: a source path is part of every key
+    std::string sha256;  // of the file's bytes when planned
+};
+struct PlannedTask {
+    std::string key;        // the candidate's cache key
+    std::size_t input = 0;  // into LibraryPlan::inputs
+    std::string mesh;
+    std::uint64_t estimated_ms = 0;  // estimated conversion time (docs/pipeline.md "Shards")
+};
+struct LibraryPlan {
+    std::string version, identity;      // the lsnif that planned: tool_identity()
+    std::vector<std::string> settings;  // settings_arguments of the planned conversion
+    std::vector<PlannedInput> inputs;   // every scene file of the library, in order
+    std::vector<PlannedTask> tasks;     // every unique candidate, costliest first: task K is tasks[K]
+};
+inline constexpr const char* kPlanFormat = "lsnif-plan/1";
+nlohmann::json plan_json(const LibraryPlan& plan);
+// Strict: an error names the field ("tasks[3].key: missing").
+base::Result<LibraryPlan, std::string> plan_from_json(const nlohmann::json& j);
+
+// Longest processing time first: items (already in order, costliest first) dealt one after
+// another to the shard (0..count-1) with the least cost so far, ties to the lowest index.
+// Within 4/3 of the best split; a function of the costs alone, so every shard computes it.
+std::vector<std::uint32_t> deal_to_shards(const std::vector<std::uint64_t>& costs, std::uint32_t count);
 
 struct BatchResult {
     std::vector<std::string> scenes;        // what the inputs expanded to, in order, duplicates removed
