@@ -140,6 +140,61 @@ std::vector<std::uint8_t> encode_desc(const ModelDesc& d) {
     return b;
 }
 
+// FORMAT.md §7.2 E4.2-E4.5: a count in 1..max stored at `count_at`, then `max` u32 slots
+// at `slots_at` of which the first `count` are read into `out` and the rest must be zero.
+// The names are the descriptor fields' (§6.2), quoted in the error.
+Error decode_slots(const std::uint8_t* p, std::uint64_t file_offset, std::size_t count_at,
+                   std::size_t slots_at, std::uint32_t max, const char* count_name, const char* slot_name,
+                   std::vector<std::uint32_t>& out) {
+    const std::uint32_t count = load_u32(p + count_at);
+    if (count < 1 || count > max)
+        return make_error(LSNIF_ERR_MODEL, file_offset, "MODL section: %s %u outside 1..%u", count_name,
+                          count, max);
+    out.assign(count, 0);
+    for (std::uint32_t k = 0; k < max; ++k) {
+        const std::uint32_t v = load_u32(p + slots_at + 4 * k);
+        if (k < count)
+            out[k] = v;
+        else if (v != 0)
+            return make_error(LSNIF_ERR_RESERVED, file_offset,
+                              "MODL section: %s[%u] is %u but %s is %u "
+                              "(unused slots must be zero)",
+                              slot_name, k, v, count_name, count);
+    }
+    return {};
+}
+
+// Bytes 144..255 of a descriptor in a file of header minor version `minor`: 1.0 reserves
+// them all, 1.1 defines grid_encoding (144..147), 1.2 also ray_inputs (148..151); what is
+// not defined must be zero (FORMAT.md §6.2, §7.2 E4.6/E4.6a).
+Error decode_desc_tail(const std::uint8_t* p, std::uint64_t file_offset, std::uint16_t minor, ModelDesc& d) {
+    if (minor < kMinorVersionQuantized) {
+        // 1.0: grid_encoding does not exist yet; the bytes are reserved as they always were.
+        if (!all_zero(p + 144, kDescriptorSize - 144))
+            return make_error(LSNIF_ERR_RESERVED, file_offset,
+                              "MODL section: reserved bytes 144..255 are not zero");
+        return {};
+    }
+    const std::uint32_t reserved_from = minor < kMinorVersionRayInputs ? 148 : 152;
+    if (!all_zero(p + reserved_from, kDescriptorSize - reserved_from))
+        return make_error(LSNIF_ERR_RESERVED, file_offset,
+                          "MODL section: reserved bytes %u..255 are not zero", reserved_from);
+    const std::uint32_t enc = load_u32(p + 144);
+    if (enc > LSNIF_GRID_U8_AFFINE)
+        return make_error(LSNIF_ERR_MODEL, file_offset,
+                          "MODL section: grid_encoding %u unknown (0 = fp16, 1 = u8 affine)", enc);
+    d.grid_encoding = GridEncoding(enc);
+    if (minor >= kMinorVersionRayInputs) {
+        const std::uint32_t inputs = load_u32(p + 148);
+        if (inputs & ~kRayInputsKnown)
+            return make_error(
+                LSNIF_ERR_MODEL, file_offset,
+                "MODL section: ray_inputs 0x%x has unknown bits (1 = direction, 2 = entry offsets)", inputs);
+        d.ray_inputs = inputs;
+    }
+    return {};
+}
+
 // `minor` is the file's header minor version: it decides what bytes 144..255 may hold
 // (FORMAT.md §6.2, §7.2 E4.6/E4.6a).
 Result<ModelDesc> decode_desc(const std::vector<std::uint8_t>& b, std::uint64_t file_offset,
@@ -155,38 +210,14 @@ Result<ModelDesc> decode_desc(const std::vector<std::uint8_t>& b, std::uint64_t 
     ModelDesc d;
     d.grid_resolution = load_u32(p + 4);
     d.max_points = load_u32(p + 8);
-    const std::uint32_t levels = load_u32(p + 12);
     d.features_per_level = load_u32(p + 16);
     d.log2_table_size = load_u32(p + 20);
-    if (levels < 1 || levels > LSNIF_MAX_LEVELS)
-        return make_error(LSNIF_ERR_MODEL, file_offset, "MODL section: level_count %u outside 1..%u", levels,
-                          LSNIF_MAX_LEVELS);
-    d.level_resolution.assign(levels, 0);
-    for (std::uint32_t l = 0; l < LSNIF_MAX_LEVELS; ++l) {
-        const std::uint32_t r = load_u32(p + 24 + 4 * l);
-        if (l < levels)
-            d.level_resolution[l] = r;
-        else if (r != 0)
-            return make_error(LSNIF_ERR_RESERVED, file_offset,
-                              "MODL section: level_resolution[%u] is %u but level_count is %u "
-                              "(unused slots must be zero)",
-                              l, r, levels);
-    }
-    const std::uint32_t hidden = load_u32(p + 56);
-    if (hidden < 1 || hidden > LSNIF_MAX_HIDDEN_LAYERS)
-        return make_error(LSNIF_ERR_MODEL, file_offset, "MODL section: hidden_layer_count %u outside 1..%u",
-                          hidden, LSNIF_MAX_HIDDEN_LAYERS);
-    d.hidden_width.assign(hidden, 0);
-    for (std::uint32_t k = 0; k < LSNIF_MAX_HIDDEN_LAYERS; ++k) {
-        const std::uint32_t w = load_u32(p + 60 + 4 * k);
-        if (k < hidden)
-            d.hidden_width[k] = w;
-        else if (w != 0)
-            return make_error(LSNIF_ERR_RESERVED, file_offset,
-                              "MODL section: hidden_width[%u] is %u but hidden_layer_count is %u "
-                              "(unused slots must be zero)",
-                              k, w, hidden);
-    }
+    if (Error e = decode_slots(p, file_offset, 12, 24, LSNIF_MAX_LEVELS, "level_count", "level_resolution",
+                               d.level_resolution))
+        return e;
+    if (Error e = decode_slots(p, file_offset, 56, 60, LSNIF_MAX_HIDDEN_LAYERS, "hidden_layer_count",
+                               "hidden_width", d.hidden_width))
+        return e;
     const std::uint32_t outputs = load_u32(p + 92);
     d.material_count = load_u32(p + 96);
     d.activation = load_u32(p + 100);
@@ -194,32 +225,7 @@ Result<ModelDesc> decode_desc(const std::vector<std::uint8_t>& b, std::uint64_t 
     for (int i = 0; i < 3; ++i) d.hash_primes[i] = load_u32(p + 108 + 4 * i);
     for (int i = 0; i < 3; ++i) d.box_min[i] = load_f32(p + 120 + 4 * i);
     for (int i = 0; i < 3; ++i) d.box_max[i] = load_f32(p + 132 + 4 * i);
-    if (minor < kMinorVersionQuantized) {
-        // 1.0: grid_encoding does not exist yet; the bytes are reserved as they always were.
-        if (!all_zero(p + 144, kDescriptorSize - 144))
-            return make_error(LSNIF_ERR_RESERVED, file_offset,
-                              "MODL section: reserved bytes 144..255 are not zero");
-    } else {
-        // 1.1 defines bytes 144..147, 1.2 also 148..151; the rest stays reserved.
-        const std::uint32_t reserved_from = minor < kMinorVersionRayInputs ? 148 : 152;
-        if (!all_zero(p + reserved_from, kDescriptorSize - reserved_from))
-            return make_error(LSNIF_ERR_RESERVED, file_offset,
-                              "MODL section: reserved bytes %u..255 are not zero", reserved_from);
-        const std::uint32_t enc = load_u32(p + 144);
-        if (enc > LSNIF_GRID_U8_AFFINE)
-            return make_error(LSNIF_ERR_MODEL, file_offset,
-                              "MODL section: grid_encoding %u unknown (0 = fp16, 1 = u8 affine)", enc);
-        d.grid_encoding = GridEncoding(enc);
-        if (minor >= kMinorVersionRayInputs) {
-            const std::uint32_t inputs = load_u32(p + 148);
-            if (inputs & ~kRayInputsKnown)
-                return make_error(
-                    LSNIF_ERR_MODEL, file_offset,
-                    "MODL section: ray_inputs 0x%x has unknown bits (1 = direction, 2 = entry offsets)",
-                    inputs);
-            d.ray_inputs = inputs;
-        }
-    }
+    if (Error e = decode_desc_tail(p, file_offset, minor, d)) return e;
     if (Error e = validate_desc(d)) {
         e.offset = file_offset;
         e.message = "MODL section: " + e.message;
