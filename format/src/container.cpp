@@ -1040,97 +1040,140 @@ Result<ScanResult> scan(std::span<const std::uint8_t> bytes) {
     });
 }
 
+namespace {
+
+// FORMAT.md §7.2 E1: the five version 1 sections are present, checked in that order.
+Error check_required_sections(const Structure& s) {
+    const std::uint32_t required[] = {kTagMeta, kTagModel, kTagOccupancy, kTagGrid, kTagMlp};
+    for (std::uint32_t tag : required)
+        if (!find_entry(s, tag))
+            return make_error(LSNIF_ERR_MISSING_SECTION, s.header.table_offset,
+                              "required section '%s' is missing", tag_string(tag).c_str());
+    return {};
+}
+
+// FORMAT.md §7.2 E2-E4: the MODL section, decoded and checked. Requires the section to be
+// present (check_required_sections).
+Result<ModelDesc> read_descriptor(std::span<const std::uint8_t> bytes, const Structure& s) {
+    const Entry& me = *find_entry(s, kTagModel);
+    if (me.raw_size != kDescriptorSize)
+        return make_error(LSNIF_ERR_MODEL, me.entry_offset + 32,
+                          "MODL section: raw size %" PRIu64 ", expected exactly %u", me.raw_size,
+                          kDescriptorSize);
+    std::vector<std::uint8_t> desc_bytes(kDescriptorSize);
+    if (Error e = decode_payload(bytes, me, desc_bytes.data())) return e;
+    return decode_desc(desc_bytes, me.offset, s.header.version_minor);
+}
+
+// FORMAT.md §7.2 E5-E6: the OCCU, GRID and MLPW raw sizes are exactly what `d` implies and
+// META is within its limit, so buffers sized from these entries are bounded.
+Error check_section_sizes(const Structure& s, const ModelDesc& d) {
+    auto expect_size = [&](std::uint32_t tag, std::uint64_t want) -> Error {
+        const Entry& e = *find_entry(s, tag);
+        if (e.raw_size != want)
+            return make_error(LSNIF_ERR_MODEL, e.entry_offset + 32,
+                              "section '%s': raw size %" PRIu64 " does not match the %" PRIu64
+                              " bytes the model descriptor implies",
+                              tag_string(tag).c_str(), e.raw_size, want);
+        return {};
+    };
+    if (Error e = expect_size(kTagOccupancy, occupancy_bytes(d))) return e;
+    if (Error e = expect_size(kTagGrid, grid_bytes(d))) return e;
+    if (Error e = expect_size(kTagMlp, mlp_bytes(d))) return e;
+    const Entry& meta = *find_entry(s, kTagMeta);
+    if (meta.raw_size > kMaxMetadataSize)
+        return make_error(LSNIF_ERR_LIMIT, meta.entry_offset + 32,
+                          "META section: %" PRIu64 " bytes exceeds the %" PRIu64 "-byte limit", meta.raw_size,
+                          kMaxMetadataSize);
+    return {};
+}
+
+// The payload of `e`, decoded into `raw`, which is resized to e.raw_size first.
+Error read_section(std::span<const std::uint8_t> bytes, const Entry& e, std::vector<std::uint8_t>& raw) {
+    raw.resize(e.raw_size);
+    return decode_payload(bytes, e, raw.data());
+}
+
+// FORMAT.md §7.2 E7: the META section into m.metadata_json, NUL-free well-formed UTF-8.
+Error read_metadata(std::span<const std::uint8_t> bytes, const Structure& s, ModelData& m) {
+    const Entry& meta = *find_entry(s, kTagMeta);
+    std::vector<std::uint8_t> buf;
+    if (Error e = read_section(bytes, meta, buf)) return e;
+    if (!valid_utf8(buf.data(), buf.size()))
+        return make_error(LSNIF_ERR_MODEL, meta.offset, "META section: not NUL-free UTF-8 text");
+    m.metadata_json.assign(buf.begin(), buf.end());
+    return {};
+}
+
+// `n` little-endian 16-bit values from `raw` at byte `at`, which moves past them. The caller
+// has checked that they are inside `raw`.
+std::vector<std::uint16_t> take_halves(const std::vector<std::uint8_t>& raw, std::size_t& at, std::size_t n) {
+    std::vector<std::uint16_t> v(n);
+    for (std::size_t i = 0; i < n; ++i) v[i] = load_u16(raw.data() + at + 2 * i);
+    at += 2 * n;
+    return v;
+}
+
+// The GRID section into m.grid (fp16) or into m.grid_affine and m.grid_u8 (FORMAT.md
+// §6.4.1), as m.desc.grid_encoding says. Its size was checked against the descriptor (E5).
+Error read_grid(std::span<const std::uint8_t> bytes, const Structure& s, ModelData& m) {
+    const ModelDesc& d = m.desc;
+    std::vector<std::uint8_t> buf;
+    if (Error e = read_section(bytes, *find_entry(s, kTagGrid), buf)) return e;
+    std::size_t at = 0;
+    if (d.grid_encoding == GridEncoding::u8_affine) {
+        for (std::uint32_t l = 0; l < d.level_count(); ++l)
+            m.grid_affine.push_back({load_f32(buf.data() + 8 * l), load_f32(buf.data() + 8 * l + 4)});
+        at = 8 * std::size_t(d.level_count());
+        for (std::uint32_t l = 0; l < d.level_count(); ++l) {
+            const std::size_t n = d.level_entries(l) * d.features_per_level;
+            m.grid_u8.emplace_back(buf.begin() + at, buf.begin() + at + n);
+            at += n;
+        }
+    } else {
+        for (std::uint32_t l = 0; l < d.level_count(); ++l)
+            m.grid.push_back(take_halves(buf, at, d.level_entries(l) * d.features_per_level));
+    }
+    return {};
+}
+
+// The MLPW section into m.weights and m.biases, layer by layer, each layer's weights then
+// its biases (FORMAT.md §6.5). Its size was checked against the descriptor (E5).
+Error read_mlp(std::span<const std::uint8_t> bytes, const Structure& s, ModelData& m) {
+    std::vector<std::uint8_t> buf;
+    if (Error e = read_section(bytes, *find_entry(s, kTagMlp), buf)) return e;
+    std::size_t at = 0;
+    for (std::uint32_t k = 0; k < m.desc.layer_count(); ++k) {
+        const auto [o, i] = m.desc.layer_shape(k);
+        m.weights.push_back(take_halves(buf, at, std::size_t(o) * i));
+        m.biases.push_back(take_halves(buf, at, o));
+    }
+    return {};
+}
+
+}  // namespace
+
 Result<ModelData> read_model(std::span<const std::uint8_t> bytes) {
     return guard([&]() -> Result<ModelData> {
         auto st = parse_structure(bytes);
         if (!st) return st.error();
         const Structure& s = st.value();
-        const std::uint32_t required[] = {kTagMeta, kTagModel, kTagOccupancy, kTagGrid, kTagMlp};
-        for (std::uint32_t tag : required)
-            if (!find_entry(s, tag))
-                return make_error(LSNIF_ERR_MISSING_SECTION, s.header.table_offset,
-                                  "required section '%s' is missing", tag_string(tag).c_str());
-
+        if (Error e = check_required_sections(s)) return e;
         // Decode the descriptor first: it fixes every other section's exact size, so
         // nothing is allocated from an unchecked declaration.
-        const Entry& me = *find_entry(s, kTagModel);
-        if (me.raw_size != kDescriptorSize)
-            return make_error(LSNIF_ERR_MODEL, me.entry_offset + 32,
-                              "MODL section: raw size %" PRIu64 ", expected exactly %u", me.raw_size,
-                              kDescriptorSize);
-        std::vector<std::uint8_t> desc_bytes(kDescriptorSize);
-        if (Error e = decode_payload(bytes, me, desc_bytes.data())) return e;
-        auto desc = decode_desc(desc_bytes, me.offset, s.header.version_minor);
+        auto desc = read_descriptor(bytes, s);
         if (!desc) return desc.error();
-        const ModelDesc& d = desc.value();
-
-        auto expect_size = [&](std::uint32_t tag, std::uint64_t want) -> Error {
-            const Entry& e = *find_entry(s, tag);
-            if (e.raw_size != want)
-                return make_error(LSNIF_ERR_MODEL, e.entry_offset + 32,
-                                  "section '%s': raw size %" PRIu64 " does not match the %" PRIu64
-                                  " bytes the model descriptor implies",
-                                  tag_string(tag).c_str(), e.raw_size, want);
-            return {};
-        };
-        if (Error e = expect_size(kTagOccupancy, occupancy_bytes(d))) return e;
-        if (Error e = expect_size(kTagGrid, grid_bytes(d))) return e;
-        if (Error e = expect_size(kTagMlp, mlp_bytes(d))) return e;
-        const Entry& meta = *find_entry(s, kTagMeta);
-        if (meta.raw_size > kMaxMetadataSize)
-            return make_error(LSNIF_ERR_LIMIT, meta.entry_offset + 32,
-                              "META section: %" PRIu64 " bytes exceeds the %" PRIu64 "-byte limit",
-                              meta.raw_size, kMaxMetadataSize);
+        if (Error e = check_section_sizes(s, desc.value())) return e;
 
         ModelData m;
-        m.desc = d;
+        m.desc = desc.value();
         m.version_major = s.header.version_major;
         m.version_minor = s.header.version_minor;
-        std::vector<std::uint8_t> buf(meta.raw_size);
-        if (Error e = decode_payload(bytes, meta, buf.data())) return e;
-        if (!valid_utf8(buf.data(), buf.size()))
-            return make_error(LSNIF_ERR_MODEL, meta.offset, "META section: not NUL-free UTF-8 text");
-        m.metadata_json.assign(buf.begin(), buf.end());
-
-        m.occupancy.resize(occupancy_bytes(d));
-        const Entry& oe = *find_entry(s, kTagOccupancy);
-        if (Error e = decode_payload(bytes, oe, m.occupancy.data())) return e;
-
-        auto read_halves = [&](const Entry& e, std::vector<std::uint8_t>& raw) -> Error {
-            raw.resize(e.raw_size);
-            return decode_payload(bytes, e, raw.data());
-        };
-        const Entry& ge = *find_entry(s, kTagGrid);
-        if (Error e = read_halves(ge, buf)) return e;
-        std::size_t at = 0;
-        auto take = [&](std::size_t n) {
-            std::vector<std::uint16_t> v(n);
-            for (std::size_t i = 0; i < n; ++i) v[i] = load_u16(buf.data() + at + 2 * i);
-            at += 2 * n;
-            return v;
-        };
-        if (d.grid_encoding == GridEncoding::u8_affine) {
-            // FORMAT.md §6.4.1; sizes were checked against the descriptor (E5).
-            for (std::uint32_t l = 0; l < d.level_count(); ++l)
-                m.grid_affine.push_back({load_f32(buf.data() + 8 * l), load_f32(buf.data() + 8 * l + 4)});
-            at = 8 * std::size_t(d.level_count());
-            for (std::uint32_t l = 0; l < d.level_count(); ++l) {
-                const std::size_t n = d.level_entries(l) * d.features_per_level;
-                m.grid_u8.emplace_back(buf.begin() + at, buf.begin() + at + n);
-                at += n;
-            }
-        } else {
-            for (std::uint32_t l = 0; l < d.level_count(); ++l)
-                m.grid.push_back(take(d.level_entries(l) * d.features_per_level));
-        }
-        const Entry& we = *find_entry(s, kTagMlp);
-        if (Error e = read_halves(we, buf)) return e;
-        at = 0;
-        for (std::uint32_t k = 0; k < d.layer_count(); ++k) {
-            const auto [o, i] = d.layer_shape(k);
-            m.weights.push_back(take(std::size_t(o) * i));
-            m.biases.push_back(take(o));
-        }
+        if (Error e = read_metadata(bytes, s, m)) return e;
+        m.occupancy.resize(occupancy_bytes(m.desc));
+        if (Error e = decode_payload(bytes, *find_entry(s, kTagOccupancy), m.occupancy.data())) return e;
+        if (Error e = read_grid(bytes, s, m)) return e;
+        if (Error e = read_mlp(bytes, s, m)) return e;
         // Skipped: unknown optional sections (FORMAT.md §2), but their checksums still count.
         for (const Entry& e : s.entries)
             if (!is_known_tag(e.tag))
