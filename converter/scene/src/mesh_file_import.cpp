@@ -405,6 +405,130 @@ bool parse_int(std::string_view t, long long& out) {
     return ec == std::errc() && end == t.data() + t.size();
 }
 
+// The lines of an ASCII OFF text, read one non-blank line at a time.
+class OffLines {
+public:
+    explicit OffLines(const std::string& text) : text_(text) {}
+
+    // Moves to the next non-blank line, '#' comment stripped, and splits it into tok;
+    // false at the end of the text.
+    bool next() {
+        while (pos_ < text_.size()) {
+            std::size_t end = text_.find('\n', pos_);
+            if (end == std::string::npos) end = text_.size();
+            std::string_view line = std::string_view(text_).substr(pos_, end - pos_);
+            pos_ = end + 1;
+            ++line_no_;
+            if (const auto hash = line.find('#'); hash != std::string_view::npos) line = line.substr(0, hash);
+            split(line, tok);
+            if (!tok.empty()) return true;
+        }
+        return false;
+    }
+    // `what`, prefixed with the current line's number.
+    std::string at(const std::string& what) const { return "line " + std::to_string(line_no_) + ": " + what; }
+
+    std::vector<std::string_view> tok;  // the current line's tokens (views into the text)
+
+private:
+    const std::string& text_;
+    std::size_t pos_ = 0, line_no_ = 0;
+};
+
+struct OffHeader {
+    bool binary = false;       // "OFF BINARY": nothing else was read
+    bool has_normals = false;  // the keyword has N: vertex lines carry a normal
+    long long nv = 0, nf = 0;  // vertex and face counts, >= 0
+};
+
+// The optional [ST][C][N]OFF keyword and the "nv nf [ne]" counts, from the first lines of
+// `in`. Returns "" or the problem; stops right after the keyword for "OFF BINARY".
+std::string read_off_header(OffLines& in, OffHeader& h) {
+    if (!in.next()) return "no OFF header";
+    std::size_t first = 0;
+    const std::string_view keyword = in.tok[0];
+    if (keyword.size() >= 3 && keyword.substr(keyword.size() - 3) == "OFF") {
+        const std::string_view prefix = keyword.substr(0, keyword.size() - 3);
+        if (prefix.find_first_not_of("STCN") != std::string_view::npos) {
+            return in.at("OFF variant '" + std::string(keyword) +
+                         "' is not supported (only 3D [ST][C][N]OFF)");
+        }
+        h.has_normals = prefix.find('N') != std::string_view::npos;
+        if (in.tok.size() > 1 && in.tok[1] == "BINARY") {
+            h.binary = true;
+            return {};
+        }
+        first = 1;
+        if (in.tok.size() == 1) {
+            if (!in.next()) return "no vertex/face counts after the OFF keyword";
+            first = 0;
+        }
+    }
+    const auto& tok = in.tok;
+    if (tok.size() < first + 2 || !parse_int(tok[first], h.nv) || !parse_int(tok[first + 1], h.nf) ||
+        h.nv < 0 || h.nf < 0) {
+        return in.at("expected the vertex and face counts \"nv nf [ne]\"");
+    }
+    return {};
+}
+
+// The h.nv vertex lines that follow the header, into `soup`; `text_size` bounds what is
+// reserved. Returns "" or the problem.
+std::string read_off_vertices(OffLines& in, const OffHeader& h, std::size_t text_size, PolygonSoup& soup) {
+    const std::size_t values = h.has_normals ? 6 : 3;
+    // Every vertex line takes at least 6 bytes: never reserve more than the text can hold.
+    const std::size_t reserve = std::min<std::size_t>(std::size_t(h.nv), text_size / 6);
+    soup.points.reserve(3 * reserve);
+    soup.normals.reserve(3 * reserve);
+    soup.has_normal.reserve(reserve);
+    for (long long v = 0; v < h.nv; ++v) {
+        if (!in.next()) {
+            return "the file ends after " + std::to_string(v) + " of " + std::to_string(h.nv) + " vertices";
+        }
+        float x[6] = {};
+        if (in.tok.size() < values) {
+            return in.at("vertex " + std::to_string(v) + " has " + std::to_string(in.tok.size()) +
+                         " values, " + std::to_string(values) + " expected");
+        }
+        for (std::size_t k = 0; k < values; ++k) {
+            if (!parse_float(in.tok[k], x[k])) {
+                return in.at("vertex " + std::to_string(v) + ": '" + std::string(in.tok[k]) +
+                             "' is not a number");
+            }
+        }
+        const VertexHandle vh = soup.add_vertex(Vec3f(x[0], x[1], x[2]));
+        if (h.has_normals) soup.set_normal(vh, Vec3f(x[3], x[4], x[5]));
+    }
+    return {};
+}
+
+// The `nf` face lines that follow the vertices, into `soup`; indices out of int range are
+// recorded as -1 (the caller range-checks them all). Returns "" or the problem.
+std::string read_off_faces(OffLines& in, long long nf, PolygonSoup& soup) {
+    const auto& tok = in.tok;
+    OpenMesh::IO::BaseImporter::VHandles face;
+    for (long long f = 0; f < nf; ++f) {
+        if (!in.next())
+            return "the file ends after " + std::to_string(f) + " of " + std::to_string(nf) + " faces";
+        long long k = 0;
+        if (!parse_int(tok[0], k) || k < 0 || std::size_t(k) > tok.size() - 1) {
+            return in.at("face " + std::to_string(f) +
+                         ": expected a corner count and that many vertex indices");
+        }
+        face.clear();
+        for (long long c = 1; c <= k; ++c) {
+            long long idx = 0;
+            if (!parse_int(tok[std::size_t(c)], idx)) {
+                return in.at("face " + std::to_string(f) + ": '" + std::string(tok[std::size_t(c)]) +
+                             "' is not a vertex index");
+            }
+            face.push_back(VertexHandle(idx >= 0 && idx <= 0x7fffffffLL ? int(idx) : -1));
+        }
+        soup.add_face(face);
+    }
+    return {};
+}
+
 // ASCII OFF (Geomview's format, as written by CGAL and most tools):
 //   [ST][C][N]OFF            optional keyword: texture coordinates, colours, normals
 //   nv nf [ne]               may stand on the keyword's line
@@ -414,94 +538,13 @@ bool parse_int(std::string_view t, long long& out) {
 // faces is ignored. Fills `soup` (indices are range-checked by the caller). Returns "" or
 // the problem with its line number; sets `binary` (and reads nothing) for "OFF BINARY".
 std::string read_ascii_off(const std::string& text, PolygonSoup& soup, bool& binary) {
-    binary = false;
-    std::size_t pos = 0, line_no = 0;
-    std::string_view line;
-    std::vector<std::string_view> tok;
-    // Next non-blank line, comment stripped, split into tok; false at the end.
-    auto next = [&]() {
-        while (pos < text.size()) {
-            std::size_t end = text.find('\n', pos);
-            if (end == std::string::npos) end = text.size();
-            line = std::string_view(text).substr(pos, end - pos);
-            pos = end + 1;
-            ++line_no;
-            if (const auto hash = line.find('#'); hash != std::string_view::npos) line = line.substr(0, hash);
-            split(line, tok);
-            if (!tok.empty()) return true;
-        }
-        return false;
-    };
-    auto at = [&line_no](const std::string& what) { return "line " + std::to_string(line_no) + ": " + what; };
-    if (!next()) return "no OFF header";
-    std::size_t first = 0;
-    bool has_normals = false;
-    const std::string_view keyword = tok[0];
-    if (keyword.size() >= 3 && keyword.substr(keyword.size() - 3) == "OFF") {
-        const std::string_view prefix = keyword.substr(0, keyword.size() - 3);
-        if (prefix.find_first_not_of("STCN") != std::string_view::npos) {
-            return at("OFF variant '" + std::string(keyword) + "' is not supported (only 3D [ST][C][N]OFF)");
-        }
-        has_normals = prefix.find('N') != std::string_view::npos;
-        if (tok.size() > 1 && tok[1] == "BINARY") {
-            binary = true;
-            return {};
-        }
-        first = 1;
-        if (tok.size() == 1) {
-            if (!next()) return "no vertex/face counts after the OFF keyword";
-            first = 0;
-        }
-    }
-    long long nv = 0, nf = 0;
-    if (tok.size() < first + 2 || !parse_int(tok[first], nv) || !parse_int(tok[first + 1], nf) || nv < 0 ||
-        nf < 0) {
-        return at("expected the vertex and face counts \"nv nf [ne]\"");
-    }
-    const std::size_t values = has_normals ? 6 : 3;
-    // Every vertex line takes at least 6 bytes: never reserve more than the text can hold.
-    const std::size_t reserve = std::min<std::size_t>(std::size_t(nv), text.size() / 6);
-    soup.points.reserve(3 * reserve);
-    soup.normals.reserve(3 * reserve);
-    soup.has_normal.reserve(reserve);
-    for (long long v = 0; v < nv; ++v) {
-        if (!next()) {
-            return "the file ends after " + std::to_string(v) + " of " + std::to_string(nv) + " vertices";
-        }
-        float x[6] = {};
-        if (tok.size() < values) {
-            return at("vertex " + std::to_string(v) + " has " + std::to_string(tok.size()) + " values, " +
-                      std::to_string(values) + " expected");
-        }
-        for (std::size_t k = 0; k < values; ++k) {
-            if (!parse_float(tok[k], x[k])) {
-                return at("vertex " + std::to_string(v) + ": '" + std::string(tok[k]) + "' is not a number");
-            }
-        }
-        const VertexHandle h = soup.add_vertex(Vec3f(x[0], x[1], x[2]));
-        if (has_normals) soup.set_normal(h, Vec3f(x[3], x[4], x[5]));
-    }
-    OpenMesh::IO::BaseImporter::VHandles face;
-    for (long long f = 0; f < nf; ++f) {
-        if (!next())
-            return "the file ends after " + std::to_string(f) + " of " + std::to_string(nf) + " faces";
-        long long k = 0;
-        if (!parse_int(tok[0], k) || k < 0 || std::size_t(k) > tok.size() - 1) {
-            return at("face " + std::to_string(f) + ": expected a corner count and that many vertex indices");
-        }
-        face.clear();
-        for (long long c = 1; c <= k; ++c) {
-            long long idx = 0;
-            if (!parse_int(tok[std::size_t(c)], idx)) {
-                return at("face " + std::to_string(f) + ": '" + std::string(tok[std::size_t(c)]) +
-                          "' is not a vertex index");
-            }
-            // Out-of-range values become -1 here and are reported by the caller.
-            face.push_back(VertexHandle(idx >= 0 && idx <= 0x7fffffffLL ? int(idx) : -1));
-        }
-        soup.add_face(face);
-    }
-    return {};
+    OffLines in(text);
+    OffHeader h;
+    const std::string problem = read_off_header(in, h);
+    binary = h.binary;
+    if (!problem.empty() || binary) return problem;
+    if (std::string p = read_off_vertices(in, h, text.size(), soup); !p.empty()) return p;
+    return read_off_faces(in, h.nf, soup);
 }
 
 double cross2(const double* o, const double* a, const double* b) {
