@@ -551,25 +551,17 @@ double cross2(const double* o, const double* a, const double* b) {
     return (a[0] - o[0]) * (b[1] - o[1]) - (a[1] - o[1]) * (b[0] - o[0]);
 }
 
-// Triangulates one polygon (corner vertex indices, n >= 3, all valid) into `out`, keeping
-// its orientation. Ear clipping in the plane of the Newell normal; polygons that are
-// degenerate, self-intersecting (no ear left) or larger than kMaxEarClipCorners fall back
-// to a fan around the first corner. Returns false when the fan fallback was used for a
-// polygon that is not degenerate.
-bool triangulate(const std::vector<float>& pos, const std::uint32_t* poly, std::size_t n,
-                 std::vector<std::uint32_t>& out) {
-    auto fan = [&](const std::vector<std::uint32_t>& ring) {
-        for (std::size_t k = 1; k + 1 < ring.size(); ++k) {
-            out.insert(out.end(), {ring[0], ring[k], ring[k + 1]});
-        }
-    };
-    std::vector<std::uint32_t> ring(poly, poly + n);
-    if (n == 3) {
-        fan(ring);
-        return true;
+// Appends the fan of triangles (ring[0], ring[k], ring[k + 1]) to `out`.
+void fan(const std::vector<std::uint32_t>& ring, std::vector<std::uint32_t>& out) {
+    for (std::size_t k = 1; k + 1 < ring.size(); ++k) {
+        out.insert(out.end(), {ring[0], ring[k], ring[k + 1]});
     }
-    // Newell normal: sum over edges of (y_i - y_j)(z_i + z_j), ...
-    double normal[3] = {0, 0, 0};
+}
+
+// Adds to `normal` the Newell normal of polygon `poly` (n corner indices into `pos`),
+// unnormalized: the sum over edges of (y_i - y_j)(z_i + z_j), ...
+void newell_normal(const std::vector<float>& pos, const std::uint32_t* poly, std::size_t n,
+                   double (&normal)[3]) {
     for (std::size_t i = 0; i < n; ++i) {
         const float* a = &pos[3 * std::size_t(poly[i])];
         const float* b = &pos[3 * std::size_t(poly[(i + 1) % n])];
@@ -577,30 +569,15 @@ bool triangulate(const std::vector<float>& pos, const std::uint32_t* poly, std::
         normal[1] += (double(a[2]) - b[2]) * (double(a[0]) + b[0]);
         normal[2] += (double(a[0]) - b[0]) * (double(a[1]) + b[1]);
     }
-    int axis = 0;
-    for (int a = 1; a < 3; ++a) {
-        if (std::fabs(normal[a]) > std::fabs(normal[axis])) axis = a;
-    }
-    if (!(std::fabs(normal[axis]) > 0.0)) {  // degenerate polygon: any triangulation is
-        fan(ring);                           // equally degenerate
-        return true;
-    }
-    if (n > kMaxEarClipCorners) {
-        fan(ring);
-        return false;
-    }
-    // Project along `axis`, ordering the two kept coordinates so the polygon is
-    // counter-clockwise in 2D.
-    int u = (axis + 1) % 3, v = (axis + 2) % 3;
-    if (normal[axis] < 0) std::swap(u, v);
-    std::vector<double> xy(2 * n);
-    for (std::size_t i = 0; i < n; ++i) {
-        const float* p = &pos[3 * std::size_t(poly[i])];
-        xy[2 * i] = p[u];
-        xy[2 * i + 1] = p[v];
-    }
-    std::vector<std::size_t> left(n);
-    for (std::size_t i = 0; i < n; ++i) left[i] = i;
+}
+
+// Ear clipping of `ring` (corner vertex indices) whose corners are at xy[2 i], xy[2 i + 1],
+// counter-clockwise. Returns false, after fan-triangulating what is left, when no ear is
+// found (self-intersecting or numerically degenerate remainder).
+bool ear_clip(const std::vector<double>& xy, const std::vector<std::uint32_t>& ring,
+              std::vector<std::uint32_t>& out) {
+    std::vector<std::size_t> left(ring.size());
+    for (std::size_t i = 0; i < ring.size(); ++i) left[i] = i;
     while (left.size() > 3) {
         const std::size_t m = left.size();
         bool clipped = false;
@@ -622,15 +599,54 @@ bool triangulate(const std::vector<float>& pos, const std::uint32_t* poly, std::
             left.erase(left.begin() + std::ptrdiff_t(k));
             clipped = true;
         }
-        if (!clipped) {  // self-intersecting or numerically degenerate remainder
+        if (!clipped) {
             std::vector<std::uint32_t> rest;
             for (const std::size_t i : left) rest.push_back(ring[i]);
-            fan(rest);
+            fan(rest, out);
             return false;
         }
     }
     out.insert(out.end(), {ring[left[0]], ring[left[1]], ring[left[2]]});
     return true;
+}
+
+// Triangulates one polygon (corner vertex indices, n >= 3, all valid) into `out`, keeping
+// its orientation. Ear clipping in the plane of the Newell normal; polygons that are
+// degenerate, self-intersecting (no ear left) or larger than kMaxEarClipCorners fall back
+// to a fan around the first corner. Returns false when the fan fallback was used for a
+// polygon that is not degenerate.
+bool triangulate(const std::vector<float>& pos, const std::uint32_t* poly, std::size_t n,
+                 std::vector<std::uint32_t>& out) {
+    std::vector<std::uint32_t> ring(poly, poly + n);
+    if (n == 3) {
+        fan(ring, out);
+        return true;
+    }
+    double normal[3] = {0, 0, 0};
+    newell_normal(pos, poly, n, normal);
+    int axis = 0;
+    for (int a = 1; a < 3; ++a) {
+        if (std::fabs(normal[a]) > std::fabs(normal[axis])) axis = a;
+    }
+    if (!(std::fabs(normal[axis]) > 0.0)) {  // degenerate polygon: any triangulation is
+        fan(ring, out);                      // equally degenerate
+        return true;
+    }
+    if (n > kMaxEarClipCorners) {
+        fan(ring, out);
+        return false;
+    }
+    // Project along `axis`, ordering the two kept coordinates so the polygon is
+    // counter-clockwise in 2D.
+    int u = (axis + 1) % 3, v = (axis + 2) % 3;
+    if (normal[axis] < 0) std::swap(u, v);
+    std::vector<double> xy(2 * n);
+    for (std::size_t i = 0; i < n; ++i) {
+        const float* p = &pos[3 * std::size_t(poly[i])];
+        xy[2 * i] = p[u];
+        xy[2 * i + 1] = p[v];
+    }
+    return ear_clip(xy, ring, out);
 }
 
 ImportResult failure(const std::string& file, const std::string& what) {
