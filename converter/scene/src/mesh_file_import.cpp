@@ -659,76 +659,79 @@ ImportResult failure(const std::string& file, const std::string& what, detail::W
     return r;
 }
 
-ImportResult import_mesh_file_impl(const std::filesystem::path& path, const std::string& name) {
-    const std::string ext = detail::lower_extension(name);
+// The checks made before any reader sees the file `path` of extension `ext`: a supported
+// format, a non-empty readable regular file (its byte count into `size`), and the OBJ face
+// lines or OFF / PLY header that would crash or exhaust OpenMesh. Returns "" or the problem.
+std::string check_mesh_file(const std::filesystem::path& path, const std::string& ext, std::uintmax_t& size) {
     if (ext != ".obj" && ext != ".ply" && ext != ".off" && ext != ".stl") {
-        return failure(name, "unsupported mesh format '" + ext + "' (supported: .obj .ply .off .stl)");
+        return "unsupported mesh format '" + ext + "' (supported: .obj .ply .off .stl)";
     }
-    std::uintmax_t size = 0;
-    if (const std::string problem = detail::regular_file_size(path, size); !problem.empty())
-        return failure(name, problem);
-    if (size == 0) return failure(name, "file is empty");
+    if (const std::string problem = detail::regular_file_size(path, size); !problem.empty()) return problem;
+    if (size == 0) return "file is empty";
     {
         std::ifstream probe(path, std::ios::binary);
-        if (!probe) return failure(name, "cannot open for reading");
+        if (!probe) return "cannot open for reading";
     }
     if (ext == ".obj") {
         const std::string text = read_head(path, static_cast<std::size_t>(size));
-        if (const std::string problem = check_obj_faces(text); !problem.empty())
-            return failure(name, problem);
+        if (const std::string problem = check_obj_faces(text); !problem.empty()) return problem;
     }
     if (ext == ".off" || ext == ".ply") {
         const std::string head = read_head(path, 1 << 16);
-        const std::string problem =
-            ext == ".off" ? check_off_header(head, size) : check_ply_header(head, size);
-        if (!problem.empty()) return failure(name, problem);
+        return ext == ".off" ? check_off_header(head, size) : check_ply_header(head, size);
     }
+    return {};
+}
 
-    PolygonSoup soup;
-    detail::WarningSink warnings;
-    bool read_ok = false;
-    bool use_openmesh = true;
+// Reads the checked file `path` (`name` for OpenMesh, which picks its reader by name) of
+// `size` bytes into `soup`: ASCII OFF with read_ascii_off, binary OFF and the other formats
+// with OpenMesh, whose log lines become warnings. Returns "" or the problem.
+std::string read_soup(const std::filesystem::path& path, const std::string& name, const std::string& ext,
+                      std::uintmax_t size, PolygonSoup& soup, detail::WarningSink& warnings) {
     if (ext == ".off") {
         std::string text(static_cast<std::size_t>(size), '\0');
         std::ifstream in(path, std::ios::binary);
         in.read(text.data(), std::streamsize(text.size()));
-        if (std::size_t(in.gcount()) != text.size()) return failure(name, "read error");
+        if (std::size_t(in.gcount()) != text.size()) return "read error";
         bool binary = false;
-        const std::string problem = read_ascii_off(text, soup, binary);
-        if (!problem.empty()) return failure(name, problem);
-        use_openmesh = binary;
+        if (const std::string problem = read_ascii_off(text, soup, binary); !problem.empty()) return problem;
+        if (!binary) return {};
     }
-    if (use_openmesh) {
-        std::lock_guard<std::mutex> lock(log_mutex());
-        LogCapture capture;
-        OpenMesh::IO::Options options = OpenMesh::IO::Options::VertexNormal;
-        read_ok = OpenMesh::IO::IOManager().read(name, soup, options);
-        std::vector<std::string> log = capture.lines();
-        if (!read_ok) {
-            std::string why;
-            for (std::size_t i = 0; i < log.size() && i < 3; ++i) why += (i ? "; " : "") + log[i];
-            return failure(name, "OpenMesh could not read it as " + ext.substr(1) +
-                                     (why.empty() ? std::string() : " (" + why + ")"));
-        }
-        for (std::string& line : log) warnings.add("OpenMesh: " + line);
+    std::lock_guard<std::mutex> lock(log_mutex());
+    LogCapture capture;
+    OpenMesh::IO::Options options = OpenMesh::IO::Options::VertexNormal;
+    const bool read_ok = OpenMesh::IO::IOManager().read(name, soup, options);
+    std::vector<std::string> log = capture.lines();
+    if (!read_ok) {
+        std::string why;
+        for (std::size_t i = 0; i < log.size() && i < 3; ++i) why += (i ? "; " : "") + log[i];
+        return "OpenMesh could not read it as " + ext.substr(1) +
+               (why.empty() ? std::string() : " (" + why + ")");
     }
+    for (std::string& line : log) warnings.add("OpenMesh: " + line);
+    return {};
+}
 
+// Checks that `soup` has 1 .. 2^32 - 1 vertices, all finite. Returns "" or the problem.
+std::string check_vertices(const PolygonSoup& soup) {
     const std::size_t nv = soup.n_vertices();
-    if (nv == 0) return failure(name, "the file has no vertices", warnings);
-    if (nv > 0xffffffffull) return failure(name, "more than 2^32 - 1 vertices", warnings);
+    if (nv == 0) return "the file has no vertices";
+    if (nv > 0xffffffffull) return "more than 2^32 - 1 vertices";
     for (std::size_t v = 0; v < nv; ++v) {
         const float* p = &soup.points[3 * v];
         if (!std::isfinite(p[0]) || !std::isfinite(p[1]) || !std::isfinite(p[2])) {
-            return failure(name,
-                           "vertex " + std::to_string(v) + " is (" + std::to_string(p[0]) + ", " +
-                               std::to_string(p[1]) + ", " + std::to_string(p[2]) + "), not finite",
-                           warnings);
+            return "vertex " + std::to_string(v) + " is (" + std::to_string(p[0]) + ", " +
+                   std::to_string(p[1]) + ", " + std::to_string(p[2]) + "), not finite";
         }
     }
+    return {};
+}
 
-    Mesh mesh;
-    mesh.name = path.stem().string();
-    const std::size_t nf = soup.n_faces();
+// Triangulates every face of `soup` (checked by check_vertices) into mesh.indices, skipping
+// faces of fewer than 3 corners; warns about those and about fan-triangulated polygons.
+// Returns "" or the problem: a corner index out of range, or no triangle at all.
+std::string triangulate_faces(const PolygonSoup& soup, Mesh& mesh, detail::WarningSink& warnings) {
+    const std::size_t nv = soup.n_vertices(), nf = soup.n_faces();
     std::size_t short_faces = 0, fanned = 0;
     std::vector<std::uint32_t> poly;
     for (std::size_t f = 0; f < nf; ++f) {
@@ -737,10 +740,8 @@ ImportResult import_mesh_file_impl(const std::filesystem::path& path, const std:
         for (std::size_t c = begin; c < end; ++c) {
             const long long idx = soup.corners[c];
             if (idx < 0 || std::size_t(idx) >= nv) {
-                return failure(name,
-                               "face " + std::to_string(f) + " refers to vertex " + std::to_string(idx) +
-                                   ", but the file has " + std::to_string(nv) + " vertices",
-                               warnings);
+                return "face " + std::to_string(f) + " refers to vertex " + std::to_string(idx) +
+                       ", but the file has " + std::to_string(nv) + " vertices";
             }
             poly.push_back(std::uint32_t(idx));
         }
@@ -759,11 +760,28 @@ ImportResult import_mesh_file_impl(const std::filesystem::path& path, const std:
                      std::to_string(kMaxEarClipCorners) + " corners); fan-triangulated");
     }
     if (mesh.indices.empty()) {
-        return failure(name,
-                       "no triangles (" + std::to_string(nf) + " faces, " + std::to_string(short_faces) +
-                           " of them with fewer than 3 corners)",
-                       warnings);
+        return "no triangles (" + std::to_string(nf) + " faces, " + std::to_string(short_faces) +
+               " of them with fewer than 3 corners)";
     }
+    return {};
+}
+
+ImportResult import_mesh_file_impl(const std::filesystem::path& path, const std::string& name) {
+    const std::string ext = detail::lower_extension(name);
+    std::uintmax_t size = 0;
+    if (const std::string problem = check_mesh_file(path, ext, size); !problem.empty())
+        return failure(name, problem);
+    PolygonSoup soup;
+    detail::WarningSink warnings;
+    if (const std::string problem = read_soup(path, name, ext, size, soup, warnings); !problem.empty())
+        return failure(name, problem);
+    if (const std::string problem = check_vertices(soup); !problem.empty())
+        return failure(name, problem, warnings);
+
+    Mesh mesh;
+    mesh.name = path.stem().string();
+    if (const std::string problem = triangulate_faces(soup, mesh, warnings); !problem.empty())
+        return failure(name, problem, warnings);
     mesh.positions = std::move(soup.points);
     mesh.normals = std::move(soup.normals);
     mesh.triangle_materials.assign(mesh.triangle_count(), 0);
