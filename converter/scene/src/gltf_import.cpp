@@ -581,67 +581,57 @@ private:
         return true;
     }
 
-    // Reads accessor `index` as `components` values per element, each decoded by
-    // `decode(pointer to component)`, into out (count * components values). Checks that
-    // every element lies inside its bufferView (glTF 2.0 "Accessors", "Data Alignment")
-    // and applies sparse substitution ("Sparse Accessors").
-    template <class T, class Decode>
-    bool read_accessor(int index, const std::string& what, std::size_t components, Decode decode,
-                       std::vector<T>& out) {
-        const tinygltf::Accessor& acc = model_.accessors[std::size_t(index)];
-        const std::string awhat = what + " accessor " + std::to_string(index);
-        const std::size_t csize = std::size_t(component_size(acc.componentType));
-        const std::size_t elem = csize * components;
-        if (acc.count == 0) {
-            return fail(awhat + " has count 0 (glTF 2.0 \"Accessors\": count >= 1)");
-        }
-        const unsigned char* base = nullptr;
-        std::size_t stride = elem;
-        if (acc.bufferView >= 0) {
-            const unsigned char* vdata = nullptr;
-            std::size_t vlen = 0, vstride = 0;
-            if (!view_bytes(acc.bufferView, awhat, vdata, vlen, vstride)) return false;
-            if (vstride != 0) {
-                if (vstride < elem) {
-                    return fail(awhat + ": bufferView byteStride " + std::to_string(vstride) +
-                                " is smaller than the element size " + std::to_string(elem) +
-                                " (glTF 2.0 \"Buffers and Buffer Views\")");
-                }
-                stride = vstride;
+    // Where the `elem`-byte elements of accessor `acc` start (`base`) and their `stride`,
+    // checked to lie inside its bufferView (glTF 2.0 "Accessors", "Data Alignment"). For an
+    // accessor without bufferView `base` stays null and its count is bounded instead.
+    bool accessor_elements(const tinygltf::Accessor& acc, const std::string& awhat, std::size_t elem,
+                           const unsigned char*& base, std::size_t& stride) {
+        if (acc.bufferView < 0) {
+            if (acc.count > kMaxZeroFilledElements) {
+                return fail(awhat + " has no bufferView and count " + std::to_string(acc.count) +
+                            " (more than the " + std::to_string(kMaxZeroFilledElements) +
+                            " zero-initialized elements accepted)");
             }
-            // Last byte read: byteOffset + (count - 1) * stride + elem, overflow-checked.
-            std::size_t end = 0;
-            if (__builtin_mul_overflow(acc.count - 1, stride, &end) ||
-                __builtin_add_overflow(end, elem, &end) ||
-                __builtin_add_overflow(end, acc.byteOffset, &end) || end > vlen) {
-                return fail(awhat + " (byteOffset " + std::to_string(acc.byteOffset) + ", count " +
-                            std::to_string(acc.count) + ", stride " + std::to_string(stride) +
-                            ") reads past the end of its bufferView " + std::to_string(acc.bufferView) +
-                            " (byteLength " + std::to_string(vlen) + "; glTF 2.0 \"Accessors\")");
+            return true;
+        }
+        const unsigned char* vdata = nullptr;
+        std::size_t vlen = 0, vstride = 0;
+        if (!view_bytes(acc.bufferView, awhat, vdata, vlen, vstride)) return false;
+        if (vstride != 0) {
+            if (vstride < elem) {
+                return fail(awhat + ": bufferView byteStride " + std::to_string(vstride) +
+                            " is smaller than the element size " + std::to_string(elem) +
+                            " (glTF 2.0 \"Buffers and Buffer Views\")");
             }
-            base = vdata + acc.byteOffset;
-        } else if (acc.count > kMaxZeroFilledElements) {
-            return fail(awhat + " has no bufferView and count " + std::to_string(acc.count) +
-                        " (more than the " + std::to_string(kMaxZeroFilledElements) +
-                        " zero-initialized elements accepted)");
+            stride = vstride;
         }
-        std::size_t total = 0;
-        if (__builtin_mul_overflow(acc.count, components, &total)) {
-            return fail(awhat + ": count " + std::to_string(acc.count) + " is too large");
+        // Last byte read: byteOffset + (count - 1) * stride + elem, overflow-checked.
+        std::size_t end = 0;
+        if (__builtin_mul_overflow(acc.count - 1, stride, &end) || __builtin_add_overflow(end, elem, &end) ||
+            __builtin_add_overflow(end, acc.byteOffset, &end) || end > vlen) {
+            return fail(awhat + " (byteOffset " + std::to_string(acc.byteOffset) + ", count " +
+                        std::to_string(acc.count) + ", stride " + std::to_string(stride) +
+                        ") reads past the end of its bufferView " + std::to_string(acc.bufferView) +
+                        " (byteLength " + std::to_string(vlen) + "; glTF 2.0 \"Accessors\")");
         }
-        out.assign(total, T{});
-        if (base != nullptr) {
-            for (std::size_t i = 0; i < acc.count; ++i) {
-                const unsigned char* e = base + i * stride;
-                for (std::size_t c = 0; c < components; ++c) {
-                    out[i * components + c] = decode(e + c * csize);
-                }
-            }
-        }
-        if (!acc.sparse.isSparse) return true;
+        base = vdata + acc.byteOffset;
+        return true;
+    }
 
+    // The bytes of a sparse accessor's substitution: `n` indices of `isize` bytes at `idata`
+    // and n values of the accessor's element size at `vdata`, both tightly packed.
+    struct SparseBytes {
+        std::size_t n = 0, isize = 0;
+        const unsigned char* idata = nullptr;
+        const unsigned char* vdata = nullptr;
+    };
+
+    // Locates the sparse substitution of accessor `acc` (elements of `elem` bytes) into
+    // `out`, checking its count, index type and byte ranges (glTF 2.0 "Sparse Accessors").
+    // The index values themselves are checked by the caller as it applies them.
+    bool sparse_bytes(const tinygltf::Accessor& acc, const std::string& swhat, std::size_t elem,
+                      SparseBytes& out) {
         const auto& sp = acc.sparse;
-        const std::string swhat = awhat + " sparse";
         if (sp.count < 1 || std::size_t(sp.count) > acc.count) {
             return fail(swhat + ".count " + std::to_string(sp.count) + " is not in [1, " +
                         std::to_string(acc.count) + "] (glTF 2.0 \"Sparse Accessors\")");
@@ -672,11 +662,49 @@ private:
         if (voff > vlen || (vlen - voff) / elem < n) {
             return fail(swhat + ".values read past the end of their bufferView");
         }
-        idata += ioff;
-        vdata += voff;
+        out = {n, isize, idata + ioff, vdata + voff};
+        return true;
+    }
+
+    // Reads accessor `index` as `components` values per element, each decoded by
+    // `decode(pointer to component)`, into out (count * components values). Checks that
+    // every element lies inside its bufferView (glTF 2.0 "Accessors", "Data Alignment")
+    // and applies sparse substitution ("Sparse Accessors").
+    template <class T, class Decode>
+    bool read_accessor(int index, const std::string& what, std::size_t components, Decode decode,
+                       std::vector<T>& out) {
+        const tinygltf::Accessor& acc = model_.accessors[std::size_t(index)];
+        const std::string awhat = what + " accessor " + std::to_string(index);
+        const std::size_t csize = std::size_t(component_size(acc.componentType));
+        const std::size_t elem = csize * components;
+        if (acc.count == 0) {
+            return fail(awhat + " has count 0 (glTF 2.0 \"Accessors\": count >= 1)");
+        }
+        const unsigned char* base = nullptr;
+        std::size_t stride = elem;
+        if (!accessor_elements(acc, awhat, elem, base, stride)) return false;
+        std::size_t total = 0;
+        if (__builtin_mul_overflow(acc.count, components, &total)) {
+            return fail(awhat + ": count " + std::to_string(acc.count) + " is too large");
+        }
+        out.assign(total, T{});
+        if (base != nullptr) {
+            for (std::size_t i = 0; i < acc.count; ++i) {
+                const unsigned char* e = base + i * stride;
+                for (std::size_t c = 0; c < components; ++c) {
+                    out[i * components + c] = decode(e + c * csize);
+                }
+            }
+        }
+        if (!acc.sparse.isSparse) return true;
+
+        const std::string swhat = awhat + " sparse";
+        SparseBytes sp;
+        if (!sparse_bytes(acc, swhat, elem, sp)) return false;
         std::uint32_t previous = 0;
-        for (std::size_t k = 0; k < n; ++k) {
-            const std::uint32_t target = decode_uint(idata + k * isize, sp.indices.componentType);
+        for (std::size_t k = 0; k < sp.n; ++k) {
+            const std::uint32_t target =
+                decode_uint(sp.idata + k * sp.isize, acc.sparse.indices.componentType);
             if (target >= acc.count) {
                 return fail(swhat + ": index " + std::to_string(target) + " at position " +
                             std::to_string(k) + " is not below count " + std::to_string(acc.count) +
@@ -688,7 +716,7 @@ private:
             }
             previous = target;
             for (std::size_t c = 0; c < components; ++c) {
-                out[std::size_t(target) * components + c] = decode(vdata + k * elem + c * csize);
+                out[std::size_t(target) * components + c] = decode(sp.vdata + k * elem + c * csize);
             }
         }
         return true;
