@@ -777,6 +777,17 @@ private:
             index, iwhat, 1, [ct](const unsigned char* p) { return decode_uint(p, ct); }, out);
     }
 
+    // What import_mesh carries from one primitive of a mesh to the next.
+    struct MeshBuild {
+        std::vector<std::uint8_t> has_normal;  // per vertex of the mesh: its normal came from the file
+        // Primitives that use the same POSITION and NORMAL accessors share their vertices:
+        // (POSITION, NORMAL or -1) -> (first vertex, vertex count).
+        std::map<std::pair<int, int>, std::pair<std::uint32_t, std::uint32_t>> ranges;
+        bool morph_warned = false;
+        std::vector<float> positions, normals;  // one primitive's attributes
+        std::vector<std::uint32_t> indices;     // one primitive's indices
+    };
+
     // Merges the triangle primitives of glTF mesh `index` into `mesh` (left without
     // triangles when it has none, which the caller reports).
     bool import_mesh(int index, const std::string& what, Mesh& mesh) {
@@ -787,141 +798,167 @@ private:
             warnings_.add(what + " has no primitives (glTF 2.0 \"Meshes\" requires at least one)");
             return true;
         }
-        std::vector<std::uint8_t> has_normal;
-        // Primitives that use the same POSITION and NORMAL accessors share their vertices:
-        // (POSITION, NORMAL or -1) -> (first vertex, vertex count).
-        std::map<std::pair<int, int>, std::pair<std::uint32_t, std::uint32_t>> ranges;
-        bool morph_warned = false;
-        std::vector<float> positions, normals;
-        std::vector<std::uint32_t> indices;
+        MeshBuild build;
         for (std::size_t k = 0; k < source.primitives.size(); ++k) {
-            const tinygltf::Primitive& prim = source.primitives[k];
             const std::string pwhat = what + " primitive " + std::to_string(k);
-            const int mode = prim.mode < 0 ? TINYGLTF_MODE_TRIANGLES : prim.mode;
-            if (mode == TINYGLTF_MODE_POINTS || mode == TINYGLTF_MODE_LINE ||
-                mode == TINYGLTF_MODE_LINE_LOOP || mode == TINYGLTF_MODE_LINE_STRIP) {
-                warnings_.add(pwhat + ": " + mode_name(mode) + " is not a triangle topology; skipped");
-                continue;
-            }
-            if (mode != TINYGLTF_MODE_TRIANGLES && mode != TINYGLTF_MODE_TRIANGLE_STRIP &&
-                mode != TINYGLTF_MODE_TRIANGLE_FAN) {
-                return fail(pwhat + ": invalid mode " + std::to_string(mode) +
-                            " (glTF 2.0 \"Meshes\": 0 to 6)");
-            }
-            const auto pos_it = prim.attributes.find("POSITION");
-            if (pos_it == prim.attributes.end()) {
-                warnings_.add(pwhat + " has no POSITION attribute; skipped (glTF 2.0 \"Meshes\")");
-                continue;
-            }
-            const auto nrm_it = prim.attributes.find("NORMAL");
-            const int pos_acc = pos_it->second;
-            const int nrm_acc = nrm_it == prim.attributes.end() ? -1 : nrm_it->second;
-            if (prim.material < -1 || prim.material >= int(model_.materials.size())) {
-                return fail(pwhat + " refers to material " + std::to_string(prim.material) +
-                            ", which does not exist (the file has " +
-                            std::to_string(model_.materials.size()) + " materials)");
-            }
-            const std::uint32_t material = std::uint32_t(prim.material + 1);
-            if (!prim.targets.empty() && !morph_warned) {
-                warnings_.add(what +
-                              " has morph targets; they are ignored and the base "
-                              "geometry is imported");
-                morph_warned = true;
-            }
-
-            std::uint32_t first = 0, count = 0;
-            const auto key = std::make_pair(pos_acc, nrm_acc);
-            if (const auto it = ranges.find(key); it != ranges.end()) {
-                first = it->second.first;
-                count = it->second.second;
-            } else {
-                if (!read_vec3(pos_acc, pwhat, true, positions)) return false;
-                const std::size_t n = positions.size() / 3;
-                for (std::size_t v = 0; v < n; ++v) {
-                    const float* p = &positions[3 * v];
-                    if (!std::isfinite(p[0]) || !std::isfinite(p[1]) || !std::isfinite(p[2])) {
-                        return fail(pwhat + " POSITION accessor " + std::to_string(pos_acc) + ": vertex " +
-                                    std::to_string(v) + " is (" + std::to_string(p[0]) + ", " +
-                                    std::to_string(p[1]) + ", " + std::to_string(p[2]) + "), not finite");
-                    }
-                }
-                if (nrm_acc >= 0) {
-                    if (!read_vec3(nrm_acc, pwhat, false, normals)) return false;
-                    if (normals.size() != positions.size()) {
-                        return fail(pwhat + ": NORMAL has " + std::to_string(normals.size() / 3) +
-                                    " elements but POSITION has " + std::to_string(n) +
-                                    " (glTF 2.0 \"Meshes\": all attributes have the same count)");
-                    }
-                }
-                if (mesh.vertex_count() + n > 0xffffffffull) {
-                    return fail(what + " has more than 2^32 - 1 vertices");
-                }
-                first = std::uint32_t(mesh.vertex_count());
-                count = std::uint32_t(n);
-                ranges.emplace(key, std::make_pair(first, count));
-                mesh.positions.insert(mesh.positions.end(), positions.begin(), positions.end());
-                if (nrm_acc >= 0) {
-                    mesh.normals.insert(mesh.normals.end(), normals.begin(), normals.end());
-                } else {
-                    mesh.normals.resize(mesh.positions.size(), 0.0f);
-                }
-                has_normal.resize(mesh.vertex_count(), nrm_acc >= 0 ? 1 : 0);
-            }
-
-            if (prim.indices >= 0 || prim.indices < -1) {
-                if (!read_indices(prim.indices, pwhat, indices)) return false;
-                for (std::size_t i = 0; i < indices.size(); ++i) {
-                    if (indices[i] >= count) {
-                        return fail(pwhat + ": index " + std::to_string(indices[i]) + " at position " +
-                                    std::to_string(i) + " is out of range (POSITION has " +
-                                    std::to_string(count) + " vertices; glTF 2.0 \"Meshes\")");
-                    }
-                }
-            } else {
-                indices.resize(count);
-                for (std::uint32_t i = 0; i < count; ++i) indices[i] = i;
-            }
-
-            const std::size_t before = mesh.indices.size();
-            auto emit = [&](std::uint32_t a, std::uint32_t b, std::uint32_t c) {
-                mesh.indices.push_back(first + a);
-                mesh.indices.push_back(first + b);
-                mesh.indices.push_back(first + c);
-                mesh.triangle_materials.push_back(material);
-            };
-            const std::size_t m = indices.size();
-            if (mode == TINYGLTF_MODE_TRIANGLES) {
-                if (m % 3 != 0) {
-                    return fail(pwhat + ": TRIANGLES with " + std::to_string(m) +
-                                " vertices, not a multiple of 3 (glTF 2.0 \"Meshes\")");
-                }
-                for (std::size_t i = 0; i < m; i += 3) {
-                    emit(indices[i], indices[i + 1], indices[i + 2]);
-                }
-            } else {
-                // glTF 2.0 "Meshes", topology types: strip p_i = {v_i, v_{i+(1+i%2)},
-                // v_{i+(2-i%2)}}, fan p_i = {v_{i+1}, v_{i+2}, v_0}. Triangles repeating an
-                // index (strip stitching) are dropped.
-                for (std::size_t i = 0; i + 2 < m; ++i) {
-                    std::uint32_t a, b, c;
-                    if (mode == TINYGLTF_MODE_TRIANGLE_STRIP) {
-                        a = indices[i];
-                        b = indices[i + 1 + i % 2];
-                        c = indices[i + 2 - i % 2];
-                    } else {
-                        a = indices[i + 1];
-                        b = indices[i + 2];
-                        c = indices[0];
-                    }
-                    if (a != b && b != c && a != c) emit(a, b, c);
-                }
-            }
-            if (mesh.indices.size() == before) {
-                warnings_.add(pwhat + " (" + mode_name(mode) + ") has no triangles");
-            }
+            if (!import_primitive(source.primitives[k], what, pwhat, build, mesh)) return false;
         }
         if (mesh.indices.empty()) return true;
-        detail::finalize_normals(mesh, has_normal, what, warnings_);
+        detail::finalize_normals(mesh, build.has_normal, what, warnings_);
+        return true;
+    }
+
+    // Appends the triangles of primitive `prim` (`pwhat`) of mesh `what` to `mesh`, and the
+    // vertices they use unless an earlier primitive added them. A primitive that is not
+    // made of triangles or has no POSITION is skipped with a warning.
+    bool import_primitive(const tinygltf::Primitive& prim, const std::string& what, const std::string& pwhat,
+                          MeshBuild& build, Mesh& mesh) {
+        const int mode = prim.mode < 0 ? TINYGLTF_MODE_TRIANGLES : prim.mode;
+        if (mode == TINYGLTF_MODE_POINTS || mode == TINYGLTF_MODE_LINE || mode == TINYGLTF_MODE_LINE_LOOP ||
+            mode == TINYGLTF_MODE_LINE_STRIP) {
+            warnings_.add(pwhat + ": " + mode_name(mode) + " is not a triangle topology; skipped");
+            return true;
+        }
+        if (mode != TINYGLTF_MODE_TRIANGLES && mode != TINYGLTF_MODE_TRIANGLE_STRIP &&
+            mode != TINYGLTF_MODE_TRIANGLE_FAN) {
+            return fail(pwhat + ": invalid mode " + std::to_string(mode) + " (glTF 2.0 \"Meshes\": 0 to 6)");
+        }
+        const auto pos_it = prim.attributes.find("POSITION");
+        if (pos_it == prim.attributes.end()) {
+            warnings_.add(pwhat + " has no POSITION attribute; skipped (glTF 2.0 \"Meshes\")");
+            return true;
+        }
+        const auto nrm_it = prim.attributes.find("NORMAL");
+        const int pos_acc = pos_it->second;
+        const int nrm_acc = nrm_it == prim.attributes.end() ? -1 : nrm_it->second;
+        if (prim.material < -1 || prim.material >= int(model_.materials.size())) {
+            return fail(pwhat + " refers to material " + std::to_string(prim.material) +
+                        ", which does not exist (the file has " + std::to_string(model_.materials.size()) +
+                        " materials)");
+        }
+        const std::uint32_t material = std::uint32_t(prim.material + 1);
+        if (!prim.targets.empty() && !build.morph_warned) {
+            warnings_.add(what +
+                          " has morph targets; they are ignored and the base "
+                          "geometry is imported");
+            build.morph_warned = true;
+        }
+        std::uint32_t first = 0, count = 0;
+        if (!primitive_vertices(pos_acc, nrm_acc, what, pwhat, build, mesh, first, count)) return false;
+        if (!primitive_indices(prim.indices, pwhat, count, build.indices)) return false;
+        const std::size_t before = mesh.indices.size();
+        if (!emit_triangles(mode, build.indices, first, material, pwhat, mesh)) return false;
+        if (mesh.indices.size() == before) {
+            warnings_.add(pwhat + " (" + mode_name(mode) + ") has no triangles");
+        }
+        return true;
+    }
+
+    // The vertices of POSITION accessor `pos_acc` with NORMAL accessor `nrm_acc` (-1: none)
+    // as the range [first, first + count) of `mesh`: the range an earlier primitive made for
+    // the same pair, or a new one, read and checked (finite positions, as many normals as
+    // positions, at most 2^32 - 1 vertices in the mesh) and appended with build.has_normal.
+    bool primitive_vertices(int pos_acc, int nrm_acc, const std::string& what, const std::string& pwhat,
+                            MeshBuild& build, Mesh& mesh, std::uint32_t& first, std::uint32_t& count) {
+        const auto key = std::make_pair(pos_acc, nrm_acc);
+        if (const auto it = build.ranges.find(key); it != build.ranges.end()) {
+            first = it->second.first;
+            count = it->second.second;
+            return true;
+        }
+        std::vector<float>& positions = build.positions;
+        std::vector<float>& normals = build.normals;
+        if (!read_vec3(pos_acc, pwhat, true, positions)) return false;
+        const std::size_t n = positions.size() / 3;
+        for (std::size_t v = 0; v < n; ++v) {
+            const float* p = &positions[3 * v];
+            if (!std::isfinite(p[0]) || !std::isfinite(p[1]) || !std::isfinite(p[2])) {
+                return fail(pwhat + " POSITION accessor " + std::to_string(pos_acc) + ": vertex " +
+                            std::to_string(v) + " is (" + std::to_string(p[0]) + ", " + std::to_string(p[1]) +
+                            ", " + std::to_string(p[2]) + "), not finite");
+            }
+        }
+        if (nrm_acc >= 0) {
+            if (!read_vec3(nrm_acc, pwhat, false, normals)) return false;
+            if (normals.size() != positions.size()) {
+                return fail(pwhat + ": NORMAL has " + std::to_string(normals.size() / 3) +
+                            " elements but POSITION has " + std::to_string(n) +
+                            " (glTF 2.0 \"Meshes\": all attributes have the same count)");
+            }
+        }
+        if (mesh.vertex_count() + n > 0xffffffffull) {
+            return fail(what + " has more than 2^32 - 1 vertices");
+        }
+        first = std::uint32_t(mesh.vertex_count());
+        count = std::uint32_t(n);
+        build.ranges.emplace(key, std::make_pair(first, count));
+        mesh.positions.insert(mesh.positions.end(), positions.begin(), positions.end());
+        if (nrm_acc >= 0) {
+            mesh.normals.insert(mesh.normals.end(), normals.begin(), normals.end());
+        } else {
+            mesh.normals.resize(mesh.positions.size(), 0.0f);
+        }
+        build.has_normal.resize(mesh.vertex_count(), nrm_acc >= 0 ? 1 : 0);
+        return true;
+    }
+
+    // A primitive's indices into `out`, from accessor `accessor` with each checked to be
+    // below `count`, or 0 .. count - 1 when it has none (-1).
+    bool primitive_indices(int accessor, const std::string& pwhat, std::uint32_t count,
+                           std::vector<std::uint32_t>& out) {
+        if (accessor >= 0 || accessor < -1) {
+            if (!read_indices(accessor, pwhat, out)) return false;
+            for (std::size_t i = 0; i < out.size(); ++i) {
+                if (out[i] >= count) {
+                    return fail(pwhat + ": index " + std::to_string(out[i]) + " at position " +
+                                std::to_string(i) + " is out of range (POSITION has " +
+                                std::to_string(count) + " vertices; glTF 2.0 \"Meshes\")");
+                }
+            }
+        } else {
+            out.resize(count);
+            for (std::uint32_t i = 0; i < count; ++i) out[i] = i;
+        }
+        return true;
+    }
+
+    // Appends to `mesh` the triangles that `indices` (relative to vertex `first`) make in
+    // topology `mode` (TRIANGLES, TRIANGLE_STRIP or TRIANGLE_FAN), each of `material`.
+    bool emit_triangles(int mode, const std::vector<std::uint32_t>& indices, std::uint32_t first,
+                        std::uint32_t material, const std::string& pwhat, Mesh& mesh) {
+        auto emit = [&](std::uint32_t a, std::uint32_t b, std::uint32_t c) {
+            mesh.indices.push_back(first + a);
+            mesh.indices.push_back(first + b);
+            mesh.indices.push_back(first + c);
+            mesh.triangle_materials.push_back(material);
+        };
+        const std::size_t m = indices.size();
+        if (mode == TINYGLTF_MODE_TRIANGLES) {
+            if (m % 3 != 0) {
+                return fail(pwhat + ": TRIANGLES with " + std::to_string(m) +
+                            " vertices, not a multiple of 3 (glTF 2.0 \"Meshes\")");
+            }
+            for (std::size_t i = 0; i < m; i += 3) {
+                emit(indices[i], indices[i + 1], indices[i + 2]);
+            }
+            return true;
+        }
+        // glTF 2.0 "Meshes", topology types: strip p_i = {v_i, v_{i+(1+i%2)},
+        // v_{i+(2-i%2)}}, fan p_i = {v_{i+1}, v_{i+2}, v_0}. Triangles repeating an
+        // index (strip stitching) are dropped.
+        for (std::size_t i = 0; i + 2 < m; ++i) {
+            std::uint32_t a, b, c;
+            if (mode == TINYGLTF_MODE_TRIANGLE_STRIP) {
+                a = indices[i];
+                b = indices[i + 1 + i % 2];
+                c = indices[i + 2 - i % 2];
+            } else {
+                a = indices[i + 1];
+                b = indices[i + 2];
+                c = indices[0];
+            }
+            if (a != b && b != c && a != c) emit(a, b, c);
+        }
         return true;
     }
 
