@@ -199,6 +199,84 @@ json bench_train(const BenchOptions& o) {
             {"runs", runs}};
 }
 
+namespace {
+
+// Rays per second of format::intersect on `rays` with `threads` threads, repeated for at
+// least `min_seconds`, and the fractions of the rays that reached the network and that
+// occupancy culled.
+json intersect_rate(const format::Runtime& rt, const std::vector<format::Ray>& rays, std::uint32_t threads,
+                    double min_seconds) {
+    std::vector<format::Hit> hits(rays.size());
+    const std::uint32_t T = threads;
+    const std::size_t per = (rays.size() + T - 1) / T;
+    std::uint64_t total = 0;
+    format::IntersectStats st;
+    const auto t0 = Clock::now();
+    do {
+        std::vector<format::IntersectStats> part(T);
+        base::run_on_threads(T, [&](std::uint32_t t) {
+            const std::size_t b = std::min(rays.size(), t * per), e = std::min(rays.size(), b + per);
+            part[t] =
+                format::intersect(rt, std::span(rays).subspan(b, e - b), std::span(hits).subspan(b, e - b));
+        });
+        st = {};
+        for (auto& p : part) st.inferred += p.inferred, st.culled += p.culled;
+        total += rays.size();
+    } while (seconds_since(t0) < min_seconds);
+    const double secs = seconds_since(t0);
+    return json{{"rays", rays.size()},
+                {"rays_per_second", double(total) / secs},
+                {"network_fraction", double(st.inferred) / double(rays.size())},
+                {"culled_fraction", double(st.culled) / double(rays.size())}};
+}
+
+// The pass's stages, cumulatively, on the rays that reach the network: each rate covers
+// its stage and those before it, so 1/rate differences are per-stage costs.
+json stage_rates(const format::Runtime& rt, const std::vector<format::Ray>& reach, std::uint32_t threads,
+                 double min_seconds) {
+    constexpr std::size_t kChunk = 256;  // intersect()'s chunk
+    auto rate = [&](auto&& chunk) {
+        const std::uint32_t T = threads;
+        const std::size_t per = (reach.size() + T - 1) / T;
+        std::uint64_t total = 0;
+        const auto t0 = Clock::now();
+        do {
+            base::run_on_threads(T, [&](std::uint32_t t) {
+                std::vector<format::RayPoints> pts(kChunk);
+                std::vector<format::TraceStatus> status(kChunk);
+                std::vector<float> row(kChunk * rt.geo.input_width);
+                const std::size_t b = std::min(reach.size(), t * per), e = std::min(reach.size(), b + per);
+                for (std::size_t c = b; c < e; c += kChunk)
+                    chunk(std::span(reach).subspan(c, std::min(kChunk, e - c)), pts, status, row);
+            });
+            total += reach.size();
+        } while (seconds_since(t0) < min_seconds);
+        return double(total) / seconds_since(t0);
+    };
+    const auto grid = rt.grid_views();
+    auto scalar_walk = [&](std::span<const format::Ray> rays, auto& pts, auto& status, auto&) {
+        for (std::size_t i = 0; i < rays.size(); ++i)
+            status[i] = format::trace_points(rt.geo, rt.occupancy, rays[i], pts[i]);
+    };
+    auto walk = [&](std::span<const format::Ray> rays, auto& pts, auto& status, auto&) {
+        format::trace_points_batch(rt.geo, rt.occupancy, rays, pts.data(), status.data());
+    };
+    auto walk_encode = [&](std::span<const format::Ray> rays, auto& pts, auto& status, auto& row) {
+        walk(rays, pts, status, row);
+        std::uint32_t which[kChunk];
+        std::size_t k = 0;
+        for (std::size_t i = 0; i < rays.size(); ++i)
+            if (status[i] == format::TraceStatus::ok) which[k++] = std::uint32_t(i);
+        format::encode_batch(rt.geo, grid.data(), pts.data(), std::span(which, k), row.data());
+    };
+    return json{{"walk_scalar_rays_per_second", rate(scalar_walk)},
+                {"walk_rays_per_second", rate(walk)},
+                {"walk_16_lane", format::cpu_features().avx512},
+                {"walk_encode_rays_per_second", rate(walk_encode)}};
+}
+
+}  // namespace
+
 json bench_infer(const BenchOptions& o) {
     const format::ModelDesc d = v1_desc();
     analytic::SpheresSource src = bench_scene(d);
@@ -214,72 +292,7 @@ json bench_infer(const BenchOptions& o) {
     for (const auto& s : tr.reachable(raw)) reach.push_back(s.ray);
 
     auto run = [&](const format::Runtime& rt, const std::vector<format::Ray>& rays) {
-        std::vector<format::Hit> hits(rays.size());
-        const std::uint32_t T = o.threads;
-        const std::size_t per = (rays.size() + T - 1) / T;
-        std::uint64_t total = 0;
-        format::IntersectStats st;
-        const auto t0 = Clock::now();
-        do {
-            std::vector<format::IntersectStats> part(T);
-            base::run_on_threads(T, [&](std::uint32_t t) {
-                const std::size_t b = std::min(rays.size(), t * per), e = std::min(rays.size(), b + per);
-                part[t] = format::intersect(rt, std::span(rays).subspan(b, e - b),
-                                            std::span(hits).subspan(b, e - b));
-            });
-            st = {};
-            for (auto& p : part) st.inferred += p.inferred, st.culled += p.culled;
-            total += rays.size();
-        } while (seconds_since(t0) < o.min_seconds);
-        const double secs = seconds_since(t0);
-        return json{{"rays", rays.size()},
-                    {"rays_per_second", double(total) / secs},
-                    {"network_fraction", double(st.inferred) / double(rays.size())},
-                    {"culled_fraction", double(st.culled) / double(rays.size())}};
-    };
-    // The pass's stages, cumulatively, on the rays that reach the network: each rate covers
-    // its stage and those before it, so 1/rate differences are per-stage costs.
-    auto stages = [&](const format::Runtime& rt) {
-        constexpr std::size_t kChunk = 256;  // intersect()'s chunk
-        auto rate = [&](auto&& chunk) {
-            const std::uint32_t T = o.threads;
-            const std::size_t per = (reach.size() + T - 1) / T;
-            std::uint64_t total = 0;
-            const auto t0 = Clock::now();
-            do {
-                base::run_on_threads(T, [&](std::uint32_t t) {
-                    std::vector<format::RayPoints> pts(kChunk);
-                    std::vector<format::TraceStatus> status(kChunk);
-                    std::vector<float> row(kChunk * rt.geo.input_width);
-                    const std::size_t b = std::min(reach.size(), t * per),
-                                      e = std::min(reach.size(), b + per);
-                    for (std::size_t c = b; c < e; c += kChunk)
-                        chunk(std::span(reach).subspan(c, std::min(kChunk, e - c)), pts, status, row);
-                });
-                total += reach.size();
-            } while (seconds_since(t0) < o.min_seconds);
-            return double(total) / seconds_since(t0);
-        };
-        const auto grid = rt.grid_views();
-        auto scalar_walk = [&](std::span<const format::Ray> rays, auto& pts, auto& status, auto&) {
-            for (std::size_t i = 0; i < rays.size(); ++i)
-                status[i] = format::trace_points(rt.geo, rt.occupancy, rays[i], pts[i]);
-        };
-        auto walk = [&](std::span<const format::Ray> rays, auto& pts, auto& status, auto&) {
-            format::trace_points_batch(rt.geo, rt.occupancy, rays, pts.data(), status.data());
-        };
-        auto walk_encode = [&](std::span<const format::Ray> rays, auto& pts, auto& status, auto& row) {
-            walk(rays, pts, status, row);
-            std::uint32_t which[kChunk];
-            std::size_t k = 0;
-            for (std::size_t i = 0; i < rays.size(); ++i)
-                if (status[i] == format::TraceStatus::ok) which[k++] = std::uint32_t(i);
-            format::encode_batch(rt.geo, grid.data(), pts.data(), std::span(which, k), row.data());
-        };
-        return json{{"walk_scalar_rays_per_second", rate(scalar_walk)},
-                    {"walk_rays_per_second", rate(walk)},
-                    {"walk_16_lane", format::cpu_features().avx512},
-                    {"walk_encode_rays_per_second", rate(walk_encode)}};
+        return intersect_rate(rt, rays, o.threads, o.min_seconds);
     };
     // fp32 (the reference; the top-level figures) and the reduced arithmetics the CPU has:
     // bf16 hidden layers (AVX-512 BF16) and int8 ones (AVX-512 VNNI, what lsnif_open picks
@@ -291,7 +304,7 @@ json bench_infer(const BenchOptions& o) {
               {"threads", o.threads},
               {"through_network", run(rt32, reach)},
               {"mixed_with_early_out", run(rt32, mix)},
-              {"stages", stages(rt32)}};
+              {"stages", stage_rates(rt32, reach, o.threads, o.min_seconds)}};
     const format::Runtime rt16 = format::make_runtime(model, format::MlpArithmetic::bf16);
     if (format::mlp_arithmetic(rt16.net) == format::MlpArithmetic::bf16)
         r["bf16"] = {{"through_network", run(rt16, reach)}, {"mixed_with_early_out", run(rt16, mix)}};
