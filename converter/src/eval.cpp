@@ -867,6 +867,36 @@ bool write_text_atomically(const fs::path& path, const std::string& text, std::s
     return true;
 }
 
+// The report's account of what was rendered and how: the LSNIF models' arithmetic and
+// memory, the image size, ambient occlusion and timing settings, camera, light and
+// instance counts. The results (images, FLIP, timings) are added by the caller.
+json describe_run(const EvalScene::Impl& im, const EvalOptions& opt, const View& view) {
+    std::uint64_t lsnif_bytes = 0, bvh_replaced = 0;
+    lsnif_arithmetic arithmetic = LSNIF_ARITHMETIC_FP32;  // every model gets the same request
+    for (const auto& m : im.meshes)
+        if (m.model) {
+            lsnif_bytes += m.lsnif_bytes, bvh_replaced += m.bvh_bytes;
+            arithmetic = lsnif_get_arithmetic(m.model);
+        }
+    json report;
+    report["lsnif_arithmetic"] = lsnif_arithmetic_string(arithmetic);
+    report["width"] = view.W;
+    report["height"] = view.H;
+    report["ao_samples"] = std::max(1u, opt.ao_samples);
+    report["ao_radius"] = opt.ao_radius * view.diag;
+    report["surface_tmin_voxels"] = opt.surface_tmin_voxels;
+    report["timing_repeats"] = std::max(1u, opt.timing_repeats);
+    report["camera"] = {{"eye", view.cam.eye},
+                        {"target", view.cam.target},
+                        {"up", view.cam.up},
+                        {"fov_deg", view.cam.fov_deg}};
+    report["light"] = view.light;
+    report["instances"] = im.instances.size();
+    report["lsnif_instances"] = im.lsnif_instances.size();
+    report["memory"] = {{"lsnif_bytes", lsnif_bytes}, {"bvh_bytes_replaced", bvh_replaced}};
+    return report;
+}
+
 }  // namespace
 
 EvalResult render_and_compare(const EvalOptions& opt) {
@@ -911,32 +941,10 @@ EvalResult render_and_compare(const EvalOptions& opt) {
         res.errors.push_back(err);
         return res;
     }
-    std::uint64_t lsnif_bytes = 0, bvh_replaced = 0;
-    lsnif_arithmetic arithmetic = LSNIF_ARITHMETIC_FP32;  // every model gets the same request
-    for (const auto& m : im.meshes)
-        if (m.model) {
-            lsnif_bytes += m.lsnif_bytes, bvh_replaced += m.bvh_bytes;
-            arithmetic = lsnif_get_arithmetic(m.model);
-        }
-    json report;
-    report["lsnif_arithmetic"] = lsnif_arithmetic_string(arithmetic);
+    json report = describe_run(im, opt, view);
     report["images"] = per;
     report["flip_mean"] = flip_mean;
     report["lsnif_pixels"] = std::count(lsnif_pixels.begin(), lsnif_pixels.end(), 1);
-    report["width"] = view.W;
-    report["height"] = view.H;
-    report["ao_samples"] = std::max(1u, opt.ao_samples);
-    report["ao_radius"] = opt.ao_radius * view.diag;
-    report["surface_tmin_voxels"] = opt.surface_tmin_voxels;
-    report["timing_repeats"] = std::max(1u, opt.timing_repeats);
-    report["camera"] = {{"eye", view.cam.eye},
-                        {"target", view.cam.target},
-                        {"up", view.cam.up},
-                        {"fov_deg", view.cam.fov_deg}};
-    report["light"] = view.light;
-    report["instances"] = im.instances.size();
-    report["lsnif_instances"] = im.lsnif_instances.size();
-    report["memory"] = {{"lsnif_bytes", lsnif_bytes}, {"bvh_bytes_replaced", bvh_replaced}};
     report["timings"] = {{"primary", primary_seconds},
                          {"secondary_reference", reference.trace_seconds},
                          {"secondary_hybrid", hybrid.trace_seconds}};
