@@ -87,7 +87,9 @@ inline void compiler_barrier() {
 // One block of MT x NT C tiles (MT, NT in {1, 2}) at rows i0, columns j0. Tiles 0..3 hold
 // C (0: (0,0), 1: (0,1), 2: (1,0), 3: (1,1)), 4..5 the A row tiles, 6..7 the B column tiles.
 // Tile indices must be literals (GCC's macros paste them into the asm text), hence the
-// explicit if-constexpr branches.
+// explicit if-constexpr branches. Over 80 lines on purpose: C lives in tile registers from
+// its load through the k loop to its store, and no call preserves them (GCC does not
+// track tile registers), so load, loop and store stay in one function.
 template <int MT, int NT>
 LSNIF_AMX_TARGET void gemm_block(std::size_t i0, std::size_t j0, std::size_t m, std::size_t n, std::size_t k,
                                  const Bf16* a, std::size_t lda, const Bf16* b, std::size_t ldb, float* c,

@@ -105,6 +105,8 @@ struct Axis {
 // 2D triangle-square problem whose separating axes are the square's (the voxel range) and
 // the three edge normals, i.e. e_j × unit_c: those three axes suffice (fewer axes can only
 // reject less, so the no-miss guarantee is untouched, and the 2D test is exact).
+// Over 80 lines on purpose: the voxelizer's hot path; the per-cell loop reads the axes
+// built above it (axes[], n) in the same frame, with no call or copy in between.
 [[gnu::noinline]] void mark_by_sat(const double (&g)[3][3], double tau, double s, const int (&f)[3],
                                    const int (&l)[3], int flat_axis, std::uint32_t v, std::uint64_t* words) {
     const double h = 0.5 + tau;
