@@ -214,7 +214,7 @@ struct InspectCommand {
     void add_to(CLI::App& app) {
         sub = app.add_subcommand("inspect",
                                  "Print header, sections, model dimensions and metadata of a .lsnif file");
-        sub->add_option("FILE", path, ".lsnif file")->required();
+        sub->add_option("FILE", path, ".lsnif file")->type_name("FILE")->required();
         sub->add_flag("--json", json, "Machine-readable output");
     }
     int run() const { return run_inspect(path, json); }
@@ -226,7 +226,7 @@ struct ValidateCommand {
     bool json = false;
     void add_to(CLI::App& app) {
         sub = app.add_subcommand("validate", "Check .lsnif files completely; exit 0 only if all are valid");
-        sub->add_option("FILE", paths, ".lsnif files")->required();
+        sub->add_option("FILE", paths, ".lsnif files")->type_name("FILE...")->required();
         sub->add_flag("--json", json, "Machine-readable output");
     }
     int run() const { return run_validate(paths, json); }
@@ -343,8 +343,8 @@ struct ConvertCommand {
     void add_to(CLI::App& app) {
         sub = app.add_subcommand(
             "convert", "Convert scenes (glTF, OBJ, PLY, OFF, STL) into LSNIF assets and a manifest");
-        sub->add_option("INPUT", settings.opt.inputs, "Scene files")->required();
-        sub->add_option("-o,--output", settings.opt.outdir, "Output directory")->required();
+        sub->add_option("INPUT", settings.opt.inputs, "Scene files")->type_name("FILE...")->required();
+        sub->add_option("-o,--output", settings.opt.outdir, "Output directory")->type_name("DIR")->required();
         sub->add_flag("--json", json, "Print a machine-readable report");
         settings.add_to(sub);
     }
@@ -369,27 +369,36 @@ struct BatchCommand {
             "JUnit XML, exit 0 (all converted or rightly BVH), 1 (some failed), 2 (usage)");
         sub->add_option("INPUT", batch.inputs,
                         "Scene files, directories (searched for scene files) or list files (one path per "
-                        "line); none with --from-plan, whose plan names them");
-        sub->add_option("-o,--output", settings.opt.outdir, "Output directory (not with --plan)");
-        sub->add_option("--junit", batch.junit_path, "Write JUnit XML here: one test case per asset");
+                        "line); none with --from-plan, whose plan names them")
+            ->type_name("PATH...");
+        sub->add_option("-o,--output", settings.opt.outdir, "Output directory (not with --plan)")
+            ->type_name("DIR");
+        sub->add_option("--junit", batch.junit_path, "Write JUnit XML here: one test case per asset")
+            ->type_name("FILE");
         sub->add_option("--shard", shard,
                         "I/N: convert only this shard's share of the candidates (lsnif merge joins the N "
-                        "output directories)");
+                        "output directories; with --from-plan, a share of the plan's tasks)")
+            ->type_name("I/N");
         sub->add_flag("--json", json, "Print a machine-readable summary instead of the lines");
         sub->add_option("--ninja", batch.ninja_path,
                         "Plan only, and write a Ninja build file with one edge per object to convert "
-                        "(run it with ninja -f FILE)");
+                        "(run it with ninja -f FILE)")
+            ->type_name("FILE");
         sub->add_option("--object", settings.opt.only_keys,
                         "Convert only the candidate with this cache key (a step of the --ninja file)")
+            ->type_name("KEY")
             ->allow_extra_args(false);
         sub->add_option("--plan", batch.plan_path,
                         "Plan only, and write the library's plan here: every input with its SHA-256, every "
-                        "object to convert as a task (0..N-1, costliest first) with its cache key");
+                        "object to convert as a task (0..N-1, costliest first) with its cache key")
+            ->type_name("FILE");
         sub->add_option("--from-plan", batch.from_plan,
                         "Convert from a plan without planning the library again: with --task K one object, "
                         "with --shard I/N a share of the tasks, alone the whole library through the cache "
-                        "(writing the manifest)");
-        sub->add_option("--task", task, "K: the plan's task K (with --from-plan), e.g. $SLURM_ARRAY_TASK_ID");
+                        "(writing the manifest)")
+            ->type_name("FILE");
+        sub->add_option("--task", task, "The plan's task K (with --from-plan), e.g. $SLURM_ARRAY_TASK_ID")
+            ->type_name("K");
         settings.add_to(sub);
     }
     // Why the options cannot go together; empty when they can.
@@ -473,10 +482,13 @@ struct MergeCommand {
             "merge",
             "Join the output directories of lsnif batch --shard 1/N .. N/N into one, equal to "
             "a single run's");
-        sub->add_option("SHARD_OUTDIR", shards, "Every shard's output directory")->required();
-        sub->add_option("-o,--output", outdir, "Output directory")->required();
+        sub->add_option("SHARD_OUTDIR", shards, "Every shard's output directory")
+            ->type_name("DIR...")
+            ->required();
+        sub->add_option("-o,--output", outdir, "Output directory")->type_name("DIR")->required();
         sub->add_option("--junit", junit,
-                        "Write JUnit XML of the whole library here: one test case per asset");
+                        "Write JUnit XML of the whole library here: one test case per asset")
+            ->type_name("FILE");
         sub->add_flag("--json", json, "Print a machine-readable summary");
     }
     int run() const {
@@ -518,7 +530,8 @@ void add_arithmetic_options(CLI::App* s, lsnif_arithmetic& arithmetic) {
                       "LSNIF network arithmetic: auto (default: int8 where the CPU has AVX-512 VNNI, "
                       "else bf16 where it has AVX-512 BF16, else fp32), fp32 (the reference), "
                       "bf16 or int8 (each falls back where the CPU lacks it)")
-            ->transform(CLI::CheckedTransformer(names, CLI::ignore_case));
+            ->transform(CLI::CheckedTransformer(names, CLI::ignore_case))
+            ->type_name("auto|fp32|bf16|int8");
     s->add_flag_callback(
          "--fp32", [&arithmetic] { arithmetic = LSNIF_ARITHMETIC_FP32; }, "Same as --arithmetic fp32")
         ->excludes(named);
@@ -535,29 +548,41 @@ struct EvalCommand {
         sub = app.add_subcommand("eval",
                                  "Render reference (Embree) and hybrid (BVH + LSNIF) images of a converted "
                                  "scene; compare them with FLIP and PSNR");
-        sub->add_option("OUTDIR", opt.outdir, "A `lsnif convert` output directory")->required();
-        sub->add_option("--source", opt.sources, "The converted inputs (default: the paths in the manifest)");
-        sub->add_option("--images", opt.images_dir, "Where PNGs and report.json go (default OUTDIR/eval)");
-        sub->add_option("--camera", camera, "ex,ey,ez,tx,ty,tz[,fov_deg] (default frames the scene)");
-        sub->add_option("--light", light, "Point light x,y,z (default above the scene)");
+        sub->add_option("OUTDIR", opt.outdir, "A `lsnif convert` output directory")
+            ->type_name("DIR")
+            ->required();
+        sub->add_option("--source", opt.sources, "The converted inputs (default: the paths in the manifest)")
+            ->type_name("FILE...");
+        sub->add_option("--images", opt.images_dir, "Where PNGs and report.json go (default OUTDIR/eval)")
+            ->type_name("DIR");
+        sub->add_option("--camera", camera,
+                        "Eye and target, optionally the vertical field of view (default frames the scene)")
+            ->type_name("EX,EY,EZ,TX,TY,TZ[,FOV]");
+        sub->add_option("--light", light, "Point light position (default above the scene)")
+            ->type_name("X,Y,Z");
         sub->add_option("--instance-transform", moves,
-                        "INDEX=m0,...,m11: place an instance elsewhere (3x4 row-major)");
-        sub->add_option("--width", opt.width, "Image width")->check(CLI::Range(1u, 8192u));
-        sub->add_option("--height", opt.height, "Image height")->check(CLI::Range(1u, 8192u));
+                        "Place instance INDEX elsewhere: a 3x4 row-major transform")
+            ->type_name("INDEX=M0,...,M11");
+        sub->add_option("--width", opt.width, "Image width")->check(CLI::Range(1u, 8192u))->type_name("N");
+        sub->add_option("--height", opt.height, "Image height")->check(CLI::Range(1u, 8192u))->type_name("N");
         sub->add_option("--surface-tmin", opt.surface_tmin_voxels,
                         "Hybrid only: secondary rays leaving an LSNIF object start this many of its voxels "
                         "from the surface (0 = off; docs/model.md)")
-            ->check(CLI::Range(0.0f, 4.0f));
+            ->check(CLI::Range(0.0f, 4.0f))
+            ->type_name("VOXELS");
         sub->add_option("--repeats", opt.timing_repeats,
                         "Trace each row's secondary rays this many times per tracer, alternating, and keep "
                         "each tracer's fastest for the time ratio (docs/eval.md \"Timing\")")
-            ->check(CLI::Range(1u, 100u));
+            ->check(CLI::Range(1u, 100u))
+            ->type_name("N");
         // The earlier name, kept for scripts that use it.
         sub->add_option("--timing-repeats", old_repeats, "Deprecated: --repeats")
-            ->check(CLI::Range(1u, 100u));
+            ->check(CLI::Range(1u, 100u))
+            ->type_name("N");
         sub->add_option("--ao-samples", opt.ao_samples, "Ambient-occlusion rays per pixel")
-            ->check(CLI::Range(1u, 1024u));
-        sub->add_option("--threads", opt.threads, kThreadsHelp)->check(CLI::Range(0, 4096));
+            ->check(CLI::Range(1u, 1024u))
+            ->type_name("N");
+        sub->add_option("--threads", opt.threads, kThreadsHelp)->check(CLI::Range(0, 4096))->type_name("N");
         add_arithmetic_options(sub, opt.arithmetic);
         sub->add_flag("--json", json, "Print the report as JSON");
     }
@@ -591,22 +616,34 @@ struct BenchCommand {
         rays = sub->add_subcommand(
             "rays", "LSNIF inference vs rtcIntersect1/rtcIntersect16 on the same rays, per object");
         for (auto* s : {memory, rays}) {
-            s->add_option("OUTDIR", scene.outdir, "A `lsnif convert` output directory")->required();
-            s->add_option("--source", scene.sources, "The converted inputs (default: the manifest's paths)");
+            s->add_option("OUTDIR", scene.outdir, "A `lsnif convert` output directory")
+                ->type_name("DIR")
+                ->required();
+            s->add_option("--source", scene.sources, "The converted inputs (default: the manifest's paths)")
+                ->type_name("FILE...");
             s->add_flag("--json", json, "Machine-readable output");
-            s->add_option("--threads", threads, kThreadsHelp)->check(CLI::Range(0, 4096));
+            s->add_option("--threads", threads, kThreadsHelp)->check(CLI::Range(0, 4096))->type_name("N");
         }
-        rays->add_option("--rays", scene.rays, "Rays per object")->check(CLI::Range(1024ull, 1ull << 26));
-        rays->add_option("--repeats", scene.repeats, "Best of N")->check(CLI::Range(1u, 100u));
+        rays->add_option("--rays", scene.rays, "Rays per object")
+            ->check(CLI::Range(1024ull, 1ull << 26))
+            ->type_name("N");
+        rays->add_option("--repeats", scene.repeats, "Best of N")
+            ->check(CLI::Range(1u, 100u))
+            ->type_name("N");
         add_arithmetic_options(rays, scene.arithmetic);
         convert = sub->add_subcommand("convert",
                                       "Convert INPUT... into OUTDIR and print the wall time split by stage");
-        convert->add_option("INPUT", convert_opt.inputs, "Scene files")->required();
-        convert->add_option("-o,--output", convert_opt.outdir, "Output directory")->required();
-        convert->add_option("--preset", convert_opt.preset, "Preset");
-        convert->add_option("--threads", convert_opt.threads, kThreadsHelp)->check(CLI::Range(0, 4096));
-        convert->add_option("--complex", convert_opt.force_complex,
-                            "Force a mesh (by name) to become an LSNIF");
+        convert->add_option("INPUT", convert_opt.inputs, "Scene files")->type_name("FILE...")->required();
+        convert->add_option("-o,--output", convert_opt.outdir, "Output directory")
+            ->type_name("DIR")
+            ->required();
+        convert->add_option("--preset", convert_opt.preset, "Preset")->type_name("NAME");
+        convert->add_option("--threads", convert_opt.threads, kThreadsHelp)
+            ->check(CLI::Range(0, 4096))
+            ->type_name("N");
+        convert
+            ->add_option("--complex", convert_opt.force_complex, "Force a mesh (by name) to become an LSNIF")
+            ->type_name("NAME");
         convert->add_flag("--json", json, "Machine-readable output");
         for (auto* s : {train, infer}) add_common(s);
     }
@@ -614,9 +651,10 @@ struct BenchCommand {
     // subcommand's name.
     void add_common(CLI::App* s) {
         s->add_flag("--json", json, "Machine-readable output");
-        s->add_option("--threads", threads, kThreadsHelp)->check(CLI::Range(0, 4096));
+        s->add_option("--threads", threads, kThreadsHelp)->check(CLI::Range(0, 4096))->type_name("N");
         s->add_option("--seconds", opt.min_seconds, "Minimum seconds per measurement")
-            ->check(CLI::Range(0.01, 600.0));
+            ->check(CLI::Range(0.01, 600.0))
+            ->type_name("SECONDS");
     }
     int run() {
         // One meaning of --threads everywhere: 0 (the default) is every core.
@@ -641,6 +679,51 @@ struct BenchCommand {
         return 0;
     }
 };
+
+// "a | b" as a Markdown table cell: pipes escaped, one line.
+std::string cell(std::string text) {
+    std::string out;
+    for (char c : text) {
+        if (c == '|') out += '\\';
+        out += c == '\n' ? ' ' : c;
+    }
+    return out;
+}
+
+// One subcommand's options as a Markdown table (and its nested subcommands after it).
+void markdown_options(const CLI::App& sub, const std::string& path, std::string& out) {
+    out += "### `" + path + "`\n\n" + sub.get_description() + "\n\n";
+    out += "| option | value | default | what it does |\n|---|---|---|---|\n";
+    for (const CLI::Option* o : sub.get_options()) {
+        std::string names = o->get_name(true, true);
+        if (names == "-h,--help") continue;
+        std::string what = o->get_description(), fallback = o->get_default_str();
+        // Settings-table rows carry their default in words at the end of their help.
+        const std::size_t tail = what.rfind(" [default: ");
+        if (tail != std::string::npos && what.back() == ']') {
+            fallback = what.substr(tail + 11, what.size() - tail - 12);
+            what.resize(tail);
+        }
+        if (fallback == "[]") fallback.clear();
+        // The value's name, without CLI11's description of its range check ("N:INT in [0 - 4096]").
+        std::string value = o->get_type_name().substr(0, o->get_type_name().find(':'));
+        if (o->get_expected_min() == 0) value.clear();  // a flag
+        const std::string def = o->get_required() ? "required" : fallback.empty() ? "" : "`" + fallback + "`";
+        out += "| `" + cell(names) + "` | " + cell(value) + " | " + cell(def) + " | " + cell(what) + " |\n";
+    }
+    out += "\n";
+    for (const CLI::App* nested : sub.get_subcommands([](const CLI::App*) { return true; }))
+        markdown_options(*nested, path + " " + nested->get_name(), out);
+}
+
+// Every subcommand and option of `app` as Markdown (`lsnif --help-markdown`): the table of
+// README.md "Every command and option", checked against the README by a test.
+std::string markdown_reference(const CLI::App& app) {
+    std::string out;
+    for (const CLI::App* sub : app.get_subcommands([](const CLI::App*) { return true; }))
+        markdown_options(*sub, "lsnif " + sub->get_name(), out);
+    return out;
+}
 
 }  // namespace
 
@@ -678,6 +761,10 @@ int main(int argc, char** argv) {
     merge.add_to(app);
     eval.add_to(app);
     bench.add_to(app);
+    if (argc == 2 && std::string(argv[1]) == "--help-markdown") {
+        std::cout << markdown_reference(app);
+        return 0;
+    }
     try {
         app.parse(argc, argv);
     } catch (const CLI::ParseError& e) {

@@ -1,7 +1,7 @@
-// Accuracy targets of `lsnif convert` (issues #4, #12) on real meshes with the *default*
+// Accuracy targets of `lsnif convert` on real meshes with the *default*
 // preset and automatic classification (the asset that ships, sized to the target):
 // held-out rays that reach the network, the three ray families pooled in equal shares,
-// meet the default target, issue #15's (visibility accuracy >= 98.5 %, median distance error
+// meet the default target (visibility accuracy >= 98.5 %, median distance error
 // <= 0.6 % of the box diagonal, median shading-normal error <= 8 degrees), and the surface
 // family's visibility is at least 97.5 %. Every family's figures are printed, as is the
 // geometric-normal error.
@@ -104,7 +104,7 @@ void check_targets(const nlohmann::json& mesh) {
     print_families(mesh);
     // The default target (converter::Target), and the surface family — the shadow, AO and
     // reflection rays a renderer shoots from the object itself — at 97.5 % on its own
-    // (issue #15 item 1; docs/model.md "A 64^3 grid").
+    // (docs/model.md "A 64^3 grid").
     const lsnif::converter::Target target;
     const auto& p = mesh["metrics"]["families"]["pooled"];
     CHECK(p["visibility_accuracy"].get<double>() >= target.visibility);
@@ -224,7 +224,7 @@ void check_walks_agree(const Shipped& s, const std::string& name) {
     CHECK(rows_same == which.size());
 }
 
-// The surface family split by the side its rays leave from (issue #15 item 1): the front
+// The surface family split by the side its rays leave from: the front
 // of the geometric normal, where a renderer's shadow, AO and reflection rays start on an
 // opaque object, and the back, inside a closed solid. Both halves are measured and must be
 // there; the split is printed so that work on surface rays can see which side errs.
@@ -368,7 +368,7 @@ TEST_CASE("default preset keeps a tree as BVH, decided at the first validation t
 // of the dragon Loop-subdivided three times (1,279,616 triangles) on a floor, converted with
 // the default preset and rendered by `lsnif eval` from the composition's camera, which frames
 // the three dragons. The combined image (direct light with shadows, AO and a mirror coat)
-// must stay within FLIP 0.03 of the Embree reference over the frame (issue #15 item 2).
+// must stay within FLIP 0.03 of the Embree reference over the frame.
 TEST_CASE("dragons composition: the combined image is within FLIP 0.03 of the reference") {
     const std::string cgal_data = fs::path(LSNIF_TEST_MESH_DIR).parent_path().parent_path().string();
     const fs::path dir = fs::path(LSNIF_TEST_WORK_DIR) / "accuracy_dragons";

@@ -600,7 +600,7 @@ TEST_CASE("interior origins lie outside the closed solid") {
             inside += smp.family == Family::interior && dist_to_center(smp.ray.org) < 0.99;
         CHECK(inside > 150);  // ~half of the 1000 interior origins fall in the ball's volume
         CHECK(src->counters().parity_queries == 0);
-        // An open mesh has no inside; asking is not an error (it used to abort in Embree).
+        // An open mesh has no inside; asking is not an error (nor an abort inside Embree).
         CHECK_FALSE(src->inside_solid({float(kCenter[0]), float(kCenter[1]), float(kCenter[2])}));
     }
 }

@@ -62,8 +62,9 @@ struct Preset {
     TargetStop target_stop;
     Sizing sizing;
 };
-// "default" (v1 model), "fast", "quality" (same model, more or fewer training steps) and
-// "smoke" (a tiny model for pipeline checks).
+// "default" (the shipped model: presets.cpp writes it out whole), "fast", "quality" (the same
+// model, fewer or more training rays per step and steps) and "smoke" (a tiny model for
+// pipeline checks).
 bool find_preset(const std::string& name, Preset& out);
 std::vector<std::string> preset_names();
 

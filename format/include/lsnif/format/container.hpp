@@ -89,8 +89,9 @@ struct OutputLayout {
     static constexpr std::uint32_t material = 5;  // material m at material + m
 };
 
-// Hyperparameters of one LSNIF. Defaults are the v1 model of docs/architecture.md §3; a reader
-// never uses them — every value is read from the file.
+// Hyperparameters of one LSNIF. The defaults are the original model (V = 32, H = 18, levels
+// 64 and 128; the shipped preset differs: converter/src/presets.cpp); a reader never uses
+// them — every value is read from the file.
 struct ModelDesc {
     std::uint32_t grid_resolution = 32;
     std::uint32_t max_points = 18;
