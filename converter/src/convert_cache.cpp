@@ -14,9 +14,10 @@ namespace {
 
 // The gate's rules, for cache keys: they decide which option ships.
 std::string gate_key(const Gate& g) {
-    char buf[160];
-    std::snprintf(buf, sizeof buf, "gate%g,%g,%g,%g,%llu", g.min_visibility, g.min_family_visibility,
-                  g.max_distance_median_pct, g.max_normal_median_deg, (unsigned long long)g.min_family_rays);
+    char buf[200];
+    std::snprintf(buf, sizeof buf, "gate%g,%g,%g,%g,%llu,%g,%s", g.min_visibility, g.min_family_visibility,
+                  g.max_distance_median_pct, g.max_normal_median_deg, (unsigned long long)g.min_family_rays,
+                  g.max_flip, acceptance_name(g.accept));
     return buf;
 }
 

@@ -13,6 +13,7 @@
 #pragma once
 
 #include <lsnif/converter/convert.hpp>
+#include <lsnif/converter/eval.hpp>
 #include <lsnif/converter/outcome.hpp>
 #include <lsnif/format/container.hpp>
 #include <lsnif/mesh/mesh.hpp>
@@ -75,13 +76,17 @@ struct Candidate {
     bool forced = false;
 };
 
-// The rays a mesh's models are measured on, drawn once and shared by every rung of the
-// ladder: held-out rays (the gate and the target) and validation rays (the curve that
-// decides during training). Both apart from the training rays.
+// What a mesh's models are measured on, made once and shared by every rung of the ladder,
+// all apart from the training rays: validation rays (the curve that decides during
+// training), decision rays (the gate, the target and the choice between options), held-out
+// rays that no decision sees (what the manifest reports), and the object's views with their
+// reference renders (Preset::visual_check; null when off).
 struct MeasureRays {
+    std::vector<samples::Sample> validation;
+    std::vector<samples::Sample> decision;
     std::vector<samples::Sample> held_out;
     std::vector<std::array<float, 3>> held_out_geometric_normals;
-    std::vector<samples::Sample> validation;
+    std::unique_ptr<ObjectViews> views;
 };
 
 // One rung of the ladder, trained.
@@ -105,13 +110,15 @@ struct Trained {
 
 // A model that may ship: a trained rung's fp16 export, or its 8-bit quantization.
 struct Option {
-    std::size_t rung = 0;     // into Sized::rungs: the training it comes from
-    format::ModelData model;  // metadata filled only for the chosen one (encode_asset)
-    HeldOut held_out;         // gate() on the held-out rays
-    std::uint64_t bytes = 0;  // serialized without metadata
-    bool target_met = false;  // passes the gate and meets --target on held-out rays
-    bool memory_ok = false;   // beats the BVH by ClassifyRule::min_memory_ratio (or forced)
-    double seconds = 0;       // measuring (and, for the fp16 option, training) it
+    std::size_t rung = 0;            // into Sized::rungs: the training it comes from
+    format::ModelData model;         // metadata filled only for the chosen one (encode_asset)
+    samples::Metrics decided;        // on the decision rays: what the gate, the target and the choice read
+    HeldOut held_out;                // on the held-out rays, reported; its gate is the decided verdict
+    std::optional<ObjectFlip> flip;  // the visual check in MeasureRays::views, when on
+    std::uint64_t bytes = 0;         // serialized without metadata
+    bool target_met = false;         // passes the gate and meets --target on held-out rays
+    bool memory_ok = false;          // beats the BVH by ClassifyRule::min_memory_ratio (or forced)
+    double seconds = 0;              // measuring (and, for the fp16 option, training) it
     CandidateOutcome outcome = CandidateOutcome::misses_target;  // chosen and why, or why not (choose_option)
 };
 
@@ -159,7 +166,9 @@ std::string asset_key(const Run& run, const scene::Mesh& mesh, const format::Mod
 // version does not write).
 std::optional<HeldOut> reusable_metrics(const fs::path& asset, const std::string& key);
 
-// Draws the held-out and validation rays (seeded by the run's seed, not by the rung).
+// Draws the held-out and validation rays (seeded by the run's seed, not by the rung) and, with
+// Preset::visual_check, renders the object's reference views (none when Embree cannot build
+// them: classification built the same mesh, so that does not happen short of memory).
 MeasureRays draw_measure_rays(const Run& run, const scene::Mesh& mesh, Candidate& c, MeshOutcome& out);
 
 // Trains `desc` (a rung: the candidate's model with another table size) for at most `steps`
@@ -187,10 +196,13 @@ std::vector<std::vector<std::uint8_t>> active_neurons(const format::ModelData& m
 std::vector<std::uint32_t> remove_inactive_neurons(format::ModelData& model,
                                                    const std::vector<std::vector<std::uint8_t>>& active);
 
-// Gate: held-out metrics of the trained model and the verdict. `model` is `t`'s fp16 export
-// or its quantization; `t` supplies the training verdicts (divergence, giving up).
-HeldOut gate(const Run& run, const scene::Mesh& mesh, const format::ModelData& model, const Trained& t,
-             const MeasureRays& rays, MeshOutcome& out);
+// Evaluate: `model` (`t`'s fp16 export or its quantization) on the decision rays (into
+// `decided`) and on the held-out rays, and the gate's verdict (gate_verdict: the decided
+// metrics, `flip`, and `t`'s own verdicts: divergence, giving up) recorded with the
+// held-out metrics.
+HeldOut evaluate(const Run& run, const scene::Mesh& mesh, const format::ModelData& model, const Trained& t,
+                 const MeasureRays& rays, std::optional<ObjectFlip> flip, samples::Metrics& decided,
+                 MeshOutcome& out);
 
 // The manifest's record of one option of `of`: size, encoding, bytes, steps, seconds,
 // held-out metrics, verdicts, outcome, why training stopped and (fp16 option) the rung's curve.

@@ -6,6 +6,7 @@
 #include <lsnif/base/random.hpp>
 #include <lsnif/converter/eval.hpp>
 #include <lsnif/converter/manifest.hpp>
+#include "eval_render.hpp"
 
 #include <embree3/rtcore.h>
 
@@ -25,126 +26,7 @@
 namespace lsnif::converter {
 namespace fs = std::filesystem;
 using nlohmann::json;
-using Vec3 = std::array<float, 3>;
-
-namespace {
-
-Vec3 operator+(Vec3 a, Vec3 b) {
-    return {a[0] + b[0], a[1] + b[1], a[2] + b[2]};
-}
-Vec3 operator-(Vec3 a, Vec3 b) {
-    return {a[0] - b[0], a[1] - b[1], a[2] - b[2]};
-}
-Vec3 operator*(Vec3 a, float s) {
-    return {a[0] * s, a[1] * s, a[2] * s};
-}
-Vec3 mul(Vec3 a, Vec3 b) {
-    return {a[0] * b[0], a[1] * b[1], a[2] * b[2]};
-}
-float dot(Vec3 a, Vec3 b) {
-    return a[0] * b[0] + a[1] * b[1] + a[2] * b[2];
-}
-Vec3 cross(Vec3 a, Vec3 b) {
-    return {a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]};
-}
-float length(Vec3 a) {
-    return std::sqrt(dot(a, a));
-}
-Vec3 normalize(Vec3 a) {
-    const float l = length(a);
-    return l > 0.0f ? a * (1.0f / l) : Vec3{0.0f, 0.0f, 1.0f};
-}
-
-using Affine = std::array<float, 12>;  // 3x4 row-major [A | b]
-
-Vec3 apply_point(const Affine& m, Vec3 p) {
-    return {m[0] * p[0] + m[1] * p[1] + m[2] * p[2] + m[3], m[4] * p[0] + m[5] * p[1] + m[6] * p[2] + m[7],
-            m[8] * p[0] + m[9] * p[1] + m[10] * p[2] + m[11]};
-}
-
-Vec3 apply_normal(const std::array<float, 9>& n, Vec3 v) {
-    return normalize({n[0] * v[0] + n[1] * v[1] + n[2] * v[2], n[3] * v[0] + n[4] * v[1] + n[5] * v[2],
-                      n[6] * v[0] + n[7] * v[1] + n[8] * v[2]});
-}
-
-}  // namespace
-
-// ---- the loaded scene -------------------------------------------------------------------
-
-struct EvalScene::Impl {
-    struct Mesh {
-        std::vector<float> positions, normals;
-        std::vector<std::uint32_t> indices;
-        RTCScene scene = nullptr;
-        lsnif_model* model = nullptr;  // complex meshes with a shipped asset
-        std::string name;
-        std::uint64_t bvh_bytes = 0;
-        std::uint64_t lsnif_bytes = 0;
-        std::array<float, 6> box{};  // object-space bounds
-    };
-    struct Instance {
-        std::uint32_t mesh = 0;
-        Affine transform{};
-        std::array<float, 9> nmat{};
-        std::array<float, 6> box{};  // world-space bounds
-    };
-    RTCDevice device = nullptr;
-    RTCScene reference = nullptr, hybrid = nullptr;
-    bool hybrid_has_geometry = false;
-    std::vector<Mesh> meshes;
-    std::vector<Instance> instances;
-    std::vector<std::uint32_t> lsnif_instances;  // indices into instances
-    std::array<float, 6> world{};
-    std::atomic<std::uint64_t> memory{0};
-    std::string embree_error;
-
-    ~Impl() {
-        if (reference) rtcReleaseScene(reference);
-        if (hybrid) rtcReleaseScene(hybrid);
-        for (Mesh& m : meshes) {
-            if (m.scene) rtcReleaseScene(m.scene);
-            if (m.model) lsnif_close(m.model);
-        }
-        if (device) rtcReleaseDevice(device);
-    }
-    // Stages of EvalScene::load. Each returns false with `error` set on failure; what was
-    // created so far is released by ~Impl.
-    bool open_device(std::string& error);
-    // Uploads one source mesh to its own Embree scene (measuring its BVH bytes) and opens
-    // its shipped asset when the manifest gives one.
-    bool add_mesh(const scene::Mesh& sm, const MeshOutcome& outcome, const fs::path& outdir,
-                  lsnif_arithmetic arithmetic, std::string& error);
-    // Instance i of the manifest (opt.instance_transforms may override its placement) into
-    // the reference scene, and into the hybrid one unless its mesh is traced as an LSNIF.
-    bool add_instance(std::size_t i, const json& manifest_instance, const EvalOptions& opt,
-                      const std::string& manifest_path, std::string& error);
-
-    static void on_error(void* user, RTCError, const char* str) {
-        static_cast<Impl*>(user)->embree_error = str ? str : "unknown";
-    }
-    static bool on_memory(void* user, ssize_t bytes, bool) {
-        static_cast<Impl*>(user)->memory += std::uint64_t(bytes);  // signed: frees are negative
-        return true;
-    }
-
-    TraceHit embree_hit(const RTCRayHit& rh) const {
-        TraceHit h;
-        if (rh.hit.geomID == RTC_INVALID_GEOMETRY_ID) return h;
-        const std::uint32_t inst = rh.hit.instID[0];
-        const Instance& in = instances[inst];
-        const Mesh& m = meshes[in.mesh];
-        const std::uint32_t* tri = &m.indices[std::size_t(rh.hit.primID) * 3];
-        const float u = rh.hit.u, v = rh.hit.v, w = 1.0f - u - v;
-        Vec3 n{};
-        for (int a = 0; a < 3; ++a)
-            n[a] =
-                w * m.normals[tri[0] * 3 + a] + u * m.normals[tri[1] * 3 + a] + v * m.normals[tri[2] * 3 + a];
-        h.t = rh.ray.tfar;
-        h.normal = apply_normal(in.nmat, n);
-        h.instance = std::int32_t(inst);
-        return h;
-    }
-};
+using namespace eval_detail;
 
 EvalScene::EvalScene(std::unique_ptr<Impl> impl) : impl_(std::move(impl)) {}
 EvalScene::~EvalScene() = default;
@@ -337,14 +219,39 @@ std::array<float, 6> transformed_bounds(const Affine& transform, const std::arra
 
 }  // namespace
 
-bool EvalScene::Impl::open_device(std::string& error) {
-    device = rtcNewDevice(nullptr);
+bool EvalScene::Impl::open_device(std::string& error, const char* config) {
+    device = rtcNewDevice(config);
     if (!device) {
         error = "embree: rtcNewDevice failed";
         return false;
     }
     rtcSetDeviceErrorFunction(device, &Impl::on_error, this);
     rtcSetDeviceMemoryMonitorFunction(device, &Impl::on_memory, this);
+    return true;
+}
+
+bool EvalScene::Impl::upload(Mesh m, std::string& error) {
+    const std::uint64_t before = memory;
+    m.scene = rtcNewScene(device);
+    RTCGeometry g = rtcNewGeometry(device, RTC_GEOMETRY_TYPE_TRIANGLE);
+    auto* vb = static_cast<float*>(rtcSetNewGeometryBuffer(g, RTC_BUFFER_TYPE_VERTEX, 0, RTC_FORMAT_FLOAT3,
+                                                           3 * sizeof(float), m.positions.size() / 3));
+    auto* ib = static_cast<std::uint32_t*>(rtcSetNewGeometryBuffer(
+        g, RTC_BUFFER_TYPE_INDEX, 0, RTC_FORMAT_UINT3, 3 * sizeof(std::uint32_t), m.indices.size() / 3));
+    if (!vb || !ib) {
+        rtcReleaseGeometry(g);
+        error = "embree: cannot allocate buffers for mesh '" + m.name + "': " + embree_error;
+        meshes.push_back(std::move(m));  // released by ~Impl
+        return false;
+    }
+    std::memcpy(vb, m.positions.data(), m.positions.size() * sizeof(float));
+    std::memcpy(ib, m.indices.data(), m.indices.size() * sizeof(std::uint32_t));
+    rtcCommitGeometry(g);
+    rtcAttachGeometry(m.scene, g);
+    rtcReleaseGeometry(g);
+    rtcCommitScene(m.scene);
+    m.bvh_bytes = memory - before;
+    meshes.push_back(std::move(m));
     return true;
 }
 
@@ -356,68 +263,33 @@ bool EvalScene::Impl::add_mesh(const scene::Mesh& sm, const MeshOutcome& mo, con
     m.normals = sm.normals;
     m.indices = sm.indices;
     m.box = vertex_bounds(sm);
-    const std::uint64_t before = memory;
-    m.scene = rtcNewScene(device);
-    RTCGeometry g = rtcNewGeometry(device, RTC_GEOMETRY_TYPE_TRIANGLE);
-    auto* vb = static_cast<float*>(rtcSetNewGeometryBuffer(g, RTC_BUFFER_TYPE_VERTEX, 0, RTC_FORMAT_FLOAT3,
-                                                           3 * sizeof(float), sm.vertex_count()));
-    auto* ib = static_cast<std::uint32_t*>(rtcSetNewGeometryBuffer(
-        g, RTC_BUFFER_TYPE_INDEX, 0, RTC_FORMAT_UINT3, 3 * sizeof(std::uint32_t), sm.triangle_count()));
-    if (!vb || !ib) {
-        rtcReleaseGeometry(g);
-        meshes.push_back(std::move(m));  // released by ~Impl
-        error = "embree: cannot allocate buffers for mesh '" + sm.name + "': " + embree_error;
+    if (!upload(std::move(m), error)) return false;
+    if (mo.cls() != MeshClass::complex || !mo.asset) return true;
+    Mesh& added = meshes.back();  // released by ~Impl whatever happens next
+    const fs::path asset = outdir / mo.asset->file;
+    lsnif_error err{};
+    if (lsnif_open_file(asset.c_str(), &added.model, &err) != LSNIF_OK) {
+        error = asset.string() + ": cannot open the asset: " + lsnif_status_string(err.status) + " (" +
+                err.message + ")";
         return false;
     }
-    std::memcpy(vb, sm.positions.data(), sm.positions.size() * sizeof(float));
-    std::memcpy(ib, sm.indices.data(), sm.indices.size() * sizeof(std::uint32_t));
-    rtcCommitGeometry(g);
-    rtcAttachGeometry(m.scene, g);
-    rtcReleaseGeometry(g);
-    rtcCommitScene(m.scene);
-    m.bvh_bytes = memory - before;
-    if (mo.cls() == MeshClass::complex && mo.asset) {
-        const fs::path asset = outdir / mo.asset->file;
-        lsnif_error err{};
-        if (lsnif_open_file(asset.c_str(), &m.model, &err) != LSNIF_OK) {
-            error = asset.string() + ": cannot open the asset: " + lsnif_status_string(err.status) + " (" +
-                    err.message + ")";
-            meshes.push_back(std::move(m));  // released by ~Impl
-            return false;
-        }
-        if (lsnif_set_arithmetic(m.model, arithmetic, nullptr) != LSNIF_OK) {
-            error = asset.string() + ": cannot set the arithmetic " + lsnif_arithmetic_string(arithmetic);
-            meshes.push_back(std::move(m));  // released by ~Impl
-            return false;
-        }
-        std::error_code ec;
-        m.lsnif_bytes = fs::file_size(asset, ec);
+    if (lsnif_set_arithmetic(added.model, arithmetic, nullptr) != LSNIF_OK) {
+        error = asset.string() + ": cannot set the arithmetic " + lsnif_arithmetic_string(arithmetic);
+        return false;
     }
-    meshes.push_back(std::move(m));
+    std::error_code ec;
+    added.lsnif_bytes = fs::file_size(asset, ec);
     return true;
 }
 
-bool EvalScene::Impl::add_instance(std::size_t i, const json& ij, const EvalOptions& opt,
-                                   const std::string& manifest_path, std::string& error) {
+bool EvalScene::Impl::place(std::uint32_t mesh, const Affine& transform, bool as_lsnif, std::string& error) {
     Instance in;
-    const auto malformed = [&] {
-        const json& t = ij.is_object() ? ij.value("transform", json()) : json();
-        if (!ij.is_object() || !ij.value("mesh", json()).is_number_unsigned() || !t.is_array() ||
-            t.size() != 12)
-            return true;
-        return std::any_of(t.begin(), t.end(), [](const json& x) { return !x.is_number(); });
-    };
-    if (malformed() || ij["mesh"].get<std::uint64_t>() >= meshes.size()) {
-        error = manifest_path + ": instance " + std::to_string(i) + " is malformed";
-        return false;
-    }
-    in.mesh = ij["mesh"].get<std::uint32_t>();
-    for (int k = 0; k < 12; ++k) in.transform[k] = ij["transform"][k].get<float>();
-    for (const auto& [which, m] : opt.instance_transforms)
-        if (which == i) in.transform = m;
+    in.mesh = mesh;
+    in.transform = transform;
+    const std::size_t i = instances.size();
     const auto inverse = base::invert_linear(in.transform.data());
     if (!inverse) {
-        error = manifest_path + ": instance " + std::to_string(i) + " has a singular or non-finite transform";
+        error = "instance " + std::to_string(i) + " has a singular or non-finite transform";
         return false;
     }
     in.nmat = base::normal_matrix(*inverse);
@@ -426,7 +298,6 @@ bool EvalScene::Impl::add_instance(std::size_t i, const json& ij, const EvalOpti
         world[a] = std::min(world[a], in.box[a]);
         world[a + 3] = std::max(world[a + 3], in.box[a + 3]);
     }
-    const bool as_lsnif = meshes[in.mesh].model != nullptr;
     for (RTCScene top : {reference, hybrid}) {
         if (top == hybrid && as_lsnif) continue;
         RTCGeometry g = rtcNewGeometry(device, RTC_GEOMETRY_TYPE_INSTANCE);
@@ -441,6 +312,31 @@ bool EvalScene::Impl::add_instance(std::size_t i, const json& ij, const EvalOpti
     else
         hybrid_has_geometry = true;
     instances.push_back(in);
+    return true;
+}
+
+bool EvalScene::Impl::add_instance(std::size_t i, const json& ij, const EvalOptions& opt,
+                                   const std::string& manifest_path, std::string& error) {
+    const auto malformed = [&] {
+        const json& t = ij.is_object() ? ij.value("transform", json()) : json();
+        if (!ij.is_object() || !ij.value("mesh", json()).is_number_unsigned() || !t.is_array() ||
+            t.size() != 12)
+            return true;
+        return std::any_of(t.begin(), t.end(), [](const json& x) { return !x.is_number(); });
+    };
+    if (malformed() || ij["mesh"].get<std::uint64_t>() >= meshes.size()) {
+        error = manifest_path + ": instance " + std::to_string(i) + " is malformed";
+        return false;
+    }
+    Affine transform{};
+    for (int k = 0; k < 12; ++k) transform[k] = ij["transform"][k].get<float>();
+    for (const auto& [which, m] : opt.instance_transforms)
+        if (which == i) transform = m;
+    const std::uint32_t mesh = ij["mesh"].get<std::uint32_t>();
+    if (!place(mesh, transform, meshes[mesh].model != nullptr, error)) {
+        error = manifest_path + ": " + error;
+        return false;
+    }
     return true;
 }
 
@@ -489,7 +385,7 @@ std::unique_ptr<EvalScene> EvalScene::load(const EvalOptions& opt, std::string& 
 
 // ---- rendering ---------------------------------------------------------------------------
 
-namespace {
+namespace eval_detail {
 
 // Pleasant, distinct per-mesh albedo: hue by the golden ratio, fixed saturation and value.
 Vec3 albedo(std::uint32_t mesh) {
@@ -512,28 +408,7 @@ Vec3 sky(Vec3 d) {
 
 const Vec3 kBackground{0.02f, 0.02f, 0.03f};
 
-struct GBuffer {
-    std::vector<Vec3> p, n;
-    std::vector<std::int32_t> inst;  // -1 = background
-    std::vector<float> eps;          // origin offset of secondary rays
-};
-
 using base::seconds_since;
-
-json flip_json(const image::FlipStats& s, double psnr) {
-    json j = {{"flip_mean", s.mean}, {"flip_median", s.median}, {"flip_p95", s.p95}, {"flip_max", s.max}};
-    j["psnr_db"] = std::isfinite(psnr) ? json(psnr) : json(nullptr);  // identical images: null (infinite)
-    return j;
-}
-
-// The camera and light of a render: the options' or, by default, framing the scene's bounds.
-struct View {
-    EvalCamera cam;
-    Vec3 light, fwd, right, up;
-    float tan_half, aspect;
-    float diag;  // world bounds' diagonal
-    std::uint32_t W, H;
-};
 
 View make_view(const EvalOptions& opt, const std::array<float, 6>& world) {
     View v;
@@ -598,18 +473,6 @@ GBuffer render_primary(const EvalScene& scene, const std::vector<EvalScene::Impl
     });
     return gb;
 }
-
-// The three effects one at a time, then their combination (docs/eval.md "The renders").
-enum { kShadow, kAo, kReflection, kCombined, kEffects };
-constexpr int kSeparateEffects = kCombined;  // what the report's overall flip_mean averages
-constexpr const char* kEffectNames[kEffects] = {"shadow", "ao", "reflection", "combined"};
-
-// Linear RGB images of the three effects from one tracer, and the time its secondary
-// rays took (summed over threads).
-struct EffectImages {
-    std::vector<float> rgb[kEffects];
-    double trace_seconds = 0;
-};
 
 // The secondary rays of one row: a shadow ray to the light, S cosine-distributed AO rays
 // and a mirror reflection per covered pixel, identical for both tracers (per-pixel random
@@ -741,13 +604,9 @@ double trace_row(const EvalScene& scene, bool hybrid, const RowRays& rr, RowHits
 // the tracers EvalOptions::timing_repeats times, and each tracer's fastest counts: the
 // machine's drifts (shared hosts, frequency) hit both sides of the time ratio alike, and a
 // stall that hits one trace is left out.
-struct BothImages {
-    EffectImages reference, hybrid;
-};
-
 BothImages render_secondary(const EvalScene& scene, const std::vector<EvalScene::Impl::Instance>& instances,
                             const GBuffer& gb, const View& v, const EvalOptions& opt,
-                            const std::vector<float>& surface_tmin, std::uint32_t threads) {
+                            const std::vector<float>& surface_tmin, std::uint32_t threads, Tracers tracers) {
     const std::uint32_t W = v.W, S = std::max(1u, opt.ao_samples);
     BothImages out;
     for (EffectImages* side : {&out.reference, &out.hybrid})
@@ -762,10 +621,14 @@ BothImages render_secondary(const EvalScene& scene, const std::vector<EvalScene:
         if (!surface_tmin.empty()) start_later(gb, surface_tmin, y * W, S, rays[1]);
         RowHits hits[2];
         double fastest[2] = {INFINITY, INFINITY};
+        const bool traced[2] = {tracers != Tracers::hybrid, tracers != Tracers::reference};
         for (std::uint32_t r = 0; r < repeats; ++r)
             for (const int side : {0, 1})
-                fastest[side] = std::min(fastest[side], trace_row(scene, side == 1, rays[side], hits[side]));
+                if (traced[side])
+                    fastest[side] =
+                        std::min(fastest[side], trace_row(scene, side == 1, rays[side], hits[side]));
         for (const int side : {0, 1}) {
+            if (!traced[side]) continue;
             per_thread[side][t] += fastest[side];
             const RowRays& rr = rays[side];
             EffectImages& img = side ? out.hybrid : out.reference;
@@ -783,24 +646,38 @@ BothImages render_secondary(const EvalScene& scene, const std::vector<EvalScene:
     return out;
 }
 
-// Mean of the FLIP error map over the pixels `mask` selects; null when it selects none.
-json masked_mean(const std::vector<float>& error_map, const std::vector<std::uint8_t>& mask) {
+// Mean of the FLIP error map over the pixels `mask` selects; none when it selects none.
+std::optional<double> masked_mean(const std::vector<float>& error_map,
+                                  const std::vector<std::uint8_t>& mask) {
     double sum = 0;
     std::size_t n = 0;
     for (std::size_t i = 0; i < mask.size(); ++i)
         if (mask[i]) sum += error_map[i], ++n;
-    return n ? json(sum / double(n)) : json(nullptr);
+    return n ? std::optional<double>(sum / double(n)) : std::nullopt;
 }
 
-// FLIP and PSNR of each effect (sRGB-encoded images) over the frame, FLIP's mean over the
-// pixels `lsnif_pixels` selects (the primary hit is an LSNIF instance), and the reference,
-// hybrid and FLIP heat-map PNGs in `images` when write_images. Returns the per-effect JSON
-// and the mean FLIP over the separate effects; false with `error` set on failure.
+bool write_effect_images(const image::Image& ref, const image::Image& hyb, const image::FlipResult& f, int e,
+                         const fs::path& images, EffectComparison& c, std::string& error) {
+    const std::string stem = kEffectNames[e];
+    const image::Image heat = image::heatmap(f.error_map, ref.width, ref.height);
+    const std::pair<std::string, const image::Image*> files[] = {{"reference_" + stem + ".png", &ref},
+                                                                 {"hybrid_" + stem + ".png", &hyb},
+                                                                 {"flip_" + stem + ".png", &heat}};
+    for (const auto& [file, img] : files) {
+        auto w = image::write_png((images / file).string(), *img);
+        if (!w) {
+            error = w.error().message;
+            return false;
+        }
+    }
+    c.files = {files[0].first, files[1].first, files[2].first};
+    return true;
+}
+
 bool compare_effects(const EffectImages& reference, const EffectImages& hybrid, const View& v,
                      const std::vector<std::uint8_t>& lsnif_pixels, const fs::path& images, bool write_images,
-                     json& per, double& flip_mean, std::string& error) {
+                     Comparison& out, std::string& error) {
     const std::uint32_t W = v.W, H = v.H;
-    per = json::object();
     double flip_sum = 0;
     for (int e = 0; e < kEffects; ++e) {
         image::Image ref{W, H, reference.rgb[e]}, hyb{W, H, hybrid.rgb[e]};
@@ -811,30 +688,35 @@ bool compare_effects(const EffectImages& reference, const EffectImages& hybrid, 
             error = std::string("flip: ") + kEffectNames[e] + ": " + f.error().message;
             return false;
         }
-        json j = flip_json(f->stats, image::psnr(ref, hyb));
-        j["flip_mean_lsnif_pixels"] = masked_mean(f->error_map, lsnif_pixels);
-        if (write_images) {
-            const std::string stem = kEffectNames[e];
-            const image::Image heat = image::heatmap(f->error_map, W, H);
-            const std::pair<std::string, const image::Image*> files[] = {{"reference_" + stem + ".png", &ref},
-                                                                         {"hybrid_" + stem + ".png", &hyb},
-                                                                         {"flip_" + stem + ".png", &heat}};
-            for (const auto& [file, img] : files) {
-                auto w = image::write_png((images / file).string(), *img);
-                if (!w) {
-                    error = w.error().message;
-                    return false;
-                }
-            }
-            j["files"] = {{"reference", "reference_" + stem + ".png"},
-                          {"hybrid", "hybrid_" + stem + ".png"},
-                          {"flip", "flip_" + stem + ".png"}};
-        }
+        EffectComparison& c = out.effect[e];
+        c.flip = f->stats;
+        c.psnr_db = image::psnr(ref, hyb);
+        c.flip_mean_lsnif_pixels = masked_mean(f->error_map, lsnif_pixels);
+        if (write_images && !write_effect_images(ref, hyb, *f, e, images, c, error)) return false;
         if (e < kSeparateEffects) flip_sum += f->stats.mean;
+    }
+    out.flip_mean = flip_sum / double(kSeparateEffects);
+    return true;
+}
+
+// The report's "images": per effect its FLIP, PSNR (null for identical images: infinite),
+// FLIP over the LSNIF pixels (null when there are none) and its files.
+json comparison_json(const Comparison& c) {
+    json per = json::object();
+    for (int e = 0; e < kEffects; ++e) {
+        const EffectComparison& x = c.effect[e];
+        json j = {{"flip_mean", x.flip.mean},
+                  {"flip_median", x.flip.median},
+                  {"flip_p95", x.flip.p95},
+                  {"flip_max", x.flip.max}};
+        j["psnr_db"] = std::isfinite(x.psnr_db) ? json(x.psnr_db) : json(nullptr);
+        j["flip_mean_lsnif_pixels"] =
+            x.flip_mean_lsnif_pixels ? json(*x.flip_mean_lsnif_pixels) : json(nullptr);
+        if (!x.files.empty())
+            j["files"] = {{"reference", x.files[0]}, {"hybrid", x.files[1]}, {"flip", x.files[2]}};
         per[kEffectNames[e]] = j;
     }
-    flip_mean = flip_sum / double(kSeparateEffects);
-    return true;
+    return per;
 }
 
 // 1 for the pixels whose primary hit is an instance the hybrid render traces as an LSNIF.
@@ -897,7 +779,9 @@ json describe_run(const EvalScene::Impl& im, const EvalOptions& opt, const View&
     return report;
 }
 
-}  // namespace
+}  // namespace eval_detail
+
+using namespace eval_detail;
 
 EvalResult render_and_compare(const EvalOptions& opt) {
     EvalResult res;
@@ -933,17 +817,15 @@ EvalResult render_and_compare(const EvalOptions& opt) {
             return res;
         }
     }
-    json per;
-    double flip_mean = 0;
+    Comparison compared;
     const std::vector<std::uint8_t> lsnif_pixels = lsnif_pixel_mask(gb, im);
-    if (!compare_effects(reference, hybrid, view, lsnif_pixels, images, opt.write_images, per, flip_mean,
-                         err)) {
+    if (!compare_effects(reference, hybrid, view, lsnif_pixels, images, opt.write_images, compared, err)) {
         res.errors.push_back(err);
         return res;
     }
     json report = describe_run(im, opt, view);
-    report["images"] = per;
-    report["flip_mean"] = flip_mean;
+    report["images"] = comparison_json(compared);
+    report["flip_mean"] = compared.flip_mean;
     report["lsnif_pixels"] = std::count(lsnif_pixels.begin(), lsnif_pixels.end(), 1);
     report["timings"] = {{"primary", primary_seconds},
                          {"secondary_reference", reference.trace_seconds},

@@ -543,7 +543,7 @@ struct EvalCommand {
     std::string camera, light;
     std::vector<std::string> moves;
     std::uint32_t old_repeats = 3;  // --timing-repeats
-    bool json = false;
+    bool json = false, objects = false;
     void add_to(CLI::App& app) {
         sub = app.add_subcommand("eval",
                                  "Render reference (Embree) and hybrid (BVH + LSNIF) images of a converted "
@@ -584,14 +584,37 @@ struct EvalCommand {
             ->type_name("N");
         sub->add_option("--threads", opt.threads, kThreadsHelp)->check(CLI::Range(0, 4096))->type_name("N");
         add_arithmetic_options(sub, opt.arithmetic);
+        sub->add_flag(
+            "--objects", objects,
+            "Instead of the scene: every converted object alone on a floor, in the views of the "
+            "conversion's visual check, through its asset (IMAGES/objects/, docs/model.md \"Judged by "
+            "how it looks\")");
         sub->add_flag("--json", json, "Print the report as JSON");
     }
     int run() {
+        if (objects) return run_objects();
         if (sub->count("--timing-repeats") > 0) {
             std::fprintf(stderr, "warning: --timing-repeats is deprecated: use --repeats\n");
             if (sub->count("--repeats") == 0) opt.timing_repeats = old_repeats;
         }
         return run_eval(opt, camera, light, moves, json);
+    }
+    int run_objects() const {
+        const auto r = lsnif::converter::render_objects(opt);
+        for (const auto& e : r.errors) std::fprintf(stderr, "error: %s\n", e.c_str());
+        if (!r.ok()) return 1;
+        if (json) {
+            std::cout << r.report.dump(2) << "\n";
+            return 0;
+        }
+        for (const auto& o : r.report["objects"])
+            std::printf(
+                "%-24s FLIP combined %.4f (object pixels %.4f; shadow %.4f, ao %.4f, reflection %.4f)\n",
+                o["name"].get<std::string>().c_str(), o["flip"]["combined"].get<double>(),
+                o["flip"]["combined_object"].get<double>(), o["flip"]["shadow"].get<double>(),
+                o["flip"]["ao"].get<double>(), o["flip"]["reflection"].get<double>());
+        std::printf("images in %s\n", r.report["images_dir"].get<std::string>().c_str());
+        return 0;
     }
 };
 

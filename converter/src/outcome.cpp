@@ -18,8 +18,8 @@ constexpr std::string_view kDecisionNames[kDecisionCount] = {
     "forced_simple",       "few_triangles", "not_modelable",     "voxelization_failed", "no_memory_benefit",
     "decided_early",       "below_gate",    "asset_not_smaller", "budget_met",          "other_shard",
     "left_to_another_job", "planned",       "shipped",           "encode_failed",       "write_failed"};
-constexpr std::string_view kStageNames[kStageCount] = {"classify", "voxelize", "sample",   "prepare", "train",
-                                                       "validate", "prune",    "evaluate", "write"};
+constexpr std::string_view kStageNames[kStageCount] = {
+    "classify", "voxelize", "sample", "prepare", "train", "validate", "prune", "evaluate", "visual", "write"};
 constexpr const char* kTargetMetText = "the validation curve met the target";
 constexpr const char* kGivenUpPrefix = "given up: ";
 constexpr const char* kStoppedEarlyReason = "validation curve met the target";
@@ -62,7 +62,10 @@ void read_family(Reader& r, samples::FamilyMetrics& f) {
     r.read("culled_fraction", f.culled_fraction);
 }
 
+void read_flip(Reader& r, ObjectFlip& f);
+
 void read_held_out(Reader& r, HeldOut& h) {
+    if (r.has("flip")) r.nested("flip", [&](Reader& f) { read_flip(f, h.flip.emplace()); });
     r.read("held_out_rays", h.rays);
     r.nested("families", [&](Reader& fr) {
         for (int f = 0; f < samples::kFamilyCount; ++f)
@@ -73,10 +76,41 @@ void read_held_out(Reader& r, HeldOut& h) {
     r.nested("gate", [&](Reader& g) {
         g.read("passed", h.gate.passed);
         if (g.has("reasons")) g.read("reasons", h.gate.reasons);
+        if (g.has("by")) {
+            std::string by;
+            g.read("by", by);
+            if (by == "rays")
+                h.gate.by = GatePass::rays;
+            else if (by == "images")
+                h.gate.by = GatePass::images;
+            else if (by == "both")
+                h.gate.by = GatePass::both;
+            else if (g.ok())
+                g.fail("by", "not rays, images or both: " + by);
+        }
         if (g.ok() && h.gate.passed != h.gate.reasons.empty())
             g.fail("reasons",
                    h.gate.passed ? "present although the gate passed" : "missing although the gate failed");
+        if (g.ok() && h.gate.passed != h.gate.by.has_value())
+            g.fail("by",
+                   h.gate.passed ? "missing although the gate passed" : "present although the gate failed");
     });
+}
+
+json flip_json(const ObjectFlip& f) {
+    return {{"combined", f.combined},
+            {"combined_object", f.combined_object},
+            {"shadow", f.shadow},
+            {"ao", f.ao},
+            {"reflection", f.reflection}};
+}
+
+void read_flip(Reader& r, ObjectFlip& f) {
+    r.read("combined", f.combined);
+    r.read("combined_object", f.combined_object);
+    r.read("shadow", f.shadow);
+    r.read("ao", f.ao);
+    r.read("reflection", f.reflection);
 }
 
 json stats_json(const MeshStats& s) {
@@ -129,6 +163,10 @@ json candidate_json(const CandidateRecord& c, OutcomeFields fields) {
         {"steps_planned", c.steps_planned},
         {"held_out",
          {{"visibility", c.visibility}, {"distance_pct", c.distance_pct}, {"normal_deg", c.normal_deg}}},
+        {"decided",
+         {{"visibility", c.decided_visibility},
+          {"distance_pct", c.decided_distance_pct},
+          {"normal_deg", c.decided_normal_deg}}},
         {"gate_passed", c.gate_passed},
         {"target_met", c.target_met},
         {"memory_rule_passed", c.memory_rule_passed},
@@ -138,6 +176,7 @@ json candidate_json(const CandidateRecord& c, OutcomeFields fields) {
     if (c.stop == StopKind::target_met) j["stopped"] = kTargetMetText;
     if (c.stop == StopKind::given_up) j["stopped"] = kGivenUpPrefix + c.stop_why;
     if (!c.pruned_neurons.empty()) j["pruned_neurons"] = c.pruned_neurons;
+    if (c.flip) j["flip"] = flip_json(*c.flip);
     return j;
 }
 
@@ -160,6 +199,11 @@ void read_candidate(Reader& r, CandidateRecord& c, std::size_t of) {
         h.read("visibility", c.visibility);
         h.read("distance_pct", c.distance_pct);
         h.read("normal_deg", c.normal_deg);
+    });
+    r.nested("decided", [&](Reader& h) {
+        h.read("visibility", c.decided_visibility);
+        h.read("distance_pct", c.decided_distance_pct);
+        h.read("normal_deg", c.decided_normal_deg);
     });
     r.read("gate_passed", c.gate_passed);
     r.read("target_met", c.target_met);
@@ -187,12 +231,14 @@ void read_candidate(Reader& r, CandidateRecord& c, std::size_t of) {
         }
     }
     if (r.has("pruned_neurons")) r.read("pruned_neurons", c.pruned_neurons);
+    if (r.has("flip")) r.nested("flip", [&](Reader& f) { read_flip(f, c.flip.emplace()); });
 }
 
 json target_json(const TargetVerdict& t) {
     json j = {{"visibility", t.target.visibility},
               {"distance_pct", t.target.distance_pct},
               {"normal_deg", t.target.normal_deg},
+              {"flip", t.target.flip},
               {"met", t.misses.empty()}};
     if (!t.misses.empty()) j["misses"] = t.misses;
     return j;
@@ -202,6 +248,7 @@ void read_target(Reader& r, TargetVerdict& t) {
     r.read("visibility", t.target.visibility);
     r.read("distance_pct", t.target.distance_pct);
     r.read("normal_deg", t.target.normal_deg);
+    r.read("flip", t.target.flip);
     bool met = false;
     r.read("met", met);
     if (r.has("misses")) r.read("misses", t.misses);
@@ -358,7 +405,13 @@ json held_out_json(const HeldOut& h) {
     families["pooled"] = family_json(h.metrics.pooled);
     json gate = {{"passed", h.gate.passed}};
     if (!h.gate.reasons.empty()) gate["reasons"] = h.gate.reasons;
-    return {{"held_out_rays", h.rays}, {"families", families}, {"gate", gate}};
+    if (h.gate.by)
+        gate["by"] = *h.gate.by == GatePass::rays     ? "rays"
+                     : *h.gate.by == GatePass::images ? "images"
+                                                      : "both";
+    json j = {{"held_out_rays", h.rays}, {"families", families}, {"gate", gate}};
+    if (h.flip) j["flip"] = flip_json(*h.flip);
+    return j;
 }
 
 base::Result<HeldOut, std::string> held_out_from_json(const json& j) {

@@ -111,6 +111,12 @@ bool resolve_preset(const ConvertOptions& opt, Preset& preset, std::string& erro
         return false;
     }
     if (opt.gate_min_visibility >= 0) preset.gate.min_visibility = opt.gate_min_visibility;
+    if (opt.gate_max_flip >= 0) preset.gate.max_flip = opt.gate_max_flip;
+    if (opt.accept) preset.gate.accept = *opt.accept;
+    if (preset.gate.accept == Acceptance::images && !preset.visual_check) {
+        error = "--accept images: the preset '" + preset.name + "' renders no views to judge images by";
+        return false;
+    }
     if (opt.steps > 0) preset.train.steps = opt.steps;
     if (opt.batch_size > 0) preset.train.batch_size = opt.batch_size;
     if (opt.log2_table_size > 0) preset.model.log2_table_size = opt.log2_table_size;

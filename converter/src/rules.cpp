@@ -12,7 +12,7 @@ namespace {
 
 std::string gate_reason(const char* what, double value, const char* op, double limit, const char* unit) {
     char buf[160];
-    std::snprintf(buf, sizeof buf, "held-out %s %.4g%s %s gate %.4g%s", what, value, unit, op, limit, unit);
+    std::snprintf(buf, sizeof buf, "%s %.4g%s %s gate %.4g%s", what, value, unit, op, limit, unit);
     return buf;
 }
 
@@ -25,7 +25,7 @@ std::vector<std::string> gate_failures(const samples::Metrics& m, const Gate& g)
                                     100 * g.min_visibility, "%"));
     for (int f = 0; f < samples::kFamilyCount; ++f)
         if (m.family[f].rays < g.min_family_rays)
-            fails.push_back(std::string("held-out ") + samples::family_name(samples::Family(f)) +
+            fails.push_back(std::string(samples::family_name(samples::Family(f))) +
                             " rays reaching the network: " + std::to_string(m.family[f].rays) + " < " +
                             std::to_string(g.min_family_rays) + " (too few to measure)");
     for (int f = 0; f < samples::kFamilyCount; ++f)
@@ -42,24 +42,77 @@ std::vector<std::string> gate_failures(const samples::Metrics& m, const Gate& g)
     return fails;
 }
 
-std::vector<std::string> target_misses(const samples::FamilyMetrics& p, const Target& t) {
+const char* acceptance_name(Acceptance a) {
+    switch (a) {
+        case Acceptance::rays: return "rays";
+        case Acceptance::images: return "images";
+        case Acceptance::either: return "either";
+    }
+    return "either";
+}
+
+bool parse_acceptance(const std::string& text, Acceptance& out) {
+    for (const Acceptance a : {Acceptance::rays, Acceptance::images, Acceptance::either})
+        if (text == acceptance_name(a)) return out = a, true;
+    return false;
+}
+
+namespace {
+
+// Why `flip` misses `limit` ("image error FLIP 0.083 > gate 0.066"), or empty when it does not.
+std::string flip_miss(std::optional<double> flip, double limit, const char* what) {
+    char buf[120];
+    if (!flip) {
+        std::snprintf(buf, sizeof buf, "image error not measured (the visual check is off)");
+        return buf;
+    }
+    if (*flip <= limit) return {};
+    std::snprintf(buf, sizeof buf, "image error FLIP %.3g > %s %.3g", *flip, what, limit);
+    return buf;
+}
+
+}  // namespace
+
+GateVerdict gate_verdict(const samples::Metrics& m, std::optional<double> flip,
+                         std::vector<std::string> training_failures, const Gate& g) {
+    GateVerdict v;
+    const std::vector<std::string> rays = gate_failures(m, g);
+    const std::string image = flip_miss(flip, g.max_flip, "gate");
+    const bool rays_pass = rays.empty(), image_pass = image.empty();
+    const bool by_rays = g.accept != Acceptance::images && rays_pass;
+    const bool by_images = g.accept != Acceptance::rays && image_pass;
+    v.passed = training_failures.empty() && (by_rays || by_images);
+    if (v.passed) {
+        v.by = by_rays && by_images ? GatePass::both : by_rays ? GatePass::rays : GatePass::images;
+        return v;
+    }
+    if (g.accept != Acceptance::images) v.reasons = rays;
+    if (g.accept != Acceptance::rays && !image.empty()) v.reasons.push_back(image);
+    for (std::string& why : training_failures) v.reasons.push_back(std::move(why));
+    return v;
+}
+
+std::vector<std::string> target_misses(const samples::FamilyMetrics& p, std::optional<double> flip,
+                                       const Target& t, Acceptance accept) {
     std::vector<std::string> misses;
     char buf[160];
     const double vis = p.visibility_accuracy, dist = p.distance_median_pct, normal = p.normal_median_deg;
-    if (vis < t.visibility) {
+    if (accept != Acceptance::images && vis < t.visibility) {
         std::snprintf(buf, sizeof buf, "visibility %.2f %% < target %.2f %%", 100 * vis, 100 * t.visibility);
         misses.push_back(buf);
     }
-    if (dist > t.distance_pct) {
+    if (accept != Acceptance::images && dist > t.distance_pct) {
         std::snprintf(buf, sizeof buf, "median distance error %.3g %% > target %.3g %%", dist,
                       t.distance_pct);
         misses.push_back(buf);
     }
-    if (normal > t.normal_deg) {
+    if (accept != Acceptance::images && normal > t.normal_deg) {
         std::snprintf(buf, sizeof buf, "median normal error %.3g deg > target %.3g deg", normal,
                       t.normal_deg);
         misses.push_back(buf);
     }
+    if (flip || accept == Acceptance::images)
+        if (std::string miss = flip_miss(flip, t.flip, "target"); !miss.empty()) misses.push_back(miss);
     return misses;
 }
 
@@ -101,7 +154,7 @@ std::vector<std::string> early_abort_reasons(const ValidationPoint& point, std::
 
 Target effective_target(const Target& t, const Gate& g) {
     return {std::max(t.visibility, g.min_visibility), std::min(t.distance_pct, g.max_distance_median_pct),
-            std::min(t.normal_deg, g.max_normal_median_deg)};
+            std::min(t.normal_deg, g.max_normal_median_deg), std::min(t.flip, g.max_flip)};
 }
 
 bool meets_target_with_margin(const ValidationPoint& point, const Target& t, const TargetStop& rule) {

@@ -27,6 +27,18 @@ bool parse_count(const std::string& text, T lo, T hi, T& out, std::string& error
     return true;
 }
 
+// A number in [0, 1] (a FLIP value).
+bool parse_fraction(const std::string& text, double& out, std::string& error) {
+    double x = 0;
+    const auto [end, ec] = std::from_chars(text.data(), text.data() + text.size(), x);
+    if (text.empty() || ec != std::errc() || end != text.data() + text.size() || !(x >= 0 && x <= 1)) {
+        error = "expected a number from 0 to 1";
+        return false;
+    }
+    out = x;
+    return true;
+}
+
 // "%.17g": a double that reads back as the same double.
 std::string exact(double v) {
     char buf[32];
@@ -175,6 +187,39 @@ std::vector<Setting> make_table() {
                                 {"distance_pct", o.target.distance_pct},
                                 {"normal_deg", o.target.normal_deg}};
                 }},
+        Setting{"--target-flip", "FLIP", false, SettingScope::mesh, "target_flip", "0.03",
+                "The target's visual term: image error (FLIP of the object's combined renders, docs/model.md "
+                "\"Judged by how it looks\") at most this; 1 asks nothing of the images",
+                [](ConvertOptions& o, const std::string& v, std::string& e, std::string&) {
+                    return parse_fraction(v, o.target.flip, e);
+                },
+                [](const ConvertOptions& o) { return std::vector<std::string>{exact(o.target.flip)}; },
+                [](const ConvertOptions& o) { return json(o.target.flip); }},
+        Setting{"--accept", "rays|images|either", false, SettingScope::mesh, "accept", "either",
+                "What may ship an asset: its ray metrics passing the gate, its image error within "
+                "--gate-flip, or either (docs/model.md \"Judged by how it looks\")",
+                [](ConvertOptions& o, const std::string& v, std::string& e, std::string&) {
+                    Acceptance a{};
+                    if (!parse_acceptance(v, a)) return e = "expected rays, images or either", false;
+                    return o.accept = a, true;
+                },
+                [](const ConvertOptions& o) {
+                    return o.accept ? std::vector<std::string>{acceptance_name(*o.accept)}
+                                    : std::vector<std::string>{};
+                },
+                [](const ConvertOptions& o) { return o.accept ? json(acceptance_name(*o.accept)) : json(); }},
+        Setting{
+            "--gate-flip", "FLIP", false, SettingScope::mesh, "gate_flip", "the preset's (0.066)",
+            "Override the image gate: the largest image error (FLIP of the object's combined renders) "
+            "that ships an asset by the image rule",
+            [](ConvertOptions& o, const std::string& v, std::string& e, std::string&) {
+                return parse_fraction(v, o.gate_max_flip, e);
+            },
+            [](const ConvertOptions& o) {
+                return o.gate_max_flip >= 0 ? std::vector<std::string>{exact(o.gate_max_flip)}
+                                            : std::vector<std::string>{};
+            },
+            [](const ConvertOptions& o) { return o.gate_max_flip >= 0 ? json(o.gate_max_flip) : json(); }},
         Setting{"--memory-budget", "BYTES", false, SettingScope::scene, "memory_budget", "none",
                 "Scene memory to fit, in bytes (K, M, G: powers of 1024): candidates are converted in order "
                 "of BVH bytes saved per asset byte until the scene (BVHs + assets, each mesh once) fits; the "

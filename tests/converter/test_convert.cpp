@@ -222,6 +222,7 @@ TEST_CASE("convert a real mesh: asset, metadata, manifest, reuse") {
     lenient.no_ray_inputs = true;
     std::string target_error;
     REQUIRE(parse_target("50,50,90", lenient.target, target_error));
+    lenient.target.flip = 1;  // nothing asked of the images: the rays' target alone
     const ConvertResult early = convert(lenient);
     REQUIRE(early.ok());
     const json& e = early.manifest["meshes"][0];
@@ -274,6 +275,7 @@ TEST_CASE("an asset below the accuracy gate is not shipped: the mesh stays BVH w
     const fs::path out = fresh_dir("gate");
     ConvertOptions o = smoke({kDragon}, out);
     o.gate_min_visibility = 0.9999;  // unreachable for the smoke model
+    o.accept = Acceptance::rays;     // the ray gate alone decides (the images would pass it)
     const ConvertResult r = convert(o);
     REQUIRE(r.ok());
     const json& m = r.manifest["meshes"][0];
@@ -742,11 +744,52 @@ TEST_CASE("--target: parsed as VIS,DIST,NORMAL, bad values named, misses listed 
     pooled.visibility_accuracy = 0.965;
     pooled.distance_median_pct = 1.2;
     pooled.normal_median_deg = 14.0;
-    const auto misses = target_misses(pooled, Target{0.97, 1.0, 15.0});
+    const auto misses = target_misses(pooled, std::nullopt, Target{0.97, 1.0, 15.0});
     REQUIRE(misses.size() == 2);
     CHECK(misses[0] == "visibility 96.50 % < target 97.00 %");
     CHECK(misses[1] == "median distance error 1.2 % > target 1 %");
-    CHECK(target_misses(pooled, Target{0.96, 1.5, 20}).empty());
+    CHECK(target_misses(pooled, std::nullopt, Target{0.96, 1.5, 20}).empty());
+    // The visual term: judged when the visual check ran, alone when only images are accepted.
+    CHECK(target_misses(pooled, 0.02, Target{0.96, 1.5, 20, 0.03}).empty());
+    const auto blurred = target_misses(pooled, 0.05, Target{0.96, 1.5, 20, 0.03});
+    REQUIRE(blurred.size() == 1);
+    CHECK(blurred[0] == "image error FLIP 0.05 > target 0.03");
+    CHECK(target_misses(pooled, 0.02, Target{0.99, 0.1, 1, 0.03}, Acceptance::images).empty());
+    CHECK(target_misses(pooled, std::nullopt, Target{}, Acceptance::images).size() == 1);  // not measured
+}
+
+TEST_CASE("the gate's verdict: rays, images or either pass it; training failures always fail") {
+    lsnif::samples::Metrics good, poor;
+    for (auto* m : {&good, &poor})
+        for (auto& f : m->family) f.rays = 5000;
+    good.pooled.visibility_accuracy = 0.97;
+    for (auto& f : good.family) f.visibility_accuracy = 0.97;
+    poor.pooled.visibility_accuracy = 0.84;  // the hairball's: fails the ray rules
+    for (auto& f : poor.family) f.visibility_accuracy = 0.84;
+    Gate gate;  // either, image gate 0.066
+    GateVerdict v = gate_verdict(good, 0.01, {}, gate);
+    CHECK(v.passed);
+    CHECK(v.by == GatePass::both);
+    v = gate_verdict(poor, 0.063, {}, gate);
+    CHECK(v.passed);
+    CHECK(v.by == GatePass::images);
+    CHECK(v.reasons.empty());
+    v = gate_verdict(poor, 0.083, {}, gate);
+    CHECK_FALSE(v.passed);
+    CHECK_FALSE(v.by.has_value());
+    REQUIRE(!v.reasons.empty());
+    CHECK(v.reasons.back() == "image error FLIP 0.083 > gate 0.066");
+    CHECK_FALSE(gate_verdict(poor, std::nullopt, {}, gate).passed);  // no views: rays alone
+    CHECK_FALSE(gate_verdict(good, 0.01, {"training diverged"}, gate).passed);
+    gate.accept = Acceptance::rays;
+    v = gate_verdict(poor, 0.001, {}, gate);
+    CHECK_FALSE(v.passed);
+    CHECK(std::none_of(v.reasons.begin(), v.reasons.end(),
+                       [](const std::string& r) { return r.find("image") != std::string::npos; }));
+    CHECK(gate_verdict(good, 0.5, {}, gate).by == GatePass::rays);
+    gate.accept = Acceptance::images;
+    CHECK_FALSE(gate_verdict(good, 0.5, {}, gate).passed);
+    CHECK(gate_verdict(poor, 0.05, {}, gate).by == GatePass::images);
 }
 
 TEST_CASE("stopping at the target: every rule needs its margin for the validation set's noise") {

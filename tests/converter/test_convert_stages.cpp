@@ -214,6 +214,9 @@ TEST_CASE("every setting survives settings_arguments and back, and every mesh se
                                                         {"--threads", "3"},
                                                         {"--jobs", "2"},
                                                         {"--dry-run", ""},
+                                                        {"--target-flip", "0.05"},
+                                                        {"--accept", "rays"},
+                                                        {"--gate-flip", "0.1"},
                                                         {"--cache", "http://127.0.0.1:9/cache"},
                                                         {"--cache-local", "local-cache"},
                                                         {"--cache-read-only", ""},
@@ -423,6 +426,7 @@ TEST_CASE("size_to_target walks down the ladder while each size meets the target
     ConvertOptions o = options("smoke");
     std::string error;
     REQUIRE(parse_target("50,50,90", o.target, error));  // met at the first checks of every size
+    o.target.flip = 1;                                   // the rays' target alone
     Run run = make_run(o, fresh_dir("stages_ladder"));
     run.preset.classify.min_log2_table_size = 10;  // the smoke model's 2^12 rows, then 2^11 and 2^10
     run.preset.gate = {0.5, 0.3, 50.0, 90.0};      // training aims at the stricter of target and gate
@@ -505,8 +509,9 @@ TEST_CASE(
     CHECK(candidates[*sized.chosen]["outcome"] ==
           "chosen: no candidate meets the target; the largest passes the gate");
 
-    // Below the gate too: nothing ships.
+    // Below the gate too, rays alone judging: nothing ships.
     run.preset.gate.min_visibility = 0.9999;
+    run.preset.gate.accept = Acceptance::rays;
     const Sized none = size_to_target(run, mesh, p.c, p.occ, p.rays, rec);
     const json none_candidates = candidates_json(none);
     CHECK_FALSE(none.chosen.has_value());

@@ -61,6 +61,8 @@ MeshOutcome full_outcome() {
     for (int f = 0; f < lsnif::samples::kFamilyCount; ++f) h.metrics.family[f] = family(f + 1);
     h.metrics.pooled = family(0.5);
     h.gate.passed = true;
+    h.gate.by = GatePass::both;
+    h.flip = ObjectFlip{0.0075, 0.034, 0.006, 0.0076, 0.011};
     CandidateRecord c;
     c.log2_table_size = 17;
     c.hidden_width = {120, 97};
@@ -72,6 +74,10 @@ MeshOutcome full_outcome() {
     c.visibility = 0.987;
     c.distance_pct = 0.31;
     c.normal_deg = 6.9;
+    c.decided_visibility = 0.986;
+    c.decided_distance_pct = 0.32;
+    c.decided_normal_deg = 7.0;
+    c.flip = ObjectFlip{0.0075, 0.034, 0.006, 0.0076, 0.011};
     c.gate_passed = c.target_met = c.memory_rule_passed = true;
     c.outcome = CandidateOutcome::smaller_meets_target;
     c.of = 2;
@@ -191,6 +197,8 @@ TEST_CASE("outcome_from_json refuses what it did not write and names the field")
     CHECK(with({"stats", "box_min"}, json::array({1, 2})) == "stats.box_min: not 3 numbers");
     CHECK(with({"metrics", "gate", "passed"}, false) ==
           "metrics.gate.reasons: missing although the gate failed");
+    CHECK(with({"metrics", "gate", "by"}, "luck") == "metrics.gate.by: not rays, images or both: luck");
+    CHECK(without({"metrics", "flip", "combined"}) == "metrics.flip.combined: missing");
     CHECK(with({"target", "met"}, true) == "target.misses: present although met");
     CHECK(with({"lsnif", "file"}, "../x.lsnif") == "lsnif.file: not a file name in the output directory");
     json not_shipped = good;

@@ -56,6 +56,11 @@ struct Preset {
     // neuron whose ReLU output is zero on all `validation_rays` is removed with its weights,
     // so the shipped network is only as wide as the object uses (smaller and faster to run).
     bool prune_inactive = true;
+    // The visual check (docs/model.md "Judged by how it looks"): every option of the ladder is
+    // rendered in these views through its asset and compared with Embree's render by FLIP;
+    // off: no views, no FLIP in the manifest.
+    bool visual_check = true;
+    ObjectViewOptions views;
     ClassifyRule classify;
     Gate gate;
     EarlyAbort early_abort;
@@ -103,10 +108,12 @@ struct ConvertOptions {
     std::string preset = "default";
     std::vector<std::string> force_complex;  // mesh names
     std::vector<std::string> force_simple;
-    std::string command_line;         // recorded in metadata
-    double gate_min_visibility = -1;  // >= 0 overrides the preset's pooled visibility gate
-    std::uint32_t steps = 0;          // > 0 overrides the preset's training steps
-    std::uint32_t batch_size = 0;     // > 0 overrides the preset's batch size
+    std::string command_line;          // recorded in metadata
+    double gate_min_visibility = -1;   // >= 0 overrides the preset's pooled visibility gate
+    double gate_max_flip = -1;         // >= 0 overrides the preset's image gate (Gate::max_flip)
+    std::optional<Acceptance> accept;  // overrides the preset's Gate::accept
+    std::uint32_t steps = 0;           // > 0 overrides the preset's training steps
+    std::uint32_t batch_size = 0;      // > 0 overrides the preset's batch size
     // Import and classify only; report the plan (each candidate's cache key and estimated
     // conversion time with it: `cache_key`, `estimated_ms`), write nothing.
     bool dry_run = false;

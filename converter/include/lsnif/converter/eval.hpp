@@ -24,6 +24,7 @@
 #include <vector>
 
 #include <lsnif/lsnif.h>
+#include <lsnif/base/result.hpp>
 #include <nlohmann/json.hpp>
 
 namespace lsnif::converter {
@@ -109,6 +110,63 @@ private:
     explicit EvalScene(std::unique_ptr<Impl> impl);
     std::unique_ptr<Impl> impl_;
     friend EvalResult render_and_compare(const EvalOptions& opt);
+    friend class ObjectViews;
+};
+
+// `lsnif eval OUTDIR --objects`: every converted object of a conversion alone, in the views of
+// its visual check (ObjectViews), through its shipped asset: the report lists each object's
+// FLIP and image files (IMAGES/objects/<asset file stem>/view<K>_{reference,hybrid,flip}.png),
+// the close-ups a report page shows. Errors as render_and_compare's.
+EvalResult render_objects(const EvalOptions& opt);
+
+// ---- one object, judged by how it looks -------------------------------------------------
+
+// The visual acceptance test of a conversion (docs/model.md "Judged by how it looks"): the
+// object alone on a floor, seen from `views` standard views around it (30 degrees above the
+// floor, evenly around the vertical axis +Y, each framing the object's bounding sphere, lit by
+// a point light above and to the side of the view), rendered as `lsnif eval` renders a scene:
+// primary visibility from the mesh, then shadow, ambient-occlusion and mirror-reflection
+// rays traced by Embree (the reference, once) and through a candidate asset (the floor stays
+// Embree's in both), compared with FLIP.
+struct ObjectViewOptions {
+    std::uint32_t width = 160, height = 120;  // per view
+    std::uint32_t views = 3;
+    std::uint32_t ao_samples = 8;
+    std::uint32_t threads = 0;  // 0 = hardware threads; the images do not depend on it
+    std::uint64_t seed = 1;     // AO directions
+};
+
+// FLIP (LDR-FLIP, lsnif::image) of the candidate's renders against the reference, each the
+// mean over the views.
+struct ObjectFlip {
+    double combined = 0;         // the combined image (AO, shadowed light, mirror coat), whole frame
+    double combined_object = 0;  // the same over the object's own pixels
+    double shadow = 0, ao = 0, reflection = 0;  // each effect alone, whole frame
+};
+
+class ObjectViews {
+public:
+    // The object (object space: positions xyz, triangle indices, per-vertex shading normals,
+    // as a converted mesh holds them) on its floor, with the reference images of every view.
+    // Null with `error` when Embree cannot build it.
+    static std::unique_ptr<ObjectViews> create(std::span<const float> positions,
+                                               std::span<const std::uint32_t> indices,
+                                               std::span<const float> normals,
+                                               const ObjectViewOptions& options, std::string& error);
+    ~ObjectViews();
+    // The views traced through `asset` (a serialized .lsnif of this object), against the
+    // reference; an error when the asset cannot be opened. Not for concurrent calls.
+    base::Result<ObjectFlip, std::string> compare(std::span<const std::uint8_t> asset) const;
+    // The same, and every view's combined images as PNGs in `dir` (created):
+    // view<K>_reference.png, view<K>_hybrid.png, view<K>_flip.png (FLIP heat map), K from 0.
+    base::Result<ObjectFlip, std::string> compare(std::span<const std::uint8_t> asset,
+                                                  const std::string& dir) const;
+    std::uint32_t view_count() const;
+
+private:
+    struct State;
+    explicit ObjectViews(std::unique_ptr<State> state);
+    std::unique_ptr<State> state_;
 };
 
 }  // namespace lsnif::converter

@@ -11,6 +11,7 @@
 #pragma once
 
 #include <lsnif/base/result.hpp>
+#include <lsnif/converter/eval.hpp>
 #include <lsnif/converter/rules.hpp>
 #include <lsnif/format/container.hpp>
 #include <lsnif/samples/held_out.hpp>
@@ -72,9 +73,10 @@ enum class Stage : std::uint8_t {
     validate,
     prune,
     evaluate,
+    visual,
     write
 };
-inline constexpr std::size_t kStageCount = 9;
+inline constexpr std::size_t kStageCount = 10;
 std::string_view stage_name(Stage s);
 
 // Wall seconds per stage; a stage that did not run is absent (not 0).
@@ -101,16 +103,14 @@ struct MeshStats {
 
 // The gate's verdict on held-out metrics: passed, or why not (gate_failures' lines and the
 // training's own verdicts: divergence, giving up).
-struct GateVerdict {
-    bool passed = false;
-    std::vector<std::string> reasons;  // empty when passed
-};
-
-// A model's held-out measurement: what the manifest's and the asset's `metrics` hold.
+// A model's measurement as the manifest's and the asset's `metrics` hold it: the held-out
+// rays (that no decision saw), the gate's verdict (decided on the decision rays and the
+// images), and the visual check.
 struct HeldOut {
     std::uint64_t rays = 0;    // held-out rays drawn (before culling)
     samples::Metrics metrics;  // per family and pooled
     GateVerdict gate;
+    std::optional<ObjectFlip> flip;  // absent when the visual check was off
 };
 
 // One option of the sizing ladder (the manifest's `candidates[]`).
@@ -131,6 +131,7 @@ struct CandidateRecord {
     std::uint32_t steps = 0, steps_planned = 0;
     std::optional<double> seconds;                            // wall time (absent in reproducible records)
     double visibility = 0, distance_pct = 0, normal_deg = 0;  // pooled held-out
+    double decided_visibility = 0, decided_distance_pct = 0, decided_normal_deg = 0;  // pooled, decision rays
     bool gate_passed = false, target_met = false, memory_rule_passed = false;
     CandidateOutcome outcome = CandidateOutcome::misses_target;
     std::size_t of = 0;  // candidates of the mesh (rendered in a chosen outcome)
@@ -138,6 +139,7 @@ struct CandidateRecord {
     StopKind stop = StopKind::ran_to_end;
     std::string stop_why;                       // given_up: why (EarlyAbort or falls_behind)
     std::vector<std::uint32_t> pruned_neurons;  // per hidden layer; empty when pruning was off
+    std::optional<ObjectFlip> flip;             // the visual check (ObjectViews); absent when off
 };
 
 // The --target verdict of a shipped asset.

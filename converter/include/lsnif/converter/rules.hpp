@@ -10,6 +10,7 @@
 #include <nlohmann/json.hpp>
 
 #include <cstdint>
+#include <optional>
 #include <span>
 #include <string>
 #include <vector>
@@ -31,7 +32,16 @@ struct ClassifyRule {
     std::uint32_t min_log2_table_size = 15;  // smallest table sizing may choose (2^15 rows)
 };
 
-// Held-out accuracy an asset must reach to ship (docs/architecture.md §3 "Gate").
+// What may ship an asset (docs/model.md "Judged by how it looks"): its ray metrics passing
+// the gate's ray rules, its image error (the visual check's FLIP) within Gate::max_flip, or
+// either of the two.
+enum class Acceptance : std::uint8_t { rays, images, either };
+// "rays", "images", "either" (the --accept values); and back, false for anything else.
+const char* acceptance_name(Acceptance a);
+bool parse_acceptance(const std::string& text, Acceptance& out);
+
+// The accuracy an asset must reach to ship (docs/architecture.md §3 "Gate"), measured on the
+// decision rays (never the held-out rays, which only report).
 struct Gate {
     double min_visibility = 0.95;          // pooled visibility accuracy
     double min_family_visibility = 0.90;   // every family
@@ -41,6 +51,19 @@ struct Gate {
     // family the occupancy culls almost entirely (degenerate sampling, e.g. coordinates at
     // the edge of float range) is unmeasured, and an unmeasured asset is not shipped.
     std::uint64_t min_family_rays = 100;
+    // The image rule: the combined render's FLIP over the object's views (ObjectViews) at
+    // most this. 0.066 is the best FLIP the LSNIF paper reports for its HAIRBALLS scene, the
+    // image error it shows as acceptable for thin, repeated geometry.
+    double max_flip = 0.066;
+    Acceptance accept = Acceptance::either;
+};
+
+// The gate's verdict: passed, or why not; and which rules passed (the manifest's `by`).
+enum class GatePass : std::uint8_t { rays, images, both };
+struct GateVerdict {
+    bool passed = false;
+    std::vector<std::string> reasons;  // empty when passed
+    std::optional<GatePass> by;        // set when passed
 };
 
 // The accuracy a user asks of every shipped asset (`--target VIS,DIST,NORMAL`), on pooled
@@ -55,6 +78,9 @@ struct Target {
     double visibility = 0.985;
     double distance_pct = 0.6;
     double normal_deg = 8.0;
+    // The visual term (`--target-flip`): the combined render's FLIP over the object's views at
+    // most this, when the visual check ran. 1 asks nothing of the images.
+    double flip = 0.03;
 };
 
 // "VIS,DIST,NORMAL" (VIS in percent, e.g. "97,1.0,15") into `target`. False with a
@@ -107,12 +133,19 @@ struct Sizing {
     double curve_slack = 0.01;
 };
 
-// The accuracy gate's verdict on held-out metrics: one "held-out ..." reason per failed
-// rule (the text the manifest's reasons carry after "gate: "); empty means the asset ships.
+// The gate's ray rules on measured metrics: one "... " reason per failed rule (the text the
+// manifest's reasons carry after "gate: "); empty when they pass.
 std::vector<std::string> gate_failures(const samples::Metrics& metrics, const Gate& gate);
-// What pooled held-out metrics miss of `target`: one line per missed rule, empty when the
-// target is met.
-std::vector<std::string> target_misses(const samples::FamilyMetrics& pooled, const Target& target);
+// The gate's verdict on an option: `metrics` (decision rays), `flip` (the combined render's
+// FLIP; none when the visual check is off) and what training says against it (divergence,
+// giving up: these always fail). Gate::accept says which of the ray and image rules may pass it.
+GateVerdict gate_verdict(const samples::Metrics& metrics, std::optional<double> flip,
+                         std::vector<std::string> training_failures, const Gate& gate);
+// What an option misses of `target`: one line per missed rule, empty when the target is met.
+// The ray rules on pooled metrics (left out when only images are accepted), the visual term
+// on `flip` when there is one.
+std::vector<std::string> target_misses(const samples::FamilyMetrics& pooled, std::optional<double> flip,
+                                       const Target& target, Acceptance accept = Acceptance::either);
 
 // One check of the validation curve (docs/model.md "Validation curve and deciding early"):
 // pooled metrics of the validation rays after `step` steps. The manifest's candidates carry

@@ -1,0 +1,319 @@
+// The visual acceptance test of one object: its views on a floor, rendered by Embree once and
+// through each candidate asset, compared with FLIP (lsnif/converter/eval.hpp, ObjectViews).
+#include <lsnif/base/parallel.hpp>
+#include <lsnif/converter/eval.hpp>
+#include <lsnif/converter/manifest.hpp>
+#include <lsnif/format/container.hpp>
+#include <lsnif/format/cpu.hpp>
+#include <lsnif/image/image.hpp>
+#include <lsnif/scene/scene.hpp>
+#include "eval_render.hpp"
+
+#include <filesystem>
+
+#include <algorithm>
+#include <cmath>
+
+namespace lsnif::converter {
+
+using namespace eval_detail;
+
+namespace {
+
+constexpr float kPi = 3.14159265358979f;
+
+// A square floor under the object's box, three times its larger horizontal extent across,
+// slightly below its lowest point (+Y up, as glTF): it catches the object's shadow and
+// contact occlusion and is traced by Embree in both renders.
+EvalScene::Impl::Mesh floor_under(const std::array<float, 6>& box) {
+    const float cx = 0.5f * (box[0] + box[3]), cz = 0.5f * (box[2] + box[5]);
+    const float half = 1.5f * std::max({box[3] - box[0], box[5] - box[2], 1e-30f});
+    const float y = box[1] - 1e-3f * std::max({box[3] - box[0], box[4] - box[1], box[5] - box[2]});
+    EvalScene::Impl::Mesh m;
+    m.name = "floor";
+    m.positions = {cx - half, y, cz - half, cx + half, y, cz - half,
+                   cx + half, y, cz + half, cx - half, y, cz + half};
+    m.normals = {0, 1, 0, 0, 1, 0, 0, 1, 0, 0, 1, 0};
+    m.indices = {0, 2, 1, 0, 3, 2};
+    m.box = {cx - half, y, cz - half, cx + half, y, cz + half};
+    return m;
+}
+
+// View k of n: the camera 30 degrees above the horizon at azimuth 35 + 360 k / n degrees,
+// framing the box's bounding sphere in a 40-degree field of view; the light above, 60
+// degrees to the side of the camera.
+EvalOptions view_options(const std::array<float, 6>& box, std::uint32_t k, std::uint32_t n,
+                         const ObjectViewOptions& o) {
+    const Vec3 lo{box[0], box[1], box[2]}, hi{box[3], box[4], box[5]};
+    const Vec3 center = (lo + hi) * 0.5f;
+    const float radius = std::max(0.5f * length(hi - lo), 1e-30f);
+    const float azimuth = (35.0f + 360.0f * float(k) / float(std::max(1u, n))) * kPi / 180.0f;
+    const float elevation = 30.0f * kPi / 180.0f, fov = 40.0f;
+    const auto direction = [](float az, float el) {
+        return Vec3{std::cos(el) * std::sin(az), std::sin(el), std::cos(el) * std::cos(az)};
+    };
+    EvalOptions opt;
+    opt.width = o.width;
+    opt.height = o.height;
+    opt.ao_samples = o.ao_samples;
+    opt.seed = o.seed;
+    opt.timing_repeats = 1;
+    opt.write_images = false;
+    EvalCamera cam;
+    cam.target = center;
+    cam.eye = center + direction(azimuth, elevation) * (1.05f * radius / std::sin(0.5f * fov * kPi / 180.0f));
+    cam.fov_deg = fov;
+    opt.camera = cam;
+    opt.light = center + direction(azimuth + 60.0f * kPi / 180.0f, 55.0f * kPi / 180.0f) * (4.0f * radius);
+    return opt;
+}
+
+// Object-space bounds (min xyz, max xyz) of positions.
+std::array<float, 6> bounds_of(std::span<const float> positions) {
+    std::array<float, 6> box{INFINITY, INFINITY, INFINITY, -INFINITY, -INFINITY, -INFINITY};
+    for (std::size_t v = 0; v + 2 < positions.size(); v += 3)
+        for (int a = 0; a < 3; ++a) {
+            box[a] = std::min(box[a], positions[v + a]);
+            box[a + 3] = std::max(box[a + 3], positions[v + a]);
+        }
+    return box;
+}
+
+// View k's combined images (linear RGB) as sRGB PNGs in `dir`, with their FLIP heat map.
+bool write_view(const std::vector<float>& reference, const std::vector<float>& hybrid, const View& v,
+                const std::string& dir, std::size_t k, std::string& error) {
+    image::Image ref{v.W, v.H, reference}, hyb{v.W, v.H, hybrid};
+    for (auto* img : {&ref, &hyb})
+        for (float& x : img->rgb) x = image::linear_to_srgb(std::clamp(x, 0.0f, 1.0f));
+    auto f = image::flip(ref, hyb, image::FlipOptions{});
+    if (!f) return error = "flip: " + f.error().message, false;
+    const std::string stem = dir + "/view" + std::to_string(k) + "_";
+    const image::Image heat = image::heatmap(f->error_map, v.W, v.H);
+    const std::pair<std::string, const image::Image*> files[] = {
+        {stem + "reference.png", &ref}, {stem + "hybrid.png", &hyb}, {stem + "flip.png", &heat}};
+    for (const auto& [file, img] : files)
+        if (auto w = image::write_png(file, *img); !w) return error = w.error().message, false;
+    return true;
+}
+
+}  // namespace
+
+// One view: its settings, primary visibility, the object's pixels and the reference images.
+struct ObjectView {
+    EvalOptions opt;
+    View view;
+    GBuffer gb;
+    std::vector<std::uint8_t> object_pixels;
+    EffectImages reference;
+};
+
+struct ObjectViews::State {
+    std::unique_ptr<EvalScene> scene;
+    std::vector<ObjectView> views;
+    std::uint32_t threads = 1;
+};
+
+ObjectViews::ObjectViews(std::unique_ptr<State> state) : state_(std::move(state)) {}
+ObjectViews::~ObjectViews() = default;
+
+std::unique_ptr<ObjectViews> ObjectViews::create(std::span<const float> positions,
+                                                 std::span<const std::uint32_t> indices,
+                                                 std::span<const float> normals, const ObjectViewOptions& o,
+                                                 std::string& error) {
+    if (positions.empty() || indices.empty() || normals.size() != positions.size() || o.width == 0 ||
+        o.height == 0 || o.views == 0) {
+        error = "object views: an empty mesh, normals that do not match the vertices, or no pixels";
+        return nullptr;
+    }
+    // The same images on every x86-64-v3 CPU and for any thread count, since they decide what
+    // ships: Embree's AVX2 kernels and one BVH build thread, as the conversion's ground truth
+    // (sampling::SamplingConfig::embree_isa), and the asset traced in fp32 (compare()).
+    if (!format::detected_cpu_features().avx2_fma) {
+        error = "object views: this CPU has no AVX2 and FMA (x86-64-v3 is the floor)";
+        return nullptr;
+    }
+    auto impl = std::make_unique<EvalScene::Impl>();
+    EvalScene::Impl& im = *impl;
+    if (!im.open_device(error, "threads=1,isa=avx2")) return nullptr;
+    EvalScene::Impl::Mesh object;
+    object.name = "object";
+    object.positions.assign(positions.begin(), positions.end());
+    object.normals.assign(normals.begin(), normals.end());
+    object.indices.assign(indices.begin(), indices.end());
+    object.box = bounds_of(positions);
+    const std::array<float, 6> box = object.box;
+    if (!im.upload(std::move(object), error) || !im.upload(floor_under(box), error)) return nullptr;
+    im.reference = rtcNewScene(im.device);
+    im.hybrid = rtcNewScene(im.device);
+    im.world = {INFINITY, INFINITY, INFINITY, -INFINITY, -INFINITY, -INFINITY};
+    // The object's instance is traced through the asset compare() opens; the floor by Embree.
+    const Affine identity{1, 0, 0, 0, 0, 1, 0, 0, 0, 0, 1, 0};
+    if (!im.place(0, identity, true, error) || !im.place(1, identity, false, error)) return nullptr;
+    rtcCommitScene(im.reference);
+    rtcCommitScene(im.hybrid);
+    if (!im.embree_error.empty()) {
+        error = "embree: " + im.embree_error;
+        return nullptr;
+    }
+    auto state = std::make_unique<State>();
+    state->threads = base::resolve_threads(o.threads);
+    state->scene = std::unique_ptr<EvalScene>(new EvalScene(std::move(impl)));
+    for (std::uint32_t k = 0; k < o.views; ++k) {
+        ObjectView& v = state->views.emplace_back();
+        v.opt = view_options(box, k, o.views, o);
+        v.view = make_view(v.opt, box);
+        v.gb = render_primary(*state->scene, im.instances, v.view, state->threads);
+        v.object_pixels = lsnif_pixel_mask(v.gb, im);
+        v.reference = render_secondary(*state->scene, im.instances, v.gb, v.view, v.opt, {}, state->threads,
+                                       Tracers::reference)
+                          .reference;
+    }
+    return std::unique_ptr<ObjectViews>(new ObjectViews(std::move(state)));
+}
+
+std::uint32_t ObjectViews::view_count() const {
+    return std::uint32_t(state_->views.size());
+}
+
+base::Result<ObjectFlip, std::string> ObjectViews::compare(std::span<const std::uint8_t> asset) const {
+    return compare(asset, {});
+}
+
+base::Result<ObjectFlip, std::string> ObjectViews::compare(std::span<const std::uint8_t> asset,
+                                                           const std::string& dir) const {
+    if (!dir.empty()) {
+        std::error_code ec;
+        std::filesystem::create_directories(dir, ec);
+        if (ec) return dir + ": cannot create directory: " + ec.message();
+    }
+    EvalScene::Impl& im = *state_->scene->impl_;
+    lsnif_error err{};
+    lsnif_model* model = nullptr;
+    if (lsnif_open_memory(asset.data(), asset.size(), &model, &err) != LSNIF_OK)
+        return std::string("object views: the asset does not open: ") + lsnif_status_string(err.status) +
+               " (" + err.message + ")";
+    im.meshes[0].model = model;  // closed by ~Impl, or below when replaced
+    if (lsnif_set_arithmetic(model, LSNIF_ARITHMETIC_FP32, nullptr) != LSNIF_OK) {
+        lsnif_close(model);
+        im.meshes[0].model = nullptr;
+        return std::string("object views: the asset cannot be traced in fp32");
+    }
+    ObjectFlip sum;
+    std::string error;
+    for (std::size_t k = 0; k < state_->views.size(); ++k) {
+        const ObjectView& v = state_->views[k];
+        const EffectImages hybrid = render_secondary(*state_->scene, im.instances, v.gb, v.view, v.opt, {},
+                                                     state_->threads, Tracers::hybrid)
+                                        .hybrid;
+        Comparison c;
+        if (!compare_effects(v.reference, hybrid, v.view, v.object_pixels, {}, false, c, error)) break;
+        if (!dir.empty() &&
+            !write_view(v.reference.rgb[kCombined], hybrid.rgb[kCombined], v.view, dir, k, error))
+            break;
+        sum.combined += c.effect[kCombined].flip.mean;
+        sum.combined_object += c.effect[kCombined].flip_mean_lsnif_pixels.value_or(0.0);
+        sum.shadow += c.effect[kShadow].flip.mean;
+        sum.ao += c.effect[kAo].flip.mean;
+        sum.reflection += c.effect[kReflection].flip.mean;
+    }
+    lsnif_close(model);
+    im.meshes[0].model = nullptr;
+    if (!error.empty()) return error;
+    const double n = double(state_->views.size());
+    return ObjectFlip{sum.combined / n, sum.combined_object / n, sum.shadow / n, sum.ao / n,
+                      sum.reflection / n};
+}
+
+namespace {
+
+nlohmann::json object_flip_json(const ObjectFlip& f) {
+    return {{"combined", f.combined},
+            {"combined_object", f.combined_object},
+            {"shadow", f.shadow},
+            {"ao", f.ao},
+            {"reflection", f.reflection}};
+}
+
+// One converted object's views into `dir`: its report entry, or an error.
+base::Result<nlohmann::json, std::string> object_entry(const scene::Mesh& mesh, const MeshOutcome& mo,
+                                                       const std::filesystem::path& asset,
+                                                       const ObjectViewOptions& o,
+                                                       const std::filesystem::path& dir) {
+    auto bytes = format::read_file_bytes(asset.string());
+    if (!bytes) return bytes.error().message;
+    std::string error;
+    auto views = ObjectViews::create(mesh.positions, mesh.indices, mesh.normals, o, error);
+    if (!views) return mesh.name + ": " + error;
+    auto flip = views->compare(*bytes, dir.string());
+    if (!flip) return asset.string() + ": " + flip.error();
+    nlohmann::json files = nlohmann::json::array();
+    for (std::uint32_t k = 0; k < views->view_count(); ++k) {
+        const std::string stem = (dir.filename() / ("view" + std::to_string(k) + "_")).string();
+        files.push_back({{"reference", stem + "reference.png"},
+                         {"hybrid", stem + "hybrid.png"},
+                         {"flip", stem + "flip.png"}});
+    }
+    return nlohmann::json{{"name", mo.name},
+                          {"mesh", mo.id},
+                          {"lsnif", mo.asset->file},
+                          {"flip", object_flip_json(*flip)},
+                          {"views", files}};
+}
+
+// The source mesh of `mo`, imported once per input into `scenes`; an error when it cannot be
+// read or is no longer the converted geometry.
+base::Result<const scene::Mesh*, std::string> source_mesh(const LoadedManifest& loaded, const MeshOutcome& mo,
+                                                          std::vector<std::optional<scene::Scene>>& scenes) {
+    if (!scenes[mo.input]) {
+        auto imported = scene::import_scene(loaded.sources[mo.input]);
+        if (!imported.ok())
+            return loaded.path.string() + ": input " + std::to_string(mo.input) + ": " + imported.error;
+        scenes[mo.input] = std::move(imported.scene);
+    }
+    const auto& meshes = scenes[mo.input]->meshes;
+    if (mo.source_mesh >= meshes.size() || scene::geometry_hash(meshes[mo.source_mesh]) != mo.geometry_hash)
+        return loaded.sources[mo.input] + ": mesh '" + mo.name +
+               "' differs from the converted geometry (geometry hash mismatch): re-run lsnif convert";
+    return &meshes[mo.source_mesh];
+}
+
+}  // namespace
+
+EvalResult render_objects(const EvalOptions& opt) {
+    EvalResult res;
+    LoadedManifest loaded;
+    std::string error;
+    if (!load_manifest(opt.outdir, opt.sources, loaded, error)) {
+        res.errors.push_back(error);
+        return res;
+    }
+    const std::filesystem::path images = (opt.images_dir.empty() ? std::filesystem::path(opt.outdir) / "eval"
+                                                                 : std::filesystem::path(opt.images_dir)) /
+                                         "objects";
+    ObjectViewOptions o;
+    o.threads = opt.threads;
+    nlohmann::json objects = nlohmann::json::array();
+    std::vector<std::optional<scene::Scene>> scenes(loaded.sources.size());
+    for (const MeshOutcome& mo : loaded.meshes) {
+        if (!mo.asset) continue;
+        auto mesh = source_mesh(loaded, mo, scenes);
+        if (!mesh) {
+            res.errors.push_back(mesh.error());
+            return res;
+        }
+        const std::string stem = std::filesystem::path(mo.asset->file).stem().string();
+        auto entry =
+            object_entry(**mesh, mo, std::filesystem::path(opt.outdir) / mo.asset->file, o, images / stem);
+        if (!entry) {
+            res.errors.push_back(entry.error());
+            return res;
+        }
+        objects.push_back(std::move(*entry));
+    }
+    res.report = {{"objects", objects}, {"images_dir", images.string()},
+                  {"views", o.views},   {"width", o.width},
+                  {"height", o.height}, {"ao_samples", o.ao_samples}};
+    return res;
+}
+
+}  // namespace lsnif::converter
