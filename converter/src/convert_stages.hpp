@@ -103,6 +103,8 @@ struct Trained {
     std::uint32_t target_met_at = 0;
     // Why a smaller rung was given up against the larger rung's curve (falls_behind).
     std::string fell_behind;
+    // Why the first rung stopped for a finer grid (finer_grid_reason); empty otherwise.
+    std::string finer_grid;
     double seconds = 0;  // wall time of this rung: drawing, preparing, training, validating, pruning
     // Hidden neurons removed from `model` per layer (Preset::prune_inactive); empty when off.
     std::vector<std::uint32_t> pruned;
@@ -223,6 +225,13 @@ std::vector<format::GridEncoding> rung_encodings(const Preset& p);
 
 // "2^17 rows, u8_affine grid, 855000 bytes": the option in the mesh's reasons.
 std::string option_summary(const Option& o);
+
+// The occupancy grid of `c` at twice desc's resolution for a finer-grid rung (desc updated),
+// the reason (finer_grid_reason's `why`) appended to out's reasons; nothing when it cannot be
+// built.
+std::optional<voxelize::Occupancy> refine_grid(const Run& run, const scene::Mesh& mesh, const Candidate& c,
+                                               format::ModelDesc& desc, const std::string& why,
+                                               MeshOutcome& out);
 
 // The ladder (Sizing): trains c.desc, then each smaller table size while the previous one
 // met the target and the preset's step budget has at least as many steps left as it used.

@@ -156,6 +156,7 @@ void read_curve(Reader& r, const char* key, std::vector<ValidationPoint>& curve)
 json candidate_json(const CandidateRecord& c, OutcomeFields fields) {
     json j = {
         {"log2_table_size", c.log2_table_size},
+        {"grid_resolution", c.grid_resolution},
         {"hidden_width", c.hidden_width},
         {"grid", grid_encoding_name(std::uint32_t(c.grid))},
         {"bytes", c.bytes},
@@ -182,6 +183,7 @@ json candidate_json(const CandidateRecord& c, OutcomeFields fields) {
 
 void read_candidate(Reader& r, CandidateRecord& c, std::size_t of) {
     r.read("log2_table_size", c.log2_table_size);
+    r.read("grid_resolution", c.grid_resolution);
     r.read("hidden_width", c.hidden_width);
     std::string grid;
     r.read("grid", grid);

@@ -122,6 +122,7 @@ bool resolve_preset(const ConvertOptions& opt, Preset& preset, std::string& erro
     if (opt.log2_table_size > 0) preset.model.log2_table_size = opt.log2_table_size;
     if (opt.max_points > 0) preset.model.max_points = opt.max_points;
     if (opt.grid_resolution > 0) preset.model.grid_resolution = opt.grid_resolution;
+    if (opt.max_grid_resolution > 0) preset.sizing.max_grid_resolution = opt.max_grid_resolution;
     if (opt.hidden_width > 0)
         for (auto& w : preset.model.hidden_width) w = opt.hidden_width;
     if (opt.no_ray_inputs) preset.model.ray_inputs = 0;

@@ -152,6 +152,17 @@ std::vector<std::string> early_abort_reasons(const ValidationPoint& point, std::
     return why;
 }
 
+std::string finer_grid_reason(const ValidationPoint& point, std::uint64_t samples, const Target& aim,
+                              const EarlyAbort& abort, const Sizing& rule) {
+    if (samples < abort.min_samples || point.visibility + rule.finer_grid_headroom >= aim.visibility)
+        return {};
+    char buf[200];
+    std::snprintf(buf, sizeof buf,
+                  "validation visibility %.1f %% at step %u cannot reach the target's %.1f %%",
+                  100 * point.visibility, point.step, 100 * aim.visibility);
+    return buf;
+}
+
 Target effective_target(const Target& t, const Gate& g) {
     return {std::max(t.visibility, g.min_visibility), std::min(t.distance_pct, g.max_distance_median_pct),
             std::min(t.normal_deg, g.max_normal_median_deg), std::min(t.flip, g.max_flip)};

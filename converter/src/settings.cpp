@@ -168,6 +168,9 @@ std::vector<Setting> make_table() {
                        "Override V, occupancy grid resolution"),
         LSNIF_OVERRIDE("--hidden", "WIDTH", "hidden", hidden_width, 16u, 512u,
                        "Override the hidden layers' width"),
+        LSNIF_OVERRIDE("--max-grid", "V", "max_grid", max_grid_resolution, 4u, 256u,
+                       "Override the finest grid a thin object may be trained again at (the grid rung; "
+                       "--max-grid equal to --grid: never)"),
         LSNIF_FLAG("--no-ray-inputs", "no_ray_inputs", no_ray_inputs, SettingScope::mesh,
                    "The network sees its points' features only, not the ray's direction and entry offsets "
                    "(container 1.0/1.1 files, for comparisons)"),

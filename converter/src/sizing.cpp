@@ -88,14 +88,14 @@ std::string stop_key(const Target& t, const Preset& p) {
     std::snprintf(
         buf, sizeof buf,
         "target%g,%g,%g,%g|stop%u,%g,%g,%g|abort%llu,%g,%g,%g,%g|checks%u,%llu|decision%llu|sizing%d,%d,%g,"
-        "%u,%g|prune%d|views%d,%u,%u,%u,%u,%llu|accept%s,%g",
+        "%u,%g,%u,%g|prune%d|views%d,%u,%u,%u,%u,%llu|accept%s,%g",
         t.visibility, t.distance_pct, t.normal_deg, t.flip, s.consecutive, s.visibility_margin,
         s.distance_factor, s.normal_margin_deg, (unsigned long long)a.min_samples, a.visibility_headroom,
         a.normal_headroom_deg, a.distance_factor, kImageHeadroom, p.validation_checks,
         (unsigned long long)p.validation_rays, (unsigned long long)p.eval_rays, int(z.explore_smaller),
         int(z.quantize), z.curve_slack, p.classify.min_log2_table_size, p.classify.min_memory_ratio,
-        int(p.prune_inactive), int(p.visual_check), v.width, v.height, v.views, v.ao_samples,
-        (unsigned long long)v.seed, acceptance_name(g.accept), g.max_flip);
+        z.max_grid_resolution, z.finer_grid_headroom, int(p.prune_inactive), int(p.visual_check), v.width,
+        v.height, v.views, v.ao_samples, (unsigned long long)v.seed, acceptance_name(g.accept), g.max_flip);
     return buf;
 }
 
@@ -184,11 +184,25 @@ Trained train_rung(const Run& run, const scene::Mesh& mesh, Candidate& c, const 
     // At each validation check: give up when the gate is out of reach or a smaller rung
     // cannot catch up; stop when the target is met (TargetStop).
     const Target aim = effective_target(run.opt.target, p.gate);
+    bool images_in_reach = false;
+    const bool may_refine = larger.empty() && p.sizing.explore_smaller &&
+                            desc.grid_resolution * 2 <= p.sizing.max_grid_resolution;
     auto decide = [&](std::uint32_t step, std::uint32_t of) {
         const ValidationPoint& point = t.validation.back();
-        t.abandoned =
-            early_abort_reasons(point, std::uint64_t(step) * t.config.batch_size, p.gate, p.early_abort);
-        if (!t.abandoned.empty() && image_gate_in_reach(run, tr, rays, out)) t.abandoned.clear();
+        if (may_refine) {
+            t.finer_grid = finer_grid_reason(point, std::uint64_t(step) * t.config.batch_size, aim,
+                                             p.early_abort, p.sizing);
+            if (!t.finer_grid.empty()) return false;
+        }
+        // Once the images were within reach of the gate, they decide at the end: the curve's
+        // rays are not asked again (each asking renders the views).
+        if (!images_in_reach)
+            t.abandoned =
+                early_abort_reasons(point, std::uint64_t(step) * t.config.batch_size, p.gate, p.early_abort);
+        if (!t.abandoned.empty() && image_gate_in_reach(run, tr, rays, out)) {
+            t.abandoned.clear();
+            images_in_reach = true;
+        }
         if (!t.abandoned.empty()) {
             t.abandoned_at = step;
             return false;
@@ -261,6 +275,7 @@ CandidateRecord candidate_record(const Option& o, const Trained& t, std::size_t 
     const samples::FamilyMetrics& p = o.held_out.metrics.pooled;
     CandidateRecord c;
     c.log2_table_size = d.log2_table_size;
+    c.grid_resolution = d.grid_resolution;
     c.hidden_width = d.hidden_width;
     c.grid = d.grid_encoding;
     c.bytes = o.bytes;
@@ -310,16 +325,44 @@ Option measure_option(const Run& run, const scene::Mesh& mesh, const Candidate& 
     return o;
 }
 
+// The occupancy grid at twice desc's resolution (desc updated), recording why in `out`'s
+// reasons; nothing when it cannot be built.
+std::optional<voxelize::Occupancy> refine_grid(const Run& run, const scene::Mesh& mesh, const Candidate& c,
+                                               format::ModelDesc& desc, const std::string& why,
+                                               MeshOutcome& out) {
+    const auto t0 = Clock::now();
+    voxelize::Options vopt;
+    vopt.threads = run.threads;
+    auto occ = voxelize::voxelize(c.view, c.box, desc.grid_resolution * 2, vopt);
+    out.timings.add(Stage::voxelize, seconds_since(t0));
+    if (!occ) return std::nullopt;
+    const std::string from = std::to_string(desc.grid_resolution);
+    desc.grid_resolution *= 2;
+    const std::string to = std::to_string(desc.grid_resolution);
+    out.reasons.push_back("grid " + from + "^3: " + why + "; trained again at " + to + "^3");
+    return std::move(*occ);
+}
+
 Sized size_to_target(const Run& run, const scene::Mesh& mesh, Candidate& c, const voxelize::Occupancy& occ,
                      const MeasureRays& rays, MeshOutcome& out) {
     Sized sized;
     const Preset& p = run.preset;
     format::ModelDesc desc = c.desc;
-    std::uint32_t budget = p.train.steps;  // steps left to all rungs
+    std::uint32_t budget = p.train.steps;      // steps left to all rungs
+    std::optional<voxelize::Occupancy> finer;  // the grid of a finer-grid rung
     for (;;) {
         const std::vector<ValidationPoint> larger =
             sized.rungs.empty() ? std::vector<ValidationPoint>{} : sized.rungs.back().validation;
-        sized.rungs.push_back(train_rung(run, mesh, c, desc, occ, rays, budget, larger, out));
+        Trained trained = train_rung(run, mesh, c, desc, finer ? *finer : occ, rays, budget, larger, out);
+        if (!trained.finer_grid.empty()) {
+            // The first size at this grid cannot reach the target: start again, twice as fine.
+            if (auto g = refine_grid(run, mesh, c, desc, trained.finer_grid, out)) {
+                finer = std::move(*g);
+                continue;
+            }
+            trained.finer_grid.clear();  // voxelization failed: this training is what there is
+        }
+        sized.rungs.push_back(std::move(trained));
         const std::size_t rung = sized.rungs.size() - 1;
         const Trained& t = sized.rungs[rung];
         const std::size_t first = sized.options.size();

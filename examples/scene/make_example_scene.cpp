@@ -5,6 +5,7 @@
 //   lsnif_make_example_scene --out FILE.glb --hairball-only [--tubes N] [--segments N] [--seed N]
 //   lsnif_make_example_scene --out FILE.glb --hard-case NAME [--scale S]
 //   lsnif_make_example_scene --out FILE.glb --composition dragons|statues --cgal-data DIR
+//   lsnif_make_example_scene --out FILE.glb --composition hairballs
 //
 // --hard-case writes one case of the hard-geometry suite (hard_cases.hpp,
 // docs/failure-modes.md): a mesh named NAME (plus a "floor" mesh for "statue"), scaled by S.
@@ -375,7 +376,8 @@ bool build_full_scene(const Options& opt, GltfBuilder& gltf, std::string& error)
 //            1,279,616 triangles), 1 m tall, three instances side by side, the middle one
 //            set back, each turned differently;
 //   statues: armadillo, bunny, bear and lion, 0.8 m tall, each on a 0.5 m pedestal (one
-//            mesh, four instances), in a row.
+//            mesh, four instances), in a row;
+//   hairballs: four procedural hairballs (no CGAL data), below.
 bool build_composition(const Options& opt, GltfBuilder& gltf, std::string& error) {
     const int m_floor = gltf.add_material("floor_stone", {0.55, 0.55, 0.52}, 0.0, 0.7);
     const int root = gltf.add_node({{"name", opt.composition}});
@@ -420,7 +422,38 @@ bool build_composition(const Options& opt, GltfBuilder& gltf, std::string& error
             gltf.add_mesh("floor", ex::make_box({-2.4, -0.05, -0.8}, {2.4, 0.0, 0.8}), m_floor));
         return true;
     }
-    error = "unknown --composition '" + opt.composition + "'; one of: dragons statues";
+    if (opt.composition == "hairballs") {
+        // Four procedural hairballs of different densities and curves, 1,117,600 triangles in
+        // all (like the LSNIF paper's HAIRBALLS scene: thin, repeated geometry filling the
+        // frame), 0.8 m across, in a row on a floor, alternately set back.
+        struct Ball {
+            int tubes, segments;
+            std::uint64_t seed;
+            ex::Vec3 at;
+            Yaw turn;
+        };
+        const Ball balls[] = {{1000, 24, 0x4A11B0A1ull, {-1.35, 0.4, 0.0}, kYaw30},
+                              {900, 24, 0x4A11B0A2ull, {-0.45, 0.4, -0.35}, kYaw0},
+                              {1100, 22, 0x4A11B0A3ull, {0.45, 0.4, 0.0}, kYawMinus30},
+                              {800, 26, 0x4A11B0A4ull, {1.35, 0.4, -0.35}, kYaw60}};
+        const std::array<double, 3> hair[] = {
+            {0.12, 0.08, 0.05}, {0.55, 0.35, 0.15}, {0.30, 0.12, 0.08}, {0.70, 0.62, 0.45}};
+        for (int k = 0; k < 4; ++k) {
+            ex::HairballParams p = opt.hairball;
+            p.tubes = balls[k].tubes;
+            p.segments = balls[k].segments;
+            p.seed = balls[k].seed;
+            const std::string name = "hairball_" + std::to_string(k + 1);
+            const int material = gltf.add_material(name + "_hair", hair[k], 0.0, 0.45);
+            gltf.add_mesh_node(root, trs_node(name, balls[k].at, balls[k].turn, 0.8),
+                               gltf.add_mesh(name, ex::make_hairball(p), material));
+        }
+        gltf.add_mesh_node(
+            root, {{"name", "floor"}},
+            gltf.add_mesh("floor", ex::make_box({-2.0, -0.05, -1.0}, {2.0, 0.0, 0.7}), m_floor));
+        return true;
+    }
+    error = "unknown --composition '" + opt.composition + "'; one of: dragons statues hairballs";
     return false;
 }
 
@@ -510,15 +543,17 @@ void print_usage(std::FILE* to) {
         "       lsnif_make_example_scene --out FILE.glb --hairball-only [options]\n"
         "       lsnif_make_example_scene --out FILE.glb --hard-case NAME [--scale S]\n"
         "       lsnif_make_example_scene --out FILE.glb --composition dragons|statues --cgal-data DIR\n"
+        "       lsnif_make_example_scene --out FILE.glb --composition hairballs\n"
         "  --cgal-data PATH    directory holding data/meshes/%s (from libcgal-demo's\n"
         "                      data.tar.gz), or the .off file itself\n"
         "  --hairball-only     write only the hairball mesh (no CGAL data needed)\n"
         "  --hard-case NAME    write one hard-geometry case (hairball, cards, cloth, lattice,\n"
         "                      statue, flat, blob, triangle; no CGAL data needed)\n"
         "  --scale S           scale of the hard case (default 1; 1e-6..1e7)\n"
-        "  --composition NAME  write an evaluation composition from CGAL's meshes: dragons\n"
-        "                      (three Loop x3 dragons on a floor) or statues (four meshes\n"
-        "                      on pedestals)\n"
+        "  --composition NAME  write an evaluation composition: dragons (three Loop x3 CGAL\n"
+        "                      dragons on a floor), statues (four CGAL meshes on pedestals)\n"
+        "                      or hairballs (four procedural hairballs, 1.1 M triangles;\n"
+        "                      no --cgal-data needed)\n"
         "  --subdivisions N    Loop subdivision steps of the CGAL mesh (0..3, default 1;\n"
         "                      dragons 3, statues 0)\n"
         "  --tubes N           hairball tubes (1..100000, default 300)\n"
@@ -601,7 +636,8 @@ bool parse_args(int argc, char** argv, Options& opt, bool& help, std::string& er
         error = "--out FILE.glb is required";
         return false;
     }
-    if (!opt.hairball_only && opt.hard_case.empty() && opt.cgal_data.empty()) {
+    if (!opt.hairball_only && opt.hard_case.empty() && opt.cgal_data.empty() &&
+        opt.composition != "hairballs") {
         error = opt.composition.empty() ? "--cgal-data PATH is required (or --hairball-only)"
                                         : "--composition needs --cgal-data DIR (libcgal-demo's data)";
         return false;

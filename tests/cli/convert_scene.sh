@@ -31,14 +31,33 @@ chrome=("$browser" --headless --no-sandbox --disable-gpu --hide-scrollbars --use
 "${chrome[@]}" --dump-dom "$page" >"$work/dom.html" 2>"$work/chrome.err" || bad "chromium exited $?"
 body=$(grep -o '<body[^>]*>' "$work/dom.html")
 [[ $body =~ data-images=\"ok\ ([0-9]+)\" ]] || bad "images not all loaded: $body"
-(( ${BASH_REMATCH[1]:-0} == 9 )) || bad "the page has ${BASH_REMATCH[1]:-0} images (want 9: 3 effects x reference, hybrid, FLIP)"
+images=${BASH_REMATCH[1]:-0}
+objects=$(python3 -c "import json,sys; print(len(json.load(open(sys.argv[1]))['objects']))" "$work/out/eval/objects.json")
+((objects >= 1)) || bad "no converted object close up (eval/objects.json)"
+# The scene's 3 effects and each converted object's 3 views, each as reference, hybrid, FLIP.
+((images == 9 + 9 * objects)) || bad "the page has $images images (want $((9 + 9 * objects)))"
 [[ $body != *data-errors* ]] || bad "script errors on the page: $body"
-python3 - "$work/out/manifest.json" "$work/dom.html" <<'PY' || bad "the page does not name every object"
-import html, json, sys
-names = [m["name"] for m in json.load(open(sys.argv[1]))["meshes"]]
+python3 - "$work/out/manifest.json" "$work/dom.html" "$work/out/eval/objects.json" <<'PY' || bad "the page does not show every object as it should"
+import html, json, re, sys
+meshes = json.load(open(sys.argv[1]))["meshes"]
 page = html.unescape(open(sys.argv[2]).read())
-missing = [n for n in names if f"<td>{n}</td>" not in page]
+objects = json.load(open(sys.argv[3]))["objects"]
+# Every object named: in a row of its own, or (too small to weigh) in the folded line.
+small = [m["name"] for m in meshes if m["decision"] == "few_triangles"]
+rows = [m["name"] for m in meshes if m["decision"] != "few_triangles"]
+missing = [n for n in rows if f"<td>{n}</td>" not in page]
 assert not missing, missing
+folded = re.search(r"(\d+) small objects .*?</summary>(.*?)</details>", page, re.S)
+assert folded and int(folded.group(1)) == len(small), small
+assert all(n in folded.group(2) for n in small), (small, folded.group(2))
+# Converted objects first, and every one close up.
+classes = re.findall(r'<tr class="(complex|simple|failed)">', page)
+assert classes and classes[0] == "complex" and classes.index("simple") > classes.count("complex") - 1, classes
+shipped = {m["name"] for m in meshes if "lsnif" in m}
+assert {o["name"] for o in objects} == shipped, (objects, shipped)
+assert all(f'alt="{n} view 0 hybrid"' in page for n in shipped)
+# The scene's own name in the title, not a build path.
+assert "<title>lsnif: example_scene.glb</title>" in page, re.search("<title>.*</title>", page)
 PY
 "${chrome[@]}" --window-size=1300,2200 --screenshot="$work/report.png" "$page" >/dev/null 2>&1
 [[ -s $work/report.png ]] || bad "no screenshot"

@@ -205,6 +205,7 @@ TEST_CASE("every setting survives settings_arguments and back, and every mesh se
                                                         {"--max-points", "5"},
                                                         {"--grid", "16"},
                                                         {"--hidden", "24"},
+                                                        {"--max-grid", "64"},
                                                         {"--no-ray-inputs", ""},
                                                         {"--target", "90,2,20"},
                                                         {"--memory-budget", "64M"},

@@ -65,6 +65,7 @@ MeshOutcome full_outcome() {
     h.flip = ObjectFlip{0.0075, 0.034, 0.006, 0.0076, 0.011};
     CandidateRecord c;
     c.log2_table_size = 17;
+    c.grid_resolution = 64;
     c.hidden_width = {120, 97};
     c.grid = lsnif::format::GridEncoding::fp16;
     c.bytes = 900000;

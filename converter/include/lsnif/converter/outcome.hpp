@@ -125,6 +125,7 @@ enum class CandidateOutcome : std::uint8_t {
 enum class StopKind : std::uint8_t { ran_to_end, target_met, given_up };
 struct CandidateRecord {
     std::uint32_t log2_table_size = 0;
+    std::uint32_t grid_resolution = 0;        // V of the occupancy grid
     std::vector<std::uint32_t> hidden_width;  // per hidden layer, after pruning
     format::GridEncoding grid = format::GridEncoding::fp16;
     std::uint64_t bytes = 0;  // serialized without metadata

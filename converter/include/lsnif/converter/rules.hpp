@@ -131,6 +131,18 @@ struct Sizing {
     // points after step 288 where its 2^17 rung had gained 1.79 after step 240 (docs/model.md
     // "Sizing to the target"); the slack covers that difference twice.
     double curve_slack = 0.01;
+    // The grid rung (docs/model.md "Thin geometry: a finer grid where the target needs it"):
+    // when the first size's validation curve shows, once EarlyAbort may judge, that even the
+    // largest improvement measured from there (finer_grid_headroom) leaves it short of the
+    // target's visibility, training starts again at twice the occupancy grid's resolution,
+    // up to this (0: never). Thin structure (hair, grilles) is what a coarse grid cannot
+    // separate: the bundled hairball's combined FLIP is 0.072 at 32^3, 0.063 at 64^3 and 0.045
+    // at 128^3.
+    std::uint32_t max_grid_resolution = 128;
+    // Visibility gained from the default preset's first check that may judge (step 240 of
+    // 1200) to the end, measured: CGAL dragon 1.47 points, armadillo 0.39, the truck 1.40, the
+    // tree 2.10, the bundled hairball 3.23, four denser hairballs 0.49-0.93.
+    double finer_grid_headroom = 0.035;
 };
 
 // The gate's ray rules on measured metrics: one "... " reason per failed rule (the text the
@@ -162,6 +174,11 @@ nlohmann::json validation_json(std::span<const ValidationPoint> curve);
 // reach `gate`; empty when it may (or when fewer than rule.min_samples samples were seen).
 std::vector<std::string> early_abort_reasons(const ValidationPoint& point, std::uint64_t samples,
                                              const Gate& gate, const EarlyAbort& rule);
+
+// Why the first size's curve at `point`, after `samples` training samples, asks for a finer
+// grid (Sizing::max_grid_resolution); empty when it does not (or too early to judge).
+std::string finer_grid_reason(const ValidationPoint& point, std::uint64_t samples, const Target& aim,
+                              const EarlyAbort& abort, const Sizing& rule);
 
 // The target training aims at: `target`, made at least as strict as `gate` on each pooled
 // rule, since a model that meets a lenient target below the gate still may not ship.
