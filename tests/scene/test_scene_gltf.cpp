@@ -592,6 +592,12 @@ TEST_CASE("truncated and corrupted .glb files are rejected without crashing") {
         CHECK_FALSE(r.ok());
         CHECK(r.error.rfind("cut.glb: ", 0) == 0);
     }
+    // Cut inside the BIN chunk: buffer 0 declares more than the chunk holds (tinygltf would
+    // read past the end of the input for it; found by a differential run under ASan).
+    const sc::ImportResult short_bin =
+        sc::import_gltf_from_memory(std::span(glb.data(), glb.size() - 5), kWorkDir, "short.glb");
+    REQUIRE_FALSE(short_bin.ok());
+    CHECK(short_bin.error.find("buffer 0 declares") != std::string::npos);
     // A truncated file on disk, through the public path-based entry point.
     const fs::path dir = fresh_dir("truncated");
     write_bytes(dir / "cut.glb", glb.data(), glb.size() - 7);

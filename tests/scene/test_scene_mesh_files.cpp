@@ -484,8 +484,12 @@ TEST_CASE("OBJ face corners OpenMesh would abort on are errors with the line num
     const std::string verts = "v 0 0 0\nv 1 0 0\nv 0 1 0\nvn 0 0 1\n";
     // Found by fuzz_import: Debian's OpenMesh asserts (aborts) on a corner without a vertex.
     const std::pair<std::string, std::string> bad[] = {
-        {verts + "f /1 2 3\n", "line 5: face corner '/1'"}, {verts + "f 1 2 0\n", "line 5: face corner '0'"},
-        {verts + "f 1 2 3x\n", "face corner '3x'"},         {verts + "f 1/ 2 3\n", "face corner '1/'"},
+        {verts + "f /1 2 3\n", "line 5: face corner '/1'"},
+        {verts + "f 1 2 0\n", "line 5: face corner '0'"},
+        {verts + "f 1 2 3x\n", "face corner '3x'"},
+        {verts + "f 1/x 2 3\n", "face corner '1/x'"},
+        {verts + "f 1/1/1/1 2 3\n", "face corner '1/1/1/1'"},
+        {verts + "f 1//0 2 3\n", "face corner '1//0'"},
         {verts + "f\t\n", "face without corners"},
     };
     int k = 0;
@@ -505,5 +509,31 @@ TEST_CASE("OBJ face corners OpenMesh would abort on are errors with the line num
         write_text(file, ok);
         const sc::ImportResult r = sc::import_scene(file);
         CHECK_MESSAGE(r.ok(), r.error);
+    }
+}
+
+// Corners with an empty texture or normal index, as 3D-printing software writes its
+// printer-bed models ("f 1/ 2/ 3/") and other exporters write "1//" or "1/2/": read as the
+// indices that are there, as Blender, assimp and tinyobjloader read them.
+TEST_CASE("OBJ: corners with an empty texture or normal index read as the indices that are there") {
+    const fs::path dir = fresh_dir("obj_empty_parts");
+    const std::string verts = "v 0 0 0\nv 1 0 0\nv 0 1 0\nv 0 0 1\nvt 0 0\nvt 1 0\nvn 0 0 1\n";
+    const std::string plain = verts + "f 1 2 3\nf 1 2 4\nf 1 3 4\n";
+    const fs::path reference = dir / "plain.obj";
+    write_text(reference, plain);
+    const sc::ImportResult want = sc::import_scene(reference);
+    REQUIRE_MESSAGE(want.ok(), want.error);
+    for (const std::string& faces :
+         {"f 1/ 2/ 3/\nf 1/ 2/ 4/\nf 1/ 3/ 4/\n", "f 1// 2// 3//\nf 1// 2// 4//\nf 1// 3// 4//\n",
+          "f 1/1/ 2/2/ 3/1/\nf 1/ 2// 4/2/\nf 1 3/ 4//\n"}) {
+        const fs::path file = dir / "bed.obj";
+        write_text(file, verts + faces);
+        const sc::ImportResult r = sc::import_scene(file);
+        CAPTURE(faces);
+        REQUIRE_MESSAGE(r.ok(), r.error);
+        REQUIRE(r.scene.meshes.size() == 1);
+        CHECK(r.scene.meshes[0].triangle_count() == 3);
+        CHECK(r.scene.meshes[0].positions == want.scene.meshes[0].positions);
+        CHECK(r.scene.meshes[0].indices == want.scene.meshes[0].indices);
     }
 }

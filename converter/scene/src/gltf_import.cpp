@@ -226,6 +226,35 @@ std::size_t json_depth(const char* text, std::size_t length) {
     return deepest;
 }
 
+// A .glb whose buffer 0 (the one without a uri) declares more bytes than its BIN chunk holds,
+// or that has no BIN chunk for it: tinygltf reads past the end of the file for it (glTF 2.0
+// "Binary buffer": the chunk is the buffer, padded to 4 bytes). The problem, or "".
+std::string glb_buffer_problem(std::span<const std::uint8_t> bytes, std::string_view json_text) {
+    const nlohmann::json j = nlohmann::json::parse(json_text, nullptr, false);
+    if (!j.is_object() || !j.contains("buffers") || !j["buffers"].is_array() || j["buffers"].empty())
+        return {};
+    const nlohmann::json& b0 = j["buffers"][0];
+    if (!b0.is_object() || b0.contains("uri") || !b0.contains("byteLength") ||
+        !b0["byteLength"].is_number_unsigned())
+        return {};
+    const std::uint64_t declared = b0["byteLength"].get<std::uint64_t>();
+    std::uint32_t json_chunk = 0;
+    std::memcpy(&json_chunk, bytes.data() + 12, 4);
+    const std::uint64_t bin_header = 20 + std::uint64_t(json_chunk);
+    std::uint32_t bin_length = 0, bin_type = 0;
+    if (bin_header + 8 <= bytes.size()) {
+        std::memcpy(&bin_length, bytes.data() + bin_header, 4);
+        std::memcpy(&bin_type, bytes.data() + bin_header + 4, 4);
+    }
+    const std::uint64_t available = bin_type == 0x004E4942u
+                                        ? std::min<std::uint64_t>(bin_length, bytes.size() - bin_header - 8)
+                                        : 0;  // "BIN\0"
+    if (declared <= available) return {};
+    return "invalid binary glTF (.glb): buffer 0 declares " + std::to_string(declared) +
+           " bytes, the BIN chunk holds " + std::to_string(available) +
+           " (truncated or inconsistent; glTF 2.0 \"Binary buffer\")";
+}
+
 // Looks at the version fields and extensionsRequired before tinygltf parses the file, so
 // that a file we cannot read gets the real reason rather than one of its consequences
 // (tinygltf rejects KHR_draco_mesh_compression files with "accessor[0] invalid bufferView",
@@ -247,6 +276,9 @@ std::string precheck(std::span<const std::uint8_t> bytes, bool binary) {
         text += 20;
         length = chunk;
     }
+    if (binary)
+        if (std::string why = glb_buffer_problem(bytes, std::string_view(text, length)); !why.empty())
+            return why;
     if (const std::size_t depth = json_depth(text, length); depth > kMaxJsonDepth) {
         return "the JSON nests " + std::to_string(depth) + " levels deep (at most " +
                std::to_string(kMaxJsonDepth) + " accepted)";

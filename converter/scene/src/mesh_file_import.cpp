@@ -316,11 +316,29 @@ std::string check_ply_header(const std::string& head, std::uintmax_t size) {
     }
 }
 
-// OBJ: every face ("f") line must be a list of corners v, v/vt, v//vn or v/vt/vn with
-// non-zero integer indices (negative = relative). Debian's OpenMesh 9 is built with
-// assertions, and its OBJ reader aborts the process on a corner without a vertex index
-// (e.g. "f /1 2 3"; found by fuzz_import), so such files are rejected here with the line
-// number. Returns "" or the problem.
+// One OBJ face corner: a vertex index, then optionally "/" and a texture index and "/" and a
+// normal index, where the texture or normal index may be empty ("1/", "1//", "1/2/": what
+// Blender, assimp and tinyobjloader read as the indices that are there; printer-bed models
+// of 3D-printing software are written "f 1/ 2/ 3/"). Indices are non-zero integers
+// (negative = relative); `is_index` says which are.
+template <class IsIndex>
+bool obj_corner(std::string_view corner, const IsIndex& is_index) {
+    const std::size_t s1 = corner.find('/');
+    if (!is_index(corner.substr(0, s1))) return false;
+    if (s1 == std::string_view::npos) return true;
+    const std::string_view rest = corner.substr(s1 + 1);
+    const std::size_t s2 = rest.find('/');
+    const std::string_view vt = rest.substr(0, s2);
+    if (!vt.empty() && !is_index(vt)) return false;
+    if (s2 == std::string_view::npos) return true;
+    const std::string_view vn = rest.substr(s2 + 1);
+    return vn.empty() || is_index(vn);
+}
+
+// OBJ: every face ("f") line must be a list of corners (obj_corner). Debian's OpenMesh 9 is
+// built with assertions, and its OBJ reader aborts the process on a corner without a vertex
+// index (e.g. "f /1 2 3"; found by fuzz_import), so such files are rejected here with the
+// line number. Returns "" or the problem.
 std::string check_obj_faces(const std::string& text) {
     auto is_index = [](std::string_view t) {
         if (!t.empty() && t[0] == '-') t.remove_prefix(1);
@@ -354,19 +372,11 @@ std::string check_obj_faces(const std::string& text) {
             while (k < line.size() && line[k] != ' ' && line[k] != '\t') ++k;
             if (k == start) break;
             const std::string_view corner = line.substr(start, k - start);
-            const std::size_t s1 = corner.find('/');
-            bool ok = is_index(corner.substr(0, s1));
-            if (ok && s1 != std::string_view::npos) {
-                const std::string_view rest = corner.substr(s1 + 1);
-                const std::size_t s2 = rest.find('/');
-                const std::string_view vt = rest.substr(0, s2);
-                ok = vt.empty() ? s2 != std::string_view::npos : is_index(vt);
-                if (ok && s2 != std::string_view::npos) ok = is_index(rest.substr(s2 + 1));
-            }
-            if (!ok)
+            if (!obj_corner(corner, is_index))
                 return "line " + std::to_string(line_no) + ": face corner '" +
                        std::string(corner.substr(0, 40)) +
-                       "' is not v, v/vt, v//vn or v/vt/vn with non-zero indices";
+                       "' is not v, v/vt, v//vn or v/vt/vn (a missing vt or vn may be empty) with non-zero "
+                       "indices";
             ++corners;
         }
         if (corners == 0) return "line " + std::to_string(line_no) + ": face without corners";
