@@ -12,6 +12,8 @@
 
 #include <CLI/CLI.hpp>
 
+#include "cli_docs.hpp"
+
 #include <array>
 #include <chrono>
 #include <cmath>
@@ -531,7 +533,8 @@ void add_arithmetic_options(CLI::App* s, lsnif_arithmetic& arithmetic) {
                       "else bf16 where it has AVX-512 BF16, else fp32), fp32 (the reference), "
                       "bf16 or int8 (each falls back where the CPU lacks it)")
             ->transform(CLI::CheckedTransformer(names, CLI::ignore_case))
-            ->type_name("auto|fp32|bf16|int8");
+            ->type_name("auto|fp32|bf16|int8")
+            ->default_str("auto");
     s->add_flag_callback(
          "--fp32", [&arithmetic] { arithmetic = LSNIF_ARITHMETIC_FP32; }, "Same as --arithmetic fp32")
         ->excludes(named);
@@ -703,51 +706,6 @@ struct BenchCommand {
     }
 };
 
-// "a | b" as a Markdown table cell: pipes escaped, one line.
-std::string cell(std::string text) {
-    std::string out;
-    for (char c : text) {
-        if (c == '|') out += '\\';
-        out += c == '\n' ? ' ' : c;
-    }
-    return out;
-}
-
-// One subcommand's options as a Markdown table (and its nested subcommands after it).
-void markdown_options(const CLI::App& sub, const std::string& path, std::string& out) {
-    out += "### `" + path + "`\n\n" + sub.get_description() + "\n\n";
-    out += "| option | value | default | what it does |\n|---|---|---|---|\n";
-    for (const CLI::Option* o : sub.get_options()) {
-        std::string names = o->get_name(true, true);
-        if (names == "-h,--help") continue;
-        std::string what = o->get_description(), fallback = o->get_default_str();
-        // Settings-table rows carry their default in words at the end of their help.
-        const std::size_t tail = what.rfind(" [default: ");
-        if (tail != std::string::npos && what.back() == ']') {
-            fallback = what.substr(tail + 11, what.size() - tail - 12);
-            what.resize(tail);
-        }
-        if (fallback == "[]") fallback.clear();
-        // The value's name, without CLI11's description of its range check ("N:INT in [0 - 4096]").
-        std::string value = o->get_type_name().substr(0, o->get_type_name().find(':'));
-        if (o->get_expected_min() == 0) value.clear();  // a flag
-        const std::string def = o->get_required() ? "required" : fallback.empty() ? "" : "`" + fallback + "`";
-        out += "| `" + cell(names) + "` | " + cell(value) + " | " + cell(def) + " | " + cell(what) + " |\n";
-    }
-    out += "\n";
-    for (const CLI::App* nested : sub.get_subcommands([](const CLI::App*) { return true; }))
-        markdown_options(*nested, path + " " + nested->get_name(), out);
-}
-
-// Every subcommand and option of `app` as Markdown (`lsnif --help-markdown`): the table of
-// README.md "Every command and option", checked against the README by a test.
-std::string markdown_reference(const CLI::App& app) {
-    std::string out;
-    for (const CLI::App* sub : app.get_subcommands([](const CLI::App*) { return true; }))
-        markdown_options(*sub, "lsnif " + sub->get_name(), out);
-    return out;
-}
-
 }  // namespace
 
 int main(int argc, char** argv) {
@@ -784,8 +742,17 @@ int main(int argc, char** argv) {
     merge.add_to(app);
     eval.add_to(app);
     bench.add_to(app);
+    // The command line described from itself (cli_docs.hpp): README tables, man page, completion.
     if (argc == 2 && std::string(argv[1]) == "--help-markdown") {
-        std::cout << markdown_reference(app);
+        std::cout << lsnif::converter::markdown_reference(app);
+        return 0;
+    }
+    if (argc == 2 && std::string(argv[1]) == "--help-man") {
+        std::cout << lsnif::converter::man_page(app, lsnif::converter::tool_identity().version);
+        return 0;
+    }
+    if (argc == 2 && std::string(argv[1]) == "--completion-bash") {
+        std::cout << lsnif::converter::bash_completion(app);
         return 0;
     }
     try {
