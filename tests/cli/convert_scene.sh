@@ -28,7 +28,7 @@ python3 -c "import json,sys; d=json.load(open(sys.argv[1])); assert d['valid'] a
 # The page in a real browser: the page's own load check (scripts/scene_report) marks <body>.
 page="file://$work/out/report.html"
 chrome=("$browser" --headless --no-sandbox --disable-gpu --hide-scrollbars --user-data-dir="$work/chrome")
-"${chrome[@]}" --dump-dom "$page" >"$work/dom.html" 2>"$work/chrome.err" || bad "chromium exited $?"
+"${chrome[@]}" --window-size=1300,2200 --dump-dom "$page" >"$work/dom.html" 2>"$work/chrome.err" || bad "chromium exited $?"
 body=$(grep -o '<body[^>]*>' "$work/dom.html")
 [[ $body =~ data-images=\"ok\ ([0-9]+)\" ]] || bad "images not all loaded: $body"
 images=${BASH_REMATCH[1]:-0}
@@ -58,6 +58,10 @@ assert {o["name"] for o in objects} == shipped, (objects, shipped)
 assert all(f'alt="{n} view 0 hybrid"' in page for n in shipped)
 # The scene's own name in the title, not a build path.
 assert "<title>lsnif: example_scene.glb</title>" in page, re.search("<title>.*</title>", page)
+# Each converted object large enough to see: its close-ups at least 240 CSS pixels wide as laid
+# out in a 1300-pixel window (the renders are 160 pixels wide, shown twice that).
+width = re.search(r'data-closeup-min-width="(\d+)"', page)
+assert width and int(width.group(1)) >= 240, width and width.group(0)
 PY
 "${chrome[@]}" --window-size=1300,2200 --screenshot="$work/report.png" "$page" >/dev/null 2>&1
 [[ -s $work/report.png ]] || bad "no screenshot"
