@@ -1,7 +1,7 @@
 // `lsnif bench train` and `lsnif bench infer`: throughput of the trainer and of the
 // reader's forward pass on the v1 default model, with the machine's sgemm rate (OpenBLAS)
 // measured in the same run as the yardstick. Absolute times on shared machines are noisy;
-// the ratios in one run are what BENCHMARKS.md records. `bench train` measures both MLP
+// the ratios in one run are what docs/investigations/ records. `bench train` measures both MLP
 // precisions (fp32, and bf16 on AMX when available) in alternating slices, so their ratio
 // sees the same machine load.
 #include <lsnif/analytic/spheres.hpp>

@@ -1,5 +1,5 @@
 // `lsnif bench memory|rays|convert`: a converted scene measured against Embree on the same
-// machine in the same run (docs/architecture.md §5 "Speed"; BENCHMARKS.md has the figures).
+// machine in the same run (docs/architecture.md §5 "Speed"; docs/investigations/ has the figures).
 #include <lsnif/lsnif.h>
 #include <lsnif/base/clock.hpp>
 #include <lsnif/converter/bench.hpp>

@@ -56,8 +56,8 @@ double surface_area(const scene::Mesh& m) {
 // header, table, occupancy and fp16 MLP uncompressed, 2 KiB of metadata, and the grid -
 // uncompressed for fp16 (zstd gains under 10 % on it), divided by kU8GridCompression for
 // 8 bits. Only a plan: the memory rule is checked again on the bytes actually chosen.
-// zstd compressed trained 8-bit grids 1.51-2.18x on the meshes of BENCHMARKS.md "Sizing to
-// the target"; the estimate assumes less.
+// zstd compressed trained 8-bit grids 1.51-2.18x on the meshes of docs/investigations/sizing.md
+// "Sizing to the target"; the estimate assumes less.
 constexpr double kU8GridCompression = 1.4;
 
 std::uint64_t lsnif_bytes_estimate(format::ModelDesc d, format::GridEncoding encoding) {

@@ -352,7 +352,7 @@ TEST_CASE("default preset meets the accuracy targets on CGAL's armadillo") {
 
 // A CAD-like assembly (BlendSwap's Peterbilt truck, CC0, 116,495 triangles in hundreds of
 // parts: thin panels, wheels, chrome trim) ships, but short of the default target
-// (BENCHMARKS.md "More real meshes"): the gate's figures with a margin over them, and the
+// (docs/investigations/real-meshes.md): the gate's figures with a margin over them, and the
 // shipped asset's walk and bf16 inference checked like the CGAL meshes'.
 TEST_CASE("default preset ships a truck assembly past the gate with a margin") {
     const fs::path file = furniture_mesh("blendswap-cc-0/peterbilt");

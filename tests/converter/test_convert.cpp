@@ -1,6 +1,6 @@
 // `lsnif convert` end to end on real data: CGAL's dragon and assimp's 2CylinderEngine.
 // Uses the "smoke" preset (small model, seconds of training) to exercise every stage; the
-// accuracy of the default preset is measured by scripts and recorded in BENCHMARKS.md.
+// accuracy of the default preset is measured by scripts and recorded in docs/investigations/.
 #include <doctest/doctest.h>
 #include "../test_data.hpp"
 
@@ -566,8 +566,8 @@ TEST_CASE("2CylinderEngine converts: all meshes and 67 instances in the manifest
     o.preset = "default";
     // The plan: its 7-11k-triangle parts would save 1.1-1.8x memory as fp16 assets, but 2x
     // and more in 8 bits, so some are candidates now. Converting them takes minutes and keeps
-    // them BVH (held-out visibility 94.4-94.8 %, below the gate: BENCHMARKS.md "Sizing to the
-    // target"), so this test forces every mesh simple after the plan.
+    // them BVH (held-out visibility 94.4-94.8 %, below the gate: docs/investigations/sizing.md
+    // "Sizing to the target"), so this test forces every mesh simple after the plan.
     o.dry_run = true;
     const ConvertResult plan = convert(o);
     REQUIRE_MESSAGE(plan.ok(), (plan.errors.empty() ? "" : plan.errors[0]));

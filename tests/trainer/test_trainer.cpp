@@ -390,7 +390,7 @@ void learn_spheres(MlpPrecision precision) {
     MESSAGE("pooled: vis " << m.pooled.visibility_accuracy << " dist med " << m.pooled.distance_median_pct
                            << "% normal med " << m.pooled.normal_median_deg << " deg, train " << r.seconds
                            << " s");
-    // Measured at this budget: 99.87%, 0.65%, 11.4 deg (BENCHMARKS.md); asserted with margin.
+    // Measured at this budget: 99.87%, 0.65%, 11.4 deg; asserted with margin.
     CHECK(m.pooled.visibility_accuracy >= 0.99);
     CHECK(m.pooled.distance_median_pct <= 1.0);
     CHECK(m.pooled.normal_median_deg <= 14.0);

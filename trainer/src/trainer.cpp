@@ -402,7 +402,7 @@ namespace {
 
 // Encodes rows 0..n-1 (n <= kSub) of the sub-chunk (w.pts) into w.x with the reader's
 // batch encoder, so training and reading share one encoder: encode_points' values bit for
-// bit (forward.hpp). Measured as fast as the per-ray loop it replaced (BENCHMARKS.md
+// bit (forward.hpp). Measured as fast as the per-ray loop it replaced (docs/investigations/grid-and-levels.md
 // "Coarse levels").
 void encode_rows(const Geometry& geo, const std::vector<format::GridView>& grid, std::size_t n, Work& w) {
     static const std::vector<std::uint32_t> identity = [] {

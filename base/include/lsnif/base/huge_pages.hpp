@@ -5,8 +5,8 @@
 // Why: the trainer's prepared rays (hundreds of MB, refilled every round of streamed rays
 // and read at random indices every step) cost one page fault per 4 KiB when first touched
 // and one TLB miss per random access. Debian's kernels default to THP "madvise", so
-// without the advice they never get huge pages. Measured in BENCHMARKS.md "Huge pages for
-// the prepared rays". Where the kernel refuses (THP "never", other systems) the advice is
+// without the advice they never get huge pages. Measured in docs/investigations/conversion-time.md
+// "Huge pages for the prepared rays". Where the kernel refuses (THP "never", other systems) the advice is
 // ignored and the memory behaves as before: results never depend on it.
 //
 // Contract: allocate/deallocate pair as for std::allocator; not for memory shared with C.

@@ -38,7 +38,7 @@ using samples::Family;
 using samples::Sample;
 using samples::SampleSource;
 
-// Defaults measured on the analytic spheres scene (BENCHMARKS.md "Loss weights"): raising
+// Defaults measured on the analytic spheres scene: raising
 // distance 1 -> 4 and normal 0.5 -> 1 cut the median distance error 1.96% -> 1.11% and the
 // normal error 17.4 -> 15.9 deg at equal steps, visibility unchanged (99.7%).
 struct LossWeights {
@@ -207,8 +207,8 @@ public:
     // The same appended to `out` (empty, or prepared by this trainer), in sample order, with
     // the trainer's scratch space reused: the form for rounds of streamed rays, which land
     // straight in the window of rounds instead of in a set of their own that is then copied
-    // (every buffer a round first touches costs page faults: BENCHMARKS.md "Huge pages for
-    // the prepared rays"). Not thread-safe with itself.
+    // (every buffer a round first touches costs page faults: docs/investigations/conversion-time.md
+    // "Huge pages for the prepared rays"). Not thread-safe with itself.
     void prepare_append(std::span<const Sample> samples, PreparedSet& out) const;
 
     // Trains cfg.steps steps on random batches (with replacement) from `samples`.
