@@ -1,4 +1,4 @@
-// Procedural "hard geometry" for LSNIF (issue 6, docs/failure-modes.md): shapes on which a
+// Procedural "hard geometry" for LSNIF (docs/failure-modes.md): shapes on which a
 // neural intersection function is known or expected to struggle, so the converter's gate
 // can be shown to catch them. Used by lsnif_make_example_scene --hard-case and by the tests.
 //

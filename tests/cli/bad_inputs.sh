@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# Bad input never crashes `lsnif convert` (issue 6): every file under assimp-testmodels'
+# Bad input never crashes `lsnif convert`: every file under assimp-testmodels'
 # glTF2/ and invalid/ folders, CGAL's degenerate, self-intersecting, holed and badly
 # oriented meshes, the import fuzz corpus (node cycles, Draco, missing buffers, NaN,
 # absurd counts, ... with the format byte stripped) and cases generated here (huge and tiny
