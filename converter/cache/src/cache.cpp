@@ -195,17 +195,7 @@ Result<void> Store::put(std::string_view key, const Entry& entry) const {
     if (entry.record.size() > kMaxEntrySize || entry.payload.size() > kMaxEntrySize)
         return Error{"cache entry " + std::string(key) + " is larger than " + std::to_string(kMaxEntrySize) +
                      " bytes"};
-    std::vector<std::uint8_t> bytes(kEntryHeaderSize);
-    std::memcpy(bytes.data(), kMagic, sizeof kMagic);
-    put_u64(bytes.data() + 8, entry.record.size());
-    put_u64(bytes.data() + 16, entry.payload.size());
-    std::memcpy(bytes.data() + 56, key.data(), 64);
-    const std::span<const std::uint8_t> record(reinterpret_cast<const std::uint8_t*>(entry.record.data()),
-                                               entry.record.size());
-    const auto sum = entry_checksum(key, bytes.data() + 8, record, entry.payload);
-    std::memcpy(bytes.data() + 24, sum.data(), sum.size());
-    bytes.insert(bytes.end(), record.begin(), record.end());
-    bytes.insert(bytes.end(), entry.payload.begin(), entry.payload.end());
+    const std::vector<std::uint8_t> bytes = encode_entry(key, entry);
 
     const fs::path path = entry_path(key);
     std::error_code ec;
