@@ -85,7 +85,8 @@ void markdown_options(const CLI::App& sub, const std::string& path, std::string&
                cell(d.what) + " |\n";
     }
     out += "\n";
-    for (const CLI::App* nested : subcommands(sub)) markdown_options(*nested, path + " " + nested->get_name(), out);
+    for (const CLI::App* nested : subcommands(sub))
+        markdown_options(*nested, path + " " + nested->get_name(), out);
 }
 
 // ---- roff (man(7)) ----
@@ -123,7 +124,8 @@ void man_options(const CLI::App& sub, const std::string& path, std::string& out)
             out += " (default: " + roff(d.fallback) + ")";
         out += "\n";
     }
-    for (const CLI::App* nested : subcommands(sub)) man_options(*nested, path + " " + nested->get_name(), out);
+    for (const CLI::App* nested : subcommands(sub))
+        man_options(*nested, path + " " + nested->get_name(), out);
 }
 
 // ---- bash ----
@@ -144,7 +146,8 @@ bool names_a_path(const std::string& value) {
 bool is_choice_list(const std::string& value) {
     if (value.find('|') == std::string::npos) return false;
     for (char c : value)
-        if (!(std::islower(static_cast<unsigned char>(c)) || std::isdigit(static_cast<unsigned char>(c)) || c == '|'))
+        if (!(std::islower(static_cast<unsigned char>(c)) || std::isdigit(static_cast<unsigned char>(c)) ||
+              c == '|'))
             return false;
     return true;
 }
@@ -176,7 +179,8 @@ void bash_arms(const CLI::App& sub, const std::string& path, std::string& out) {
     out += "            if [[ $cur == -* ]]; then\n                COMPREPLY=($(compgen -W " + quoted(words) +
            " -- \"$cur\"))\n";
     if (!nested.empty())
-        out += "            else\n                COMPREPLY=($(compgen -W " + quoted(nested) + " -- \"$cur\"))\n";
+        out += "            else\n                COMPREPLY=($(compgen -W " + quoted(nested) +
+               " -- \"$cur\"))\n";
     else
         out += "            else\n                COMPREPLY=($(compgen -f -- \"$cur\"))\n";
     out += "            fi ;;\n";
@@ -206,42 +210,50 @@ std::string man_page(const CLI::App& app, const std::string& version) {
     for (const CLI::App* sub : subcommands(app)) names.push_back(sub->get_name());
     std::string out;
     out += ".TH LSNIF 1 \"\" \"lsnif " + roff(version) + "\" \"User Commands\"\n";
-    out += ".SH NAME\nlsnif \\- " + roff(app.get_description().substr(app.get_description().find(": ") + 2)) + "\n";
-    out += ".SH SYNOPSIS\n.B lsnif\n\\fICOMMAND\\fR [\\fIOPTIONS\\fR] [\\fIINPUTS\\fR]\n.br\n.B lsnif\n"
-           "[\\fB\\-\\-version\\fR | \\fB\\-\\-help\\fR | \\fB\\-\\-help\\-markdown\\fR | "
-           "\\fB\\-\\-help\\-man\\fR | \\fB\\-\\-completion\\-bash\\fR]\n"
-           ".PP\n\\fICOMMAND\\fR is one of " + roff(joined(names, ", ")) + ".\n";
-    out += ".SH DESCRIPTION\n"
-           "LSNIF assets are small neural networks that stand in for the bottom-level BVH of "
-           "geometrically complex objects: a renderer traces secondary rays against them at a "
-           "fraction of the memory.\n"
-           ".B lsnif convert\nturns a scene (glTF, OBJ, PLY, STL, OFF) into assets, a manifest and a report;\n"
-           ".B lsnif batch\nconverts an asset library with a shared cache, in shards or one task per object;\n"
-           ".B lsnif eval\nrenders a converted scene against Embree and measures the difference;\n"
-           ".B lsnif inspect\nand\n.B lsnif validate\nread and check single assets;\n"
-           ".B lsnif bench\nmeasures training, inference, memory and ray throughput.\n"
-           "Every option below is also listed by\n.BR \"lsnif COMMAND \\-\\-help\" .\n";
+    out += ".SH NAME\nlsnif \\- " + roff(app.get_description().substr(app.get_description().find(": ") + 2)) +
+           "\n";
+    out +=
+        ".SH SYNOPSIS\n.B lsnif\n\\fICOMMAND\\fR [\\fIOPTIONS\\fR] [\\fIINPUTS\\fR]\n.br\n.B lsnif\n"
+        "[\\fB\\-\\-version\\fR | \\fB\\-\\-help\\fR | \\fB\\-\\-help\\-markdown\\fR | "
+        "\\fB\\-\\-help\\-man\\fR | \\fB\\-\\-completion\\-bash\\fR]\n"
+        ".PP\n\\fICOMMAND\\fR is one of " +
+        roff(joined(names, ", ")) + ".\n";
+    out +=
+        ".SH DESCRIPTION\n"
+        "LSNIF assets are small neural networks that stand in for the bottom-level BVH of "
+        "geometrically complex objects: a renderer traces secondary rays against them at a "
+        "fraction of the memory.\n"
+        ".B lsnif convert\nturns a scene (glTF, OBJ, PLY, STL, OFF) into assets, a manifest and a report;\n"
+        ".B lsnif batch\nconverts an asset library with a shared cache, in shards or one task per object;\n"
+        ".B lsnif eval\nrenders a converted scene against Embree and measures the difference;\n"
+        ".B lsnif inspect\nand\n.B lsnif validate\nread and check single assets;\n"
+        ".B lsnif bench\nmeasures training, inference, memory and ray throughput.\n"
+        "Every option below is also listed by\n.BR \"lsnif COMMAND \\-\\-help\" .\n";
     out += ".SH COMMANDS\n";
     for (const CLI::App* sub : subcommands(app)) man_options(*sub, "lsnif " + sub->get_name(), out);
-    out += ".SH EXIT STATUS\n"
-           ".TP\n.B 0\nSuccess: every asset converted, or rightly kept as a BVH.\n"
-           ".TP\n.B 1\nAn input or an asset failed; the others were still converted.\n"
-           ".TP\n.B 2\nUsage: a bad or missing option, or a setting no conversion can meet.\n";
-    out += ".SH ENVIRONMENT\n"
-           ".TP\n.B LSNIF_CACHE_TOKEN\nThe bearer token sent to a cache server given with "
-           "\\fB\\-\\-cache\\fR \\fIURL\\fR (never on the command line, where other users see it).\n"
-           ".TP\n.B LSNIF_ISA\nCaps the instruction sets the kernels may use: generic, avx2, avx512, "
-           "avx512bf16 or amx.\n";
-    out += ".SH FILES\n"
-           ".TP\n.I OUT/manifest.json\nWhat each object became and why (schema lsnif\\-manifest).\n"
-           ".TP\n.I OUT/*.lsnif\nThe assets, named by their content; a renderer's reader opens them.\n"
-           ".TP\n.I OUT/scene.gltf\nThe scene again, each converted mesh replaced by a reference to "
-           "its asset.\n"
-           ".TP\n.I OUT/report.html\nThe report \\fBscripts/convert\\-scene\\fR writes: objects, "
-           "accuracy, memory, renders and close\\-ups.\n";
-    out += ".SH SEE ALSO\n"
-           "The project's README.md, docs/pipeline.md (batch conversion, caches, schedulers) and "
-           "docs/model.md (what an asset is and how it is accepted).\n";
+    out +=
+        ".SH EXIT STATUS\n"
+        ".TP\n.B 0\nSuccess: every asset converted, or rightly kept as a BVH.\n"
+        ".TP\n.B 1\nAn input or an asset failed; the others were still converted.\n"
+        ".TP\n.B 2\nUsage: a bad or missing option, or a setting no conversion can meet.\n";
+    out +=
+        ".SH ENVIRONMENT\n"
+        ".TP\n.B LSNIF_CACHE_TOKEN\nThe bearer token sent to a cache server given with "
+        "\\fB\\-\\-cache\\fR \\fIURL\\fR (never on the command line, where other users see it).\n"
+        ".TP\n.B LSNIF_ISA\nCaps the instruction sets the kernels may use: generic, avx2, avx512, "
+        "avx512bf16 or amx.\n";
+    out +=
+        ".SH FILES\n"
+        ".TP\n.I OUT/manifest.json\nWhat each object became and why (schema lsnif\\-manifest).\n"
+        ".TP\n.I OUT/*.lsnif\nThe assets, named by their content; a renderer's reader opens them.\n"
+        ".TP\n.I OUT/scene.gltf\nThe scene again, each converted mesh replaced by a reference to "
+        "its asset.\n"
+        ".TP\n.I OUT/report.html\nThe report \\fBscripts/convert\\-scene\\fR writes: objects, "
+        "accuracy, memory, renders and close\\-ups.\n";
+    out +=
+        ".SH SEE ALSO\n"
+        "The project's README.md, docs/pipeline.md (batch conversion, caches, schedulers) and "
+        "docs/model.md (what an asset is and how it is accepted).\n";
     return out;
 }
 
@@ -258,16 +270,18 @@ std::string bash_completion(const CLI::App& app) {
         "        word=${COMP_WORDS[i]}\n"
         "        case \"$path/$word\" in\n";
     bash_paths(app, "", out);
-    out += "        esac\n"
-           "    done\n"
-           "    case \"$path\" in\n"
-           "        '')\n"
-           "            COMPREPLY=($(compgen -W " +
-           quoted(top) + " -- \"$cur\")) ;;\n";
+    out +=
+        "        esac\n"
+        "    done\n"
+        "    case \"$path\" in\n"
+        "        '')\n"
+        "            COMPREPLY=($(compgen -W " +
+        quoted(top) + " -- \"$cur\")) ;;\n";
     for (const CLI::App* sub : subcommands(app)) bash_arms(*sub, sub->get_name(), out);
-    out += "    esac\n"
-           "}\n"
-           "complete -o filenames -F _lsnif lsnif\n";
+    out +=
+        "    esac\n"
+        "}\n"
+        "complete -o filenames -F _lsnif lsnif\n";
     return out;
 }
 
