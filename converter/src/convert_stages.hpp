@@ -229,9 +229,8 @@ std::string option_summary(const Option& o);
 // The occupancy grid of `c` at twice desc's resolution for a finer-grid rung (desc updated),
 // the reason (finer_grid_reason's `why`) appended to out's reasons; nothing when it cannot be
 // built.
-std::optional<voxelize::Occupancy> refine_grid(const Run& run, const scene::Mesh& mesh, const Candidate& c,
-                                               format::ModelDesc& desc, const std::string& why,
-                                               MeshOutcome& out);
+std::optional<voxelize::Occupancy> refine_grid(const Run& run, const Candidate& c, format::ModelDesc& desc,
+                                               const std::string& why, MeshOutcome& out);
 
 // The ladder (Sizing): trains c.desc, then each smaller table size while the previous one
 // met the target and the preset's step budget has at least as many steps left as it used.

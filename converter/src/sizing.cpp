@@ -327,9 +327,8 @@ Option measure_option(const Run& run, const scene::Mesh& mesh, const Candidate& 
 
 // The occupancy grid at twice desc's resolution (desc updated), recording why in `out`'s
 // reasons; nothing when it cannot be built.
-std::optional<voxelize::Occupancy> refine_grid(const Run& run, const scene::Mesh& mesh, const Candidate& c,
-                                               format::ModelDesc& desc, const std::string& why,
-                                               MeshOutcome& out) {
+std::optional<voxelize::Occupancy> refine_grid(const Run& run, const Candidate& c, format::ModelDesc& desc,
+                                               const std::string& why, MeshOutcome& out) {
     const auto t0 = Clock::now();
     voxelize::Options vopt;
     vopt.threads = run.threads;
@@ -356,7 +355,7 @@ Sized size_to_target(const Run& run, const scene::Mesh& mesh, Candidate& c, cons
         Trained trained = train_rung(run, mesh, c, desc, finer ? *finer : occ, rays, budget, larger, out);
         if (!trained.finer_grid.empty()) {
             // The first size at this grid cannot reach the target: start again, twice as fine.
-            if (auto g = refine_grid(run, mesh, c, desc, trained.finer_grid, out)) {
+            if (auto g = refine_grid(run, c, desc, trained.finer_grid, out)) {
                 finer = std::move(*g);
                 continue;
             }
