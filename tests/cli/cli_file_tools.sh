@@ -39,7 +39,7 @@ out=$("$lsnif" inspect "$data/valid/v1_default.lsnif") || bad "inspect exit $?"
 for want in "format version 1.0" "GRID" "MLPW" "108 -> 128 -> 128 -> 5" "lsnif-metadata/1"; do
   grep -qF -- "$want" <<<"$out" || bad "inspect output lacks '$want'"
 done
-"$lsnif" inspect --json "$data/valid/v1_default.lsnif" | grep -q '"input_width": 108' || bad "inspect --json"
+grep -q '"input_width": 108' <<<"$("$lsnif" inspect --json "$data/valid/v1_default.lsnif")" || bad "inspect --json"
 "$lsnif" inspect "$data/invalid/table_checksum.lsnif" >/dev/null 2>&1; [[ $? == 1 ]] || bad "inspect of damaged file"
 
 # Truncations and header/table bit flips of a valid file, as processes (exit code 1, never

@@ -68,8 +68,8 @@ PY
 
 # A page that cannot load an image says so (the check itself can fail).
 sed 's/src="data:image\/png;base64,/src="data:image\/png;base64,AAAA/' "$work/out/report.html" >"$work/out/broken.html"
-"${chrome[@]}" --dump-dom "file://$work/out/broken.html" 2>/dev/null | grep -q 'data-images="missing: ' \
-  || bad "a page with broken images passed the check"
+"${chrome[@]}" --dump-dom "file://$work/out/broken.html" >"$work/broken.dom" 2>/dev/null || true
+grep -q 'data-images="missing: ' "$work/broken.dom" || bad "a page with broken images passed the check"
 
 # Bad input: a malformed scene fails with an error line; usage errors exit 2.
 printf 'OFF\n3 1 0\n0 0 0\n1 0 0\nnot a number\n3 0 1 2\n' >"$work/broken.off"

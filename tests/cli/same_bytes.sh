@@ -86,7 +86,7 @@ case $mode in
       "$root/machine/manifest.json")
     if [[ -z $(missing_for avx512bf16) ]]; then
       [[ $id == machine-bf16/* ]] || bad "--arithmetic machine on a bf16 CPU recorded '$id'"
-      "$lsnif" inspect "$root"/machine/*.lsnif | grep -q "\"arithmetic\": \"$id\"" || bad "the asset does not say $id"
+      grep -q "\"arithmetic\": \"$id\"" <<<"$("$lsnif" inspect "$root"/machine/*.lsnif)" || bad "the asset does not say $id"
       [[ $(ls "$root/machine.cache"/v1/entries/*/) != $(ls "$root/reference.cache"/v1/entries/*/) ]] ||
         bad "the machine arithmetic has the canonical cache key"
       cmp -s "$root"/machine/*.lsnif "$root"/reference/*.lsnif && bad "bf16 training wrote the canonical asset"
