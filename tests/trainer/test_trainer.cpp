@@ -10,6 +10,7 @@
 #include <lsnif/trainer/adam.hpp>
 #include <lsnif/trainer/trainer.hpp>
 
+#include <algorithm>
 #include <cmath>
 #include <cstring>
 #include <memory>
@@ -222,6 +223,46 @@ TEST_CASE("the chord normal loss is sqrt(2 (1 - cos) + eps^2) - eps of the cosin
         if (++checked == 20) break;
     }
     CHECK(checked == 20);
+}
+
+TEST_CASE("a normal pointing away from its target still gets a gradient toward it, for both loss shapes") {
+    // A loss of the angle alone is flat along the output's own direction and its tangential
+    // gradient vanishes at the antipode: without the hinge both components below are 0.
+    const format::ModelDesc d = small_desc();
+    SpheresSource src = two_spheres(d);
+    std::vector<Sample> raw;
+    src.generate(5, 400, raw);
+    for (const NormalLoss kind : {NormalLoss::cosine, NormalLoss::chord}) {
+        CAPTURE(int(kind));
+        TrainConfig cfg;
+        cfg.threads = 1;
+        cfg.seed = 9;
+        cfg.mlp_precision = MlpPrecision::fp32;
+        cfg.normal_loss = kind;
+        cfg.loss = {0.f, 0.f, 1.f, 0.f};  // the normal term alone
+        Trainer tr(d, src.occupancy(d), cfg);
+        const auto batch = tr.reachable(raw);
+        const auto hit = std::find_if(batch.begin(), batch.end(), [](const Sample& s) { return s.hit != 0; });
+        REQUIRE(hit != batch.end());
+        const Sample s = *hit;
+        // The output layer answers -t for every input: zero weights, bias -t.
+        const std::size_t last = tr.weights().size() - 1;
+        std::fill(tr.weights()[last].begin(), tr.weights()[last].end(), 0.0f);
+        for (int a = 0; a < 3; ++a) tr.biases()[last][format::OutputLayout::normal + a] = -s.normal[a];
+        Gradients g;
+        const double loss = tr.loss_and_gradients(std::span(&s, 1), &g).normal;
+        CHECK(loss > 1.0);             // the shape's maximum plus the hinge
+        double along = 0, across = 0;  // the bias gradient along t, and its size across t
+        for (int a = 0; a < 3; ++a) along += g.biases[last][format::OutputLayout::normal + a] * s.normal[a];
+        for (int a = 0; a < 3; ++a) {
+            const double r = g.biases[last][format::OutputLayout::normal + a] - along * s.normal[a];
+            across += r * r;
+        }
+        // Descent moves the bias along +t (the gradient points along -t), with the hinge's full
+        // slope: weight 1 times the one sample.
+        CHECK(along == doctest::Approx(-1.0).epsilon(1e-3));
+        CHECK(std::sqrt(across) < 1e-3);
+    }
 }
 
 TEST_CASE("loss and every gradient are the same bit for bit for any thread count, and cleared after use") {

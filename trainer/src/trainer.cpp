@@ -663,7 +663,18 @@ void distance_loss(const Geometry& geo, const Sample& s, const RayPoints& p, con
 
 // Normal: a function of c = cos(angle) between the raw output and the unit target normal
 // (NormalLoss): 1 - c, or the smoothed chord q - ε with q = sqrt(2 (1 - c) + ε²), whose
-// derivative in c is -1/q.
+// derivative in c is -1/q; plus the hinge max(0, -n·t) on the raw output n, quadratic below
+// kNormalHingeKnee so that the loss stays smooth where c crosses 0.
+//
+// Why the hinge: a function of c alone does not change when the output is scaled, so its
+// gradient is tangent to the sphere and vanishes at c = -1. On a thin part (a closed
+// object 1/500 as thick as wide) the rays that hit either side pass through the same
+// cells; a network that first learns one orientation for both sides then sits at c = -1 on
+// half of them and never flips (docs/model.md "The normal loss"). The hinge's gradient,
+// -t, does not depend on n: it shrinks a wrong-hemisphere output toward the origin and
+// out the target's side, and is zero once c >= 0, so it leaves the shape's behaviour on
+// well-oriented predictions alone.
+constexpr float kNormalHingeKnee = 0.05f;  // the hinge is quadratic below this (smooth at c = 0)
 void normal_loss(const Sample& s, const float* o, const LossScale& k, LossParts& loss, float* g) {
     const float* n = o + OutputLayout::normal;
     const float len = std::sqrt(n[0] * n[0] + n[1] * n[1] + n[2] * n[2]) + 1e-12f;
@@ -680,6 +691,14 @@ void normal_loss(const Sample& s, const float* o, const LossScale& k, LossParts&
     for (int a = 0; a < 3; ++a)
         g[OutputLayout::normal + a] =
             -dc * k.weight.normal * k.inv_h * (s.normal[a] / len - c * n[a] / (len * len));
+    const float x = -c * len;  // -n·t: how far the raw output reaches into the wrong hemisphere
+    if (x > 0.0f) {
+        const float delta = kNormalHingeKnee;
+        const float slope = std::min(x / delta, 1.0f);
+        loss.normal += double(x < delta ? 0.5f * x * x / delta : x - 0.5f * delta) * k.inv_h;
+        for (int a = 0; a < 3; ++a)
+            g[OutputLayout::normal + a] -= slope * k.weight.normal * k.inv_h * s.normal[a];
+    }
 }
 
 // Material: softmax cross-entropy over the material logits (materials > 0).

@@ -57,6 +57,11 @@ struct LossWeights {
 //           hit pulls as hard as the outliers. The metric users read is the median angle;
 //           on CGAL's dragon and armadillo this shape lowers it by 1-2 degrees at equal
 //           visibility and steps (docs/model.md "The normal loss").
+// Both shapes see only the direction of the output, so their gradient vanishes where it
+// points exactly away from the target; either is summed with the hinge max(0, -n·t) on the
+// raw output n (smoothed below 0.05), which pulls a wrong-hemisphere prediction toward the
+// target through the origin and is zero wherever the prediction is in the target's
+// hemisphere.
 enum class NormalLoss : std::uint8_t { cosine, chord };
 
 // Arithmetic of the MLP matrix products inside training steps (loss_and_gradients: forward
