@@ -163,7 +163,10 @@ std::unique_ptr<sampling::EmbreeSource> make_source(const Object& o, std::uint32
 json bench_memory(const SceneBenchOptions& opt, std::string& error) {
     Loaded l;
     if (!load_objects(opt, l, error)) return {};
-    RTCDevice device = rtcNewDevice(nullptr);
+    // One thread, as the sources' own devices: Embree's thread count is process-wide, so a
+    // device with every core here would make the sources' BVH builds multi-threaded too, and
+    // their byte counts would change from run to run (per-thread allocation blocks).
+    RTCDevice device = rtcNewDevice("threads=1");
     json objects = json::array();
     std::uint64_t total_lsnif = 0, total_bvh = 0, total_bvh8 = 0;
     for (const Object& o : l.objects) {
