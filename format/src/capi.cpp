@@ -3,6 +3,7 @@
 #include <lsnif/base/affine.hpp>
 #include <lsnif/format/container.hpp>
 
+#include "heap_bytes.hpp"
 #include "model_impl.hpp"
 
 #include <algorithm>
@@ -41,6 +42,17 @@ lsnif_status guarded(lsnif_error* err, F&& f) {
     }
 }
 
+// Every byte the handle holds: the handle itself and each array it owns, at its allocated
+// size (tests/format/test_resident.cpp counts the allocations).
+std::uint64_t resident_bytes(const lsnif_model& model) {
+    using lsnif::format::detail::heap_bytes;
+    const auto& m = model.data;
+    return sizeof(lsnif_model) + heap_bytes(m.desc.level_resolution) + heap_bytes(m.desc.hidden_width) +
+           heap_bytes(m.metadata_json) + heap_bytes(m.occupancy) + heap_bytes(m.grid) +
+           heap_bytes(m.grid_u8) + heap_bytes(m.grid_affine) + heap_bytes(m.weights) + heap_bytes(m.biases) +
+           model.runtime.heap_bytes();
+}
+
 lsnif_status open_bytes(std::span<const std::uint8_t> bytes, lsnif_model** out, lsnif_error* error) {
     auto m = lsnif::format::read_model(bytes);
     if (!m) {
@@ -49,15 +61,28 @@ lsnif_status open_bytes(std::span<const std::uint8_t> bytes, lsnif_model** out, 
     }
     auto* model = new (std::nothrow) lsnif_model{};
     if (!model) return fail(error, LSNIF_ERR_OUT_OF_MEMORY, "out of memory");
-    model->data = std::move(m.value());
     model->file_size = bytes.size();
-    model->runtime = lsnif::format::make_runtime(model->data, lsnif::format::best_mlp_arithmetic());
+    // The runtime takes the occupancy and the feature tables; the handle keeps the rest of
+    // the model (descriptor, metadata, fp16 weights for lsnif_get_array).
+    model->runtime = lsnif::format::make_runtime(std::move(m.value()), lsnif::format::best_mlp_arithmetic());
+    model->data = std::move(m.value());
     *out = model;
     fill_error(error, Error{});
     return LSNIF_OK;
 }
 
 }  // namespace
+
+namespace lsnif::format {
+
+std::uint64_t resident_bytes(const ModelData& model) {
+    lsnif_model handle;
+    handle.data = model;
+    handle.runtime = make_runtime(std::move(handle.data), MlpArithmetic::fp32);
+    return ::resident_bytes(handle);
+}
+
+}  // namespace lsnif::format
 
 extern "C" {
 
@@ -172,16 +197,11 @@ lsnif_status lsnif_get_info(const lsnif_model* model, lsnif_info* out) {
     info.grid_encoding = std::uint32_t(d.grid_encoding);
     info.parameter_count = d.parameter_count();
     std::uint64_t occupied = 0;
-    for (std::uint8_t byte : model->data.occupancy) occupied += std::uint64_t(__builtin_popcount(byte));
+    for (std::uint8_t byte : model->runtime.occupancy.bits)
+        occupied += std::uint64_t(__builtin_popcount(byte));
     info.occupied_voxels = occupied;
     info.file_size = model->file_size;
-    // The arrays as stored (a quantized grid stays u8) plus the runtime's copies: padded
-    // feature tables in the same element type and the fp32 network.
-    std::uint64_t runtime_bytes = model->runtime.grid_bytes();
-    for (const auto& w : model->runtime.net.wt) runtime_bytes += w.size() * 4;
-    const std::uint64_t mlp_values = d.parameter_count() - d.grid_value_count();
-    info.decoded_bytes = model->data.occupancy.size() * 2 + d.grid_raw_size() + mlp_values * 2 +
-                         model->data.metadata_json.size() + runtime_bytes;
+    info.decoded_bytes = resident_bytes(*model);
     *out = info;
     return LSNIF_OK;
 }
@@ -203,26 +223,28 @@ lsnif_status lsnif_get_array(const lsnif_model* model, lsnif_array_kind kind, ui
                              lsnif_array* out) {
     if (!model || !out) return LSNIF_ERR_INVALID_ARGUMENT;
     const auto& m = model->data;
+    const auto& rt = model->runtime;
     const auto& d = m.desc;
     lsnif_array a{};
     switch (kind) {
         case LSNIF_ARRAY_OCCUPANCY:
             if (index != 0) return LSNIF_ERR_INVALID_ARGUMENT;
-            a.data = m.occupancy.data();
-            a.bytes = m.occupancy.size();
+            a.data = rt.occupancy.bits.data();
+            a.bytes = rt.occupancy.bits.size();
             a.dtype = LSNIF_DTYPE_BITS;
             a.rank = 3;
             a.dims[0] = a.dims[1] = a.dims[2] = d.grid_resolution;
             break;
         case LSNIF_ARRAY_GRID_LEVEL:
             if (index >= d.level_count()) return LSNIF_ERR_INVALID_ARGUMENT;
+            // The runtime's tables: the stored array, then a tail pad outside `bytes`.
             if (d.grid_encoding == lsnif::format::GridEncoding::u8_affine) {
-                a.data = m.grid_u8[index].data();
-                a.bytes = m.grid_u8[index].size();
+                a.data = rt.grid_u8[index].data();
+                a.bytes = d.level_entries(index) * d.features_per_level;
                 a.dtype = LSNIF_DTYPE_UINT8;
             } else {
-                a.data = m.grid[index].data();
-                a.bytes = m.grid[index].size() * 2;
+                a.data = rt.grid[index].data();
+                a.bytes = d.level_entries(index) * d.features_per_level * 2;
                 a.dtype = LSNIF_DTYPE_FLOAT16;
             }
             a.rank = 2;
@@ -233,7 +255,7 @@ lsnif_status lsnif_get_array(const lsnif_model* model, lsnif_array_kind kind, ui
             // Only quantized grids have a dequantization pair (FORMAT.md §6.4.1).
             if (index >= d.level_count() || d.grid_encoding != lsnif::format::GridEncoding::u8_affine)
                 return LSNIF_ERR_INVALID_ARGUMENT;
-            a.data = &m.grid_affine[index];  // {scale, offset}: LevelAffine is two packed floats
+            a.data = &rt.grid_affine[index];  // {scale, offset}: LevelAffine is two packed floats
             a.bytes = 2 * sizeof(float);
             a.dtype = LSNIF_DTYPE_FLOAT32;
             a.rank = 1;
@@ -361,6 +383,8 @@ lsnif_status lsnif_set_arithmetic(lsnif_model* model, lsnif_arithmetic requested
         default: return LSNIF_ERR_INVALID_ARGUMENT;
     }
     return guarded(nullptr, [&] {
+        // A reduced network no longer holds the fp32 weights to repack: start from the model's.
+        model->runtime.net = lsnif::format::make_network(model->data);
         lsnif::format::set_mlp_arithmetic(model->runtime.net, want);
         if (in_use) *in_use = lsnif_get_arithmetic(model);
         return LSNIF_OK;

@@ -1121,7 +1121,10 @@ Error read_grid(std::span<const std::uint8_t> bytes, const Structure& s, ModelDa
     std::vector<std::uint8_t> buf;
     if (Error e = read_section(bytes, *find_entry(s, kTagGrid), buf)) return e;
     std::size_t at = 0;
+    // Exact capacities: what a handle holds is counted at the size allocated (lsnif_info).
     if (d.grid_encoding == GridEncoding::u8_affine) {
+        m.grid_affine.reserve(d.level_count());
+        m.grid_u8.reserve(d.level_count());
         for (std::uint32_t l = 0; l < d.level_count(); ++l)
             m.grid_affine.push_back({load_f32(buf.data() + 8 * l), load_f32(buf.data() + 8 * l + 4)});
         at = 8 * std::size_t(d.level_count());
@@ -1131,6 +1134,7 @@ Error read_grid(std::span<const std::uint8_t> bytes, const Structure& s, ModelDa
             at += n;
         }
     } else {
+        m.grid.reserve(d.level_count());
         for (std::uint32_t l = 0; l < d.level_count(); ++l)
             m.grid.push_back(take_halves(buf, at, d.level_entries(l) * d.features_per_level));
     }
@@ -1143,6 +1147,8 @@ Error read_mlp(std::span<const std::uint8_t> bytes, const Structure& s, ModelDat
     std::vector<std::uint8_t> buf;
     if (Error e = read_section(bytes, *find_entry(s, kTagMlp), buf)) return e;
     std::size_t at = 0;
+    m.weights.reserve(m.desc.layer_count());
+    m.biases.reserve(m.desc.layer_count());
     for (std::uint32_t k = 0; k < m.desc.layer_count(); ++k) {
         const auto [o, i] = m.desc.layer_shape(k);
         m.weights.push_back(take_halves(buf, at, std::size_t(o) * i));

@@ -13,6 +13,7 @@
 #include <cstring>
 #include <limits>
 
+#include "heap_bytes.hpp"
 #include "x86.hpp"
 #if LSNIF_HAVE_X86
 #include "avx512_transpose.hpp"
@@ -371,14 +372,14 @@ template <GridElement E>
 LSNIF_AVX512 inline void load_features(const GridView& g, __m512i off, __mmask16 k, std::uint32_t F,
                                        __m512 (&v)[4]) {
     const __m512i zero = _mm512_setzero_si512();
-    if constexpr (E == GridElement::u8) {  // one dword holds the row's features (stride >= 4)
+    if constexpr (E == GridElement::u8) {  // one dword from the entry: its features, then what follows
         const __m512i q = _mm512_mask_i32gather_epi32(zero, k, off, g.data, 1);
         const __m512i byte = _mm512_set1_epi32(0xFF);
         for (std::uint32_t f = 0; f < F; ++f) {
             const __m512 x = _mm512_cvtepi32_ps(_mm512_and_si512(_mm512_srli_epi32(q, int(8 * f)), byte));
             v[f] = _mm512_fmadd_ps(x, _mm512_set1_ps(g.scale), _mm512_set1_ps(g.offset));
         }
-    } else if constexpr (E == GridElement::f16) {  // two dwords hold halves 0-1 and 2-3 (stride >= 4)
+    } else if constexpr (E == GridElement::f16) {  // two dwords from the entry: halves 0-1 and 2-3
         for (std::uint32_t f = 0; f < F; f += 2) {
             const __m512i h = _mm512_mask_i32gather_epi32(
                 zero, k, _mm512_add_epi32(off, _mm512_set1_epi32(int(f))), g.data, 2);
@@ -461,12 +462,10 @@ EncodeLevel16 encode_level16_for(std::uint32_t F, GridElement e) {
     return F == 3 ? encode_level16_of<3>(e) : encode_level16_of<0>(e);
 }
 
-// The vector encoder handles tables whose rows it can read with dword gathers.
-bool encode_batch_supported(const Geometry& geo, const GridView* grid) {
-    if (geo.F > 4) return false;
-    for (std::uint32_t l = 0; l < geo.L; ++l)
-        if (grid[l].element != GridElement::f32 && grid[l].stride < 4) return false;
-    return true;
+// The vector encoder reads an entry's features with dword gathers: up to 4 of them (GridView's
+// contract keeps 4 elements readable from every entry).
+bool encode_batch_supported(const Geometry& geo) {
+    return geo.F <= 4;
 }
 
 // A first point whose features another row's first point already gets: copied after
@@ -573,7 +572,7 @@ void level_corners16(const Geometry& geo, const LevelInfo& lv, const float* x, c
 void encode_batch(const Geometry& geo, const GridView* grid, const RayPoints* pts,
                   std::span<const std::uint32_t> which, float* rows) {
 #if LSNIF_HAVE_X86
-    if (cpu_features().avx512 && encode_batch_supported(geo, grid) &&
+    if (cpu_features().avx512 && encode_batch_supported(geo) &&
         which.size() * geo.input_width <= std::size_t(std::numeric_limits<std::int32_t>::max()))
         return encode_batch_avx512(geo, grid, pts, which, rows);
 #endif
@@ -861,14 +860,23 @@ bool int8_fits(const Network& net) {
 
 }  // namespace
 
+namespace {
+
+// The hidden layers' fp32 W^T, which neither reduced arithmetic reads once packed.
+void release_hidden_fp32(Network& net) {
+    for (std::size_t k = 0; k + 1 < net.wt.size(); ++k) std::vector<float>().swap(net.wt[k]);
+}
+
+}  // namespace
+
 MlpArithmetic set_mlp_arithmetic(Network& net, MlpArithmetic a) {
-    net.wt_vnni.clear();
-    net.wt_int8.clear();
     if (net.wt.empty()) return MlpArithmetic::fp32;
+    if (mlp_arithmetic(net) != MlpArithmetic::fp32) return mlp_arithmetic(net);
     if (a == MlpArithmetic::int8 && cpu_features().avx512_vnni && int8_fits(net)) {
         // The first layer's inputs (encoded features) may be negative; later ones are ReLU outputs.
         for (std::size_t k = 0; k + 1 < net.wt.size(); ++k)
             net.wt_int8.push_back(make_int8_layer(net.wt[k].data(), net.in[k], net.out_padded[k], k == 0));
+        release_hidden_fp32(net);
         return MlpArithmetic::int8;
     }
     if (a == MlpArithmetic::fp32 || !cpu_features().avx512_bf16) return MlpArithmetic::fp32;
@@ -877,6 +885,7 @@ MlpArithmetic set_mlp_arithmetic(Network& net, MlpArithmetic a) {
         net.wt_vnni.emplace_back(round_up(in, 32) * op);
         pack_vnni(net.wt[k].data(), in, op, op, net.wt_vnni.back().data(), 2 * op, round_up(in, 32));
     }
+    release_hidden_fp32(net);
     return MlpArithmetic::bf16;
 }
 
@@ -977,23 +986,41 @@ Hit decode_output(const Geometry& geo, const RayPoints& pts, const Ray& ray, con
 // ---- the whole pass ------------------------------------------------------------------------
 
 Runtime make_runtime(const ModelData& m, MlpArithmetic arithmetic) {
+    ModelData copy = m;
+    return make_runtime(std::move(copy), arithmetic);
+}
+
+namespace {
+
+// A stored table with its tail pad (grid_tail_pad) appended, held in an allocation of
+// exactly that size.
+template <class T>
+std::vector<T> padded_table(std::vector<T>&& stored, std::uint32_t F) {
+    const std::size_t pad = grid_tail_pad(F);
+    if (stored.capacity() == stored.size() + pad) {
+        stored.resize(stored.size() + pad, T(0));
+        return std::move(stored);
+    }
+    std::vector<T> out;
+    out.reserve(stored.size() + pad);
+    out.assign(stored.begin(), stored.end());
+    out.resize(stored.size() + pad, T(0));
+    std::vector<T>().swap(stored);
+    return out;
+}
+
+}  // namespace
+
+Runtime make_runtime(ModelData&& m, MlpArithmetic arithmetic) {
     Runtime rt;
     rt.geo = make_geometry(m.desc);
-    rt.occupancy = OccupancyGrid(m.desc.grid_resolution, m.occupancy);
+    rt.occupancy = OccupancyGrid(m.desc.grid_resolution, std::move(m.occupancy));
     const std::uint32_t F = m.desc.features_per_level;
-    rt.grid_stride = (F + 3u) & ~3u;
-    // Both encodings keep their stored element type, padded to grid_stride per entry.
-    auto pad_levels = [&](const auto& levels, auto& out) {
-        for (const auto& level : levels) {
-            const std::size_t entries = level.size() / F;
-            out.emplace_back(entries * rt.grid_stride, 0);
-            for (std::size_t e = 0; e < entries; ++e)
-                for (std::uint32_t f = 0; f < F; ++f) out.back()[e * rt.grid_stride + f] = level[e * F + f];
-        }
-    };
-    pad_levels(m.grid, rt.grid);
-    pad_levels(m.grid_u8, rt.grid_u8);
-    rt.grid_affine = m.grid_affine;
+    for (auto& level : m.grid) rt.grid.push_back(padded_table(std::move(level), F));
+    for (auto& level : m.grid_u8) rt.grid_u8.push_back(padded_table(std::move(level), F));
+    decltype(m.grid)().swap(m.grid);
+    decltype(m.grid_u8)().swap(m.grid_u8);
+    rt.grid_affine.swap(m.grid_affine);
     rt.net = make_network(m);
     set_mlp_arithmetic(rt.net, arithmetic);
     return rt;
@@ -1001,17 +1028,20 @@ Runtime make_runtime(const ModelData& m, MlpArithmetic arithmetic) {
 
 std::vector<GridView> Runtime::grid_views() const {
     std::vector<GridView> v;
-    for (const auto& g : grid) v.push_back({g.data(), grid_stride, GridElement::f16});
+    for (const auto& g : grid) v.push_back({g.data(), geo.F, GridElement::f16});
     for (std::size_t l = 0; l < grid_u8.size(); ++l)
-        v.push_back(
-            {grid_u8[l].data(), grid_stride, GridElement::u8, grid_affine[l].scale, grid_affine[l].offset});
+        v.push_back({grid_u8[l].data(), geo.F, GridElement::u8, grid_affine[l].scale, grid_affine[l].offset});
     return v;
 }
 
-std::uint64_t Runtime::grid_bytes() const {
-    std::uint64_t n = 8 * std::uint64_t(grid_affine.size());
-    for (const auto& g : grid) n += 2 * std::uint64_t(g.size());
-    for (const auto& g : grid_u8) n += g.size();
+std::uint64_t Runtime::heap_bytes() const {
+    using detail::heap_bytes;
+    std::uint64_t n = heap_bytes(geo.levels) + heap_bytes(occupancy.bits) + heap_bytes(occupancy.nibbles) +
+                      heap_bytes(grid) + heap_bytes(grid_u8) + heap_bytes(grid_affine);
+    n += heap_bytes(net.in) + heap_bytes(net.out) + heap_bytes(net.out_padded) + heap_bytes(net.wt) +
+         heap_bytes(net.bias) + heap_bytes(net.wt_vnni) + heap_bytes(net.wt_int8);
+    for (const Int8Layer& l : net.wt_int8)
+        n += heap_bytes(l.b) + heap_bytes(l.scale) + heap_bytes(l.w_signed) + heap_bytes(l.quad_prefix);
     return n;
 }
 

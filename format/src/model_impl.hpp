@@ -7,5 +7,7 @@
 struct lsnif_model {
     lsnif::format::ModelData data;
     std::uint64_t file_size = 0;
-    lsnif::format::Runtime runtime;  // fp32 tables and network, built once at open
+    // Built once at open; owns the occupancy and the feature tables, which `data` no longer
+    // holds (make_runtime moved them).
+    lsnif::format::Runtime runtime;
 };

@@ -338,17 +338,22 @@ TEST_CASE(
             std::vector<std::vector<float>> f32(geo.L);
             std::vector<std::vector<std::uint16_t>> f16(geo.L);
             std::vector<std::vector<std::uint8_t>> u8(geo.L);
-            std::vector<GridView> f32_views, f16_views, u8_views;
+            // fp16 and u8 tables as Runtime keeps them (F per entry, then the tail pad) and
+            // with rows padded to 4 elements: the encoder reads both the same way.
+            std::vector<GridView> f32_views, f16_views, u8_views, f16_row4_views, u8_row4_views;
             for (std::uint32_t l = 0; l < geo.L; ++l) {
                 const std::size_t entries = d.level_entries(l);
                 for (std::size_t e = 0; e < entries * F; ++e) f32[l].push_back(value(rng));
                 for (std::size_t e = 0; e < entries * 4; ++e) f16[l].push_back(float_to_half(value(rng)));
                 for (std::size_t e = 0; e < entries * 4; ++e) u8[l].push_back(std::uint8_t(byte(rng)));
+                const float scale = 0.0123f * float(l + 1);
                 f32_views.push_back({f32[l].data(), F, GridElement::f32});
-                f16_views.push_back({f16[l].data(), 4, GridElement::f16});
-                u8_views.push_back({u8[l].data(), 4, GridElement::u8, 0.0123f * float(l + 1), -1.5f});
+                f16_views.push_back({f16[l].data(), F, GridElement::f16});
+                u8_views.push_back({u8[l].data(), F, GridElement::u8, scale, -1.5f});
+                f16_row4_views.push_back({f16[l].data(), 4, GridElement::f16});
+                u8_row4_views.push_back({u8[l].data(), 4, GridElement::u8, scale, -1.5f});
             }
-            for (const auto* views : {&f32_views, &f16_views, &u8_views})
+            for (const auto* views : {&f32_views, &f16_views, &u8_views, &f16_row4_views, &u8_row4_views})
                 for (const auto* batch : {&all, &some}) {
                     const std::vector<std::uint32_t>& which = *batch;
                     CAPTURE(F);

@@ -284,16 +284,16 @@ TEST_CASE("C API: quantized grid arrays, dequantization pairs, info") {
     REQUIRE(lsnif_get_array(m, LSNIF_ARRAY_GRID_LEVEL, 0, &a) == LSNIF_OK);
     CHECK(a.dtype == LSNIF_DTYPE_FLOAT16);
     CHECK(lsnif_get_array(m, LSNIF_ARRAY_GRID_DEQUANT, 0, &a) == LSNIF_ERR_INVALID_ARGUMENT);
-    // Same dimensions (tiny_desc: one level of 256 entries x F = 2). Stored grid: 2 bytes ->
-    // 1 per value, plus 8 per level; runtime copy (padded to 4 values per entry): 8 bytes ->
-    // 4 per entry, plus its own 8 per level. The metadata texts differ in length only.
+    // Same dimensions (tiny_desc: one level of 256 entries x F = 2). The grid is held once,
+    // as stored plus grid_tail_pad(F) elements: 2 bytes per value instead of 1, and no
+    // (scale, offset) pair (8 bytes). The metadata texts differ in length only.
     REQUIRE(info.level_count == 1);
     REQUIRE(info.features_per_level == 2);
     std::size_t fp16_meta = 0;
     lsnif_metadata(m, &fp16_meta);
-    const std::uint64_t entries = info.level_entries[0];
+    const std::uint64_t values = info.level_entries[0] * 2 + grid_tail_pad(2);
     CHECK(std::int64_t(info.decoded_bytes - u8_bytes) ==
-          std::int64_t(entries * 2 + entries * 4) - 16 + std::int64_t(fp16_meta) - std::int64_t(u8_meta));
+          std::int64_t(values) - 8 + std::int64_t(fp16_meta) - std::int64_t(u8_meta));
     lsnif_close(m);
 }
 

@@ -201,7 +201,11 @@ typedef struct lsnif_info {
     uint64_t parameter_count; /* hash-table features + MLP weights and biases */
     uint64_t occupied_voxels;
     uint64_t file_size;
-    uint64_t decoded_bytes; /* memory held by the handle for model arrays (u8 grids stay u8) */
+    /* Resident bytes: every byte the handle holds right now (the handle, the model's arrays
+     * as stored, the occupancy grid's block summary, the network in its runtime layout for
+     * the arithmetic in use), counted at the size allocated. What a renderer pays to keep
+     * the asset open; lsnif_set_arithmetic changes it (fp32 holds the most). */
+    uint64_t decoded_bytes;
 } lsnif_info;
 
 /* Opens a model from memory. The bytes are copied/decoded: `data` may be freed

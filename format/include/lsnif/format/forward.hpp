@@ -186,6 +186,9 @@ enum class GridElement : std::uint8_t {
 // levels stay in L2), u8 tables (a quarter) and fp32 tables (the trainer's master copy)
 // give identical results for identical values: fp16 -> fp32 is exact, the u8 value is
 // one correctly rounded fma, and the interpolation arithmetic is fp32 in all three.
+// fp16 and u8 tables must stay readable for 4 elements from the start of every entry
+// (grid_tail_pad(F) elements after the last one): the 16-lane encoder reads
+// an entry's features with dword gathers and ignores what lies past F.
 struct GridView {
     const void* data;
     std::uint32_t stride;  // elements per entry (>= F)
@@ -193,6 +196,11 @@ struct GridView {
     float scale = 0.0f;   // u8 only: the level's dequantization pair
     float offset = 0.0f;  // u8 only
 };
+// Zero elements a Runtime keeps after an fp16 or u8 table of F features per entry, so
+// that the last entry can be read as 4 elements (GridView).
+constexpr std::uint32_t grid_tail_pad(std::uint32_t F) {
+    return F < 4 ? 4 - F : 0;
+}
 
 // Encodes one ray into `row` (input_width floats): the points' features slot-major, then
 // level, then feature, empty slots zero; then the ray inputs the model has: pts.dir, and
@@ -200,8 +208,8 @@ struct GridView {
 void encode_points(const Geometry& geo, const GridView* grid, const RayPoints& pts, float* row);
 // encode_points(geo, grid, pts[which[j]], rows + j * geo.input_width) for every j, bit for
 // bit, computed level by level for 16 points at a time with AVX-512 where the CPU has it
-// (F <= 4 and fp16/u8 rows padded to 4 elements, as Runtime keeps them; otherwise one ray
-// at a time). Rows must not overlap; any number of threads may call it on their own rows.
+// (F <= 4; otherwise one ray at a time). Rows must not overlap; any number of threads may call it on their
+// own rows.
 void encode_batch(const Geometry& geo, const GridView* grid, const RayPoints* pts,
                   std::span<const std::uint32_t> which, float* rows);
 
@@ -259,9 +267,12 @@ void dense_output_layer(const float* A, std::size_t n, std::size_t in, std::size
 enum class MlpArithmetic : std::uint8_t { fp32, bf16, int8 };
 // The fastest the CPU runs: int8 with AVX-512 VNNI, else bf16 with AVX-512 BF16, else fp32.
 MlpArithmetic best_mlp_arithmetic();
-// Sets the arithmetic of `net` (packs or releases wt_vnni / wt_int8). What the CPU lacks
-// falls back: int8 to bf16 (also for a layer wider than kInt8MaxInputs), bf16 to fp32.
-// Returns the arithmetic now in use.
+// Sets the arithmetic of an fp32 network (as make_network returns it): packs wt_vnni or
+// wt_int8 and then releases the hidden layers' fp32 W^T, which the reduced arithmetics never
+// read (the output layer's stays), so a reduced network holds less than an fp32 one. What
+// the CPU lacks falls back: int8 to bf16 (also for a layer wider than kInt8MaxInputs), bf16
+// to fp32. A network already in a reduced arithmetic keeps it (make a new one from the model
+// to change it). Returns the arithmetic now in use.
 MlpArithmetic set_mlp_arithmetic(Network& net, MlpArithmetic a);
 MlpArithmetic mlp_arithmetic(const Network& net);
 
@@ -303,24 +314,35 @@ inline float encode_distance(const Geometry& geo, const RayPoints& pts, float di
 
 // ---- the whole pass ------------------------------------------------------------------------
 
-// Decoded, inference-ready model: feature tables in their stored precision (fp16 or u8,
-// dequantized on the gather) and an fp32 network. Immutable once built, so any number of
-// threads may call intersect() on it concurrently.
+// Decoded, inference-ready model: feature tables in their stored precision and layout (fp16
+// or u8, dequantized on the gather), the occupancy grid and an fp32 network. Immutable once
+// built, so any number of threads may call intersect() on it concurrently.
 struct Runtime {
     Geometry geo;
-    OccupancyGrid occupancy;
-    std::vector<std::vector<std::uint16_t>> grid;    // fp16 grids: per level, entries * grid_stride
-    std::vector<std::vector<std::uint8_t>> grid_u8;  // u8_affine grids: per level, entries * grid_stride
+    OccupancyGrid occupancy;  // its `bits` are the file's OCCU array
+    // Per level, the file's GRID array (entries * F elements, FORMAT.md §6.4) followed by
+    // grid_tail_pad(F) zeros; only the one desc.grid_encoding names is filled.
+    std::vector<std::vector<std::uint16_t>> grid;    // fp16 grids
+    std::vector<std::vector<std::uint8_t>> grid_u8;  // u8_affine grids
     std::vector<LevelAffine> grid_affine;            // u8_affine grids: per level
-    std::uint32_t grid_stride = 0;                   // F rounded up to 4: one aligned load per entry
     Network net;
     std::vector<GridView> grid_views() const;
-    // Bytes held by the feature tables (what the encoding saves at run time).
-    std::uint64_t grid_bytes() const;
+    // Heap bytes this runtime holds (every array's capacity): what it costs a renderer
+    // beyond sizeof(Runtime). Depends on the network's arithmetic (set_mlp_arithmetic).
+    std::uint64_t heap_bytes() const;
 };
 // The network starts in `arithmetic` (set_mlp_arithmetic(rt.net, ...) changes it later;
-// not while other threads call intersect on the runtime).
+// not while other threads call intersect on the runtime). The rvalue overload moves the
+// occupancy and the feature tables out of `model` (leaving them empty), so the model's
+// arrays are held once.
 Runtime make_runtime(const ModelData& model, MlpArithmetic arithmetic = MlpArithmetic::fp32);
+Runtime make_runtime(ModelData&& model, MlpArithmetic arithmetic = MlpArithmetic::fp32);
+
+// The resident bytes of `model` once opened through the C API with the fp32 network (the
+// reference arithmetic, which holds the most: lsnif_info::decoded_bytes after
+// lsnif_set_arithmetic(LSNIF_ARITHMETIC_FP32)): what a renderer holds for it on any CPU, at
+// most. Deterministic: a function of the model alone.
+std::uint64_t resident_bytes(const ModelData& model);
 
 // Statistics of one batch, for benchmarks and evaluation.
 struct IntersectStats {

@@ -1,0 +1,180 @@
+// The resident bytes the C API reports (lsnif_info::decoded_bytes) are exactly what the handle
+// holds: this executable replaces the global allocation functions with counting ones, so the
+// live bytes after lsnif_open_* minus those before are every allocation the handle kept.
+// A binary of its own because the replacement is process-wide.
+#include <doctest/doctest.h>
+
+#include "../test_data.hpp"
+
+#include <lsnif/lsnif.h>
+#include <lsnif/format/container.hpp>
+#include <lsnif/format/cpu.hpp>
+#include <lsnif/format/forward.hpp>
+
+#include <atomic>
+#include <cstddef>
+#include <cstdlib>
+#include <filesystem>
+#include <new>
+
+namespace {
+
+std::atomic<std::int64_t> g_live{0};
+
+// Each block starts with a header of `kHeader` bytes holding the requested size, so a
+// delete without a size still knows what it frees. kHeader keeps any alignment up to it.
+constexpr std::size_t kHeader = 64;
+
+void* counted_alloc(std::size_t n, std::size_t align) {
+    const std::size_t head = align > kHeader ? align : kHeader;
+    void* base = std::aligned_alloc(head, ((n + head + head - 1) / head) * head);
+    if (!base) return nullptr;
+    auto* p = static_cast<unsigned char*>(base) + head;
+    reinterpret_cast<std::size_t*>(p)[-1] = n;
+    reinterpret_cast<std::size_t*>(p)[-2] = head;
+    g_live += std::int64_t(n);
+    return p;
+}
+
+void counted_free(void* p) noexcept {
+    if (!p) return;
+    auto* q = static_cast<unsigned char*>(p);
+    const std::size_t n = reinterpret_cast<std::size_t*>(q)[-1];
+    const std::size_t head = reinterpret_cast<std::size_t*>(q)[-2];
+    g_live -= std::int64_t(n);
+    std::free(q - head);
+}
+
+}  // namespace
+
+void* operator new(std::size_t n) {
+    if (void* p = counted_alloc(n, alignof(std::max_align_t))) return p;
+    throw std::bad_alloc();
+}
+void* operator new[](std::size_t n) {
+    return operator new(n);
+}
+void* operator new(std::size_t n, const std::nothrow_t&) noexcept {
+    return counted_alloc(n, alignof(std::max_align_t));
+}
+void* operator new[](std::size_t n, const std::nothrow_t&) noexcept {
+    return counted_alloc(n, alignof(std::max_align_t));
+}
+void* operator new(std::size_t n, std::align_val_t a) {
+    if (void* p = counted_alloc(n, std::size_t(a))) return p;
+    throw std::bad_alloc();
+}
+void* operator new[](std::size_t n, std::align_val_t a) {
+    return operator new(n, a);
+}
+void* operator new(std::size_t n, std::align_val_t a, const std::nothrow_t&) noexcept {
+    return counted_alloc(n, std::size_t(a));
+}
+void* operator new[](std::size_t n, std::align_val_t a, const std::nothrow_t&) noexcept {
+    return counted_alloc(n, std::size_t(a));
+}
+void operator delete(void* p) noexcept {
+    counted_free(p);
+}
+void operator delete[](void* p) noexcept {
+    counted_free(p);
+}
+void operator delete(void* p, std::size_t) noexcept {
+    counted_free(p);
+}
+void operator delete[](void* p, std::size_t) noexcept {
+    counted_free(p);
+}
+void operator delete(void* p, std::align_val_t) noexcept {
+    counted_free(p);
+}
+void operator delete[](void* p, std::align_val_t) noexcept {
+    counted_free(p);
+}
+void operator delete(void* p, std::size_t, std::align_val_t) noexcept {
+    counted_free(p);
+}
+void operator delete[](void* p, std::size_t, std::align_val_t) noexcept {
+    counted_free(p);
+}
+
+namespace {
+
+struct Opened {
+    lsnif_model* model = nullptr;
+    std::int64_t held = 0;  // live bytes the open added
+};
+
+Opened open_counted(const std::vector<std::uint8_t>& bytes) {
+    Opened o;
+    const std::int64_t before = g_live.load();
+    lsnif_error err{};
+    REQUIRE_MESSAGE(lsnif_open_memory(bytes.data(), bytes.size(), &o.model, &err) == LSNIF_OK, err.message);
+    o.held = g_live.load() - before;
+    return o;
+}
+
+std::uint64_t decoded_bytes(const lsnif_model* m) {
+    lsnif_info info{};
+    REQUIRE(lsnif_get_info(m, &info) == LSNIF_OK);
+    return info.decoded_bytes;
+}
+
+}  // namespace
+
+TEST_CASE("decoded_bytes is every byte the handle holds, for each golden asset and arithmetic") {
+    std::size_t files = 0;
+    for (const auto& entry : std::filesystem::directory_iterator(lsnif::test::data_dir() / "valid")) {
+        if (entry.path().extension() != ".lsnif") continue;
+        ++files;
+        CAPTURE(entry.path().filename().string());
+        const auto bytes = lsnif::test::load(entry.path());
+        Opened o = open_counted(bytes);
+        CHECK(o.held > 0);
+        CHECK(std::uint64_t(o.held) == decoded_bytes(o.model));
+        // Each arithmetic packs the network its own way; what the handle then holds changes
+        // with it, and decoded_bytes follows.
+        for (const lsnif_arithmetic a :
+             {LSNIF_ARITHMETIC_FP32, LSNIF_ARITHMETIC_BF16, LSNIF_ARITHMETIC_INT8}) {
+            CAPTURE(lsnif_arithmetic_string(a));
+            const std::int64_t before = g_live.load();
+            const std::uint64_t reported_before = decoded_bytes(o.model);
+            REQUIRE(lsnif_set_arithmetic(o.model, a, nullptr) == LSNIF_OK);
+            CHECK(std::int64_t(decoded_bytes(o.model)) - std::int64_t(reported_before) ==
+                  g_live.load() - before);
+        }
+        const std::int64_t before_close = g_live.load();
+        const std::uint64_t last = decoded_bytes(o.model);
+        lsnif_close(o.model);
+        CHECK(before_close - g_live.load() == std::int64_t(last));
+    }
+    CHECK(files >= 5);
+}
+
+TEST_CASE("format::resident_bytes predicts what a handle holds with the fp32 network") {
+    for (const auto& entry : std::filesystem::directory_iterator(lsnif::test::data_dir() / "valid")) {
+        if (entry.path().extension() != ".lsnif") continue;
+        CAPTURE(entry.path().filename().string());
+        const auto bytes = lsnif::test::load(entry.path());
+        const auto model = lsnif::format::read_model(bytes);
+        REQUIRE(model.ok());
+        Opened o = open_counted(bytes);
+        REQUIRE(lsnif_set_arithmetic(o.model, LSNIF_ARITHMETIC_FP32, nullptr) == LSNIF_OK);
+        CHECK(lsnif::format::resident_bytes(*model) == decoded_bytes(o.model));
+        lsnif_close(o.model);
+    }
+}
+
+TEST_CASE("fp32 holds the most: the reduced arithmetics never hold more than the reference") {
+    const auto bytes = lsnif::test::load(lsnif::test::data_dir() / "valid" / "v1_default.lsnif");
+    Opened o = open_counted(bytes);
+    REQUIRE(lsnif_set_arithmetic(o.model, LSNIF_ARITHMETIC_FP32, nullptr) == LSNIF_OK);
+    const std::uint64_t fp32 = decoded_bytes(o.model);
+    for (const lsnif_arithmetic a : {LSNIF_ARITHMETIC_BF16, LSNIF_ARITHMETIC_INT8}) {
+        lsnif_arithmetic in_use{};
+        REQUIRE(lsnif_set_arithmetic(o.model, a, &in_use) == LSNIF_OK);
+        CAPTURE(lsnif_arithmetic_string(in_use));
+        CHECK(decoded_bytes(o.model) <= fp32);
+    }
+    lsnif_close(o.model);
+}
