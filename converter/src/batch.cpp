@@ -140,8 +140,12 @@ std::string asset_line(const MeshOutcome& m, const std::string& input) {
     if (m.cls() == MeshClass::failed)
         std::snprintf(buf, sizeof buf, "failed   %s: %s", who.c_str(), last_reason(m).c_str());
     else if (m.asset)
-        std::snprintf(buf, sizeof buf, "lsnif    %s: %s, %" PRIu64 " bytes, held-out visibility %.2f %%%s",
-                      who.c_str(), m.asset->file.c_str(), m.asset->bytes,
+        std::snprintf(buf, sizeof buf,
+                      "lsnif    %s: %s, %" PRIu64 " bytes held in memory (%" PRIu64
+                      " in the file; BVH: Embree %" PRIu64 ", compressed %" PRIu64
+                      "), held-out visibility %.2f %%%s",
+                      who.c_str(), m.asset->file.c_str(), m.asset->resident_bytes, m.asset->bytes,
+                      m.stats ? m.stats->bvh.embree : 0, m.stats ? m.stats->bvh.compressed : 0,
                       100 * m.held_out->metrics.pooled.visibility_accuracy,
                       m.asset->reused.value_or(false) ? " (reused)" : "");
     else
@@ -692,7 +696,8 @@ MergeResult merge(const std::vector<std::string>& shard_dirs, const std::string&
     merged["meshes"] = json::array();
     for (const MeshOutcome& m : r.meshes)
         merged["meshes"].push_back(outcome_json(m, OutcomeFields::reproducible));
-    const SceneMemory memory = scene_memory(r.meshes, 0, false);
+    // The shards' meshes were measured on the settings' yardstick, which the first records.
+    const SceneMemory memory = scene_memory(r.meshes, BvhYardstick::embree, 0, false);
     merged["scene_memory"]["before"] = memory.before;
     merged["scene_memory"]["after"] = memory.after;
     if (std::string e = write_manifest(outdir, merged); !e.empty()) {

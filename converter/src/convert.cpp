@@ -362,7 +362,7 @@ ConvertResult convert(const ConvertOptions& opt, const ConvertProgress& progress
     const std::set<std::string> keys =
         opt.only_keys.empty() ? std::set<std::string>() : candidate_keys(run, im.planned);
     res.meshes = convert_meshes(run, im.planned, res.errors, res.warnings, counts);
-    res.memory = scene_memory(res.meshes, opt.memory_budget, opt.dry_run);
+    res.memory = scene_memory(res.meshes, run.preset.classify.yardstick, opt.memory_budget, opt.dry_run);
     if (store) res.cache = counts;
     if (!res.memory->fits())
         res.warnings.push_back("the scene needs " + std::to_string(res.memory->after) +

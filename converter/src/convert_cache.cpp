@@ -56,7 +56,7 @@ bool restore_cached(const Run& run, Planned& p, MeshOutcome stored, const cache:
     stored.instances = p.out.instances;
     stored.timings = p.out.timings;
     // The stored measurement, so that every run this entry serves reports the same bytes.
-    if (stored.stats) p.bvh_bytes = stored.stats->bvh_bytes;
+    if (stored.stats) p.bvh_bytes = stored.stats->bvh.of(run.preset.classify.yardstick);
     p.out = std::move(stored);
     return true;
 }

@@ -73,6 +73,7 @@ struct Candidate {
     mesh::Box box;
     format::ModelDesc desc;  // the preset's model, box set, tables sized to the mesh
     std::unique_ptr<sampling::EmbreeSource> source;
+    BvhBytes bvh;  // the mesh's BVH on both yardsticks
     bool forced = false;
 };
 
@@ -118,9 +119,10 @@ struct Option {
     HeldOut held_out;                // on the held-out rays, reported; its gate is the decided verdict
     std::optional<ObjectFlip> flip;  // the visual check in MeasureRays::views, when on
     std::uint64_t bytes = 0;         // serialized without metadata
+    std::uint64_t resident = 0;      // held once opened (format::resident_bytes), without metadata
     bool target_met = false;         // passes the gate and meets --target on held-out rays
-    bool memory_ok = false;          // beats the BVH by ClassifyRule::min_memory_ratio (or forced)
-    double seconds = 0;              // measuring (and, for the fp16 option, training) it
+    bool memory_ok = false;  // held in memory, beats the BVH by ClassifyRule::min_memory_ratio (or forced)
+    double seconds = 0;      // measuring (and, for the fp16 option, training) it
     CandidateOutcome outcome = CandidateOutcome::misses_target;  // chosen and why, or why not (choose_option)
 };
 
@@ -144,10 +146,10 @@ bool resolve_preset(const ConvertOptions& opt, Preset& preset, std::string& erro
 // an empty string.
 std::string range_problem(const mesh::Box& box);
 
-// Classify: bounds, float range, Embree's BVH size, the table size that beats it and the
-// geometry statistics. Returns nothing when the mesh stays simple (decision settled).
-// `forced_complex` (--complex) skips the table sizing. Contract: `out.stats` is set whenever
-// Embree built the mesh.
+// Classify: bounds, float range, the BVH on both yardsticks, the table size whose asset,
+// held in memory, beats the yardstick's BVH, and the geometry statistics. Returns nothing when the mesh stays
+// simple (decision settled). `forced_complex` (--complex) skips the table sizing. Contract: `out.stats` is
+// set whenever Embree built the mesh.
 std::optional<Candidate> classify(const Run& run, const scene::Mesh& mesh, bool forced_complex,
                                   MeshOutcome& out);
 
@@ -155,8 +157,9 @@ std::optional<Candidate> classify(const Run& run, const scene::Mesh& mesh, bool 
 std::optional<voxelize::Occupancy> voxelize_mesh(const Run& run, const scene::Mesh& mesh, const Candidate& c,
                                                  MeshOutcome& out);
 
-// The memory rule: an LSNIF must beat the BVH by min_memory_ratio (unless forced). Records
-// the comparison; false when the mesh stays simple (decision settled).
+// The memory rule: an LSNIF's resident bytes must beat the yardstick's BVH by
+// min_memory_ratio (unless forced). Records the comparison; false when the mesh stays simple
+// (decision settled).
 bool worth_an_lsnif(const Run& run, const scene::Mesh& mesh, const Candidate& c, MeshOutcome& out);
 
 // The asset's content key: geometry and every setting that changes the weights. The file
@@ -237,7 +240,7 @@ std::optional<voxelize::Occupancy> refine_grid(const Run& run, const Candidate& 
 Sized size_to_target(const Run& run, const scene::Mesh& mesh, Candidate& c, const voxelize::Occupancy& occ,
                      const MeasureRays& rays, MeshOutcome& out);
 
-// Picks the smallest option (bytes) that passes the gate and the memory rule and meets the
+// Picks the smallest option (resident bytes) that passes the gate and the memory rule and meets the
 // target; else the first rung's smallest option that passes both; else none. Writes every
 // option's outcome.
 void choose_option(Sized& sized);
@@ -254,9 +257,16 @@ format::Result<std::vector<std::uint8_t>> encode_asset(Option& o, const json& me
 std::string write_asset(const Run& run, const scene::Mesh& mesh, std::span<const std::uint8_t> bytes,
                         const fs::path& asset, MeshOutcome& out);
 
-// The memory rule on the asset actually chosen: why it does not beat the BVH by
-// ClassifyRule::min_memory_ratio, or an empty string (also for a forced mesh).
-std::string memory_rule_failure(const Run& run, const Candidate& c, std::uint64_t asset_bytes);
+// The memory rule on the asset actually chosen: why its resident bytes do not beat the
+// yardstick's BVH by ClassifyRule::min_memory_ratio, or an empty string (also for a forced mesh).
+std::string memory_rule_failure(const Run& run, const Candidate& c, std::uint64_t resident_bytes);
+
+// "Embree" or "compressed": the yardstick as the reasons name it.
+const char* bvh_yardstick_label(BvhYardstick y);
+
+// The manifest's record of the asset written at `asset` (named `file`): its file bytes and
+// the bytes a renderer holds once it is open; 0 for what cannot be read.
+AssetFile asset_file(const fs::path& asset, const std::string& file, std::optional<bool> reused);
 
 // Settles a mesh whose asset ships (just written, or reused): its metrics, the target's
 // verdict and the file.
@@ -276,8 +286,8 @@ struct Planned {
     std::optional<Candidate> candidate;  // a candidate's model and Embree scene
     std::optional<voxelize::Occupancy> occupancy;
     bool decided = false;         // stays BVH whatever happens next (`out` settled by the plan)
-    std::uint64_t bvh_bytes = 0;  // the mesh's own BVH: what it costs while it stays BVH
-    std::uint64_t estimate = 0;   // a candidate's estimated asset bytes (lsnif_bytes_estimate)
+    std::uint64_t bvh_bytes = 0;  // the mesh's own BVH on the run's yardstick: what it costs as BVH
+    std::uint64_t estimate = 0;   // a candidate's estimated resident asset bytes
     std::string key;              // its cache key once cache_key computed it ("" until then)
     bool forced() const { return candidate && candidate->forced; }
 };
@@ -322,7 +332,7 @@ std::vector<std::uint32_t> shard_owners(const Run& run, std::vector<Planned>& pl
 // byte, highest first (ties in scene order).
 std::vector<std::size_t> conversion_order(const std::vector<Planned>& planned, bool budgeted);
 
-// The bytes a mesh costs once it is settled: its asset's when it became an LSNIF (the
+// The bytes a mesh costs once it is settled: its asset's resident bytes when it became an LSNIF (the
 // estimate in a dry run), else its BVH's.
 std::uint64_t bytes_after(const Planned& p);
 

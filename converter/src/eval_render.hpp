@@ -71,8 +71,8 @@ struct EvalScene::Impl {
         lsnif_model* model = nullptr;  // complex meshes with a shipped asset
         std::string name;
         std::uint64_t bvh_bytes = 0;
-        std::uint64_t lsnif_bytes = 0;
-        std::array<float, 6> box{};  // object-space bounds
+        std::uint64_t lsnif_bytes = 0;  // the opened asset's resident bytes (lsnif_info.decoded_bytes)
+        std::array<float, 6> box{};     // object-space bounds
     };
     struct Instance {
         std::uint32_t mesh = 0;

@@ -90,6 +90,20 @@ json info_json(const lsnif_model* model, const lsnif_info& info) {
         {"decoded_bytes", info.decoded_bytes}};
 }
 
+// What a renderer holds with this asset open: on this CPU, in the arithmetic lsnif_open
+// chose, and at most on any CPU (the fp32 network); beside the file. Leaves `model` in fp32.
+json memory_json(lsnif_model* model, const lsnif_info& opened) {
+    const lsnif_arithmetic chosen = lsnif_get_arithmetic(model);
+    lsnif_info fp32{};
+    if (lsnif_set_arithmetic(model, LSNIF_ARITHMETIC_FP32, nullptr) != LSNIF_OK ||
+        lsnif_get_info(model, &fp32) != LSNIF_OK)
+        fp32 = opened;
+    return {{"file_bytes", opened.file_size},
+            {"resident_bytes", opened.decoded_bytes},
+            {"arithmetic", lsnif_arithmetic_string(chosen)},
+            {"resident_bytes_fp32", fp32.decoded_bytes}};
+}
+
 std::string fmt_bytes(std::uint64_t n) {
     char buf[64];
     if (n < 10 * 1024)
@@ -306,6 +320,7 @@ json inspect_bytes(std::span<const std::uint8_t> bytes, const std::string& name)
     lsnif_info info{};
     lsnif_get_info(model.get(), &info);
     report["model"] = info_json(model.get(), info);
+    report["memory"] = memory_json(model.get(), info);
     std::size_t len = 0;
     const char* text = lsnif_metadata(model.get(), &len);
     try {
@@ -354,8 +369,14 @@ std::string inspect_text(const json& r) {
         o << "  grid: " << grid_text(m["grid"]) << "\n";
         o.precision(6);
         o << std::defaultfloat << "  box: " << m["box_min"].dump() << " .. " << m["box_max"].dump() << "\n";
-        o << "  parameters: " << m["parameter_count"] << " (" << fmt_bytes(m["decoded_bytes"])
-          << " decoded)\n";
+        o << "  parameters: " << m["parameter_count"] << "\n";
+    }
+    if (r.contains("memory")) {
+        const json& m = r["memory"];
+        o << "  memory: " << fmt_bytes(m["resident_bytes"]) << " held once open ("
+          << m["arithmetic"].get<std::string>() << " network on this CPU; at most "
+          << fmt_bytes(m["resident_bytes_fp32"]) << " on any CPU), " << fmt_bytes(m["file_bytes"])
+          << " in the file\n";
     }
     if (r.contains("metadata"))
         o << "  metadata: " << r["metadata"].dump(2) << "\n";

@@ -121,8 +121,8 @@ json stats_json(const MeshStats& s) {
               {"closed", s.closed},
               {"solid", s.solid},
               {"log2_table_size", s.log2_table_size},
-              {"bvh_bytes", s.bvh_bytes},
-              {"lsnif_bytes_estimate", s.lsnif_bytes_estimate}};
+              {"bvh", {{"embree", s.bvh.embree}, {"compressed", s.bvh.compressed}}},
+              {"resident_estimate", s.resident_estimate}};
     if (s.occupied_fraction) j["occupied_fraction"] = *s.occupied_fraction;
     if (s.mean_occupied_per_ray) j["mean_occupied_per_ray"] = *s.mean_occupied_per_ray;
     if (s.training_rays) j["training_rays"] = *s.training_rays;
@@ -137,8 +137,11 @@ void read_stats(Reader& r, MeshStats& s) {
     r.read("closed", s.closed);
     r.read("solid", s.solid);
     r.read("log2_table_size", s.log2_table_size);
-    r.read("bvh_bytes", s.bvh_bytes);
-    r.read("lsnif_bytes_estimate", s.lsnif_bytes_estimate);
+    r.nested("bvh", [&](Reader& b) {
+        b.read("embree", s.bvh.embree);
+        b.read("compressed", s.bvh.compressed);
+    });
+    r.read("resident_estimate", s.resident_estimate);
     r.read("occupied_fraction", s.occupied_fraction);
     r.read("mean_occupied_per_ray", s.mean_occupied_per_ray);
     r.read("training_rays", s.training_rays);
@@ -160,6 +163,7 @@ json candidate_json(const CandidateRecord& c, OutcomeFields fields) {
         {"hidden_width", c.hidden_width},
         {"grid", grid_encoding_name(std::uint32_t(c.grid))},
         {"bytes", c.bytes},
+        {"resident_bytes", c.resident_bytes},
         {"steps", c.steps},
         {"steps_planned", c.steps_planned},
         {"held_out",
@@ -194,6 +198,7 @@ void read_candidate(Reader& r, CandidateRecord& c, std::size_t of) {
     else if (r.ok())
         r.fail("grid", "not a grid encoding: " + grid);
     r.read("bytes", c.bytes);
+    r.read("resident_bytes", c.resident_bytes);
     r.read("steps", c.steps);
     r.read("steps_planned", c.steps_planned);
     r.read("seconds", c.seconds);
@@ -288,7 +293,8 @@ void write_results(const MeshOutcome& o, OutcomeFields fields, json& j) {
                               {"reason", kStoppedEarlyReason}};
     if (o.target) j["target"] = target_json(*o.target);
     if (o.asset) {
-        j["lsnif"] = {{"file", o.asset->file}, {"bytes", o.asset->bytes}};
+        j["lsnif"] = {
+            {"file", o.asset->file}, {"bytes", o.asset->bytes}, {"resident_bytes", o.asset->resident_bytes}};
         if (o.asset->reused && fields == OutcomeFields::all) j["lsnif"]["reused"] = *o.asset->reused;
     }
 }
@@ -316,6 +322,7 @@ void read_results(Reader& r, MeshOutcome& o) {
             AssetFile& f = o.asset.emplace();
             a.read("file", f.file);
             a.read("bytes", f.bytes);
+            a.read("resident_bytes", f.resident_bytes);
             a.read("reused", f.reused);
         });
 }
@@ -515,8 +522,10 @@ base::Result<InputRecord, std::string> input_from_json(const json& j) {
     return in;
 }
 
-SceneMemory scene_memory(const std::vector<MeshOutcome>& meshes, std::uint64_t budget, bool estimated) {
+SceneMemory scene_memory(const std::vector<MeshOutcome>& meshes, BvhYardstick yardstick, std::uint64_t budget,
+                         bool estimated) {
     SceneMemory m;
+    m.yardstick = yardstick;
     for (const MeshOutcome& o : meshes) {
         m.before += o.memory->before;
         m.after += o.memory->after;
@@ -527,7 +536,7 @@ SceneMemory scene_memory(const std::vector<MeshOutcome>& meshes, std::uint64_t b
 }
 
 json scene_memory_json(const SceneMemory& m) {
-    json j = {{"before", m.before}, {"after", m.after}};
+    json j = {{"yardstick", bvh_yardstick_name(m.yardstick)}, {"before", m.before}, {"after", m.after}};
     if (m.budget) {
         j["budget"] = *m.budget;
         j["fits"] = m.fits();

@@ -52,21 +52,18 @@ double surface_area(const scene::Mesh& m) {
     return area;
 }
 
-// Estimate of an asset's bytes for `d` with its grid stored as `encoding`, before training:
-// header, table, occupancy and fp16 MLP uncompressed, 2 KiB of metadata, and the grid -
-// uncompressed for fp16 (zstd gains under 10 % on it), divided by kU8GridCompression for
-// 8 bits. Only a plan: the memory rule is checked again on the bytes actually chosen.
-// zstd compressed trained 8-bit grids 1.51-2.18x on the meshes of docs/investigations/sizing.md
-// "Sizing to the target"; the estimate assumes less.
-constexpr double kU8GridCompression = 1.4;
+// The resident bytes of an asset of `d` with its grid stored as `encoding`, before training
+// (format::resident_bytes of a model of zeros of that shape): exact but for the metadata,
+// counted as kMetadataEstimate bytes, and the neurons pruning removes (fewer bytes). Only a
+// plan: the memory rule is checked again on the asset actually chosen.
+constexpr std::size_t kMetadataEstimate = 2048;
 
-std::uint64_t lsnif_bytes_estimate(format::ModelDesc d, format::GridEncoding encoding) {
+std::uint64_t resident_estimate(format::ModelDesc d, format::GridEncoding encoding) {
     d.grid_encoding = encoding;
-    const std::uint64_t mlp_values = d.parameter_count() - d.grid_value_count();
-    const double grid = encoding == format::GridEncoding::u8_affine
-                            ? double(d.grid_raw_size()) / kU8GridCompression
-                            : double(d.grid_raw_size());
-    return 64 + 64 * 5 + (d.voxel_count() + 7) / 8 + std::uint64_t(grid) + mlp_values * 2 + 2048;
+    auto model = format::make_empty_model(d);
+    if (!model) return UINT64_MAX;  // a shape the format cannot hold never beats a BVH
+    model->metadata_json.assign(kMetadataEstimate, ' ');
+    return format::resident_bytes(*model);
 }
 
 // The smallest grid encoding the preset may ship.
@@ -74,7 +71,22 @@ format::GridEncoding smallest_encoding(const Preset& p) {
     return p.sizing.quantize ? format::GridEncoding::u8_affine : format::GridEncoding::fp16;
 }
 
+// The BVH bytes of a mesh that stays BVH, on `yardstick`.
+std::optional<std::uint64_t> measure_bvh(const mesh::MeshView& view, BvhYardstick yardstick,
+                                         std::string& error) {
+    if (yardstick == BvhYardstick::embree) {
+        const auto bytes = sampling::measure_bvh_bytes(view, error);
+        return bytes ? std::optional<std::uint64_t>(*bytes) : std::nullopt;
+    }
+    const auto bvh = sampling::measure_compressed_bvh(view, error);
+    return bvh ? std::optional<std::uint64_t>(bvh->bytes()) : std::nullopt;
+}
+
 }  // namespace
+
+const char* bvh_yardstick_label(BvhYardstick y) {
+    return y == BvhYardstick::compressed ? "compressed" : "Embree";
+}
 
 std::string range_problem(const mesh::Box& box) {
     double extent = 0, coord = 0;
@@ -120,13 +132,20 @@ std::optional<Candidate> classify(const Run& run, const scene::Mesh& mesh, bool 
         out.settle(Decision::not_modelable, "Embree could not build the mesh: " + serr);
         return std::nullopt;
     }
-    const std::uint64_t bvh = c.source->bvh_bytes();
-    // Size the tables to the mesh (ClassifyRule): halve T while the asset would not beat
-    // the BVH. Levels dense at the preset size stay dense (fewer rows than T).
+    std::string cerr;
+    const auto compressed = sampling::measure_compressed_bvh(c.view, cerr);
+    if (!compressed) {
+        out.settle(Decision::not_modelable, "the compressed BVH could not be measured: " + cerr);
+        return std::nullopt;
+    }
+    c.bvh = {c.source->bvh_bytes(), compressed->bytes()};
+    const std::uint64_t bvh = c.bvh.of(rule.yardstick);
+    // Size the tables to the mesh (ClassifyRule): halve T while the asset, held in memory,
+    // would not beat the BVH. Levels dense at the preset size stay dense (fewer rows than T).
     if (!c.forced)
         while (c.desc.log2_table_size > rule.min_log2_table_size &&
-               double(bvh) < rule.min_memory_ratio *
-                                 double(lsnif_bytes_estimate(c.desc, smallest_encoding(run.preset))))
+               double(bvh) <
+                   rule.min_memory_ratio * double(resident_estimate(c.desc, smallest_encoding(run.preset))))
             --c.desc.log2_table_size;
     const double ext[3] = {double(c.box.max[0]) - c.box.min[0], double(c.box.max[1]) - c.box.min[1],
                            double(c.box.max[2]) - c.box.min[2]};
@@ -139,8 +158,8 @@ std::optional<Candidate> classify(const Run& run, const scene::Mesh& mesh, bool 
     stats.closed = c.source->is_closed();
     stats.solid = c.source->rejects_interior();
     stats.log2_table_size = c.desc.log2_table_size;
-    stats.bvh_bytes = bvh;
-    stats.lsnif_bytes_estimate = lsnif_bytes_estimate(c.desc, smallest_encoding(run.preset));
+    stats.bvh = c.bvh;
+    stats.resident_estimate = resident_estimate(c.desc, smallest_encoding(run.preset));
     out.timings.add(Stage::classify, seconds_since(t0));
     return c;
 }
@@ -162,13 +181,14 @@ std::optional<voxelize::Occupancy> voxelize_mesh(const Run& run, const scene::Me
 }
 
 bool worth_an_lsnif(const Run& run, const scene::Mesh& mesh, const Candidate& c, MeshOutcome& out) {
-    const std::uint64_t bvh = c.source->bvh_bytes(),
-                        est = lsnif_bytes_estimate(c.desc, smallest_encoding(run.preset));
-    const double ratio = double(bvh) / double(est);
     const ClassifyRule& rule = run.preset.classify;
+    const std::uint64_t bvh = c.bvh.of(rule.yardstick),
+                        est = resident_estimate(c.desc, smallest_encoding(run.preset));
+    const double ratio = double(bvh) / double(est);
     char why[200];
-    std::snprintf(why, sizeof why, "Embree BVH %" PRIu64 " bytes vs LSNIF %" PRIu64 " bytes (%.2fx)", bvh,
-                  est, ratio);
+    std::snprintf(why, sizeof why,
+                  "%s BVH %" PRIu64 " bytes vs LSNIF %" PRIu64 " bytes held in memory (%.2fx)",
+                  bvh_yardstick_label(rule.yardstick), bvh, est, ratio);
     out.reasons.push_back(why);
     if (!c.forced && ratio < rule.min_memory_ratio) {
         std::snprintf(why, sizeof why, "memory benefit %.2fx below the %.2fx threshold", ratio,
@@ -187,13 +207,17 @@ bool worth_an_lsnif(const Run& run, const scene::Mesh& mesh, const Candidate& c,
     return true;
 }
 
-std::string memory_rule_failure(const Run& run, const Candidate& c, std::uint64_t asset_bytes) {
-    const double ratio = double(c.source->bvh_bytes()) / double(std::max<std::uint64_t>(1, asset_bytes));
-    if (c.forced || ratio >= run.preset.classify.min_memory_ratio) return {};
-    char why[200];
+std::string memory_rule_failure(const Run& run, const Candidate& c, std::uint64_t resident_bytes) {
+    const ClassifyRule& rule = run.preset.classify;
+    const double ratio =
+        double(c.bvh.of(rule.yardstick)) / double(std::max<std::uint64_t>(1, resident_bytes));
+    if (c.forced || ratio >= rule.min_memory_ratio) return {};
+    char why[240];
     std::snprintf(why, sizeof why,
-                  "the chosen asset (%" PRIu64 " bytes) is only %.2fx smaller than the BVH (%.2fx needed)",
-                  asset_bytes, ratio, run.preset.classify.min_memory_ratio);
+                  "the chosen asset (%" PRIu64
+                  " bytes held in memory) is only %.2fx smaller than the %s BVH "
+                  "(%.2fx needed)",
+                  resident_bytes, ratio, bvh_yardstick_label(rule.yardstick), rule.min_memory_ratio);
     return why;
 }
 
@@ -226,18 +250,19 @@ Planned plan_mesh(const Run& run, const std::string& source, const scene::Mesh& 
     p.source = source;
     p.out = std::move(out);
     p.decided = plan_decision(run, mesh, p);
+    const BvhYardstick yardstick = run.preset.classify.yardstick;
     if (p.candidate && p.candidate->source) {
-        p.bvh_bytes = p.candidate->source->bvh_bytes();
+        p.bvh_bytes = p.candidate->bvh.of(yardstick);
     } else {
         std::string error;
-        if (auto bytes = sampling::measure_bvh_bytes(view_of(mesh), error))
+        if (auto bytes = measure_bvh(view_of(mesh), yardstick, error))
             p.bvh_bytes = *bytes;
         else
             warnings.push_back(source + ": mesh '" + mesh.name +
                                "': its BVH could not be measured (counted as 0 bytes): " + error);
     }
     if (!p.decided) {
-        p.estimate = lsnif_bytes_estimate(p.candidate->desc, smallest_encoding(run.preset));
+        p.estimate = resident_estimate(p.candidate->desc, smallest_encoding(run.preset));
     } else {
         p.candidate.reset();  // a mesh that stays BVH needs no Embree scene any more
         p.occupancy.reset();
@@ -264,7 +289,7 @@ std::vector<std::size_t> conversion_order(const std::vector<Planned>& planned, b
 
 std::uint64_t bytes_after(const Planned& p) {
     if (p.out.cls() != MeshClass::complex) return p.bvh_bytes;
-    if (p.out.asset) return p.out.asset->bytes;
+    if (p.out.asset) return p.out.asset->resident_bytes;
     return p.estimate;  // a dry run's plan
 }
 

@@ -54,7 +54,7 @@ Preset shipped_default() {
     p.validation_rays = 1u << 13;
     p.validation_checks = 10;
     p.prune_inactive = true;  // "Inactive neurons"
-    p.classify = {2000, 2.0, 15};
+    p.classify = {2000, 2.0, BvhYardstick::embree, 15};
     p.gate = {0.95, 0.90, 2.0, 30.0, 100};
     p.early_abort = {1500000, 0.05, 20.0, 0.35};
     p.target_stop = {2, 0.003, 0.9, 1.0};
@@ -113,6 +113,8 @@ bool resolve_preset(const ConvertOptions& opt, Preset& preset, std::string& erro
     if (opt.gate_min_visibility >= 0) preset.gate.min_visibility = opt.gate_min_visibility;
     if (opt.gate_max_flip >= 0) preset.gate.max_flip = opt.gate_max_flip;
     if (opt.accept) preset.gate.accept = *opt.accept;
+    if (opt.bvh_yardstick) preset.classify.yardstick = *opt.bvh_yardstick;
+    if (opt.min_memory_ratio > 0) preset.classify.min_memory_ratio = opt.min_memory_ratio;
     if (preset.gate.accept == Acceptance::images && !preset.visual_check) {
         error = "--accept images: the preset '" + preset.name + "' renders no views to judge images by";
         return false;

@@ -25,7 +25,13 @@ std::string human_bytes(std::uint64_t bytes) {
     return buf;
 }
 
-// "BVH 84.1 MiB -> 406.2 KiB": a mesh's or the scene's memory before and after conversion.
+// before / after, 0 for nothing after.
+double ratio(std::uint64_t before, std::uint64_t after) {
+    return after ? double(before) / double(after) : 0.0;
+}
+
+// "84.1 MiB -> 406.2 KiB": a mesh's or the scene's memory before (its BVH) and after
+// conversion (the asset's resident bytes).
 std::string memory_text(std::uint64_t before, std::uint64_t after, bool estimated) {
     return human_bytes(before) + " -> " + human_bytes(after) + (estimated ? " (est.)" : "");
 }
@@ -39,6 +45,16 @@ std::string shipped_text(const MeshOutcome& m) {
                   100 * p.visibility_accuracy, p.distance_median_pct, p.normal_median_deg,
                   m.asset->reused.value_or(false) ? " (reused)" : "");
     s += buf;
+    s += "\n           held in memory " + human_bytes(m.asset->resident_bytes) + ", file " +
+         human_bytes(m.asset->bytes);
+    if (m.stats) {
+        std::snprintf(buf, sizeof buf, "; BVH: Embree %s (%.1fx), compressed %s (%.1fx)",
+                      human_bytes(m.stats->bvh.embree).c_str(),
+                      ratio(m.stats->bvh.embree, m.asset->resident_bytes),
+                      human_bytes(m.stats->bvh.compressed).c_str(),
+                      ratio(m.stats->bvh.compressed, m.asset->resident_bytes));
+        s += buf;
+    }
     if (m.target && !m.target->misses.empty())
         s += "\n           target missed, gate passed: " + m.target->misses[0];
     if (m.stopped_early) {
@@ -82,7 +98,9 @@ std::string convert_text(const ConvertResult& r) {
     std::snprintf(buf, sizeof buf, "%zu meshes, %zu instances\n", r.meshes.size(), r.instances);
     s += buf;
     if (r.memory) {
-        s += "scene memory (each mesh once): " +
+        s += std::string("scene memory (each mesh once; ") +
+             (r.memory->yardstick == BvhYardstick::compressed ? "compressed" : "Embree") +
+             " BVHs, assets as held in memory): " +
              memory_text(r.memory->before, r.memory->after, r.memory->estimated);
         if (r.memory->budget)
             s += ", budget " + human_bytes(*r.memory->budget) +

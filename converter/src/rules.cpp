@@ -42,6 +42,16 @@ std::vector<std::string> gate_failures(const samples::Metrics& m, const Gate& g)
     return fails;
 }
 
+const char* bvh_yardstick_name(BvhYardstick y) {
+    return y == BvhYardstick::compressed ? "compressed" : "embree";
+}
+
+bool parse_bvh_yardstick(const std::string& text, BvhYardstick& out) {
+    for (const BvhYardstick y : {BvhYardstick::embree, BvhYardstick::compressed})
+        if (text == bvh_yardstick_name(y)) return out = y, true;
+    return false;
+}
+
 const char* acceptance_name(Acceptance a) {
     switch (a) {
         case Acceptance::rays: return "rays";

@@ -232,6 +232,40 @@ std::vector<Setting> make_table() {
                 },
                 [](const ConvertOptions& o) { return unless_zero(o.memory_budget); },
                 [](const ConvertOptions& o) { return json_unless_zero(o.memory_budget); }},
+        Setting{"--bvh-yardstick", "embree|compressed", false, SettingScope::mesh, "bvh_yardstick", "embree",
+                "The BVH an asset's resident bytes are compared with, in the memory rule, the budget and "
+                "every memory figure: Embree's as built, or an 8-wide compressed BVH as GPUs hold (80 bytes "
+                "per inner node; docs/convert.md \"Memory\")",
+                [](ConvertOptions& o, const std::string& v, std::string& e, std::string&) {
+                    BvhYardstick y{};
+                    if (!parse_bvh_yardstick(v, y)) return e = "expected embree or compressed", false;
+                    return o.bvh_yardstick = y, true;
+                },
+                [](const ConvertOptions& o) {
+                    return o.bvh_yardstick ? std::vector<std::string>{bvh_yardstick_name(*o.bvh_yardstick)}
+                                           : std::vector<std::string>{};
+                },
+                [](const ConvertOptions& o) {
+                    return o.bvh_yardstick ? json(bvh_yardstick_name(*o.bvh_yardstick)) : json();
+                }},
+        Setting{"--memory-ratio", "X", false, SettingScope::mesh, "memory_ratio", "the preset's (2)",
+                "How many times smaller than the yardstick's BVH an asset must be, held in memory, for its "
+                "mesh to convert",
+                [](ConvertOptions& o, const std::string& v, std::string& e, std::string&) {
+                    double x = 0;
+                    const auto [end, ec] = std::from_chars(v.data(), v.data() + v.size(), x);
+                    if (v.empty() || ec != std::errc() || end != v.data() + v.size() ||
+                        !(x >= 0.01 && x <= 1e6))
+                        return e = "expected a number from 0.01 to 1000000", false;
+                    return o.min_memory_ratio = x, true;
+                },
+                [](const ConvertOptions& o) {
+                    return o.min_memory_ratio > 0 ? std::vector<std::string>{exact(o.min_memory_ratio)}
+                                                  : std::vector<std::string>{};
+                },
+                [](const ConvertOptions& o) {
+                    return o.min_memory_ratio > 0 ? json(o.min_memory_ratio) : json();
+                }},
         LSNIF_FLAG("--fixed-model", "fixed_model", fixed_model, SettingScope::mesh,
                    "Train the preset's model (after the memory rule) for the whole budget: no smaller sizes, "
                    "no 8-bit option, no stop at the target (for sweeps and comparisons)"),

@@ -279,6 +279,7 @@ CandidateRecord candidate_record(const Option& o, const Trained& t, std::size_t 
     c.hidden_width = d.hidden_width;
     c.grid = d.grid_encoding;
     c.bytes = o.bytes;
+    c.resident_bytes = o.resident;
     c.steps = t.stream.train.steps;
     c.steps_planned = t.config.steps;
     c.seconds = o.seconds;
@@ -311,6 +312,7 @@ Option measure_option(const Run& run, const scene::Mesh& mesh, const Candidate& 
     o.model = std::move(model);
     auto bytes = format::serialize(o.model);
     o.bytes = bytes ? bytes->size() : 0;
+    o.resident = format::resident_bytes(o.model);
     if (bytes && rays.views) {
         const auto tv = Clock::now();
         if (auto f = rays.views->compare(*bytes)) o.flip = *f;
@@ -320,7 +322,7 @@ Option measure_option(const Run& run, const scene::Mesh& mesh, const Candidate& 
     o.target_met = o.held_out.gate.passed && target_misses(o.decided.pooled, combined_flip(o.flip),
                                                            run.opt.target, run.preset.gate.accept)
                                                  .empty();
-    o.memory_ok = bytes && memory_rule_failure(run, c, o.bytes).empty();
+    o.memory_ok = bytes && memory_rule_failure(run, c, o.resident).empty();
     o.seconds = seconds_since(t0);
     return o;
 }
@@ -409,7 +411,7 @@ std::vector<format::GridEncoding> rung_encodings(const Preset& p) {
 void choose_option(Sized& sized) {
     const std::size_t n = sized.options.size();
     auto smaller = [&](std::size_t i) {
-        return !sized.chosen || sized.options[i].bytes < sized.options[*sized.chosen].bytes;
+        return !sized.chosen || sized.options[i].resident < sized.options[*sized.chosen].resident;
     };
     auto passes = [&](const Option& o) { return o.memory_ok && o.held_out.gate.passed; };
     CandidateOutcome why = CandidateOutcome::chosen_meets_target;
@@ -485,8 +487,8 @@ format::Result<std::vector<std::uint8_t>> encode_asset(Option& o, const json& me
 std::string option_summary(const Option& o) {
     const format::ModelDesc& d = o.model.desc;
     return "2^" + std::to_string(d.log2_table_size) + " rows, " +
-           grid_encoding_name(std::uint32_t(d.grid_encoding)) + " grid, " + std::to_string(o.bytes) +
-           " bytes";
+           grid_encoding_name(std::uint32_t(d.grid_encoding)) + " grid, " + std::to_string(o.resident) +
+           " bytes held in memory (" + std::to_string(o.bytes) + " in the file)";
 }
 
 std::string write_asset(const Run& run, const scene::Mesh& mesh, std::span<const std::uint8_t> bytes,
@@ -532,7 +534,7 @@ void convert_candidate(const Run& run, Planned& p, std::vector<std::string>& err
         out.settle(Decision::encode_failed, "the asset could not be encoded: " + bytes.error().message);
         return;
     }
-    if (std::string why = memory_rule_failure(run, c, bytes->size()); !why.empty()) {
+    if (std::string why = memory_rule_failure(run, c, format::resident_bytes(o.model)); !why.empty()) {
         out.held_out = o.held_out;
         out.settle(Decision::asset_not_smaller, why);
         return;
@@ -545,15 +547,22 @@ void convert_candidate(const Run& run, Planned& p, std::vector<std::string>& err
     shipped(run, o.held_out, file, asset, false, out);
 }
 
+AssetFile asset_file(const fs::path& asset, const std::string& file, std::optional<bool> reused) {
+    AssetFile f{file, 0, 0, reused};
+    const auto bytes = format::read_file_bytes(asset.string());
+    if (!bytes) return f;
+    f.bytes = bytes->size();
+    if (auto model = format::read_model(*bytes)) f.resident_bytes = format::resident_bytes(*model);
+    return f;
+}
+
 void shipped(const Run& run, HeldOut metrics, const std::string& file, const fs::path& asset, bool reused,
              MeshOutcome& out) {
     out.target =
         TargetVerdict{run.opt.target, target_misses(metrics.metrics.pooled, combined_flip(metrics.flip),
                                                     run.opt.target, run.preset.gate.accept)};
     out.held_out = std::move(metrics);
-    std::error_code ec;
-    const auto bytes = fs::file_size(asset, ec);
-    out.asset = AssetFile{file, ec ? 0 : std::uint64_t(bytes), reused};
+    out.asset = asset_file(asset, file, reused);
     out.settle(Decision::shipped);
 }
 

@@ -188,11 +188,12 @@ void HybridScene::load_manifest(const fs::path& outdir) {
     std::ifstream mf(manifest_path_);
     const json manifest = json::parse(mf, nullptr, false);
     if (!mf || !manifest.is_object()) throw Failure(manifest_path_.string() + ": cannot read");
-    // Formats 2 and 3 agree on everything read here (3 adds each mesh's decision).
+    // Formats 2 to 4 agree on everything read here (3 adds each mesh's decision, 4 counts
+    // memory as a renderer holds it).
     const std::string format = manifest.value("format", "");
-    if (format != "lsnif-manifest/2" && format != "lsnif-manifest/3")
+    if (format != "lsnif-manifest/2" && format != "lsnif-manifest/3" && format != "lsnif-manifest/4")
         throw Failure(manifest_path_.string() +
-                      ": not a lsnif-manifest/2 or /3 manifest (re-run lsnif convert)");
+                      ": not a lsnif-manifest/2, /3 or /4 manifest (re-run lsnif convert)");
     const std::vector<lsnif::scene::Scene> inputs = load_inputs(manifest, outdir);
     for (const json& m : manifest.at("meshes")) {
         const std::size_t input = m.at("input").get<std::size_t>(),

@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# A converted scene works from anywhere (manifest format lsnif-manifest/3): convert the
+# A converted scene works from anywhere (manifest format lsnif-manifest/4): convert the
 # bundled example scene (simple meshes, two LSNIF meshes, instances) with a relative input
 # path, then render it with examples/render and `lsnif eval` from other working
 # directories and after moving the whole project. Also: a view where every primary ray
@@ -20,7 +20,7 @@ cp "$scene" "$work/proj/src/scene.glb"
 python3 - "$work/proj/out/manifest.json" <<'PY' || bad "manifest inputs"
 import json, sys
 m = json.load(open(sys.argv[1]))
-assert m["format"] == "lsnif-manifest/3", m["format"]
+assert m["format"] == "lsnif-manifest/4", m["format"]
 i = m["inputs"][0]
 assert i["path"] == "../src/scene.glb", i  # relative to the manifest's own directory
 assert i["given"] == "src/scene.glb", i    # as typed, for humans
@@ -105,7 +105,7 @@ expect_error "eval, inputs gone" "src/scene.glb" "$lsnif" eval "$work/lonely" --
 expect_error "bench, inputs gone" "src/scene.glb" "$lsnif" bench memory "$work/lonely"
 
 # An older manifest (absolute or cwd-relative paths, format /1): asked to re-convert.
-sed -i 's#lsnif-manifest/3#lsnif-manifest/1#' "$work/lonely/manifest.json"
+sed -i 's#lsnif-manifest/4#lsnif-manifest/1#' "$work/lonely/manifest.json"
 expect_error "render, old format" "re-run lsnif convert" "$render" "$work/lonely" "$work/old.ppm" 32 24
 expect_error "eval, old format" "re-run lsnif convert" "$lsnif" eval "$work/lonely" --images "$work/old_img"
 # A torn manifest: named, exit 1.

@@ -115,7 +115,15 @@ TEST_CASE("classify sizes the hash tables to beat the BVH, unless forced, and me
     CHECK(c->desc.log2_table_size >= run.preset.classify.min_log2_table_size);
     CHECK(c->desc.box_min == c->box.min);
     REQUIRE(out.stats.has_value());
-    CHECK(out.stats->bvh_bytes > 0);
+    // Both yardsticks measured; the compressed BVH (inner nodes only) is the smaller one, and
+    // the tables were halved until the asset, held in memory, beats the yardstick's BVH twice
+    // (or the smallest table was reached).
+    CHECK(out.stats->bvh.embree > 0);
+    CHECK(out.stats->bvh.compressed > 0);
+    CHECK(out.stats->bvh.compressed < out.stats->bvh.embree);
+    CHECK(out.stats->resident_estimate > 0);
+    CHECK((2 * out.stats->resident_estimate <= out.stats->bvh.embree ||
+           c->desc.log2_table_size == run.preset.classify.min_log2_table_size));
     CHECK(out.stats->components >= 1);
     CHECK(out.stats->area_ratio > 0);
     CHECK(out.stats->box_min == c->box.min);
@@ -125,6 +133,16 @@ TEST_CASE("classify sizes the hash tables to beat the BVH, unless forced, and me
             outside +=
                 !(mesh.positions[v * 3 + a] > c->box.min[a] && mesh.positions[v * 3 + a] < c->box.max[a]);
     CHECK(outside == 0);
+
+    // On the compressed yardstick the BVH is smaller, so the tables are at most as large.
+    ConvertOptions oc = o;
+    oc.bvh_yardstick = BvhYardstick::compressed;
+    const Run compressed_run = make_run(oc, fresh_dir("stages_classify_compressed"));
+    MeshOutcome compressed_out;
+    const auto cc = classify(compressed_run, mesh, false, compressed_out);
+    REQUIRE(cc.has_value());
+    CHECK(cc->desc.log2_table_size <= c->desc.log2_table_size);
+    CHECK(cc->bvh.compressed == c->bvh.compressed);  // one build thread: the same node count
 
     MeshOutcome forced_out;
     const auto forced = classify(run, mesh, true, forced_out);
@@ -181,6 +199,16 @@ TEST_CASE(
     REQUIRE(strict.reasons.size() == 2);
     CHECK(strict.reasons[1].find("below the") != std::string::npos);
 
+    // On the compressed yardstick the BVH is smaller, so the tables are at most as large.
+    ConvertOptions oc = o;
+    oc.bvh_yardstick = BvhYardstick::compressed;
+    const Run compressed_run = make_run(oc, fresh_dir("stages_classify_compressed"));
+    MeshOutcome compressed_out;
+    const auto cc = classify(compressed_run, mesh, false, compressed_out);
+    REQUIRE(cc.has_value());
+    CHECK(cc->desc.log2_table_size <= c->desc.log2_table_size);
+    CHECK(cc->bvh.compressed == c->bvh.compressed);  // one build thread: the same node count
+
     MeshOutcome forced_out;
     const auto forced = classify(run, mesh, true, forced_out);
     REQUIRE(forced.has_value());
@@ -209,6 +237,8 @@ TEST_CASE("every setting survives settings_arguments and back, and every mesh se
                                                         {"--no-ray-inputs", ""},
                                                         {"--target", "90,2,20"},
                                                         {"--memory-budget", "64M"},
+                                                        {"--bvh-yardstick", "compressed"},
+                                                        {"--memory-ratio", "1.5"},
                                                         {"--fixed-model", ""},
                                                         {"--no-give-up", ""},
                                                         {"--keep-inactive", ""},

@@ -48,8 +48,8 @@ MeshOutcome full_outcome() {
     s.closed = true;
     s.solid = false;
     s.log2_table_size = 17;
-    s.bvh_bytes = 1234567;
-    s.lsnif_bytes_estimate = 400000;
+    s.bvh = {1234567, 98000};
+    s.resident_estimate = 400000;
     s.occupied_fraction = 0.1;
     s.mean_occupied_per_ray = 4.2;
     s.training_rays = 1u << 20;
@@ -69,6 +69,7 @@ MeshOutcome full_outcome() {
     c.hidden_width = {120, 97};
     c.grid = lsnif::format::GridEncoding::fp16;
     c.bytes = 900000;
+    c.resident_bytes = 1500000;
     c.steps = 960;
     c.steps_planned = 1200;
     c.seconds = 12.5;
@@ -88,6 +89,7 @@ MeshOutcome full_outcome() {
     o.candidates.push_back(c);
     c.grid = lsnif::format::GridEncoding::u8_affine;
     c.bytes = 450000;
+    c.resident_bytes = 890001;
     c.outcome = CandidateOutcome::chosen_meets_target;
     c.validation.reset();
     c.stop = StopKind::given_up;
@@ -97,7 +99,7 @@ MeshOutcome full_outcome() {
     o.validation = std::vector<ValidationPoint>{{120, 0.9, 1.5, 20.0}};
     o.stopped_early = StoppedEarly{960, 1200};
     o.target = TargetVerdict{Target{}, {"visibility 98.00 % < target 98.50 %"}};
-    o.asset = AssetFile{"0123456789abcdef.lsnif", 450123, true};
+    o.asset = AssetFile{"0123456789abcdef.lsnif", 450123, 890001, true};
     o.memory = MeshMemory{1234567, 450123, false};
     o.shard = 2;
     o.cache_key = "abc";
@@ -112,7 +114,7 @@ TEST_CASE("every decision implies one class, and every name reads back as itself
     for (std::size_t d = 0; d < kDecisionCount; ++d) {
         MeshOutcome o;
         o.decision = Decision(d);
-        if (o.decision == Decision::shipped) o.asset = AssetFile{"a.lsnif", 1, std::nullopt};
+        if (o.decision == Decision::shipped) o.asset = AssetFile{"a.lsnif", 1, 2, std::nullopt};
         names.insert(decision_name(o.decision));
         const json j = outcome_json(o);
         CHECK(j["decision"] == decision_name(o.decision));
@@ -184,7 +186,8 @@ TEST_CASE("outcome_from_json refuses what it did not write and names the field")
         return error_of(j);
     };
     CHECK(without({"decision"}) == "decision: missing");
-    CHECK(without({"stats", "bvh_bytes"}) == "stats.bvh_bytes: missing");
+    CHECK(without({"stats", "bvh", "compressed"}) == "stats.bvh.compressed: missing");
+    CHECK(without({"lsnif", "resident_bytes"}) == "lsnif.resident_bytes: missing");
     CHECK(without({"metrics", "families", "surface", "normal_error_median_deg"}) ==
           "metrics.families.surface.normal_error_median_deg: missing");
     CHECK(with({"stats", "components"}, -1) == "stats.components: not a whole number in range");
@@ -246,11 +249,12 @@ TEST_CASE("inputs and the scene's memory: records and sums") {
     std::vector<MeshOutcome> meshes(2);
     meshes[0].memory = MeshMemory{100, 10, false};
     meshes[1].memory = MeshMemory{50, 50, false};
-    const SceneMemory m = scene_memory(meshes, 40, false);
+    const SceneMemory m = scene_memory(meshes, BvhYardstick::compressed, 40, false);
     CHECK(m.before == 150);
     CHECK(m.after == 60);
     CHECK_FALSE(m.fits());
-    CHECK(scene_memory_json(m) == json{{"before", 150}, {"after", 60}, {"budget", 40}, {"fits", false}});
-    CHECK(scene_memory_json(scene_memory(meshes, 0, true)) ==
-          json{{"before", 150}, {"after", 60}, {"estimated", true}});
+    CHECK(scene_memory_json(m) ==
+          json{{"yardstick", "compressed"}, {"before", 150}, {"after", 60}, {"budget", 40}, {"fits", false}});
+    CHECK(scene_memory_json(scene_memory(meshes, BvhYardstick::embree, 0, true)) ==
+          json{{"yardstick", "embree"}, {"before", 150}, {"after", 60}, {"estimated", true}});
 }

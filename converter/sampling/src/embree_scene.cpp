@@ -7,6 +7,8 @@
 
 #include <lsnif/format/cpu.hpp>
 
+#include <atomic>
+#include <cmath>
 #include <cstring>
 #include <unordered_map>
 
@@ -112,6 +114,25 @@ std::string commit_scene(EmbreeSource::Impl& m) {
 
 }  // namespace
 
+namespace {
+
+// What rtcBuildBVH's callbacks count. Nodes are allocated from the builder's thread-local
+// allocator only so that the builder has pointers to link; nothing is stored in them.
+struct NodeCounts {
+    std::atomic<std::uint64_t> inner{0}, leaves{0};
+};
+
+std::string index_problem(const MeshView& mesh) {
+    const std::size_t vertices = mesh.vertex_count();
+    for (std::uint32_t i : mesh.indices)
+        if (i >= vertices)
+            return "sampling: vertex index " + std::to_string(i) + " out of range (" +
+                   std::to_string(vertices) + " vertices)";
+    return {};
+}
+
+}  // namespace
+
 std::string build_embree_scene(EmbreeSource::Impl& m) {
     if (std::string why = new_device_and_scene(m); !why.empty()) return why;
     if (std::string why = attach_triangles(m, m.positions, m.indices, kMeshMask, 0); !why.empty()) return why;
@@ -121,13 +142,10 @@ std::string build_embree_scene(EmbreeSource::Impl& m) {
 }
 
 std::optional<std::size_t> measure_bvh_bytes(const MeshView& mesh, std::string& error) {
-    const std::size_t vertices = mesh.vertex_count();
-    for (std::uint32_t i : mesh.indices)
-        if (i >= vertices) {
-            error = "sampling: vertex index " + std::to_string(i) + " out of range (" +
-                    std::to_string(vertices) + " vertices)";
-            return std::nullopt;
-        }
+    if (std::string why = index_problem(mesh); !why.empty()) {
+        error = why;
+        return std::nullopt;
+    }
     if (mesh.triangle_count() == 0) return 0;  // nothing to build
     EmbreeSource::Impl m;
     m.positions.assign(mesh.positions.begin(), mesh.positions.end());
@@ -137,6 +155,68 @@ std::optional<std::size_t> measure_bvh_bytes(const MeshView& mesh, std::string& 
         return std::nullopt;
     }
     return m.bvh;
+}
+
+std::optional<CompressedBvh> measure_compressed_bvh(const MeshView& mesh, std::string& error) {
+    if (std::string why = index_problem(mesh); !why.empty()) {
+        error = why;
+        return std::nullopt;
+    }
+    if (mesh.triangle_count() == 0) return CompressedBvh{};
+    std::vector<RTCBuildPrimitive> prims(mesh.triangle_count());
+    for (std::size_t t = 0; t < prims.size(); ++t) {
+        float lo[3] = {INFINITY, INFINITY, INFINITY}, hi[3] = {-INFINITY, -INFINITY, -INFINITY};
+        for (int c = 0; c < 3; ++c)
+            for (int a = 0; a < 3; ++a) {
+                const float v = mesh.positions[std::size_t(mesh.indices[t * 3 + c]) * 3 + a];
+                lo[a] = std::min(lo[a], v);
+                hi[a] = std::max(hi[a], v);
+            }
+        prims[t] = {lo[0], lo[1], lo[2], 0u, hi[0], hi[1], hi[2], std::uint32_t(t)};
+    }
+    RTCDevice device = rtcNewDevice("threads=1");
+    if (!device) {
+        error = "sampling: rtcNewDevice failed (embree error " +
+                std::to_string(int(rtcGetDeviceError(nullptr))) + ")";
+        return std::nullopt;
+    }
+    NodeCounts counts;
+    RTCBVH bvh = rtcNewBVH(device);
+    RTCBuildArguments args = rtcDefaultBuildArguments();
+    args.byteSize = sizeof(args);
+    args.buildQuality = RTC_BUILD_QUALITY_MEDIUM;
+    args.maxBranchingFactor = 8;
+    args.maxDepth = 1024;
+    args.sahBlockSize = 1;
+    args.minLeafSize = 1;
+    args.maxLeafSize = 3;
+    args.traversalCost = 1.0f;
+    args.intersectionCost = 1.0f;
+    args.bvh = bvh;
+    args.primitives = prims.data();
+    args.primitiveCount = prims.size();
+    args.primitiveArrayCapacity = prims.size();
+    args.userPtr = &counts;
+    args.createNode = [](RTCThreadLocalAllocator alloc, unsigned, void* user) -> void* {
+        static_cast<NodeCounts*>(user)->inner++;
+        return rtcThreadLocalAlloc(alloc, 8, 8);
+    };
+    args.setNodeChildren = [](void*, void**, unsigned, void*) {};
+    args.setNodeBounds = [](void*, const RTCBounds**, unsigned, void*) {};
+    args.createLeaf = [](RTCThreadLocalAllocator alloc, const RTCBuildPrimitive*, size_t,
+                         void* user) -> void* {
+        static_cast<NodeCounts*>(user)->leaves++;
+        return rtcThreadLocalAlloc(alloc, 8, 8);
+    };
+    const bool built = rtcBuildBVH(&args) != nullptr;
+    const RTCError code = rtcGetDeviceError(device);
+    rtcReleaseBVH(bvh);
+    rtcReleaseDevice(device);
+    if (!built || code != RTC_ERROR_NONE) {
+        error = "sampling: rtcBuildBVH failed (embree error " + std::to_string(int(code)) + ")";
+        return std::nullopt;
+    }
+    return CompressedBvh{counts.inner.load(), counts.leaves.load()};
 }
 
 }  // namespace lsnif::sampling

@@ -29,9 +29,11 @@ struct SceneBenchOptions {
 struct ConvertOptions;
 
 nlohmann::json bench_train(const BenchOptions& options);
-// memory: .lsnif bytes per complex object against Embree's BVH bytes for the same mesh
-// (device memory monitor) and an 8-wide compressed-BVH estimate (80 bytes per inner node
-// of a BVH8 built by rtcBuildBVH). On failure returns null and sets `error`.
+// memory: per complex object, the bytes a renderer holds once its asset is open (resident:
+// lsnif_info.decoded_bytes with the fp32 network, and with the arithmetic this CPU runs) and
+// its file bytes, against Embree's BVH bytes for the same mesh (device memory monitor) and
+// the compressed-BVH yardstick (sampling::CompressedBvh). Ratios are BVH over resident
+// bytes. On failure returns null and sets `error`.
 nlohmann::json bench_memory(const SceneBenchOptions& options, std::string& error);
 // rays: the reader's batched inference against rtcIntersect1 and rtcIntersect16 on the same
 // rays per object, as ratios, plus hit/miss agreement.

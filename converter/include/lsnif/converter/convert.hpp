@@ -163,6 +163,12 @@ struct ConvertOptions {
     // every candidate is converted. Missing it because candidates did not ship is a warning;
     // a budget below the meshes that stay BVH in any case is a usage error.
     std::uint64_t memory_budget = 0;
+    // --bvh-yardstick: the BVH every memory figure, ratio, rule and budget compares an asset's
+    // resident bytes with (ClassifyRule::yardstick); none = the preset's (Embree's BVH).
+    std::optional<BvhYardstick> bvh_yardstick;
+    // --memory-ratio: > 0 overrides ClassifyRule::min_memory_ratio, how many times smaller
+    // than the yardstick's BVH an asset must be held to convert its mesh.
+    double min_memory_ratio = 0;
     // Model overrides (0 = the preset's value), for sweeps such as scripts/tradeoff. A
     // changed table size is the largest the per-mesh sizing may choose.
     std::uint32_t log2_table_size = 0;      // T = 2^n rows per hashed level

@@ -21,7 +21,7 @@
 
 namespace lsnif::converter {
 
-inline constexpr const char* kManifestFormat = "lsnif-manifest/3";
+inline constexpr const char* kManifestFormat = "lsnif-manifest/4";
 
 // The form `inputs[].path` records for `input` (as given, relative to the current working
 // directory or absolute) in a manifest written into `manifest_dir`: relative to

@@ -42,12 +42,12 @@ enum class Decision : std::uint8_t {
     few_triangles,        // below ClassifyRule::min_triangles: a BVH is small and exact
     not_modelable,        // no box, outside single precision's range, or Embree could not build it
     voxelization_failed,  // the occupancy grid could not be built
-    no_memory_benefit,    // an LSNIF would not beat the BVH by ClassifyRule::min_memory_ratio
-    decided_early,        // the validation curve showed the gate is out of reach (EarlyAbort)
-    below_gate,           // trained to the end, held-out accuracy below the gate
-    asset_not_smaller,    // the chosen asset itself does not beat the BVH by the memory rule
-    budget_met,           // --memory-budget: the scene fits without converting it
-    other_shard,          // --shard: another shard converts it
+    no_memory_benefit,  // an LSNIF, held in memory, would not beat the BVH by ClassifyRule::min_memory_ratio
+    decided_early,      // the validation curve showed the gate is out of reach (EarlyAbort)
+    below_gate,         // trained to the end, held-out accuracy below the gate
+    asset_not_smaller,  // the chosen asset, held in memory, does not beat the BVH by the memory rule
+    budget_met,         // --memory-budget: the scene fits without converting it
+    other_shard,        // --shard: another shard converts it
     left_to_another_job,  // --object: another job converts it
     planned,              // --dry-run: would be converted
     shipped,              // converted (or reused) and written
@@ -87,6 +87,14 @@ struct Timings {
     double total() const;
 };
 
+// A mesh's BVH on both yardsticks (BvhYardstick): Embree's as built and the compressed
+// estimate (the manifest's `stats.bvh`).
+struct BvhBytes {
+    std::uint64_t embree = 0;
+    std::uint64_t compressed = 0;
+    std::uint64_t of(BvhYardstick y) const { return y == BvhYardstick::compressed ? compressed : embree; }
+};
+
 // What classification measured of a mesh (the manifest's `stats`).
 struct MeshStats {
     std::array<float, 3> box_min{}, box_max{};    // the padded box (voxelize::padded_box)
@@ -94,8 +102,8 @@ struct MeshStats {
     std::uint64_t components = 0;                 // index-connected components
     bool closed = false, solid = false;           // sampling::EmbreeSource::is_closed, rejects_interior
     std::uint32_t log2_table_size = 0;            // the table size classification chose
-    std::uint64_t bvh_bytes = 0;                  // Embree's BVH of the mesh
-    std::uint64_t lsnif_bytes_estimate = 0;       // the planned asset's estimate
+    BvhBytes bvh;                                 // the mesh's BVH on both yardsticks
+    std::uint64_t resident_estimate = 0;          // the planned asset's resident bytes, estimated
     std::optional<double> occupied_fraction;      // once voxelized
     std::optional<double> mean_occupied_per_ray;  // once trained: occupied voxels a ray crosses
     std::optional<std::uint64_t> training_rays;   // once trained: distinct rays over every rung
@@ -128,7 +136,8 @@ struct CandidateRecord {
     std::uint32_t grid_resolution = 0;        // V of the occupancy grid
     std::vector<std::uint32_t> hidden_width;  // per hidden layer, after pruning
     format::GridEncoding grid = format::GridEncoding::fp16;
-    std::uint64_t bytes = 0;  // serialized without metadata
+    std::uint64_t bytes = 0;           // serialized without metadata
+    std::uint64_t resident_bytes = 0;  // held once opened (format::resident_bytes), without metadata
     std::uint32_t steps = 0, steps_planned = 0;
     std::optional<double> seconds;                            // wall time (absent in reproducible records)
     double visibility = 0, distance_pct = 0, normal_deg = 0;  // pooled held-out
@@ -150,13 +159,15 @@ struct TargetVerdict {
 };
 
 struct AssetFile {
-    std::string file;  // relative to the manifest: a bare file name
-    std::uint64_t bytes = 0;
-    std::optional<bool> reused;  // absent in reproducible records
+    std::string file;                  // relative to the manifest: a bare file name
+    std::uint64_t bytes = 0;           // the file
+    std::uint64_t resident_bytes = 0;  // what a renderer holds once it is open (format::resident_bytes)
+    std::optional<bool> reused;        // absent in reproducible records
 };
 
-// The mesh's bytes in the scene, once whatever its instances: before = its BVH; after = its
-// asset when complex, else its BVH.
+// The mesh's bytes in the scene, once whatever its instances, on the run's yardstick
+// (ClassifyRule::yardstick): before = its BVH; after = its asset's resident bytes when
+// complex, else its BVH.
 struct MeshMemory {
     std::uint64_t before = 0, after = 0;
     bool estimated = false;  // a dry run: the asset's estimate
@@ -226,16 +237,19 @@ struct InputRecord {
 nlohmann::json input_json(const InputRecord& in);
 base::Result<InputRecord, std::string> input_from_json(const nlohmann::json& j);
 
-// The scene's memory, every mesh once (the manifest's `scene_memory`): before = every mesh's
-// BVH, after = assets of the converted meshes plus BVHs of the others.
+// The scene's memory, every mesh once (the manifest's `scene_memory`), on `yardstick`: before
+// = every mesh's BVH, after = the converted meshes' assets as held in memory plus the BVHs of
+// the others.
 struct SceneMemory {
+    BvhYardstick yardstick = BvhYardstick::embree;
     std::uint64_t before = 0, after = 0;
     std::optional<std::uint64_t> budget;  // --memory-budget
     bool estimated = false;               // a dry run
     bool fits() const { return !budget || after <= *budget; }
 };
-// The sums over `meshes`' memory (each must have it); `budget` 0 = none.
-SceneMemory scene_memory(const std::vector<MeshOutcome>& meshes, std::uint64_t budget, bool estimated);
+// The sums over `meshes`' memory (each must have it, on `yardstick`); `budget` 0 = none.
+SceneMemory scene_memory(const std::vector<MeshOutcome>& meshes, BvhYardstick yardstick, std::uint64_t budget,
+                         bool estimated);
 nlohmann::json scene_memory_json(const SceneMemory& m);
 
 // A candidate's outcome as the manifest says it ("chosen: the smallest of 4 candidates that

@@ -17,18 +17,34 @@
 
 namespace lsnif::converter {
 
-// Classification thresholds (documented in README "Classification").
+// The BVH an asset's memory is compared with (--bvh-yardstick; docs/convert.md "Memory").
+enum class BvhYardstick : std::uint8_t {
+    // Embree's BVH of the mesh as built (its memory monitor over the commit: nodes and leaf
+    // triangles): what a CPU renderer tracing through Embree holds.
+    embree,
+    // An 8-wide compressed BVH as GPU renderers hold (sampling::CompressedBvh: 80 bytes per
+    // inner node, leaf triangles not counted): the smallest BVH a renderer could hold, a
+    // lower bound, and the yardstick of the LSNIF paper's memory figures.
+    compressed,
+};
+// "embree", "compressed" (the --bvh-yardstick values); and back, false for anything else.
+const char* bvh_yardstick_name(BvhYardstick y);
+bool parse_bvh_yardstick(const std::string& text, BvhYardstick& out);
+
+// Classification thresholds (docs/convert.md "Which meshes convert").
 //
 // Model sizing ("never model more than a scene needs"): the preset's hash-table size
-// 2^log2_table_size is the largest a mesh gets. It is halved while the .lsnif would not beat
-// the BVH by min_memory_ratio, down to 2^min_log2_table_size; a mesh that still does not
-// benefit stays BVH. `--complex NAME` skips this sizing and the memory rule: the mesh starts
-// at the preset's model, and only the target (Sizing) makes it smaller.
+// 2^log2_table_size is the largest a mesh gets. It is halved while the asset's resident
+// bytes (what a renderer holds once it is open: format::resident_bytes) would not beat the
+// yardstick's BVH by min_memory_ratio, down to 2^min_log2_table_size; a mesh that still does
+// not benefit stays BVH. `--complex NAME` skips this sizing and the memory rule: the mesh
+// starts at the preset's model, and only the target (Sizing) makes it smaller.
 struct ClassifyRule {
     std::uint64_t min_triangles = 2000;  // fewer: the BVH is tiny and exact; keep it
     // An approximation must at least halve the memory of what it replaces: a 10-30 % saving is
     // not worth ~3 % wrong visibility (2CylinderEngine has four 7-11k-triangle parts at 1.1-1.8x).
-    double min_memory_ratio = 2.0;           // BVH bytes must be at least this x the .lsnif bytes
+    double min_memory_ratio = 2.0;  // the yardstick's BVH bytes >= this x the asset's resident bytes
+    BvhYardstick yardstick = BvhYardstick::embree;
     std::uint32_t min_log2_table_size = 15;  // smallest table sizing may choose (2^15 rows)
 };
 

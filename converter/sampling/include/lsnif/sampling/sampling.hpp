@@ -222,6 +222,21 @@ private:
 // `error` ("sampling: ...") on failure.
 std::optional<std::size_t> measure_bvh_bytes(const MeshView& mesh, std::string& error);
 
+// The compressed-BVH yardstick: the size of an 8-wide BVH in the compressed node format of
+// Ylitie, Karras and Laine (2017, "Efficient Incoherent Ray Traversal on GPUs Through
+// Compressed Wide BVHs"): 80 bytes per inner node, the estimate the LSNIF paper compares
+// with. Leaf triangles are not counted, so it is a lower bound on what a GPU renderer holds.
+// The node count is Embree's own BVH builder's (rtcBuildBVH: SAH, medium quality, at most
+// 8 children and 3 triangles per leaf) on one thread, so it is the same on every run.
+struct CompressedBvh {
+    static constexpr std::uint64_t kInnerNodeBytes = 80;
+    std::uint64_t inner_nodes = 0, leaves = 0;
+    std::uint64_t bytes() const { return kInnerNodeBytes * inner_nodes; }
+};
+// For `mesh` (indices in range; an empty mesh has no nodes). Returns nullopt and sets
+// `error` ("sampling: ...") on failure.
+std::optional<CompressedBvh> measure_compressed_bvh(const MeshView& mesh, std::string& error);
+
 // Times generate(seed, count) against a plain parallel rtcIntersect1 loop over the same
 // rays, both with src.threads() threads and the same dynamic 1024-ray chunks; `repeats`
 // alternating runs, best time of each. Also times the same rays through rtcIntersect16
