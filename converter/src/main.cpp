@@ -637,8 +637,8 @@ struct BenchCommand {
             "train", "Training samples/s (forward+backward+Adam) for batch 2^14..2^16, vs sgemm");
         infer = sub->add_subcommand("infer",
                                     "Inference rays/s through the network and with occupancy early-outs");
-        memory = sub->add_subcommand("memory",
-                                     ".lsnif bytes per complex object vs Embree's BVH and a BVH8 estimate");
+        memory = sub->add_subcommand(
+            "memory", "Resident and file bytes per complex object vs Embree's BVH and a compressed BVH8");
         rays = sub->add_subcommand(
             "rays", "LSNIF inference vs rtcIntersect1/rtcIntersect16 on the same rays, per object");
         for (auto* s : {memory, rays}) {
