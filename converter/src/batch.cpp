@@ -134,20 +134,43 @@ std::string last_reason(const MeshOutcome& m) {
     return m.reasons.empty() ? std::string(decision_name(m.decision)) : m.reasons.back();
 }
 
+// A shipped asset's line: its memory against both BVHs, its held-out accuracy and image
+// error, and what it ships without (the target's misses, the ray rules an image-shipped
+// asset fails, an image gate raised above the calibrated one).
+std::string shipped_line(const MeshOutcome& m, const std::string& who) {
+    char buf[512];
+    std::snprintf(buf, sizeof buf,
+                  "lsnif    %s: %s, %" PRIu64 " bytes held in memory (%" PRIu64
+                  " in the file; BVH: Embree %" PRIu64 ", compressed %" PRIu64
+                  "), held-out visibility %.2f %%",
+                  who.c_str(), m.asset->file.c_str(), m.asset->resident_bytes, m.asset->bytes,
+                  m.stats ? m.stats->bvh.embree : 0, m.stats ? m.stats->bvh.compressed : 0,
+                  100 * m.held_out->metrics.pooled.visibility_accuracy);
+    std::string line = buf;
+    if (m.held_out_images) {
+        std::snprintf(buf, sizeof buf, ", image error %.4f", m.held_out_images->combined_object);
+        line += buf;
+    }
+    const GateVerdict& gate = m.held_out->gate;
+    if (gate.by == GatePass::images)
+        line +=
+            gate.above_calibrated ? ", shipped by images above the calibrated gate" : ", shipped by images";
+    if (m.target && !m.target->misses.empty()) {
+        line += "; target missed:";
+        for (const std::string& miss : m.target->misses) line += " " + miss + ";";
+        line.pop_back();
+    }
+    if (m.asset->reused.value_or(false)) line += " (reused)";
+    return line;
+}
+
 std::string asset_line(const MeshOutcome& m, const std::string& input) {
     char buf[512];
     const std::string who = input + ": " + m.name;
     if (m.cls() == MeshClass::failed)
         std::snprintf(buf, sizeof buf, "failed   %s: %s", who.c_str(), last_reason(m).c_str());
     else if (m.asset)
-        std::snprintf(buf, sizeof buf,
-                      "lsnif    %s: %s, %" PRIu64 " bytes held in memory (%" PRIu64
-                      " in the file; BVH: Embree %" PRIu64 ", compressed %" PRIu64
-                      "), held-out visibility %.2f %%%s",
-                      who.c_str(), m.asset->file.c_str(), m.asset->resident_bytes, m.asset->bytes,
-                      m.stats ? m.stats->bvh.embree : 0, m.stats ? m.stats->bvh.compressed : 0,
-                      100 * m.held_out->metrics.pooled.visibility_accuracy,
-                      m.asset->reused.value_or(false) ? " (reused)" : "");
+        return shipped_line(m, who);
     else
         std::snprintf(buf, sizeof buf, "bvh      %s: %s", who.c_str(), last_reason(m).c_str());
     return buf;

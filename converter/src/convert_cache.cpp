@@ -1,6 +1,7 @@
 // The cache glue of a conversion: keys, restoring a stored result, storing a new one
 // (docs/pipeline.md "The cache"; convert_stages.hpp has the contracts).
 #include <lsnif/cache/remote.hpp>
+#include <lsnif/converter/settings.hpp>
 #include "convert_stages.hpp"
 
 namespace lsnif::converter {
@@ -85,10 +86,12 @@ const std::string& cache_key(const Run& run, Planned& p) {
     if (!p.key.empty()) return p.key;
     const scene::Mesh& m = *p.mesh;
     cache::Sha256 h;
-    h.update("lsnif-convert-result/3\n").update(tool_identity().digest).update("\n");
+    h.update("lsnif-convert-result/4\n").update(tool_identity().digest).update("\n");
     h.update(asset_key(run, m, p.candidate->desc))
         .update("\n")
         .update(gate_key(run.preset.gate))
+        .update("\n")
+        .update(report_settings_key(run.opt))
         .update("\n");
     h.update(p.forced() ? "forced\n" : "automatic\n")
         .update(p.source)

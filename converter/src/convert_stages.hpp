@@ -80,14 +80,17 @@ struct Candidate {
 // What a mesh's models are measured on, made once and shared by every rung of the ladder,
 // all apart from the training rays: validation rays (the curve that decides during
 // training), decision rays (the gate, the target and the choice between options), held-out
-// rays that no decision sees (what the manifest reports), and the object's views with their
-// reference renders (Preset::visual_check; null when off).
+// rays that no decision sees (what the manifest reports), and two sets of the object's views
+// with their reference renders (Preset::visual_check; null when off): the decision views,
+// which the gate, the target and the choice read, and the held-out views, drawn apart, on
+// which the shipped asset's image error is reported.
 struct MeasureRays {
     std::vector<samples::Sample> validation;
     std::vector<samples::Sample> decision;
     std::vector<samples::Sample> held_out;
     std::vector<std::array<float, 3>> held_out_geometric_normals;
-    std::unique_ptr<ObjectViews> views;
+    std::unique_ptr<ObjectViews> decision_views;
+    std::unique_ptr<ObjectViews> held_out_views;
 };
 
 // One rung of the ladder, trained.
@@ -117,7 +120,7 @@ struct Option {
     format::ModelData model;         // metadata filled only for the chosen one (encode_asset)
     samples::Metrics decided;        // on the decision rays: what the gate, the target and the choice read
     HeldOut held_out;                // on the held-out rays, reported; its gate is the decided verdict
-    std::optional<ObjectFlip> flip;  // the visual check in MeasureRays::views, when on
+    std::optional<ObjectFlip> flip;  // the visual check on MeasureRays::decision_views, when on
     std::uint64_t bytes = 0;         // serialized without metadata
     std::uint64_t resident = 0;      // held once opened (format::resident_bytes), without metadata
     bool target_met = false;         // passes the gate and meets --target on held-out rays
@@ -132,6 +135,10 @@ struct Sized {
     std::vector<Option> options;        // per rung: fp16, then u8_affine (Sizing::quantize)
     std::optional<std::size_t> chosen;  // into options; none when nothing may ship
 };
+
+// The object's views drawn from `seed` (Preset::views), with their reference renders; null
+// when Embree cannot build them (classification built the same mesh: short of memory only).
+std::unique_ptr<ObjectViews> object_views(const Run& run, const scene::Mesh& mesh, std::uint64_t seed);
 
 // The validation point of a model at `step`: pooled metrics of `rays` through the reader's
 // forward pass (format::intersect on the fp16 export), as the manifest records it.
@@ -268,10 +275,15 @@ const char* bvh_yardstick_label(BvhYardstick y);
 // the bytes a renderer holds once it is open; 0 for what cannot be read.
 AssetFile asset_file(const fs::path& asset, const std::string& file, std::optional<bool> reused);
 
-// Settles a mesh whose asset ships (just written, or reused): its metrics, the target's
-// verdict and the file.
-void shipped(const Run& run, HeldOut metrics, const std::string& file, const fs::path& asset, bool reused,
-             MeshOutcome& out);
+// The image error of `asset` (its bytes) on the held-out views of `mesh` (`views`, or made
+// here when null); none when the visual check is off or the views cannot be rendered.
+std::optional<ObjectFlip> held_out_images(const Run& run, const scene::Mesh& mesh, const ObjectViews* views,
+                                          std::span<const std::uint8_t> asset, MeshOutcome& out);
+
+// Settles a mesh whose asset ships (just written, or reused): its metrics, its held-out image
+// error, the target's verdict and the file.
+void shipped(const Run& run, HeldOut metrics, std::optional<ObjectFlip> images, const std::string& file,
+             const fs::path& asset, bool reused, MeshOutcome& out);
 
 // Settles a mesh none of whose rungs passes the gate (`abandoned`: given up during training).
 void below_gate(const HeldOut& metrics, bool abandoned, MeshOutcome& out);

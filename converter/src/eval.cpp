@@ -435,11 +435,8 @@ View make_view(const EvalOptions& opt, const std::array<float, 6>& world) {
     return v;
 }
 
-// Primary visibility from the real meshes through Embree (standing in for a rasterized
-// G-buffer): position, camera-facing shading normal, instance and secondary-ray offset of
-// every pixel.
 GBuffer render_primary(const EvalScene& scene, const std::vector<EvalScene::Impl::Instance>& instances,
-                       const View& v, std::uint32_t threads) {
+                       const View& v, std::uint32_t threads, bool through_assets) {
     const std::uint32_t W = v.W, H = v.H;
     GBuffer gb;
     gb.p.resize(std::size_t(W) * H);
@@ -455,7 +452,7 @@ GBuffer render_primary(const EvalScene& scene, const std::vector<EvalScene::Impl
             const Vec3 d = normalize(v.fwd + v.right * sx + v.up * sy);
             rays[x] = {{v.cam.eye[0], v.cam.eye[1], v.cam.eye[2]}, 0.0f, {d[0], d[1], d[2]}, INFINITY};
         }
-        scene.closest(false, rays, hits);
+        scene.closest(through_assets, rays, hits);
         for (std::uint32_t x = 0; x < W; ++x) {
             const std::size_t i = std::size_t(y) * W + x;
             if (hits[x].instance < 0) continue;
@@ -647,23 +644,23 @@ BothImages render_secondary(const EvalScene& scene, const std::vector<EvalScene:
     return out;
 }
 
-// Mean of the FLIP error map over the pixels `mask` selects; none when it selects none.
-std::optional<double> masked_mean(const std::vector<float>& error_map,
-                                  const std::vector<std::uint8_t>& mask) {
-    double sum = 0;
-    std::size_t n = 0;
+// The FLIP errors of the pixels `mask` selects, in pixel order.
+std::vector<float> masked_errors(const std::vector<float>& error_map, const std::vector<std::uint8_t>& mask) {
+    std::vector<float> out;
     for (std::size_t i = 0; i < mask.size(); ++i)
-        if (mask[i]) sum += error_map[i], ++n;
-    return n ? std::optional<double>(sum / double(n)) : std::nullopt;
+        if (mask[i]) out.push_back(error_map[i]);
+    return out;
 }
 
-bool write_effect_images(const image::Image& ref, const image::Image& hyb, const image::FlipResult& f, int e,
-                         const fs::path& images, EffectComparison& c, std::string& error) {
+bool write_effect_images(const image::Image& ref, const image::Image& test, const image::FlipResult& f, int e,
+                         const std::string& label, const fs::path& images, EffectComparison& c,
+                         std::string& error) {
     const std::string stem = kEffectNames[e];
+    const std::string flip_stem = label == "hybrid" ? "flip_" : "flip_" + label + "_";
     const image::Image heat = image::heatmap(f.error_map, ref.width, ref.height);
     const std::pair<std::string, const image::Image*> files[] = {{"reference_" + stem + ".png", &ref},
-                                                                 {"hybrid_" + stem + ".png", &hyb},
-                                                                 {"flip_" + stem + ".png", &heat}};
+                                                                 {label + "_" + stem + ".png", &test},
+                                                                 {flip_stem + stem + ".png", &heat}};
     for (const auto& [file, img] : files) {
         auto w = image::write_png((images / file).string(), *img);
         if (!w) {
@@ -675,13 +672,13 @@ bool write_effect_images(const image::Image& ref, const image::Image& hyb, const
     return true;
 }
 
-bool compare_effects(const EffectImages& reference, const EffectImages& hybrid, const View& v,
+bool compare_effects(const EffectImages& reference, const EffectImages& test, const View& v,
                      const std::vector<std::uint8_t>& lsnif_pixels, const fs::path& images, bool write_images,
-                     Comparison& out, std::string& error) {
+                     Comparison& out, std::string& error, const std::string& label) {
     const std::uint32_t W = v.W, H = v.H;
     double flip_sum = 0;
     for (int e = 0; e < kEffects; ++e) {
-        image::Image ref{W, H, reference.rgb[e]}, hyb{W, H, hybrid.rgb[e]};
+        image::Image ref{W, H, reference.rgb[e]}, hyb{W, H, test.rgb[e]};
         for (auto* im2 : {&ref, &hyb})
             for (float& x : im2->rgb) x = image::linear_to_srgb(std::clamp(x, 0.0f, 1.0f));
         auto f = image::flip(ref, hyb, image::FlipOptions{});
@@ -692,8 +689,9 @@ bool compare_effects(const EffectImages& reference, const EffectImages& hybrid, 
         EffectComparison& c = out.effect[e];
         c.flip = f->stats;
         c.psnr_db = image::psnr(ref, hyb);
-        c.flip_mean_lsnif_pixels = masked_mean(f->error_map, lsnif_pixels);
-        if (write_images && !write_effect_images(ref, hyb, *f, e, images, c, error)) return false;
+        c.lsnif_pixel_errors = masked_errors(f->error_map, lsnif_pixels);
+        if (!c.lsnif_pixel_errors.empty()) c.flip_lsnif_pixels = image::error_stats(c.lsnif_pixel_errors);
+        if (write_images && !write_effect_images(ref, hyb, *f, e, label, images, c, error)) return false;
         if (e < kSeparateEffects) flip_sum += f->stats.mean;
     }
     out.flip_mean = flip_sum / double(kSeparateEffects);
@@ -711,13 +709,19 @@ json comparison_json(const Comparison& c) {
                   {"flip_p95", x.flip.p95},
                   {"flip_max", x.flip.max}};
         j["psnr_db"] = std::isfinite(x.psnr_db) ? json(x.psnr_db) : json(nullptr);
-        j["flip_mean_lsnif_pixels"] =
-            x.flip_mean_lsnif_pixels ? json(*x.flip_mean_lsnif_pixels) : json(nullptr);
+        j["flip_mean_lsnif_pixels"] = x.flip_lsnif_pixels ? json(x.flip_lsnif_pixels->mean) : json(nullptr);
+        j["flip_p95_lsnif_pixels"] = x.flip_lsnif_pixels ? json(x.flip_lsnif_pixels->p95) : json(nullptr);
         if (!x.files.empty())
             j["files"] = {{"reference", x.files[0]}, {"hybrid", x.files[1]}, {"flip", x.files[2]}};
         per[kEffectNames[e]] = j;
     }
     return per;
+}
+
+std::vector<std::uint8_t> mask_union(const std::vector<std::uint8_t>& a, const std::vector<std::uint8_t>& b) {
+    std::vector<std::uint8_t> out(a.size());
+    for (std::size_t i = 0; i < a.size(); ++i) out[i] = a[i] | b[i];
+    return out;
 }
 
 // 1 for the pixels whose primary hit is an instance the hybrid render traces as an LSNIF.

@@ -164,15 +164,17 @@ struct View {
 };
 View make_view(const EvalOptions& opt, const std::array<float, 6>& world);
 
-// Primary visibility (from the real meshes): position, camera-facing shading normal,
-// instance (-1: background) and secondary-ray offset of every pixel.
+// Primary visibility: position, camera-facing shading normal, instance (-1: background) and
+// secondary-ray offset of every pixel. From the real meshes through Embree (standing in for a
+// rasterized G-buffer), or with `through_assets` from the hybrid tracer: the meshes converted
+// to LSNIF answered by their assets, the others by Embree (the paper's "all types of rays").
 struct GBuffer {
     std::vector<Vec3> p, n;
     std::vector<std::int32_t> inst;
     std::vector<float> eps;
 };
 GBuffer render_primary(const EvalScene& scene, const std::vector<EvalScene::Impl::Instance>& instances,
-                       const View& v, std::uint32_t threads);
+                       const View& v, std::uint32_t threads, bool through_assets = false);
 
 // Linear RGB images of the effects from one tracer, and the time its secondary rays took
 // (summed over threads).
@@ -191,27 +193,34 @@ BothImages render_secondary(const EvalScene& scene, const std::vector<EvalScene:
                             const std::vector<float>& surface_tmin, std::uint32_t threads,
                             Tracers tracers = Tracers::both);
 
-// One effect's reference and hybrid images compared (sRGB-encoded): FLIP over the frame,
-// PSNR (infinite for identical images), FLIP's mean over the LSNIF pixels (none when there
-// are none), and the PNG files written (reference, hybrid, FLIP heat map), if any.
+// One effect's reference and test images compared (sRGB-encoded): FLIP over the frame,
+// PSNR (infinite for identical images), FLIP over the LSNIF pixels (their statistics, none
+// when there are none, and the errors themselves, so that several views pool them), and the
+// PNG files written (reference, test, FLIP heat map), if any.
 struct EffectComparison {
     image::FlipStats flip;
     double psnr_db = 0;
-    std::optional<double> flip_mean_lsnif_pixels;
+    std::optional<image::FlipStats> flip_lsnif_pixels;
+    std::vector<float> lsnif_pixel_errors;
     std::vector<std::string> files;
 };
 struct Comparison {
     EffectComparison effect[kEffects];
     double flip_mean = 0;  // over the separate effects (shadow, AO, reflection)
 };
-// Compares every effect; writes the PNGs into `images` when write_images. False with
-// `error` when FLIP or a file fails.
-bool compare_effects(const EffectImages& reference, const EffectImages& hybrid, const View& v,
+// Compares every effect; writes the PNGs into `images` when write_images, named
+// reference_<effect>.png, <label>_<effect>.png and flip_<effect>.png (flip_<label>_<effect>.png
+// for a label other than "hybrid"). False with `error` when FLIP or a file fails.
+bool compare_effects(const EffectImages& reference, const EffectImages& test, const View& v,
                      const std::vector<std::uint8_t>& lsnif_pixels, const std::filesystem::path& images,
-                     bool write_images, Comparison& out, std::string& error);
+                     bool write_images, Comparison& out, std::string& error,
+                     const std::string& label = "hybrid");
 
 // 1 for the pixels whose primary hit is an instance the hybrid render traces as an LSNIF.
 std::vector<std::uint8_t> lsnif_pixel_mask(const GBuffer& gb, const EvalScene::Impl& im);
+// The pixels either mask selects: an object's pixels where the mesh and its asset, each
+// seen by its own primary rays, may disagree on its silhouette.
+std::vector<std::uint8_t> mask_union(const std::vector<std::uint8_t>& a, const std::vector<std::uint8_t>& b);
 
 }  // namespace eval_detail
 

@@ -1,10 +1,14 @@
 // The visual acceptance test of one object: its views on a floor, rendered by Embree once and
 // through each candidate asset, compared with FLIP (lsnif/converter/eval.hpp, ObjectViews).
+#include <lsnif/base/math.hpp>
 #include <lsnif/base/parallel.hpp>
+#include <lsnif/base/random.hpp>
+#include <lsnif/converter/convert.hpp>
 #include <lsnif/converter/eval.hpp>
 #include <lsnif/converter/manifest.hpp>
 #include <lsnif/format/container.hpp>
 #include <lsnif/format/cpu.hpp>
+#include <lsnif/image/flip.hpp>
 #include <lsnif/image/image.hpp>
 #include <lsnif/scene/scene.hpp>
 #include "eval_render.hpp"
@@ -19,8 +23,6 @@ namespace lsnif::converter {
 using namespace eval_detail;
 
 namespace {
-
-constexpr float kPi = 3.14159265358979f;
 
 // A square floor under the object's box, three times its larger horizontal extent across,
 // slightly below its lowest point (+Y up, as glTF): it catches the object's shadow and
@@ -39,32 +41,41 @@ EvalScene::Impl::Mesh floor_under(const std::array<float, 6>& box) {
     return m;
 }
 
-// View k of n: the camera 30 degrees above the horizon at azimuth 35 + 360 k / n degrees,
-// framing the box's bounding sphere in a 40-degree field of view; the light above, 60
-// degrees to the side of the camera.
+// View k of n, drawn from `seed`: the camera at an azimuth within the k-th of n equal
+// sectors around +Y and 15 to 55 degrees above the horizon, framing the box's bounding
+// sphere in a 40-degree field of view; the light 4 radii away, 30 to 120 degrees to either
+// side of the camera and 35 to 75 degrees up; the AO directions from their own seed. The
+// angles use base::sin and base::cos, so the views are the same on every machine.
 EvalOptions view_options(const std::array<float, 6>& box, std::uint32_t k, std::uint32_t n,
                          const ObjectViewOptions& o) {
+    base::SplitMix64 rng{base::mix64(o.seed * base::kGoldenGamma + k)};
+    const double deg = base::detail::kPi / 180.0;
+    const double azimuth = (360.0 * (double(k) + rng.u01()) / double(std::max(1u, n))) * deg;
+    const double elevation = (15.0 + 40.0 * rng.u01()) * deg;
+    const double side = (30.0 + 90.0 * rng.u01()) * (rng.next() & 1 ? 1.0 : -1.0) * deg;
+    const double light_elevation = (35.0 + 40.0 * rng.u01()) * deg;
+    const std::uint64_t ao_seed = rng.next();
     const Vec3 lo{box[0], box[1], box[2]}, hi{box[3], box[4], box[5]};
     const Vec3 center = (lo + hi) * 0.5f;
     const float radius = std::max(0.5f * length(hi - lo), 1e-30f);
-    const float azimuth = (35.0f + 360.0f * float(k) / float(std::max(1u, n))) * kPi / 180.0f;
-    const float elevation = 30.0f * kPi / 180.0f, fov = 40.0f;
-    const auto direction = [](float az, float el) {
-        return Vec3{std::cos(el) * std::sin(az), std::sin(el), std::cos(el) * std::cos(az)};
+    const float fov = 40.0f;
+    const auto direction = [](double az, double el) {
+        return Vec3{float(base::cos(el) * base::sin(az)), float(base::sin(el)),
+                    float(base::cos(el) * base::cos(az))};
     };
     EvalOptions opt;
     opt.width = o.width;
     opt.height = o.height;
     opt.ao_samples = o.ao_samples;
-    opt.seed = o.seed;
+    opt.seed = ao_seed;
     opt.timing_repeats = 1;
     opt.write_images = false;
     EvalCamera cam;
     cam.target = center;
-    cam.eye = center + direction(azimuth, elevation) * (1.05f * radius / std::sin(0.5f * fov * kPi / 180.0f));
+    cam.eye = center + direction(azimuth, elevation) * float(1.05 * radius / base::sin(0.5 * fov * deg));
     cam.fov_deg = fov;
     opt.camera = cam;
-    opt.light = center + direction(azimuth + 60.0f * kPi / 180.0f, 55.0f * kPi / 180.0f) * (4.0f * radius);
+    opt.light = center + direction(azimuth + side, light_elevation) * (4.0f * radius);
     return opt;
 }
 
@@ -98,13 +109,15 @@ bool write_view(const std::vector<float>& reference, const std::vector<float>& h
 
 }  // namespace
 
-// One view: its settings, primary visibility, the object's pixels and the reference images.
+// One view: its settings, primary visibility, the object's pixels and the reference images;
+// `through_asset`: the candidate's primary rays are traced through its asset too.
 struct ObjectView {
     EvalOptions opt;
     View view;
     GBuffer gb;
     std::vector<std::uint8_t> object_pixels;
     EffectImages reference;
+    bool through_asset = false;
 };
 
 struct ObjectViews::State {
@@ -162,6 +175,7 @@ std::unique_ptr<ObjectViews> ObjectViews::create(std::span<const float> position
         ObjectView& v = state->views.emplace_back();
         v.opt = view_options(box, k, o.views, o);
         v.view = make_view(v.opt, box);
+        v.through_asset = k + 1 == o.views;
         v.gb = render_primary(*state->scene, im.instances, v.view, state->threads);
         v.object_pixels = lsnif_pixel_mask(v.gb, im);
         v.reference = render_secondary(*state->scene, im.instances, v.gb, v.view, v.opt, {}, state->threads,
@@ -199,19 +213,27 @@ base::Result<ObjectFlip, std::string> ObjectViews::compare(std::span<const std::
         return std::string("object views: the asset cannot be traced in fp32");
     }
     ObjectFlip sum;
+    std::vector<float> object_errors;  // the combined image's, over every view's object pixels
     std::string error;
     for (std::size_t k = 0; k < state_->views.size(); ++k) {
         const ObjectView& v = state_->views[k];
-        const EffectImages hybrid = render_secondary(*state_->scene, im.instances, v.gb, v.view, v.opt, {},
+        std::optional<GBuffer> own;  // the view traced all through the asset
+        if (v.through_asset)
+            own = render_primary(*state_->scene, im.instances, v.view, state_->threads, true);
+        const GBuffer& gb = own ? *own : v.gb;
+        const EffectImages hybrid = render_secondary(*state_->scene, im.instances, gb, v.view, v.opt, {},
                                                      state_->threads, Tracers::hybrid)
                                         .hybrid;
+        const std::vector<std::uint8_t> mask =
+            own ? mask_union(v.object_pixels, lsnif_pixel_mask(*own, im)) : v.object_pixels;
         Comparison c;
-        if (!compare_effects(v.reference, hybrid, v.view, v.object_pixels, {}, false, c, error)) break;
+        if (!compare_effects(v.reference, hybrid, v.view, mask, {}, false, c, error)) break;
         if (!dir.empty() &&
             !write_view(v.reference.rgb[kCombined], hybrid.rgb[kCombined], v.view, dir, k, error))
             break;
+        const auto& pixels = c.effect[kCombined].lsnif_pixel_errors;
+        object_errors.insert(object_errors.end(), pixels.begin(), pixels.end());
         sum.combined += c.effect[kCombined].flip.mean;
-        sum.combined_object += c.effect[kCombined].flip_mean_lsnif_pixels.value_or(0.0);
         sum.shadow += c.effect[kShadow].flip.mean;
         sum.ao += c.effect[kAo].flip.mean;
         sum.reflection += c.effect[kReflection].flip.mean;
@@ -220,19 +242,16 @@ base::Result<ObjectFlip, std::string> ObjectViews::compare(std::span<const std::
     im.meshes[0].model = nullptr;
     if (!error.empty()) return error;
     const double n = double(state_->views.size());
-    return ObjectFlip{sum.combined / n, sum.combined_object / n, sum.shadow / n, sum.ao / n,
-                      sum.reflection / n};
+    ObjectFlip f{0.0, 0.0, sum.combined / n, sum.shadow / n, sum.ao / n, sum.reflection / n};
+    if (!object_errors.empty()) {
+        const image::FlipStats s = image::error_stats(object_errors);
+        f.combined_object = s.mean;
+        f.combined_object_p95 = s.p95;
+    }
+    return f;
 }
 
 namespace {
-
-nlohmann::json object_flip_json(const ObjectFlip& f) {
-    return {{"combined", f.combined},
-            {"combined_object", f.combined_object},
-            {"shadow", f.shadow},
-            {"ao", f.ao},
-            {"reflection", f.reflection}};
-}
 
 // One converted object's views into `dir`: its report entry, or an error.
 base::Result<nlohmann::json, std::string> object_entry(const scene::Mesh& mesh, const MeshOutcome& mo,
@@ -290,8 +309,11 @@ EvalResult render_objects(const EvalOptions& opt) {
     const std::filesystem::path images = (opt.images_dir.empty() ? std::filesystem::path(opt.outdir) / "eval"
                                                                  : std::filesystem::path(opt.images_dir)) /
                                          "objects";
+    // The held-out views of the conversion: the ones its manifest reports.
     ObjectViewOptions o;
     o.threads = opt.threads;
+    const nlohmann::json& settings = loaded.doc["settings"];
+    o.seed = held_out_view_seed(settings.value("view_seed", settings.value("seed", std::uint64_t(1))));
     nlohmann::json objects = nlohmann::json::array();
     std::vector<std::optional<scene::Scene>> scenes(loaded.sources.size());
     for (const MeshOutcome& mo : loaded.meshes) {

@@ -88,6 +88,10 @@ void read_held_out(Reader& r, HeldOut& h) {
             else if (g.ok())
                 g.fail("by", "not rays, images or both: " + by);
         }
+        if (g.has("rays_failed")) g.read("rays_failed", h.gate.rays_failed);
+        std::optional<bool> above;
+        g.read("above_calibrated_gate", above);
+        h.gate.above_calibrated = above.value_or(false);
         if (g.ok() && h.gate.passed != h.gate.reasons.empty())
             g.fail("reasons",
                    h.gate.passed ? "present although the gate passed" : "missing although the gate failed");
@@ -97,17 +101,23 @@ void read_held_out(Reader& r, HeldOut& h) {
     });
 }
 
-json flip_json(const ObjectFlip& f) {
+}  // namespace
+
+json object_flip_json(const ObjectFlip& f) {
     return {{"combined", f.combined},
             {"combined_object", f.combined_object},
+            {"combined_object_p95", f.combined_object_p95},
             {"shadow", f.shadow},
             {"ao", f.ao},
             {"reflection", f.reflection}};
 }
 
+namespace {
+
 void read_flip(Reader& r, ObjectFlip& f) {
     r.read("combined", f.combined);
     r.read("combined_object", f.combined_object);
+    r.read("combined_object_p95", f.combined_object_p95);
     r.read("shadow", f.shadow);
     r.read("ao", f.ao);
     r.read("reflection", f.reflection);
@@ -181,7 +191,7 @@ json candidate_json(const CandidateRecord& c, OutcomeFields fields) {
     if (c.stop == StopKind::target_met) j["stopped"] = kTargetMetText;
     if (c.stop == StopKind::given_up) j["stopped"] = kGivenUpPrefix + c.stop_why;
     if (!c.pruned_neurons.empty()) j["pruned_neurons"] = c.pruned_neurons;
-    if (c.flip) j["flip"] = flip_json(*c.flip);
+    if (c.flip) j["flip"] = object_flip_json(*c.flip);
     return j;
 }
 
@@ -292,6 +302,7 @@ void write_results(const MeshOutcome& o, OutcomeFields fields, json& j) {
                               {"steps", o.stopped_early->steps},
                               {"reason", kStoppedEarlyReason}};
     if (o.target) j["target"] = target_json(*o.target);
+    if (o.held_out_images) j["held_out_images"] = object_flip_json(*o.held_out_images);
     if (o.asset) {
         j["lsnif"] = {
             {"file", o.asset->file}, {"bytes", o.asset->bytes}, {"resident_bytes", o.asset->resident_bytes}};
@@ -317,6 +328,8 @@ void read_results(Reader& r, MeshOutcome& o) {
             if (s.ok() && reason != kStoppedEarlyReason) s.fail("reason", "not a reason to stop: " + reason);
         });
     if (r.has("target")) r.nested("target", [&](Reader& t) { read_target(t, o.target.emplace()); });
+    if (r.has("held_out_images"))
+        r.nested("held_out_images", [&](Reader& f) { read_flip(f, o.held_out_images.emplace()); });
     if (r.has("lsnif"))
         r.nested("lsnif", [&](Reader& a) {
             AssetFile& f = o.asset.emplace();
@@ -418,8 +431,10 @@ json held_out_json(const HeldOut& h) {
         gate["by"] = *h.gate.by == GatePass::rays     ? "rays"
                      : *h.gate.by == GatePass::images ? "images"
                                                       : "both";
+    if (!h.gate.rays_failed.empty()) gate["rays_failed"] = h.gate.rays_failed;
+    if (h.gate.above_calibrated) gate["above_calibrated_gate"] = true;
     json j = {{"held_out_rays", h.rays}, {"families", families}, {"gate", gate}};
-    if (h.flip) j["flip"] = flip_json(*h.flip);
+    if (h.flip) j["flip"] = object_flip_json(*h.flip);
     return j;
 }
 

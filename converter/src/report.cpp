@@ -25,6 +25,13 @@ std::string human_bytes(std::uint64_t bytes) {
     return buf;
 }
 
+// "a; b; c".
+std::string join(const std::vector<std::string>& parts) {
+    std::string s;
+    for (const std::string& p : parts) s += (s.empty() ? "" : "; ") + p;
+    return s;
+}
+
 // before / after, 0 for nothing after.
 double ratio(std::uint64_t before, std::uint64_t after) {
     return after ? double(before) / double(after) : 0.0;
@@ -55,8 +62,20 @@ std::string shipped_text(const MeshOutcome& m) {
                       ratio(m.stats->bvh.compressed, m.asset->resident_bytes));
         s += buf;
     }
+    if (m.held_out_images) {
+        std::snprintf(buf, sizeof buf,
+                      "\n           image error on held-out views: FLIP %.4f over its pixels (p95 %.3f)",
+                      m.held_out_images->combined_object, m.held_out_images->combined_object_p95);
+        s += buf;
+    }
+    const GateVerdict& gate = m.held_out->gate;
+    if (gate.by == GatePass::images) {
+        s += "\n           shipped by its images";
+        if (gate.above_calibrated) s += ", above the calibrated image gate";
+        if (!gate.rays_failed.empty()) s += "; rays fail the gate: " + join(gate.rays_failed);
+    }
     if (m.target && !m.target->misses.empty())
-        s += "\n           target missed, gate passed: " + m.target->misses[0];
+        s += "\n           target missed, gate passed: " + join(m.target->misses);
     if (m.stopped_early) {
         std::snprintf(buf, sizeof buf,
                       "\n           trained %u of %u steps: the validation curve met the target",

@@ -77,7 +77,8 @@ std::string flip_miss(std::optional<double> flip, double limit, const char* what
         return buf;
     }
     if (*flip <= limit) return {};
-    std::snprintf(buf, sizeof buf, "image error FLIP %.3g > %s %.3g", *flip, what, limit);
+    std::snprintf(buf, sizeof buf, "image error FLIP %.3g over the object's pixels > %s %.3g", *flip, what,
+                  limit);
     return buf;
 }
 
@@ -94,6 +95,10 @@ GateVerdict gate_verdict(const samples::Metrics& m, std::optional<double> flip,
     v.passed = training_failures.empty() && (by_rays || by_images);
     if (v.passed) {
         v.by = by_rays && by_images ? GatePass::both : by_rays ? GatePass::rays : GatePass::images;
+        if (*v.by == GatePass::images) {
+            v.rays_failed = rays;
+            v.above_calibrated = flip && *flip > Gate::kCalibratedMaxFlip;
+        }
         return v;
     }
     if (g.accept != Acceptance::images) v.reasons = rays;

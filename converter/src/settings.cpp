@@ -190,14 +190,28 @@ std::vector<Setting> make_table() {
                                 {"distance_pct", o.target.distance_pct},
                                 {"normal_deg", o.target.normal_deg}};
                 }},
-        Setting{"--target-flip", "FLIP", false, SettingScope::mesh, "target_flip", "0.03",
-                "The target's visual term: image error (FLIP of the object's combined renders, docs/model.md "
-                "\"Judged by how it looks\") at most this; 1 asks nothing of the images",
+        Setting{
+            "--target-flip", "FLIP", false, SettingScope::mesh, "target_flip", "the calibrated image gate",
+            "The target's visual term: image error (FLIP of the combined renders over the object's own "
+            "pixels, docs/model.md \"Judged by how it looks\") at most this; 1 asks nothing of the images",
+            [](ConvertOptions& o, const std::string& v, std::string& e, std::string&) {
+                return parse_fraction(v, o.target.flip, e);
+            },
+            [](const ConvertOptions& o) { return std::vector<std::string>{exact(o.target.flip)}; },
+            [](const ConvertOptions& o) { return json(o.target.flip); }},
+        Setting{"--view-seed", "N", false, SettingScope::report, "view_seed", "the --seed",
+                "Seed of the held-out views a shipped asset's image error is reported on; decisions never "
+                "see them, so it changes the report, not the assets",
                 [](ConvertOptions& o, const std::string& v, std::string& e, std::string&) {
-                    return parse_fraction(v, o.target.flip, e);
+                    std::uint64_t seed = 0;
+                    if (!parse_count<std::uint64_t>(v, 0, UINT64_MAX, seed, e)) return false;
+                    return o.view_seed = seed, true;
                 },
-                [](const ConvertOptions& o) { return std::vector<std::string>{exact(o.target.flip)}; },
-                [](const ConvertOptions& o) { return json(o.target.flip); }},
+                [](const ConvertOptions& o) {
+                    return o.view_seed ? std::vector<std::string>{std::to_string(*o.view_seed)}
+                                       : std::vector<std::string>{};
+                },
+                [](const ConvertOptions& o) { return o.view_seed ? json(*o.view_seed) : json(); }},
         Setting{"--accept", "rays|images|either", false, SettingScope::mesh, "accept", "either",
                 "What may ship an asset: its ray metrics passing the gate, its image error within "
                 "--gate-flip, or either (docs/model.md \"Judged by how it looks\")",
@@ -212,9 +226,10 @@ std::vector<Setting> make_table() {
                 },
                 [](const ConvertOptions& o) { return o.accept ? json(acceptance_name(*o.accept)) : json(); }},
         Setting{
-            "--gate-flip", "FLIP", false, SettingScope::mesh, "gate_flip", "the preset's (0.066)",
-            "Override the image gate: the largest image error (FLIP of the object's combined renders) "
-            "that ships an asset by the image rule",
+            "--gate-flip", "FLIP", false, SettingScope::mesh, "gate_flip", "the calibrated gate",
+            "Override the image gate: the largest image error (FLIP of the combined renders over the "
+            "object's own pixels in its decision views) that ships an asset by the image rule; an asset "
+            "shipped above the calibrated gate says so",
             [](ConvertOptions& o, const std::string& v, std::string& e, std::string&) {
                 return parse_fraction(v, o.gate_max_flip, e);
             },
@@ -461,10 +476,12 @@ bool apply_settings_arguments(const std::vector<std::string>& args, ConvertOptio
     return true;
 }
 
-std::string mesh_settings_key(const ConvertOptions& opt) {
+namespace {
+
+std::string scope_key(const ConvertOptions& opt, SettingScope scope) {
     std::string key;
     for (const Setting& s : settings_table()) {
-        if (s.scope != SettingScope::mesh) continue;
+        if (s.scope != scope) continue;
         for (const std::string& v : s.get(opt)) {
             if (!key.empty()) key.append(" ");
             key.append(long_name(s));
@@ -472,6 +489,16 @@ std::string mesh_settings_key(const ConvertOptions& opt) {
         }
     }
     return key;
+}
+
+}  // namespace
+
+std::string mesh_settings_key(const ConvertOptions& opt) {
+    return scope_key(opt, SettingScope::mesh);
+}
+
+std::string report_settings_key(const ConvertOptions& opt) {
+    return scope_key(opt, SettingScope::report);
 }
 
 json settings_json(const ConvertOptions& opt) {

@@ -797,7 +797,7 @@ TEST_CASE("--target: parsed as VIS,DIST,NORMAL, bad values named, misses listed 
     CHECK(target_misses(pooled, 0.02, Target{0.96, 1.5, 20, 0.03}).empty());
     const auto blurred = target_misses(pooled, 0.05, Target{0.96, 1.5, 20, 0.03});
     REQUIRE(blurred.size() == 1);
-    CHECK(blurred[0] == "image error FLIP 0.05 > target 0.03");
+    CHECK(blurred[0] == "image error FLIP 0.05 over the object's pixels > target 0.03");
     CHECK(target_misses(pooled, 0.02, Target{0.99, 0.1, 1, 0.03}, Acceptance::images).empty());
     CHECK(target_misses(pooled, std::nullopt, Target{}, Acceptance::images).size() == 1);  // not measured
 }
@@ -810,19 +810,31 @@ TEST_CASE("the gate's verdict: rays, images or either pass it; training failures
     for (auto& f : good.family) f.visibility_accuracy = 0.97;
     poor.pooled.visibility_accuracy = 0.84;  // the hairball's: fails the ray rules
     for (auto& f : poor.family) f.visibility_accuracy = 0.84;
-    Gate gate;  // either, image gate 0.066
+    Gate gate;  // either
+    gate.max_flip = 0.066;
     GateVerdict v = gate_verdict(good, 0.01, {}, gate);
     CHECK(v.passed);
     CHECK(v.by == GatePass::both);
+    CHECK(v.rays_failed.empty());
     v = gate_verdict(poor, 0.063, {}, gate);
     CHECK(v.passed);
     CHECK(v.by == GatePass::images);
     CHECK(v.reasons.empty());
+    // Shipped by its images: the ray rules it fails are named.
+    REQUIRE(v.rays_failed.size() >= 1);
+    CHECK(v.rays_failed[0] == "visibility accuracy 84% < gate 95%");
+    CHECK(v.above_calibrated == (0.063 > Gate::kCalibratedMaxFlip));
     v = gate_verdict(poor, 0.083, {}, gate);
     CHECK_FALSE(v.passed);
     CHECK_FALSE(v.by.has_value());
     REQUIRE(!v.reasons.empty());
-    CHECK(v.reasons.back() == "image error FLIP 0.083 > gate 0.066");
+    CHECK(v.reasons.back() == "image error FLIP 0.083 over the object's pixels > gate 0.066");
+    // A gate raised above the calibrated one: what needed it says so.
+    Gate raised = gate;
+    raised.max_flip = 2 * Gate::kCalibratedMaxFlip;
+    CHECK(gate_verdict(poor, 1.5 * Gate::kCalibratedMaxFlip, {}, raised).above_calibrated);
+    CHECK_FALSE(gate_verdict(poor, 0.5 * Gate::kCalibratedMaxFlip, {}, raised).above_calibrated);
+    CHECK_FALSE(gate_verdict(good, 1.5 * Gate::kCalibratedMaxFlip, {}, raised).above_calibrated);  // by both
     CHECK_FALSE(gate_verdict(poor, std::nullopt, {}, gate).passed);  // no views: rays alone
     CHECK_FALSE(gate_verdict(good, 0.01, {"training diverged"}, gate).passed);
     gate.accept = Acceptance::rays;

@@ -247,6 +247,7 @@ TEST_CASE("every setting survives settings_arguments and back, and every mesh se
                                                         {"--dry-run", ""},
                                                         {"--target-flip", "0.05"},
                                                         {"--accept", "rays"},
+                                                        {"--view-seed", "7"},
                                                         {"--gate-flip", "0.1"},
                                                         {"--cache", "http://127.0.0.1:9/cache"},
                                                         {"--cache-local", "local-cache"},
@@ -285,6 +286,11 @@ TEST_CASE("every setting survives settings_arguments and back, and every mesh se
             case SettingScope::mesh:
                 ++mesh_rows;
                 if (name != "--arithmetic" || bf16_here) CHECK(key_of(given) != base_key);
+                break;
+            case SettingScope::report:  // recorded and in the record's cache key, never in the asset's
+                CHECK(args != settings_arguments(base));
+                CHECK(key_of(given) == base_key);
+                CHECK(report_settings_key(given) != report_settings_key(base));
                 break;
             case SettingScope::scene:  // recorded, but a mesh's key does not hold the scene's choices
                 CHECK(args != settings_arguments(base));

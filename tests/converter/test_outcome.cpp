@@ -61,8 +61,10 @@ MeshOutcome full_outcome() {
     for (int f = 0; f < lsnif::samples::kFamilyCount; ++f) h.metrics.family[f] = family(f + 1);
     h.metrics.pooled = family(0.5);
     h.gate.passed = true;
-    h.gate.by = GatePass::both;
-    h.flip = ObjectFlip{0.0075, 0.034, 0.006, 0.0076, 0.011};
+    h.gate.by = GatePass::images;
+    h.gate.rays_failed = {"pooled visibility 94.00 % < 95.00 %"};
+    h.gate.above_calibrated = true;
+    h.flip = ObjectFlip{0.034, 0.12, 0.0075, 0.006, 0.0076, 0.011};
     CandidateRecord c;
     c.log2_table_size = 17;
     c.grid_resolution = 64;
@@ -79,7 +81,7 @@ MeshOutcome full_outcome() {
     c.decided_visibility = 0.986;
     c.decided_distance_pct = 0.32;
     c.decided_normal_deg = 7.0;
-    c.flip = ObjectFlip{0.0075, 0.034, 0.006, 0.0076, 0.011};
+    c.flip = ObjectFlip{0.034, 0.12, 0.0075, 0.006, 0.0076, 0.011};
     c.gate_passed = c.target_met = c.memory_rule_passed = true;
     c.outcome = CandidateOutcome::smaller_meets_target;
     c.of = 2;
@@ -99,6 +101,7 @@ MeshOutcome full_outcome() {
     o.validation = std::vector<ValidationPoint>{{120, 0.9, 1.5, 20.0}};
     o.stopped_early = StoppedEarly{960, 1200};
     o.target = TargetVerdict{Target{}, {"visibility 98.00 % < target 98.50 %"}};
+    o.held_out_images = ObjectFlip{0.041, 0.15, 0.009, 0.007, 0.008, 0.012};
     o.asset = AssetFile{"0123456789abcdef.lsnif", 450123, 890001, true};
     o.memory = MeshMemory{1234567, 450123, false};
     o.shard = 2;
@@ -203,6 +206,8 @@ TEST_CASE("outcome_from_json refuses what it did not write and names the field")
           "metrics.gate.reasons: missing although the gate failed");
     CHECK(with({"metrics", "gate", "by"}, "luck") == "metrics.gate.by: not rays, images or both: luck");
     CHECK(without({"metrics", "flip", "combined"}) == "metrics.flip.combined: missing");
+    CHECK(without({"held_out_images", "combined_object_p95"}) ==
+          "held_out_images.combined_object_p95: missing");
     CHECK(with({"target", "met"}, true) == "target.misses: present although met");
     CHECK(with({"lsnif", "file"}, "../x.lsnif") == "lsnif.file: not a file name in the output directory");
     json not_shipped = good;

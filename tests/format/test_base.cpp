@@ -188,6 +188,23 @@ TEST_CASE("base::exp, log, log1p, pow, acos agree with the C library to a few un
     CHECK(worst_log1p <= 4);
     CHECK(worst_pow <= 16);  // exp(b log a): log a's rounding, scaled by b
     CHECK(worst_acos <= 8);  // the series of asin, summed term by term
+    // sin and cos over the angles views are drawn from (a few turns either way): within a
+    // few ulps where the value is not near zero, and absolutely within 2^-52 near zero.
+    double worst_sin = 0, worst_cos = 0;
+    for (int i = 0; i < 200000; ++i) {
+        const double x = (double(rng.next() >> 11) * 0x1p-53 - 0.5) * 40.0;
+        const auto err = [&](double got, double want) {
+            return std::fabs(want) > 1e-3 ? ulps(got, want) : std::fabs(got - want) / 0x1p-52;
+        };
+        worst_sin = std::max(worst_sin, err(lsnif::base::sin(x), std::sin(x)));
+        worst_cos = std::max(worst_cos, err(lsnif::base::cos(x), std::cos(x)));
+    }
+    MESSAGE("sin " << worst_sin << ", cos " << worst_cos << " ulps at most");
+    CHECK(worst_sin <= 4);
+    CHECK(worst_cos <= 4);
+    CHECK(lsnif::base::sin(0.0) == 0.0);
+    CHECK(lsnif::base::cos(0.0) == 1.0);
+    CHECK(std::isnan(lsnif::base::sin(INFINITY)));
     // Exact and edge values.
     CHECK(lsnif::base::exp(0.0) == 1.0);
     CHECK(lsnif::base::exp(800.0) == INFINITY);

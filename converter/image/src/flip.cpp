@@ -365,7 +365,7 @@ Lab filtered_to_hunt_lab(float yy, float cx, float cz) {
     return hunt_adjust(lab_from_linear_rgb(rgb[0], rgb[1], rgb[2]));
 }
 
-FlipStats stats_of(const std::vector<float>& e) {
+FlipStats stats_of(std::span<const float> e) {
     FlipStats s;
     double sum = 0.0;
     for (float v : e) sum += v;
@@ -373,7 +373,7 @@ FlipStats stats_of(const std::vector<float>& e) {
     s.max = *std::max_element(e.begin(), e.end());
     // Order statistics by selection (O(n), a full sort took 10 % of FLIP's time). The
     // 95th percentile is selected first; the median then only needs the lower part.
-    std::vector<float> v(e);
+    std::vector<float> v(e.begin(), e.end());
     const auto percentile = [&v](double q, std::size_t end) {
         const double pos = q * static_cast<double>(v.size() - 1);
         const auto lo = static_cast<std::size_t>(pos);
@@ -515,6 +515,10 @@ Result<FlipResult> flip(const Image& reference, const Image& test, const FlipOpt
         return Error{"out of memory for FLIP on " + std::to_string(reference.width) + " x " +
                      std::to_string(reference.height) + " images"};
     }
+}
+
+FlipStats error_stats(std::span<const float> errors) {
+    return stats_of(errors);
 }
 
 }  // namespace lsnif::image

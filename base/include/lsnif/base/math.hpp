@@ -1,5 +1,5 @@
-// Elementary functions that give the same bits on every machine: exp, log, log1p, pow and
-// acos in double precision, built from +, -, *, / and sqrt alone (IEEE 754 rounds each of
+// Elementary functions that give the same bits on every machine: exp, log, log1p, pow, acos,
+// sin and cos in double precision, built from +, -, *, / and sqrt alone (IEEE 754 rounds each of
 // those exactly), with constants and term orders fixed here. The C library's versions are
 // accurate but not reproducible: glibc picks among builds of one routine at run time (with
 // and without FMA), and its algorithms change between releases, so the same conversion
@@ -135,6 +135,63 @@ inline double acos(double x) {
     if (std::fabs(x) <= 0.5) return detail::kPi / 2.0 - detail::asin_small(x);
     const double a = 2.0 * detail::asin_small(std::sqrt((1.0 - std::fabs(x)) / 2.0));
     return x > 0.0 ? a : detail::kPi - a;
+}
+
+namespace detail {
+
+// sin x for |x| <= pi/4: its Taylor series to x^21 (the next term is below 2^-60 x there),
+// summed from the smallest term up by Horner's rule.
+inline double sin_small(double x) {
+    const double x2 = x * x;
+    double s = 0.0;
+    for (int k = 21; k >= 3; k -= 2) s = (s + 1.0) * (-x2 / double((k - 1) * k));
+    return x + x * s;
+}
+
+// cos x for |x| <= pi/4: its Taylor series to x^22, the same way.
+inline double cos_small(double x) {
+    const double x2 = x * x;
+    double s = 0.0;
+    for (int k = 22; k >= 2; k -= 2) s = (s + 1.0) * (-x2 / double((k - 1) * k));
+    return 1.0 + s;
+}
+
+// x = q pi/2 + r with |r| <= pi/4 (about: q is the nearest integer to x / (pi/2)), r in two
+// parts of pi/2 so that the subtraction is exact for the angles callers use (|x| < 2^20).
+inline double reduce_quadrant(double x, std::int64_t& q) {
+    constexpr double kPio2Hi = 1.57079632673412561417e+00;  // 0x3FF921FB54400000: pi/2, 33 bits
+    constexpr double kPio2Lo = 6.07710050650619224932e-11;  // pi/2 - kPio2Hi
+    const double n = std::nearbyint(x * (2.0 / kPi));
+    q = std::int64_t(n);
+    return (x - n * kPio2Hi) - n * kPio2Lo;
+}
+
+}  // namespace detail
+
+// sin and cos in radians, for |x| < 2^20 (camera and light angles; beyond, the reduction
+// loses accuracy). NaN for a non-finite argument.
+inline double sin(double x) {
+    if (!std::isfinite(x)) return std::numeric_limits<double>::quiet_NaN();
+    std::int64_t q = 0;
+    const double r = detail::reduce_quadrant(x, q);
+    switch (q & 3) {
+        case 0: return detail::sin_small(r);
+        case 1: return detail::cos_small(r);
+        case 2: return -detail::sin_small(r);
+        default: return -detail::cos_small(r);
+    }
+}
+
+inline double cos(double x) {
+    if (!std::isfinite(x)) return std::numeric_limits<double>::quiet_NaN();
+    std::int64_t q = 0;
+    const double r = detail::reduce_quadrant(x, q);
+    switch (q & 3) {
+        case 0: return detail::cos_small(r);
+        case 1: return -detail::sin_small(r);
+        case 2: return -detail::cos_small(r);
+        default: return detail::sin_small(r);
+    }
 }
 
 }  // namespace lsnif::base

@@ -92,6 +92,12 @@ std::string arithmetic_id(Arithmetic a);
 // "canonical" or "machine" (the --arithmetic values); false for anything else.
 bool parse_arithmetic(const std::string& text, Arithmetic& out);
 
+// The seeds (ObjectViewOptions::seed) of a conversion's two sets of object views: the decision
+// views from the run's --seed, the held-out views from --view-seed (the run's seed by
+// default), each through its own mix so that the two never share a camera.
+std::uint64_t decision_view_seed(std::uint64_t seed);
+std::uint64_t held_out_view_seed(std::uint64_t view_seed);
+
 // The reason recorded for a candidate that ConvertOptions::only_keys leaves to another job.
 inline constexpr const char* kLeftToAnotherJob = "left to another job (lsnif batch --object)";
 
@@ -157,6 +163,10 @@ struct ConvertOptions {
     // measure what pruning changes.
     bool keep_inactive = false;
     Target target;  // --target: judged and reported per shipped asset
+    // --view-seed: draws the held-out views a shipped asset's image error is reported on
+    // (none = the run's seed). Decisions never see them, so it changes what is reported, not
+    // which asset ships or its bytes.
+    std::optional<std::uint64_t> view_seed;
     // --memory-budget: the scene's memory in bytes (every mesh once: BVHs of the meshes that
     // stay BVH plus LSNIF assets) that conversion aims at; candidates are converted in order
     // of BVH bytes saved per asset byte until the scene fits, the rest stay BVH. 0 = none:

@@ -122,26 +122,35 @@ EvalResult render_objects(const EvalOptions& opt);
 // ---- one object, judged by how it looks -------------------------------------------------
 
 // The visual acceptance test of a conversion (docs/model.md "Judged by how it looks"): the
-// object alone on a floor, seen from `views` standard views around it (30 degrees above the
-// floor, evenly around the vertical axis +Y, each framing the object's bounding sphere, lit by
-// a point light above and to the side of the view), rendered as `lsnif eval` renders a scene:
-// primary visibility from the mesh, then shadow, ambient-occlusion and mirror-reflection
-// rays traced by Embree (the reference, once) and through a candidate asset (the floor stays
-// Embree's in both), compared with FLIP.
+// object alone on a floor, seen from `views` views drawn from `seed` (one per sector of the
+// circle around the vertical axis +Y, at a random azimuth within it and 15 to 55 degrees
+// above the floor, each framing the object's bounding sphere, lit by a point light at a
+// random angle to the side and 35 to 75 degrees up), rendered as `lsnif eval` renders a
+// scene: primary visibility from the mesh, then shadow, ambient-occlusion and
+// mirror-reflection rays traced by Embree (the reference, once) and through a candidate
+// asset (the floor stays Embree's in both), compared with FLIP. The last view traces the
+// primary rays through the asset as well, so that its silhouette and shading normals are
+// judged. Two sets of views drawn from different seeds never share a camera: the
+// conversion decides on one (the decision views) and reports the other (the held-out views).
 struct ObjectViewOptions {
     std::uint32_t width = 160, height = 120;  // per view
-    std::uint32_t views = 3;
+    std::uint32_t views = 3;                  // the last one all through the asset
     std::uint32_t ao_samples = 8;
     std::uint32_t threads = 0;  // 0 = hardware threads; the images do not depend on it
-    std::uint64_t seed = 1;     // AO directions
+    std::uint64_t seed = 1;     // draws the cameras, the lights and the AO directions
 };
 
-// FLIP (LDR-FLIP, lsnif::image) of the candidate's renders against the reference, each the
-// mean over the views.
+// FLIP (LDR-FLIP, lsnif::image) of a candidate's renders against the reference over a set of
+// views. The object's pixels are those where the mesh or (in the view traced through the
+// asset) the asset is what the camera sees; their errors are pooled over the views.
 struct ObjectFlip {
-    double combined = 0;         // the combined image (AO, shadowed light, mirror coat), whole frame
-    double combined_object = 0;  // the same over the object's own pixels
-    double shadow = 0, ao = 0, reflection = 0;  // each effect alone, whole frame
+    double combined_object = 0;      // the combined image over the object's pixels: mean
+    double combined_object_p95 = 0;  // and 95th percentile
+    // The combined image (AO, shadowed light, mirror coat) and each effect alone over the
+    // whole frame, background and floor included, mean over the views: the figure the LSNIF
+    // paper reports, kept for comparisons with it.
+    double combined = 0;
+    double shadow = 0, ao = 0, reflection = 0;
 };
 
 class ObjectViews {
@@ -158,7 +167,8 @@ public:
     // reference; an error when the asset cannot be opened. Not for concurrent calls.
     base::Result<ObjectFlip, std::string> compare(std::span<const std::uint8_t> asset) const;
     // The same, and every view's combined images as PNGs in `dir` (created):
-    // view<K>_reference.png, view<K>_hybrid.png, view<K>_flip.png (FLIP heat map), K from 0.
+    // view<K>_reference.png, view<K>_hybrid.png, view<K>_flip.png (FLIP heat map), K from 0;
+    // the last view's "hybrid" is traced all through the asset.
     base::Result<ObjectFlip, std::string> compare(std::span<const std::uint8_t> asset,
                                                   const std::string& dir) const;
     std::uint32_t view_count() const;

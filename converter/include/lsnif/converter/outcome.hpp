@@ -195,6 +195,9 @@ struct MeshOutcome {
     std::optional<std::vector<ValidationPoint>> validation;  // the chosen rung's curve
     std::optional<StoppedEarly> stopped_early;
     std::optional<TargetVerdict> target;
+    // The shipped asset's image error on its held-out views (ObjectViews drawn apart from the
+    // decision views; the manifest's `held_out_images`): what is reported. Not in the asset.
+    std::optional<ObjectFlip> held_out_images;
     std::optional<AssetFile> asset;  // the manifest's `lsnif`
     std::optional<MeshMemory> memory;
     std::optional<std::uint32_t> shard;         // --shard: the shard that converts it
@@ -220,6 +223,9 @@ nlohmann::json outcome_json(const MeshOutcome& o, OutcomeFields fields = Outcome
 // is the caller's prefix). `fields` says what the record may lack.
 base::Result<MeshOutcome, std::string> outcome_from_json(const nlohmann::json& j,
                                                          OutcomeFields fields = OutcomeFields::all);
+
+// An ObjectFlip as the manifest, the asset's metadata and `lsnif eval --objects` write it.
+nlohmann::json object_flip_json(const ObjectFlip& f);
 
 // Held-out metrics as the asset's metadata and the manifest store them
 // ({"held_out_rays", "families", "gate"}), and back (strict, as outcome_from_json).

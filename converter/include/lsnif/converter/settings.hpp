@@ -17,10 +17,12 @@ namespace lsnif::converter {
 
 // What a setting changes (docs/pipeline.md "Cache keys").
 enum class SettingScope : std::uint8_t {
-    mesh,   // a mesh's result: recorded (batch command, manifest) and part of every cache key
-    scene,  // which meshes convert, or are forced either way: recorded, not part of a mesh's key
-            // (whether a mesh was forced is: cache_key)
-    run,    // how fast, or what is printed: neither recorded nor keyed
+    mesh,    // a mesh's result: recorded (batch command, manifest) and part of every cache key
+    report,  // what a mesh's record reports, never its asset: recorded and part of the cache key
+             // of its record, not of the asset's name or bytes
+    scene,   // which meshes convert, or are forced either way: recorded, not part of a mesh's key
+             // (whether a mesh was forced is: cache_key)
+    run,     // how fast, or what is printed: neither recorded nor keyed
 };
 
 struct Setting {
@@ -61,6 +63,8 @@ bool apply_settings_arguments(const std::vector<std::string>& args, ConvertOptio
 // The mesh-scope settings of `opt` in one line ("--preset smoke --seed 3 ..."): the settings
 // part of every cache key, so that a setting that changes a result can never be left out of it.
 std::string mesh_settings_key(const ConvertOptions& opt);
+// The same of the report-scope settings: part of a mesh's record's cache key.
+std::string report_settings_key(const ConvertOptions& opt);
 
 // The manifest's `settings` object: every recorded row's value (schema/manifest.schema.json).
 nlohmann::json settings_json(const ConvertOptions& opt);

@@ -28,6 +28,7 @@
 #include <lsnif/image/image.hpp>
 #include <lsnif/image/result.hpp>
 
+#include <span>
 #include <vector>
 
 namespace lsnif::image {
@@ -64,6 +65,10 @@ struct FlipStats {
     double p95 = 0.0;
     double max = 0.0;
 };
+
+// The statistics of any set of per-pixel errors (an error map, or the pixels of one
+// object pooled over several views); `errors` must not be empty.
+FlipStats error_stats(std::span<const float> errors);
 
 struct FlipResult {
     std::vector<float> error_map;  // ΔE per pixel, row-major, width x height, in [0, 1]
