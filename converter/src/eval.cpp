@@ -443,7 +443,8 @@ GBuffer render_primary(const EvalScene& scene, const std::vector<EvalScene::Impl
     gb.n.resize(gb.p.size());
     gb.inst.assign(gb.p.size(), -1);
     gb.eps.resize(gb.p.size());
-    base::parallel_chunks(H, threads, 1, [&](std::uint32_t, std::size_t y, std::size_t) {
+    std::vector<double> per_thread(threads, 0.0);
+    base::parallel_chunks(H, threads, 1, [&](std::uint32_t t, std::size_t y, std::size_t) {
         std::vector<lsnif_ray> rays(W);
         std::vector<TraceHit> hits(W);
         for (std::uint32_t x = 0; x < W; ++x) {
@@ -452,7 +453,9 @@ GBuffer render_primary(const EvalScene& scene, const std::vector<EvalScene::Impl
             const Vec3 d = normalize(v.fwd + v.right * sx + v.up * sy);
             rays[x] = {{v.cam.eye[0], v.cam.eye[1], v.cam.eye[2]}, 0.0f, {d[0], d[1], d[2]}, INFINITY};
         }
+        const auto t0 = std::chrono::steady_clock::now();
         scene.closest(through_assets, rays, hits);
+        per_thread[t] += seconds_since(t0);
         for (std::uint32_t x = 0; x < W; ++x) {
             const std::size_t i = std::size_t(y) * W + x;
             if (hits[x].instance < 0) continue;
@@ -469,6 +472,7 @@ GBuffer render_primary(const EvalScene& scene, const std::vector<EvalScene::Impl
             gb.eps[i] = 1e-4f * length(Vec3{b[3] - b[0], b[4] - b[1], b[5] - b[2]}) + 1e-5f * m;
         }
     });
+    for (double t : per_thread) gb.trace_seconds += t;
     return gb;
 }
 
@@ -807,13 +811,23 @@ EvalResult render_and_compare(const EvalOptions& opt) {
     const std::uint32_t threads = base::resolve_threads(opt.threads);
     const View view = make_view(opt, im.world);
 
-    const auto t0 = std::chrono::steady_clock::now();
-    const GBuffer gb = render_primary(*scene, im.instances, view, threads);
-    const double primary_seconds = seconds_since(t0);
-    const BothImages both = render_secondary(*scene, im.instances, gb, view, opt,
-                                             surface_tmins(im, opt.surface_tmin_voxels), threads);
+    // Primary visibility twice: from the meshes (the hybrid render's, as a rasterizer would)
+    // and through the assets (the all-neural render's); each timed at its fastest of the
+    // repeats, alternating.
+    double primary_seconds = INFINITY, neural_primary_seconds = INFINITY;
+    GBuffer gb, neural_gb;
+    for (std::uint32_t r = 0; r < std::max(1u, opt.timing_repeats); ++r) {
+        gb = render_primary(*scene, im.instances, view, threads);
+        primary_seconds = std::min(primary_seconds, gb.trace_seconds);
+        neural_gb = render_primary(*scene, im.instances, view, threads, true);
+        neural_primary_seconds = std::min(neural_primary_seconds, neural_gb.trace_seconds);
+    }
+    const std::vector<float> tmins = surface_tmins(im, opt.surface_tmin_voxels);
+    const BothImages both = render_secondary(*scene, im.instances, gb, view, opt, tmins, threads);
     const EffectImages& reference = both.reference;
     const EffectImages& hybrid = both.hybrid;
+    const EffectImages neural =
+        render_secondary(*scene, im.instances, neural_gb, view, opt, tmins, threads, Tracers::hybrid).hybrid;
 
     const fs::path images = opt.images_dir.empty() ? fs::path(opt.outdir) / "eval" : fs::path(opt.images_dir);
     if (opt.write_images) {
@@ -824,9 +838,13 @@ EvalResult render_and_compare(const EvalOptions& opt) {
             return res;
         }
     }
-    Comparison compared;
+    Comparison compared, compared_neural;
     const std::vector<std::uint8_t> lsnif_pixels = lsnif_pixel_mask(gb, im);
-    if (!compare_effects(reference, hybrid, view, lsnif_pixels, images, opt.write_images, compared, err)) {
+    // The all-neural render's LSNIF pixels: where the mesh or the asset is what the camera sees.
+    const std::vector<std::uint8_t> neural_pixels = mask_union(lsnif_pixels, lsnif_pixel_mask(neural_gb, im));
+    if (!compare_effects(reference, hybrid, view, lsnif_pixels, images, opt.write_images, compared, err) ||
+        !compare_effects(reference, neural, view, neural_pixels, images, opt.write_images, compared_neural,
+                         err, "neural")) {
         res.errors.push_back(err);
         return res;
     }
@@ -834,9 +852,17 @@ EvalResult render_and_compare(const EvalOptions& opt) {
     report["images"] = comparison_json(compared);
     report["flip_mean"] = compared.flip_mean;
     report["lsnif_pixels"] = std::count(lsnif_pixels.begin(), lsnif_pixels.end(), 1);
+    const double reference_seconds = primary_seconds + reference.trace_seconds;
+    const double neural_seconds = neural_primary_seconds + neural.trace_seconds;
+    report["all_neural"] = {{"images", comparison_json(compared_neural)},
+                            {"flip_mean", compared_neural.flip_mean},
+                            {"lsnif_pixels", std::count(neural_pixels.begin(), neural_pixels.end(), 1)},
+                            {"time_ratio", reference_seconds > 0 ? neural_seconds / reference_seconds : 0.0}};
     report["timings"] = {{"primary", primary_seconds},
+                         {"primary_neural", neural_primary_seconds},
                          {"secondary_reference", reference.trace_seconds},
-                         {"secondary_hybrid", hybrid.trace_seconds}};
+                         {"secondary_hybrid", hybrid.trace_seconds},
+                         {"secondary_neural", neural.trace_seconds}};
     report["secondary_time_ratio"] =
         reference.trace_seconds > 0 ? hybrid.trace_seconds / reference.trace_seconds : 0.0;
     report["images_dir"] = images.string();

@@ -172,6 +172,7 @@ struct GBuffer {
     std::vector<Vec3> p, n;
     std::vector<std::int32_t> inst;
     std::vector<float> eps;
+    double trace_seconds = 0;  // tracing the primary rays, summed over threads
 };
 GBuffer render_primary(const EvalScene& scene, const std::vector<EvalScene::Impl::Instance>& instances,
                        const View& v, std::uint32_t threads, bool through_assets = false);

@@ -112,6 +112,16 @@ int run_eval(lsnif::converter::EvalOptions opt, const std::string& camera, const
             "hybrid/reference %.2f\n",
             j["flip_mean"].get<double>(), j["lsnif_pixels"].get<std::size_t>(),
             j["secondary_time_ratio"].get<double>());
+        const auto& n = j["all_neural"];
+        const auto& nc = n["images"]["combined"];
+        std::printf(
+            "  all-neural (primary rays through the assets too): combined FLIP %.4f over the frame, %s over "
+            "%zu LSNIF pixels; time all-neural/reference %.2f\n",
+            nc["flip_mean"].get<double>(),
+            nc["flip_mean_lsnif_pixels"].is_null()
+                ? "none"
+                : std::to_string(nc["flip_mean_lsnif_pixels"].get<double>()).c_str(),
+            n["lsnif_pixels"].get<std::size_t>(), n["time_ratio"].get<double>());
     }
     return 0;
 }

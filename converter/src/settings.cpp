@@ -191,7 +191,7 @@ std::vector<Setting> make_table() {
                                 {"normal_deg", o.target.normal_deg}};
                 }},
         Setting{
-            "--target-flip", "FLIP", false, SettingScope::mesh, "target_flip", "the calibrated image gate",
+            "--target-flip", "FLIP", false, SettingScope::mesh, "target_flip", "1 (nothing)",
             "The target's visual term: image error (FLIP of the combined renders over the object's own "
             "pixels, docs/model.md \"Judged by how it looks\") at most this; 1 asks nothing of the images",
             [](ConvertOptions& o, const std::string& v, std::string& e, std::string&) {

@@ -6,16 +6,19 @@
 // shading-normal error <= 8 degrees), and the surface family's visibility is at least 97.5 %. Every family's
 // figures are printed, as is the geometric-normal error.
 //
-// Beyond CGAL's scans, two models of sweethome3d-furniture's catalogues: a truck assembly,
-// which ships past the gate but short of the target, and a tree, which ships by the image
-// rule. The paper-like dragons composition through `lsnif eval`: the combined image against
-// Embree. And the bundled scene, whose hairball ships by the image rule.
+// Every shipped asset's memory and held-out image error are checked against its file. Beyond
+// CGAL's scans, two models of sweethome3d-furniture's catalogues: a truck assembly, which
+// ships past the gate but short of the target, and a tree, which stays BVH under the
+// calibrated image gate. The paper-like dragons composition through `lsnif eval`: the
+// combined image against Embree, in the hybrid and the all-neural render. And the bundled
+// scene, whose hairball stays BVH under the calibrated image gate.
 //
 // This converts meshes at full size (minutes of training), so it is registered only in
 // optimized builds (label "accuracy"); a sanitized build would take far longer and measure
 // nothing different.
 #include <doctest/doctest.h>
 
+#include <lsnif/lsnif.h>
 #include <lsnif/converter/convert.hpp>
 #include <lsnif/converter/eval.hpp>
 #include <lsnif/format/cpu.hpp>
@@ -43,12 +46,18 @@ using lsnif::converter::ConvertResult;
 namespace {
 
 // Converts one mesh with the default preset and options, as a user would: automatic
-// classification, the memory rule and sizing to the default target choose its model.
-// Returns the mesh's manifest entry.
-nlohmann::json convert_default(const fs::path& file, const std::string& name) {
+// classification, the memory rule and sizing to the default target choose its model (unless
+// `forced`: the mesh starts at the preset's model, whatever the memory rule says). Returns
+// the mesh's manifest entry.
+fs::path accuracy_dir(const std::string& name) {
+    return fs::path(LSNIF_TEST_WORK_DIR) / ("accuracy_" + name);
+}
+
+nlohmann::json convert_default(const fs::path& file, const std::string& name, bool forced = false) {
     ConvertOptions opt;
+    if (forced) opt.force_complex = {name};
     opt.inputs = {file.string()};
-    opt.outdir = std::string(LSNIF_TEST_WORK_DIR) + "/accuracy_" + name;
+    opt.outdir = accuracy_dir(name).string();
     fs::remove_all(opt.outdir);
     opt.preset = "default";
     opt.seed = 1;
@@ -111,6 +120,38 @@ double pooled_visibility_standard_error(const nlohmann::json& mesh) {
         var += p * (1 - p) / std::max(n, 1.0) / 9.0;
     }
     return std::sqrt(var);
+}
+
+// What the manifest says of a shipped asset holds for its file: a renderer that opens it holds
+// resident_bytes (lsnif_info.decoded_bytes with the fp32 network, the most any CPU holds), the
+// mesh's memory after conversion is that, and its BVH before is Embree's (the default
+// yardstick); its image error on the held-out views is recorded, and an asset shipped by its
+// images is within the calibrated image gate on those views too.
+void check_shipped_asset(const nlohmann::json& mesh, const fs::path& outdir) {
+    REQUIRE(mesh.contains("lsnif"));
+    const fs::path asset = outdir / mesh["lsnif"]["file"].get<std::string>();
+    lsnif_model* model = nullptr;
+    REQUIRE(lsnif_open_file(asset.c_str(), &model, nullptr) == LSNIF_OK);
+    REQUIRE(lsnif_set_arithmetic(model, LSNIF_ARITHMETIC_FP32, nullptr) == LSNIF_OK);
+    lsnif_info info{};
+    REQUIRE(lsnif_get_info(model, &info) == LSNIF_OK);
+    lsnif_close(model);
+    CHECK(mesh["lsnif"]["resident_bytes"] == info.decoded_bytes);
+    CHECK(mesh["lsnif"]["bytes"] == info.file_size);
+    CHECK(mesh["memory"]["after"] == info.decoded_bytes);
+    CHECK(mesh["memory"]["before"] == mesh["stats"]["bvh"]["embree"]);
+    REQUIRE(mesh.contains("held_out_images"));
+    const double flip = mesh["held_out_images"]["combined_object"].get<double>();
+    MESSAGE(mesh["name"].get<std::string>()
+            << ": held in memory " << info.decoded_bytes << " bytes (file " << info.file_size
+            << ") against an Embree BVH of " << mesh["stats"]["bvh"]["embree"] << " and a compressed one of "
+            << mesh["stats"]["bvh"]["compressed"] << "; image error on held-out views " << flip << " (p95 "
+            << mesh["held_out_images"]["combined_object_p95"] << "), decision views "
+            << mesh["metrics"]["flip"]["combined_object"] << "; ships by " << mesh["metrics"]["gate"]["by"]);
+    if (mesh["metrics"]["gate"]["by"] == "images") {
+        CHECK(flip <= lsnif::converter::Gate::kCalibratedMaxFlip);
+        CHECK_FALSE(mesh["metrics"]["gate"].contains("above_calibrated_gate"));
+    }
 }
 
 void check_targets(const nlohmann::json& mesh) {
@@ -351,9 +392,14 @@ void check_reduced_inference(const Shipped& s, const std::string& name) {
 
 }  // namespace
 
-TEST_CASE("default preset meets the accuracy targets on CGAL's Chinese dragon") {
-    const auto mesh = convert_default(cgal_mesh("ChineseDragon-10kv.off"), "ChineseDragon-10kv");
+// Held in memory, the default model of the 20k-triangle dragon (0.87 MB) does not halve its
+// Embree BVH (1.4 MB): classification gives it a 2^15 table, which misses the target
+// (tests/converter/test_convert.cpp checks that plan). The model's accuracy is measured
+// forced, at the preset's size.
+TEST_CASE("the default model meets the accuracy targets on CGAL's Chinese dragon (forced)") {
+    const auto mesh = convert_default(cgal_mesh("ChineseDragon-10kv.off"), "ChineseDragon-10kv", true);
     check_targets(mesh);
+    check_shipped_asset(mesh, accuracy_dir("ChineseDragon-10kv"));
     const Shipped shipped = read_shipped(mesh, cgal_mesh("ChineseDragon-10kv.off"), "ChineseDragon-10kv");
     check_fresh_rays(shipped, mesh, "ChineseDragon-10kv");
     check_walks_agree(shipped, "ChineseDragon-10kv");
@@ -364,6 +410,7 @@ TEST_CASE("default preset meets the accuracy targets on CGAL's Chinese dragon") 
 TEST_CASE("default preset meets the accuracy targets on CGAL's armadillo") {
     const auto mesh = convert_default(cgal_mesh("armadillo.off"), "armadillo");
     check_targets(mesh);
+    check_shipped_asset(mesh, accuracy_dir("armadillo"));
     const Shipped shipped = read_shipped(mesh, cgal_mesh("armadillo.off"), "armadillo");
     check_fresh_rays(shipped, mesh, "armadillo");
     check_walks_agree(shipped, "armadillo");
@@ -381,6 +428,7 @@ TEST_CASE("default preset ships a truck assembly past the gate with a margin") {
     print_families(mesh);
     REQUIRE(mesh["class"] == "complex");
     REQUIRE(mesh.contains("lsnif"));
+    check_shipped_asset(mesh, accuracy_dir("peterbilt"));
     const auto& fam = mesh["metrics"]["families"];
     CHECK(fam["pooled"]["visibility_accuracy"].get<double>() >= 0.955);
     CHECK(fam["pooled"]["distance_error_median_pct"].get<double>() <= 1.0);
@@ -393,20 +441,34 @@ TEST_CASE("default preset ships a truck assembly past the gate with a margin") {
     check_reduced_inference(shipped, "peterbilt");
 }
 
+// Whether `mesh` stays BVH because neither its rays nor its images reach the gate, and says so:
+// decided early or below the gate, with the image error over its pixels named against the
+// calibrated gate among its reasons.
+void check_stays_bvh_by_images(const nlohmann::json& mesh) {
+    CHECK(mesh["class"] == "simple");
+    CHECK((mesh["decision"] == "decided_early" || mesh["decision"] == "below_gate"));
+    CHECK_FALSE(mesh.contains("lsnif"));
+    bool image_reason = false;
+    for (const auto& why : mesh["reasons"])
+        image_reason = image_reason ||
+                       why.get<std::string>().find("over the object's pixels > gate") != std::string::npos;
+    CHECK(image_reason);
+    REQUIRE(!mesh["candidates"].empty());
+    CHECK(mesh["candidates"][0]["flip"]["combined_object"].get<double>() >
+          lsnif::converter::Gate::kCalibratedMaxFlip);
+}
+
 // Foliage (Scopia's Japanese maple, CC-BY 3.0, 198,396 triangles of leaves) is thin geometry
 // whose rays the network cannot reach the target on at 64^3 (78 % visibility at the first
-// check that may judge): trained again at 128^3, it ships by the image rule, its combined
-// renders within the image gate, at a small fraction of its BVH.
-TEST_CASE("default preset ships a tree by the image rule, on a grid twice as fine") {
+// check that may judge): trained again at 128^3, its rays stay far below the gate and its
+// image error over its own pixels (0.22) is three times the calibrated image gate, so it
+// stays BVH and the manifest says why (docs/model.md "Thin geometry").
+TEST_CASE("default preset keeps a tree as BVH, by its rays and its images, after a finer grid") {
     const auto mesh = convert_default(furniture_mesh("scopia/japaneseMaple"), "japaneseMaple");
     print_families(mesh);
-    MESSAGE("japaneseMaple: " << mesh["reasons"].dump() << "; flip " << mesh["metrics"]["flip"].dump());
-    REQUIRE(mesh["class"] == "complex");
-    CHECK(mesh["metrics"]["gate"]["by"] == "images");
-    CHECK(mesh["metrics"]["flip"]["combined"].get<double>() <= 0.066);
+    MESSAGE("japaneseMaple: " << mesh["reasons"].dump());
+    check_stays_bvh_by_images(mesh);
     CHECK(mesh["candidates"][0]["grid_resolution"] == 128);
-    CHECK(mesh["lsnif"]["bytes"].get<double>() * 10 < mesh["memory"]["before"].get<double>());
-    CHECK(mesh["target"]["met"] == false);  // shipped past the gate, short of the target
 }
 
 // The paper-like evaluation scene (docs/eval.md "Scenes like the paper's"): three instances
@@ -444,34 +506,45 @@ TEST_CASE("dragons composition: the combined image is within FLIP 0.03 of the re
     // The dragons fill the frame: over a quarter of its pixels are LSNIF hits.
     CHECK(rep["lsnif_pixels"].get<double>() > 0.25 * e.width * e.height);
     CHECK(rep["images"]["combined"]["flip_mean"].get<double>() <= 0.03);
+    // All-neural: the primary rays through the assets too. Silhouettes and shading normals are
+    // the network's, so its error is larger (0.041 over the frame, 0.12 over the LSNIF pixels,
+    // docs/eval_scenes.md); the assets cover about the pixels the meshes do.
+    const auto& neural = rep["all_neural"];
+    MESSAGE("dragons all-neural: combined FLIP "
+            << neural["images"]["combined"]["flip_mean"] << " over the frame, "
+            << neural["images"]["combined"]["flip_mean_lsnif_pixels"] << " over " << neural["lsnif_pixels"]
+            << " LSNIF pixels; time all-neural/reference " << neural["time_ratio"]);
+    CHECK(neural["images"]["combined"]["flip_mean"].get<double>() <= 0.05);
+    CHECK(neural["images"]["combined"]["flip_mean_lsnif_pixels"].get<double>() >
+          rep["images"]["combined"]["flip_mean_lsnif_pixels"].get<double>());
+    CHECK(neural["lsnif_pixels"].get<double>() >= rep["lsnif_pixels"].get<double>());
+    CHECK(neural["time_ratio"].get<double>() > 0.0);
+    for (const auto& mesh : r.manifest["meshes"])
+        if (mesh.contains("lsnif")) check_shipped_asset(mesh, dir / "out");
 }
 
-// Thin geometry that ships (docs/model.md "Thin geometry"): the bundled example scene as a
-// user converts it, default options, nothing forced. Its hairball (74,400 triangles, three
-// instances) cannot reach the target's rays on the 64^3 grid, is trained again at 128^3 and
-// ships by the image rule: its combined render within FLIP 0.066 of Embree's (the best the
-// LSNIF paper reports for its HAIRBALLS scene), at a fraction of its BVH's memory, with its
-// FLIP in the manifest. The dragon ships by both rules.
-TEST_CASE("the bundled scene ships its hairball by the image rule, within FLIP 0.066") {
+// Thin geometry under the calibrated image gate (docs/model.md "Thin geometry"): the bundled
+// example scene as a user converts it, default options, nothing forced. Its hairball (74,400
+// triangles, three instances) cannot reach the target's rays on the 64^3 grid and is trained
+// again at 128^3; its image error over its own pixels stays several times the calibrated gate
+// (0.27 at the first check that may judge, 0.18 after the whole budget), so it stays BVH with
+// that reason; nothing of the scene ships above the gate. The dragon ships by both rules,
+// its memory and held-out image error as the manifest records them.
+TEST_CASE("the bundled scene keeps its hairball as BVH under the calibrated image gate") {
     const fs::path dir = fs::path(LSNIF_TEST_WORK_DIR) / "accuracy_scene";
     const std::string cgal_data = fs::path(LSNIF_TEST_MESH_DIR).parent_path().parent_path().string();
     const ConvertResult r = convert_generated(dir, "--cgal-data " + cgal_data, {});
     REQUIRE(r.ok());
     bool hairball = false, dragon = false;
     for (const auto& mesh : r.manifest["meshes"]) {
+        if (mesh.contains("lsnif")) check_shipped_asset(mesh, dir / "out");
         if (mesh["name"] != "hairball" && mesh["name"] != "dragon") continue;
         print_families(mesh);
-        MESSAGE(mesh["name"].get<std::string>()
-                << ": " << mesh["reasons"].dump() << "; flip " << mesh["metrics"]["flip"].dump());
-        REQUIRE(mesh["class"] == "complex");
-        REQUIRE(mesh["metrics"].contains("flip"));
-        const double flip = mesh["metrics"]["flip"]["combined"].get<double>();
+        MESSAGE(mesh["name"].get<std::string>() << ": " << mesh["reasons"].dump());
         if (mesh["name"] == "hairball") {
             hairball = true;
-            CHECK(mesh["metrics"]["gate"]["by"] == "images");
-            CHECK(flip <= 0.066);
+            check_stays_bvh_by_images(mesh);
             CHECK(mesh["candidates"][0]["grid_resolution"] == 128);
-            CHECK(mesh["lsnif"]["bytes"].get<double>() * 5 < mesh["memory"]["before"].get<double>());
             bool refined = false;
             for (const auto& why : mesh["reasons"])
                 refined =
@@ -479,8 +552,10 @@ TEST_CASE("the bundled scene ships its hairball by the image rule, within FLIP 0
             CHECK(refined);
         } else {
             dragon = true;
+            REQUIRE(mesh["class"] == "complex");
             CHECK(mesh["metrics"]["gate"]["by"] == "both");
-            CHECK(flip <= 0.03);
+            CHECK(mesh["held_out_images"]["combined_object"].get<double>() <=
+                  lsnif::converter::Gate::kCalibratedMaxFlip);
         }
     }
     CHECK(hairball);

@@ -286,6 +286,44 @@ TEST_CASE("convert a real mesh: asset, metadata, manifest, reuse") {
                   violations(manifest_schema(), blocked.manifest));
 }
 
+TEST_CASE("--view-seed draws other held-out views: the same asset ships, its image error reported again") {
+    const fs::path a = fresh_dir("view_seed_a"), b = fresh_dir("view_seed_b");
+    ConvertOptions o = smoke({kDragon}, a);
+    const ConvertResult ra = convert(o);
+    o.outdir = b.string();
+    o.view_seed = 12345;
+    const ConvertResult rb = convert(o);
+    REQUIRE(ra.ok());
+    REQUIRE(rb.ok());
+    const json& ma = ra.manifest["meshes"][0];
+    const json& mb = rb.manifest["meshes"][0];
+    REQUIRE(ma["decision"] == "shipped");
+    REQUIRE(mb["decision"] == "shipped");
+    // No decision saw the held-out views: the same option, the same file, byte for byte.
+    const std::string file = ma["lsnif"]["file"];
+    CHECK(mb["lsnif"]["file"] == file);
+    CHECK(read_bytes(a / file) == read_bytes(b / file));
+    REQUIRE(ma["candidates"].size() == mb["candidates"].size());
+    for (std::size_t i = 0; i < ma["candidates"].size(); ++i) {
+        CHECK(ma["candidates"][i]["outcome"] == mb["candidates"][i]["outcome"]);
+        CHECK(ma["candidates"][i]["flip"] == mb["candidates"][i]["flip"]);  // the decision views'
+    }
+    CHECK(ma["metrics"] == mb["metrics"]);
+    // What is reported: the shipped asset's image error on held-out views, other views for
+    // another seed; and the decision views' figure is not the held-out one.
+    REQUIRE(ma.contains("held_out_images"));
+    REQUIRE(mb.contains("held_out_images"));
+    CHECK(ma["held_out_images"]["combined_object"] != mb["held_out_images"]["combined_object"]);
+    CHECK(ma["held_out_images"]["combined_object"] != ma["metrics"]["flip"]["combined_object"]);
+    CHECK(ma["held_out_images"]["combined_object"].get<double>() > 0.0);
+    CHECK(ma["held_out_images"]["combined_object_p95"].get<double>() >=
+          ma["held_out_images"]["combined_object"].get<double>());
+    CHECK(rb.manifest["settings"]["view_seed"] == 12345);
+    CHECK_FALSE(ra.manifest["settings"].contains("view_seed"));
+    CHECK_MESSAGE(violations(manifest_schema(), rb.manifest).empty(),
+                  violations(manifest_schema(), rb.manifest));
+}
+
 TEST_CASE("an asset below the accuracy gate is not shipped: the mesh stays BVH with reasons") {
     const fs::path out = fresh_dir("gate");
     ConvertOptions o = smoke({kDragon}, out);
