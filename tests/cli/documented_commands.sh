@@ -82,6 +82,9 @@ step sizing_chart "$project/scripts/sizing_chart" --build "$build" --only "CGAL 
 step failure_modes "$project/scripts/failure_modes" --build "$build" --only blob --preset smoke \
     --out "$work/failure_modes" --work "$work/failure_modes_work" &&
     expect failure_modes "$work/failure_modes/failure_modes.json"
+step calibrate_image_gate "$project/scripts/calibrate_image_gate" --build "$build" --only "CGAL homer" \
+    --preset smoke --target 50,20,90 --out "$work/image_gate" --work "$work/image_gate_work" &&
+    expect calibrate_image_gate "$work/image_gate/image_gate.json" "$work/image_gate/image_gate.md"
 step seed_sweep "$project/scripts/seed_sweep" --build "$build" --mesh "$dragon" --seeds 2 --preset smoke \
     --out "$work/seed_sweep" --work "$work/seed_sweep_work" && expect seed_sweep "$work/seed_sweep/seed_sweep.json"
 
