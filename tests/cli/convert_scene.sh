@@ -34,8 +34,9 @@ body=$(grep -o '<body[^>]*>' "$work/dom.html")
 images=${BASH_REMATCH[1]:-0}
 objects=$(python3 -c "import json,sys; print(len(json.load(open(sys.argv[1]))['objects']))" "$work/out/eval/objects.json")
 ((objects >= 1)) || bad "no converted object close up (eval/objects.json)"
-# The scene's 3 effects and each converted object's 3 views, each as reference, hybrid, FLIP.
-((images == 9 + 9 * objects)) || bad "the page has $images images (want $((9 + 9 * objects)))"
+# The scene's 3 effects and each converted object's 3 views, each as reference, hybrid, FLIP;
+# and the scene's all-neural combined image with its FLIP.
+((images == 11 + 9 * objects)) || bad "the page has $images images (want $((11 + 9 * objects)))"
 [[ $body != *data-errors* ]] || bad "script errors on the page: $body"
 python3 - "$work/out/manifest.json" "$work/dom.html" "$work/out/eval/objects.json" <<'PY' || bad "the page does not show every object as it should"
 import html, json, re, sys
