@@ -1036,7 +1036,7 @@ std::vector<GridView> Runtime::grid_views() const {
 
 std::uint64_t Runtime::heap_bytes() const {
     using detail::heap_bytes;
-    std::uint64_t n = heap_bytes(geo.levels) + heap_bytes(occupancy.bits) + heap_bytes(occupancy.nibbles) +
+    std::uint64_t n = heap_bytes(geo.levels) + heap_bytes(occupancy.bits) + heap_bytes(occupancy.blocks) +
                       heap_bytes(grid) + heap_bytes(grid_u8) + heap_bytes(grid_affine);
     n += heap_bytes(net.in) + heap_bytes(net.out) + heap_bytes(net.out_padded) + heap_bytes(net.wt) +
          heap_bytes(net.bias) + heap_bytes(net.wt_vnni) + heap_bytes(net.wt_int8);

@@ -133,7 +133,8 @@ void walk(const Geometry& geo, WalkState& w, const OccupancyGrid* blocks, Want&&
     while (true) {
         const std::uint32_t idx =
             std::uint32_t(cell[0]) + geo.V * (std::uint32_t(cell[1]) + geo.V * std::uint32_t(cell[2]));
-        if (blocks && !blocks->block_occupied(idx)) {
+        if (blocks &&
+            !blocks->block_occupied(std::uint32_t(cell[0]), std::uint32_t(cell[1]), std::uint32_t(cell[2]))) {
             // Leave the empty block: its exit is the first of its boundary planes reached.
             float block_exit = kInf;
             for (int a = 0; a < 3; ++a) {
@@ -219,36 +220,32 @@ TraceStatus trace_points(const Geometry& geo, const OccupancyGrid& occ, const Ra
 }
 
 OccupancyGrid::OccupancyGrid(std::uint32_t V, std::vector<std::uint8_t> voxel_bits)
-    : V(V), bits(std::move(voxel_bits)) {
-    // Per block size (kSubBlock, kBlock, kSuperBlock): 1 = the block has an occupied voxel.
-    const std::uint32_t size[3] = {kSubBlock, kBlock, kSuperBlock};
-    std::uint32_t nb[3];
-    std::vector<std::uint8_t> blocks[3];
-    for (int k = 0; k < 3; ++k) {
-        nb[k] = (V + size[k] - 1) / size[k];
-        blocks[k].assign(std::size_t(nb[k]) * nb[k] * nb[k], 0);
-    }
-    auto block_of = [&](int k, std::uint32_t x, std::uint32_t y, std::uint32_t z) {
-        const std::uint32_t b = size[k];
-        return x / b + nb[k] * (y / b + std::size_t(nb[k]) * (z / b));
+    : V(V), S((V + kSubBlock - 1) / kSubBlock), bits(std::move(voxel_bits)) {
+    // Whether each kBlock^3 and kSuperBlock^3 block has an occupied voxel.
+    const std::uint32_t nb = (V + kBlock - 1) / kBlock, ns = (V + kSuperBlock - 1) / kSuperBlock;
+    std::vector<std::uint8_t> block(std::size_t(nb) * nb * nb, 0), super(std::size_t(ns) * ns * ns, 0);
+    const auto block_of = [](std::uint32_t n, std::uint32_t size, std::uint32_t x, std::uint32_t y,
+                             std::uint32_t z) {
+        return x / size + n * (y / size + std::size_t(n) * (z / size));
     };
-    auto for_each_voxel = [&](auto&& f) {
-        for (std::uint32_t z = 0; z < V; ++z)
-            for (std::uint32_t y = 0; y < V; ++y)
-                for (std::uint32_t x = 0; x < V; ++x)
-                    f(x + std::uint64_t(V) * (y + std::uint64_t(V) * z), x, y, z);
-    };
-    const std::uint64_t voxels = std::uint64_t(V) * V * V;
-    nibbles.assign((voxels + 7) / 8, 0);
-    for_each_voxel([&](std::uint64_t i, std::uint32_t x, std::uint32_t y, std::uint32_t z) {
-        if (!((bits[i >> 3] >> (i & 7)) & 1u)) return;
-        for (int k = 0; k < 3; ++k) blocks[k][block_of(k, x, y, z)] = 1;
-    });
-    for_each_voxel([&](std::uint64_t i, std::uint32_t x, std::uint32_t y, std::uint32_t z) {
-        std::uint32_t nibble = (bits[i >> 3] >> (i & 7)) & 1u;
-        for (int k = 0; k < 3; ++k) nibble |= std::uint32_t(blocks[k][block_of(k, x, y, z)] != 0) << (k + 1);
-        nibbles[i >> 3] |= nibble << (4 * (i & 7));
-    });
+    blocks.assign(std::size_t(S) * S * S + 1, 0);  // + the entry read past the last
+    for (std::uint32_t z = 0; z < V; ++z)
+        for (std::uint32_t y = 0; y < V; ++y)
+            for (std::uint32_t x = 0; x < V; ++x) {
+                const std::uint64_t i = x + std::uint64_t(V) * (y + std::uint64_t(V) * z);
+                if (!((bits[i >> 3] >> (i & 7)) & 1u)) continue;
+                blocks[sub_block(x, y, z)] |= std::uint16_t(1u << sub_voxel(x, y, z));
+                block[block_of(nb, kBlock, x, y, z)] = 1;
+                super[block_of(ns, kSuperBlock, x, y, z)] = 1;
+            }
+    for (std::uint32_t z = 0; z < S; ++z)
+        for (std::uint32_t y = 0; y < S; ++y)
+            for (std::uint32_t x = 0; x < S; ++x) {
+                const std::uint32_t vx = x * kSubBlock, vy = y * kSubBlock, vz = z * kSubBlock;
+                std::uint16_t& e = blocks[x + S * (y + std::size_t(S) * z)];
+                e |= std::uint16_t(block[block_of(nb, kBlock, vx, vy, vz)] << kBlockBit);
+                e |= std::uint16_t(super[block_of(ns, kSuperBlock, vx, vy, vz)] << kSuperBlockBit);
+            }
 }
 
 TraceStatus trace_all_voxels(const Geometry& geo, const Ray& ray, std::vector<std::uint32_t>& voxels,
@@ -707,6 +704,7 @@ LSNIF_AVX512 void trace_batch_avx512(const Geometry& geo, const OccupancyGrid& o
     StartQueue q;
     std::uint32_t live = refill(geo, rays, next, out, status, q, L, 0);
     const __m512i vV = _mm512_set1_epi32(int(geo.V));
+    const __m512i vS = _mm512_set1_epi32(int(occ.S));
     while (live) {
         Axis ax[3];
         load_axes(L, ax);
@@ -716,18 +714,28 @@ LSNIF_AVX512 void trace_batch_avx512(const Geometry& geo, const OccupancyGrid& o
         // of the lanes are free (or no rays are left to refill them with).
         const bool draining = next == rays.size() && !q.ready;
         do {
-            // One gather reads the voxel's occupancy bits (OccupancyGrid::nibbles).
+            // One gather reads the voxel's kSubBlock^3 block entry (OccupancyGrid::blocks, in
+            // the low 16 bits): its voxels, and whether its larger blocks are occupied.
             const __m512i idx = voxel_index(ax, vV);
-            const __m512i word = _mm512_mask_i32gather_epi32(
-                _mm512_setzero_si512(), __mmask16(live), _mm512_srli_epi32(idx, 3),
-                reinterpret_cast<const int*>(occ.nibbles.data()), 4);
-            const __m512i nibble =
-                _mm512_srlv_epi32(word, _mm512_slli_epi32(_mm512_and_si512(idx, _mm512_set1_epi32(7)), 2));
-            const auto bit = [&](int b) LSNIF_AVX512 {
-                return _mm512_test_epi32_mask(nibble, _mm512_set1_epi32(b));
-            };
-            const __mmask16 voxel_occupied = bit(1), sub_occupied = bit(2), block_occupied = bit(4),
-                            super_occupied = bit(8);
+            const __m512i one = _mm512_set1_epi32(1);
+            const __m512i sub = _mm512_add_epi32(
+                _mm512_srli_epi32(ax[0].cell, 1),
+                _mm512_mullo_epi32(
+                    vS, _mm512_add_epi32(_mm512_srli_epi32(ax[1].cell, 1),
+                                         _mm512_mullo_epi32(vS, _mm512_srli_epi32(ax[2].cell, 1)))));
+            const __m512i word =
+                _mm512_mask_i32gather_epi32(_mm512_setzero_si512(), __mmask16(live), sub,
+                                            reinterpret_cast<const int*>(occ.blocks.data()), 2);
+            const __m512i in_sub =
+                _mm512_add_epi32(_mm512_and_si512(ax[0].cell, one),
+                                 _mm512_add_epi32(_mm512_slli_epi32(_mm512_and_si512(ax[1].cell, one), 1),
+                                                  _mm512_slli_epi32(_mm512_and_si512(ax[2].cell, one), 2)));
+            const __mmask16 voxel_occupied = _mm512_test_epi32_mask(_mm512_srlv_epi32(word, in_sub), one),
+                            sub_occupied = _mm512_test_epi32_mask(word, _mm512_set1_epi32(0xFF)),
+                            block_occupied = _mm512_test_epi32_mask(
+                                word, _mm512_set1_epi32(1 << OccupancyGrid::kBlockBit)),
+                            super_occupied = _mm512_test_epi32_mask(
+                                word, _mm512_set1_epi32(1 << OccupancyGrid::kSuperBlockBit));
             const __mmask16 occupied = __mmask16(live) & voxel_occupied;
             __mmask16 over = occupied ? record_entries(ax, occupied, idx, t_near, t_far, L, geo.H, out) : 0;
             // The box to leave: the cell in an occupied 2^3 block, else the largest empty

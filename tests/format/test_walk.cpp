@@ -101,8 +101,11 @@ TEST_CASE("the 16-lane walk returns the scalar walk's points bit for bit") {
             const OccupancyGrid occ(V, shell_occupancy(d, 5 + V, sparse));
             if (sparse > 97) {  // the case is there: voxels whose whole 8^3 block is empty
                 std::size_t empty8 = 0;
-                for (std::uint64_t i = 0; i < d.voxel_count(); ++i)
-                    empty8 += ((occ.nibbles[i >> 3] >> (4 * (i & 7) + 3)) & 1u) == 0;
+                for (std::uint32_t z = 0; z < V; ++z)
+                    for (std::uint32_t y = 0; y < V; ++y)
+                        for (std::uint32_t x = 0; x < V; ++x)
+                            empty8 += ((occ.blocks[occ.sub_block(x, y, z)] >> OccupancyGrid::kSuperBlockBit) &
+                                       1u) == 0;
                 CHECK(empty8 > d.voxel_count() / 10);
             }
             const auto rays = edge_case_rays(V, 6000, 17 + V + H);

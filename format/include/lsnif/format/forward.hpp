@@ -111,23 +111,32 @@ void unit_direction(const Ray& ray, float out[3]);
 // 0 for empty slots. Writes geo.H values.
 void entry_offsets(const Geometry& geo, const RayPoints& pts, float* out);
 
-// The OCCU bit array plus, per voxel, whether its kSubBlock^3, kBlock^3 and kSuperBlock^3
-// blocks have an occupied voxel: what lets the DDA jump over empty space.
+// The OCCU bit array plus, per kSubBlock^3 block of voxels, its voxels again and whether its
+// kBlock^3 and kSuperBlock^3 blocks have an occupied voxel: what lets the DDA jump over
+// empty space.
 struct OccupancyGrid {
     static constexpr std::uint32_t kBlock = 4;
     static constexpr std::uint32_t kSubBlock = 2;    // the 16-lane walk's finer empty blocks
     static constexpr std::uint32_t kSuperBlock = 8;  // and its coarser ones
+    static constexpr std::uint32_t kBlockBit = 8, kSuperBlockBit = 9;  // bits of a `blocks` entry
     std::uint32_t V = 0;
+    std::uint32_t S = 0;             // kSubBlock^3 blocks per axis: ceil(V / 2)
     std::vector<std::uint8_t> bits;  // OCCU layout
-    // 4 bits per voxel, 8 voxels per word (voxel i at bits 4 (i % 8) of word i / 8): bit 0
-    // voxel i is occupied, bit 1 its kSubBlock^3 block has an occupied voxel, bit 2 its
-    // kBlock^3 block does, bit 3 its kSuperBlock^3 block. The 16-lane walk gathers one word
-    // per step; the scalar walk reads bit 2 (block_occupied).
-    std::vector<std::uint32_t> nibbles;
+    // One entry per kSubBlock^3 block, x fastest (sub_block()), then a zero entry so that
+    // any entry can be read as the low half of 32 bits (the 16-lane walk gathers one per
+    // step): bits 0-7 the block's voxels (sub_voxel()), bit kBlockBit its kBlock^3 block has
+    // an occupied voxel, bit kSuperBlockBit its kSuperBlock^3 block does. 2 bits per voxel.
+    std::vector<std::uint16_t> blocks;
     OccupancyGrid() = default;
     OccupancyGrid(std::uint32_t V, std::vector<std::uint8_t> voxel_bits);
-    bool block_occupied(std::uint32_t voxel) const {
-        return (nibbles[voxel >> 3] >> (4 * (voxel & 7) + 2)) & 1u;
+    std::uint32_t sub_block(std::uint32_t x, std::uint32_t y, std::uint32_t z) const {
+        return (x >> 1) + S * ((y >> 1) + S * (z >> 1));
+    }
+    static std::uint32_t sub_voxel(std::uint32_t x, std::uint32_t y, std::uint32_t z) {
+        return (x & 1u) + 2u * (y & 1u) + 4u * (z & 1u);
+    }
+    bool block_occupied(std::uint32_t x, std::uint32_t y, std::uint32_t z) const {
+        return (blocks[sub_block(x, y, z)] >> kBlockBit) & 1u;
     }
 };
 
