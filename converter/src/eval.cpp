@@ -676,27 +676,33 @@ bool write_effect_images(const image::Image& ref, const image::Image& test, cons
     return true;
 }
 
+bool compare_effect(const EffectImages& reference, const EffectImages& test, const View& v, int e,
+                    const std::vector<std::uint8_t>& lsnif_pixels, const fs::path& images, bool write_images,
+                    EffectComparison& c, std::string& error, const std::string& label) {
+    image::Image ref{v.W, v.H, reference.rgb[e]}, hyb{v.W, v.H, test.rgb[e]};
+    for (auto* im2 : {&ref, &hyb})
+        for (float& x : im2->rgb) x = image::linear_to_srgb(std::clamp(x, 0.0f, 1.0f));
+    auto f = image::flip(ref, hyb, image::FlipOptions{});
+    if (!f) {
+        error = std::string("flip: ") + kEffectNames[e] + ": " + f.error().message;
+        return false;
+    }
+    c.flip = f->stats;
+    c.psnr_db = image::psnr(ref, hyb);
+    c.lsnif_pixel_errors = masked_errors(f->error_map, lsnif_pixels);
+    if (!c.lsnif_pixel_errors.empty()) c.flip_lsnif_pixels = image::error_stats(c.lsnif_pixel_errors);
+    return !write_images || write_effect_images(ref, hyb, *f, e, label, images, c, error);
+}
+
 bool compare_effects(const EffectImages& reference, const EffectImages& test, const View& v,
                      const std::vector<std::uint8_t>& lsnif_pixels, const fs::path& images, bool write_images,
                      Comparison& out, std::string& error, const std::string& label) {
-    const std::uint32_t W = v.W, H = v.H;
     double flip_sum = 0;
     for (int e = 0; e < kEffects; ++e) {
-        image::Image ref{W, H, reference.rgb[e]}, hyb{W, H, test.rgb[e]};
-        for (auto* im2 : {&ref, &hyb})
-            for (float& x : im2->rgb) x = image::linear_to_srgb(std::clamp(x, 0.0f, 1.0f));
-        auto f = image::flip(ref, hyb, image::FlipOptions{});
-        if (!f) {
-            error = std::string("flip: ") + kEffectNames[e] + ": " + f.error().message;
+        if (!compare_effect(reference, test, v, e, lsnif_pixels, images, write_images, out.effect[e], error,
+                            label))
             return false;
-        }
-        EffectComparison& c = out.effect[e];
-        c.flip = f->stats;
-        c.psnr_db = image::psnr(ref, hyb);
-        c.lsnif_pixel_errors = masked_errors(f->error_map, lsnif_pixels);
-        if (!c.lsnif_pixel_errors.empty()) c.flip_lsnif_pixels = image::error_stats(c.lsnif_pixel_errors);
-        if (write_images && !write_effect_images(ref, hyb, *f, e, label, images, c, error)) return false;
-        if (e < kSeparateEffects) flip_sum += f->stats.mean;
+        if (e < kSeparateEffects) flip_sum += out.effect[e].flip.mean;
     }
     out.flip_mean = flip_sum / double(kSeparateEffects);
     return true;

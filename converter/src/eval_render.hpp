@@ -209,6 +209,13 @@ struct Comparison {
     EffectComparison effect[kEffects];
     double flip_mean = 0;  // over the separate effects (shadow, AO, reflection)
 };
+// Compares effect `e` (kShadow ... kCombined) into `c`; writes its PNGs into `images` when
+// write_images, named as compare_effects names them. False with `error` when FLIP or a file
+// fails.
+bool compare_effect(const EffectImages& reference, const EffectImages& test, const View& v, int e,
+                    const std::vector<std::uint8_t>& lsnif_pixels, const std::filesystem::path& images,
+                    bool write_images, EffectComparison& c, std::string& error,
+                    const std::string& label = "hybrid");
 // Compares every effect; writes the PNGs into `images` when write_images, named
 // reference_<effect>.png, <label>_<effect>.png and flip_<effect>.png (flip_<label>_<effect>.png
 // for a label other than "hybrid"). False with `error` when FLIP or a file fails.

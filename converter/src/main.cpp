@@ -621,13 +621,9 @@ struct EvalCommand {
             return 0;
         }
         for (const auto& o : r.report["objects"])
-            std::printf(
-                "%-24s FLIP over its pixels %.4f (p95 %.4f); over the frame: combined %.4f, shadow %.4f, "
-                "ao %.4f, reflection %.4f\n",
-                o["name"].get<std::string>().c_str(), o["flip"]["combined_object"].get<double>(),
-                o["flip"]["combined_object_p95"].get<double>(), o["flip"]["combined"].get<double>(),
-                o["flip"]["shadow"].get<double>(), o["flip"]["ao"].get<double>(),
-                o["flip"]["reflection"].get<double>());
+            std::printf("%-24s FLIP over its pixels %.4f (p95 %.4f), over the frame %.4f\n",
+                        o["name"].get<std::string>().c_str(), o["flip"]["combined_object"].get<double>(),
+                        o["flip"]["combined_object_p95"].get<double>(), o["flip"]["combined"].get<double>());
         std::printf("images in %s\n", r.report["images_dir"].get<std::string>().c_str());
         return 0;
     }

@@ -226,23 +226,19 @@ base::Result<ObjectFlip, std::string> ObjectViews::compare(std::span<const std::
                                         .hybrid;
         const std::vector<std::uint8_t> mask =
             own ? mask_union(v.object_pixels, lsnif_pixel_mask(*own, im)) : v.object_pixels;
-        Comparison c;
-        if (!compare_effects(v.reference, hybrid, v.view, mask, {}, false, c, error)) break;
+        EffectComparison c;
+        if (!compare_effect(v.reference, hybrid, v.view, kCombined, mask, {}, false, c, error)) break;
         if (!dir.empty() &&
             !write_view(v.reference.rgb[kCombined], hybrid.rgb[kCombined], v.view, dir, k, error))
             break;
-        const auto& pixels = c.effect[kCombined].lsnif_pixel_errors;
-        object_errors.insert(object_errors.end(), pixels.begin(), pixels.end());
-        sum.combined += c.effect[kCombined].flip.mean;
-        sum.shadow += c.effect[kShadow].flip.mean;
-        sum.ao += c.effect[kAo].flip.mean;
-        sum.reflection += c.effect[kReflection].flip.mean;
+        object_errors.insert(object_errors.end(), c.lsnif_pixel_errors.begin(), c.lsnif_pixel_errors.end());
+        sum.combined += c.flip.mean;
     }
     lsnif_close(model);
     im.meshes[0].model = nullptr;
     if (!error.empty()) return error;
     const double n = double(state_->views.size());
-    ObjectFlip f{0.0, 0.0, sum.combined / n, sum.shadow / n, sum.ao / n, sum.reflection / n};
+    ObjectFlip f{0.0, 0.0, sum.combined / n};
     if (!object_errors.empty()) {
         const image::FlipStats s = image::error_stats(object_errors);
         f.combined_object = s.mean;

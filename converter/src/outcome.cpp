@@ -106,10 +106,7 @@ void read_held_out(Reader& r, HeldOut& h) {
 json object_flip_json(const ObjectFlip& f) {
     return {{"combined", f.combined},
             {"combined_object", f.combined_object},
-            {"combined_object_p95", f.combined_object_p95},
-            {"shadow", f.shadow},
-            {"ao", f.ao},
-            {"reflection", f.reflection}};
+            {"combined_object_p95", f.combined_object_p95}};
 }
 
 namespace {
@@ -118,9 +115,6 @@ void read_flip(Reader& r, ObjectFlip& f) {
     r.read("combined", f.combined);
     r.read("combined_object", f.combined_object);
     r.read("combined_object_p95", f.combined_object_p95);
-    r.read("shadow", f.shadow);
-    r.read("ao", f.ao);
-    r.read("reflection", f.reflection);
 }
 
 json stats_json(const MeshStats& s) {

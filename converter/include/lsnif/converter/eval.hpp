@@ -140,17 +140,15 @@ struct ObjectViewOptions {
     std::uint64_t seed = 1;     // draws the cameras, the lights and the AO directions
 };
 
-// FLIP (LDR-FLIP, lsnif::image) of a candidate's renders against the reference over a set of
-// views. The object's pixels are those where the mesh or (in the view traced through the
-// asset) the asset is what the camera sees; their errors are pooled over the views.
+// FLIP (LDR-FLIP, lsnif::image) of a candidate's combined renders (AO, shadowed light, mirror
+// coat) against the reference over a set of views. The object's pixels are those where the
+// mesh or (in the view traced through the asset) the asset is what the camera sees; their
+// errors are pooled over the views. The effects alone are not compared: the combined image
+// holds them, and each comparison is a FLIP of every view.
 struct ObjectFlip {
-    double combined_object = 0;      // the combined image over the object's pixels: mean
+    double combined_object = 0;      // over the object's pixels: mean
     double combined_object_p95 = 0;  // and 95th percentile
-    // The combined image (AO, shadowed light, mirror coat) and each effect alone over the
-    // whole frame, background and floor included, mean over the views: the figure the LSNIF
-    // paper reports, kept for comparisons with it.
-    double combined = 0;
-    double shadow = 0, ao = 0, reflection = 0;
+    double combined = 0;  // over the whole frame, background and floor included: mean over the views
 };
 
 class ObjectViews {
