@@ -129,7 +129,7 @@ struct Option {
     CandidateOutcome outcome = CandidateOutcome::misses_target;  // chosen and why, or why not (choose_option)
 };
 
-// Every rung tried for a mesh, largest first, and every option they gave.
+// Every rung tried for a mesh, in the order trained, and every option they gave.
 struct Sized {
     std::vector<Trained> rungs;
     std::vector<Option> options;        // per rung: fp16, then u8_affine (Sizing::quantize)
@@ -183,14 +183,19 @@ std::optional<HeldOut> reusable_metrics(const fs::path& asset, const std::string
 // them: classification built the same mesh, so that does not happen short of memory).
 MeasureRays draw_measure_rays(const Run& run, const scene::Mesh& mesh, Candidate& c, MeshOutcome& out);
 
+// Where a rung stands in the search (Sizing): the first one trained, one below a rung that met
+// the target, or one above a rung that narrowly missed it.
+enum class RungRole : std::uint8_t { first, smaller, larger };
+
 // Trains `desc` (a rung: the candidate's model with another table size) for at most `steps`
 // steps on streamed rays, checking the validation curve `validation_checks` times: it gives
 // up when the gate is out of reach (EarlyAbort) or when, as a smaller rung, it falls behind
-// `larger` (the previous rung's curve; empty for the first), and stops once the target is
-// met (TargetStop). Timings and training statistics accumulate in `out`.
+// `above` (the curve of the rung above it), and stops once the target is met (TargetStop).
+// Only the first rung may ask for a finer grid (Trained::finer_grid). Timings and training
+// statistics accumulate in `out`.
 Trained train_rung(const Run& run, const scene::Mesh& mesh, Candidate& c, const format::ModelDesc& desc,
                    const voxelize::Occupancy& occ, const MeasureRays& rays, std::uint32_t steps,
-                   std::span<const ValidationPoint> larger, MeshOutcome& out);
+                   RungRole role, std::span<const ValidationPoint> above, MeshOutcome& out);
 
 // Prune, part 1 (docs/model.md "Inactive neurons"): per hidden layer of `model`, whether
 // each neuron's ReLU output is positive for at least one of `rays` that reaches the network,
@@ -242,14 +247,19 @@ std::string option_summary(const Option& o);
 std::optional<voxelize::Occupancy> refine_grid(const Run& run, const Candidate& c, format::ModelDesc& desc,
                                                const std::string& why, MeshOutcome& out);
 
-// The ladder (Sizing): trains c.desc, then each smaller table size while the previous one
-// met the target and the preset's step budget has at least as many steps left as it used.
+// The search of Sizing over table sizes up to c.desc's (the plan's): the first rung, then down
+// while rungs meet the target and steps are left, or up while a rung narrowly misses it
+// (near_target), each larger rung with a whole budget.
 Sized size_to_target(const Run& run, const scene::Mesh& mesh, Candidate& c, const voxelize::Occupancy& occ,
                      const MeasureRays& rays, MeshOutcome& out);
 
+// The table size the search starts at: Sizing::first_log2_table_size, within
+// [ClassifyRule::min_log2_table_size, largest] (0, or a preset that does not explore: largest).
+std::uint32_t first_rung_log2(const Preset& p, std::uint32_t largest);
+
 // Picks the smallest option (resident bytes) that passes the gate and the memory rule and meets the
-// target; else the first rung's smallest option that passes both; else none. Writes every
-// option's outcome.
+// target; else the smallest option of the largest rung trained (the most accurate) that passes
+// both; else none. Writes every option's outcome.
 void choose_option(Sized& sized);
 
 // The asset's metadata document (schema/lsnif-metadata.schema.json). No wall times: an

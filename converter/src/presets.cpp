@@ -96,6 +96,11 @@ bool find_preset(const std::string& name, Preset& p) {
         p.eval_rays = 1u << 13;
         p.classify.min_triangles = 100;
         p.gate = {0.75, 0.6, 25.0, 90.0, 100};
+        // Smaller views with fewer AO rays: the visual check's stages run, at a fifth of the
+        // default's pixels and rays.
+        p.views.width = 96;
+        p.views.height = 72;
+        p.views.ao_samples = 4;
         return true;
     }
     return false;
@@ -122,6 +127,7 @@ bool resolve_preset(const ConvertOptions& opt, Preset& preset, std::string& erro
     if (opt.steps > 0) preset.train.steps = opt.steps;
     if (opt.batch_size > 0) preset.train.batch_size = opt.batch_size;
     if (opt.log2_table_size > 0) preset.model.log2_table_size = opt.log2_table_size;
+    if (opt.first_log2_table_size > 0) preset.sizing.first_log2_table_size = opt.first_log2_table_size;
     if (opt.max_points > 0) preset.model.max_points = opt.max_points;
     if (opt.grid_resolution > 0) preset.model.grid_resolution = opt.grid_resolution;
     if (opt.max_grid_resolution > 0) preset.sizing.max_grid_resolution = opt.max_grid_resolution;

@@ -189,6 +189,12 @@ bool meets_target_with_margin(const ValidationPoint& point, const Target& t, con
            point.normal_deg <= t.normal_deg - rule.normal_margin_deg;
 }
 
+bool near_target(const samples::FamilyMetrics& pooled, const Target& t, const Sizing& rule) {
+    return pooled.visibility_accuracy >= t.visibility - rule.climb_visibility &&
+           pooled.distance_median_pct <= t.distance_pct * rule.climb_distance_factor &&
+           pooled.normal_median_deg <= t.normal_deg + rule.climb_normal_deg;
+}
+
 std::string falls_behind(const ValidationPoint& point, std::span<const ValidationPoint> larger,
                          const Target& target, const TargetStop& stop, const Sizing& rule) {
     // The larger rung's visibility at the last check at or before the point's step, and the

@@ -161,7 +161,10 @@ std::vector<Setting> make_table() {
         LSNIF_OVERRIDE("--batch", "RAYS", "batch", batch_size, 64u, 1u << 20,
                        "Override the preset's batch size (rays per step)"),
         LSNIF_OVERRIDE("--log2-table", "N", "log2_table", log2_table_size, 10u, 24u,
-                       "Override T = 2^N hash-table rows per level"),
+                       "Override T = 2^N hash-table rows per level: the largest table sizing may choose"),
+        LSNIF_OVERRIDE("--first-log2-table", "N", "first_log2_table", first_log2_table_size, 10u, 24u,
+                       "The table size, 2^N rows, the sizing search starts at before it goes down or up "
+                       "(the default preset's 16; at least --log2-table: the largest first)"),
         LSNIF_OVERRIDE("--max-points", "H", "max_points", max_points, 1u, 64u,
                        "Override H, voxel entry points per ray"),
         LSNIF_OVERRIDE("--grid", "V", "grid", grid_resolution, 4u, 256u,

@@ -87,18 +87,20 @@ std::string stop_key(const Target& t, const Preset& p) {
     const Sizing& z = p.sizing;
     const ObjectViewOptions& v = p.views;
     const Gate& g = p.gate;
-    char buf[512];
+    char buf[640];
     std::snprintf(
         buf, sizeof buf,
         "target%g,%g,%g,%g|stop%u,%g,%g,%g|abort%llu,%g,%g,%g,%g|checks%u,%llu|decision%llu|sizing%d,%d,%g,"
-        "%u,%g,%u,%g|prune%d|views%d,%u,%u,%u,%u,%llu|accept%s,%g",
+        "%u,%g,%u,%g,%u,%g,%g,%g,%g|prune%d|views%d,%u,%u,%u,%u,%llu|accept%s,%g",
         t.visibility, t.distance_pct, t.normal_deg, t.flip, s.consecutive, s.visibility_margin,
         s.distance_factor, s.normal_margin_deg, (unsigned long long)a.min_samples, a.visibility_headroom,
         a.normal_headroom_deg, a.distance_factor, kImageHeadroom, p.validation_checks,
         (unsigned long long)p.validation_rays, (unsigned long long)p.eval_rays, int(z.explore_smaller),
         int(z.quantize), z.curve_slack, p.classify.min_log2_table_size, p.classify.min_memory_ratio,
-        z.max_grid_resolution, z.finer_grid_headroom, int(p.prune_inactive), int(p.visual_check), v.width,
-        v.height, v.views, v.ao_samples, (unsigned long long)v.seed, acceptance_name(g.accept), g.max_flip);
+        z.max_grid_resolution, z.finer_grid_headroom, z.first_log2_table_size, z.climb_visibility,
+        z.climb_normal_deg, z.climb_distance_factor, z.descend_budget_fraction, int(p.prune_inactive),
+        int(p.visual_check), v.width, v.height, v.views, v.ao_samples, (unsigned long long)v.seed,
+        acceptance_name(g.accept), g.max_flip);
     return buf;
 }
 
@@ -168,7 +170,7 @@ MeasureRays draw_measure_rays(const Run& run, const scene::Mesh& mesh, Candidate
 
 Trained train_rung(const Run& run, const scene::Mesh& mesh, Candidate& c, const format::ModelDesc& desc,
                    const voxelize::Occupancy& occ, const MeasureRays& rays, std::uint32_t steps,
-                   std::span<const ValidationPoint> larger, MeshOutcome& out) {
+                   RungRole role, std::span<const ValidationPoint> above, MeshOutcome& out) {
     const auto t0 = Clock::now();
     Trained t;
     t.config = run.preset.train;
@@ -195,7 +197,7 @@ Trained train_rung(const Run& run, const scene::Mesh& mesh, Candidate& c, const 
     // cannot catch up; stop when the target is met (TargetStop).
     const Target aim = effective_target(run.opt.target, p.gate);
     bool images_in_reach = false;
-    const bool may_refine = larger.empty() && p.sizing.explore_smaller &&
+    const bool may_refine = role == RungRole::first && p.sizing.explore_smaller &&
                             desc.grid_resolution * 2 <= p.sizing.max_grid_resolution;
     auto decide = [&](std::uint32_t step, std::uint32_t of) {
         const ValidationPoint& point = t.validation.back();
@@ -217,8 +219,10 @@ Trained train_rung(const Run& run, const scene::Mesh& mesh, Candidate& c, const 
             t.abandoned_at = step;
             return false;
         }
-        t.fell_behind = falls_behind(point, larger, aim, p.target_stop, p.sizing);
-        if (!t.fell_behind.empty()) return false;
+        if (role == RungRole::smaller) {
+            t.fell_behind = falls_behind(point, above, aim, p.target_stop, p.sizing);
+            if (!t.fell_behind.empty()) return false;
+        }
         met_in_a_row = meets_target_with_margin(point, aim, p.target_stop) ? met_in_a_row + 1 : 0;
         if (p.target_stop.consecutive && met_in_a_row >= p.target_stop.consecutive && step < of) {
             t.target_met_at = step;
@@ -353,17 +357,52 @@ std::optional<voxelize::Occupancy> refine_grid(const Run& run, const Candidate& 
     return std::move(*occ);
 }
 
+std::uint32_t first_rung_log2(const Preset& p, std::uint32_t largest) {
+    const std::uint32_t first = p.sizing.first_log2_table_size;
+    if (!p.sizing.explore_smaller || first == 0) return largest;
+    return std::min(largest, std::max(first, p.classify.min_log2_table_size));
+}
+
+namespace {
+
+// The fp16 option of the rung just added to `sized` (the training's own export): what the
+// climb reads.
+const Option* fp16_option(const Sized& sized, std::size_t first) {
+    for (std::size_t i = first; i < sized.options.size(); ++i)
+        if (sized.options[i].model.desc.grid_encoding == format::GridEncoding::fp16) return &sized.options[i];
+    return nullptr;
+}
+
+std::string climb_reason(const Option& o, const Target& aim) {
+    const samples::FamilyMetrics& m = o.decided.pooled;
+    char buf[240];
+    std::snprintf(buf, sizeof buf,
+                  "2^%u rows ended near the target (decision rays: %.2f %% visibility, %.2f %% distance, "
+                  "%.1f deg normal; target %.2f %%, %.2f %%, %.1f deg); trained again at 2^%u",
+                  o.model.desc.log2_table_size, 100 * m.visibility_accuracy, m.distance_median_pct,
+                  m.normal_median_deg, 100 * aim.visibility, aim.distance_pct, aim.normal_deg,
+                  o.model.desc.log2_table_size + 1);
+    return buf;
+}
+
+}  // namespace
+
 Sized size_to_target(const Run& run, const scene::Mesh& mesh, Candidate& c, const voxelize::Occupancy& occ,
                      const MeasureRays& rays, MeshOutcome& out) {
     Sized sized;
     const Preset& p = run.preset;
+    const Target aim = effective_target(run.opt.target, p.gate);
+    const std::uint32_t largest = c.desc.log2_table_size;  // the plan's: the memory rule's cap
     format::ModelDesc desc = c.desc;
-    std::uint32_t budget = p.train.steps;      // steps left to all rungs
+    desc.log2_table_size = first_rung_log2(p, largest);
+    std::uint32_t budget = p.train.steps;      // steps left to the rungs of this budget
     std::optional<voxelize::Occupancy> finer;  // the grid of a finer-grid rung
+    RungRole role = RungRole::first;
     for (;;) {
-        const std::vector<ValidationPoint> larger =
-            sized.rungs.empty() ? std::vector<ValidationPoint>{} : sized.rungs.back().validation;
-        Trained trained = train_rung(run, mesh, c, desc, finer ? *finer : occ, rays, budget, larger, out);
+        const std::vector<ValidationPoint> above =
+            role == RungRole::smaller ? sized.rungs.back().validation : std::vector<ValidationPoint>{};
+        Trained trained =
+            train_rung(run, mesh, c, desc, finer ? *finer : occ, rays, budget, role, above, out);
         if (!trained.finer_grid.empty()) {
             // The first size at this grid cannot reach the target: start again, twice as fine.
             if (auto g = refine_grid(run, c, desc, trained.finer_grid, out)) {
@@ -384,13 +423,26 @@ Sized size_to_target(const Run& run, const scene::Mesh& mesh, Candidate& c, cons
         }
         const std::uint32_t used = t.stream.train.steps;
         budget -= std::min(budget, used);
-        // A smaller rung is worth a try only after this one met the target (or could not
-        // beat the BVH, the estimate having been too hopeful), and only with at least as many
-        // steps as this one needed: a smaller model does not learn faster.
-        if ((!met && fits) || !p.sizing.explore_smaller || budget < used ||
+        if (!p.sizing.explore_smaller) break;
+        // Up: a rung that ended near the target, trained to its end (not given up), and
+        // never after a smaller rung (going down means the rung above met it).
+        const Option* trained_option = fp16_option(sized, first);
+        if (!met && role != RungRole::smaller && desc.log2_table_size < largest && t.abandoned.empty() &&
+            trained_option && near_target(trained_option->decided.pooled, aim, p.sizing)) {
+            out.reasons.push_back(climb_reason(*trained_option, aim));
+            ++desc.log2_table_size;
+            budget = p.train.steps;
+            role = RungRole::larger;
+            continue;
+        }
+        // Down: only after this rung met the target (or could not beat the BVH, the estimate
+        // having been too hopeful), never after climbing, and only with enough steps left.
+        if (role == RungRole::larger || (!met && fits) ||
+            double(budget) < p.sizing.descend_budget_fraction * double(used) ||
             desc.log2_table_size <= p.classify.min_log2_table_size)
             break;
         --desc.log2_table_size;
+        role = RungRole::smaller;
     }
     choose_option(sized);
     return sized;
@@ -427,11 +479,15 @@ void choose_option(Sized& sized) {
     for (std::size_t i = 0; i < n; ++i)
         if (passes(sized.options[i]) && sized.options[i].target_met && smaller(i)) sized.chosen = i;
     if (!sized.chosen) {
-        // No option meets the target: the most accurate model, the first rung's, ships if
-        // it passes the gate, in its smallest encoding that does.
+        // No option meets the target: the most accurate model, the largest table trained
+        // (the first such rung), ships if it passes the gate, in its smallest encoding that does.
         why = CandidateOutcome::chosen_passes_gate;
+        std::size_t best = 0;
+        for (std::size_t r = 1; r < sized.rungs.size(); ++r)
+            if (sized.rungs[r].model.desc.log2_table_size > sized.rungs[best].model.desc.log2_table_size)
+                best = r;
         for (std::size_t i = 0; i < n; ++i)
-            if (sized.options[i].rung == 0 && passes(sized.options[i]) && smaller(i)) sized.chosen = i;
+            if (sized.options[i].rung == best && passes(sized.options[i]) && smaller(i)) sized.chosen = i;
     }
     for (std::size_t i = 0; i < n; ++i) {
         Option& o = sized.options[i];

@@ -230,6 +230,7 @@ TEST_CASE("every setting survives settings_arguments and back, and every mesh se
                                                         {"--steps", "7"},
                                                         {"--batch", "128"},
                                                         {"--log2-table", "11"},
+                                                        {"--first-log2-table", "13"},
                                                         {"--max-points", "5"},
                                                         {"--grid", "16"},
                                                         {"--hidden", "24"},
@@ -555,6 +556,68 @@ TEST_CASE(
     CHECK(none_candidates[0]["outcome"] == "fails the gate");
 }
 
+TEST_CASE("size_to_target climbs from its first size only after a near miss, with a whole budget") {
+    const scene::Mesh mesh = dragon();
+    ConvertOptions o = options("smoke");
+    std::string error;
+    REQUIRE(parse_target("99.9,0.01,1", o.target, error));  // no size meets it
+    o.first_log2_table_size = 11;                           // below the smoke model's 2^12
+    Run run = make_run(o, fresh_dir("stages_climb"));
+    run.preset.classify.min_log2_table_size = 10;
+    MeshOutcome rec;
+    Prepared p = prepare(run, mesh, rec);
+    REQUIRE(p.c.desc.log2_table_size == 12);
+    CHECK(first_rung_log2(run.preset, 12) == 11);
+
+    // Far from the target (the default margins): the first size is all that trains, and it
+    // ships through the gate.
+    const Sized far = size_to_target(run, mesh, p.c, p.occ, p.rays, rec);
+    const json far_candidates = candidates_json(far);
+    REQUIRE_MESSAGE(far.rungs.size() == 1, far_candidates.dump());
+    CHECK(far_candidates[0]["log2_table_size"] == 11);
+    CHECK_FALSE(near_target(far.options[0].decided.pooled, effective_target(run.opt.target, run.preset.gate),
+                            run.preset.sizing));
+
+    // Margins wide enough that the miss counts as near: 2^12 trains with a budget of its own,
+    // and the largest size trained is what ships through the gate.
+    run.preset.sizing.climb_visibility = 1.0;
+    run.preset.sizing.climb_distance_factor = 1e6;
+    run.preset.sizing.climb_normal_deg = 180.0;
+    MeshOutcome climbed_rec;
+    const Sized climbed = size_to_target(run, mesh, p.c, p.occ, p.rays, climbed_rec);
+    const json candidates = candidates_json(climbed);
+    REQUIRE_MESSAGE(climbed.rungs.size() == 2, candidates.dump());
+    CHECK(candidates[0]["log2_table_size"] == 11);
+    CHECK(candidates[2]["log2_table_size"] == 12);  // one size up, never past the plan's
+    CHECK(candidates[0]["steps"] == run.preset.train.steps);
+    CHECK(candidates[2]["steps_planned"] == run.preset.train.steps);
+    REQUIRE(climbed.chosen.has_value());
+    CHECK(climbed.options[*climbed.chosen].model.desc.log2_table_size == 12);
+    CHECK(climbed.options[*climbed.chosen].outcome == CandidateOutcome::chosen_passes_gate);
+    REQUIRE_FALSE(climbed_rec.reasons.empty());
+    CHECK(climbed_rec.reasons.back().find("2^11 rows ended near the target") != std::string::npos);
+    CHECK(climbed_rec.reasons.back().find("trained again at 2^12") != std::string::npos);
+}
+
+TEST_CASE("near_target: each metric within its climb margin") {
+    const Target target;  // 98.5 %, 0.6 %, 8 deg
+    const Sizing rule;    // 0.5 points, 1.5x, 2 deg
+    samples::FamilyMetrics m;
+    m.visibility_accuracy = 0.9844;  // CGAL's armadillo at 2^16 rows
+    m.distance_median_pct = 0.31;
+    m.normal_median_deg = 7.8;
+    CHECK(near_target(m, target, rule));
+    m.visibility_accuracy = 0.979;  // 0.6 points short
+    CHECK_FALSE(near_target(m, target, rule));
+    m.visibility_accuracy = 0.9844;
+    m.normal_median_deg = 10.5;  // 2.5 degrees over
+    CHECK_FALSE(near_target(m, target, rule));
+    m.normal_median_deg = 9.9;
+    CHECK(near_target(m, target, rule));
+    m.distance_median_pct = 0.95;  // over 1.5x
+    CHECK_FALSE(near_target(m, target, rule));
+}
+
 TEST_CASE("falls_behind: a smaller size is given up when the larger one's later gain cannot close its gap") {
     const Target target{0.97, 1.0, 15.0};  // the default before the coarse levels
     const TargetStop stop;                 // +0.3 points
@@ -658,7 +721,8 @@ TEST_CASE(
     const Run run = make_run(o, fresh_dir("stages_prune"));
     MeshOutcome rec;
     Prepared p = prepare(run, mesh, rec);
-    const Trained t = train_rung(run, mesh, p.c, p.c.desc, p.occ, p.rays, run.preset.train.steps, {}, rec);
+    const Trained t =
+        train_rung(run, mesh, p.c, p.c.desc, p.occ, p.rays, run.preset.train.steps, RungRole::first, {}, rec);
     CHECK(t.pruned.empty());
     REQUIRE(t.model.desc.hidden_width == run.preset.model.hidden_width);
     const std::size_t layers = t.model.desc.hidden_width.size();
@@ -716,8 +780,8 @@ TEST_CASE(
     const ConvertOptions prune_opt = options("smoke");
     const Run pruning = make_run(prune_opt, run.outdir);
     REQUIRE(pruning.preset.prune_inactive);
-    const Trained tp =
-        train_rung(pruning, mesh, p.c, p.c.desc, p.occ, p.rays, run.preset.train.steps, {}, rec);
+    const Trained tp = train_rung(pruning, mesh, p.c, p.c.desc, p.occ, p.rays, run.preset.train.steps,
+                                  RungRole::first, {}, rec);
     REQUIRE(tp.pruned.size() == layers);
     const auto natural = active_neurons(t.model, p.rays.validation, 2);
     for (std::size_t k = 0; k < layers; ++k) {

@@ -181,12 +181,13 @@ struct ConvertOptions {
     double min_memory_ratio = 0;
     // Model overrides (0 = the preset's value), for sweeps such as scripts/tradeoff. A
     // changed table size is the largest the per-mesh sizing may choose.
-    std::uint32_t log2_table_size = 0;      // T = 2^n rows per hashed level
-    std::uint32_t max_points = 0;           // H, voxel entry points per ray
-    std::uint32_t grid_resolution = 0;      // V, occupancy grid cells per axis
-    std::uint32_t max_grid_resolution = 0;  // Sizing::max_grid_resolution
-    std::uint32_t hidden_width = 0;         // width of both hidden layers
-    bool no_ray_inputs = false;             // the MLP sees the points' features only (1.0/1.1 files)
+    std::uint32_t log2_table_size = 0;        // T = 2^n rows per hashed level
+    std::uint32_t first_log2_table_size = 0;  // Sizing::first_log2_table_size
+    std::uint32_t max_points = 0;             // H, voxel entry points per ray
+    std::uint32_t grid_resolution = 0;        // V, occupancy grid cells per axis
+    std::uint32_t max_grid_resolution = 0;    // Sizing::max_grid_resolution
+    std::uint32_t hidden_width = 0;           // width of both hidden layers
+    bool no_ray_inputs = false;               // the MLP sees the points' features only (1.0/1.1 files)
 };
 
 // Progress events: stage changes and training steps.

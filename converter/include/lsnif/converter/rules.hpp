@@ -143,14 +143,19 @@ struct TargetStop {
     double normal_margin_deg = 1.0;    // validation median normal <= target - margin
 };
 
-// Sizing to the target (docs/model.md "Sizing to the target"): the ladder is the preset's
-// table size 2^log2_table_size halved down to 2^ClassifyRule::min_log2_table_size. A mesh's
-// first rung is the largest that passes the memory rule; when it meets the target, the next
-// smaller rung is trained from the steps left of the preset's budget, and so on while each
-// smaller rung meets the target. The smallest asset that meets the target ships; so sizing
-// never trains more steps than the fixed model did.
+// Sizing to the target (docs/model.md "Sizing to the target"): the ladder is the table sizes
+// from 2^ClassifyRule::min_log2_table_size up to the largest that passes the memory rule (the
+// plan's size). The search starts at 2^first_log2_table_size rows (or the plan's size when
+// that is smaller) and moves one rung at a time:
+//   - down, when the rung met the target: the next smaller rung is trained from the steps
+//     left of the preset's budget (given up early by falls_behind), and so on while each
+//     smaller rung meets the target;
+//   - up, when the rung ended short of the target by no more than the climb margins: the
+//     next larger rung (up to the plan's) is trained with a whole budget of its own.
+// The smallest asset that meets the target ships. Going down never trains more steps than one
+// budget; only a near miss costs a second one.
 struct Sizing {
-    bool explore_smaller = true;  // false: train the first rung only (--fixed-model)
+    bool explore_smaller = true;  // false: train the plan's size only (--fixed-model)
     // Also measure every rung with its hash-grid features quantized to 8 bits (FORMAT.md
     // §6.4.1): the grid's bytes halve, and the option ships when it still meets the target.
     bool quantize = true;
@@ -173,6 +178,23 @@ struct Sizing {
     // 1200) to the end, measured: CGAL dragon 1.47 points, armadillo 0.39, the truck 1.40, the
     // tree 2.10, the bundled hairball 3.23, four denser hairballs 0.49-0.93.
     double finer_grid_headroom = 0.035;
+    // The rung the search starts at (--first-log2-table; 0: the plan's size). Of the 8
+    // objects of the sizing set that meet the target at 2^17 rows, 7 meet it at 2^16 and 4 at
+    // 2^15, each size trained alone with the whole budget (docs/investigations/sizing.md); starting
+    // at the smallest would train most objects twice.
+    std::uint32_t first_log2_table_size = 16;
+    // How far short of the target a rung's decision-ray metrics may end for the next larger
+    // rung to be tried: CGAL's armadillo ends at 98.44 % visibility at 2^16 against the
+    // 98.5 % target and meets it at 2^17; objects that miss by points (thin geometry) do not
+    // reach it with one more rung either, and stay what the gate says.
+    double climb_visibility = 0.005;     // points of visibility, as a fraction
+    double climb_normal_deg = 2.0;       // degrees above the target's median normal error
+    double climb_distance_factor = 1.5;  // median distance error up to this times the target's
+    // Going down: a smaller rung is tried when the steps left are at least this fraction of
+    // the steps the rung above used. Its schedule is compressed into the steps left, and it is
+    // given up at the first check where its curve falls behind (curve_slack): the blob's 2^15
+    // table met the target after 480 steps where its 2^16 table needed 720.
+    double descend_budget_fraction = 0.5;
 };
 
 // The gate's ray rules on measured metrics: one "... " reason per failed rule (the text the
@@ -216,6 +238,10 @@ Target effective_target(const Target& target, const Gate& gate);
 
 // Whether a validation point meets `target` with the margins of `rule`.
 bool meets_target_with_margin(const ValidationPoint& point, const Target& target, const TargetStop& rule);
+
+// Whether a rung whose decision-ray metrics are `pooled` missed `target` by no more than the
+// climb margins of `rule`, so that the next larger rung may meet it.
+bool near_target(const samples::FamilyMetrics& pooled, const Target& target, const Sizing& rule);
 
 // Why a smaller rung, at a validation point, cannot catch up with the target given the larger
 // rung's validation curve `larger`; empty when it may. Only steps within the larger curve are
