@@ -90,7 +90,7 @@ bool find_preset(const std::string& name, Preset& p) {
         p.model.log2_table_size = 12;
         p.model.hidden_width = {32, 32};
         p.train.batch_size = 2048;
-        p.train.steps = 400;
+        p.train.steps = 250;
         p.train_rays = 1u << 15;
         p.train_chunk_rays = 1u << 14;  // two rounds: exercises the streaming path
         p.eval_rays = 1u << 13;
