@@ -221,9 +221,10 @@ std::uint32_t check_search(const nlohmann::json& mesh) {
     }
     const lsnif::converter::Target aim;
     const bool near = lsnif::converter::near_target(decided, aim, preset.sizing);
-    MESSAGE("search: first 2^" << first << (first_met ? " met the target" : " missed it")
-                               << (near ? " (near it)" : "") << (climbed ? "; climbed" : "") << "; shipped 2^"
-                               << shipped << " of at most 2^" << largest);
+    const std::string verdict = std::string(first_met ? " met the target" : " missed it") +
+                                (near ? " (near it)" : "") + (climbed ? "; climbed" : "");
+    MESSAGE("search: first 2^" << first << verdict << "; shipped 2^" << shipped << " of at most 2^"
+                               << largest);
     CHECK(climbed == (!first_met && near && first < largest));
     return shipped;
 }

@@ -717,11 +717,11 @@ TEST_CASE("bad inputs: clear errors naming the file, no output, and multi-input 
     CHECK(convert(unknown).errors[0].find("unknown preset") != std::string::npos);
 }
 
-TEST_CASE("ten seeds: every held-out metric finite, spread bounded (smoke preset)") {
+TEST_CASE("six seeds: every held-out metric finite, spread bounded (smoke preset)") {
     // The full-size sweep is scripts/seed_sweep (docs/failure-modes.md records it); this keeps
     // the property in every test run: no seed produces a NaN, a divergence or an outlier.
     double lo = 1, hi = 0;
-    for (std::uint64_t seed = 1; seed <= 10; ++seed) {
+    for (std::uint64_t seed = 1; seed <= 6; ++seed) {
         CAPTURE(seed);
         const fs::path out = fresh_dir("seeds");
         ConvertOptions o = smoke({kDragon}, out);
@@ -741,7 +741,7 @@ TEST_CASE("ten seeds: every held-out metric finite, spread bounded (smoke preset
         lo = std::min(lo, v);
         hi = std::max(hi, v);
     }
-    MESSAGE("pooled visibility over 10 seeds: " << 100 * lo << " .. " << 100 * hi << " %");
+    MESSAGE("pooled visibility over 6 seeds: " << 100 * lo << " .. " << 100 * hi << " %");
     CHECK(hi - lo < 0.05);
     CHECK(lo > 0.8);  // above the smoke gate's 75 %, which a shipped asset passes anyway
 }
