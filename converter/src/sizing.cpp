@@ -365,14 +365,6 @@ std::uint32_t first_rung_log2(const Preset& p, std::uint32_t largest) {
 
 namespace {
 
-// The fp16 option of the rung just added to `sized` (the training's own export): what the
-// climb reads.
-const Option* fp16_option(const Sized& sized, std::size_t first) {
-    for (std::size_t i = first; i < sized.options.size(); ++i)
-        if (sized.options[i].model.desc.grid_encoding == format::GridEncoding::fp16) return &sized.options[i];
-    return nullptr;
-}
-
 std::string climb_reason(const Option& o, const Target& aim) {
     const samples::FamilyMetrics& m = o.decided.pooled;
     char buf[240];
@@ -399,8 +391,10 @@ Sized size_to_target(const Run& run, const scene::Mesh& mesh, Candidate& c, cons
     std::optional<voxelize::Occupancy> finer;  // the grid of a finer-grid rung
     RungRole role = RungRole::first;
     for (;;) {
-        const std::vector<ValidationPoint> above =
-            role == RungRole::smaller ? sized.rungs.back().validation : std::vector<ValidationPoint>{};
+        // The curve of the rung above, read by train_rung only (before rungs grows).
+        const std::span<const ValidationPoint> above =
+            role == RungRole::smaller ? std::span<const ValidationPoint>(sized.rungs.back().validation)
+                                      : std::span<const ValidationPoint>();
         Trained trained =
             train_rung(run, mesh, c, desc, finer ? *finer : occ, rays, budget, role, above, out);
         if (!trained.finer_grid.empty()) {
@@ -426,10 +420,11 @@ Sized size_to_target(const Run& run, const scene::Mesh& mesh, Candidate& c, cons
         if (!p.sizing.explore_smaller) break;
         // Up: a rung that ended near the target, trained to its end (not given up), and
         // never after a smaller rung (going down means the rung above met it).
-        const Option* trained_option = fp16_option(sized, first);
+        // The rung's fp16 option, its training's own export, is its first (rung_encodings).
+        const Option& trained_option = sized.options[first];
         if (!met && role != RungRole::smaller && desc.log2_table_size < largest && t.abandoned.empty() &&
-            trained_option && near_target(trained_option->decided.pooled, aim, p.sizing)) {
-            out.reasons.push_back(climb_reason(*trained_option, aim));
+            near_target(trained_option.decided.pooled, aim, p.sizing)) {
+            out.reasons.push_back(climb_reason(trained_option, aim));
             ++desc.log2_table_size;
             budget = p.train.steps;
             role = RungRole::larger;
