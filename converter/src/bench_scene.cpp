@@ -126,7 +126,8 @@ json bench_memory(const SceneBenchOptions& opt, std::string& error) {
             error = o.name + ": " + error;
             return {};
         }
-        // What the renderer holds on this CPU (the arithmetic opened with), and at most.
+        // What the renderer holds on this CPU (the arithmetic opened with), and with the fp32
+        // network, the same on every CPU and the least (what conversion counts).
         lsnif_info here{}, fp32{};
         lsnif_get_info(o.model, &here);
         const lsnif_arithmetic chosen = lsnif_get_arithmetic(o.model);

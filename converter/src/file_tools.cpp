@@ -91,7 +91,8 @@ json info_json(const lsnif_model* model, const lsnif_info& info) {
 }
 
 // What a renderer holds with this asset open: on this CPU, in the arithmetic lsnif_open
-// chose, and at most on any CPU (the fp32 network); beside the file. Leaves `model` in fp32.
+// chose, and with the fp32 network, which every CPU runs and which holds the least (the figure
+// conversion's rules count); beside the file. Leaves `model` in fp32.
 json memory_json(lsnif_model* model, const lsnif_info& opened) {
     const lsnif_arithmetic chosen = lsnif_get_arithmetic(model);
     lsnif_info fp32{};
@@ -374,9 +375,9 @@ std::string inspect_text(const json& r) {
     if (r.contains("memory")) {
         const json& m = r["memory"];
         o << "  memory: " << fmt_bytes(m["resident_bytes"]) << " held once open ("
-          << m["arithmetic"].get<std::string>() << " network on this CPU; at most "
-          << fmt_bytes(m["resident_bytes_fp32"]) << " on any CPU), " << fmt_bytes(m["file_bytes"])
-          << " in the file\n";
+          << m["arithmetic"].get<std::string>() << " network on this CPU; "
+          << fmt_bytes(m["resident_bytes_fp32"]) << " with the fp32 network, on any CPU), "
+          << fmt_bytes(m["file_bytes"]) << " in the file\n";
     }
     if (r.contains("metadata"))
         o << "  metadata: " << r["metadata"].dump(2) << "\n";

@@ -18,7 +18,7 @@ constexpr std::size_t kChunk = 256;  // rays per forward pass, as the reader's i
 
 // ORs into `active` (per hidden layer, per neuron) which neurons are positive after the
 // ReLU for the rays [begin, end) that reach the network: the reader's walk and encoding,
-// then the hidden layers in fp32 (format::dense_layer, as mlp_forward's fp32 path).
+// then the hidden layers in fp32 (format::hidden_layer_fp32, as mlp_forward's fp32 path).
 void mark_active(const format::Runtime& rt, std::span<const samples::Sample> rays, std::size_t begin,
                  std::size_t end, std::vector<std::vector<std::uint8_t>>& active) {
     const format::Geometry& geo = rt.geo;
@@ -40,11 +40,10 @@ void mark_active(const format::Runtime& rt, std::span<const samples::Sample> ray
     std::vector<float> layer[2];
     const float* src = input.data();
     std::size_t lda = geo.input_width;
-    for (std::size_t k = 0; k + 1 < net.wt.size(); ++k) {
+    for (std::size_t k = 0; k + 1 < net.layer_count(); ++k) {
         std::vector<float>& dst = layer[k % 2];
         dst.resize(m * net.out_padded[k]);
-        format::dense_layer(src, m, net.in[k], lda, net.wt[k].data(), net.bias[k].data(), net.out_padded[k],
-                            true, dst.data());
+        format::hidden_layer_fp32(net, k, src, m, lda, dst.data());
         for (std::size_t r = 0; r < m; ++r)
             for (std::size_t j = 0; j < net.out[k]; ++j)
                 if (dst[r * net.out_padded[k] + j] > 0.0f) active[k][j] = 1;
@@ -78,7 +77,7 @@ std::vector<std::vector<std::uint8_t>> active_neurons(const format::ModelData& m
                                                       std::span<const samples::Sample> rays,
                                                       std::uint32_t threads) {
     const format::Runtime rt = format::make_runtime(model, format::MlpArithmetic::fp32);
-    const std::size_t hidden = rt.net.wt.empty() ? 0 : rt.net.wt.size() - 1;
+    const std::size_t hidden = rt.net.layer_count() ? rt.net.layer_count() - 1 : 0;
     const std::uint32_t T = base::resolve_threads(threads);
     // One tally per share, ORed at the end: the same result whichever share ran which chunk.
     std::vector<std::vector<std::vector<std::uint8_t>>> shares(T);

@@ -43,14 +43,41 @@ lsnif_status guarded(lsnif_error* err, F&& f) {
 }
 
 // Every byte the handle holds: the handle itself and each array it owns, at its allocated
-// size (tests/format/test_resident.cpp counts the allocations).
+// size (tests/format/test_resident.cpp counts the allocations), with the file-layout arrays
+// lsnif_get_array has built so far.
 std::uint64_t resident_bytes(const lsnif_model& model) {
     using lsnif::format::detail::heap_bytes;
     const auto& m = model.data;
-    return sizeof(lsnif_model) + heap_bytes(m.desc.level_resolution) + heap_bytes(m.desc.hidden_width) +
-           heap_bytes(m.metadata_json) + heap_bytes(m.occupancy) + heap_bytes(m.grid) +
-           heap_bytes(m.grid_u8) + heap_bytes(m.grid_affine) + heap_bytes(m.weights) + heap_bytes(m.biases) +
-           model.runtime.heap_bytes();
+    std::uint64_t n =
+        sizeof(lsnif_model) + heap_bytes(m.desc.level_resolution) + heap_bytes(m.desc.hidden_width) +
+        heap_bytes(m.metadata_json) + heap_bytes(m.occupancy) + heap_bytes(m.grid) + heap_bytes(m.grid_u8) +
+        heap_bytes(m.grid_affine) + heap_bytes(m.weights) + heap_bytes(m.biases) + model.runtime.heap_bytes();
+    const FileLayoutArrays& f = model.file_arrays;
+    if (f.occupancy_ready.load(std::memory_order_acquire)) n += heap_bytes(f.occupancy);
+    if (f.network_ready.load(std::memory_order_acquire)) n += heap_bytes(f.weights) + heap_bytes(f.biases);
+    return n;
+}
+
+const std::vector<std::uint8_t>& file_occupancy(const lsnif_model& model) {
+    FileLayoutArrays& f = model.file_arrays;
+    std::call_once(f.occupancy_once, [&] {
+        f.occupancy = model.runtime.occupancy.voxel_bits();
+        f.occupancy_ready.store(true, std::memory_order_release);
+    });
+    return f.occupancy;
+}
+
+const FileLayoutArrays& file_network(const lsnif_model& model) {
+    FileLayoutArrays& f = model.file_arrays;
+    std::call_once(f.network_once, [&] {
+        const auto& net = model.runtime.net;
+        for (std::size_t k = 0; k < net.layer_count(); ++k) {
+            f.weights.push_back(lsnif::format::model_layer_weights(net, k));
+            f.biases.push_back(lsnif::format::model_layer_bias(net, k));
+        }
+        f.network_ready.store(true, std::memory_order_release);
+    });
+    return f;
 }
 
 lsnif_status open_bytes(std::span<const std::uint8_t> bytes, lsnif_model** out, lsnif_error* error) {
@@ -62,8 +89,7 @@ lsnif_status open_bytes(std::span<const std::uint8_t> bytes, lsnif_model** out, 
     auto* model = new (std::nothrow) lsnif_model{};
     if (!model) return fail(error, LSNIF_ERR_OUT_OF_MEMORY, "out of memory");
     model->file_size = bytes.size();
-    // The runtime takes the occupancy and the feature tables; the handle keeps the rest of
-    // the model (descriptor, metadata, fp16 weights for lsnif_get_array).
+    // The runtime takes the arrays; the handle keeps the descriptor and the metadata.
     model->runtime = lsnif::format::make_runtime(std::move(m.value()), lsnif::format::best_mlp_arithmetic());
     model->data = std::move(m.value());
     *out = model;
@@ -196,10 +222,7 @@ lsnif_status lsnif_get_info(const lsnif_model* model, lsnif_info* out) {
     std::copy(d.box_max.begin(), d.box_max.end(), info.box_max);
     info.grid_encoding = std::uint32_t(d.grid_encoding);
     info.parameter_count = d.parameter_count();
-    std::uint64_t occupied = 0;
-    for (std::uint8_t byte : model->runtime.occupancy.bits)
-        occupied += std::uint64_t(__builtin_popcount(byte));
-    info.occupied_voxels = occupied;
+    info.occupied_voxels = model->runtime.occupancy.occupied_voxels();
     info.file_size = model->file_size;
     info.decoded_bytes = resident_bytes(*model);
     *out = info;
@@ -222,15 +245,12 @@ uint32_t lsnif_layer_count(const lsnif_model* model) {
 lsnif_status lsnif_get_array(const lsnif_model* model, lsnif_array_kind kind, uint32_t index,
                              lsnif_array* out) {
     if (!model || !out) return LSNIF_ERR_INVALID_ARGUMENT;
-    const auto& m = model->data;
     const auto& rt = model->runtime;
-    const auto& d = m.desc;
+    const auto& d = model->data.desc;
     lsnif_array a{};
     switch (kind) {
         case LSNIF_ARRAY_OCCUPANCY:
             if (index != 0) return LSNIF_ERR_INVALID_ARGUMENT;
-            a.data = rt.occupancy.bits.data();
-            a.bytes = rt.occupancy.bits.size();
             a.dtype = LSNIF_DTYPE_BITS;
             a.rank = 3;
             a.dims[0] = a.dims[1] = a.dims[2] = d.grid_resolution;
@@ -265,9 +285,6 @@ lsnif_status lsnif_get_array(const lsnif_model* model, lsnif_array_kind kind, ui
         case LSNIF_ARRAY_LAYER_BIAS: {
             if (index >= d.layer_count()) return LSNIF_ERR_INVALID_ARGUMENT;
             const auto [o, i] = d.layer_shape(index);
-            const auto& v = kind == LSNIF_ARRAY_LAYER_WEIGHTS ? m.weights[index] : m.biases[index];
-            a.data = v.data();
-            a.bytes = v.size() * 2;
             a.dtype = LSNIF_DTYPE_FLOAT16;
             a.rank = kind == LSNIF_ARRAY_LAYER_WEIGHTS ? 2 : 1;
             a.dims[0] = o;
@@ -276,8 +293,21 @@ lsnif_status lsnif_get_array(const lsnif_model* model, lsnif_array_kind kind, ui
         }
         default: return LSNIF_ERR_INVALID_ARGUMENT;
     }
-    *out = a;
-    return LSNIF_OK;
+    // The occupancy and the network exist in the file's layouts only once asked for.
+    return guarded(nullptr, [&] {
+        if (kind == LSNIF_ARRAY_OCCUPANCY) {
+            const auto& bits = file_occupancy(*model);
+            a.data = bits.data();
+            a.bytes = bits.size();
+        } else if (kind == LSNIF_ARRAY_LAYER_WEIGHTS || kind == LSNIF_ARRAY_LAYER_BIAS) {
+            const FileLayoutArrays& f = file_network(*model);
+            const auto& v = kind == LSNIF_ARRAY_LAYER_WEIGHTS ? f.weights[index] : f.biases[index];
+            a.data = v.data();
+            a.bytes = v.size() * 2;
+        }
+        *out = a;
+        return LSNIF_OK;
+    });
 }
 
 lsnif_status lsnif_intersect(const lsnif_model* model, const lsnif_ray* rays, size_t count, lsnif_hit* hits) {
@@ -383,8 +413,6 @@ lsnif_status lsnif_set_arithmetic(lsnif_model* model, lsnif_arithmetic requested
         default: return LSNIF_ERR_INVALID_ARGUMENT;
     }
     return guarded(nullptr, [&] {
-        // A reduced network no longer holds the fp32 weights to repack: start from the model's.
-        model->runtime.net = lsnif::format::make_network(model->data);
         lsnif::format::set_mlp_arithmetic(model->runtime.net, want);
         if (in_use) *in_use = lsnif_get_arithmetic(model);
         return LSNIF_OK;

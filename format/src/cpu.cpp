@@ -37,8 +37,8 @@ CpuFeatures detect() {
     constexpr std::uint64_t kTile = std::uint64_t(bit(17) | bit(18));  // XTILECFG, XTILEDATA
     if (!__get_cpuid_count(7, 0, &a, &b, &c, &d)) return f;
     const unsigned max_subleaf = a, leaf7_ebx = b, leaf7_ecx = c, leaf7_edx = d;
-    const bool fma = leaf1_ecx & bit(12), avx2 = leaf7_ebx & bit(5);
-    f.avx2_fma = fma && avx2 && (xcr0 & kYmm) == kYmm;
+    const bool fma = leaf1_ecx & bit(12), f16c = leaf1_ecx & bit(29), avx2 = leaf7_ebx & bit(5);
+    f.avx2_fma = fma && f16c && avx2 && (xcr0 & kYmm) == kYmm;
     const bool avx512 = (leaf7_ebx & bit(16)) && (leaf7_ebx & bit(17)) && (leaf7_ebx & bit(30)) &&
                         (leaf7_ebx & bit(31));  // F, DQ, BW, VL
     f.avx512 = f.avx2_fma && avx512 && (xcr0 & kZmm) == kZmm;

@@ -624,68 +624,69 @@ void add_layer(Network& net, std::uint32_t in, std::uint32_t out, const float* w
 // variant: the same bits on every ISA. Inputs that `zeros` names as zero in a whole block of
 // rows are skipped (live_groups, one column per group): exact under ReLU, which the caller
 // guarantees (dense_layer_strided). Weights have row stride ldw, C row stride ldc.
-#define LSNIF_DENSE_KERNEL(NAME, TARGET, W)                                                           \
-    TARGET void NAME(const float* A, std::size_t n, std::size_t in, std::size_t lda, const float* wt, \
-                     std::size_t ldw, const float* bias, std::size_t outp, bool relu, float* C,       \
-                     std::size_t ldc, const ZeroColumns* zeros) {                                     \
-        using vec = simd::Vec<W>;                                                                     \
-        constexpr std::size_t MB = 6;                                                                 \
-        constexpr std::size_t NV = 4;                                                                 \
-        std::size_t o = 0;                                                                            \
-        for (; o < outp; o += NV * W) {                                                               \
-            const std::size_t nv = std::min<std::size_t>(NV, (outp - o) / W);                         \
-            std::size_t r = 0;                                                                        \
-            for (; r < n; r += MB) {                                                                  \
-                const std::size_t mb = std::min(MB, n - r);                                           \
-                const LiveGroups live = live_groups(zeros, r, mb, in, 1);                             \
-                vec acc[MB][NV];                                                                      \
-                for (std::size_t v = 0; v < nv; ++v) {                                                \
-                    vec b0 = *reinterpret_cast<const vec*>(bias + o + v * W);                         \
-                    for (std::size_t m = 0; m < MB; ++m) acc[m][v] = b0;                              \
-                }                                                                                     \
-                if (mb == MB && nv == NV) {                                                           \
-                    const auto input = [&](std::size_t i) TARGET {                                    \
-                        const float* wrow = wt + i * ldw + o;                                         \
-                        const vec w0 = *reinterpret_cast<const vec*>(wrow);                           \
-                        const vec w1 = *reinterpret_cast<const vec*>(wrow + W);                       \
-                        const vec w2 = *reinterpret_cast<const vec*>(wrow + 2 * W);                   \
-                        const vec w3 = *reinterpret_cast<const vec*>(wrow + 3 * W);                   \
-                        for (std::size_t m = 0; m < MB; ++m) {                                        \
-                            const float a = A[(r + m) * lda + i];                                     \
-                            acc[m][0] = simd::fma(a, w0, acc[m][0]);                                  \
-                            acc[m][1] = simd::fma(a, w1, acc[m][1]);                                  \
-                            acc[m][2] = simd::fma(a, w2, acc[m][2]);                                  \
-                            acc[m][3] = simd::fma(a, w3, acc[m][3]);                                  \
-                        }                                                                             \
-                    };                                                                                \
-                    for (std::size_t i = 0; i < live.head; ++i) input(i);                             \
-                    for (std::size_t i = live.tail; i < live.end; ++i) input(i);                      \
-                } else {                                                                              \
-                    const auto input = [&](std::size_t i) TARGET {                                    \
-                        const float* wrow = wt + i * ldw + o;                                         \
-                        for (std::size_t v = 0; v < nv; ++v) {                                        \
-                            const vec w = *reinterpret_cast<const vec*>(wrow + v * W);                \
-                            for (std::size_t m = 0; m < mb; ++m)                                      \
-                                acc[m][v] = simd::fma(A[(r + m) * lda + i], w, acc[m][v]);            \
-                        }                                                                             \
-                    };                                                                                \
-                    for (std::size_t i = 0; i < live.head; ++i) input(i);                             \
-                    for (std::size_t i = live.tail; i < live.end; ++i) input(i);                      \
-                }                                                                                     \
-                for (std::size_t m = 0; m < mb; ++m)                                                  \
-                    for (std::size_t v = 0; v < nv; ++v) {                                            \
-                        vec x = acc[m][v];                                                            \
-                        if (relu) x = x > 0.0f ? x : 0.0f;                                            \
-                        *reinterpret_cast<vec*>(C + (r + m) * ldc + o + v * W) = x;                   \
-                    }                                                                                 \
-            }                                                                                         \
-        }                                                                                             \
+#define LSNIF_DENSE_KERNEL(NAME, TARGET, W)                                                        \
+    template <class WT>                                                                            \
+    TARGET void NAME(const float* A, std::size_t n, std::size_t in, std::size_t lda, const WT* wt, \
+                     std::size_t ldw, const float* bias, std::size_t outp, bool relu, float* C,    \
+                     std::size_t ldc, const ZeroColumns* zeros) {                                  \
+        using vec = simd::Vec<W>;                                                                  \
+        constexpr std::size_t MB = 6;                                                              \
+        constexpr std::size_t NV = 4;                                                              \
+        std::size_t o = 0;                                                                         \
+        for (; o < outp; o += NV * W) {                                                            \
+            const std::size_t nv = std::min<std::size_t>(NV, (outp - o) / W);                      \
+            std::size_t r = 0;                                                                     \
+            for (; r < n; r += MB) {                                                               \
+                const std::size_t mb = std::min(MB, n - r);                                        \
+                const LiveGroups live = live_groups(zeros, r, mb, in, 1);                          \
+                vec acc[MB][NV];                                                                   \
+                for (std::size_t v = 0; v < nv; ++v) {                                             \
+                    vec b0 = *reinterpret_cast<const vec*>(bias + o + v * W);                      \
+                    for (std::size_t m = 0; m < MB; ++m) acc[m][v] = b0;                           \
+                }                                                                                  \
+                if (mb == MB && nv == NV) {                                                        \
+                    const auto input = [&](std::size_t i) TARGET {                                 \
+                        const WT* wrow = wt + i * ldw + o;                                         \
+                        const vec w0 = simd::load(wrow, vec{});                                    \
+                        const vec w1 = simd::load(wrow + W, vec{});                                \
+                        const vec w2 = simd::load(wrow + 2 * W, vec{});                            \
+                        const vec w3 = simd::load(wrow + 3 * W, vec{});                            \
+                        for (std::size_t m = 0; m < MB; ++m) {                                     \
+                            const float a = A[(r + m) * lda + i];                                  \
+                            acc[m][0] = simd::fma(a, w0, acc[m][0]);                               \
+                            acc[m][1] = simd::fma(a, w1, acc[m][1]);                               \
+                            acc[m][2] = simd::fma(a, w2, acc[m][2]);                               \
+                            acc[m][3] = simd::fma(a, w3, acc[m][3]);                               \
+                        }                                                                          \
+                    };                                                                             \
+                    for (std::size_t i = 0; i < live.head; ++i) input(i);                          \
+                    for (std::size_t i = live.tail; i < live.end; ++i) input(i);                   \
+                } else {                                                                           \
+                    const auto input = [&](std::size_t i) TARGET {                                 \
+                        const WT* wrow = wt + i * ldw + o;                                         \
+                        for (std::size_t v = 0; v < nv; ++v) {                                     \
+                            const vec w = simd::load(wrow + v * W, vec{});                         \
+                            for (std::size_t m = 0; m < mb; ++m)                                   \
+                                acc[m][v] = simd::fma(A[(r + m) * lda + i], w, acc[m][v]);         \
+                        }                                                                          \
+                    };                                                                             \
+                    for (std::size_t i = 0; i < live.head; ++i) input(i);                          \
+                    for (std::size_t i = live.tail; i < live.end; ++i) input(i);                   \
+                }                                                                                  \
+                for (std::size_t m = 0; m < mb; ++m)                                               \
+                    for (std::size_t v = 0; v < nv; ++v) {                                         \
+                        vec x = acc[m][v];                                                         \
+                        if (relu) x = x > 0.0f ? x : 0.0f;                                         \
+                        *reinterpret_cast<vec*>(C + (r + m) * ldc + o + v * W) = x;                \
+                    }                                                                              \
+            }                                                                                      \
+        }                                                                                          \
     }
 
 LSNIF_DENSE_KERNEL(dense_generic, , 4)
 #if LSNIF_HAVE_X86
 LSNIF_DENSE_KERNEL(dense_avx512, __attribute__((target("avx512f,avx512vl,avx2,fma"))), 16)
-LSNIF_DENSE_KERNEL(dense_avx2, __attribute__((target("avx2,fma"))), 8)
+LSNIF_DENSE_KERNEL(dense_avx2, __attribute__((target("avx2,fma,f16c"))), 8)
 #endif
 #undef LSNIF_DENSE_KERNEL
 
@@ -695,8 +696,9 @@ LSNIF_DENSE_KERNEL(dense_avx2, __attribute__((target("avx2,fma"))), 8)
 // above would fall back to its generic loop: one weight vector per input feeds 8 rows, the
 // 8 independent FMA chains that cover the FMA latency. Same operations per output in the
 // same order (bias, then input 0, 1, ...), so the same results bit for bit.
+template <class WT>
 __attribute__((target("avx512f,avx512vl,avx2,fma"))) void dense_narrow_avx512(
-    const float* A, std::size_t n, std::size_t in, std::size_t lda, const float* wt, std::size_t ldw,
+    const float* A, std::size_t n, std::size_t in, std::size_t lda, const WT* wt, std::size_t ldw,
     const float* bias, std::size_t outp, bool relu, float* C, std::size_t ldc, const ZeroColumns* zeros) {
     using vec = simd::F16;
     constexpr std::size_t MB = 8;
@@ -709,14 +711,14 @@ __attribute__((target("avx512f,avx512vl,avx2,fma"))) void dense_narrow_avx512(
             for (std::size_t m = 0; m < MB; ++m) acc[m] = b;
             if (mb == MB) {
                 const auto input = [&](std::size_t i) __attribute__((target("avx512f,avx512vl,avx2,fma"))) {
-                    const vec w = *reinterpret_cast<const vec*>(wt + i * ldw + o);
+                    const vec w = simd::load(wt + i * ldw + o, vec{});
                     for (std::size_t m = 0; m < MB; ++m) acc[m] = simd::fma(A[(r + m) * lda + i], w, acc[m]);
                 };
                 for (std::size_t i = 0; i < live.head; ++i) input(i);
                 for (std::size_t i = live.tail; i < live.end; ++i) input(i);
             } else {
                 const auto input = [&](std::size_t i) __attribute__((target("avx512f,avx512vl,avx2,fma"))) {
-                    const vec w = *reinterpret_cast<const vec*>(wt + i * ldw + o);
+                    const vec w = simd::load(wt + i * ldw + o, vec{});
                     for (std::size_t m = 0; m < mb; ++m) acc[m] = simd::fma(A[(r + m) * lda + i], w, acc[m]);
                 };
                 for (std::size_t i = 0; i < live.head; ++i) input(i);
@@ -778,15 +780,30 @@ __attribute__((target("avx512f,avx512vl,avx2,fma"))) void dense_output_avx512(co
 
 #endif  // LSNIF_HAVE_X86
 
-using DenseFn = void (*)(const float*, std::size_t, std::size_t, std::size_t, const float*, std::size_t,
+template <class WT>
+using DenseFn = void (*)(const float*, std::size_t, std::size_t, std::size_t, const WT*, std::size_t,
                          const float*, std::size_t, bool, float*, std::size_t, const ZeroColumns*);
 
-DenseFn pick_dense() {
+template <class WT>
+DenseFn<WT> pick_dense() {
 #if LSNIF_HAVE_X86
-    if (cpu_features().avx512) return dense_avx512;
-    if (cpu_features().avx2_fma) return dense_avx2;
+    if (cpu_features().avx512) return dense_avx512<WT>;
+    if (cpu_features().avx2_fma) return dense_avx2<WT>;
 #endif
-    return dense_generic;
+    return dense_generic<WT>;
+}
+
+template <class WT>
+void dense_strided(const float* A, std::size_t n, std::size_t in, std::size_t lda, const WT* wt,
+                   std::size_t ldw, const float* bias, std::size_t out, bool relu, float* C, std::size_t ldc,
+                   const ZeroColumns* zeros) {
+    static const DenseFn<WT> fn = pick_dense<WT>();
+    if (!relu) zeros = nullptr;  // skipping is exact only where ReLU makes a zero sum's sign moot
+#if LSNIF_HAVE_X86
+    if (out < 64 && fn == dense_avx512<WT>)
+        return dense_narrow_avx512(A, n, in, lda, wt, ldw, bias, out, relu, C, ldc, zeros);
+#endif
+    fn(A, n, in, lda, wt, ldw, bias, out, relu, C, ldc, zeros);
 }
 
 }  // namespace
@@ -794,13 +811,13 @@ DenseFn pick_dense() {
 void dense_layer_strided(const float* A, std::size_t n, std::size_t in, std::size_t lda, const float* wt,
                          std::size_t ldw, const float* bias, std::size_t out, bool relu, float* C,
                          std::size_t ldc, const ZeroColumns* zeros) {
-    static const DenseFn fn = pick_dense();
-    if (!relu) zeros = nullptr;  // skipping is exact only where ReLU makes a zero sum's sign moot
-#if LSNIF_HAVE_X86
-    if (out < 64 && fn == dense_avx512)
-        return dense_narrow_avx512(A, n, in, lda, wt, ldw, bias, out, relu, C, ldc, zeros);
-#endif
-    fn(A, n, in, lda, wt, ldw, bias, out, relu, C, ldc, zeros);
+    dense_strided(A, n, in, lda, wt, ldw, bias, out, relu, C, ldc, zeros);
+}
+
+void dense_layer_strided(const float* A, std::size_t n, std::size_t in, std::size_t lda,
+                         const std::uint16_t* wt, std::size_t ldw, const float* bias, std::size_t out,
+                         bool relu, float* C, std::size_t ldc, const ZeroColumns* zeros) {
+    dense_strided(A, n, in, lda, wt, ldw, bias, out, relu, C, ldc, zeros);
 }
 
 void dense_layer(const float* A, std::size_t n, std::size_t in, std::size_t lda, const float* wt,
@@ -824,14 +841,32 @@ void dense_output_layer(const float* A, std::size_t n, std::size_t in, std::size
 }
 
 Network make_network(const ModelData& m) {
-    std::vector<std::vector<float>> w, b;
+    Network net;
     for (std::uint32_t k = 0; k < m.desc.layer_count(); ++k) {
-        w.emplace_back(m.weights[k].size());
-        for (std::size_t i = 0; i < w.back().size(); ++i) w.back()[i] = half_to_float(m.weights[k][i]);
-        b.emplace_back(m.biases[k].size());
-        for (std::size_t i = 0; i < b.back().size(); ++i) b.back()[i] = half_to_float(m.biases[k][i]);
+        const auto [out, in] = m.desc.layer_shape(k);
+        const std::uint32_t op = pad16(out);
+        std::vector<std::uint16_t> wt(std::size_t(in) * op, 0);
+        std::vector<float> bias(op, 0.0f);
+        for (std::uint32_t o = 0; o < out; ++o) {
+            for (std::uint32_t i = 0; i < in; ++i)
+                wt[std::size_t(i) * op + o] = m.weights[k][std::size_t(o) * in + i];
+            bias[o] = half_to_float(m.biases[k][o]);
+        }
+        const bool output = k + 1 == m.desc.layer_count();
+        std::vector<float> wt32;
+        if (output) {
+            wt32.resize(wt.size());
+            for (std::size_t j = 0; j < wt.size(); ++j) wt32[j] = half_to_float(wt[j]);
+        }
+        net.in.push_back(in);
+        net.out.push_back(out);
+        net.out_padded.push_back(op);
+        net.wt.push_back(std::move(wt32));
+        net.wt_f16.push_back(std::move(wt));
+        net.bias.push_back(std::move(bias));
+        net.max_width_padded = std::max<std::size_t>(net.max_width_padded, op);
     }
-    return make_network(m.desc, w, b);
+    return net;
 }
 
 Network make_network(const ModelDesc& desc, const std::vector<std::vector<float>>& weights,
@@ -842,6 +877,32 @@ Network make_network(const ModelDesc& desc, const std::vector<std::vector<float>
         add_layer(net, i, o, weights[k].data(), biases[k].data());
     }
     return net;
+}
+
+std::vector<std::uint16_t> model_layer_weights(const Network& net, std::size_t k) {
+    const std::size_t in = net.in[k], out = net.out[k], op = net.out_padded[k];
+    std::vector<std::uint16_t> w(out * in);
+    for (std::size_t o = 0; o < out; ++o)
+        for (std::size_t i = 0; i < in; ++i) w[o * in + i] = net.wt_f16[k][i * op + o];
+    return w;
+}
+
+std::vector<std::uint16_t> model_layer_bias(const Network& net, std::size_t k) {
+    std::vector<std::uint16_t> b(net.out[k]);
+    // Exact: each bias is a binary16 value widened by make_network.
+    for (std::size_t o = 0; o < b.size(); ++o) b[o] = float_to_half(net.bias[k][o]);
+    return b;
+}
+
+void hidden_layer_fp32(const Network& net, std::size_t k, const float* A, std::size_t n, std::size_t lda,
+                       float* C, const ZeroColumns* zeros) {
+    const std::size_t op = net.out_padded[k];
+    if (!net.wt[k].empty())
+        dense_layer_strided(A, n, net.in[k], lda, net.wt[k].data(), op, net.bias[k].data(), op, true, C, op,
+                            zeros);
+    else
+        dense_layer_strided(A, n, net.in[k], lda, net.wt_f16[k].data(), op, net.bias[k].data(), op, true, C,
+                            op, zeros);
 }
 
 MlpArithmetic best_mlp_arithmetic() {
@@ -869,13 +930,31 @@ void release_hidden_fp32(Network& net) {
 
 }  // namespace
 
+namespace {
+
+// Hidden layer k's W^T in fp32, from whichever storage the network has.
+std::vector<float> hidden_wt_fp32(const Network& net, std::size_t k) {
+    if (!net.wt[k].empty()) return net.wt[k];
+    std::vector<float> w(net.wt_f16[k].size());
+    for (std::size_t j = 0; j < w.size(); ++j) w[j] = half_to_float(net.wt_f16[k][j]);
+    return w;
+}
+
+}  // namespace
+
 MlpArithmetic set_mlp_arithmetic(Network& net, MlpArithmetic a) {
     if (net.wt.empty()) return MlpArithmetic::fp32;
-    if (mlp_arithmetic(net) != MlpArithmetic::fp32) return mlp_arithmetic(net);
+    if (mlp_arithmetic(net) != MlpArithmetic::fp32) {
+        if (net.wt_f16.empty()) return mlp_arithmetic(net);
+        // A model network repacks from its fp16 weights of record.
+        decltype(net.wt_vnni)().swap(net.wt_vnni);
+        decltype(net.wt_int8)().swap(net.wt_int8);
+    }
     if (a == MlpArithmetic::int8 && cpu_features().avx512_vnni && int8_fits(net)) {
         // The first layer's inputs (encoded features) may be negative; later ones are ReLU outputs.
         for (std::size_t k = 0; k + 1 < net.wt.size(); ++k)
-            net.wt_int8.push_back(make_int8_layer(net.wt[k].data(), net.in[k], net.out_padded[k], k == 0));
+            net.wt_int8.push_back(
+                make_int8_layer(hidden_wt_fp32(net, k).data(), net.in[k], net.out_padded[k], k == 0));
         release_hidden_fp32(net);
         return MlpArithmetic::int8;
     }
@@ -883,7 +962,8 @@ MlpArithmetic set_mlp_arithmetic(Network& net, MlpArithmetic a) {
     for (std::size_t k = 0; k + 1 < net.wt.size(); ++k) {
         const std::size_t in = net.in[k], op = net.out_padded[k];
         net.wt_vnni.emplace_back(round_up(in, 32) * op);
-        pack_vnni(net.wt[k].data(), in, op, op, net.wt_vnni.back().data(), 2 * op, round_up(in, 32));
+        pack_vnni(hidden_wt_fp32(net, k).data(), in, op, op, net.wt_vnni.back().data(), 2 * op,
+                  round_up(in, 32));
     }
     release_hidden_fp32(net);
     return MlpArithmetic::bf16;
@@ -951,8 +1031,7 @@ const float* mlp_forward(const Network& net, const float* input, std::size_t n, 
                          2 * net.out_padded[k], dst, net.out_padded[k], {net.bias[k].data(), true, false},
                          zeros);
         } else if (hidden) {
-            dense_layer_strided(src, n, net.in[k], lda, net.wt[k].data(), net.out_padded[k],
-                                net.bias[k].data(), net.out_padded[k], true, dst, net.out_padded[k], zeros);
+            hidden_layer_fp32(net, k, src, n, lda, dst, zeros);
         } else {
             dense_output_layer(src, n, net.in[k], lda, net.wt[k].data(), net.bias[k].data(),
                                net.out_padded[k],
@@ -1014,7 +1093,8 @@ std::vector<T> padded_table(std::vector<T>&& stored, std::uint32_t F) {
 Runtime make_runtime(ModelData&& m, MlpArithmetic arithmetic) {
     Runtime rt;
     rt.geo = make_geometry(m.desc);
-    rt.occupancy = OccupancyGrid(m.desc.grid_resolution, std::move(m.occupancy));
+    rt.occupancy = OccupancyGrid(m.desc.grid_resolution, m.occupancy);
+    decltype(m.occupancy)().swap(m.occupancy);
     const std::uint32_t F = m.desc.features_per_level;
     for (auto& level : m.grid) rt.grid.push_back(padded_table(std::move(level), F));
     for (auto& level : m.grid_u8) rt.grid_u8.push_back(padded_table(std::move(level), F));
@@ -1022,6 +1102,8 @@ Runtime make_runtime(ModelData&& m, MlpArithmetic arithmetic) {
     decltype(m.grid_u8)().swap(m.grid_u8);
     rt.grid_affine.swap(m.grid_affine);
     rt.net = make_network(m);
+    decltype(m.weights)().swap(m.weights);
+    decltype(m.biases)().swap(m.biases);
     set_mlp_arithmetic(rt.net, arithmetic);
     return rt;
 }
@@ -1036,10 +1118,10 @@ std::vector<GridView> Runtime::grid_views() const {
 
 std::uint64_t Runtime::heap_bytes() const {
     using detail::heap_bytes;
-    std::uint64_t n = heap_bytes(geo.levels) + heap_bytes(occupancy.bits) + heap_bytes(occupancy.blocks) +
-                      heap_bytes(grid) + heap_bytes(grid_u8) + heap_bytes(grid_affine);
+    std::uint64_t n = heap_bytes(geo.levels) + heap_bytes(occupancy.blocks) + heap_bytes(grid) +
+                      heap_bytes(grid_u8) + heap_bytes(grid_affine);
     n += heap_bytes(net.in) + heap_bytes(net.out) + heap_bytes(net.out_padded) + heap_bytes(net.wt) +
-         heap_bytes(net.bias) + heap_bytes(net.wt_vnni) + heap_bytes(net.wt_int8);
+         heap_bytes(net.wt_f16) + heap_bytes(net.bias) + heap_bytes(net.wt_vnni) + heap_bytes(net.wt_int8);
     for (const Int8Layer& l : net.wt_int8)
         n += heap_bytes(l.b) + heap_bytes(l.scale) + heap_bytes(l.w_signed) + heap_bytes(l.quad_prefix);
     return n;

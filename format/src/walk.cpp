@@ -115,7 +115,8 @@ inline float entry_coordinate(const WalkState& w, int a, float lo) {
 }
 
 // Walks the crossed voxels in order, calling visit(voxel_index, entry_t, g_entry) for
-// each voxel that `want(voxel_index)` accepts; visit returns false to stop early.
+// each voxel that `want(voxel_index, cell)` accepts (cell: its x, y, z); visit returns
+// false to stop early.
 // Implements exactly the definition in forward.hpp. With `blocks` (OccupancyGrid), whole
 // empty blocks are skipped: the walk jumps to the block's exit parameter and resumes in
 // the cell the plain walk would be in at that parameter, so every accepted (occupied)
@@ -159,7 +160,7 @@ void walk(const Geometry& geo, WalkState& w, const OccupancyGrid* blocks, Want&&
         const float enter = std::max(enter_a[0], std::max(enter_a[1], enter_a[2]));
         const float exit = std::min(exit_a[0], std::min(exit_a[1], exit_a[2]));
         const float lo = std::max(w.t_near, enter);
-        if (lo <= w.t_far && lo < exit && want(idx)) {
+        if (lo <= w.t_far && lo < exit && want(idx, cell)) {
             const float g[3] = {entry_coordinate(w, 0, lo), entry_coordinate(w, 1, lo),
                                 entry_coordinate(w, 2, lo)};
             if (!visit(idx, lo, g)) return;
@@ -176,8 +177,9 @@ void walk(const Geometry& geo, WalkState& w, const OccupancyGrid* blocks, Want&&
     }
 }
 
-TraceStatus trace_points_impl(const Geometry& geo, const std::uint8_t* occupancy, const OccupancyGrid* blocks,
-                              const Ray& ray, RayPoints& out) {
+template <class Want>
+TraceStatus trace_points_impl(const Geometry& geo, const OccupancyGrid* blocks, const Ray& ray,
+                              RayPoints& out, Want&& want) {
     out.count = 0;
     WalkState w;
     const TraceStatus st = start_walk(geo, ray, w);
@@ -187,17 +189,15 @@ TraceStatus trace_points_impl(const Geometry& geo, const std::uint8_t* occupancy
         unit_direction(ray, out.dir);
     }
     if (st != TraceStatus::ok) return st;
-    walk(
-        geo, w, blocks, [&](std::uint32_t idx) { return ((occupancy[idx >> 3] >> (idx & 7)) & 1u) != 0; },
-        [&](std::uint32_t idx, float t, const float g[3]) {
-            const std::uint32_t k = out.count++;
-            out.t[k] = t;
-            out.g[k][0] = g[0];
-            out.g[k][1] = g[1];
-            out.g[k][2] = g[2];
-            out.voxel[k] = idx;
-            return out.count < geo.H;
-        });
+    walk(geo, w, blocks, want, [&](std::uint32_t idx, float t, const float g[3]) {
+        const std::uint32_t k = out.count++;
+        out.t[k] = t;
+        out.g[k][0] = g[0];
+        out.g[k][1] = g[1];
+        out.g[k][2] = g[2];
+        out.voxel[k] = idx;
+        return out.count < geo.H;
+    });
     return out.count ? TraceStatus::ok : TraceStatus::miss;
 }
 
@@ -212,15 +212,19 @@ void unit_direction(const Ray& ray, float out[3]) {
 }
 
 TraceStatus trace_points(const Geometry& geo, const std::uint8_t* occupancy, const Ray& ray, RayPoints& out) {
-    return trace_points_impl(geo, occupancy, nullptr, ray, out);
+    return trace_points_impl(geo, nullptr, ray, out, [&](std::uint32_t idx, const int*) {
+        return ((occupancy[idx >> 3] >> (idx & 7)) & 1u) != 0;
+    });
 }
 
 TraceStatus trace_points(const Geometry& geo, const OccupancyGrid& occ, const Ray& ray, RayPoints& out) {
-    return trace_points_impl(geo, occ.bits.data(), &occ, ray, out);
+    return trace_points_impl(geo, &occ, ray, out, [&](std::uint32_t, const int* cell) {
+        return occ.occupied(std::uint32_t(cell[0]), std::uint32_t(cell[1]), std::uint32_t(cell[2]));
+    });
 }
 
-OccupancyGrid::OccupancyGrid(std::uint32_t V, std::vector<std::uint8_t> voxel_bits)
-    : V(V), S((V + kSubBlock - 1) / kSubBlock), bits(std::move(voxel_bits)) {
+OccupancyGrid::OccupancyGrid(std::uint32_t V, const std::vector<std::uint8_t>& bits)
+    : V(V), S((V + kSubBlock - 1) / kSubBlock) {
     // Whether each kBlock^3 and kSuperBlock^3 block has an occupied voxel.
     const std::uint32_t nb = (V + kBlock - 1) / kBlock, ns = (V + kSuperBlock - 1) / kSuperBlock;
     std::vector<std::uint8_t> block(std::size_t(nb) * nb * nb, 0), super(std::size_t(ns) * ns * ns, 0);
@@ -248,6 +252,23 @@ OccupancyGrid::OccupancyGrid(std::uint32_t V, std::vector<std::uint8_t> voxel_bi
             }
 }
 
+std::vector<std::uint8_t> OccupancyGrid::voxel_bits() const {
+    std::vector<std::uint8_t> bits((std::uint64_t(V) * V * V + 7) / 8, 0);
+    for (std::uint32_t z = 0; z < V; ++z)
+        for (std::uint32_t y = 0; y < V; ++y)
+            for (std::uint32_t x = 0; x < V; ++x) {
+                const std::uint64_t i = x + std::uint64_t(V) * (y + std::uint64_t(V) * z);
+                if (occupied(x, y, z)) bits[i >> 3] |= std::uint8_t(1u << (i & 7));
+            }
+    return bits;
+}
+
+std::uint64_t OccupancyGrid::occupied_voxels() const {
+    std::uint64_t n = 0;
+    for (const std::uint16_t e : blocks) n += std::uint64_t(__builtin_popcount(e & 0xFFu));
+    return n;
+}
+
 TraceStatus trace_all_voxels(const Geometry& geo, const Ray& ray, std::vector<std::uint32_t>& voxels,
                              std::vector<float>& entry_t) {
     voxels.clear();
@@ -256,7 +277,7 @@ TraceStatus trace_all_voxels(const Geometry& geo, const Ray& ray, std::vector<st
     const TraceStatus st = start_walk(geo, ray, w);
     if (st != TraceStatus::ok) return st;
     walk(
-        geo, w, nullptr, [](std::uint32_t) { return true; },
+        geo, w, nullptr, [](std::uint32_t, const int*) { return true; },
         [&](std::uint32_t idx, float t, const float*) {
             voxels.push_back(idx);
             entry_t.push_back(t);

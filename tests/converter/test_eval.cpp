@@ -296,7 +296,8 @@ TEST_CASE("bench memory, rays and convert measure a real conversion against Embr
     CHECK(m["lsnif_file_bytes"] == asset["bytes"]);
     CHECK(m["lsnif_resident_bytes"] == asset["resident_bytes"]);
     CHECK(m["lsnif_resident_bytes"].get<double>() > m["lsnif_file_bytes"].get<double>());
-    CHECK(m["lsnif_resident_bytes_here"].get<double>() <= m["lsnif_resident_bytes"].get<double>());
+    // The fp32 network holds the weights once, in fp16; a reduced arithmetic adds its packing.
+    CHECK(m["lsnif_resident_bytes_here"].get<double>() >= m["lsnif_resident_bytes"].get<double>());
     CHECK(m["ratio_embree_over_resident"].get<double>() ==
           doctest::Approx(m["embree_bvh_bytes"].get<double>() / m["lsnif_resident_bytes"].get<double>()));
     CHECK(m["ratio_bvh8_over_resident"].get<double>() ==

@@ -449,6 +449,45 @@ TEST_CASE("narrow layers (16 to 48 outputs) equal the wide kernel's columns bit 
             }
 }
 
+TEST_CASE("fp16 weights, widened on load, give the fp32 kernels' bits for every width and row count") {
+    // A model's network stores W^T in fp16 and the fp32 arithmetic reads it directly: the
+    // wide (64+ outputs) and narrow kernels, full and partial row blocks, with and without
+    // ReLU and zero-column skipping, must equal the same values stored in fp32. Includes
+    // subnormal and signed-zero halves, which the widening must keep exactly.
+    std::mt19937 rng(14);
+    std::uniform_real_distribution<float> u(-1.f, 1.f);
+    for (const std::size_t n : {std::size_t(1), std::size_t(5), std::size_t(6), std::size_t(133)})
+        for (const std::size_t op : {std::size_t(16), std::size_t(48), std::size_t(80), std::size_t(128)})
+            for (const bool relu : {false, true}) {
+                CAPTURE(n);
+                CAPTURE(op);
+                const std::size_t in = 61, lda = in + 3;
+                std::vector<float> A(n * lda), wt32(in * op), bias(op);
+                std::vector<std::uint16_t> wt16(in * op);
+                for (auto& x : A) x = u(rng);
+                for (std::size_t j = 0; j < wt16.size(); ++j) {
+                    wt16[j] = j % 97 == 0   ? std::uint16_t(0x0001 + j % 5)  // subnormals
+                              : j % 89 == 0 ? std::uint16_t(0x8000)          // -0
+                                            : float_to_half(u(rng));
+                    wt32[j] = half_to_float(wt16[j]);
+                }
+                for (auto& b : bias) b = u(rng);
+                // Row r is zero in columns [lead[r], in - 4), as the empty point slots are.
+                std::vector<std::uint32_t> lead(n);
+                for (std::size_t r = 0; r < n; ++r) {
+                    lead[r] = std::uint32_t(in - 30 + r % 7);
+                    for (std::size_t c = lead[r]; c < in - 4; ++c) A[r * lda + c] = 0.f;
+                }
+                const ZeroColumns zeros{lead.data(), in - 4};
+                std::vector<float> got(n * op), want(n * op);
+                dense_layer_strided(A.data(), n, in, lda, wt16.data(), op, bias.data(), op, relu, got.data(),
+                                    op, &zeros);
+                dense_layer_strided(A.data(), n, in, lda, wt32.data(), op, bias.data(), op, relu, want.data(),
+                                    op, &zeros);
+                REQUIRE(std::memcmp(got.data(), want.data(), got.size() * sizeof(float)) == 0);
+            }
+}
+
 TEST_CASE("the output layer kernel equals dense_layer on the real outputs bit for bit") {
     // Rows in vector lanes for blocks of 16 rows (only the real outputs computed), the
     // narrow kernel for the rest: every row count around the block size, inputs that are

@@ -14,8 +14,11 @@
 #include <atomic>
 #include <cstddef>
 #include <cstdlib>
+#include <cstring>
 #include <filesystem>
 #include <new>
+#include <thread>
+#include <vector>
 
 namespace {
 
@@ -165,16 +168,94 @@ TEST_CASE("format::resident_bytes predicts what a handle holds with the fp32 net
     }
 }
 
-TEST_CASE("fp32 holds the most: the reduced arithmetics never hold more than the reference") {
-    const auto bytes = lsnif::test::load(lsnif::test::data_dir() / "valid" / "v1_default.lsnif");
-    Opened o = open_counted(bytes);
-    REQUIRE(lsnif_set_arithmetic(o.model, LSNIF_ARITHMETIC_FP32, nullptr) == LSNIF_OK);
-    const std::uint64_t fp32 = decoded_bytes(o.model);
-    for (const lsnif_arithmetic a : {LSNIF_ARITHMETIC_BF16, LSNIF_ARITHMETIC_INT8}) {
-        lsnif_arithmetic in_use{};
-        REQUIRE(lsnif_set_arithmetic(o.model, a, &in_use) == LSNIF_OK);
-        CAPTURE(lsnif_arithmetic_string(in_use));
-        CHECK(decoded_bytes(o.model) <= fp32);
+// What the fp32 handle may hold besides the feature tables: the occupancy at 2 bits per
+// voxel, every weight once in fp16 (W^T, outputs padded to 16), the output layer also in
+// fp32 and the biases in fp32; `slack` covers the handle, the descriptor and the metadata.
+std::uint64_t fp32_bound(const lsnif_info& info, std::size_t metadata_bytes) {
+    const auto pad16 = [](std::uint64_t n) { return (n + 15) / 16 * 16; };
+    const std::uint64_t element = info.grid_encoding == LSNIF_GRID_U8_AFFINE ? 1 : 2;
+    std::uint64_t n = 0;
+    for (std::uint32_t l = 0; l < info.level_count; ++l)
+        n += (info.level_entries[l] * info.features_per_level + 4) * element;
+    const std::uint64_t S = (info.grid_resolution + 1) / 2;
+    n += (S * S * S + 1) * 2;
+    std::uint64_t in = info.input_width;
+    for (std::uint32_t k = 0; k <= info.hidden_layer_count; ++k) {
+        const std::uint64_t out = k < info.hidden_layer_count ? info.hidden_width[k] : info.output_count;
+        n += in * pad16(out) * 2 + pad16(out) * 4;
+        if (k == info.hidden_layer_count) n += in * pad16(out) * 4;
+        in = out;
     }
-    lsnif_close(o.model);
+    constexpr std::uint64_t slack = 4096;
+    return n + metadata_bytes + slack;
+}
+
+TEST_CASE("fp32 holds the least: each weight once in fp16, the occupancy at 2 bits per voxel") {
+    for (const auto& entry : std::filesystem::directory_iterator(lsnif::test::data_dir() / "valid")) {
+        if (entry.path().extension() != ".lsnif") continue;
+        CAPTURE(entry.path().filename().string());
+        Opened o = open_counted(lsnif::test::load(entry.path()));
+        REQUIRE(lsnif_set_arithmetic(o.model, LSNIF_ARITHMETIC_FP32, nullptr) == LSNIF_OK);
+        lsnif_info info{};
+        REQUIRE(lsnif_get_info(o.model, &info) == LSNIF_OK);
+        std::size_t metadata = 0;
+        lsnif_metadata(o.model, &metadata);
+        CHECK(info.decoded_bytes <= fp32_bound(info, metadata + 1));
+        for (const lsnif_arithmetic a : {LSNIF_ARITHMETIC_BF16, LSNIF_ARITHMETIC_INT8}) {
+            lsnif_arithmetic in_use{};
+            REQUIRE(lsnif_set_arithmetic(o.model, a, &in_use) == LSNIF_OK);
+            CAPTURE(lsnif_arithmetic_string(in_use));
+            CHECK(decoded_bytes(o.model) >= info.decoded_bytes);
+        }
+        lsnif_close(o.model);
+    }
+}
+
+TEST_CASE("lsnif_get_array builds the file's occupancy, weights and biases once, exactly, and counts them") {
+    for (const auto& entry : std::filesystem::directory_iterator(lsnif::test::data_dir() / "valid")) {
+        if (entry.path().extension() != ".lsnif") continue;
+        CAPTURE(entry.path().filename().string());
+        const auto bytes = lsnif::test::load(entry.path());
+        const auto model = lsnif::format::read_model(bytes);
+        REQUIRE(model.ok());
+        Opened o = open_counted(bytes);
+        // Whichever arithmetic the network runs in, the arrays are the file's.
+        REQUIRE(lsnif_set_arithmetic(o.model, LSNIF_ARITHMETIC_INT8, nullptr) == LSNIF_OK);
+        const std::uint32_t layers = lsnif_layer_count(o.model);
+        // Several threads ask at once; each must see the finished arrays.
+        std::vector<std::thread> threads;
+        threads.reserve(4);
+        std::atomic<int> mismatches{0};
+        const std::int64_t live_before = g_live.load();
+        const std::uint64_t reported_before = decoded_bytes(o.model);
+        for (int t = 0; t < 4; ++t)
+            threads.emplace_back([&] {
+                lsnif_array a{};
+                if (lsnif_get_array(o.model, LSNIF_ARRAY_OCCUPANCY, 0, &a) != LSNIF_OK ||
+                    a.bytes != model->occupancy.size() ||
+                    std::memcmp(a.data, model->occupancy.data(), a.bytes) != 0)
+                    ++mismatches;
+                for (std::uint32_t k = 0; k < layers; ++k) {
+                    if (lsnif_get_array(o.model, LSNIF_ARRAY_LAYER_WEIGHTS, k, &a) != LSNIF_OK ||
+                        a.bytes != model->weights[k].size() * 2 ||
+                        std::memcmp(a.data, model->weights[k].data(), a.bytes) != 0)
+                        ++mismatches;
+                    if (lsnif_get_array(o.model, LSNIF_ARRAY_LAYER_BIAS, k, &a) != LSNIF_OK ||
+                        a.bytes != model->biases[k].size() * 2 ||
+                        std::memcmp(a.data, model->biases[k].data(), a.bytes) != 0)
+                        ++mismatches;
+                }
+            });
+        for (auto& t : threads) t.join();
+        threads.clear();
+        CHECK(mismatches.load() == 0);
+        const std::int64_t grown = g_live.load() - live_before;
+        CHECK(grown > 0);
+        CHECK(std::int64_t(decoded_bytes(o.model)) - std::int64_t(reported_before) == grown);
+        // Built once: asking again allocates nothing.
+        lsnif_array a{};
+        REQUIRE(lsnif_get_array(o.model, LSNIF_ARRAY_LAYER_WEIGHTS, 0, &a) == LSNIF_OK);
+        CHECK(g_live.load() - live_before == grown);
+        lsnif_close(o.model);
+    }
 }

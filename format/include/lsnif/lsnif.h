@@ -201,10 +201,12 @@ typedef struct lsnif_info {
     uint64_t parameter_count; /* hash-table features + MLP weights and biases */
     uint64_t occupied_voxels;
     uint64_t file_size;
-    /* Resident bytes: every byte the handle holds right now (the handle, the model's arrays
-     * as stored, the occupancy grid's block summary, the network in its runtime layout for
-     * the arithmetic in use), counted at the size allocated. What a renderer pays to keep
-     * the asset open; lsnif_set_arithmetic changes it (fp32 holds the most). */
+    /* Resident bytes: every byte the handle holds right now (the handle, the feature
+     * tables as stored, the occupancy grid at 2 bits per voxel, the network's fp16 weights
+     * and what the arithmetic in use adds to them), counted at the size allocated. What a
+     * renderer pays to keep the asset open. lsnif_set_arithmetic changes it (fp32 holds
+     * the least), and so does the first lsnif_get_array for the occupancy or for a layer,
+     * which builds those arrays in the file's layout and keeps them until lsnif_close. */
     uint64_t decoded_bytes;
 } lsnif_info;
 
@@ -266,8 +268,12 @@ typedef struct lsnif_array {
 
 /* Number of MLP layers (hidden layers + output layer); 0 for a NULL model. */
 LSNIF_API uint32_t lsnif_layer_count(const lsnif_model* model);
-/* One raw array (see lsnif_array_kind for `index`). Neither pointer may be NULL; an
- * index out of range returns LSNIF_ERR_INVALID_ARGUMENT. */
+/* One raw array (see lsnif_array_kind for `index`), owned by the handle and valid until
+ * lsnif_close. The feature tables are the ones inference reads; the occupancy bits and
+ * the layers' weights and biases are built in the file's layout by the first call that
+ * asks for one of them (exactly the stored values; safe from any number of threads) and
+ * held from then on (lsnif_info.decoded_bytes counts them). Neither pointer may be NULL;
+ * an index out of range returns LSNIF_ERR_INVALID_ARGUMENT. */
 LSNIF_API lsnif_status lsnif_get_array(const lsnif_model* model, lsnif_array_kind kind, uint32_t index,
                                        lsnif_array* out);
 

@@ -10,7 +10,7 @@
 namespace lsnif::format {
 
 struct CpuFeatures {
-    bool avx2_fma = false;     // AVX2 and FMA3, with the YMM state saved by the OS
+    bool avx2_fma = false;     // AVX2, FMA3 and F16C (x86-64-v3's vector set), YMM state saved by the OS
     bool avx512 = false;       // AVX-512 F, BW, DQ and VL, with the opmask and ZMM states saved
     bool avx512_bf16 = false;  // avx512 and AVX512_BF16 (VDPBF16PS, VCVTNEPS2BF16)
     bool avx512_vnni = false;  // avx512 and AVX512_VNNI (VPDPBUSD)
@@ -32,7 +32,7 @@ const CpuFeatures& detected_cpu_features();
 // path it supports (tests compare their bytes; a user can reproduce another machine's
 // speed). The levels, each including the ones before it:
 //   generic     no vector kernels (the portable C++ paths)
-//   avx2        AVX2 + FMA3 (x86-64-v3)
+//   avx2        AVX2 + FMA3 + F16C (x86-64-v3)
 //   avx512      AVX-512 F/BW/DQ/VL and, where present, AVX-512 VNNI (the reader's int8)
 //   avx512bf16  AVX-512 BF16
 //   amx         AMX-TILE + AMX-BF16: no cap

@@ -111,33 +111,40 @@ void unit_direction(const Ray& ray, float out[3]);
 // 0 for empty slots. Writes geo.H values.
 void entry_offsets(const Geometry& geo, const RayPoints& pts, float* out);
 
-// The OCCU bit array plus, per kSubBlock^3 block of voxels, its voxels again and whether its
-// kBlock^3 and kSuperBlock^3 blocks have an occupied voxel: what lets the DDA jump over
-// empty space.
+// The occupancy for inference: per kSubBlock^3 block of voxels, its voxels and whether its
+// kBlock^3 and kSuperBlock^3 blocks have an occupied voxel, what lets the DDA jump over
+// empty space. It holds the voxels once (the file's OCCU bit array is not kept;
+// voxel_bits() rebuilds it): 2 bits per voxel in all.
 struct OccupancyGrid {
     static constexpr std::uint32_t kBlock = 4;
     static constexpr std::uint32_t kSubBlock = 2;    // the 16-lane walk's finer empty blocks
     static constexpr std::uint32_t kSuperBlock = 8;  // and its coarser ones
     static constexpr std::uint32_t kBlockBit = 8, kSuperBlockBit = 9;  // bits of a `blocks` entry
     std::uint32_t V = 0;
-    std::uint32_t S = 0;             // kSubBlock^3 blocks per axis: ceil(V / 2)
-    std::vector<std::uint8_t> bits;  // OCCU layout
+    std::uint32_t S = 0;  // kSubBlock^3 blocks per axis: ceil(V / 2)
     // One entry per kSubBlock^3 block, x fastest (sub_block()), then a zero entry so that
     // any entry can be read as the low half of 32 bits (the 16-lane walk gathers one per
     // step): bits 0-7 the block's voxels (sub_voxel()), bit kBlockBit its kBlock^3 block has
-    // an occupied voxel, bit kSuperBlockBit its kSuperBlock^3 block does. 2 bits per voxel.
+    // an occupied voxel, bit kSuperBlockBit its kSuperBlock^3 block does.
     std::vector<std::uint16_t> blocks;
     OccupancyGrid() = default;
-    OccupancyGrid(std::uint32_t V, std::vector<std::uint8_t> voxel_bits);
+    // From an OCCU bit array of a V^3 grid (FORMAT.md §6.3).
+    OccupancyGrid(std::uint32_t V, const std::vector<std::uint8_t>& bits);
     std::uint32_t sub_block(std::uint32_t x, std::uint32_t y, std::uint32_t z) const {
         return (x >> 1) + S * ((y >> 1) + S * (z >> 1));
     }
     static std::uint32_t sub_voxel(std::uint32_t x, std::uint32_t y, std::uint32_t z) {
         return (x & 1u) + 2u * (y & 1u) + 4u * (z & 1u);
     }
+    bool occupied(std::uint32_t x, std::uint32_t y, std::uint32_t z) const {
+        return (blocks[sub_block(x, y, z)] >> sub_voxel(x, y, z)) & 1u;
+    }
     bool block_occupied(std::uint32_t x, std::uint32_t y, std::uint32_t z) const {
         return (blocks[sub_block(x, y, z)] >> kBlockBit) & 1u;
     }
+    // The OCCU bit array this grid was made from, and its number of set bits.
+    std::vector<std::uint8_t> voxel_bits() const;
+    std::uint64_t occupied_voxels() const;
 };
 
 // Fills `out` with up to geo.H occupied entry points. `occupancy` is the OCCU bit array.
@@ -224,11 +231,20 @@ void encode_batch(const Geometry& geo, const GridView* grid, const RayPoints* pt
 
 // ---- MLP --------------------------------------------------------------------------------
 
-// fp32 network in the kernel's layout: per layer W^T [in][out_padded] and bias
-// [out_padded], out_padded a multiple of 16 (padding columns are zero).
+// Network in the kernels' layout: per layer W^T [in][out_padded] and bias [out_padded] in
+// fp32, out_padded a multiple of 16 (padding columns are zero). Two kinds, by where the
+// weights come from:
+// - from fp32 arrays (the trainer's master weights): `wt` holds every layer's fp32 W^T and
+//   `wt_f16` is empty;
+// - from a model (fp16 weights): `wt_f16` holds every layer's W^T in fp16, exactly the
+//   model's values, and `wt` only the output layer's (the hidden layers' fp32 entries are
+//   empty). The fp32 arithmetic widens the fp16 weights as it loads them (the same bits as
+//   fp32 storage), so a model's network holds its weights once, at 2 bytes each, and
+//   model_layer_weights() gives the file's arrays back.
 struct Network {
     std::vector<std::uint32_t> in, out, out_padded;
     std::vector<std::vector<float>> wt;
+    std::vector<std::vector<std::uint16_t>> wt_f16;
     std::vector<std::vector<float>> bias;
     std::size_t max_width_padded = 0;
     // MlpArithmetic::bf16 only (empty otherwise): each hidden layer's W^T as the B operand
@@ -237,12 +253,24 @@ struct Network {
     // MlpArithmetic::int8 only (empty otherwise): each hidden layer's weights for gemm_int8,
     // the first layer's with signed inputs.
     std::vector<Int8Layer> wt_int8;
+    std::size_t layer_count() const { return in.size(); }
 };
-// From fp16 arrays of a model (weights [out][in] row-major).
+// From the fp16 arrays of a model (weights [out][in] row-major).
 Network make_network(const ModelData& model);
 // From fp32 arrays in file layout (trainer master weights).
 Network make_network(const ModelDesc& desc, const std::vector<std::vector<float>>& weights,
                      const std::vector<std::vector<float>>& biases);
+// A model network's layer k in the file's layout (FORMAT.md §6.5): weights fp16 [out][in]
+// row-major and bias fp16 [out], the exact values make_network(ModelData) read. Requires a
+// network made from a model (wt_f16 not empty).
+std::vector<std::uint16_t> model_layer_weights(const Network& net, std::size_t k);
+std::vector<std::uint16_t> model_layer_bias(const Network& net, std::size_t k);
+
+// Hidden layer k (k + 1 < layer_count()) in fp32 arithmetic with ReLU, from whichever
+// storage the network has (fp32 or fp16 W^T; the same bits): C [n][out_padded[k]] from A
+// (row stride lda). `zeros` as for dense_layer_strided.
+void hidden_layer_fp32(const Network& net, std::size_t k, const float* A, std::size_t n, std::size_t lda,
+                       float* C, const ZeroColumns* zeros = nullptr);
 
 // C[n][0..out_padded) = act(A[n][0..in) · Wt + bias). A has row stride `lda`, C has row
 // stride out_padded. ReLU when `relu`. Vectorized for AVX-512/AVX2 with runtime dispatch;
@@ -258,6 +286,10 @@ void dense_layer(const float* A, std::size_t n, std::size_t in, std::size_t lda,
 void dense_layer_strided(const float* A, std::size_t n, std::size_t in, std::size_t lda, const float* wt,
                          std::size_t ldw, const float* bias, std::size_t out, bool relu, float* C,
                          std::size_t ldc, const ZeroColumns* zeros);
+// The same with fp16 weights, widened exactly on load (the same bits as their fp32 values).
+void dense_layer_strided(const float* A, std::size_t n, std::size_t in, std::size_t lda,
+                         const std::uint16_t* wt, std::size_t ldw, const float* bias, std::size_t out,
+                         bool relu, float* C, std::size_t ldc, const ZeroColumns* zeros);
 
 // The output layer: dense_layer without ReLU, whose first `outs` columns it equals bit for
 // bit; the padding columns [outs, out_padded) hold zeros or dense_layer's values (both are
@@ -276,12 +308,13 @@ void dense_output_layer(const float* A, std::size_t n, std::size_t in, std::size
 enum class MlpArithmetic : std::uint8_t { fp32, bf16, int8 };
 // The fastest the CPU runs: int8 with AVX-512 VNNI, else bf16 with AVX-512 BF16, else fp32.
 MlpArithmetic best_mlp_arithmetic();
-// Sets the arithmetic of an fp32 network (as make_network returns it): packs wt_vnni or
-// wt_int8 and then releases the hidden layers' fp32 W^T, which the reduced arithmetics never
-// read (the output layer's stays), so a reduced network holds less than an fp32 one. What
-// the CPU lacks falls back: int8 to bf16 (also for a layer wider than kInt8MaxInputs), bf16
-// to fp32. A network already in a reduced arithmetic keeps it (make a new one from the model
-// to change it). Returns the arithmetic now in use.
+// Sets the arithmetic of a network: packs wt_vnni or wt_int8 from the hidden layers' fp32
+// or fp16 W^T and then releases the hidden layers' fp32 W^T, which the reduced arithmetics
+// never read (the output layer's stays; a model network's fp16 W^T stays too, as the
+// weights of record). A model network can go from any arithmetic to any other; a network
+// from fp32 arrays that is already reduced keeps its arithmetic (make a new one to change
+// it). What the CPU lacks falls back: int8 to bf16 (also for a layer wider than
+// kInt8MaxInputs), bf16 to fp32. Returns the arithmetic now in use.
 MlpArithmetic set_mlp_arithmetic(Network& net, MlpArithmetic a);
 MlpArithmetic mlp_arithmetic(const Network& net);
 
@@ -324,11 +357,12 @@ inline float encode_distance(const Geometry& geo, const RayPoints& pts, float di
 // ---- the whole pass ------------------------------------------------------------------------
 
 // Decoded, inference-ready model: feature tables in their stored precision and layout (fp16
-// or u8, dequantized on the gather), the occupancy grid and an fp32 network. Immutable once
-// built, so any number of threads may call intersect() on it concurrently.
+// or u8, dequantized on the gather), the occupancy grid and the network (Network: its fp16
+// weights, widened on load by the fp32 arithmetic). Immutable once built, so any number of
+// threads may call intersect() on it concurrently.
 struct Runtime {
     Geometry geo;
-    OccupancyGrid occupancy;  // its `bits` are the file's OCCU array
+    OccupancyGrid occupancy;
     // Per level, the file's GRID array (entries * F elements, FORMAT.md §6.4) followed by
     // grid_tail_pad(F) zeros; only the one desc.grid_encoding names is filled.
     std::vector<std::vector<std::uint16_t>> grid;    // fp16 grids
@@ -341,16 +375,18 @@ struct Runtime {
     std::uint64_t heap_bytes() const;
 };
 // The network starts in `arithmetic` (set_mlp_arithmetic(rt.net, ...) changes it later;
-// not while other threads call intersect on the runtime). The rvalue overload moves the
-// occupancy and the feature tables out of `model` (leaving them empty), so the model's
-// arrays are held once.
+// not while other threads call intersect on the runtime). The rvalue overload takes the
+// occupancy, the feature tables, the weights and the biases out of `model` (leaving them
+// empty), so the model's arrays are held once: by the runtime, in its own layouts
+// (OccupancyGrid::voxel_bits, model_layer_weights and model_layer_bias give the file's
+// arrays back).
 Runtime make_runtime(const ModelData& model, MlpArithmetic arithmetic = MlpArithmetic::fp32);
 Runtime make_runtime(ModelData&& model, MlpArithmetic arithmetic = MlpArithmetic::fp32);
 
 // The resident bytes of `model` once opened through the C API with the fp32 network (the
-// reference arithmetic, which holds the most: lsnif_info::decoded_bytes after
-// lsnif_set_arithmetic(LSNIF_ARITHMETIC_FP32)): what a renderer holds for it on any CPU, at
-// most. Deterministic: a function of the model alone.
+// reference arithmetic, which every CPU runs and which holds the least:
+// lsnif_info::decoded_bytes after lsnif_set_arithmetic(LSNIF_ARITHMETIC_FP32), before any
+// lsnif_get_array). Deterministic: a function of the model alone.
 std::uint64_t resident_bytes(const ModelData& model);
 
 // Statistics of one batch, for benchmarks and evaluation.

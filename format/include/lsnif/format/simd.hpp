@@ -9,6 +9,9 @@
 #pragma once
 
 #include <cmath>
+#include <cstdint>
+
+#include <lsnif/format/half.hpp>
 
 #if defined(__x86_64__) && defined(__GNUC__)
 #include <immintrin.h>
@@ -53,6 +56,31 @@ __attribute__((target("avx2,fma"))) inline F8 fma(float a, F8 b, F8 c) {
 }
 __attribute__((target("avx512f"))) inline F16 fma(float a, F16 b, F16 c) {
     return (F16)_mm512_fmadd_ps(_mm512_set1_ps(a), (__m512)b, (__m512)c);
+}
+#endif
+
+// W weights from fp32 or from fp16 storage, chosen by the type of the tag `V` (a Vec<W>).
+// Widening binary16 to binary32 is exact (VCVTPH2PS, or half_to_float), so a kernel reading
+// fp16 weights computes the same bits as one reading the same values stored in fp32.
+inline F4 load(const float* p, F4) {
+    return *reinterpret_cast<const F4*>(p);
+}
+inline F4 load(const std::uint16_t* p, F4) {
+    return F4{half_to_float(p[0]), half_to_float(p[1]), half_to_float(p[2]), half_to_float(p[3])};
+}
+
+#if defined(__x86_64__) && defined(__GNUC__)
+__attribute__((target("avx2,fma"))) inline F8 load(const float* p, F8) {
+    return *reinterpret_cast<const F8*>(p);
+}
+__attribute__((target("avx2,fma,f16c"))) inline F8 load(const std::uint16_t* p, F8) {
+    return (F8)_mm256_cvtph_ps(_mm_loadu_si128(reinterpret_cast<const __m128i*>(p)));
+}
+__attribute__((target("avx512f"))) inline F16 load(const float* p, F16) {
+    return *reinterpret_cast<const F16*>(p);
+}
+__attribute__((target("avx512f"))) inline F16 load(const std::uint16_t* p, F16) {
+    return (F16)_mm512_cvtph_ps(_mm256_loadu_si256(reinterpret_cast<const __m256i*>(p)));
 }
 #endif
 
