@@ -117,6 +117,15 @@ Opened open_counted(const std::vector<std::uint8_t>& bytes) {
     return o;
 }
 
+// The golden assets of tests/data/valid: every format version, grid encoding and ray input.
+std::vector<std::filesystem::path> golden_assets() {
+    std::vector<std::filesystem::path> out;
+    for (const auto& entry : std::filesystem::directory_iterator(lsnif::test::data_dir() / "valid"))
+        if (entry.path().extension() == ".lsnif") out.push_back(entry.path());
+    REQUIRE(out.size() >= 5);
+    return out;
+}
+
 std::uint64_t decoded_bytes(const lsnif_model* m) {
     lsnif_info info{};
     REQUIRE(lsnif_get_info(m, &info) == LSNIF_OK);
@@ -126,12 +135,9 @@ std::uint64_t decoded_bytes(const lsnif_model* m) {
 }  // namespace
 
 TEST_CASE("decoded_bytes is every byte the handle holds, for each golden asset and arithmetic") {
-    std::size_t files = 0;
-    for (const auto& entry : std::filesystem::directory_iterator(lsnif::test::data_dir() / "valid")) {
-        if (entry.path().extension() != ".lsnif") continue;
-        ++files;
-        CAPTURE(entry.path().filename().string());
-        const auto bytes = lsnif::test::load(entry.path());
+    for (const auto& path : golden_assets()) {
+        CAPTURE(path.filename().string());
+        const auto bytes = lsnif::test::load(path);
         Opened o = open_counted(bytes);
         CHECK(o.held > 0);
         CHECK(std::uint64_t(o.held) == decoded_bytes(o.model));
@@ -151,14 +157,12 @@ TEST_CASE("decoded_bytes is every byte the handle holds, for each golden asset a
         lsnif_close(o.model);
         CHECK(before_close - g_live.load() == std::int64_t(last));
     }
-    CHECK(files >= 5);
 }
 
 TEST_CASE("format::resident_bytes predicts what a handle holds with the fp32 network") {
-    for (const auto& entry : std::filesystem::directory_iterator(lsnif::test::data_dir() / "valid")) {
-        if (entry.path().extension() != ".lsnif") continue;
-        CAPTURE(entry.path().filename().string());
-        const auto bytes = lsnif::test::load(entry.path());
+    for (const auto& path : golden_assets()) {
+        CAPTURE(path.filename().string());
+        const auto bytes = lsnif::test::load(path);
         const auto model = lsnif::format::read_model(bytes);
         REQUIRE(model.ok());
         Opened o = open_counted(bytes);
@@ -191,10 +195,9 @@ std::uint64_t fp32_bound(const lsnif_info& info, std::size_t metadata_bytes) {
 }
 
 TEST_CASE("fp32 holds the least: each weight once in fp16, the occupancy at 2 bits per voxel") {
-    for (const auto& entry : std::filesystem::directory_iterator(lsnif::test::data_dir() / "valid")) {
-        if (entry.path().extension() != ".lsnif") continue;
-        CAPTURE(entry.path().filename().string());
-        Opened o = open_counted(lsnif::test::load(entry.path()));
+    for (const auto& path : golden_assets()) {
+        CAPTURE(path.filename().string());
+        Opened o = open_counted(lsnif::test::load(path));
         REQUIRE(lsnif_set_arithmetic(o.model, LSNIF_ARITHMETIC_FP32, nullptr) == LSNIF_OK);
         lsnif_info info{};
         REQUIRE(lsnif_get_info(o.model, &info) == LSNIF_OK);
@@ -212,10 +215,9 @@ TEST_CASE("fp32 holds the least: each weight once in fp16, the occupancy at 2 bi
 }
 
 TEST_CASE("lsnif_get_array builds the file's occupancy, weights and biases once, exactly, and counts them") {
-    for (const auto& entry : std::filesystem::directory_iterator(lsnif::test::data_dir() / "valid")) {
-        if (entry.path().extension() != ".lsnif") continue;
-        CAPTURE(entry.path().filename().string());
-        const auto bytes = lsnif::test::load(entry.path());
+    for (const auto& path : golden_assets()) {
+        CAPTURE(path.filename().string());
+        const auto bytes = lsnif::test::load(path);
         const auto model = lsnif::format::read_model(bytes);
         REQUIRE(model.ok());
         Opened o = open_counted(bytes);
