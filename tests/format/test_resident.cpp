@@ -126,6 +126,19 @@ std::vector<std::filesystem::path> golden_assets() {
     return out;
 }
 
+// A golden asset's bytes and its model as read_model gives it.
+struct Golden {
+    std::vector<std::uint8_t> bytes;
+    lsnif::format::ModelData model;
+};
+Golden read_golden(const std::filesystem::path& path) {
+    Golden g{lsnif::test::load(path), {}};
+    auto model = lsnif::format::read_model(g.bytes);
+    REQUIRE(model.ok());
+    g.model = std::move(model.value());
+    return g;
+}
+
 std::uint64_t decoded_bytes(const lsnif_model* m) {
     lsnif_info info{};
     REQUIRE(lsnif_get_info(m, &info) == LSNIF_OK);
@@ -162,12 +175,10 @@ TEST_CASE("decoded_bytes is every byte the handle holds, for each golden asset a
 TEST_CASE("format::resident_bytes predicts what a handle holds with the fp32 network") {
     for (const auto& path : golden_assets()) {
         CAPTURE(path.filename().string());
-        const auto bytes = lsnif::test::load(path);
-        const auto model = lsnif::format::read_model(bytes);
-        REQUIRE(model.ok());
-        Opened o = open_counted(bytes);
+        const Golden g = read_golden(path);
+        Opened o = open_counted(g.bytes);
         REQUIRE(lsnif_set_arithmetic(o.model, LSNIF_ARITHMETIC_FP32, nullptr) == LSNIF_OK);
-        CHECK(lsnif::format::resident_bytes(*model) == decoded_bytes(o.model));
+        CHECK(lsnif::format::resident_bytes(g.model) == decoded_bytes(o.model));
         lsnif_close(o.model);
     }
 }
@@ -217,10 +228,8 @@ TEST_CASE("fp32 holds the least: each weight once in fp16, the occupancy at 2 bi
 TEST_CASE("lsnif_get_array builds the file's occupancy, weights and biases once, exactly, and counts them") {
     for (const auto& path : golden_assets()) {
         CAPTURE(path.filename().string());
-        const auto bytes = lsnif::test::load(path);
-        const auto model = lsnif::format::read_model(bytes);
-        REQUIRE(model.ok());
-        Opened o = open_counted(bytes);
+        const Golden g = read_golden(path);
+        Opened o = open_counted(g.bytes);
         // Whichever arithmetic the network runs in, the arrays are the file's.
         REQUIRE(lsnif_set_arithmetic(o.model, LSNIF_ARITHMETIC_INT8, nullptr) == LSNIF_OK);
         const std::uint32_t layers = lsnif_layer_count(o.model);
@@ -234,17 +243,17 @@ TEST_CASE("lsnif_get_array builds the file's occupancy, weights and biases once,
             threads.emplace_back([&] {
                 lsnif_array a{};
                 if (lsnif_get_array(o.model, LSNIF_ARRAY_OCCUPANCY, 0, &a) != LSNIF_OK ||
-                    a.bytes != model->occupancy.size() ||
-                    std::memcmp(a.data, model->occupancy.data(), a.bytes) != 0)
+                    a.bytes != g.model.occupancy.size() ||
+                    std::memcmp(a.data, g.model.occupancy.data(), a.bytes) != 0)
                     ++mismatches;
                 for (std::uint32_t k = 0; k < layers; ++k) {
                     if (lsnif_get_array(o.model, LSNIF_ARRAY_LAYER_WEIGHTS, k, &a) != LSNIF_OK ||
-                        a.bytes != model->weights[k].size() * 2 ||
-                        std::memcmp(a.data, model->weights[k].data(), a.bytes) != 0)
+                        a.bytes != g.model.weights[k].size() * 2 ||
+                        std::memcmp(a.data, g.model.weights[k].data(), a.bytes) != 0)
                         ++mismatches;
                     if (lsnif_get_array(o.model, LSNIF_ARRAY_LAYER_BIAS, k, &a) != LSNIF_OK ||
-                        a.bytes != model->biases[k].size() * 2 ||
-                        std::memcmp(a.data, model->biases[k].data(), a.bytes) != 0)
+                        a.bytes != g.model.biases[k].size() * 2 ||
+                        std::memcmp(a.data, g.model.biases[k].data(), a.bytes) != 0)
                         ++mismatches;
                 }
             });

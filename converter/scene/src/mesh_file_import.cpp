@@ -313,6 +313,11 @@ std::string check_ply_header(const std::string& head, std::uintmax_t size) {
             if (!ok) return bad("expected 'property TYPE NAME' or 'property list TYPE TYPE NAME'");
             continue;
         }
+        // A skipped line may not name a format: OpenMesh's reader spins on one that does
+        // without being a format line (e.g. "formatx ascii"; found by fuzz_import).
+        for (std::size_t i = 1; i < w.size(); ++i)
+            if (w[i] == "ascii" || w[i] == "binary_little_endian" || w[i] == "binary_big_endian")
+                return bad("'" + w[i] + "' outside a 'format' line");
     }
 }
 
