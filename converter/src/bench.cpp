@@ -283,10 +283,10 @@ json stage_rates(const format::Runtime& rt, const std::vector<format::Ray>& reac
 json weight_storage_cost(const format::Runtime& rt, const format::ModelData& model,
                          const std::vector<format::Ray>& reach, const BenchOptions& o) {
     format::Runtime fp32_stored = rt;
-    std::vector<std::vector<float>> w(model.weights.size()), b(model.biases.size());
-    for (std::size_t k = 0; k < w.size(); ++k) {
-        for (const std::uint16_t h : model.weights[k]) w[k].push_back(format::half_to_float(h));
-        for (const std::uint16_t h : model.biases[k]) b[k].push_back(format::half_to_float(h));
+    std::vector<std::vector<float>> w, b;
+    for (std::size_t k = 0; k < model.weights.size(); ++k) {
+        w.push_back(format::halves_to_floats(model.weights[k]));
+        b.push_back(format::halves_to_floats(model.biases[k]));
     }
     fp32_stored.net = format::make_network(model.desc, w, b);
     constexpr int kTurns = 5;

@@ -601,14 +601,23 @@ std::uint32_t pad16(std::uint32_t n) {
     return (n + 15u) & ~15u;
 }
 
-void add_layer(Network& net, std::uint32_t in, std::uint32_t out, const float* w_row_major, const float* b) {
+// W^T [in][pad16(out)] of weights [out][in] row-major, the padding columns zero.
+template <class T>
+std::vector<T> transpose_padded(const T* w_row_major, std::uint32_t in, std::uint32_t out) {
     const std::uint32_t op = pad16(out);
-    std::vector<float> wt(std::size_t(in) * op, 0.0f), bias(op, 0.0f);
-    for (std::uint32_t o = 0; o < out; ++o) {
+    std::vector<T> wt(std::size_t(in) * op, T(0));
+    for (std::uint32_t o = 0; o < out; ++o)
         for (std::uint32_t i = 0; i < in; ++i)
             wt[std::size_t(i) * op + o] = w_row_major[std::size_t(o) * in + i];
-        bias[o] = b[o];
-    }
+    return wt;
+}
+
+// Appends a layer of `in` inputs and `out` outputs: its fp32 W^T (transpose_padded; empty for
+// a model network's hidden layer) and its `out` biases, padded.
+void add_layer(Network& net, std::uint32_t in, std::uint32_t out, std::vector<float> wt, const float* b) {
+    const std::uint32_t op = pad16(out);
+    std::vector<float> bias(op, 0.0f);
+    std::copy(b, b + out, bias.begin());
     net.in.push_back(in);
     net.out.push_back(out);
     net.out_padded.push_back(op);
@@ -844,27 +853,12 @@ Network make_network(const ModelData& m) {
     Network net;
     for (std::uint32_t k = 0; k < m.desc.layer_count(); ++k) {
         const auto [out, in] = m.desc.layer_shape(k);
-        const std::uint32_t op = pad16(out);
-        std::vector<std::uint16_t> wt(std::size_t(in) * op, 0);
-        std::vector<float> bias(op, 0.0f);
-        for (std::uint32_t o = 0; o < out; ++o) {
-            for (std::uint32_t i = 0; i < in; ++i)
-                wt[std::size_t(i) * op + o] = m.weights[k][std::size_t(o) * in + i];
-            bias[o] = half_to_float(m.biases[k][o]);
-        }
+        std::vector<std::uint16_t> wt = transpose_padded(m.weights[k].data(), in, out);
+        // Only the output layer's kernel reads fp32 weights.
         const bool output = k + 1 == m.desc.layer_count();
-        std::vector<float> wt32;
-        if (output) {
-            wt32.resize(wt.size());
-            for (std::size_t j = 0; j < wt.size(); ++j) wt32[j] = half_to_float(wt[j]);
-        }
-        net.in.push_back(in);
-        net.out.push_back(out);
-        net.out_padded.push_back(op);
-        net.wt.push_back(std::move(wt32));
+        add_layer(net, in, out, output ? halves_to_floats(wt) : std::vector<float>{},
+                  halves_to_floats(m.biases[k]).data());
         net.wt_f16.push_back(std::move(wt));
-        net.bias.push_back(std::move(bias));
-        net.max_width_padded = std::max<std::size_t>(net.max_width_padded, op);
     }
     return net;
 }
@@ -874,7 +868,7 @@ Network make_network(const ModelDesc& desc, const std::vector<std::vector<float>
     Network net;
     for (std::uint32_t k = 0; k < desc.layer_count(); ++k) {
         const auto [o, i] = desc.layer_shape(k);
-        add_layer(net, i, o, weights[k].data(), biases[k].data());
+        add_layer(net, i, o, transpose_padded(weights[k].data(), i, o), biases[k].data());
     }
     return net;
 }
@@ -919,25 +913,14 @@ bool int8_fits(const Network& net) {
     return true;
 }
 
-}  // namespace
-
-namespace {
-
 // The hidden layers' fp32 W^T, which neither reduced arithmetic reads once packed.
 void release_hidden_fp32(Network& net) {
     for (std::size_t k = 0; k + 1 < net.wt.size(); ++k) std::vector<float>().swap(net.wt[k]);
 }
 
-}  // namespace
-
-namespace {
-
 // Hidden layer k's W^T in fp32, from whichever storage the network has.
 std::vector<float> hidden_wt_fp32(const Network& net, std::size_t k) {
-    if (!net.wt[k].empty()) return net.wt[k];
-    std::vector<float> w(net.wt_f16[k].size());
-    for (std::size_t j = 0; j < w.size(); ++j) w[j] = half_to_float(net.wt_f16[k][j]);
-    return w;
+    return net.wt[k].empty() ? halves_to_floats(net.wt_f16[k]) : net.wt[k];
 }
 
 }  // namespace

@@ -48,9 +48,7 @@ Result<QuantizedLevel> quantize_level(std::span<const float> values) {
 
 Result<QuantizedLevel> quantize_level_fp16(std::span<const std::uint16_t> halves) {
     try {
-        std::vector<float> f(halves.size());
-        for (std::size_t i = 0; i < halves.size(); ++i) f[i] = half_to_float(halves[i]);
-        return quantize_level(f);
+        return quantize_level(halves_to_floats(halves));
     } catch (const std::bad_alloc&) {
         return Error{LSNIF_ERR_OUT_OF_MEMORY, UINT64_MAX, "out of memory"};
     }

@@ -5,6 +5,8 @@
 
 #include <bit>
 #include <cstdint>
+#include <span>
+#include <vector>
 
 namespace lsnif::format {
 
@@ -52,6 +54,13 @@ inline std::uint16_t float_to_half(float f) {
     const std::uint32_t rem = man & 0x1FFFu;
     if (rem > 0x1000u || (rem == 0x1000u && (h & 1u))) ++h;  // may carry into exponent: correct
     return std::uint16_t(sign | h);
+}
+
+// Every value of `halves` as binary32 (exact: each binary16 is a binary32).
+inline std::vector<float> halves_to_floats(std::span<const std::uint16_t> halves) {
+    std::vector<float> f(halves.size());
+    for (std::size_t i = 0; i < halves.size(); ++i) f[i] = half_to_float(halves[i]);
+    return f;
 }
 
 inline bool half_is_finite(std::uint16_t h) {
