@@ -3,6 +3,16 @@
 // for complex ones — with a point light and hard shadows, into a binary PPM.
 //
 //   lsnif_render OUTDIR|OUTDIR/scene.gltf OUT.ppm [WIDTH HEIGHT] [--camera ex,ey,ez,tx,ty,tz]
+//                [--user-geometry [--packet 1|4|8|16]]
+//
+// Two ways to trace the assets, the same image from both:
+//   batched (default)  Embree traces the simple meshes, then the reader answers each asset
+//                      instance's rays a row at a time (lsnif_intersect_instance,
+//                      lsnif_occluded_instance): what the reader is fastest at.
+//   --user-geometry    every asset instance is an Embree user geometry (lsnif_embree.h) in the
+//                      same scene as the meshes, and Embree alone is called, with single rays
+//                      or with packets of --packet rays: what a renderer that already traces
+//                      through Embree changes least to adopt.
 //
 // OUTDIR/scene.gltf is the same scene as a glTF whose converted meshes carry the
 // LSNIF_neural_geometry extension (schema/LSNIF_neural_geometry.md): a renderer that already
@@ -19,11 +29,12 @@
 //                                   reads it; here lsnif::scene stands in for that importer)
 //   instances[j]         mesh index and object-to-world 3x4 row-major transform
 // The reader is thread-safe for concurrent lsnif_intersect_instance calls on one model
-// and works best on batches of >= 256 rays, so rays are traced a row at a time.
+// and works best on batches of >= 256 rays, so the batched route traces a row at a time.
 //
 // Embree (and the reader) are only given rays whose origin and direction are finite: a
 // pixel whose primary ray missed has no shadow ray at all.
 #include <lsnif/lsnif.h>
+#include <lsnif/lsnif_embree.h>
 #include <lsnif/base/affine.hpp>
 #include <lsnif/scene/scene.hpp>
 
@@ -32,6 +43,7 @@
 
 #include <algorithm>
 #include <array>
+#include <chrono>
 #include <cmath>
 #include <cstdint>
 #include <cstdio>
@@ -86,10 +98,18 @@ void grow(float* box, const float* p) {
     for (int a = 0; a < 3; ++a) box[a] = std::min(box[a], p[a]), box[a + 3] = std::max(box[a + 3], p[a]);
 }
 
+// How the assets are traced (the header comment says what each does).
+struct Tracing {
+    bool user_geometry = false;
+    int packet = 1;  // rays per Embree call with user_geometry: 1, 4, 8 or 16
+};
+
 struct Options {
     fs::path outdir, image;
     int width = 320, height = 240;
     std::optional<std::array<float, 6>> camera;  // eye, target
+    Tracing tracing;
+    bool packet_given = false;
 };
 
 // Returns nothing on a usage error (after printing usage).
@@ -104,11 +124,19 @@ std::optional<Options> parse_args(int argc, char** argv) {
                 !std::all_of(c.begin(), c.end(), [](float v) { return std::isfinite(v); }))
                 return std::nullopt;
             o.camera = c;
+        } else if (a == "--user-geometry") {
+            o.tracing.user_geometry = true;
+        } else if (a == "--packet" && i + 1 < argc) {
+            const std::string w = argv[++i];
+            if (w != "1" && w != "4" && w != "8" && w != "16") return std::nullopt;
+            o.tracing.packet = std::stoi(w);
+            o.packet_given = true;
         } else {
             pos.push_back(a);
         }
     }
     if (pos.size() != 2 && pos.size() != 4) return std::nullopt;
+    if (o.packet_given && !o.tracing.user_geometry) return std::nullopt;  // packets are Embree's calls
     o.outdir = pos[0];
     o.image = pos[1];
     if (pos.size() == 4) {
@@ -123,7 +151,8 @@ std::optional<Options> parse_args(int argc, char** argv) {
 // complex meshes as open LSNIF models with their instances' transforms. Owns every handle.
 class HybridScene {
 public:
-    explicit HybridScene(const fs::path& input);  // an OUTDIR (its manifest) or a scene.gltf
+    // `input`: an OUTDIR (its manifest) or a scene.gltf.
+    HybridScene(const fs::path& input, const Tracing& tracing);
     ~HybridScene();
     HybridScene(const HybridScene&) = delete;
     HybridScene& operator=(const HybridScene&) = delete;
@@ -131,10 +160,13 @@ public:
     const float* world_box() const { return world_; }
     std::size_t instance_count() const { return instances_.size(); }
 
-    // Closest hit of every ray (all finite): Embree for the simple part, then every LSNIF
-    // instance whose box the ray reaches; the nearest hit wins. Normals are world-space:
-    // Embree's geometric normal (transformed here) or the network's.
+    // Closest hit of every ray (all finite) on [tmin, tmax]; the nearest of the meshes' and
+    // the assets' hits wins, each asset answering for the ray from tmin on (lsnif_embree.h's
+    // rule, which the batched route follows too). Normals are world-space: Embree's geometric
+    // normal (transformed here) or the network's.
     void trace(const std::vector<lsnif_ray>& rays, std::vector<lsnif_hit>& hits) const;
+    // Whether anything lies on each ray's [tmin, tmax] (all finite rays).
+    void occluded(const std::vector<lsnif_ray>& rays, std::vector<char>& occluded) const;
 
 private:
     struct Mesh {
@@ -150,6 +182,9 @@ private:
     };
 
     void release();  // every handle, once
+    // The two routes of trace() and occluded() (the file's header comment).
+    void trace_batched(const std::vector<lsnif_ray>& rays, std::vector<lsnif_hit>& hits) const;
+    void occluded_batched(const std::vector<lsnif_ray>& rays, std::vector<char>& occluded) const;
     void load_manifest(const fs::path& outdir);
     void load_gltf(const fs::path& gltf);
     std::vector<lsnif::scene::Scene> load_inputs(const json& manifest, const fs::path& outdir) const;
@@ -158,14 +193,17 @@ private:
     void add_instance(std::size_t mesh, const float (&xf)[12]);
 
     fs::path manifest_path_;  // or the glTF file: what error messages name
+    Tracing tracing_;
     RTCDevice device_ = nullptr;
     RTCScene top_ = nullptr;
+    std::vector<RTCGeometry>
+        asset_geometries_;  // with --user-geometry: lsnif_embree's, one per asset instance
     std::vector<Mesh> meshes_;
     std::vector<Instance> instances_;
     float world_[6] = {INFINITY, INFINITY, INFINITY, -INFINITY, -INFINITY, -INFINITY};
 };
 
-HybridScene::HybridScene(const fs::path& input) {
+HybridScene::HybridScene(const fs::path& input, const Tracing& tracing) : tracing_(tracing) {
     try {  // a constructor that throws runs no destructor: release what was made so far
         device_ = rtcNewDevice(nullptr);
         top_ = rtcNewScene(device_);
@@ -266,12 +304,15 @@ HybridScene::~HybridScene() {
 }
 
 void HybridScene::release() {
+    // The scene first, then the user geometries it held, then the models they borrow.
+    if (top_) rtcReleaseScene(top_);
+    for (RTCGeometry g : asset_geometries_) lsnif_embree_release_geometry(g);
+    asset_geometries_.clear();
     for (Mesh& m : meshes_) {
         if (m.model) lsnif_close(m.model);
         if (m.scene) rtcReleaseScene(m.scene);
     }
     meshes_.clear();
-    if (top_) rtcReleaseScene(top_);
     if (device_) rtcReleaseDevice(device_);
     top_ = nullptr;
     device_ = nullptr;
@@ -300,6 +341,12 @@ void HybridScene::add_mesh(const lsnif::scene::Mesh& src, const fs::path& asset)
         lsnif_error err;
         if (lsnif_open_file(asset.c_str(), &out.model, &err) != LSNIF_OK)
             throw Failure(asset.string() + ": " + err.message);
+        // The box the asset answers in (it may reach past the vertices): what Embree is given
+        // for its user geometry, and what the batched route culls rays with.
+        lsnif_info info;
+        lsnif_get_info(out.model, &info);
+        grow(out.box, info.box_min);
+        grow(out.box, info.box_max);
         return;
     }
     out.scene = rtcNewScene(device_);
@@ -342,7 +389,15 @@ void HybridScene::add_instance(std::size_t mesh, const float (&xf)[12]) {
         grow(in.box, w);
         grow(world_, w);
     }
-    if (!m.model) {
+    if (m.model && tracing_.user_geometry) {
+        RTCGeometry g = nullptr;
+        const lsnif_status st = lsnif_embree_new_geometry(device_, m.model, in.xf, &g);
+        if (st != LSNIF_OK)
+            throw Failure(manifest_path_.string() + ": instance " + std::to_string(instances_.size()) +
+                          ": cannot make an Embree user geometry (" + lsnif_status_string(st) + ")");
+        asset_geometries_.push_back(g);
+        rtcAttachGeometryByID(top_, g, unsigned(instances_.size()));  // geomID = our index
+    } else if (!m.model) {
         RTCGeometry g = rtcNewGeometry(device_, RTC_GEOMETRY_TYPE_INSTANCE);
         rtcSetGeometryInstancedScene(g, m.scene);
         rtcSetGeometryTransform(g, 0, RTC_FORMAT_FLOAT3X4_ROW_MAJOR, in.xf);
@@ -353,21 +408,116 @@ void HybridScene::add_instance(std::size_t mesh, const float (&xf)[12]) {
     instances_.push_back(in);
 }
 
+// What Embree reports for one ray: the hit's distance, geometric normal and IDs.
+struct EmbreeHit {
+    float t;
+    float ng[3];
+    unsigned geom, inst;
+};
+
+// A packet of N rays in Embree's SOA layout: RTCRayHit for N = 1, RTCRayHit4/8/16 otherwise.
+template <int N>
+struct alignas(64) Packet {
+    RTCRayHitNt<N> rh;
+    int valid[N];
+};
+
+template <int N>
+void load_packet(Packet<N>& p, const lsnif_ray* rays, std::size_t n) {
+    for (int i = 0; i < N; ++i) {
+        const bool on = std::size_t(i) < n;
+        const lsnif_ray& r = rays[on ? i : 0];
+        p.valid[i] = on ? -1 : 0;
+        p.rh.ray.org_x[i] = r.org[0], p.rh.ray.org_y[i] = r.org[1], p.rh.ray.org_z[i] = r.org[2];
+        p.rh.ray.dir_x[i] = r.dir[0], p.rh.ray.dir_y[i] = r.dir[1], p.rh.ray.dir_z[i] = r.dir[2];
+        p.rh.ray.tnear[i] = r.tmin, p.rh.ray.tfar[i] = r.tmax, p.rh.ray.time[i] = 0.0f;
+        p.rh.ray.mask[i] = 0xFFFFFFFFu, p.rh.ray.id[i] = 0, p.rh.ray.flags[i] = 0;
+        p.rh.hit.geomID[i] = RTC_INVALID_GEOMETRY_ID;
+        p.rh.hit.instID[0][i] = RTC_INVALID_GEOMETRY_ID;
+    }
+}
+
+// Closest hits of `rays` through Embree alone, N rays per call.
+template <int N>
+void embree_closest(RTCScene scene, const std::vector<lsnif_ray>& rays, std::vector<EmbreeHit>& out) {
+    out.resize(rays.size());
+    Packet<N> p;
+    RTCIntersectContext ctx;
+    for (std::size_t base = 0; base < rays.size(); base += N) {
+        const std::size_t n = std::min<std::size_t>(N, rays.size() - base);
+        load_packet(p, &rays[base], n);
+        rtcInitIntersectContext(&ctx);
+        if constexpr (N == 1) rtcIntersect1(scene, &ctx, reinterpret_cast<RTCRayHit*>(&p.rh));
+        if constexpr (N == 4) rtcIntersect4(p.valid, scene, &ctx, reinterpret_cast<RTCRayHit4*>(&p.rh));
+        if constexpr (N == 8) rtcIntersect8(p.valid, scene, &ctx, reinterpret_cast<RTCRayHit8*>(&p.rh));
+        if constexpr (N == 16) rtcIntersect16(p.valid, scene, &ctx, reinterpret_cast<RTCRayHit16*>(&p.rh));
+        for (std::size_t i = 0; i < n; ++i)
+            out[base + i] = {p.rh.ray.tfar[i],
+                             {p.rh.hit.Ng_x[i], p.rh.hit.Ng_y[i], p.rh.hit.Ng_z[i]},
+                             p.rh.hit.geomID[i],
+                             p.rh.hit.instID[0][i]};
+    }
+}
+
+// Occlusion of `rays` through Embree alone, N rays per call.
+template <int N>
+void embree_occluded(RTCScene scene, const std::vector<lsnif_ray>& rays, std::vector<char>& out) {
+    out.assign(rays.size(), 0);
+    Packet<N> p;
+    RTCIntersectContext ctx;
+    for (std::size_t base = 0; base < rays.size(); base += N) {
+        const std::size_t n = std::min<std::size_t>(N, rays.size() - base);
+        load_packet(p, &rays[base], n);
+        rtcInitIntersectContext(&ctx);
+        if constexpr (N == 1) rtcOccluded1(scene, &ctx, reinterpret_cast<RTCRay*>(&p.rh.ray));
+        if constexpr (N == 4) rtcOccluded4(p.valid, scene, &ctx, reinterpret_cast<RTCRay4*>(&p.rh.ray));
+        if constexpr (N == 8) rtcOccluded8(p.valid, scene, &ctx, reinterpret_cast<RTCRay8*>(&p.rh.ray));
+        if constexpr (N == 16) rtcOccluded16(p.valid, scene, &ctx, reinterpret_cast<RTCRay16*>(&p.rh.ray));
+        for (std::size_t i = 0; i < n; ++i) out[base + i] = p.rh.ray.tfar[i] < 0.0f;  // Embree's mark: -inf
+    }
+}
+
 void HybridScene::trace(const std::vector<lsnif_ray>& rays, std::vector<lsnif_hit>& hits) const {
+    if (!tracing_.user_geometry) return trace_batched(rays, hits);
+    std::vector<EmbreeHit> eh;
+    switch (tracing_.packet) {
+        case 4: embree_closest<4>(top_, rays, eh); break;
+        case 8: embree_closest<8>(top_, rays, eh); break;
+        case 16: embree_closest<16>(top_, rays, eh); break;
+        default: embree_closest<1>(top_, rays, eh); break;
+    }
     hits.assign(rays.size(), lsnif_hit{INFINITY, {0, 0, 0}, 0, 0});
     for (std::size_t i = 0; i < rays.size(); ++i) {
-        const lsnif_ray& r = rays[i];
-        RTCIntersectContext ctx;
-        rtcInitIntersectContext(&ctx);
-        RTCRayHit rh{};
-        rh.ray = {r.org[0], r.org[1], r.org[2], r.tmin,      r.dir[0], r.dir[1],
-                  r.dir[2], 0.0f,     r.tmax,   0xFFFFFFFFu, 0,        0};
-        rh.hit.geomID = RTC_INVALID_GEOMETRY_ID;
-        rtcIntersect1(top_, &ctx, &rh);
-        if (rh.hit.geomID == RTC_INVALID_GEOMETRY_ID) continue;
-        const float* n = instances_[rh.hit.instID[0]].nmat.data();
-        const float g[3] = {rh.hit.Ng_x, rh.hit.Ng_y, rh.hit.Ng_z};
-        hits[i] = {rh.ray.tfar, {dot3(n, g), dot3(n + 3, g), dot3(n + 6, g)}, 1, 0};
+        const EmbreeHit& h = eh[i];
+        if (h.geom == RTC_INVALID_GEOMETRY_ID) continue;
+        if (h.inst ==
+            RTC_INVALID_GEOMETRY_ID) {  // an asset's user geometry: a world-space normal, a material
+            hits[i] = {h.t, {h.ng[0], h.ng[1], h.ng[2]}, 1, 0};
+            continue;
+        }
+        const float* n = instances_[h.inst].nmat.data();
+        hits[i] = {h.t, {dot3(n, h.ng), dot3(n + 3, h.ng), dot3(n + 6, h.ng)}, 1, 0};
+    }
+}
+
+void HybridScene::occluded(const std::vector<lsnif_ray>& rays, std::vector<char>& occluded) const {
+    if (!tracing_.user_geometry) return occluded_batched(rays, occluded);
+    switch (tracing_.packet) {
+        case 4: return embree_occluded<4>(top_, rays, occluded);
+        case 8: return embree_occluded<8>(top_, rays, occluded);
+        case 16: return embree_occluded<16>(top_, rays, occluded);
+        default: return embree_occluded<1>(top_, rays, occluded);
+    }
+}
+
+void HybridScene::trace_batched(const std::vector<lsnif_ray>& rays, std::vector<lsnif_hit>& hits) const {
+    std::vector<EmbreeHit> eh;
+    embree_closest<1>(top_, rays, eh);
+    hits.assign(rays.size(), lsnif_hit{INFINITY, {0, 0, 0}, 0, 0});
+    for (std::size_t i = 0; i < rays.size(); ++i) {
+        if (eh[i].geom == RTC_INVALID_GEOMETRY_ID) continue;
+        const float* n = instances_[eh[i].inst].nmat.data();
+        hits[i] = {eh[i].t, {dot3(n, eh[i].ng), dot3(n + 3, eh[i].ng), dot3(n + 6, eh[i].ng)}, 1, 0};
     }
     std::vector<lsnif_ray> batch;
     std::vector<std::size_t> index;
@@ -377,15 +527,36 @@ void HybridScene::trace(const std::vector<lsnif_ray>& rays, std::vector<lsnif_hi
         batch.clear();
         index.clear();
         for (std::size_t i = 0; i < rays.size(); ++i) {
+            // Only a nearer hit matters, so a box beyond the hit so far is skipped; the reader
+            // still gets the whole ray (its answer must not depend on what was met first).
             lsnif_ray r = rays[i];
-            r.tmax = std::min(r.tmax, hits[i].t);  // only a nearer hit matters
-            if (ray_hits_box(r, in.box)) batch.push_back(r), index.push_back(i);
+            r.tmax = std::min(r.tmax, hits[i].t);
+            if (ray_hits_box(r, in.box)) batch.push_back(rays[i]), index.push_back(i);
         }
         out.resize(batch.size());
         if (!batch.empty() &&
             lsnif_intersect_instance(in.model, in.xf, batch.data(), batch.size(), out.data()) == LSNIF_OK)
             for (std::size_t k = 0; k < batch.size(); ++k)
-                if (out[k].hit && out[k].t < hits[index[k]].t) hits[index[k]] = out[k];
+                if (out[k].hit && out[k].t <= hits[index[k]].t) hits[index[k]] = out[k];
+    }
+}
+
+void HybridScene::occluded_batched(const std::vector<lsnif_ray>& rays, std::vector<char>& occluded) const {
+    embree_occluded<1>(top_, rays, occluded);
+    std::vector<lsnif_ray> batch;
+    std::vector<std::size_t> index;
+    std::vector<std::uint8_t> out;
+    for (const Instance& in : instances_) {
+        if (!in.model) continue;
+        batch.clear();
+        index.clear();
+        for (std::size_t i = 0; i < rays.size(); ++i)
+            if (!occluded[i] && ray_hits_box(rays[i], in.box)) batch.push_back(rays[i]), index.push_back(i);
+        out.resize(batch.size());
+        if (!batch.empty() &&
+            lsnif_occluded_instance(in.model, in.xf, batch.data(), batch.size(), out.data()) == LSNIF_OK)
+            for (std::size_t k = 0; k < batch.size(); ++k)
+                if (out[k]) occluded[index[k]] = 1;
     }
 }
 
@@ -411,7 +582,7 @@ Camera make_camera(const Vec3& eye, const Vec3& target) {
 void render_row(const HybridScene& scene, const Camera& cam, const Vec3& light, float eps, int y, int W,
                 int H, unsigned char* row) {
     std::vector<lsnif_ray> prim(W), shadow;
-    std::vector<lsnif_hit> ph, sh;
+    std::vector<lsnif_hit> ph;
     std::vector<int> lit;  // pixel of each shadow ray
     for (int x = 0; x < W; ++x) {
         const float sx = (2.0f * (x + 0.5f) / W - 1.0f) * cam.tan_half * W / H,
@@ -442,9 +613,10 @@ void render_row(const HybridScene& scene, const Camera& cam, const Vec3& light, 
         shadow.push_back(s);
         lit.push_back(x);
     }
-    scene.trace(shadow, sh);
+    std::vector<char> shadowed;
+    scene.occluded(shadow, shadowed);
     std::vector<char> occluded(W, 0);
-    for (std::size_t k = 0; k < lit.size(); ++k) occluded[lit[k]] = sh[k].hit;
+    for (std::size_t k = 0; k < lit.size(); ++k) occluded[lit[k]] = shadowed[k];
     for (int x = 0; x < W; ++x) {
         float v = 0.05f;  // background
         if (ph[x].hit) {
@@ -478,7 +650,7 @@ void write_ppm(const fs::path& path, int W, int H, const std::vector<unsigned ch
 }
 
 int run(const Options& opt) {
-    const HybridScene scene(opt.outdir);
+    const HybridScene scene(opt.outdir, opt.tracing);
     const float* w = scene.world_box();
     const Vec3 c{0.5f * (w[0] + w[3]), 0.5f * (w[1] + w[4]), 0.5f * (w[2] + w[5])};
     const Vec3 ext{w[3] - w[0], w[4] - w[1], w[5] - w[2]};
@@ -494,11 +666,17 @@ int run(const Options& opt) {
     const float eps = 1e-4f * diag;
 
     std::vector<unsigned char> image(std::size_t(opt.width) * opt.height * 3);
+    const auto start = std::chrono::steady_clock::now();
     for (int y = 0; y < opt.height; ++y)
         render_row(scene, cam, light, eps, y, opt.width, opt.height, &image[std::size_t(y) * opt.width * 3]);
+    const double seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
     write_ppm(opt.image, opt.width, opt.height, image);
-    std::printf("wrote %s (%dx%d, %zu instances)\n", opt.image.c_str(), opt.width, opt.height,
-                scene.instance_count());
+    const std::string route =
+        opt.tracing.user_geometry
+            ? "Embree user geometry, " + std::to_string(opt.tracing.packet) + "-ray calls"
+            : std::string("batched");
+    std::printf("wrote %s (%dx%d, %zu instances; assets traced %s; rendered in %.3f s)\n", opt.image.c_str(),
+                opt.width, opt.height, scene.instance_count(), route.c_str(), seconds);
     return 0;
 }
 
@@ -510,6 +688,7 @@ int main(int argc, char** argv) {
         std::fprintf(
             stderr,
             "usage: %s OUTDIR|OUTDIR/scene.gltf OUT.ppm [WIDTH HEIGHT] [--camera ex,ey,ez,tx,ty,tz]\n"
+            "          [--user-geometry [--packet 1|4|8|16]]\n"
             "  WIDTH, HEIGHT in 1..8192 (default 320x240)\n",
             argc > 0 ? argv[0] : "lsnif_render");
         return 2;

@@ -39,6 +39,19 @@ distinct=$(tail -c $((96 * 72 * 3)) "$work/a.ppm" | od -An -tu1 -v | tr -s ' ' '
 (cd "$work/elsewhere" && "$render" ../proj/out/scene.gltf "$work/g.ppm" 96 72 >/dev/null) \
   || bad "render of scene.gltf exited $?"
 cmp -s "$work/a.ppm" "$work/g.ppm" || bad "the render of scene.gltf differs from the manifest's"
+# The assets as Embree user geometries (lsnif_embree.h), single rays and packets: the image
+# of the batched route, byte for byte (both answer each asset for the whole ray). --packet
+# alone or with another width is a usage error.
+for packet in 1 4 8 16; do
+  "$render" "$work/proj/out" "$work/u$packet.ppm" 96 72 --user-geometry --packet $packet >"$work/u.out" ||
+    bad "render --user-geometry --packet $packet exited $?"
+  grep -q "assets traced Embree user geometry, $packet-ray calls" "$work/u.out" || bad "user-geometry report: $(cat "$work/u.out")"
+  cmp -s "$work/a.ppm" "$work/u$packet.ppm" || bad "the user-geometry render (packets of $packet) differs from the batched one"
+done
+for args in "--packet 4" "--user-geometry --packet 3"; do
+  "$render" "$work/proj/out" "$work/p.ppm" 96 72 $args >/dev/null 2>&1; rc=$?
+  [[ $rc == 2 && ! -e $work/p.ppm ]] || bad "render $args: exit $rc (usage error expected, no image)"
+done
 python3 - "$work/proj/out/scene.gltf" "$work/proj/out/stale.gltf" <<'PY'
 import json, sys
 d = json.load(open(sys.argv[1]))

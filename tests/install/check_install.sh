@@ -2,22 +2,26 @@
 # The reader as a renderer's build meets it: installed, relocated, found by CMake or
 # pkg-config from C and C++, linked static or shared (docs/packaging.md).
 #
-#   check_install.sh WORK_DIR REFERENCE_C REFERENCE_CPP build SOURCE_DIR NATIVE ASSET...
-#       builds format/ alone (LSNIF_READER_ONLY) twice, with and without LSNIF_SHARED,
+#   check_install.sh WORK_DIR REFERENCE_C REFERENCE_CPP REFERENCE_EMBREE build SOURCE_DIR NATIVE ASSET...
+#       builds format/ and embree/ alone (LSNIF_READER_ONLY, LSNIF_EMBREE) twice, with and
+#       without LSNIF_SHARED,
 #       installs each with --prefix WORK_DIR/staged-*, moves the tree to WORK_DIR/moved-*
 #       and checks every consumer against the moved tree.
-#   check_install.sh WORK_DIR REFERENCE_C REFERENCE_CPP prefix PREFIX KIND ASSET...
+#   check_install.sh WORK_DIR REFERENCE_C REFERENCE_CPP REFERENCE_EMBREE prefix PREFIX KIND ASSET...
 #       checks the consumers against an existing install (KIND: shared or static), e.g.
 #       /usr after `apt-get install ./*.deb` (scripts/check_packages).
 #
-# The consumers are examples/c_reader/print_info.c (C) and tests/install/consumer.cpp (C++);
-# REFERENCE_C and REFERENCE_CPP are the same programs built in the project's own tree, and
-# every consumer built here must print what its reference prints, for every ASSET.
+# The consumers are examples/c_reader/print_info.c (C) and tests/install/consumer.cpp (C++)
+# of the reader, and examples/embree_scene/embree_scene.c (C) of the Embree companion;
+# REFERENCE_C, REFERENCE_CPP and REFERENCE_EMBREE are the same programs built in the
+# project's own tree, and every consumer built here must print what its reference prints,
+# for every ASSET.
 # Exit status is the truth.
 set -euo pipefail
 
 here=$(cd "$(dirname "$0")" && pwd)
 c_source=$(cd "$here/../../examples/c_reader" && pwd)/print_info.c
+embree_source=$(cd "$here/../../examples/embree_scene" && pwd)/embree_scene.c
 declare -A references
 fail() {
     echo "check_install: $*" >&2
@@ -63,7 +67,7 @@ library_dir() {
     fail "$prefix: no lib*/pkgconfig/lsnif.pc under it"
 }
 
-# One CMake consumer project (c_project or cpp_project) against PREFIX.
+# One CMake consumer project (c_project, cpp_project or embree_project) against PREFIX.
 cmake_consumer() {
     local prefix=$1 project=$2 linkage=$3 out=$4
     local static_flag=OFF
@@ -124,6 +128,26 @@ check_prefix() {
         fail "cc -static with pkg-config --static failed"
     expect_linkage "$work/pc_c_static" static "pkg-config --static"
     expect_reference_output "$work/pc_c_static" "${references[c]}" "pkg-config --static, -static executable ($prefix)"
+    check_embree_consumers "$prefix" "$kind" "$work" "$libdir"
+}
+
+# The Embree companion (liblsnif_embree.a) in the same tree: find_package(lsnif COMPONENTS
+# embree) and pkg-config lsnif-embree, from C, with the reader the install defaults to.
+check_embree_consumers() {
+    local prefix=$1 kind=$2 work=$3 libdir=$4
+    [[ -f $libdir/pkgconfig/lsnif-embree.pc ]] || fail "$prefix: no lsnif-embree.pc next to lsnif.pc"
+    local out="$work/embree_project"
+    cmake_consumer "$prefix" embree_project "$kind" "$out"
+    local exe="$out/lsnif_consumer_embree"
+    readelf -d "$exe" | grep -q 'libembree3\.so' || fail "$exe does not load Embree"
+    expect_linkage "$exe" "$kind" "embree_project ($kind, $prefix)"
+    expect_reference_output "$exe" "${references[embree]}" "CMake embree_project, $kind reader, $prefix"
+    local flags
+    flags=$(PKG_CONFIG_PATH=$libdir/pkgconfig pkg-config --cflags --libs lsnif-embree)
+    cc -std=c99 -o "$work/pc_embree" "$embree_source" $flags || fail "cc with pkg-config lsnif-embree failed"
+    expect_linkage "$work/pc_embree" "$kind" "pkg-config pc_embree"
+    LD_LIBRARY_PATH=$libdir expect_reference_output "$work/pc_embree" "${references[embree]}" \
+        "pkg-config pc_embree ($kind install, $prefix)"
 }
 
 # The shared library exports the C API and nothing else, under its SONAME.
@@ -145,21 +169,21 @@ check_shared_library() {
     echo "ok: $lib is $soname and exports the $(wc -l <<<"$api") C API functions only"
 }
 
-usage="usage: $0 WORK_DIR REFERENCE_C REFERENCE_CPP {build SOURCE_DIR NATIVE | prefix PREFIX KIND} ASSET..."
-(($# >= 7)) || fail "$usage"
-work=$1 mode=$4
-references=([c]=$2 [cpp]=$3)
-assets=("${@:7}")
+usage="usage: $0 WORK_DIR REFERENCE_C REFERENCE_CPP REFERENCE_EMBREE {build SOURCE_DIR NATIVE | prefix PREFIX KIND} ASSET..."
+(($# >= 8)) || fail "$usage"
+work=$1 mode=$5
+references=([c]=$2 [cpp]=$3 [embree]=$4)
+assets=("${@:8}")
 rm -rf "$work"
 mkdir -p "$work"
 case $mode in
 build)
-    source_dir=$5 native=$6
+    source_dir=$6 native=$7
     for kind in shared static; do
         shared=OFF
         [[ $kind == shared ]] && shared=ON
         build="$work/build-$kind"
-        cmake -S "$source_dir" -B "$build" -DCMAKE_BUILD_TYPE=Release -DLSNIF_READER_ONLY=ON \
+        cmake -S "$source_dir" -B "$build" -DCMAKE_BUILD_TYPE=Release -DLSNIF_READER_ONLY=ON -DLSNIF_EMBREE=ON \
             -DLSNIF_SHARED=$shared -DLSNIF_NATIVE="$native" >"$build.log" 2>&1 ||
             { cat "$build.log" >&2; fail "configure of the reader ($kind) failed"; }
         cmake --build "$build" -j 2 >>"$build.log" 2>&1 || { cat "$build.log" >&2; fail "build ($kind) failed"; }
@@ -178,7 +202,7 @@ build)
     done
     ;;
 prefix)
-    prefix=$5 kind=$6
+    prefix=$6 kind=$7
     source_dir=$(cd "$here/../.." && pwd)
     if [[ $kind == shared ]]; then
         check_shared_library "$(find "$(library_dir "$prefix")" -maxdepth 1 -name 'liblsnif_format.so.*.*' -print -quit)"
