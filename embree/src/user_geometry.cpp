@@ -74,13 +74,15 @@ void write_hit(RTCHitN* hit, unsigned N, unsigned i, const lsnif_hit& h, unsigne
     RTCHitN_v(hit, N, i) = 0.0f;
     RTCHitN_primID(hit, N, i) = h.material;
     RTCHitN_geomID(hit, N, i) = geom_id;
-    for (unsigned l = 0; l < RTC_MAX_INSTANCE_LEVEL_COUNT; ++l) RTCHitN_instID(hit, N, i, l) = context.instID[l];
+    for (unsigned l = 0; l < RTC_MAX_INSTANCE_LEVEL_COUNT; ++l)
+        RTCHitN_instID(hit, N, i, l) = context.instID[l];
 }
 
 // Hit records of one packet of width N (floats and uints, Embree's SOA layout), for the
 // filter functions to read before a hit is committed.
 struct CandidateHits {
-    static constexpr unsigned kWords = 7 + RTC_MAX_INSTANCE_LEVEL_COUNT;  // Ng xyz, u, v, primID, geomID, instID
+    static constexpr unsigned kWords =
+        7 + RTC_MAX_INSTANCE_LEVEL_COUNT;  // Ng xyz, u, v, primID, geomID, instID
     alignas(64) std::array<std::uint32_t, kWords * kLanes> words{};
     RTCHitN* get() { return reinterpret_cast<RTCHitN*>(words.data()); }
 };
@@ -108,8 +110,8 @@ void propose(Judged& j, RTCRayN* rays, unsigned N, unsigned i, const lsnif_hit& 
     j.any = true;
 }
 
-RTCFilterFunctionNArguments filter_arguments(Judged& j, void* user, RTCIntersectContext* context, RTCRayN* rays,
-                                             unsigned N) {
+RTCFilterFunctionNArguments filter_arguments(Judged& j, void* user, RTCIntersectContext* context,
+                                             RTCRayN* rays, unsigned N) {
     RTCFilterFunctionNArguments f;
     f.valid = j.valid;
     f.geometryUserPtr = user;
@@ -136,7 +138,8 @@ void intersect_packet(const RTCIntersectFunctionNArguments* args, const Placemen
             propose(j, rays, N, i, h, args->geomID, *args->context);
     }
     if (!j.any) return;
-    const RTCFilterFunctionNArguments fargs = filter_arguments(j, args->geometryUserPtr, args->context, rays, N);
+    const RTCFilterFunctionNArguments fargs =
+        filter_arguments(j, args->geometryUserPtr, args->context, rays, N);
     rtcFilterIntersection(args, &fargs);
     RTCHitN* hits = RTCRayHitN_HitN(args->rayhit, N);
     for (unsigned k = 0; k < lr.count; ++k) {
@@ -162,11 +165,13 @@ void occluded_packet(const RTCOccludedFunctionNArguments* args, const Placement&
     for (unsigned k = 0; k < lr.count; ++k)
         if (lr.hit[k].hit) propose(j, rays, N, lr.lane[k], lr.hit[k], args->geomID, *args->context);
     if (!j.any) return;
-    const RTCFilterFunctionNArguments fargs = filter_arguments(j, args->geometryUserPtr, args->context, rays, N);
+    const RTCFilterFunctionNArguments fargs =
+        filter_arguments(j, args->geometryUserPtr, args->context, rays, N);
     rtcFilterOcclusion(args, &fargs);
     for (unsigned i = 0; i < N; ++i)
         if (j.proposed[i])
-            RTCRayN_tfar(rays, N, i) = j.valid[i] == -1 ? -std::numeric_limits<float>::infinity() : j.old_tfar[i];
+            RTCRayN_tfar(rays, N, i) =
+                j.valid[i] == -1 ? -std::numeric_limits<float>::infinity() : j.old_tfar[i];
 }
 
 extern "C" void placement_bounds(const RTCBoundsFunctionArguments* args) {
@@ -188,10 +193,12 @@ RTCBounds world_bounds(const lsnif_info& info, const float* m) {
     double lo[3], hi[3];
     for (int a = 0; a < 3; ++a) lo[a] = INFINITY, hi[a] = -INFINITY;
     for (int c = 0; c < 8; ++c) {
-        const double p[3] = {c & 1 ? info.box_max[0] : info.box_min[0], c & 2 ? info.box_max[1] : info.box_min[1],
+        const double p[3] = {c & 1 ? info.box_max[0] : info.box_min[0],
+                             c & 2 ? info.box_max[1] : info.box_min[1],
                              c & 4 ? info.box_max[2] : info.box_min[2]};
         for (int r = 0; r < 3; ++r) {
-            const double w = m ? m[4 * r] * p[0] + m[4 * r + 1] * p[1] + m[4 * r + 2] * p[2] + m[4 * r + 3] : p[r];
+            const double w =
+                m ? m[4 * r] * p[0] + m[4 * r + 1] * p[1] + m[4 * r + 2] * p[2] + m[4 * r + 3] : p[r];
             lo[r] = std::min(lo[r], w);
             hi[r] = std::max(hi[r], w);
         }
@@ -217,7 +224,8 @@ extern "C" lsnif_status lsnif_embree_new_geometry(RTCDevice device, const lsnif_
     lsnif_info info;
     if (const lsnif_status s = lsnif_get_info(model, &info); s != LSNIF_OK) return s;
 
-    Placement* p = new (std::nothrow) Placement{model, object_to_world != nullptr, {}, world_bounds(info, object_to_world)};
+    Placement* p = new (std::nothrow)
+        Placement{model, object_to_world != nullptr, {}, world_bounds(info, object_to_world)};
     if (!p) return LSNIF_ERR_OUT_OF_MEMORY;
     if (object_to_world) std::copy(object_to_world, object_to_world + 12, p->object_to_world);
     for (const float v : {p->bounds.lower_x, p->bounds.lower_y, p->bounds.lower_z, p->bounds.upper_x,

@@ -14,7 +14,8 @@ enum { FAN = 16 };
 /* A floor quad just under the placed asset's world box (y = floor_y), four times as wide. */
 static RTCGeometry make_floor(RTCDevice device, const float lo[3], const float hi[3], float floor_y) {
     RTCGeometry g = rtcNewGeometry(device, RTC_GEOMETRY_TYPE_TRIANGLE);
-    float* v = (float*)rtcSetNewGeometryBuffer(g, RTC_BUFFER_TYPE_VERTEX, 0, RTC_FORMAT_FLOAT3, 3 * sizeof(float), 4);
+    float* v = (float*)rtcSetNewGeometryBuffer(g, RTC_BUFFER_TYPE_VERTEX, 0, RTC_FORMAT_FLOAT3,
+                                               3 * sizeof(float), 4);
     unsigned* t = (unsigned*)rtcSetNewGeometryBuffer(g, RTC_BUFFER_TYPE_INDEX, 0, RTC_FORMAT_UINT3,
                                                      3 * sizeof(unsigned), 2);
     if (!v || !t) {
@@ -47,7 +48,8 @@ static void trace_fan(RTCScene scene, unsigned asset_id, const float lo[3], cons
             rtcInitIntersectContext(&context);
             struct RTCRayHit rh;
             rh.ray.org_x = eye[0], rh.ray.org_y = eye[1], rh.ray.org_z = eye[2];
-            rh.ray.dir_x = target[0] - eye[0], rh.ray.dir_y = target[1] - eye[1], rh.ray.dir_z = target[2] - eye[2];
+            rh.ray.dir_x = target[0] - eye[0], rh.ray.dir_y = target[1] - eye[1],
+            rh.ray.dir_z = target[2] - eye[2];
             rh.ray.tnear = 0.0f, rh.ray.tfar = INFINITY, rh.ray.time = 0.0f;
             rh.ray.mask = 0xFFFFFFFFu, rh.ray.id = 0, rh.ray.flags = 0;
             rh.hit.geomID = RTC_INVALID_GEOMETRY_ID;
@@ -64,7 +66,8 @@ static void trace_fan(RTCScene scene, unsigned asset_id, const float lo[3], cons
                                 eye[2] + rh.ray.tfar * rh.ray.dir_z};
             float n[3] = {rh.hit.Ng_x, rh.hit.Ng_y, rh.hit.Ng_z};
             const float len = sqrtf(n[0] * n[0] + n[1] * n[1] + n[2] * n[2]);
-            const float facing = n[0] * rh.ray.dir_x + n[1] * rh.ray.dir_y + n[2] * rh.ray.dir_z > 0 ? -1.0f : 1.0f;
+            const float facing =
+                n[0] * rh.ray.dir_x + n[1] * rh.ray.dir_y + n[2] * rh.ray.dir_z > 0 ? -1.0f : 1.0f;
             const float eps = 1e-3f * (hi[1] - lo[1]);
             struct RTCRay shadow;
             shadow.org_x = p[0] + facing * eps * n[0] / len;
@@ -78,8 +81,8 @@ static void trace_fan(RTCScene scene, unsigned asset_id, const float lo[3], cons
             rtcOccluded1(scene, &context, &shadow);
             shadowed += shadow.tfar < 0.0f; /* Embree marks an occluded ray with tfar = -inf */
         }
-    printf("fan: %d of %d rays hit the asset (mean t %.4f), %d the floor; %d shadow rays occluded\n", on_asset,
-           FAN * FAN, on_asset ? t_sum / on_asset : 0.0, on_floor, shadowed);
+    printf("fan: %d of %d rays hit the asset (mean t %.4f), %d the floor; %d shadow rays occluded\n",
+           on_asset, FAN * FAN, on_asset ? t_sum / on_asset : 0.0, on_floor, shadowed);
 }
 
 int main(int argc, char** argv) {

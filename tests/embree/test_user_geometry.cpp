@@ -6,8 +6,8 @@
 // Embree instance.
 #include <doctest/doctest.h>
 
-#include <lsnif/base/random.hpp>
 #include <lsnif/lsnif_embree.h>
+#include <lsnif/base/random.hpp>
 
 #include <array>
 #include <cmath>
@@ -69,7 +69,8 @@ std::array<float, 12> rotated_scaled() {
 std::array<float, 3> apply(const float* m, const float* p) {
     if (!m) return {p[0], p[1], p[2]};
     std::array<float, 3> w{};
-    for (int r = 0; r < 3; ++r) w[r] = m[4 * r] * p[0] + m[4 * r + 1] * p[1] + m[4 * r + 2] * p[2] + m[4 * r + 3];
+    for (int r = 0; r < 3; ++r)
+        w[r] = m[4 * r] * p[0] + m[4 * r + 1] * p[1] + m[4 * r + 2] * p[2] + m[4 * r + 3];
     return w;
 }
 
@@ -93,7 +94,8 @@ std::vector<lsnif_ray> rays_at(const lsnif_info& info, const float* m, std::size
             len2 = 0;
             for (float& v : u) v = rng.uniform(-1, 1), len2 += v * v;
         } while (len2 > 1 || len2 < 1e-4f);
-        const float target_o[3] = {rng.uniform(lo[0], hi[0]), rng.uniform(lo[1], hi[1]), rng.uniform(lo[2], hi[2])};
+        const float target_o[3] = {rng.uniform(lo[0], hi[0]), rng.uniform(lo[1], hi[1]),
+                                   rng.uniform(lo[2], hi[2])};
         const auto target = apply(m, target_o);
         for (int a = 0; a < 3; ++a) {
             r.org[a] = centre[a] + radius * u[a] / std::sqrt(len2);
@@ -114,7 +116,8 @@ std::vector<lsnif_hit> batched_hits(const Model& model, const float* m, const st
     return hits;
 }
 
-std::vector<std::uint8_t> batched_occluded(const Model& model, const float* m, const std::vector<lsnif_ray>& rays) {
+std::vector<std::uint8_t> batched_occluded(const Model& model, const float* m,
+                                           const std::vector<lsnif_ray>& rays) {
     std::vector<std::uint8_t> occ(rays.size());
     const lsnif_status s = m ? lsnif_occluded_instance(model.m, m, rays.data(), rays.size(), occ.data())
                              : lsnif_occluded(model.m, rays.data(), rays.size(), occ.data());
@@ -304,7 +307,8 @@ TEST_CASE("the user geometry gives lsnif_intersect_instance's hits for single ra
     }
 }
 
-TEST_CASE("the user geometry gives lsnif_occluded_instance's decisions on segments, single rays and packets") {
+TEST_CASE(
+    "the user geometry gives lsnif_occluded_instance's decisions on segments, single rays and packets") {
     const Model model;
     const Device dev;
     const std::array<float, 12> xf = rotated_scaled();
@@ -326,7 +330,8 @@ namespace {
 // meet it before the dragon, some after.
 RTCGeometry quad_through(const Device& dev, const lsnif_info& info, const float* m) {
     RTCGeometry g = rtcNewGeometry(dev.d, RTC_GEOMETRY_TYPE_TRIANGLE);
-    auto* v = static_cast<float*>(rtcSetNewGeometryBuffer(g, RTC_BUFFER_TYPE_VERTEX, 0, RTC_FORMAT_FLOAT3, 12, 4));
+    auto* v =
+        static_cast<float*>(rtcSetNewGeometryBuffer(g, RTC_BUFFER_TYPE_VERTEX, 0, RTC_FORMAT_FLOAT3, 12, 4));
     auto* idx =
         static_cast<unsigned*>(rtcSetNewGeometryBuffer(g, RTC_BUFFER_TYPE_INDEX, 0, RTC_FORMAT_UINT3, 12, 2));
     const float z = 0.5f * (info.box_min[2] + info.box_max[2]);
@@ -411,8 +416,8 @@ extern "C" void reject_geometry(const RTCFilterFunctionNArguments* args) {
         const float nx = RTCHitN_Ng_x(args->hit, args->N, i), ny = RTCHitN_Ng_y(args->hit, args->N, i),
                     nz = RTCHitN_Ng_z(args->hit, args->N, i);
         if (geom == ctx->reject_geom &&
-            (std::fabs(nx * nx + ny * ny + nz * nz - 1.0f) > 1e-4f || RTCHitN_u(args->hit, args->N, i) != 0.0f ||
-             !(RTCRayN_tfar(args->ray, args->N, i) > 0.0f)))
+            (std::fabs(nx * nx + ny * ny + nz * nz - 1.0f) > 1e-4f ||
+             RTCHitN_u(args->hit, args->N, i) != 0.0f || !(RTCRayN_tfar(args->ray, args->N, i) > 0.0f)))
             ++ctx->wrong_fields;
         if (geom == ctx->reject_geom) args->valid[i] = 0;
     }
@@ -427,7 +432,8 @@ TEST_CASE("filter functions judge the asset's hits: a rejected hit lets the ray 
     const std::vector<lsnif_ray> rays = rays_at(model.info, xf.data(), 1500, false);
 
     RTCScene both = rtcNewScene(dev.d);
-    rtcSetSceneFlags(both, RTC_SCENE_FLAG_CONTEXT_FILTER_FUNCTION);  // Embree calls a context's filter only then
+    rtcSetSceneFlags(both,
+                     RTC_SCENE_FLAG_CONTEXT_FILTER_FUNCTION);  // Embree calls a context's filter only then
     RTCGeometry quad = quad_through(dev, model.info, xf.data());
     rtcAttachGeometry(both, quad);
     RTCGeometry g = nullptr;
