@@ -63,31 +63,102 @@ void init_rayhit(const lsnif_ray& r, RTCRayHit& rh) {
     rh.hit.instID[0] = RTC_INVALID_GEOMETRY_ID;
 }
 
-// Ray-box slab test on [tmin, tmax]: the cheap cull before a network query. A ray that
-// starts inside the box with tmin <= 0 <= tmax meets it at t = 0 (every secondary ray
-// leaving an LSNIF object's surface): answered without the three divisions.
-bool hits_box(const lsnif_ray& r, const std::array<float, 6>& b, float tmax) {
-    const bool inside = r.org[0] >= b[0] && r.org[0] <= b[3] && r.org[1] >= b[1] && r.org[1] <= b[4] &&
-                        r.org[2] >= b[2] && r.org[2] <= b[5];
-    if (inside && r.tmin <= 0.0f && tmax >= 0.0f) return true;
-    float t0 = r.tmin, t1 = tmax;
-    for (int a = 0; a < 3; ++a) {
-        const float inv = 1.0f / r.dir[a];
-        float tn = (b[a] - r.org[a]) * inv, tf = (b[a + 3] - r.org[a]) * inv;
-        if (tn > tf) std::swap(tn, tf);
-        if (!(tn <= tf)) continue;  // NaN from 0 * inf: the slab does not constrain
-        t0 = std::max(t0, tn);
-        t1 = std::min(t1, tf);
+// One trace call's rays as the box tests read them: origins, reciprocal directions and tmin,
+// one array each, so that a test of every ray against one box is a loop the compiler
+// vectorizes, and the three divisions are paid once per ray, not once per ray and box.
+struct RaySlabs {
+    std::vector<float> o[3], inv[3], tmin;
+    void assign(std::span<const lsnif_ray> rays) {
+        for (int a = 0; a < 3; ++a) {
+            o[a].resize(rays.size());
+            inv[a].resize(rays.size());
+        }
+        tmin.resize(rays.size());
+        for (std::size_t i = 0; i < rays.size(); ++i) {
+            for (int a = 0; a < 3; ++a) {
+                o[a][i] = rays[i].org[a];
+                inv[a][i] = 1.0f / rays[i].dir[a];
+            }
+            tmin[i] = rays[i].tmin;
+        }
     }
-    return t0 <= t1;
+};
+
+// reach[i] = whether ray i meets box b (min xyz, max xyz) within [tmin_i, tmax[i]]: the slab
+// test, the cheap cull before a network query. A ray that starts inside the box with
+// tmin <= 0 <= tmax meets it at t = 0 (every secondary ray leaving an LSNIF object's
+// surface). A slab distance that is NaN (a direction component of 0 from a plane of the box:
+// 0 * inf) does not constrain. Branch-free, so it vectorizes.
+void reach_box(const RaySlabs& r, const std::array<float, 6>& box, const float* tmax,
+               std::uint8_t* __restrict reach, std::size_t n) {
+    const float lo[3] = {box[0], box[1], box[2]}, hi[3] = {box[3], box[4], box[5]};
+    const float* __restrict ox = r.o[0].data(), * __restrict oy = r.o[1].data(), * __restrict oz = r.o[2].data();
+    const float *__restrict ix = r.inv[0].data(), *__restrict iy = r.inv[1].data(), *__restrict iz = r.inv[2].data();
+    const float* __restrict tmin = r.tmin.data();
+    for (std::size_t i = 0; i < n; ++i) {
+        const float o[3] = {ox[i], oy[i], oz[i]}, inv[3] = {ix[i], iy[i], iz[i]};
+        bool inside = true;
+        float t0 = tmin[i], t1 = tmax[i];
+        for (int a = 0; a < 3; ++a) {
+            inside &= (o[a] >= lo[a]) & (o[a] <= hi[a]);
+            const float dl = (lo[a] - o[a]) * inv[a], dh = (hi[a] - o[a]) * inv[a];
+            const bool swap = dl > dh;
+            const float tn = swap ? dh : dl, tf = swap ? dl : dh;
+            t0 = t0 < tn ? tn : t0;  // a NaN distance fails both comparisons: no constraint
+            t1 = tf < t1 ? tf : t1;
+        }
+        reach[i] = (inside & (tmin[i] <= 0.0f) & (tmax[i] >= 0.0f)) | (t0 <= t1);
+    }
 }
 
 constexpr std::size_t kBatch = 256;  // reader batches (lsnif.h: >= 256 amortizes best)
 
 }  // namespace
 
-void EvalScene::closest(bool hybrid, std::span<const lsnif_ray> rays, std::span<TraceHit> hits) const {
+TraceProfile& TraceProfile::operator+=(const TraceProfile& o) {
+    seconds += o.seconds;
+    embree_seconds += o.embree_seconds;
+    reader_seconds += o.reader_seconds;
+    rays += o.rays;
+    box_hits += o.box_hits;
+    reader_calls += o.reader_calls;
+    reader_hits += o.reader_hits;
+    return *this;
+}
+
+TraceProfile& TraceProfile::operator*=(double s) {
+    seconds *= s;
+    embree_seconds *= s;
+    reader_seconds *= s;
+    return *this;
+}
+
+namespace {
+
+// Adds a trace call's clock readings and counts to a caller's profile on return (nothing
+// when the caller gave none). `embree_done`: when Embree's part ended; the reader's time is
+// summed by the call as it goes.
+struct ProfileScope {
+    TraceProfile* out;
+    TraceProfile p;
+    base::Clock::time_point start = base::Clock::now(), embree_done = start;
+    ProfileScope(TraceProfile* profile, std::size_t rays) : out(profile) { p.rays = rays; }
+    ~ProfileScope() {
+        if (!out) return;
+        p.seconds = base::seconds_since(start);
+        p.embree_seconds = std::chrono::duration<double>(embree_done - start).count();
+        *out += p;
+    }
+    ProfileScope(const ProfileScope&) = delete;
+    ProfileScope& operator=(const ProfileScope&) = delete;
+};
+
+}  // namespace
+
+void EvalScene::closest(bool hybrid, std::span<const lsnif_ray> rays, std::span<TraceHit> hits,
+                        TraceProfile* profile) const {
     const Impl& im = *impl_;
+    ProfileScope prof(profile, rays.size());
     RTCIntersectContext ctx;
     for (std::size_t i = 0; i < rays.size(); ++i) {
         hits[i] = TraceHit{};
@@ -98,22 +169,35 @@ void EvalScene::closest(bool hybrid, std::span<const lsnif_ray> rays, std::span<
         rtcIntersect1(hybrid ? im.hybrid : im.reference, &ctx, &rh);
         hits[i] = im.embree_hit(rh);
     }
+    prof.embree_done = base::Clock::now();
     if (!hybrid) return;
     std::vector<lsnif_ray> batch;
     std::vector<std::uint32_t> idx;
     std::vector<lsnif_hit> out(kBatch);
     batch.reserve(kBatch);
     idx.reserve(kBatch);
+    thread_local RaySlabs slabs;
+    thread_local std::vector<float> tmax;
+    thread_local std::vector<std::uint8_t> reach;
+    slabs.assign(rays);
+    tmax.resize(rays.size());
+    reach.resize(rays.size());
     for (const std::uint32_t inst : im.lsnif_instances) {
         const Impl::Instance& in = im.instances[inst];
         const lsnif_model* model = im.meshes[in.mesh].model;
         auto flush = [&] {
             if (batch.empty()) return;
-            if (lsnif_intersect_instance(model, in.transform.data(), batch.data(), batch.size(),
-                                         out.data()) == LSNIF_OK) {
+            const auto t0 = base::Clock::now();
+            const lsnif_status st =
+                lsnif_intersect_instance(model, in.transform.data(), batch.data(), batch.size(), out.data());
+            prof.p.reader_seconds += base::seconds_since(t0);
+            ++prof.p.reader_calls;
+            prof.p.box_hits += batch.size();
+            if (st == LSNIF_OK) {
                 for (std::size_t k = 0; k < batch.size(); ++k) {
                     TraceHit& h = hits[idx[k]];
                     const lsnif_hit& o = out[k];
+                    prof.p.reader_hits += o.hit;
                     const float best = h.instance >= 0 ? h.t : batch[k].tmax;
                     if (o.hit && o.t >= batch[k].tmin && o.t <= best) {
                         h.t = o.t;
@@ -125,9 +209,11 @@ void EvalScene::closest(bool hybrid, std::span<const lsnif_ray> rays, std::span<
             batch.clear();
             idx.clear();
         };
+        for (std::size_t i = 0; i < rays.size(); ++i)
+            tmax[i] = hits[i].instance >= 0 ? hits[i].t : rays[i].tmax;
+        reach_box(slabs, in.box, tmax.data(), reach.data(), rays.size());
         for (std::size_t i = 0; i < rays.size(); ++i) {
-            const float tmax = hits[i].instance >= 0 ? hits[i].t : rays[i].tmax;
-            if (!hits_box(rays[i], in.box, tmax)) continue;
+            if (!reach[i]) continue;
             batch.push_back(rays[i]);
             idx.push_back(std::uint32_t(i));
             if (batch.size() == kBatch) flush();
@@ -136,8 +222,10 @@ void EvalScene::closest(bool hybrid, std::span<const lsnif_ray> rays, std::span<
     }
 }
 
-void EvalScene::occluded(bool hybrid, std::span<const lsnif_ray> rays, std::span<std::uint8_t> occ) const {
+void EvalScene::occluded(bool hybrid, std::span<const lsnif_ray> rays, std::span<std::uint8_t> occ,
+                         TraceProfile* profile) const {
     const Impl& im = *impl_;
+    ProfileScope prof(profile, rays.size());
     RTCIntersectContext ctx;
     for (std::size_t i = 0; i < rays.size(); ++i) {
         occ[i] = 0;
@@ -148,25 +236,41 @@ void EvalScene::occluded(bool hybrid, std::span<const lsnif_ray> rays, std::span
         rtcOccluded1(hybrid ? im.hybrid : im.reference, &ctx, &rh.ray);
         occ[i] = rh.ray.tfar < 0.0f;  // Embree marks an occluded ray with tfar = -inf
     }
+    prof.embree_done = base::Clock::now();
     if (!hybrid) return;
     std::vector<lsnif_ray> batch;
     std::vector<std::uint32_t> idx;
     std::vector<std::uint8_t> out(kBatch);
+    thread_local RaySlabs slabs;
+    thread_local std::vector<float> tmax;
+    thread_local std::vector<std::uint8_t> reach;
+    slabs.assign(rays);
+    tmax.resize(rays.size());
+    reach.resize(rays.size());
+    for (std::size_t i = 0; i < rays.size(); ++i) tmax[i] = rays[i].tmax;
     for (const std::uint32_t inst : im.lsnif_instances) {
         const Impl::Instance& in = im.instances[inst];
         const lsnif_model* model = im.meshes[in.mesh].model;
         // The any-hit query: a hit within the ray's [tmin, tmax] (lsnif.h), as rtcOccluded1.
         auto flush = [&] {
             if (batch.empty()) return;
-            if (lsnif_occluded_instance(model, in.transform.data(), batch.data(), batch.size(), out.data()) ==
-                LSNIF_OK)
-                for (std::size_t k = 0; k < batch.size(); ++k)
+            const auto t0 = base::Clock::now();
+            const lsnif_status st =
+                lsnif_occluded_instance(model, in.transform.data(), batch.data(), batch.size(), out.data());
+            prof.p.reader_seconds += base::seconds_since(t0);
+            ++prof.p.reader_calls;
+            prof.p.box_hits += batch.size();
+            if (st == LSNIF_OK)
+                for (std::size_t k = 0; k < batch.size(); ++k) {
+                    prof.p.reader_hits += out[k];
                     if (out[k]) occ[idx[k]] = 1;
+                }
             batch.clear();
             idx.clear();
         };
+        reach_box(slabs, in.box, tmax.data(), reach.data(), rays.size());
         for (std::size_t i = 0; i < rays.size(); ++i) {
-            if (occ[i] || !hits_box(rays[i], in.box, rays[i].tmax)) continue;
+            if (occ[i] || !reach[i]) continue;
             batch.push_back(rays[i]);
             idx.push_back(std::uint32_t(i));
             if (batch.size() == kBatch) flush();
@@ -587,15 +691,18 @@ struct RowHits {
     std::vector<TraceHit> refl_hit;
 };
 
-// Traces a row's secondary rays with one tracer into `hits`; returns the seconds it took.
-double trace_row(const EvalScene& scene, bool hybrid, const RowRays& rr, RowHits& hits) {
+// Traces a row's secondary rays with one tracer into `hits`, and where the time went into
+// `profile` (overwritten); returns the seconds it took.
+double trace_row(const EvalScene& scene, bool hybrid, const RowRays& rr, RowHits& hits,
+                 SecondaryProfile& profile) {
     hits.shadow_occ.resize(rr.shadow.size());
     hits.ao_occ.resize(rr.ao.size());
     hits.refl_hit.resize(rr.refl.size());
+    profile = {};
     const auto t0 = std::chrono::steady_clock::now();
-    scene.occluded(hybrid, rr.shadow, hits.shadow_occ);
-    scene.occluded(hybrid, rr.ao, hits.ao_occ);
-    scene.closest(hybrid, rr.refl, hits.refl_hit);
+    scene.occluded(hybrid, rr.shadow, hits.shadow_occ, &profile[0]);
+    scene.occluded(hybrid, rr.ao, hits.ao_occ, &profile[1]);
+    scene.closest(hybrid, rr.refl, hits.refl_hit, &profile[2]);
     return seconds_since(t0);
 }
 
@@ -615,6 +722,8 @@ BothImages render_secondary(const EvalScene& scene, const std::vector<EvalScene:
         for (auto& img : side->rgb) img.assign(std::size_t(W) * v.H * 3, 0.0f);
     std::vector<double> per_thread[2] = {std::vector<double>(threads, 0.0),
                                          std::vector<double>(threads, 0.0)};
+    std::vector<SecondaryProfile> profiles[2] = {std::vector<SecondaryProfile>(threads),
+                                                 std::vector<SecondaryProfile>(threads)};
     const std::uint32_t repeats = std::max(1u, opt.timing_repeats);
     base::parallel_chunks(v.H, threads, 1, [&](std::uint32_t t, std::size_t y, std::size_t) {
         RowRays rays[2];
@@ -623,15 +732,18 @@ BothImages render_secondary(const EvalScene& scene, const std::vector<EvalScene:
         if (!surface_tmin.empty()) start_later(gb, surface_tmin, y * W, S, rays[1]);
         RowHits hits[2];
         double fastest[2] = {INFINITY, INFINITY};
+        SecondaryProfile profile, fastest_profile[2];
         const bool traced[2] = {tracers != Tracers::hybrid, tracers != Tracers::reference};
         for (std::uint32_t r = 0; r < repeats; ++r)
-            for (const int side : {0, 1})
-                if (traced[side])
-                    fastest[side] =
-                        std::min(fastest[side], trace_row(scene, side == 1, rays[side], hits[side]));
+            for (const int side : {0, 1}) {
+                if (!traced[side]) continue;
+                const double s = trace_row(scene, side == 1, rays[side], hits[side], profile);
+                if (s < fastest[side]) fastest[side] = s, fastest_profile[side] = profile;
+            }
         for (const int side : {0, 1}) {
             if (!traced[side]) continue;
             per_thread[side][t] += fastest[side];
+            for (int f = 0; f < kRayFamilies; ++f) profiles[side][t][f] += fastest_profile[side][f];
             const RowRays& rr = rays[side];
             EffectImages& img = side ? out.hybrid : out.reference;
             const auto& [shadow_occ, ao_occ, refl_hit] = hits[side];
@@ -645,6 +757,11 @@ BothImages render_secondary(const EvalScene& scene, const std::vector<EvalScene:
     });
     for (double s : per_thread[0]) out.reference.trace_seconds += s;
     for (double s : per_thread[1]) out.hybrid.trace_seconds += s;
+    for (std::uint32_t t = 0; t < threads; ++t)
+        for (int f = 0; f < kRayFamilies; ++f) {
+            out.reference.profile[f] += profiles[0][t][f];
+            out.hybrid.profile[f] += profiles[1][t][f];
+        }
     return out;
 }
 
@@ -800,6 +917,29 @@ json describe_run(const EvalScene::Impl& im, const EvalOptions& opt, const View&
 
 using namespace eval_detail;
 
+namespace {
+
+// A tracer's profile per ray family, for the report (docs/eval.md "Where the secondary rays'
+// time goes"): seconds summed over threads, counts over the frame.
+json profile_json(const SecondaryProfile& profile) {
+    json j = json::object();
+    for (int f = 0; f < kRayFamilies; ++f) {
+        const TraceProfile& p = profile[f];
+        j[kRayFamilyNames[f]] = {
+            {"seconds", p.seconds},
+            {"embree_seconds", p.embree_seconds},
+            {"reader_seconds", p.reader_seconds},
+            {"cull_and_batch_seconds", std::max(0.0, p.seconds - p.embree_seconds - p.reader_seconds)},
+            {"rays", p.rays},
+            {"reader_rays", p.box_hits},
+            {"reader_calls", p.reader_calls},
+            {"reader_hits", p.reader_hits}};
+    }
+    return j;
+}
+
+}  // namespace
+
 EvalResult render_and_compare(const EvalOptions& opt) {
     EvalResult res;
     std::string err;
@@ -871,6 +1011,8 @@ EvalResult render_and_compare(const EvalOptions& opt) {
                          {"secondary_neural", neural.trace_seconds}};
     report["secondary_time_ratio"] =
         reference.trace_seconds > 0 ? hybrid.trace_seconds / reference.trace_seconds : 0.0;
+    report["secondary_profile"] = {{"reference", profile_json(reference.profile)},
+                                   {"hybrid", profile_json(hybrid.profile)}};
     report["images_dir"] = images.string();
     if (opt.write_images && !write_text_atomically(images / "report.json", report.dump(2) + "\n", err)) {
         res.errors.push_back(err);

@@ -179,9 +179,15 @@ GBuffer render_primary(const EvalScene& scene, const std::vector<EvalScene::Impl
 
 // Linear RGB images of the effects from one tracer, and the time its secondary rays took
 // (summed over threads).
+// The three families of secondary rays, in the order a row traces them.
+inline constexpr int kRayFamilies = 3;
+inline constexpr const char* kRayFamilyNames[kRayFamilies] = {"shadow", "ao", "reflection"};
+using SecondaryProfile = std::array<TraceProfile, kRayFamilies>;
+
 struct EffectImages {
     std::vector<float> rgb[kEffects];
     double trace_seconds = 0;
+    SecondaryProfile profile;  // of the traces trace_seconds counts (each row's fastest)
 };
 struct BothImages {
     EffectImages reference, hybrid;

@@ -122,6 +122,26 @@ int run_eval(lsnif::converter::EvalOptions opt, const std::string& camera, const
                 ? "none"
                 : std::to_string(nc["flip_mean_lsnif_pixels"].get<double>()).c_str(),
             n["lsnif_pixels"].get<std::size_t>(), n["time_ratio"].get<double>());
+        std::printf(
+            "  secondary rays' time (seconds over all threads; hybrid = Embree on the meshes + box tests "
+            "and batching + the reader):\n");
+        const auto& prof = j["secondary_profile"];
+        for (const auto& [family, h] : prof["hybrid"].items()) {
+            const auto& ref = prof["reference"][family];
+            const auto reader_rays = h["reader_rays"].get<std::uint64_t>();
+            const auto calls = h["reader_calls"].get<std::uint64_t>();
+            std::printf(
+                "    %-10s reference %.3f | hybrid %.3f = %.3f + %.3f + %.3f; %llu of %llu rays to the "
+                "reader "
+                "in %llu calls (%.0f per call), %.1f %% of them hit\n",
+                family.c_str(), ref["seconds"].get<double>(), h["seconds"].get<double>(),
+                h["embree_seconds"].get<double>(), h["cull_and_batch_seconds"].get<double>(),
+                h["reader_seconds"].get<double>(), (unsigned long long)reader_rays,
+                (unsigned long long)h["rays"].get<std::uint64_t>(), (unsigned long long)calls,
+                calls ? double(reader_rays) / double(calls) : 0.0,
+                reader_rays ? 100.0 * double(h["reader_hits"].get<std::uint64_t>()) / double(reader_rays)
+                            : 0.0);
+        }
     }
     return 0;
 }

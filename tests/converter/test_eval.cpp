@@ -339,3 +339,89 @@ TEST_CASE("bench memory, rays and convert measure a real conversion against Embr
     CHECK(bench_memory(o, err).is_null());
     CHECK(err.find("manifest.json") != std::string::npos);
 }
+
+namespace {
+
+// The slab test written plainly, as the reference for the tracer's vectorized one: whether
+// ray r meets box b within [tmin, tmax], an axis whose slab distances are NaN unconstrained,
+// a ray starting inside with tmin <= 0 <= tmax meeting it at 0.
+bool reaches(const lsnif_ray& r, const std::array<float, 6>& b) {
+    bool inside = true;
+    for (int a = 0; a < 3; ++a) inside = inside && r.org[a] >= b[a] && r.org[a] <= b[a + 3];
+    if (inside && r.tmin <= 0.0f && r.tmax >= 0.0f) return true;
+    float t0 = r.tmin, t1 = r.tmax;
+    for (int a = 0; a < 3; ++a) {
+        float tn = (b[a] - r.org[a]) / r.dir[a], tf = (b[a + 3] - r.org[a]) / r.dir[a];
+        if (tn > tf) std::swap(tn, tf);
+        if (!(tn <= tf)) continue;
+        t0 = std::max(t0, tn);
+        t1 = std::min(t1, tf);
+    }
+    return t0 <= t1;
+}
+
+}  // namespace
+
+TEST_CASE("a trace profile counts the rays each tracer gave the reader, and only those that reach a box") {
+    EvalOptions o;
+    o.outdir = converted_dragon().string();
+    std::string err;
+    const auto scene = EvalScene::load(o, err);
+    REQUIRE_MESSAGE(scene, err);
+    const auto box = scene->instance_bounds(0);
+    // Rays at the box, the same rays turned away (they reach it only from inside), segments
+    // ending before it, and rays along the box's faces and edges with direction components
+    // of zero (the slab test's NaN cases).
+    std::vector<lsnif_ray> rays = rays_at_box(box, 600, 5);
+    for (std::size_t i = 0; i < 600; i += 3) {
+        lsnif_ray away = rays[i];
+        for (float& d : away.dir) d = -d;
+        rays.push_back(away);
+        lsnif_ray shortened = rays[i];
+        shortened.tmax = 0.01f;
+        rays.push_back(shortened);
+    }
+    const float mid[3] = {0.5f * (box[0] + box[3]), 0.5f * (box[1] + box[4]), 0.5f * (box[2] + box[5])};
+    for (int a = 0; a < 3; ++a)
+        for (const float plane : {box[a], box[a + 3], mid[a]}) {
+            lsnif_ray r{{mid[0], mid[1], mid[2]}, 0.0f, {0, 0, 0}, INFINITY};
+            r.org[a] = plane;
+            const int b = (a + 1) % 3;
+            r.org[b] = box[b] - 1.0f;  // outside, moving along axis b on the plane
+            r.dir[b] = 1.0f;
+            rays.push_back(r);
+        }
+    for (int k = 0; k < 20; ++k) {  // from inside the box, some starting later than 0
+        lsnif_ray r = rays[k];
+        std::copy(mid, mid + 3, r.org);
+        r.tmin = k % 2 ? 0.0f : 0.5f;
+        rays.push_back(r);
+    }
+    std::size_t expected = 0;
+    for (const lsnif_ray& r : rays) expected += reaches(r, box);
+
+    std::vector<std::uint8_t> occ(rays.size());
+    TraceProfile reference, hybrid;
+    scene->occluded(false, rays, occ, &reference);
+    scene->occluded(true, rays, occ, &hybrid);
+    CHECK(reference.rays == rays.size());
+    CHECK(reference.reader_calls == 0);
+    CHECK(reference.box_hits == 0);
+    CHECK(hybrid.rays == rays.size());
+    CHECK(hybrid.box_hits == expected);  // the scene is the dragon alone: nothing occludes first
+    CHECK(expected > 300);
+    CHECK(expected < rays.size() - 100);
+    CHECK(hybrid.reader_calls == (expected + 255) / 256);
+    CHECK(hybrid.reader_hits == std::size_t(std::count(occ.begin(), occ.end(), 1)));
+    CHECK(hybrid.seconds >= hybrid.embree_seconds + hybrid.reader_seconds);
+
+    std::vector<TraceHit> hits(rays.size());
+    TraceProfile closest;
+    scene->closest(true, rays, hits, &closest);
+    CHECK(closest.box_hits == expected);
+    std::size_t hit = 0;
+    for (const TraceHit& h : hits) hit += h.instance >= 0;
+    CHECK(closest.reader_hits >= hit);  // a reader hit beyond tmax is no hit
+    closest += hybrid;
+    CHECK(closest.rays == 2 * rays.size());
+}

@@ -83,6 +83,21 @@ struct TraceHit {
     std::int32_t instance = -1;
 };
 
+// Where trace calls spent their time (EvalScene::closest and occluded add to it when given
+// one): totals over every call that shared it. One per thread; `lsnif eval` reports it per
+// tracer and ray family (docs/eval.md "Where the secondary rays' time goes").
+struct TraceProfile {
+    double seconds = 0;          // the calls, whole
+    double embree_seconds = 0;   // Embree traversing the meshes: all of the reference's time
+    double reader_seconds = 0;   // the reader's calls (hybrid); the rest is box tests and batching
+    std::uint64_t rays = 0;      // rays traced
+    std::uint64_t box_hits = 0;  // (ray, asset instance) pairs whose ray reaches the box: the reader's rays
+    std::uint64_t reader_calls = 0;  // reader calls, batches of at most 256 rays
+    std::uint64_t reader_hits = 0;   // of the reader's rays, those it reported hitting the asset
+    TraceProfile& operator+=(const TraceProfile& o);
+    TraceProfile& operator*=(double s);  // times only (a mean over repeats); counts stay
+};
+
 // A loaded scene: the manifest's instances over re-imported source geometry, with both
 // tracers built. Thread-safe for concurrent trace calls.
 class EvalScene {
@@ -97,8 +112,11 @@ public:
 
     // `hybrid` selects the tracer. Rays use the reader's struct (world space, t in
     // [tmin, tmax]); `hits`/`occluded` have rays.size() entries.
-    void closest(bool hybrid, std::span<const lsnif_ray> rays, std::span<TraceHit> hits) const;
-    void occluded(bool hybrid, std::span<const lsnif_ray> rays, std::span<std::uint8_t> occluded) const;
+    // `profile`, when given, is added to.
+    void closest(bool hybrid, std::span<const lsnif_ray> rays, std::span<TraceHit> hits,
+                 TraceProfile* profile = nullptr) const;
+    void occluded(bool hybrid, std::span<const lsnif_ray> rays, std::span<std::uint8_t> occluded,
+                  TraceProfile* profile = nullptr) const;
 
     std::size_t instance_count() const;
     std::size_t lsnif_instance_count() const;   // instances traced through the reader in hybrid
