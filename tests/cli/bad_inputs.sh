@@ -93,8 +93,11 @@ check_one() {  # FILE
     [[ -z $stray ]] || bad "$file: stray files: $stray"
     gltfs+=("$out/scene.gltf")  # imported again below, all in one process
   fi
-  grep -v -e '^error: ' -e '^warning: ' -e '^\[' -e '^ ' "$work/stderr" | grep -q . &&
-    { bad "$file: unexpected stderr text"; head -3 "$work/stderr"; }
+  # Captured, not piped into `grep -q`: under pipefail a producer killed by SIGPIPE when grep
+  # stops early would turn a found line into a pass.
+  local unexpected
+  unexpected=$(grep -v -e '^error: ' -e '^warning: ' -e '^\[' -e '^ ' "$work/stderr" || true)
+  [[ -z $unexpected ]] || { bad "$file: unexpected stderr text"; head -3 <<<"$unexpected"; }
   if [[ -f $out/scene.gltf ]]; then rm -f "$out"/*.lsnif; else rm -rf "$out"; fi  # keep what is re-imported
 }
 

@@ -90,7 +90,7 @@ grep -q "^error: --memory-budget 1024 bytes is below the BVHs" "$work/err" || ba
 [[ $rc == 1 ]] && grep -q "manifest.json" "$work/err" || bad "missing OUTDIR: exit $rc, $(cat "$work/err")"
 
 # bench memory names the object and both byte counts.
-"$lsnif" bench memory "$out" | grep -q "ChineseDragon-10kv *19994" || bad "bench memory output"
+grep -q "ChineseDragon-10kv *19994" <<<"$("$lsnif" bench memory "$out")" || bad "bench memory output"
 
 # bench infer reports every stage of the inference pass with a positive rate.
 "$lsnif" bench infer --threads 1 --seconds 0.01 --json >"$work/infer.json" || bad "bench infer exited $?"

@@ -24,7 +24,7 @@ ran() { grep -o '^\[[0-9]*/[0-9]*\] lsnif: .*' "$1" | sed 's/^\[[0-9/]*\] lsnif:
 grep -q "broken.off.*the library step will fail on it" "$work/plan.err" || bad "plan does not warn about broken.off"
 objects=$(grep -c '^build .*\.entry: object ' "$file")
 [[ $objects == 4 ]] || bad "the plan has $objects object edges (want 4: two CGAL meshes, the scene's dragon and hairball)"
-grep -q '^pool convert$' "$file" && grep -A1 '^pool convert$' "$file" | grep -q 'depth = 1' || bad "no pool of depth 1"
+grep -q 'depth = 1' <<<"$(grep -A1 '^pool convert$' "$file")" || bad "no pool of depth 1"
 
 # Cold: every object once, then the library step, which fails on broken.off alone (-k 0).
 ninja -f "$file" -k 0 >"$work/cold.log" 2>&1; rc=$?

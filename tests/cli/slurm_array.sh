@@ -71,10 +71,10 @@ chown -R munge:munge "$work/run"
 slurmctld -f "$SLURM_CONF" || skip "slurmctld did not start: $(tail -3 "$work/log/slurmctld.log" 2>/dev/null)"
 slurmd -f "$SLURM_CONF" || skip "slurmd did not start: $(tail -3 "$work/log/slurmd.log" 2>/dev/null)"
 for _ in $(seq 100); do
-  sinfo -h -o %T 2>/dev/null | grep -q idle && break
+  grep -q idle <<<"$(sinfo -h -o %T 2>/dev/null)" && break
   sleep 0.2
 done
-sinfo -h -o %T 2>/dev/null | grep -q idle || skip "the Slurm node did not come up: $(tail -3 "$work/log/slurmd.log" 2>/dev/null)"
+grep -q idle <<<"$(sinfo -h -o %T 2>/dev/null)" || skip "the Slurm node did not come up: $(tail -3 "$work/log/slurmd.log" 2>/dev/null)"
 
 # The cache server.
 port=$(free_port)
