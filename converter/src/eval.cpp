@@ -111,6 +111,22 @@ void reach_box(const RaySlabs& r, const std::array<float, 6>& box, const float* 
     }
 }
 
+// One thread's box-test scratch, set up for a trace call's `rays`: their slabs, each ray's
+// own tmax (closest() lowers it to the hit so far) and room for the results.
+struct BoxTests {
+    RaySlabs slabs;
+    std::vector<float> tmax;
+    std::vector<std::uint8_t> reach;
+};
+BoxTests& box_tests_for(std::span<const lsnif_ray> rays) {
+    thread_local BoxTests b;
+    b.slabs.assign(rays);
+    b.tmax.resize(rays.size());
+    for (std::size_t i = 0; i < rays.size(); ++i) b.tmax[i] = rays[i].tmax;
+    b.reach.resize(rays.size());
+    return b;
+}
+
 constexpr std::size_t kBatch = 256;  // reader batches (lsnif.h: >= 256 amortizes best)
 
 }  // namespace
@@ -123,13 +139,6 @@ TraceProfile& TraceProfile::operator+=(const TraceProfile& o) {
     box_hits += o.box_hits;
     reader_calls += o.reader_calls;
     reader_hits += o.reader_hits;
-    return *this;
-}
-
-TraceProfile& TraceProfile::operator*=(double s) {
-    seconds *= s;
-    embree_seconds *= s;
-    reader_seconds *= s;
     return *this;
 }
 
@@ -176,12 +185,7 @@ void EvalScene::closest(bool hybrid, std::span<const lsnif_ray> rays, std::span<
     std::vector<lsnif_hit> out(kBatch);
     batch.reserve(kBatch);
     idx.reserve(kBatch);
-    thread_local RaySlabs slabs;
-    thread_local std::vector<float> tmax;
-    thread_local std::vector<std::uint8_t> reach;
-    slabs.assign(rays);
-    tmax.resize(rays.size());
-    reach.resize(rays.size());
+    BoxTests& boxes = box_tests_for(rays);
     for (const std::uint32_t inst : im.lsnif_instances) {
         const Impl::Instance& in = im.instances[inst];
         const lsnif_model* model = im.meshes[in.mesh].model;
@@ -210,10 +214,10 @@ void EvalScene::closest(bool hybrid, std::span<const lsnif_ray> rays, std::span<
             idx.clear();
         };
         for (std::size_t i = 0; i < rays.size(); ++i)
-            tmax[i] = hits[i].instance >= 0 ? hits[i].t : rays[i].tmax;
-        reach_box(slabs, in.box, tmax.data(), reach.data(), rays.size());
+            boxes.tmax[i] = hits[i].instance >= 0 ? hits[i].t : rays[i].tmax;
+        reach_box(boxes.slabs, in.box, boxes.tmax.data(), boxes.reach.data(), rays.size());
         for (std::size_t i = 0; i < rays.size(); ++i) {
-            if (!reach[i]) continue;
+            if (!boxes.reach[i]) continue;
             batch.push_back(rays[i]);
             idx.push_back(std::uint32_t(i));
             if (batch.size() == kBatch) flush();
@@ -241,13 +245,7 @@ void EvalScene::occluded(bool hybrid, std::span<const lsnif_ray> rays, std::span
     std::vector<lsnif_ray> batch;
     std::vector<std::uint32_t> idx;
     std::vector<std::uint8_t> out(kBatch);
-    thread_local RaySlabs slabs;
-    thread_local std::vector<float> tmax;
-    thread_local std::vector<std::uint8_t> reach;
-    slabs.assign(rays);
-    tmax.resize(rays.size());
-    reach.resize(rays.size());
-    for (std::size_t i = 0; i < rays.size(); ++i) tmax[i] = rays[i].tmax;
+    BoxTests& boxes = box_tests_for(rays);
     for (const std::uint32_t inst : im.lsnif_instances) {
         const Impl::Instance& in = im.instances[inst];
         const lsnif_model* model = im.meshes[in.mesh].model;
@@ -268,9 +266,9 @@ void EvalScene::occluded(bool hybrid, std::span<const lsnif_ray> rays, std::span
             batch.clear();
             idx.clear();
         };
-        reach_box(slabs, in.box, tmax.data(), reach.data(), rays.size());
+        reach_box(boxes.slabs, in.box, boxes.tmax.data(), boxes.reach.data(), rays.size());
         for (std::size_t i = 0; i < rays.size(); ++i) {
-            if (occ[i] || !reach[i]) continue;
+            if (occ[i] || !boxes.reach[i]) continue;
             batch.push_back(rays[i]);
             idx.push_back(std::uint32_t(i));
             if (batch.size() == kBatch) flush();

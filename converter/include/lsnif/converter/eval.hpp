@@ -95,7 +95,6 @@ struct TraceProfile {
     std::uint64_t reader_calls = 0;  // reader calls, batches of at most 256 rays
     std::uint64_t reader_hits = 0;   // of the reader's rays, those it reported hitting the asset
     TraceProfile& operator+=(const TraceProfile& o);
-    TraceProfile& operator*=(double s);  // times only (a mean over repeats); counts stay
 };
 
 // A loaded scene: the manifest's instances over re-imported source geometry, with both
