@@ -27,26 +27,27 @@ constexpr float kInf = std::numeric_limits<float>::infinity();
 }
 
 TraceStatus make_ray_grid(const Geometry& geo, const Ray& ray, RayGrid& rg, float& t_near, float& t_far) {
-    bool nonzero = false;
-    for (int a = 0; a < 3; ++a) {
+    for (int a = 0; a < 3; ++a)
         if (!std::isfinite(ray.org[a]) || !std::isfinite(ray.dir[a])) return TraceStatus::invalid;
-        nonzero = nonzero || ray.dir[a] != 0.0f;
-    }
-    if (!nonzero || std::isnan(ray.tmin) || std::isnan(ray.tmax)) return TraceStatus::invalid;
-    t_near = ray.tmin;
-    t_far = ray.tmax;
-    const float V = float(geo.V);
+    if (!normalizable(ray.dir) || std::isnan(ray.tmin) || std::isnan(ray.tmax)) return TraceStatus::invalid;
+    bool moves = false;
     for (int a = 0; a < 3; ++a) {
         // Grid-space origin/direction computed in double, stored rounded once.
         const double cell = (double(geo.box_max[a]) - geo.box_min[a]) / geo.V;
         rg.go[a] = float((double(ray.org[a]) - geo.box_min[a]) / cell);
         rg.gd[a] = float(double(ray.dir[a]) / cell);
+        rg.inv_gd[a] = rg.gd[a] == 0.0f ? kInf : 1.0f / rg.gd[a];
+        moves = moves || rg.gd[a] != 0.0f;
+    }
+    if (!moves) return TraceStatus::invalid;  // no step of the grid is ever reached
+    t_near = ray.tmin;
+    t_far = ray.tmax;
+    const float V = float(geo.V);
+    for (int a = 0; a < 3; ++a) {
         if (rg.gd[a] == 0.0f) {
-            rg.inv_gd[a] = kInf;
             if (rg.go[a] < 0.0f || rg.go[a] > V) return TraceStatus::miss;
             continue;
         }
-        rg.inv_gd[a] = 1.0f / rg.gd[a];
         float t0 = rg.plane_t(a, 0.0f), t1 = rg.plane_t(a, V);
         if (t0 > t1) std::swap(t0, t1);
         t_near = std::max(t_near, t0);
@@ -203,9 +204,18 @@ TraceStatus trace_points_impl(const Geometry& geo, const OccupancyGrid* blocks, 
 
 }  // namespace
 
+float squared_length(const float d[3]) {
+    return std::fma(d[2], d[2], std::fma(d[1], d[1], d[0] * d[0]));
+}
+
+bool normalizable(const float d[3]) {
+    const float s = squared_length(d);
+    return s > 0.0f && s < kInf;
+}
+
 void unit_direction(const Ray& ray, float out[3]) {
     const float x = ray.dir[0], y = ray.dir[1], z = ray.dir[2];
-    const float length = std::sqrt(std::fma(z, z, std::fma(y, y, x * x)));
+    const float length = std::sqrt(squared_length(ray.dir));
     out[0] = x / length;
     out[1] = y / length;
     out[2] = z / length;
@@ -363,39 +373,49 @@ LSNIF_AVX512 std::uint32_t start_walks(const Geometry& geo, const Ray* rays, int
     static_assert(sizeof(Ray) == 8 * sizeof(float) && offsetof(Ray, tmin) == 12 && offsetof(Ray, dir) == 16 &&
                   offsetof(Ray, tmax) == 28);
     __m512 org[3], dir[3];
-    __mmask16 nonfinite = 0, nonzero = 0;
+    __mmask16 nonfinite = 0;
     for (int a = 0; a < 3; ++a) {
         org[a] = ray_field(f, base, lanes, a);
         dir[a] = ray_field(f, base, lanes, 4 + a);
         nonfinite |=
             _mm512_fpclass_ps_mask(org[a], 0x99) | _mm512_fpclass_ps_mask(dir[a], 0x99);  // NaN, +-inf
-        nonzero |= _mm512_cmp_ps_mask(dir[a], _mm512_setzero_ps(), _CMP_NEQ_UQ);
+    }
+    // normalizable(): squared_length's fused multiply-adds, positive and finite.
+    const __m512 squared =
+        _mm512_fmadd_ps(dir[2], dir[2], _mm512_fmadd_ps(dir[1], dir[1], _mm512_mul_ps(dir[0], dir[0])));
+    const __mmask16 normalizable = _mm512_cmp_ps_mask(squared, _mm512_setzero_ps(), _CMP_GT_OQ) &
+                                   _mm512_cmp_ps_mask(squared, _mm512_set1_ps(kInf), _CMP_LT_OQ);
+    __m512 go[3], gd[3], inv[3];
+    __mmask16 moves = 0;
+    for (int a = 0; a < 3; ++a) {
+        const double cell = (double(geo.box_max[a]) - geo.box_min[a]) / geo.V;
+        const __m512d vmin = _mm512_set1_pd(double(geo.box_min[a])), vcell = _mm512_set1_pd(cell);
+        go[a] = to_grid(org[a], vmin, vcell, true);
+        gd[a] = to_grid(dir[a], vmin, vcell, false);
+        const __mmask16 zero = _mm512_cmp_ps_mask(gd[a], _mm512_setzero_ps(), _CMP_EQ_OQ);
+        inv[a] = _mm512_mask_mov_ps(_mm512_div_ps(_mm512_set1_ps(1.0f), gd[a]), zero, _mm512_set1_ps(kInf));
+        moves |= __mmask16(~zero);
+        _mm512_store_ps(Q.go[a], go[a]);
+        _mm512_store_ps(Q.gd[a], gd[a]);
+        _mm512_store_ps(Q.inv[a], inv[a]);
     }
     __m512 t_near = ray_field(f, base, lanes, 3), t_far = ray_field(f, base, lanes, 7);
     const __mmask16 invalid =
-        lanes & (nonfinite | ~nonzero | _mm512_cmp_ps_mask(t_near, t_near, _CMP_UNORD_Q) |
+        lanes & (nonfinite | ~normalizable | ~moves | _mm512_cmp_ps_mask(t_near, t_near, _CMP_UNORD_Q) |
                  _mm512_cmp_ps_mask(t_far, t_far, _CMP_UNORD_Q));
     __mmask16 live = lanes & ~invalid, miss = 0;
     const float V = float(geo.V);
     const __m512 vV = _mm512_set1_ps(V);
     for (int a = 0; a < 3; ++a) {
-        const double cell = (double(geo.box_max[a]) - geo.box_min[a]) / geo.V;
-        const __m512d vmin = _mm512_set1_pd(double(geo.box_min[a])), vcell = _mm512_set1_pd(cell);
-        const __m512 go = to_grid(org[a], vmin, vcell, true), gd = to_grid(dir[a], vmin, vcell, false);
-        const __mmask16 zero = _mm512_cmp_ps_mask(gd, _mm512_setzero_ps(), _CMP_EQ_OQ);
-        const __m512 inv =
-            _mm512_mask_mov_ps(_mm512_div_ps(_mm512_set1_ps(1.0f), gd), zero, _mm512_set1_ps(kInf));
-        _mm512_store_ps(Q.go[a], go);
-        _mm512_store_ps(Q.gd[a], gd);
-        _mm512_store_ps(Q.inv[a], inv);
+        const __mmask16 zero = _mm512_cmp_ps_mask(gd[a], _mm512_setzero_ps(), _CMP_EQ_OQ);
         const __mmask16 outside = live & zero &
-                                  (_mm512_cmp_ps_mask(go, _mm512_setzero_ps(), _CMP_LT_OQ) |
-                                   _mm512_cmp_ps_mask(go, vV, _CMP_GT_OQ));
+                                  (_mm512_cmp_ps_mask(go[a], _mm512_setzero_ps(), _CMP_LT_OQ) |
+                                   _mm512_cmp_ps_mask(go[a], vV, _CMP_GT_OQ));
         miss |= outside;
         live &= ~outside;
         const __mmask16 slab = live & ~zero;
-        const __m512 t0 = _mm512_mul_ps(_mm512_sub_ps(_mm512_setzero_ps(), go), inv);
-        const __m512 t1 = _mm512_mul_ps(_mm512_sub_ps(vV, go), inv);
+        const __m512 t0 = _mm512_mul_ps(_mm512_sub_ps(_mm512_setzero_ps(), go[a]), inv[a]);
+        const __m512 t1 = _mm512_mul_ps(_mm512_sub_ps(vV, go[a]), inv[a]);
         const __mmask16 swap = _mm512_cmp_ps_mask(t0, t1, _CMP_GT_OQ);
         const __m512 lo = _mm512_mask_mov_ps(t0, swap, t1), hi = _mm512_mask_mov_ps(t1, swap, t0);
         t_near = _mm512_mask_max_ps(t_near, slab, lo, t_near);  // std::max(t_near, lo)

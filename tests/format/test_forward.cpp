@@ -99,6 +99,27 @@ TEST_CASE("DDA visits exactly the brute-force voxel sequence on random rays") {
     }
 }
 
+TEST_CASE("a direction that moves along no axis of a huge box's grid is invalid, in both walks") {
+    // Cells of 2e28 units: a direction of 1e-22 is normalizable (squared length 1e-44, a
+    // subnormal) but is 0 once divided by the cell, so no voxel boundary is ever reached.
+    const std::uint32_t V = 100;
+    const Geometry geo = make_geometry(desc_with(V, {-1e30f, -1e30f, -1e30f}, {1e30f, 1e30f, 1e30f}));
+    const Ray still{{0.f, 0.f, 0.f}, 0.f, {1e-22f, 0.f, 0.f}, INFINITY};
+    REQUIRE(normalizable(still.dir));
+    std::vector<std::uint32_t> vox;
+    std::vector<float> ts;
+    CHECK(trace_all_voxels(geo, still, vox, ts) == TraceStatus::invalid);
+    std::vector<std::uint8_t> bits((std::uint64_t(V) * V * V + 7) / 8, 0xFF);
+    const OccupancyGrid occ(V, bits);
+    std::vector<Ray> rays(17, still);
+    rays[3].dir[0] = 1.0f;  // a moving ray among them
+    std::vector<RayPoints> pts(rays.size());
+    std::vector<TraceStatus> status(rays.size());
+    trace_points_batch(geo, occ, rays, pts.data(), status.data());
+    for (std::size_t i = 0; i < rays.size(); ++i)
+        CHECK(status[i] == (i == 3 ? TraceStatus::ok : TraceStatus::invalid));
+}
+
 TEST_CASE("DDA hard cases: axis-parallel, on boundaries, edges and corners, tmax inside") {
     const std::uint32_t V = 8;
     const Geometry geo = make_geometry(desc_with(V, {0.f, 0.f, 0.f}, {8.f, 8.f, 8.f}));  // cell = 1
@@ -152,6 +173,12 @@ TEST_CASE("DDA hard cases: axis-parallel, on boundaries, edges and corners, tmax
     CHECK(trace_all_voxels(geo, zero, vox, ts) == TraceStatus::invalid);
     Ray nan{{NAN, 1.f, 1.f}, 0.f, {1.f, 0.f, 0.f}, INFINITY};
     CHECK(trace_all_voxels(geo, nan, vox, ts) == TraceStatus::invalid);
+    // Directions FORMAT.md §8.2 calls invalid: one whose squared length rounds to 0 (it
+    // cannot be normalized), one whose squared length overflows.
+    Ray tiny{{1.f, 1.f, 1.f}, 0.f, {1e-45f, 1e-45f, 0.f}, INFINITY};
+    CHECK(trace_all_voxels(geo, tiny, vox, ts) == TraceStatus::invalid);
+    Ray huge{{1.f, 1.f, 1.f}, 0.f, {1e20f, 0.f, 0.f}, INFINITY};
+    CHECK(trace_all_voxels(geo, huge, vox, ts) == TraceStatus::invalid);
     Ray missing{{-1.f, 9.f, 1.f}, 0.f, {1.f, 0.f, 0.f}, INFINITY};
     CHECK(trace_all_voxels(geo, missing, vox, ts) == TraceStatus::miss);
     Ray behind{{-1.f, 1.f, 1.f}, 0.f, {-1.f, 0.f, 0.f}, INFINITY};

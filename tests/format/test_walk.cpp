@@ -50,6 +50,8 @@ std::vector<Ray> edge_case_rays(std::uint32_t V, std::size_t n, std::uint32_t se
             case 3: r.tmax = -1.0f; break;
             case 4: r.tmin = std::numeric_limits<float>::quiet_NaN(); break;
             case 5: r.dir[2] = inf; break;
+            case 6: r.dir[0] = r.dir[1] = r.dir[2] = 1e-45f; break;  // squared length 0
+            case 7: r.dir[1] = 1e20f; break;                         // squared length inf
             default: break;
         }
     }

@@ -96,13 +96,21 @@ struct RayGrid {
     float inv_gd[3];  // 1 / gd (inf when gd == 0)
     float plane_t(int axis, float k) const { return (k - go[axis]) * inv_gd[axis]; }
 };
-// Returns invalid for a zero/non-finite direction or non-finite origin, or tmin > tmax,
-// or NaN bounds; miss when the ray does not meet the box within [tmin, tmax].
+// Returns invalid for a ray FORMAT.md §8.2 calls invalid: a non-finite origin or direction,
+// a NaN bound, a direction that cannot be normalized (normalizable) or one that moves
+// along no axis of the grid once mapped to grid units; miss when the ray does not meet the
+// box within [tmin, tmax] (also for tmin > tmax).
 TraceStatus make_ray_grid(const Geometry& geo, const Ray& ray, RayGrid& rg, float& t_near, float& t_far);
 
-// ray.dir / |ray.dir| as FORMAT.md §8 defines it: the squared length summed with explicit
-// fused multiply-adds, so every build rounds it the same way (the network was trained on
-// these bits). `ray.dir` must be finite and non-zero (a valid ray).
+// fma(z, z, fma(y, y, x * x)) of a direction: its squared length as FORMAT.md §8 defines
+// it, explicit fused multiply-adds so every build rounds it the same way.
+float squared_length(const float d[3]);
+// Whether a finite direction's squared_length is positive and finite: a valid ray's
+// direction, one that unit_direction maps to a unit vector.
+bool normalizable(const float d[3]);
+
+// ray.dir / |ray.dir| as FORMAT.md §8 defines it (the square root of squared_length); the
+// network was trained on these bits. `ray.dir` must be normalizable (a valid ray).
 void unit_direction(const Ray& ray, float out[3]);
 
 // The entry-offset inputs (FORMAT.md §8): for slot k < pts.count, the distance from entry
