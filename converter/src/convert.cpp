@@ -113,8 +113,15 @@ std::vector<MeshOutcome> convert_meshes(const Run& run, std::vector<Planned>& pl
         after[i] = planned[i].bvh_bytes;
         if (planned[i].decided) run.report({planned[i].mesh->name, "done", 0, 0, 0, 0, &planned[i].out});
     }
+    mark_shared_assets(run, planned);
     const std::vector<std::size_t> order = conversion_order(planned, run.opt.memory_budget > 0);
     std::vector<Settled> settled = settle_candidates(run, planned, order, after);
+    for (std::size_t i = 0; i < planned.size(); ++i) {
+        if (!planned[i].leader) continue;
+        follow_leader(planned[i], planned[*planned[i].leader]);
+        after[i] = bytes_after(planned[i]);
+        run.report({planned[i].mesh->name, "done", 0, 0, 0, 0, &planned[i].out});
+    }
     for (std::size_t i : order) {
         errors.insert(errors.end(), settled[i].errors.begin(), settled[i].errors.end());
         warnings.insert(warnings.end(), settled[i].warnings.begin(), settled[i].warnings.end());
@@ -130,6 +137,26 @@ std::vector<MeshOutcome> convert_meshes(const Run& run, std::vector<Planned>& pl
             MeshMemory{planned[i].bvh_bytes, after[i], run.opt.dry_run && o.cls() == MeshClass::complex};
     }
     return outcomes;
+}
+
+void follow_leader(Planned& follower, const Planned& leader) {
+    MeshOutcome o = leader.out;
+    const MeshOutcome& own = follower.out;
+    o.id = own.id;
+    o.name = own.name;
+    o.input = own.input;
+    o.source_mesh = own.source_mesh;
+    o.instances = own.instances;
+    o.timings = own.timings;
+    o.reasons.assign(own.reasons.begin(), own.reasons.begin() + std::ptrdiff_t(follower.planned_reasons));
+    o.reasons.insert(o.reasons.end(), leader.out.reasons.begin() + std::ptrdiff_t(leader.planned_reasons),
+                     leader.out.reasons.end());
+    o.reasons.push_back("the same geometry and settings as mesh '" + leader.out.name + "' of input " +
+                        std::to_string(leader.out.input) + ": its result" + (o.asset ? " and asset" : ""));
+    if (o.asset) o.asset->reused = true;
+    follower.out = std::move(o);
+    follower.candidate.reset();
+    follower.occupancy.reset();
 }
 
 // The cache keys of the candidates; call before convert_meshes, which releases them.

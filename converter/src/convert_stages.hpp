@@ -311,6 +311,11 @@ struct Planned {
     std::uint64_t bvh_bytes = 0;  // the mesh's own BVH on the run's yardstick: what it costs as BVH
     std::uint64_t estimate = 0;   // a candidate's estimated resident asset bytes
     std::string key;              // its cache key once cache_key computed it ("" until then)
+    // A candidate whose asset another candidate of the run makes (mark_shared_assets): the
+    // index of that leader in `planned`. A follower is never converted; it takes the leader's
+    // result (follow_leader).
+    std::optional<std::size_t> leader;
+    std::size_t planned_reasons = 0;  // out.reasons.size() before settling: the plan's own
     bool forced() const { return candidate && candidate->forced; }
 };
 
@@ -344,12 +349,24 @@ void convert_cached(const Run& run, Planned& p, std::vector<std::string>& errors
 std::uint64_t estimated_cost_ms(const Run& run, const Planned& p);
 
 // The shard (1..shard_count) that converts each candidate of `planned` (0 for the others
-// and without sharding): candidates costliest first (estimated_cost_ms; ties by cache key),
-// each to the shard with the least estimated work so far. Every shard computes the same
+// and without sharding; a follower gets its leader's): candidates costliest first (estimated_cost_ms; ties by
+// cache key), each to the shard with the least estimated work so far. Every shard computes the same
 // assignment, whatever the order of `planned`.
 std::vector<std::uint32_t> shard_owners(const Run& run, std::vector<Planned>& planned);
 
-// Order in which candidates (indices into `planned`) are converted: the scene's order, or
+// Candidates whose assets would be the same file (the same geometry and settings, so the
+// same asset_key) share one conversion: the first in input order leads, the others follow
+// it (Planned::leader), whether or not either was forced. So the asset, which records its
+// mesh's name and source, names the first user whatever the number of jobs or the order in
+// which they finish.
+void mark_shared_assets(const Run& run, std::vector<Planned>& planned);
+
+// A follower's outcome from its settled leader's: the same decision, metrics, candidates and
+// asset, with the follower's own place in the scene and plan reasons, and a reason naming
+// the leader.
+void follow_leader(Planned& follower, const Planned& leader);
+
+// Order in which candidates (indices into `planned`; not followers) are converted: the scene's order, or
 // with a memory budget, forced meshes first, then by estimated BVH bytes saved per asset
 // byte, highest first (ties in scene order).
 std::vector<std::size_t> conversion_order(const std::vector<Planned>& planned, bool budgeted);

@@ -5,6 +5,7 @@
 #include "convert_stages.hpp"
 
 #include <cinttypes>
+#include <map>
 
 namespace lsnif::converter {
 
@@ -278,13 +279,24 @@ double saving_per_byte(const Planned& p) {
 std::vector<std::size_t> conversion_order(const std::vector<Planned>& planned, bool budgeted) {
     std::vector<std::size_t> order;
     for (std::size_t i = 0; i < planned.size(); ++i)
-        if (!planned[i].decided) order.push_back(i);
+        if (!planned[i].decided && !planned[i].leader) order.push_back(i);
     if (budgeted)
         std::stable_sort(order.begin(), order.end(), [&](std::size_t a, std::size_t b) {
             if (planned[a].forced() != planned[b].forced()) return planned[a].forced();
             return saving_per_byte(planned[a]) > saving_per_byte(planned[b]);
         });
     return order;
+}
+
+void mark_shared_assets(const Run& run, std::vector<Planned>& planned) {
+    std::map<std::string, std::size_t> first;  // asset_key -> leader
+    for (std::size_t i = 0; i < planned.size(); ++i) {
+        Planned& p = planned[i];
+        p.planned_reasons = p.out.reasons.size();
+        if (p.decided) continue;
+        const auto [it, inserted] = first.emplace(asset_key(run, *p.mesh, p.candidate->desc), i);
+        if (!inserted) p.leader = it->second;
+    }
 }
 
 std::uint64_t bytes_after(const Planned& p) {
@@ -313,7 +325,7 @@ std::vector<std::uint32_t> shard_owners(const Run& run, std::vector<Planned>& pl
     };
     std::vector<Job> jobs;
     for (std::size_t i = 0; i < planned.size(); ++i)
-        if (!planned[i].decided)
+        if (!planned[i].decided && !planned[i].leader)
             jobs.push_back({estimated_cost_ms(run, planned[i]), cache_key(run, planned[i]), i});
     std::sort(jobs.begin(), jobs.end(),
               [](const Job& a, const Job& b) { return a.cost != b.cost ? a.cost > b.cost : a.key < b.key; });
@@ -321,6 +333,8 @@ std::vector<std::uint32_t> shard_owners(const Run& run, std::vector<Planned>& pl
     for (const Job& j : jobs) costs.push_back(j.cost);
     const std::vector<std::uint32_t> shard = deal_to_shards(costs, run.opt.shard_count);
     for (std::size_t k = 0; k < jobs.size(); ++k) owner[jobs[k].index] = shard[k] + 1;
+    for (std::size_t i = 0; i < planned.size(); ++i)
+        if (planned[i].leader) owner[i] = owner[*planned[i].leader];
     return owner;
 }
 

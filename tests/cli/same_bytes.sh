@@ -3,7 +3,9 @@
 # everywhere"). CGAL's dragon, converted by `lsnif batch` (whose manifest has no timings) with
 # a short training run that ships whatever it learned, each run with a cache of its own:
 #   threads     --threads 2 is the reference; --threads 1, 3 and 5 write the same asset,
-#               manifest and cache entry; two meshes with -j 2 equal one job.
+#               manifest and cache entry; three meshes with -j 2 equal one job, two of
+#               them the same geometry under two names (the first in input order owns the
+#               asset, whichever job finishes first).
 #   isa CAP     LSNIF_ISA=CAP (generic, avx2, avx512, avx512bf16) writes the reference's
 #               bytes; a cap above this CPU exits 77 (CTest: skipped), naming what is missing.
 #   machine     --arithmetic machine: on a CPU with bf16 products the manifest, metadata and
@@ -62,14 +64,28 @@ case $mode in
       convert "threads$t" -- --threads "$t"
       same reference "threads$t" "--threads $t against --threads 2"
     done
-    # Two meshes at once (-j 2, one thread each) against one job of two threads.
+    # Three meshes at once (-j 2, one thread each) against one job of two threads; the last
+    # is the dragon again under another name.
+    mkdir -p "$root/copy" && cp "$meshes/ChineseDragon-10kv.off" "$root/copy/dragon_copy.off"
     for j in 1 2; do
       rm -rf "$root/jobs$j" "$root/jobs$j.cache"
-      "$lsnif" batch "$meshes/ChineseDragon-10kv.off" "$meshes/armadillo.off" -o "$root/jobs$j" \
-        --cache "$root/jobs$j.cache" "${settings[@]}" --complex armadillo --threads 2 -j "$j" \
+      "$lsnif" batch "$meshes/ChineseDragon-10kv.off" "$meshes/armadillo.off" "$root/copy/dragon_copy.off" \
+        -o "$root/jobs$j" --cache "$root/jobs$j.cache" "${settings[@]}" --complex armadillo \
+        --complex dragon_copy --threads 2 -j "$j" \
         >"$root/jobs$j.log" 2>&1 || bad "-j $j: exit $?: $(tail -3 "$root/jobs$j.log")"
     done
     same jobs1 jobs2 "-j 2 against -j 1"
+    python3 - "$root/jobs2/manifest.json" <<'PY' || bad "the copy does not share the dragon's asset"
+import json, sys
+m = {x["name"]: x for x in json.load(open(sys.argv[1]))["meshes"]}
+dragon, copy = m["ChineseDragon-10kv"], m["dragon_copy"]
+assert copy["lsnif"]["file"] == dragon["lsnif"]["file"], (copy["lsnif"], dragon["lsnif"])
+assert "as mesh 'ChineseDragon-10kv'" in copy["reasons"][-1], copy["reasons"]
+PY
+    grep -q '"name": "ChineseDragon-10kv"' <<<"$("$lsnif" inspect "$root/jobs2/$(python3 -c "
+import json, sys
+print([x for x in json.load(open(sys.argv[1]))['meshes'] if x['name'] == 'dragon_copy'][0]['lsnif']['file'])" \
+      "$root/jobs2/manifest.json")")" || bad "the shared asset does not name the first input's mesh"
     ;;
   isa)
     why=$(missing_for "$cap") || exit 2
