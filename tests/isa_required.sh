@@ -1,10 +1,12 @@
 #!/usr/bin/env bash
 # isa_required.sh LEVEL [--cap] COMMAND ARGS...: runs COMMAND when this CPU offers LEVEL
-# (avx2, avx512, avx512bf16, amx; generic always), else prints what it lacks and exits 77,
-# which CTest reports as skipped (SKIP_RETURN_CODE), so a green run says what did not run.
+# (avx2, avx512, avx512bf16, avx512vnni, amx; generic always), else prints what it lacks and exits 77,
+# which CTest reports as skipped (SKIP_RETURN_CODE), so a green run says what did not run;
+# it fails instead when LSNIF_TEST_EXPECT lists LEVEL (tests/skip.sh).
 # With --cap, COMMAND runs with LSNIF_ISA=LEVEL: lsnif's kernels limited to that level.
 # isa_required.sh --missing LEVEL prints what the CPU lacks for LEVEL (nothing: it has it).
 set -u
+. "$(dirname "$0")/skip.sh"
 flags=" $(grep -m1 '^flags' /proc/cpuinfo | cut -d: -f2) "
 missing() {
   local need=()
@@ -13,6 +15,7 @@ missing() {
     avx2) need=(avx2 fma) ;;
     avx512) need=(avx2 fma avx512f avx512bw avx512dq avx512vl) ;;
     avx512bf16) need=(avx2 fma avx512f avx512bw avx512dq avx512vl avx512_bf16) ;;
+    avx512vnni) need=(avx2 fma avx512f avx512bw avx512dq avx512vl avx512_vnni) ;;
     amx) need=(avx2 fma avx512f avx512bw avx512dq avx512vl avx512_bf16 amx_bf16 amx_tile) ;;
     *) echo "isa_required.sh: unknown level $1" >&2; exit 2 ;;
   esac
@@ -29,10 +32,7 @@ shift
 cap=0
 [[ ${1:-} == --cap ]] && { cap=1; shift; }
 lacks=$(missing "$level")
-if [[ -n $lacks ]]; then
-  echo "SKIP: this CPU lacks $lacks, needed for $level"
-  exit 77
-fi
+[[ -z $lacks ]] || skip_or_fail "$level" "this CPU lacks $lacks, needed for $level"
 if ((cap)); then
   LSNIF_ISA=$level exec "$@"
 fi

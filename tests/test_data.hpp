@@ -6,6 +6,7 @@
 #include <doctest/doctest.h>
 
 #include <cstdint>
+#include <cstdlib>
 #include <filesystem>
 #include <fstream>
 #include <iterator>
@@ -29,6 +30,13 @@ inline std::filesystem::path fresh_dir(const std::filesystem::path& root, const 
     std::filesystem::remove_all(dir);
     if (create) std::filesystem::create_directories(dir);
     return dir;
+}
+
+// Whether LSNIF_TEST_EXPECT (comma-separated, tests/skip.sh) lists `need`: what this runner
+// must have, so that a case that cannot run for want of it fails instead of being passed by.
+inline bool runner_expects(const std::string& need) {
+    const char* e = std::getenv("LSNIF_TEST_EXPECT");
+    return e && ("," + std::string(e) + ",").find("," + need + ",") != std::string::npos;
 }
 
 #ifdef LSNIF_TEST_DATA_DIR

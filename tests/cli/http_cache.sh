@@ -16,7 +16,8 @@ rm -rf "$work" && mkdir -p "$work/lib" "$work/srv" "$work/logs"
 cp "$meshes/ChineseDragon-10kv.off" "$meshes/armadillo.off" "$work/lib/"
 
 nginx=$(command -v nginx || echo /usr/sbin/nginx)
-[[ -x $nginx ]] || { echo "SKIP: nginx is not installed (scripts/setup installs it)"; exit 77; }
+. "$(dirname "$0")/../skip.sh"
+[[ -x $nginx ]] || skip_or_fail nginx "nginx is not installed (scripts/setup installs it)"
 port=$(python3 -c 'import socket; s=socket.socket(); s.bind(("127.0.0.1", 0)); print(s.getsockname()[1])')
 dead_port=$(python3 -c 'import socket; s=socket.socket(); s.bind(("127.0.0.1", 0)); print(s.getsockname()[1])')
 cat >"$work/nginx.conf" <<EOF
@@ -67,7 +68,7 @@ start_nginx() {
 }
 stop_nginx() { kill "$nginx_pid" 2>/dev/null; wait "$nginx_pid" 2>/dev/null; }
 trap 'stop_nginx; [[ -n ${silent_pid:-} ]] && kill $silent_pid 2>/dev/null' EXIT
-start_nginx || { echo "SKIP: nginx did not start on 127.0.0.1:$port: $(cat "$work/logs/start.err" "$work/logs/error.log" 2>/dev/null | tail -3)"; exit 77; }
+start_nginx || skip_or_fail nginx "nginx did not start on 127.0.0.1:$port: $(cat "$work/logs/start.err" "$work/logs/error.log" 2>/dev/null | tail -3)"
 
 url=http://127.0.0.1:$port
 run() {  # run NAME ARGS...: lsnif batch on the library into $work/NAME with the given cache options
@@ -199,8 +200,18 @@ wait $a; ra=$?; wait $b; rb=$?
 [[ $ra == 0 && $rb == 0 ]] || bad "two writers: exits $ra $rb"
 run two_warm --cache "$url/two"; summary two_warm 's["cache"]["hits"] == 2 and s["cache"]["corrupt"] == 0'
 
-# The server stopped mid-run: the build goes on, with one warning, and its result is whole.
-cp "$work/lib/armadillo.off" "$work/lib/armadillo_copy.off"  # the same geometry: one more object
+# The server stopped mid-run, after the first store and before the last: the build goes on,
+# with one warning, and its result is whole. A scaled copy of the armadillo is a third object
+# (an exact copy would share the armadillo's conversion), so stores remain after the stop.
+python3 - "$work/lib/armadillo.off" "$work/lib/armadillo_scaled.off" <<'PY'
+import sys
+lines = open(sys.argv[1]).read().split("\n")
+counts = lines[1].split()
+nv = int(counts[0])
+for k in range(2, 2 + nv):
+    lines[k] = " ".join(repr(float(x) * 1.25) for x in lines[k].split())
+open(sys.argv[2], "w").write("\n".join(lines))
+PY
 "$lsnif" batch "$work/lib" -o "$work/stopped" --cache "$url/stopped" --preset smoke --threads 2 --json \
   >"$work/stopped.json" 2>"$work/stopped.err" & conv=$!
 for _ in $(seq 600); do
@@ -211,7 +222,11 @@ stop_nginx
 wait $conv; rc=$?
 [[ $rc == 0 ]] || bad "server stopped mid-run: exit $rc"
 summary stopped 's["assets"]["lsnif"] == 3 and s["assets"]["failed"] == 0'
-rm "$work/lib/armadillo_copy.off"
+stored=$(entries stopped | wc -l)
+((stored >= 1 && stored < 3)) || bad "server stopped mid-run: $stored of 3 results reached it (the stop was not mid-run)"
+[[ $(grep -c 'cache server is unavailable' "$work/stopped.err") == 1 ]] ||
+  bad "server stopped mid-run: not one warning: $(cat "$work/stopped.err")"
+rm "$work/lib/armadillo_scaled.off"
 
 # The example server's rules (examples/cache-server/nginx.conf): anyone reads, the token writes.
 sed -e "s#listen 8080;#listen 127.0.0.1:$port;#" -e "s#root /srv;#root $work/srv;#" \

@@ -14,6 +14,7 @@
 #   reference   the --threads 2 run the others compare with (WORK_ROOT/reference), made first.
 # usage: same_bytes.sh LSNIF MESH_DIR WORK_ROOT reference|threads|machine|isa CAP
 set -uo pipefail
+. "$(dirname "$0")/../skip.sh"
 lsnif=$1 meshes=$2 root=$3 mode=$4 cap=${5:-}
 fail=0
 bad() { echo "FAIL: $*"; fail=1; }
@@ -89,10 +90,7 @@ print([x for x in json.load(open(sys.argv[1]))['meshes'] if x['name'] == 'dragon
     ;;
   isa)
     why=$(missing_for "$cap") || exit 2
-    if [[ -n $why ]]; then
-      echo "SKIP: LSNIF_ISA=$cap: this CPU lacks $why"
-      exit 77
-    fi
+    [[ -z $why ]] || skip_or_fail "$cap" "LSNIF_ISA=$cap: this CPU lacks $why"
     convert "isa_$cap" LSNIF_ISA="$cap" -- --threads 2
     same reference "isa_$cap" "LSNIF_ISA=$cap against no cap"
     ;;

@@ -10,7 +10,8 @@ set -uo pipefail
 lsnif=$1 project=$2 meshes=$3 scene=$4 work=$5
 fail=0
 bad() { echo "FAIL: $*"; fail=1; }
-skip() { echo "SKIP: $*"; exit 77; }
+. "$(dirname "$0")/../skip.sh"
+skip() { skip_or_fail slurm "$@"; }
 rm -rf "$work" && mkdir -p "$work"/{lib/sub,run,state,spool,log,srv,nginx}
 for tool in munged slurmctld slurmd sbatch scontrol squeue nginx curl; do
   command -v "$tool" >/dev/null || [[ -x /usr/sbin/$tool ]] || skip "$tool is not installed (scripts/setup installs slurm-wlm, munge, nginx, curl)"

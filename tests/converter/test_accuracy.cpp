@@ -39,6 +39,8 @@
 #include <iterator>
 #include <string>
 
+#include "../test_data.hpp"
+
 namespace fs = std::filesystem;
 using lsnif::converter::ConvertOptions;
 using lsnif::converter::ConvertResult;
@@ -401,7 +403,12 @@ void check_reduced_inference(const Shipped& s, const std::string& name,
     const format::Runtime fp32 = format::make_runtime(s.model, format::MlpArithmetic::fp32);
     const format::Runtime reduced = format::make_runtime(s.model, arithmetic);
     if (format::mlp_arithmetic(reduced.net) != arithmetic) {
-        MESSAGE("this CPU lacks the instructions of " << label << " inference: not compared");
+        const std::string isa = arithmetic == format::MlpArithmetic::int8 ? "avx512vnni" : "avx512bf16";
+        if (test::runner_expects(isa))
+            FAIL_CHECK("this CPU lacks the instructions of "
+                       << label << " inference, and LSNIF_TEST_EXPECT lists " << isa);
+        else
+            MESSAGE("this CPU lacks the instructions of " << label << " inference: not compared");
         return;
     }
     const auto& rays = s.rays;
