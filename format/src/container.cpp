@@ -31,6 +31,9 @@ using namespace detail;
 
 namespace {
 
+// The first four bytes of a Zstandard frame (RFC 8878 §3.1.1), little-endian.
+constexpr std::uint32_t kZstdFrameMagic = 0xFD2FB528;
+
 Error make_error(lsnif_status status, std::uint64_t offset, const char* fmt, ...)
     __attribute__((format(printf, 3, 4)));
 
@@ -495,6 +498,14 @@ Error decode_payload(std::span<const std::uint8_t> b, const Entry& en, std::uint
         raw_crc = stored_crc;
         if (out && en.raw_size) std::memcpy(out, src, en.raw_size);
     } else {
+        // One Zstandard frame (FORMAT.md §4.4): a skippable frame, which the streaming
+        // decoder would take as zero bytes of content, is not one.
+        const std::uint32_t magic = en.stored_size >= 4 ? load_u32(src) : 0;
+        if (magic != kZstdFrameMagic)
+            return make_error(LSNIF_ERR_DECOMPRESS, en.offset,
+                              "section '%s': the stored bytes are not a Zstandard frame (magic %08" PRIx32
+                              ")",
+                              tag.c_str(), magic);
         std::unique_ptr<ZSTD_DCtx, decltype(&ZSTD_freeDCtx)> dctx(ZSTD_createDCtx(), ZSTD_freeDCtx);
         if (!dctx) return make_error(LSNIF_ERR_OUT_OF_MEMORY, en.offset, "zstd context allocation failed");
         // Bound decoder memory regardless of what the frame header asks for.

@@ -37,6 +37,9 @@ TraceStatus make_ray_grid(const Geometry& geo, const Ray& ray, RayGrid& rg, floa
         rg.go[a] = float((double(ray.org[a]) - geo.box_min[a]) / cell);
         rg.gd[a] = float(double(ray.dir[a]) / cell);
         rg.inv_gd[a] = rg.gd[a] == 0.0f ? kInf : 1.0f / rg.gd[a];
+        // A subnormal gd whose reciprocal overflows would make plane_t NaN on the plane
+        // through the origin: such a direction is invalid (FORMAT.md §8.2).
+        if (rg.gd[a] != 0.0f && std::isinf(rg.inv_gd[a])) return TraceStatus::invalid;
         moves = moves || rg.gd[a] != 0.0f;
     }
     if (!moves) return TraceStatus::invalid;  // no step of the grid is ever reached
@@ -386,7 +389,7 @@ LSNIF_AVX512 std::uint32_t start_walks(const Geometry& geo, const Ray* rays, int
     const __mmask16 normalizable = _mm512_cmp_ps_mask(squared, _mm512_setzero_ps(), _CMP_GT_OQ) &
                                    _mm512_cmp_ps_mask(squared, _mm512_set1_ps(kInf), _CMP_LT_OQ);
     __m512 go[3], gd[3], inv[3];
-    __mmask16 moves = 0;
+    __mmask16 moves = 0, overflow = 0;
     for (int a = 0; a < 3; ++a) {
         const double cell = (double(geo.box_max[a]) - geo.box_min[a]) / geo.V;
         const __m512d vmin = _mm512_set1_pd(double(geo.box_min[a])), vcell = _mm512_set1_pd(cell);
@@ -395,14 +398,15 @@ LSNIF_AVX512 std::uint32_t start_walks(const Geometry& geo, const Ray* rays, int
         const __mmask16 zero = _mm512_cmp_ps_mask(gd[a], _mm512_setzero_ps(), _CMP_EQ_OQ);
         inv[a] = _mm512_mask_mov_ps(_mm512_div_ps(_mm512_set1_ps(1.0f), gd[a]), zero, _mm512_set1_ps(kInf));
         moves |= __mmask16(~zero);
+        overflow |= __mmask16(~zero) & _mm512_fpclass_ps_mask(inv[a], 0x18);  // +-inf
         _mm512_store_ps(Q.go[a], go[a]);
         _mm512_store_ps(Q.gd[a], gd[a]);
         _mm512_store_ps(Q.inv[a], inv[a]);
     }
     __m512 t_near = ray_field(f, base, lanes, 3), t_far = ray_field(f, base, lanes, 7);
-    const __mmask16 invalid =
-        lanes & (nonfinite | ~normalizable | ~moves | _mm512_cmp_ps_mask(t_near, t_near, _CMP_UNORD_Q) |
-                 _mm512_cmp_ps_mask(t_far, t_far, _CMP_UNORD_Q));
+    const __mmask16 invalid = lanes & (nonfinite | ~normalizable | ~moves | overflow |
+                                       _mm512_cmp_ps_mask(t_near, t_near, _CMP_UNORD_Q) |
+                                       _mm512_cmp_ps_mask(t_far, t_far, _CMP_UNORD_Q));
     __mmask16 live = lanes & ~invalid, miss = 0;
     const float V = float(geo.V);
     const __m512 vV = _mm512_set1_ps(V);

@@ -696,8 +696,9 @@ class Inference:
             lo64 = self.m.box_min.astype(F64)
             go = ((o.astype(F64) - lo64) / self.cell64).astype(F32)
             gd = (d.astype(F64) / self.cell64).astype(F32)
-            invalid = ~finite | ~((s > 0) & (s < F32(INF))) | (gd == 0).all(1)
             inv = np.where(gd == 0, F32(INF), F32(1) / gd).astype(F32)
+            overflow = ((gd != 0) & np.isinf(inv)).any(1)  # a subnormal grid component, §8.2
+            invalid = ~finite | ~((s > 0) & (s < F32(INF))) | (gd == 0).all(1) | overflow
             k = np.arange(V + 1, dtype=F32)
             planes = (k[None, None, :] - go[:, :, None]) * inv[:, :, None]  # plane(a, k), f32
 
@@ -762,7 +763,7 @@ class Inference:
                     enter[a] = exit_[a]
                     exit_[a] = P[a][x[a] + 1] if step[a] > 0 else P[a][x[a]]
             if not stepped:
-                # Only possible when exit is NaN; §8.4 does not say what then (README).
+                # Only possible when exit is NaN, which §8.2's validity rules exclude.
                 raise WalkError("the walk of §8.4 makes no progress (exit is NaN)")
 
     # --- §8.5 Entry coordinates and the input vector -------------------------------------
@@ -893,7 +894,8 @@ class Inference:
                                 float(prep["t_near"][r]), float(prep["t_far"][r]))
             except WalkError as e:
                 raise WalkError(f"ray {r}: {e}") from None
-            answers.append(Answer(OK, len(pts), [p.voxel for p in pts]))
+            # §9 field 10: a walk that finds no point is a miss without the network.
+            answers.append(Answer(OK if pts else MISS, len(pts), [p.voxel for p in pts]))
             if pts:
                 evaluated.append(r)
                 evaluated_points.append(pts)
@@ -985,24 +987,12 @@ def read_vectors(path: str) -> list[Vector]:
 FIELDS = ("classification", "n", "voxels", "o0", "hit", "t", "normal", "material")
 
 
-def network_class(classification: str, n: int) -> str:
-    """§8.8's classification: invalid, miss before the network, or evaluated. §9 words field
-    10 differently ("ok: a walk ran; it may still find no point"), but the vector files
-    write `miss` for every walk that found no point (README, "Where the document was not
-    enough"). Both sides go through this function, so either wording compares equal."""
-    if classification == INVALID:
-        return "invalid"
-    if classification == OK and n > 0:
-        return "evaluated"
-    return "miss before the network"
-
-
 def compare(v: Vector, a: Answer) -> dict[str, tuple[str, str] | None]:
     """The fields §8.8 names, each None (not compared: it does not apply to this ray) or
     (ours, theirs)."""
     fmt_bits = lambda x: "-" if x is None else f"{f32_bits(x):08x}"
     result = {
-        "classification": (network_class(a.classification, a.n), network_class(v.classification, v.n)),
+        "classification": (a.classification, v.classification),
         "n": (str(a.n), str(v.n)),
         "voxels": (",".join(map(str, a.voxels)) or "-", ",".join(map(str, v.voxels)) or "-"),
         "o0": None, "hit": (str(a.hit), str(v.hit)), "t": None, "normal": None, "material": None,
@@ -1030,10 +1020,7 @@ def check(asset: str, vectors_path: str, verbose: int = 10) -> bool:
     name = os.path.basename(vectors_path)
     counts = {f: [0, 0] for f in FIELDS}  # field -> [matches, mismatches]
     shown = 0
-    field10 = []  # rays whose field 10 differs from §9's wording of it (informational)
     for v, a in zip(vectors, answers):
-        if a.classification != v.classification:
-            field10.append(f"{v.line} ({a.classification}, n = {a.n}; vector {v.classification})")
         for what, pair in compare(v, a).items():
             if pair is None:
                 continue
@@ -1045,12 +1032,6 @@ def check(asset: str, vectors_path: str, verbose: int = 10) -> bool:
     bad = sum(c[1] for c in counts.values())
     summary = ", ".join(f"{f} {c[0]}/{c[0] + c[1]}" for f, c in counts.items())
     print(f"{'ok  ' if bad == 0 else 'FAIL'} {name}: {len(vectors)} rays; matching {summary}; {elapsed:.1f} s")
-    if field10:
-        walked = sum(1 for x in field10 if x.endswith("(ok, n = 0; vector miss)"))
-        print(f"     note: field 10 differs from §9's wording on {len(field10)} rays, {walked} of them walks that "
-              f"found no point (§9: ok, the vectors: miss); §8.8's classification agrees")
-        if verbose > 10:
-            print("     lines " + "; ".join(field10))
     return bad == 0
 
 

@@ -222,6 +222,11 @@ struct Generator {
         with("degenerate", [](Ray& r) { r.dir[1] = 1e20f; });
         with("degenerate", [](Ray& r) { r.dir[0] = 3e-19f, r.dir[1] = 0.0f, r.dir[2] = 0.0f; });
         with("degenerate", [](Ray& r) { r.dir[0] = 1e-30f, r.dir[1] = 1.0f, r.dir[2] = 0.0f; });
+        with("degenerate", [&](Ray& r) {  // x subnormal in grid units, from a grid plane: invalid
+            const double cell = (double(geo.box_max[0]) - geo.box_min[0]) / geo.V;
+            r.org[0] = object_at(geo, 0, std::floor(g[0]));
+            r.dir[0] = float(1e-40 * cell), r.dir[1] = 1.0f, r.dir[2] = 0.0f;
+        });
         with("degenerate", [&](Ray& r) {  // parallel to x, outside the box in y: a miss
             r.dir[0] = 1.0f, r.dir[1] = r.dir[2] = 0.0f;
             r.org[1] = geo.box_max[1] + 1.0f;

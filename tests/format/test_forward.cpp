@@ -99,7 +99,9 @@ TEST_CASE("DDA visits exactly the brute-force voxel sequence on random rays") {
     }
 }
 
-TEST_CASE("a direction that moves along no axis of a huge box's grid is invalid, in both walks") {
+TEST_CASE(
+    "a direction that moves along no axis of a huge box's grid, or overflows in it, is invalid in both "
+    "walks") {
     // Cells of 2e28 units: a direction of 1e-22 is normalizable (squared length 1e-44, a
     // subnormal) but is 0 once divided by the cell, so no voxel boundary is ever reached.
     const std::uint32_t V = 100;
@@ -111,8 +113,14 @@ TEST_CASE("a direction that moves along no axis of a huge box's grid is invalid,
     CHECK(trace_all_voxels(geo, still, vox, ts) == TraceStatus::invalid);
     std::vector<std::uint8_t> bits((std::uint64_t(V) * V * V + 7) / 8, 0xFF);
     const OccupancyGrid occ(V, bits);
+    // A component of 2e-12 is 1e-40 cells per unit t, subnormal in grid units, and its
+    // reciprocal overflows: on the grid plane x = 50 through the origin, plane_t would be
+    // 0 * inf = NaN.
+    const Ray overflowing{{0.f, 0.f, 0.f}, 0.f, {2e-12f, 1.0f, 0.f}, INFINITY};
+    CHECK(trace_all_voxels(geo, overflowing, vox, ts) == TraceStatus::invalid);
     std::vector<Ray> rays(17, still);
     rays[3].dir[0] = 1.0f;  // a moving ray among them
+    rays[5] = overflowing;
     std::vector<RayPoints> pts(rays.size());
     std::vector<TraceStatus> status(rays.size());
     trace_points_batch(geo, occ, rays, pts.data(), status.data());

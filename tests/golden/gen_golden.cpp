@@ -325,6 +325,25 @@ int main(int argc, char** argv) {
         inv("payload_checksum.lsnif", b);
     }
     {
+        // An optional section of zero raw bytes whose stored bytes are a lone skippable frame
+        // (RFC 8878 §3.1.2, magic 0x184D2A50, no content): zstd's streaming decoder reads it
+        // as zero bytes, but it is not the one Zstandard frame FORMAT.md §4.4 asks for.
+        WriteOptions raw;
+        raw.zstd_level = 0;
+        raw.extra_sections.push_back({make_tag("XTRA"), false, std::vector<std::uint8_t>(8, 0)});
+        auto b = bytes_of(serialize(tiny, raw));
+        const std::size_t e = entry_of(b, make_tag("XTRA"));
+        const std::uint64_t off = get_u64(b, e + 16);
+        const std::uint8_t skippable[8] = {0x50, 0x2A, 0x4D, 0x18, 0, 0, 0, 0};
+        std::copy(skippable, skippable + 8, b.begin() + std::ptrdiff_t(off));
+        put_u32(b, e + 8, LSNIF_COMPRESSION_ZSTD);
+        put_u64(b, e + 32, 0);
+        put_u32(b, e + 40, crc32c(b.data() + off, 8));
+        put_u32(b, e + 44, 0);
+        reseal(b);
+        inv("skippable_frame.lsnif", b);
+    }
+    {
         auto b = tiny_bytes;  // corrupt zstd frame magic but keep checksums consistent
         const std::size_t e = entry_of(b, kTagMeta);
         const std::uint64_t off = get_u64(b, e + 16), size = get_u64(b, e + 24);

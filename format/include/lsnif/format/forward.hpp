@@ -97,8 +97,9 @@ struct RayGrid {
     float plane_t(int axis, float k) const { return (k - go[axis]) * inv_gd[axis]; }
 };
 // Returns invalid for a ray FORMAT.md §8.2 calls invalid: a non-finite origin or direction,
-// a NaN bound, a direction that cannot be normalized (normalizable) or one that moves
-// along no axis of the grid once mapped to grid units; miss when the ray does not meet the
+// a NaN bound, a direction that cannot be normalized (normalizable), one that moves
+// along no axis of the grid once mapped to grid units, or one with a grid-space component
+// whose reciprocal overflows; miss when the ray does not meet the
 // box within [tmin, tmax] (also for tmin > tmax).
 TraceStatus make_ray_grid(const Geometry& geo, const Ray& ray, RayGrid& rg, float& t_near, float& t_far);
 
