@@ -3,11 +3,11 @@
 
 It reads a container (FORMAT.md §2-§7), answers rays with the inference of §8 and checks
 the conformance vectors of §9. It shares no code, and no reading of code, with the C
-reader: where the document was not enough, README.md says so and says what was assumed.
+reader. README.md lists what writing it found missing in the document, now settled there.
 
 Readability comes first, like zstd's educational decoder: every rule is written where the
 section it implements can be seen, and the comments cite those sections. Speed matters
-only so far as the three vector files take seconds: the walk of §8.4 is a plain loop per
+only so far as the vector files take seconds: the walk of §8.4 is a plain loop per
 ray, the feature encoding and the MLP run on NumPy arrays across all rays at once.
 
     lsnif_reference.py check ASSET.lsnif VECTORS.rays

@@ -4,8 +4,11 @@
 //
 //   lsnif_make_conformance quantize IN.lsnif OUT.lsnif
 //       OUT: IN with its grid stored as 8-bit affine features (FORMAT.md §6.4.1).
+//   lsnif_make_conformance synthetic OUT.lsnif
+//       OUT: an untrained model with what no converted asset has: material logits, the
+//       segment distance encoding, the direction input alone, dense levels only.
 //   lsnif_make_conformance vectors ASSET.lsnif OUT.rays SEED
-//       OUT: rays of every case of §9.2 with the fp32 reference's outputs on them.
+//       OUT: rays of every case of §9 with the fp32 reference's outputs on them.
 //
 // The expected outputs come from the reader's fp32 arithmetic (the reference of §8.6), and
 // are checked here against the C API's lsnif_intersect before they are written.
@@ -13,6 +16,7 @@
 #include <lsnif/base/random.hpp>
 #include <lsnif/format/container.hpp>
 #include <lsnif/format/forward.hpp>
+#include <lsnif/format/half.hpp>
 #include <lsnif/format/quantize.hpp>
 
 #include <algorithm>
@@ -267,6 +271,50 @@ int quantize(const std::string& in, const std::string& out) {
     return 0;
 }
 
+// A shell of occupied voxels and weights drawn so that every output varies with the input:
+// features of magnitude 1, weights scaled by 2 / sqrt(inputs), small biases, except the
+// visibility logit's, which makes hits and misses about as frequent.
+constexpr float kVisibilityBias = 0.25f;
+int synthetic(const std::string& out) {
+    ModelDesc d;
+    d.grid_resolution = 12;
+    d.max_points = 6;
+    d.level_resolution = {6, 12};  // 7^3 = 343 and 13^3 = 2197 <= 2^12: both dense
+    d.features_per_level = 2;
+    d.log2_table_size = 12;
+    d.hidden_width = {24, 16};
+    d.material_count = 3;
+    d.distance_encoding = LSNIF_DISTANCE_SEGMENT;
+    d.ray_inputs = kRayInputDirection;
+    d.box_min = {-1.5f, -0.75f, 0.25f};
+    d.box_max = {2.5f, 1.25f, 1.75f};
+    auto empty = make_empty_model(d);
+    if (!empty) return fail(empty.error().message);
+    ModelData m = std::move(*empty);
+    m.metadata_json = R"({"format": "lsnif-metadata/1", "object": {"name": "synthetic"}})";
+    const std::uint32_t V = d.grid_resolution;
+    const float c = 0.5f * float(V - 1), r = 0.35f * float(V);
+    for (std::uint32_t z = 0; z < V; ++z)
+        for (std::uint32_t y = 0; y < V; ++y)
+            for (std::uint32_t x = 0; x < V; ++x) {
+                const float d2 = (x - c) * (x - c) + (y - c) * (y - c) + (z - c) * (z - c);
+                if (d2 > r * r || d2 < (r - 1.5f) * (r - 1.5f)) continue;
+                const std::uint64_t i = x + std::uint64_t(V) * (y + std::uint64_t(V) * z);
+                m.occupancy[i >> 3] |= std::uint8_t(1u << (i & 7));
+            }
+    lsnif::base::SplitMix64 rng{7};
+    for (auto& level : m.grid)
+        for (auto& h : level) h = float_to_half(rng.uniform(-1.0f, 1.0f));
+    for (std::uint32_t k = 0; k < d.layer_count(); ++k) {
+        const float scale = 2.0f / std::sqrt(float(d.layer_shape(k).second));
+        for (auto& h : m.weights[k]) h = float_to_half(rng.uniform(-scale, scale));
+        for (auto& h : m.biases[k]) h = float_to_half(rng.uniform(-0.1f, 0.1f));
+    }
+    m.biases.back()[OutputLayout::visibility] = float_to_half(kVisibilityBias);
+    if (const Error e = write_file(out, m)) return fail(out + ": " + e.message);
+    return 0;
+}
+
 const char* status_name(TraceStatus s) {
     return s == TraceStatus::ok ? "ok" : s == TraceStatus::miss ? "miss" : "invalid";
 }
@@ -349,9 +397,11 @@ int vectors(const std::string& asset_path, const std::string& out_path, std::uin
 int main(int argc, char** argv) {
     const std::vector<std::string> args(argv + 1, argv + argc);
     if (args.size() == 3 && args[0] == "quantize") return quantize(args[1], args[2]);
+    if (args.size() == 2 && args[0] == "synthetic") return synthetic(args[1]);
     if (args.size() == 4 && args[0] == "vectors") return vectors(args[1], args[2], std::stoull(args[3]));
     std::fprintf(stderr,
                  "usage: lsnif_make_conformance quantize IN.lsnif OUT.lsnif\n"
+                 "       lsnif_make_conformance synthetic OUT.lsnif\n"
                  "       lsnif_make_conformance vectors ASSET.lsnif OUT.rays SEED\n");
     return 2;
 }

@@ -82,7 +82,7 @@ fs::path conformance_dir() {
     return LSNIF_CONFORMANCE_DIR;
 }
 
-const char* const kAssets[] = {"armadillo_fp16", "peterbilt_fp16", "peterbilt_u8"};
+const char* const kAssets[] = {"armadillo_fp16", "peterbilt_fp16", "peterbilt_u8", "synthetic_materials"};
 
 struct Opened {
     lsnif_model* model = nullptr;
