@@ -30,10 +30,9 @@ void check(lsnif_status status, const std::string& what) {
 using FloatArray = py::array_t<float, py::array::c_style | py::array::forcecast>;
 
 // The rays of a call: origins and directions (N, 3), tmin and tmax scalars or (N,).
-std::vector<lsnif_ray> make_rays(const FloatArray& origins, const FloatArray& directions, const py::object& tmin,
-                                 const py::object& tmax) {
-    if (origins.ndim() != 2 || origins.shape(1) != 3)
-        throw py::value_error("origins must have shape (N, 3)");
+std::vector<lsnif_ray> make_rays(const FloatArray& origins, const FloatArray& directions,
+                                 const py::object& tmin, const py::object& tmax) {
+    if (origins.ndim() != 2 || origins.shape(1) != 3) throw py::value_error("origins must have shape (N, 3)");
     if (directions.ndim() != 2 || directions.shape(1) != 3 || directions.shape(0) != origins.shape(0))
         throw py::value_error("directions must have the shape of origins, (N, 3)");
     const auto n = std::size_t(origins.shape(0));
@@ -122,7 +121,8 @@ public:
         d["output_count"] = i.output_count;
         d["material_count"] = i.material_count;
         d["activation"] = i.activation == 0 ? "relu" : "unknown";
-        d["distance_encoding"] = i.distance_encoding == LSNIF_DISTANCE_SEGMENT ? "segment" : "first_entry_diagonal";
+        d["distance_encoding"] =
+            i.distance_encoding == LSNIF_DISTANCE_SEGMENT ? "segment" : "first_entry_diagonal";
         d["box_min"] = py::make_tuple(i.box_min[0], i.box_min[1], i.box_min[2]);
         d["box_max"] = py::make_tuple(i.box_max[0], i.box_max[1], i.box_max[2]);
         d["grid_encoding"] = i.grid_encoding == LSNIF_GRID_FP16 ? "fp16" : "u8_affine";
@@ -273,14 +273,17 @@ PYBIND11_MODULE(lsnif, m) {
     const float inf = std::numeric_limits<float>::infinity();
     py::class_<Model>(m, "Model", "An open asset. Use lsnif.open(path).")
         .def("close", &Model::close, "Releases the asset; later calls raise ValueError.")
-        .def("__enter__", [](Model& self) -> Model& { return self; }, py::return_value_policy::reference)
+        .def(
+            "__enter__", [](Model& self) -> Model& { return self; }, py::return_value_policy::reference)
         .def("__exit__", [](Model& self, py::args) { self.close(); })
         .def_property_readonly("info", &Model::info, "Every field of lsnif_info, as a dict.")
-        .def_property_readonly("ray_inputs", &Model::ray_inputs, "Bits of RAY_INPUT_DIRECTION, RAY_INPUT_ENTRY_OFFSETS.")
+        .def_property_readonly("ray_inputs", &Model::ray_inputs,
+                               "Bits of RAY_INPUT_DIRECTION, RAY_INPUT_ENTRY_OFFSETS.")
         .def_property_readonly("metadata", &Model::metadata, "The JSON metadata text.")
-        .def_property("arithmetic", &Model::arithmetic, &Model::set_arithmetic,
-                      "The network's arithmetic in use; set 'auto', 'fp32', 'bf16' or 'int8' (falls back where "
-                      "the CPU lacks it).")
+        .def_property(
+            "arithmetic", &Model::arithmetic, &Model::set_arithmetic,
+            "The network's arithmetic in use; set 'auto', 'fp32', 'bf16' or 'int8' (falls back where "
+            "the CPU lacks it).")
         .def_property_readonly("layer_count", &Model::layer_count)
         .def("occupancy", &Model::occupancy, "bool [V][V][V], indexed [z, y, x].")
         .def("grid_level", &Model::grid_level, py::arg("level"),
@@ -289,13 +292,14 @@ PYBIND11_MODULE(lsnif, m) {
              "float32 [2] = (scale, offset) of an 8-bit grid's level: value = fma(q, scale, offset).")
         .def("layer_weights", &Model::layer_weights, py::arg("layer"), "float16 [out][in].")
         .def("layer_bias", &Model::layer_bias, py::arg("layer"), "float16 [out].")
-        .def("intersect", &Model::intersect, py::arg("origins"), py::arg("directions"), py::arg("tmin") = 0.0f,
-             py::arg("tmax") = inf, py::arg("transform") = py::none(),
+        .def("intersect", &Model::intersect, py::arg("origins"), py::arg("directions"),
+             py::arg("tmin") = 0.0f, py::arg("tmax") = inf, py::arg("transform") = py::none(),
              "Closest hits of rays (N, 3) in object space, or in world space with a (3, 4) object-to-world "
              "transform: dict of hit (bool), t (float32), normal (float32 (N, 3)), material (uint32).")
         .def("occluded", &Model::occluded, py::arg("origins"), py::arg("directions"), py::arg("tmin") = 0.0f,
              py::arg("tmax") = inf, py::arg("transform") = py::none(),
              "Whether each ray hits the object within [tmin, tmax]: bool (N,).");
-    m.def("open", [](const std::string& path) { return std::make_unique<Model>(path); }, py::arg("path"),
-          "Opens and verifies a .lsnif file; lsnif.Error names the file and the problem.");
+    m.def(
+        "open", [](const std::string& path) { return std::make_unique<Model>(path); }, py::arg("path"),
+        "Opens and verifies a .lsnif file; lsnif.Error names the file and the problem.");
 }

@@ -88,6 +88,18 @@ step calibrate_image_gate "$project/scripts/calibrate_image_gate" --build "$buil
 step seed_sweep "$project/scripts/seed_sweep" --build "$build" --mesh "$dragon" --seeds 2 --preset smoke \
     --out "$work/seed_sweep" --work "$work/seed_sweep_work" && expect seed_sweep "$work/seed_sweep/seed_sweep.json"
 
+# docs/packaging.md "Python": the example as printed, on a conformance asset, with the
+# module of this build (scripts/setup --charts installs matplotlib).
+python_example() {
+    local code
+    code=$(awk '/^## Python/ {in_section = 1} in_section && /^```python/ {grab = 1; next}
+                grab && /^```/ {exit} grab {print}' "$project/docs/packaging.md")
+    [[ -n $code ]] || { echo "no python block under docs/packaging.md ## Python"; return 1; }
+    (cd "$work" && cp "$project/schema/conformance/peterbilt_fp16.lsnif" dragon.lsnif &&
+        MPLBACKEND=Agg PYTHONPATH="$build/format/python/module" /usr/bin/python3 -c "$code")
+}
+step python_example python_example && expect python_example "$work/slice.png"
+
 if ((failures > 0)); then
     echo "FAIL: $failures documented commands failed"
     exit 1

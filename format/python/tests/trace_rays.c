@@ -33,7 +33,8 @@ int main(int argc, char** argv) {
     if (lsnif_intersect(model, rays, n, hits) != LSNIF_OK) return fail("lsnif_intersect failed", argv[1]);
     if (lsnif_occluded(model, rays, n, occluded) != LSNIF_OK) return fail("lsnif_occluded failed", argv[1]);
     FILE* out = fopen(argv[3], "wb");
-    if (!out || fwrite(hits, sizeof *hits, n, out) != n || fclose(out) != 0) return fail("cannot write", argv[3]);
+    if (!out || fwrite(hits, sizeof *hits, n, out) != n || fclose(out) != 0)
+        return fail("cannot write", argv[3]);
     out = fopen(argv[4], "wb");
     if (!out || fwrite(occluded, 1, n, out) != n || fclose(out) != 0) return fail("cannot write", argv[4]);
     free(rays);
