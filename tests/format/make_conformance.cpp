@@ -92,19 +92,20 @@ struct Generator {
         return r;
     }
     void add(const char* name, const Ray& r) { out.push_back({name, r}); }
+    // An unbounded ray through a random point of an occupied voxel, starting `back` voxels
+    // before it along a random direction.
+    Ray through_occupied(double back) {
+        double g[3];
+        in_occupied(g);
+        float d[3];
+        unit(d);
+        const double o[3] = {g[0] - d[0] * back, g[1] - d[1] * back, g[2] - d[2] * back};
+        return from_grid(o, d, 0.0f, kInf);
+    }
 
     // Rays from outside the box through a point of an occupied voxel: primary-like rays.
     void outside(int n) {
-        const Geometry& geo = asset.geo;
-        for (int i = 0; i < n; ++i) {
-            double g[3];
-            in_occupied(g);
-            float d[3];
-            unit(d);
-            const double far = 2.0 * geo.V;
-            const double o[3] = {g[0] - d[0] * far, g[1] - d[1] * far, g[2] - d[2] * far};
-            add("outside", from_grid(o, d, 0.0f, kInf));
-        }
+        for (int i = 0; i < n; ++i) add("outside", through_occupied(2.0 * asset.geo.V));
     }
     // Rays leaving a point of an occupied voxel, bounded (ambient occlusion) or not.
     void from_surface(int n) {
@@ -179,15 +180,9 @@ struct Generator {
     // Segments that start or end inside the box: tmin past the origin, tmax inside an
     // occupied voxel or exactly on a voxel face.
     void bounded(int n) {
-        const Geometry& geo = asset.geo;
         for (int i = 0; i < n; ++i) {
-            double g[3];
-            in_occupied(g);
-            float d[3];
-            unit(d);
-            const double back = 0.75 * geo.V;
-            const double o[3] = {g[0] - d[0] * back, g[1] - d[1] * back, g[2] - d[2] * back};
-            Ray r = from_grid(o, d, 0.0f, kInf);
+            const double back = 0.75 * asset.geo.V;
+            Ray r = through_occupied(back);
             const float t_point = float(back);  // where the occupied point is
             switch (i % 3) {
                 case 0: r.tmax = t_point; break;
