@@ -27,9 +27,9 @@ std::optional<double> image_error(const std::optional<ObjectFlip>& f) {
 }
 
 // How far above the image gate a model may be at a validation check and still be trained on
-// when its rays say the gate is out of reach (EarlyAbort): the hairball's FLIP over its own
-// pixels fell from 0.37 after a fifth of the default budget to 0.265 at its end (docs/model.md
-// "Judged by how it looks"), a factor of 1.4; 1.5 leaves margin.
+// when its rays say the gate is out of reach (EarlyAbort), as a factor of the gate: the
+// largest fall of an image error measured from such a check to the end of training, with
+// margin (docs/investigations/judged-by-how-it-looks.md "The visual check's figures").
 constexpr double kImageHeadroom = 1.5;
 
 // Whether the image gate may still be reached (Gate::accept takes images and the views

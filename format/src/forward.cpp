@@ -747,9 +747,8 @@ __attribute__((target("avx512f,avx512vl,avx2,fma"))) void dense_narrow_avx512(
 // outputs cost anything (the kernels above spend a 16-wide FMA per input on 5 real outputs).
 // Per row and output: bias, then fma over inputs 0, 1, ..., as dense_narrow_avx512, so the
 // real columns are the same bit for bit; padding columns are written as zeros. Requires
-// outp == 16; rows beyond the last full block of 16 go to dense_narrow_avx512. (Two groups
-// of 16 rows, for twice the independent FMA chains, measured no faster: the transposed
-// inputs of both no longer fit the registers.)
+// outp == 16; rows beyond the last full block of 16 go to dense_narrow_avx512. One group of
+// 16 rows at a time: the transposed inputs of two groups would not fit the registers.
 template <int OUTS>
 __attribute__((target("avx512f,avx512vl,avx2,fma"))) void dense_output_avx512(const float* A, std::size_t n,
                                                                               std::size_t in, std::size_t lda,

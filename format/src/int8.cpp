@@ -179,7 +179,8 @@ LSNIF_AVX512_TARGET void quantize_rows_avx512(const float* src, std::size_t n, s
 // acc += VPDPBUSD(u, s): in each int32 lane, the four products of u's unsigned bytes with
 // s's signed bytes. Inline assembly rather than _mm512_dpbusd_epi32: GCC 12 keeps the
 // intrinsic's accumulators of a 6 x 4 block in memory (a load and a store around every
-// instruction), which halves the kernel's rate; the instruction itself is the same.
+// instruction), a store-to-load round trip on every accumulator's dependency chain; the
+// instruction itself is the same.
 LSNIF_VNNI_TARGET inline __m512i dpbusd(__m512i acc, __m512i u, __m512i s) {
     __asm__("vpdpbusd %2, %1, %0" : "+v"(acc) : "v"(u), "v"(s));
     return acc;

@@ -180,9 +180,9 @@ struct alignas(128) ChunkResult {
 
 // Relative cost of one level's pass in scatter_grid_gradients: every sample's corners are
 // computed and the live ones added. Faces of an aligned level lie on lattice planes (4
-// corners for most points, 8 otherwise), and a table larger than a core's L2 (1 MiB on the
-// machines we measure) makes the additions miss cache. Calibrated on the dragon and the
-// armadillo (docs/model.md "Coarse levels": per-level pass times of one run).
+// corners for most points, 8 otherwise), and a table larger than 1 MiB (a core's L2 on the
+// reference machines) makes the additions miss cache. A relative weight, not a time: it only
+// orders levels for owned_rows (per-level pass times: docs/investigations/grid-and-levels.md).
 double scatter_cost(const format::ModelDesc& desc, const Geometry& geo, std::uint32_t level) {
     const std::uint64_t table_bytes = desc.level_entries(level) * desc.features_per_level * sizeof(float);
     return (geo.levels[level].aligned ? 2.0 : 3.0) + (table_bytes > (std::uint64_t{1} << 20) ? 1.0 : 0.0);
@@ -402,8 +402,7 @@ namespace {
 
 // Encodes rows 0..n-1 (n <= kSub) of the sub-chunk (w.pts) into w.x with the reader's
 // batch encoder, so training and reading share one encoder: encode_points' values bit for
-// bit (forward.hpp). Measured as fast as the per-ray loop it replaced (docs/investigations/grid-and-levels.md
-// "Coarse levels").
+// bit (forward.hpp).
 void encode_rows(const Geometry& geo, const std::vector<format::GridView>& grid, std::size_t n, Work& w) {
     static const std::vector<std::uint32_t> identity = [] {
         std::vector<std::uint32_t> v(kSub);
@@ -468,10 +467,9 @@ void forward_layers(const Geometry& geo, const std::vector<format::GridView>& gr
 // The output layer's forward stays fp32 (format::dense_layer, ~2% of the MLP FLOPs; its two
 // backward products are bf16 like the others): the loss gradients depend on residuals
 // (distance error against a 1%-of-diagonal Huber delta) far smaller than the outputs, so
-// rounding its inputs to bf16 would move them by tens of percent late in training.
-// Measured on a trained v1-width model (test_amx.cpp), relative L2 difference of the
-// gradients to fp32: 44-49% for the output layer with a bf16 output forward, 3-7% for
-// every parameter kind with an fp32 one.
+// rounding its inputs to bf16 would move them by tens of percent late in training, far more
+// than bf16 moves any other gradient (test_amx.cpp compares them with fp32;
+// docs/investigations/training-and-inference-throughput.md).
 void forward_layers_bf16(const Geometry& geo, const std::vector<format::GridView>& grid,
                          const format::Network& net, const std::vector<detail::Bf16Buffer>& wf, std::size_t n,
                          Work& w) {
@@ -575,7 +573,8 @@ void Trainer::prepare_append(std::span<const Sample> samples, PreparedSet& set) 
         }
     });
     // Compaction in parallel, in sample order: each thread's kept samples go after those of
-    // the threads before it (a serial copy of the H x 3 points was ~40 % of prepare()).
+    // the threads before it: a serial copy of the H x 3 points per sample would be the
+    // largest serial part of prepare().
     std::vector<std::size_t> kept(threads_ + 1, 0);
     parallel(threads_, [&](std::uint32_t t) {
         const std::size_t b = std::min(samples.size(), t * per), e = std::min(samples.size(), b + per);

@@ -371,8 +371,8 @@ FlipStats stats_of(std::span<const float> e) {
     for (float v : e) sum += v;
     s.mean = sum / static_cast<double>(e.size());
     s.max = *std::max_element(e.begin(), e.end());
-    // Order statistics by selection (O(n), a full sort took 10 % of FLIP's time). The
-    // 95th percentile is selected first; the median then only needs the lower part.
+    // Order statistics by selection (O(n) rather than a full sort's O(n log n)). The 95th
+    // percentile is selected first; the median then only needs the lower part.
     std::vector<float> v(e.begin(), e.end());
     const auto percentile = [&v](double q, std::size_t end) {
         const double pos = q * static_cast<double>(v.size() - 1);

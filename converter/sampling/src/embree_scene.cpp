@@ -75,10 +75,10 @@ std::string attach_caps(EmbreeSource::Impl& m) {
 // inside test needs.
 std::string new_device_and_scene(EmbreeSource::Impl& m) {
     // One build thread: Embree's multi-threaded builder allocates per-thread blocks, so the
-    // BVH's bytes (bvh_bytes(), what manifests and memory budgets report) changed from build to
-    // build (2 distinct counts in 12 builds of the 1.28 M-triangle dragon; 1 with one thread),
-    // and reports must be reproducible. It costs ~0.2 s on that dragon's build, nothing on
-    // tracing: rtcIntersect runs on the calling threads whatever the device's thread count.
+    // BVH's bytes (bvh_bytes(), what manifests and memory budgets report) can change from
+    // build to build, and reports must be reproducible. It costs build time on large meshes
+    // (docs/investigations/sizing.md), nothing on tracing: rtcIntersect runs on the calling
+    // threads whatever the device's thread count.
     const std::string& isa = m.cfg.embree_isa;
     if (isa == "avx2" && !format::detected_cpu_features().avx2_fma)
         return "this CPU has no AVX2 and FMA: conversion pins Embree's ground truth to its AVX2 kernels "

@@ -159,7 +159,7 @@ bool EmbreeSource::Impl::parity_inside(const float o[3], Rng& rng, std::vector<P
 // segment meets no surface, o has that cell's state; otherwise the facing of the first
 // hit decides, as in any first-hit vote. A segment of at most 1.5 cells is a much
 // cheaper traversal than a ray in a random direction, which from a point next to the
-// surface often runs across the whole model; votes were ~5 % of generation time.
+// surface often runs across the whole model.
 // `clean` false: no classified face neighbour, or the hit is not clean (the caller
 // falls back to random directions).
 bool EmbreeSource::Impl::segment_vote(const float o[3], bool& clean, std::uint64_t& queries) const {

@@ -39,9 +39,9 @@ struct Preset {
     format::ModelDesc model;     // box is filled per mesh
     trainer::TrainConfig train;  // threads/seed are filled from the options
     // Training data is streamed in rounds: round r draws `train_chunk_rays` fresh rays, and
-    // steps of that round sample the latest `train_window_chunks` chunks. Held-out accuracy
-    // measured on the dragon rose from 96.3 % (2^21 rays reused for 10 epochs: 99.6 % on
-    // the training rays themselves) to 97.7 % with 2^23 distinct rays at equal steps.
+    // steps of that round sample the latest `train_window_chunks` chunks. Distinct rays
+    // because a smaller set reused for many epochs is overfitted; rounds because only the
+    // window, not every ray, is held in memory (docs/model.md "Training data in rounds").
     std::uint64_t train_rays = 1u << 20;        // distinct training rays in all rounds
     std::uint64_t train_chunk_rays = 1u << 20;  // rays per round
     std::uint32_t train_window_chunks = 2;      // chunks a step samples from

@@ -52,7 +52,7 @@ struct EvalOptions {
         LSNIF_ARITHMETIC_AUTO;  // LSNIF network arithmetic (auto: what lsnif_open picks)
     // Hybrid render only: secondary rays leaving an LSNIF instance's surface start this many of
     // its occupancy voxels (edge length in world units) away from the surface (tmin), the
-    // runtime treatment docs/model.md "Rays leaving the surface, by side" measures; the
+    // runtime treatment docs/investigations/surface-leaving-rays.md measures; the
     // reference keeps tmin = 0, so the images show what it costs and what it fixes. 0 = off.
     float surface_tmin_voxels = 0.0f;
     // Times each row's secondary rays this many times per tracer (the two alternating) and

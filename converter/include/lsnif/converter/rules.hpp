@@ -41,8 +41,9 @@ bool parse_bvh_yardstick(const std::string& text, BvhYardstick& out);
 // starts at the preset's model, and only the target (Sizing) makes it smaller.
 struct ClassifyRule {
     std::uint64_t min_triangles = 2000;  // fewer: the BVH is tiny and exact; keep it
-    // An approximation must at least halve the memory of what it replaces: a 10-30 % saving is
-    // not worth ~3 % wrong visibility (2CylinderEngine has four 7-11k-triangle parts at 1.1-1.8x).
+    // An approximation must at least halve the memory of what it replaces: a saving of a few
+    // tens of percent is not worth the share of wrong visibility every asset brings
+    // (docs/investigations/sizing.md, the 2CylinderEngine's small parts).
     double min_memory_ratio = 2.0;  // the yardstick's BVH bytes >= this x the asset's resident bytes
     BvhYardstick yardstick = BvhYardstick::embree;
     std::uint32_t min_log2_table_size = 15;  // smallest table sizing may choose (2^15 rows)
@@ -72,10 +73,10 @@ struct Gate {
     double max_flip = kCalibratedMaxFlip;
     Acceptance accept = Acceptance::either;
     // The image gate calibrated by what the rays already accept (docs/model.md "Judged by how
-    // it looks", docs/image_gate.md): the largest held-out object-pixel FLIP of the assets of
-    // real meshes that meet the default ray target (11 of 13 CGAL and bundled meshes, 0.038
-    // to 0.069), rounded up. An asset shipped by images above it (a user's --gate-flip) says
-    // so (GateVerdict::above_calibrated).
+    // it looks"): the largest held-out object-pixel FLIP of the assets of real meshes that meet
+    // the default ray target, rounded up (docs/image_gate.md lists them; recalibrate with
+    // scripts/calibrate_image_gate when the model changes). An asset shipped by images above it
+    // (a user's --gate-flip) says so (GateVerdict::above_calibrated).
     static constexpr double kCalibratedMaxFlip = 0.070;
 };
 
@@ -106,10 +107,10 @@ struct Target {
     double normal_deg = 8.0;
     // The visual term (`--target-flip`): the combined render's FLIP over the object's own
     // pixels in its decision views at most this, when the visual check ran. The default, 1,
-    // asks nothing of the images: three views of 160x120 pixels vary more than sizes do (the
-    // assets that meet the ray target measure 0.042 to 0.111 on their decision views and
-    // 0.038 to 0.069 on held-out ones, docs/image_gate.md), so an image term would choose
-    // sizes by the draw of views. The image gate (Gate::max_flip) judges the images.
+    // asks nothing of the images: the image error of three views of 160x120 pixels varies more
+    // from one draw of views to another than between the sizes of one model
+    // (docs/image_gate.md), so an image term would choose sizes by the draw of views. The
+    // image gate (Gate::max_flip) judges the images.
     double flip = 1.0;
 };
 
@@ -121,19 +122,21 @@ bool parse_target(const std::string& text, Target& target, std::string& error);
 // Giving up early (docs/model.md "Deciding early"): at a validation check, once training
 // has seen at least `min_samples` samples, an object is abandoned (it stays BVH) when even
 // the largest improvement measured from such a point to the end of training could not
-// bring its validation curve to the gate. The headrooms are the largest changes measured
-// after ~2 M samples on CGAL's dragon and armadillo and the hard-geometry suite, with margin.
+// bring its validation curve to the gate. Each headroom is the largest such change measured
+// on CGAL's dragon and armadillo and the hard-geometry suite, with margin
+// (docs/investigations/sizing.md "Deciding early: the hard cases"); recalibrate them there
+// when the model or the budget changes.
 struct EarlyAbort {
     std::uint64_t min_samples = 1500000;  // before this the curve is too steep to judge
-    double visibility_headroom = 0.05;    // measured at most 4.3 points (the hairball)
-    double normal_headroom_deg = 20.0;    // measured at most 14.9 degrees (the cards)
-    double distance_factor = 0.35;        // final / checked median: measured at least 0.46
+    double visibility_headroom = 0.05;    // fraction of visibility a curve may still gain
+    double normal_headroom_deg = 20.0;    // degrees the median normal error may still fall
+    double distance_factor = 0.35;        // final / checked median distance error, at least
 };
 
 // Stopping when the target is met (docs/model.md "Deciding early"): training ends at a
 // validation check when this check and the `consecutive - 1` checks before it all meet the
-// target with margins for the noise of the validation set (2^13 rays: about +-0.25 points of
-// visibility between seeds), so that the held-out measure of the shipped model meets it too.
+// target with margins for the noise of the validation set (2^13 rays: a few tenths of a point
+// of visibility), so that the held-out measure of the shipped model meets it too.
 // Training an object further than its target only spends time: a user who wants more asks
 // for more with --target.
 struct TargetStop {
@@ -162,38 +165,40 @@ struct Sizing {
     // A smaller rung is given up at a validation check when its visibility, plus the most
     // the larger rung's curve gained after the same step, plus this slack, stays below the
     // visibility that TargetStop asks for: it would not catch up within its budget. A smaller
-    // rung runs a shorter schedule and gains more late: the blob's 2^16 rung gained 2.25
-    // points after step 288 where its 2^17 rung had gained 1.79 after step 240 (docs/model.md
-    // "Sizing to the target"); the slack covers that difference twice.
+    // rung runs a shorter schedule and gains more late than the larger rung did after the same
+    // step; the slack covers that difference twice (docs/investigations/sizing.md "What the
+    // table sizes bought, before the ladder").
     double curve_slack = 0.01;
     // The grid rung (docs/model.md "Thin geometry: a finer grid where the target needs it"):
     // when the first size's validation curve shows, once EarlyAbort may judge, that even the
     // largest improvement measured from there (finer_grid_headroom) leaves it short of the
     // target's visibility, training starts again at twice the occupancy grid's resolution,
     // up to this (0: never). Thin structure (hair, grilles) is what a coarse grid cannot
-    // separate: the bundled hairball's combined FLIP is 0.072 at 32^3, 0.063 at 64^3 and 0.045
-    // at 128^3.
+    // separate; a finer grid lowers its image error where more entry points or a wider
+    // network do not (docs/investigations/judged-by-how-it-looks.md).
     std::uint32_t max_grid_resolution = 128;
-    // Visibility gained from the default preset's first check that may judge (step 240 of
-    // 1200) to the end, measured: CGAL dragon 1.47 points, armadillo 0.39, the truck 1.40, the
-    // tree 2.10, the bundled hairball 3.23, four denser hairballs 0.49-0.93.
+    // The most visibility (a fraction) a curve may still gain from the default preset's first
+    // check that may judge to the end of training: the largest gain measured on solid scans,
+    // real assemblies and thin geometry, with margin (docs/investigations/judged-by-how-it-looks.md
+    // "How much headroom the validation curve has").
     double finer_grid_headroom = 0.035;
-    // The rung the search starts at (--first-log2-table; 0: the plan's size). Of the 8
-    // objects of the sizing set that meet the target at 2^17 rows, 7 meet it at 2^16 and 4 at
-    // 2^15, each size trained alone with the whole budget (docs/investigations/sizing.md); starting
-    // at the smallest would train most objects twice.
+    // The rung the search starts at (--first-log2-table; 0: the plan's size): the size most
+    // objects of the sizing set end at when each size is trained alone with the whole budget
+    // (docs/investigations/sizing.md), so that most objects train once; starting at the
+    // smallest would train most objects twice.
     std::uint32_t first_log2_table_size = 16;
     // How far short of the target a rung's decision-ray metrics may end for the next larger
-    // rung to be tried: CGAL's armadillo ends at 98.44 % visibility at 2^16 against the
-    // 98.5 % target and meets it at 2^17; objects that miss by points (thin geometry) do not
-    // reach it with one more rung either, and stay what the gate says.
+    // rung to be tried: a near miss that one more rung closes (CGAL's armadillo, between 2^16
+    // and 2^17 rows: docs/investigations/sizing.md); objects that miss by points (thin
+    // geometry) do not reach it with one more rung either, and stay what the gate says.
     double climb_visibility = 0.005;     // points of visibility, as a fraction
     double climb_normal_deg = 2.0;       // degrees above the target's median normal error
     double climb_distance_factor = 1.5;  // median distance error up to this times the target's
     // Going down: a smaller rung is tried when the steps left are at least this fraction of
     // the steps the rung above used. Its schedule is compressed into the steps left, and it is
-    // given up at the first check where its curve falls behind (curve_slack): the blob's 2^15
-    // table met the target after 480 steps where its 2^16 table needed 720.
+    // given up at the first check where its curve falls behind (curve_slack): a smaller table
+    // can meet the target in fewer steps than the larger one needed (the blob's:
+    // docs/investigations/sizing.md), but not in a small remainder of the budget.
     double descend_budget_fraction = 0.5;
 };
 

@@ -24,8 +24,8 @@ struct AdamConfig {
 };
 
 // The bias-corrected step factor of step t (t >= 1): sqrt(1 - b2^t) / (1 - b1^t). Sparse
-// hash-row updates look it up in a table (Trainer) instead of two pow() per row, which was
-// 7 % of training time; same double arithmetic, so the same float step either way.
+// hash-row updates look it up in a table (Trainer) instead of computing two powers per row
+// in the hot loop; same double arithmetic, so the same float step either way.
 // The powers by repeated squaring (base::pow_int): the same bits on every machine.
 inline double adam_bias_correction(const AdamConfig& c, std::uint32_t t) {
     const double bc1 = 1.0 - base::pow_int(double(c.beta1), t);

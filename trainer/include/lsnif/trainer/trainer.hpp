@@ -38,9 +38,10 @@ using samples::Family;
 using samples::Sample;
 using samples::SampleSource;
 
-// Defaults measured on the analytic spheres scene: raising
-// distance 1 -> 4 and normal 0.5 -> 1 cut the median distance error 1.96% -> 1.11% and the
-// normal error 17.4 -> 15.9 deg at equal steps, visibility unchanged (99.7%).
+// Loss weights, dimensionless multipliers of each term's mean. Distance weighs most because,
+// at equal steps, a heavier distance term lowers the distance and normal errors without
+// costing visibility (docs/investigations/losses.md "The loss weights"); the converter's
+// presets set their own (docs/model.md "Outputs and losses").
 struct LossWeights {
     float visibility = 1.0f;
     float distance = 4.0f;
@@ -146,8 +147,8 @@ struct Gradients {
 // DDA runs once per sample instead of once per epoch. Only reachable samples are kept.
 //
 // Allocator for the set's buffers: resize() leaves new elements default-initialized (no
-// zeroing) — every element is written before it is read, and zeroing hundreds of MB per
-// round of streamed rays was a sixth of prepare()'s time (perf, 2026-11-23). Large buffers
+// zeroing) — every element is written before it is read, so zeroing hundreds of MB per round
+// of streamed rays would be pure cost (docs/investigations/conversion-time.md). Large buffers
 // go on transparent huge pages (base/huge_pages.hpp): fewer page faults when a round's
 // buffers are first filled, fewer TLB misses when steps read them at random.
 template <class T>

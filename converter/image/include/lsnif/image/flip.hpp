@@ -21,8 +21,8 @@
 //
 // Contract: never throws, exits or prints; single-threaded; deterministic (the same inputs
 // give bit-identical output). Cost: O(w h (r_c + r_f)) with r_c, r_f the filter radii
-// below (separable filters); about 0.2 s for a 512 x 512 pair at 67 pixels per degree on
-// the build machine, mostly pow/cbrt of the per-pixel colour conversions (bench_flip).
+// below (separable filters), dominated by pow/cbrt of the per-pixel colour conversions
+// (bench_flip measures it).
 #pragma once
 
 #include <lsnif/image/image.hpp>
