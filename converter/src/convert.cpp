@@ -139,15 +139,19 @@ std::vector<MeshOutcome> convert_meshes(const Run& run, std::vector<Planned>& pl
     return outcomes;
 }
 
+void keep_scene_place(MeshOutcome& result, const MeshOutcome& own) {
+    result.id = own.id;
+    result.name = own.name;
+    result.input = own.input;
+    result.source_mesh = own.source_mesh;
+    result.instances = own.instances;
+    result.timings = own.timings;
+}
+
 void follow_leader(Planned& follower, const Planned& leader) {
     MeshOutcome o = leader.out;
     const MeshOutcome& own = follower.out;
-    o.id = own.id;
-    o.name = own.name;
-    o.input = own.input;
-    o.source_mesh = own.source_mesh;
-    o.instances = own.instances;
-    o.timings = own.timings;
+    keep_scene_place(o, own);
     o.reasons.assign(own.reasons.begin(), own.reasons.begin() + std::ptrdiff_t(follower.planned_reasons));
     o.reasons.insert(o.reasons.end(), leader.out.reasons.begin() + std::ptrdiff_t(leader.planned_reasons),
                      leader.out.reasons.end());

@@ -50,12 +50,7 @@ bool restore_cached(const Run& run, Planned& p, MeshOutcome stored, const cache:
         if (!error.empty()) return false;
         stored.asset->reused = true;
     }
-    stored.id = p.out.id;
-    stored.name = p.out.name;
-    stored.input = p.out.input;
-    stored.source_mesh = p.out.source_mesh;
-    stored.instances = p.out.instances;
-    stored.timings = p.out.timings;
+    keep_scene_place(stored, p.out);
     // The stored measurement, so that every run this entry serves reports the same bytes.
     if (stored.stats) p.bvh_bytes = stored.stats->bvh.of(run.preset.classify.yardstick);
     p.out = std::move(stored);

@@ -361,6 +361,11 @@ std::vector<std::uint32_t> shard_owners(const Run& run, std::vector<Planned>& pl
 // which they finish.
 void mark_shared_assets(const Run& run, std::vector<Planned>& planned);
 
+// Puts into `result` (a stored or a leader's outcome) what belongs to this mesh of this run:
+// where it is in the scene (id, name, input, source mesh, instances, the fields a cache
+// record leaves out) and this run's timings, taken from `own`.
+void keep_scene_place(MeshOutcome& result, const MeshOutcome& own);
+
 // A follower's outcome from its settled leader's: the same decision, metrics, candidates and
 // asset, with the follower's own place in the scene and plan reasons, and a reason naming
 // the leader.
