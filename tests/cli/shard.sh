@@ -1,8 +1,8 @@
 #!/usr/bin/env bash
 # `lsnif batch --shard I/N` on three machines (three processes, each with its own cache), then
 # `lsnif merge`: the manifest and every asset equal a single run's, byte for byte. Incomplete
-# or repeated shard sets, and shards of another arithmetic or lsnif identity, are refused; --jobs 2
-# equals one job; bad --shard values are usage errors.
+# or repeated shard sets, and shards of another arithmetic or lsnif identity, are refused; bad
+# --shard values are usage errors (that -j 2 equals one job is tests/cli/same_bytes.sh's case).
 # usage: shard.sh LSNIF_BINARY MESH_DIR EXAMPLE_SCENE_GLB WORK_DIR
 set -uo pipefail
 lsnif=$1 meshes=$2 scene=$3 work=$4
@@ -51,12 +51,6 @@ assert s['errors'] == [] and s['meshes'] >= 3 and s['manifest'].endswith('merged
   || bad "single run exited $?"
 same_outputs "$work/merged" "$work/single" "merged shards against a single run"
 
-# --jobs: two meshes converted at once, one thread each, equal one at a time on one thread.
-"$lsnif" batch "${inputs[@]}" -o "$work/jobs2" --cache "$work/cache_jobs2" --preset smoke --seed 3 --threads 2 -j 2 \
-  >/dev/null 2>"$work/jobs2.err" || bad "-j 2 exited $?: $(cat "$work/jobs2.err")"
-"$lsnif" batch "${inputs[@]}" -o "$work/jobs1" --cache "$work/cache_jobs1" --preset smoke --seed 3 --threads 1 \
-  >/dev/null 2>&1 || bad "--threads 1 exited $?"
-same_outputs "$work/jobs2" "$work/jobs1" "-j 2 against one job"
 "$lsnif" batch "${inputs[0]}" -o "$work/u" --cache "$work/cache1" -j 2 --memory-budget 1M 2>"$work/err"; rc=$?
 [[ $rc == 2 ]] && grep -q "jobs and --memory-budget" "$work/err" || bad "-j with --memory-budget: exit $rc"
 
