@@ -15,8 +15,12 @@
 #   machine     --arithmetic machine: on a CPU with bf16 products the manifest, metadata and
 #               key name the instructions and the asset differs; capped below them
 #               (LSNIF_ISA=avx512) it is the canonical arithmetic, the reference's bytes.
+#   ladder      the sizing ladder's other paths, at 2 and 3 threads: a target met early (training
+#               stops at it; a smaller table is tried and given up when its curve falls
+#               behind) on the dragon, and a target no coarse grid reaches (the grid rung
+#               trains again on a finer grid) on CGAL's armadillo with the smoke preset.
 #   reference   the --threads 2 run the others compare with (WORK_ROOT/reference), made first.
-# usage: same_bytes.sh LSNIF MESH_DIR WORK_ROOT reference|threads|machine|isa CAP
+# usage: same_bytes.sh LSNIF MESH_DIR WORK_ROOT reference|threads|machine|ladder|isa CAP
 set -uo pipefail
 . "$(dirname "$0")/../skip.sh"
 lsnif=$1 meshes=$2 root=$3 mode=$4 cap=${5:-}
@@ -124,8 +128,44 @@ print([x for x in json.load(open(sys.argv[1]))['meshes'] if x['name'] == 'dragon
     convert machine_capped LSNIF_ISA=avx512 -- --threads 2 --arithmetic machine
     same reference machine_capped "--arithmetic machine under LSNIF_ISA=avx512 against canonical"
     ;;
+  ladder)
+    # ladder NAME MESH THREADS SETTINGS...: MESH into $root/ladder_NAME_THREADS.
+    ladder() {
+      local name=$1 mesh=$2 threads=$3 out=$root/ladder_$1_$3
+      shift 3
+      rm -rf "$out" "$out.cache"
+      "$lsnif" batch "$meshes/$mesh" -o "$out" --cache "$out.cache" --seed 4 --gate-visibility 0 --threads "$threads" \
+        "$@" >"$out.log" 2>&1 || bad "ladder $name, $threads threads: exit $?: $(tail -3 "$out.log")"
+    }
+    # A target met early: training stops at it, and a smaller table is tried and given up
+    # when its curve falls behind the larger one's.
+    for t in 2 3; do
+      ladder down ChineseDragon-10kv.off "$t" --preset fast --steps 200 --target 90,8,45 --complex ChineseDragon-10kv
+    done
+    same ladder_down_2 ladder_down_3 "stopped at the target, smaller table: --threads 3 against 2"
+    python3 - "$root/ladder_down_2/manifest.json" <<'PY' || bad "the dragon did not go down the ladder"
+import json, sys
+c = json.load(open(sys.argv[1]))["meshes"][0]["candidates"]
+sizes = {x["log2_table_size"] for x in c}
+assert len(sizes) >= 2, c
+assert any(x.get("stopped") == "the validation curve met the target" for x in c), c
+assert any(x.get("stopped", "").startswith("given up") for x in c if x["log2_table_size"] == min(sizes)), c
+PY
+    # A target no 16^3 grid reaches: the grid rung trains again at 32^3.
+    for t in 2 3; do
+      ladder grid armadillo.off "$t" --preset smoke --steps 200 --batch 8192 --target 100,8,45 --max-grid 32 \
+        --complex armadillo
+    done
+    same ladder_grid_2 ladder_grid_3 "finer grid: --threads 3 against 2"
+    python3 - "$root/ladder_grid_2/manifest.json" <<'PY' || bad "the armadillo was not trained on a finer grid"
+import json, sys
+m = json.load(open(sys.argv[1]))["meshes"][0]
+assert any("trained again at 32^3" in r for r in m["reasons"]), m["reasons"]
+assert {x["grid_resolution"] for x in m["candidates"]} == {32}, m["candidates"]
+PY
+    ;;
   *)
-    echo "usage: same_bytes.sh LSNIF MESH_DIR WORK_ROOT reference|threads|machine|isa CAP" >&2
+    echo "usage: same_bytes.sh LSNIF MESH_DIR WORK_ROOT reference|threads|machine|ladder|isa CAP" >&2
     exit 2
     ;;
 esac
