@@ -81,7 +81,7 @@ step sizing_chart "$project/scripts/sizing_chart" --build "$build" --only "CGAL 
     expect sizing_chart "$work/sizing/sizing.md" "$work/sizing/sizing_chart.svg"
 step failure_modes "$project/scripts/failure_modes" --build "$build" --only blob --preset smoke \
     --out "$work/failure_modes" --work "$work/failure_modes_work" &&
-    expect failure_modes "$work/failure_modes/failure_modes.json"
+    expect failure_modes "$work/failure_modes/failure_modes.json" "$work/failure_modes_work/failure_modes_table.md"
 step calibrate_image_gate "$project/scripts/calibrate_image_gate" --build "$build" --only "CGAL homer" \
     --preset smoke --target 50,20,90 --out "$work/image_gate" --work "$work/image_gate_work" &&
     expect calibrate_image_gate "$work/image_gate/image_gate.json" "$work/image_gate/image_gate.md"
