@@ -13,10 +13,10 @@
 #pragma once
 
 #include <lsnif/converter/convert.hpp>
-#include <lsnif/converter/eval.hpp>
 #include <lsnif/converter/outcome.hpp>
 #include <lsnif/format/container.hpp>
 #include <lsnif/mesh/mesh.hpp>
+#include <lsnif/render/object_views.hpp>
 #include <lsnif/samples/held_out.hpp>
 #include <lsnif/samples/sample.hpp>
 #include <lsnif/sampling/sampling.hpp>
@@ -89,8 +89,8 @@ struct MeasureRays {
     std::vector<samples::Sample> decision;
     std::vector<samples::Sample> held_out;
     std::vector<std::array<float, 3>> held_out_geometric_normals;
-    std::unique_ptr<ObjectViews> decision_views;
-    std::unique_ptr<ObjectViews> held_out_views;
+    std::unique_ptr<render::ObjectViews> decision_views;
+    std::unique_ptr<render::ObjectViews> held_out_views;
 };
 
 // One rung of the ladder, trained.
@@ -116,14 +116,14 @@ struct Trained {
 
 // A model that may ship: a trained rung's fp16 export, or its 8-bit quantization.
 struct Option {
-    std::size_t rung = 0;            // into Sized::rungs: the training it comes from
-    format::ModelData model;         // metadata filled only for the chosen one (encode_asset)
-    samples::Metrics decided;        // on the decision rays: what the gate, the target and the choice read
-    HeldOut held_out;                // on the held-out rays, reported; its gate is the decided verdict
-    std::optional<ObjectFlip> flip;  // the visual check on MeasureRays::decision_views, when on
-    std::uint64_t bytes = 0;         // serialized without metadata
-    std::uint64_t resident = 0;      // held once opened (format::resident_bytes), without metadata
-    bool target_met = false;         // passes the gate and meets --target on held-out rays
+    std::size_t rung = 0;      // into Sized::rungs: the training it comes from
+    format::ModelData model;   // metadata filled only for the chosen one (encode_asset)
+    samples::Metrics decided;  // on the decision rays: what the gate, the target and the choice read
+    HeldOut held_out;          // on the held-out rays, reported; its gate is the decided verdict
+    std::optional<render::ObjectFlip> flip;  // the visual check on MeasureRays::decision_views, when on
+    std::uint64_t bytes = 0;                 // serialized without metadata
+    std::uint64_t resident = 0;              // held once opened (format::resident_bytes), without metadata
+    bool target_met = false;                 // passes the gate and meets --target on held-out rays
     bool memory_ok = false;  // held in memory, beats the BVH by ClassifyRule::min_memory_ratio (or forced)
     double seconds = 0;      // measuring (and, for the fp16 option, training) it
     CandidateOutcome outcome = CandidateOutcome::misses_target;  // chosen and why, or why not (choose_option)
@@ -138,7 +138,8 @@ struct Sized {
 
 // The object's views drawn from `seed` (Preset::views), with their reference renders; null
 // when Embree cannot build them (classification built the same mesh: short of memory only).
-std::unique_ptr<ObjectViews> object_views(const Run& run, const scene::Mesh& mesh, std::uint64_t seed);
+std::unique_ptr<render::ObjectViews> object_views(const Run& run, const scene::Mesh& mesh,
+                                                  std::uint64_t seed);
 
 // The validation point of a model at `step`: pooled metrics of `rays` through the reader's
 // forward pass (format::intersect on the fp16 export), as the manifest records it.
@@ -218,7 +219,7 @@ std::vector<std::uint32_t> remove_inactive_neurons(format::ModelData& model,
 // metrics, `flip`, and `t`'s own verdicts: divergence, giving up) recorded with the
 // held-out metrics.
 HeldOut evaluate(const Run& run, const scene::Mesh& mesh, const format::ModelData& model, const Trained& t,
-                 const MeasureRays& rays, std::optional<ObjectFlip> flip, samples::Metrics& decided,
+                 const MeasureRays& rays, std::optional<render::ObjectFlip> flip, samples::Metrics& decided,
                  MeshOutcome& out);
 
 // The manifest's record of one option of `of`: size, encoding, bytes, steps, seconds,
@@ -287,13 +288,14 @@ AssetFile asset_file(const fs::path& asset, const std::string& file, std::option
 
 // The image error of `asset` (its bytes) on the held-out views of `mesh` (`views`, or made
 // here when null); none when the visual check is off or the views cannot be rendered.
-std::optional<ObjectFlip> held_out_images(const Run& run, const scene::Mesh& mesh, const ObjectViews* views,
-                                          std::span<const std::uint8_t> asset, MeshOutcome& out);
+std::optional<render::ObjectFlip> held_out_images(const Run& run, const scene::Mesh& mesh,
+                                                  const render::ObjectViews* views,
+                                                  std::span<const std::uint8_t> asset, MeshOutcome& out);
 
 // Settles a mesh whose asset ships (just written, or reused): its metrics, its held-out image
 // error, the target's verdict and the file.
-void shipped(const Run& run, HeldOut metrics, std::optional<ObjectFlip> images, const std::string& file,
-             const fs::path& asset, bool reused, MeshOutcome& out);
+void shipped(const Run& run, HeldOut metrics, std::optional<render::ObjectFlip> images,
+             const std::string& file, const fs::path& asset, bool reused, MeshOutcome& out);
 
 // Settles a mesh none of whose rungs passes the gate (`abandoned`: given up during training).
 void below_gate(const HeldOut& metrics, bool abandoned, MeshOutcome& out);

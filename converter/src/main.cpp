@@ -60,7 +60,7 @@ int run_eval(lsnif::converter::EvalOptions opt, const std::string& camera, const
                          camera.c_str());
             return 2;
         }
-        lsnif::converter::EvalCamera c;
+        lsnif::render::Camera c;
         c.eye = {v[0], v[1], v[2]};
         c.target = {v[3], v[4], v[5]};
         c.fov_deg = v[6];

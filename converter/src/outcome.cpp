@@ -62,7 +62,7 @@ void read_family(Reader& r, samples::FamilyMetrics& f) {
     r.read("culled_fraction", f.culled_fraction);
 }
 
-void read_flip(Reader& r, ObjectFlip& f);
+void read_flip(Reader& r, render::ObjectFlip& f);
 
 void read_held_out(Reader& r, HeldOut& h) {
     if (r.has("flip")) r.nested("flip", [&](Reader& f) { read_flip(f, h.flip.emplace()); });
@@ -103,7 +103,7 @@ void read_held_out(Reader& r, HeldOut& h) {
 
 }  // namespace
 
-json object_flip_json(const ObjectFlip& f) {
+json object_flip_json(const render::ObjectFlip& f) {
     return {{"combined", f.combined},
             {"combined_object", f.combined_object},
             {"combined_object_p95", f.combined_object_p95}};
@@ -111,7 +111,7 @@ json object_flip_json(const ObjectFlip& f) {
 
 namespace {
 
-void read_flip(Reader& r, ObjectFlip& f) {
+void read_flip(Reader& r, render::ObjectFlip& f) {
     r.read("combined", f.combined);
     r.read("combined_object", f.combined_object);
     r.read("combined_object_p95", f.combined_object_p95);

@@ -22,7 +22,7 @@ namespace stages {
 namespace {
 
 // The image error the gate and the target read: the combined image over the object's pixels.
-std::optional<double> image_error(const std::optional<ObjectFlip>& f) {
+std::optional<double> image_error(const std::optional<render::ObjectFlip>& f) {
     return f ? std::optional<double>(f->combined_object) : std::nullopt;
 }
 
@@ -39,8 +39,8 @@ bool image_gate_in_reach(const Run& run, const trainer::Trainer& tr, const Measu
     if (run.preset.gate.accept == Acceptance::rays || !rays.decision_views) return false;
     const auto t0 = Clock::now();
     auto bytes = format::serialize(tr.export_model("{}"));
-    auto flip =
-        bytes ? rays.decision_views->compare(*bytes) : base::Result<ObjectFlip, std::string>(std::string());
+    auto flip = bytes ? rays.decision_views->compare(*bytes)
+                      : base::Result<render::ObjectFlip, std::string>(std::string());
     out.timings.add(Stage::visual, seconds_since(t0));
     return flip && flip->combined_object <= run.preset.gate.max_flip * kImageHeadroom;
 }
@@ -85,7 +85,7 @@ std::string stop_key(const Target& t, const Preset& p) {
     const TargetStop& s = p.target_stop;
     const EarlyAbort& a = p.early_abort;
     const Sizing& z = p.sizing;
-    const ObjectViewOptions& v = p.views;
+    const render::ObjectViewOptions& v = p.views;
     const Gate& g = p.gate;
     char buf[640];
     std::snprintf(
@@ -132,12 +132,13 @@ std::optional<HeldOut> reusable_metrics(const fs::path& asset, const std::string
     return std::move(*metrics);
 }
 
-std::unique_ptr<ObjectViews> object_views(const Run& run, const scene::Mesh& mesh, std::uint64_t seed) {
-    ObjectViewOptions views = run.preset.views;
+std::unique_ptr<render::ObjectViews> object_views(const Run& run, const scene::Mesh& mesh,
+                                                  std::uint64_t seed) {
+    render::ObjectViewOptions views = run.preset.views;
     views.threads = run.threads;
     views.seed = seed;
     std::string error;
-    return ObjectViews::create(mesh.positions, mesh.indices, mesh.normals, views, error);
+    return render::ObjectViews::create(mesh.positions, mesh.indices, mesh.normals, views, error);
 }
 
 ValidationPoint validation_point(std::uint32_t step, const format::ModelData& model,
@@ -263,7 +264,7 @@ Trained train_rung(const Run& run, const scene::Mesh& mesh, Candidate& c, const 
 }
 
 HeldOut evaluate(const Run& run, const scene::Mesh& mesh, const format::ModelData& model, const Trained& t,
-                 const MeasureRays& rays, std::optional<ObjectFlip> flip, samples::Metrics& decided,
+                 const MeasureRays& rays, std::optional<render::ObjectFlip> flip, samples::Metrics& decided,
                  MeshOutcome& out) {
     const auto t0 = Clock::now();
     run.report({mesh.name, "evaluate"});
@@ -620,23 +621,24 @@ AssetFile asset_file(const fs::path& asset, const std::string& file, std::option
     return f;
 }
 
-std::optional<ObjectFlip> held_out_images(const Run& run, const scene::Mesh& mesh, const ObjectViews* views,
-                                          std::span<const std::uint8_t> asset, MeshOutcome& out) {
+std::optional<render::ObjectFlip> held_out_images(const Run& run, const scene::Mesh& mesh,
+                                                  const render::ObjectViews* views,
+                                                  std::span<const std::uint8_t> asset, MeshOutcome& out) {
     if (!run.preset.visual_check) return std::nullopt;
     const auto t0 = Clock::now();
-    std::unique_ptr<ObjectViews> made;
+    std::unique_ptr<render::ObjectViews> made;
     if (!views)
         views = (made = object_views(run, mesh, held_out_view_seed(run.opt.view_seed.value_or(run.opt.seed))))
                     .get();
-    std::optional<ObjectFlip> flip;
+    std::optional<render::ObjectFlip> flip;
     if (views)
         if (auto f = views->compare(asset)) flip = *f;
     out.timings.add(Stage::visual, seconds_since(t0));
     return flip;
 }
 
-void shipped(const Run& run, HeldOut metrics, std::optional<ObjectFlip> images, const std::string& file,
-             const fs::path& asset, bool reused, MeshOutcome& out) {
+void shipped(const Run& run, HeldOut metrics, std::optional<render::ObjectFlip> images,
+             const std::string& file, const fs::path& asset, bool reused, MeshOutcome& out) {
     // The target's verdict on what is reported: the held-out rays and the held-out views.
     out.target = TargetVerdict{run.opt.target, target_misses(metrics.metrics.pooled, image_error(images),
                                                              run.opt.target, run.preset.gate.accept)};

@@ -542,8 +542,7 @@ TEST_CASE("dragons composition: the combined image is within FLIP 0.03 of the re
 
     lsnif::converter::EvalOptions e;
     e.outdir = (dir / "out").string();
-    e.camera =
-        lsnif::converter::EvalCamera{{0.45f, 1.0f, 2.7f}, {0.0f, 0.4f, -0.1f}, {0.0f, 1.0f, 0.0f}, 40.0f};
+    e.camera = lsnif::render::Camera{{0.45f, 1.0f, 2.7f}, {0.0f, 0.4f, -0.1f}, {0.0f, 1.0f, 0.0f}, 40.0f};
     e.images_dir = (dir / "eval").string();
     const lsnif::converter::EvalResult ev = lsnif::converter::render_and_compare(e);
     REQUIRE_MESSAGE(ev.ok(), (ev.errors.empty() ? "" : ev.errors[0]));

@@ -14,6 +14,9 @@
 #include <random>
 
 using namespace lsnif::converter;
+using lsnif::render::EvalScene;
+using lsnif::render::TraceHit;
+using lsnif::render::TraceProfile;
 using nlohmann::json;
 namespace fs = std::filesystem;
 
@@ -81,7 +84,7 @@ TEST_CASE("hybrid tracing applies the instance transform at run time, like Embre
     EvalOptions o;
     o.outdir = converted_dragon().string();
     std::string err;
-    const auto at_origin = EvalScene::load(o, err);
+    const auto at_origin = load_scene(o, err);
     REQUIRE_MESSAGE(at_origin, err);
     REQUIRE(at_origin->lsnif_instance_count() == 1);
 
@@ -90,7 +93,7 @@ TEST_CASE("hybrid tracing applies the instance transform at run time, like Embre
                               {0.0f, 0.0f, 2.5f, 400.0f,   //
                                0.0f, 2.5f, 0.0f, -120.0f,  //
                                -2.5f, 0.0f, 0.0f, 75.0f}}};
-    const auto moved = EvalScene::load(o, err);
+    const auto moved = load_scene(o, err);
     REQUIRE_MESSAGE(moved, err);
     const auto box = moved->instance_bounds(0);
     const auto rays = rays_at_box(box, 4000, 11);
@@ -244,7 +247,7 @@ TEST_CASE("eval renders, compares with FLIP, and camera and light change without
 
     // A moved camera and light, same assets: different pictures, assets untouched.
     const auto c = ra["camera"];
-    EvalCamera cam;
+    lsnif::render::Camera cam;
     for (int k = 0; k < 3; ++k) {
         cam.target[k] = c["target"][k].get<float>();
         cam.eye[k] = 2.0f * c["target"][k].get<float>() - c["eye"][k].get<float>();  // from the other side
@@ -366,7 +369,7 @@ TEST_CASE("a trace profile counts the rays each tracer gave the reader, and only
     EvalOptions o;
     o.outdir = converted_dragon().string();
     std::string err;
-    const auto scene = EvalScene::load(o, err);
+    const auto scene = load_scene(o, err);
     REQUIRE_MESSAGE(scene, err);
     const auto box = scene->instance_bounds(0);
     // Rays at the box, the same rays turned away (they reach it only from inside), segments

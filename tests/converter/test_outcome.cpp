@@ -64,7 +64,7 @@ MeshOutcome full_outcome() {
     h.gate.by = GatePass::images;
     h.gate.rays_failed = {"pooled visibility 94.00 % < 95.00 %"};
     h.gate.above_calibrated = true;
-    h.flip = ObjectFlip{0.034, 0.12, 0.0075};
+    h.flip = lsnif::render::ObjectFlip{0.034, 0.12, 0.0075};
     CandidateRecord c;
     c.log2_table_size = 17;
     c.grid_resolution = 64;
@@ -81,7 +81,7 @@ MeshOutcome full_outcome() {
     c.decided_visibility = 0.986;
     c.decided_distance_pct = 0.32;
     c.decided_normal_deg = 7.0;
-    c.flip = ObjectFlip{0.034, 0.12, 0.0075};
+    c.flip = lsnif::render::ObjectFlip{0.034, 0.12, 0.0075};
     c.gate_passed = c.target_met = c.memory_rule_passed = true;
     c.outcome = CandidateOutcome::smaller_meets_target;
     c.of = 2;
@@ -101,7 +101,7 @@ MeshOutcome full_outcome() {
     o.validation = std::vector<ValidationPoint>{{120, 0.9, 1.5, 20.0}};
     o.stopped_early = StoppedEarly{960, 1200};
     o.target = TargetVerdict{Target{}, {"visibility 98.00 % < target 98.50 %"}};
-    o.held_out_images = ObjectFlip{0.041, 0.15, 0.009};
+    o.held_out_images = lsnif::render::ObjectFlip{0.041, 0.15, 0.009};
     o.asset = AssetFile{"0123456789abcdef.lsnif", 450123, 890001, true};
     o.memory = MeshMemory{1234567, 450123, false};
     o.shard = 2;

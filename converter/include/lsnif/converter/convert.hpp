@@ -8,6 +8,7 @@
 #include <lsnif/converter/outcome.hpp>
 #include <lsnif/converter/rules.hpp>
 #include <lsnif/format/container.hpp>
+#include <lsnif/render/object_views.hpp>
 #include <lsnif/samples/held_out.hpp>
 #include <lsnif/trainer/trainer.hpp>
 
@@ -60,7 +61,7 @@ struct Preset {
     // rendered in these views through its asset and compared with Embree's render by FLIP;
     // off: no views, no FLIP in the manifest.
     bool visual_check = true;
-    ObjectViewOptions views;
+    render::ObjectViewOptions views;
     ClassifyRule classify;
     Gate gate;
     EarlyAbort early_abort;

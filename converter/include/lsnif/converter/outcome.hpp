@@ -11,9 +11,9 @@
 #pragma once
 
 #include <lsnif/base/result.hpp>
-#include <lsnif/converter/eval.hpp>
 #include <lsnif/converter/rules.hpp>
 #include <lsnif/format/container.hpp>
+#include <lsnif/render/object_views.hpp>
 #include <lsnif/samples/held_out.hpp>
 
 #include <nlohmann/json.hpp>
@@ -118,7 +118,7 @@ struct HeldOut {
     std::uint64_t rays = 0;    // held-out rays drawn (before culling)
     samples::Metrics metrics;  // per family and pooled
     GateVerdict gate;
-    std::optional<ObjectFlip> flip;  // absent when the visual check was off
+    std::optional<render::ObjectFlip> flip;  // absent when the visual check was off
 };
 
 // One option of the sizing ladder (the manifest's `candidates[]`).
@@ -149,7 +149,7 @@ struct CandidateRecord {
     StopKind stop = StopKind::ran_to_end;
     std::string stop_why;                       // given_up: why (EarlyAbort or falls_behind)
     std::vector<std::uint32_t> pruned_neurons;  // per hidden layer; empty when pruning was off
-    std::optional<ObjectFlip> flip;             // the visual check (ObjectViews); absent when off
+    std::optional<render::ObjectFlip> flip;     // the visual check (ObjectViews); absent when off
 };
 
 // The --target verdict of a shipped asset.
@@ -197,7 +197,7 @@ struct MeshOutcome {
     std::optional<TargetVerdict> target;
     // The shipped asset's image error on its held-out views (ObjectViews drawn apart from the
     // decision views; the manifest's `held_out_images`): what is reported. Not in the asset.
-    std::optional<ObjectFlip> held_out_images;
+    std::optional<render::ObjectFlip> held_out_images;
     std::optional<AssetFile> asset;  // the manifest's `lsnif`
     std::optional<MeshMemory> memory;
     std::optional<std::uint32_t> shard;         // --shard: the shard that converts it
@@ -225,7 +225,7 @@ base::Result<MeshOutcome, std::string> outcome_from_json(const nlohmann::json& j
                                                          OutcomeFields fields = OutcomeFields::all);
 
 // An ObjectFlip as the manifest, the asset's metadata and `lsnif eval --objects` write it.
-nlohmann::json object_flip_json(const ObjectFlip& f);
+nlohmann::json object_flip_json(const render::ObjectFlip& f);
 
 // Held-out metrics as the asset's metadata and the manifest store them
 // ({"held_out_rays", "families", "gate"}), and back (strict, as outcome_from_json).

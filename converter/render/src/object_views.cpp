@@ -1,26 +1,21 @@
 // The visual acceptance test of one object: its views on a floor, rendered by Embree once and
-// through each candidate asset, compared with FLIP (lsnif/converter/eval.hpp, ObjectViews).
+// through each candidate asset, compared with FLIP (object_views.hpp).
 #include <lsnif/base/math.hpp>
 #include <lsnif/base/parallel.hpp>
 #include <lsnif/base/random.hpp>
-#include <lsnif/converter/convert.hpp>
-#include <lsnif/converter/eval.hpp>
-#include <lsnif/converter/manifest.hpp>
-#include <lsnif/format/container.hpp>
 #include <lsnif/format/cpu.hpp>
 #include <lsnif/image/flip.hpp>
 #include <lsnif/image/image.hpp>
-#include <lsnif/scene/scene.hpp>
-#include "eval_render.hpp"
-
-#include <filesystem>
+#include <lsnif/render/object_views.hpp>
+#include <lsnif/render/render.hpp>
+#include "scene_impl.hpp"
 
 #include <algorithm>
 #include <cmath>
+#include <filesystem>
+#include <optional>
 
-namespace lsnif::converter {
-
-using namespace eval_detail;
+namespace lsnif::render {
 
 namespace {
 
@@ -46,8 +41,8 @@ EvalScene::Impl::Mesh floor_under(const std::array<float, 6>& box) {
 // sphere in a 40-degree field of view; the light 4 radii away, 30 to 120 degrees to either
 // side of the camera and 35 to 75 degrees up; the AO directions from their own seed. The
 // angles use base::sin and base::cos, so the views are the same on every machine.
-EvalOptions view_options(const std::array<float, 6>& box, std::uint32_t k, std::uint32_t n,
-                         const ObjectViewOptions& o) {
+RenderOptions view_options(const std::array<float, 6>& box, std::uint32_t k, std::uint32_t n,
+                           const ObjectViewOptions& o) {
     base::SplitMix64 rng{base::mix64(o.seed * base::kGoldenGamma + k)};
     const double deg = base::detail::kPi / 180.0;
     const double azimuth = (360.0 * (double(k) + rng.u01()) / double(std::max(1u, n))) * deg;
@@ -63,31 +58,19 @@ EvalOptions view_options(const std::array<float, 6>& box, std::uint32_t k, std::
         return Vec3{float(base::cos(el) * base::sin(az)), float(base::sin(el)),
                     float(base::cos(el) * base::cos(az))};
     };
-    EvalOptions opt;
+    RenderOptions opt;
     opt.width = o.width;
     opt.height = o.height;
     opt.ao_samples = o.ao_samples;
     opt.seed = ao_seed;
     opt.timing_repeats = 1;
-    opt.write_images = false;
-    EvalCamera cam;
+    Camera cam;
     cam.target = center;
     cam.eye = center + direction(azimuth, elevation) * float(1.05 * radius / base::sin(0.5 * fov * deg));
     cam.fov_deg = fov;
     opt.camera = cam;
     opt.light = center + direction(azimuth + side, light_elevation) * (4.0f * radius);
     return opt;
-}
-
-// Object-space bounds (min xyz, max xyz) of positions.
-std::array<float, 6> bounds_of(std::span<const float> positions) {
-    std::array<float, 6> box{INFINITY, INFINITY, INFINITY, -INFINITY, -INFINITY, -INFINITY};
-    for (std::size_t v = 0; v + 2 < positions.size(); v += 3)
-        for (int a = 0; a < 3; ++a) {
-            box[a] = std::min(box[a], positions[v + a]);
-            box[a + 3] = std::max(box[a + 3], positions[v + a]);
-        }
-    return box;
 }
 
 // View k's combined images (linear RGB) as sRGB PNGs in `dir`, with their FLIP heat map.
@@ -112,7 +95,7 @@ bool write_view(const std::vector<float>& reference, const std::vector<float>& h
 // One view: its settings, primary visibility, the object's pixels and the reference images;
 // `through_asset`: the candidate's primary rays are traced through its asset too.
 struct ObjectView {
-    EvalOptions opt;
+    RenderOptions opt;
     View view;
     GBuffer gb;
     std::vector<std::uint8_t> object_pixels;
@@ -156,18 +139,10 @@ std::unique_ptr<ObjectViews> ObjectViews::create(std::span<const float> position
     object.box = bounds_of(positions);
     const std::array<float, 6> box = object.box;
     if (!im.upload(std::move(object), error) || !im.upload(floor_under(box), error)) return nullptr;
-    im.reference = rtcNewScene(im.device);
-    im.hybrid = rtcNewScene(im.device);
-    im.world = {INFINITY, INFINITY, INFINITY, -INFINITY, -INFINITY, -INFINITY};
     // The object's instance is traced through the asset compare() opens; the floor by Embree.
     const Affine identity{1, 0, 0, 0, 0, 1, 0, 0, 0, 0, 1, 0};
-    if (!im.place(0, identity, true, error) || !im.place(1, identity, false, error)) return nullptr;
-    rtcCommitScene(im.reference);
-    rtcCommitScene(im.hybrid);
-    if (!im.embree_error.empty()) {
-        error = "embree: " + im.embree_error;
+    if (!im.place(0, identity, true, error) || !im.place(1, identity, false, error) || !im.commit(error))
         return nullptr;
-    }
     auto state = std::make_unique<State>();
     state->threads = base::resolve_threads(o.threads);
     state->scene = std::unique_ptr<EvalScene>(new EvalScene(std::move(impl)));
@@ -176,11 +151,11 @@ std::unique_ptr<ObjectViews> ObjectViews::create(std::span<const float> position
         v.opt = view_options(box, k, o.views, o);
         v.view = make_view(v.opt, box);
         v.through_asset = k + 1 == o.views;
-        v.gb = render_primary(*state->scene, im.instances, v.view, state->threads);
-        v.object_pixels = lsnif_pixel_mask(v.gb, im);
-        v.reference = render_secondary(*state->scene, im.instances, v.gb, v.view, v.opt, {}, state->threads,
-                                       Tracers::reference)
-                          .reference;
+        v.gb = render_primary(*state->scene, v.view, state->threads);
+        v.object_pixels = lsnif_pixel_mask(v.gb, *state->scene);
+        v.reference =
+            render_secondary(*state->scene, v.gb, v.view, v.opt, {}, state->threads, Tracers::reference)
+                .reference;
     }
     return std::unique_ptr<ObjectViews>(new ObjectViews(std::move(state)));
 }
@@ -218,14 +193,12 @@ base::Result<ObjectFlip, std::string> ObjectViews::compare(std::span<const std::
     for (std::size_t k = 0; k < state_->views.size(); ++k) {
         const ObjectView& v = state_->views[k];
         std::optional<GBuffer> own;  // the view traced all through the asset
-        if (v.through_asset)
-            own = render_primary(*state_->scene, im.instances, v.view, state_->threads, true);
+        if (v.through_asset) own = render_primary(*state_->scene, v.view, state_->threads, true);
         const GBuffer& gb = own ? *own : v.gb;
-        const EffectImages hybrid = render_secondary(*state_->scene, im.instances, gb, v.view, v.opt, {},
-                                                     state_->threads, Tracers::hybrid)
-                                        .hybrid;
+        const EffectImages hybrid =
+            render_secondary(*state_->scene, gb, v.view, v.opt, {}, state_->threads, Tracers::hybrid).hybrid;
         const std::vector<std::uint8_t> mask =
-            own ? mask_union(v.object_pixels, lsnif_pixel_mask(*own, im)) : v.object_pixels;
+            own ? mask_union(v.object_pixels, lsnif_pixel_mask(*own, *state_->scene)) : v.object_pixels;
         EffectComparison c;
         if (!compare_effect(v.reference, hybrid, v.view, kCombined, mask, {}, false, c, error)) break;
         if (!dir.empty() &&
@@ -247,91 +220,4 @@ base::Result<ObjectFlip, std::string> ObjectViews::compare(std::span<const std::
     return f;
 }
 
-namespace {
-
-// One converted object's views into `dir`: its report entry, or an error.
-base::Result<nlohmann::json, std::string> object_entry(const scene::Mesh& mesh, const MeshOutcome& mo,
-                                                       const std::filesystem::path& asset,
-                                                       const ObjectViewOptions& o,
-                                                       const std::filesystem::path& dir) {
-    auto bytes = format::read_file_bytes(asset.string());
-    if (!bytes) return bytes.error().message;
-    std::string error;
-    auto views = ObjectViews::create(mesh.positions, mesh.indices, mesh.normals, o, error);
-    if (!views) return mesh.name + ": " + error;
-    auto flip = views->compare(*bytes, dir.string());
-    if (!flip) return asset.string() + ": " + flip.error();
-    nlohmann::json files = nlohmann::json::array();
-    for (std::uint32_t k = 0; k < views->view_count(); ++k) {
-        const std::string stem = (dir.filename() / ("view" + std::to_string(k) + "_")).string();
-        files.push_back({{"reference", stem + "reference.png"},
-                         {"hybrid", stem + "hybrid.png"},
-                         {"flip", stem + "flip.png"}});
-    }
-    return nlohmann::json{{"name", mo.name},
-                          {"mesh", mo.id},
-                          {"lsnif", mo.asset->file},
-                          {"flip", object_flip_json(*flip)},
-                          {"views", files}};
-}
-
-// The source mesh of `mo`, imported once per input into `scenes`; an error when it cannot be
-// read or is no longer the converted geometry.
-base::Result<const scene::Mesh*, std::string> source_mesh(const LoadedManifest& loaded, const MeshOutcome& mo,
-                                                          std::vector<std::optional<scene::Scene>>& scenes) {
-    if (!scenes[mo.input]) {
-        auto imported = scene::import_scene(loaded.sources[mo.input]);
-        if (!imported.ok())
-            return loaded.path.string() + ": input " + std::to_string(mo.input) + ": " + imported.error;
-        scenes[mo.input] = std::move(imported.scene);
-    }
-    const auto& meshes = scenes[mo.input]->meshes;
-    if (mo.source_mesh >= meshes.size() || scene::geometry_hash(meshes[mo.source_mesh]) != mo.geometry_hash)
-        return loaded.sources[mo.input] + ": mesh '" + mo.name +
-               "' differs from the converted geometry (geometry hash mismatch): re-run lsnif convert";
-    return &meshes[mo.source_mesh];
-}
-
-}  // namespace
-
-EvalResult render_objects(const EvalOptions& opt) {
-    EvalResult res;
-    LoadedManifest loaded;
-    std::string error;
-    if (!load_manifest(opt.outdir, opt.sources, loaded, error)) {
-        res.errors.push_back(error);
-        return res;
-    }
-    const std::filesystem::path images = (opt.images_dir.empty() ? std::filesystem::path(opt.outdir) / "eval"
-                                                                 : std::filesystem::path(opt.images_dir)) /
-                                         "objects";
-    // The held-out views of the conversion: the ones its manifest reports.
-    ObjectViewOptions o;
-    o.threads = opt.threads;
-    const nlohmann::json& settings = loaded.doc["settings"];
-    o.seed = held_out_view_seed(settings.value("view_seed", settings.value("seed", std::uint64_t(1))));
-    nlohmann::json objects = nlohmann::json::array();
-    std::vector<std::optional<scene::Scene>> scenes(loaded.sources.size());
-    for (const MeshOutcome& mo : loaded.meshes) {
-        if (!mo.asset) continue;
-        auto mesh = source_mesh(loaded, mo, scenes);
-        if (!mesh) {
-            res.errors.push_back(mesh.error());
-            return res;
-        }
-        const std::string stem = std::filesystem::path(mo.asset->file).stem().string();
-        auto entry =
-            object_entry(**mesh, mo, std::filesystem::path(opt.outdir) / mo.asset->file, o, images / stem);
-        if (!entry) {
-            res.errors.push_back(entry.error());
-            return res;
-        }
-        objects.push_back(std::move(*entry));
-    }
-    res.report = {{"objects", objects}, {"images_dir", images.string()},
-                  {"views", o.views},   {"width", o.width},
-                  {"height", o.height}, {"ao_samples", o.ao_samples}};
-    return res;
-}
-
-}  // namespace lsnif::converter
+}  // namespace lsnif::render
