@@ -3,10 +3,10 @@
 // again, and `--from-plan FILE` alone assembles the manifest through the cache.
 #include <lsnif/cache/cache.hpp>
 #include <lsnif/converter/batch.hpp>
+#include <lsnif/converter/json_reader.hpp>
 #include <lsnif/converter/settings.hpp>
 #include <lsnif/format/container.hpp>
 #include "batch_internal.hpp"
-#include "json_reader.hpp"
 
 #include <fstream>
 #include <set>

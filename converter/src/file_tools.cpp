@@ -1,6 +1,7 @@
 #include <lsnif/lsnif.h>
 #include <lsnif/converter/file_tools.hpp>
 #include <lsnif/converter/json_schema.hpp>
+#include <lsnif/converter/metadata_names.hpp>
 
 #include <cinttypes>
 #include <cstdio>
@@ -117,24 +118,6 @@ std::string fmt_bytes(std::uint64_t n) {
 }
 
 }  // namespace
-
-const char* distance_encoding_name(std::uint32_t e) {
-    return e == LSNIF_DISTANCE_SEGMENT ? "segment" : "first_entry_diagonal";
-}
-
-const char* grid_encoding_name(std::uint32_t e) {
-    return e == LSNIF_GRID_U8_AFFINE ? "u8_affine" : e == LSNIF_GRID_FP16 ? "fp16" : "unknown";
-}
-
-const char* ray_inputs_name(std::uint32_t bits) {
-    switch (bits) {
-        case 0: return "none";
-        case LSNIF_RAY_INPUT_DIRECTION: return "direction";
-        case LSNIF_RAY_INPUT_ENTRY_OFFSETS: return "entry_offsets";
-        case LSNIF_RAY_INPUT_DIRECTION | LSNIF_RAY_INPUT_ENTRY_OFFSETS: return "direction+entry_offsets";
-        default: return "unknown";
-    }
-}
 
 std::vector<std::string> metadata_consistency(const json& meta, const lsnif_info& info,
                                               std::uint32_t ray_inputs) {

@@ -74,11 +74,6 @@ nlohmann::json plan_json(const LibraryPlan& plan);
 // Strict: an error names the field ("tasks[3].key: missing").
 base::Result<LibraryPlan, std::string> plan_from_json(const nlohmann::json& j);
 
-// Longest processing time first: items (already in order, costliest first) dealt one after
-// another to the shard (0..count-1) with the least cost so far, ties to the lowest index.
-// Within 4/3 of the best split; a function of the costs alone, so every shard computes it.
-std::vector<std::uint32_t> deal_to_shards(const std::vector<std::uint64_t>& costs, std::uint32_t count);
-
 struct BatchResult {
     std::vector<std::string> scenes;        // what the inputs expanded to, in order, duplicates removed
     std::vector<std::string> input_errors;  // inputs that expanded to nothing usable

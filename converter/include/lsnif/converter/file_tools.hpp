@@ -44,13 +44,6 @@ ValidationReport validate_file(const std::string& path);
 nlohmann::json inspect_bytes(std::span<const std::uint8_t> bytes, const std::string& name);
 std::string inspect_text(const nlohmann::json& report);
 
-// The metadata's names (schema/lsnif-metadata.schema.json, "model") for two enumerations of
-// the descriptor: the one spelling for the writer (`lsnif convert`) and for
-// metadata_consistency. An encoding this reader does not define is "unknown".
-const char* distance_encoding_name(std::uint32_t distance_encoding);
-const char* grid_encoding_name(std::uint32_t grid_encoding);
-const char* ray_inputs_name(std::uint32_t ray_inputs);
-
 // Checks that the metadata's "model" and "object.box_*" agree with the binary
 // descriptor (which is authoritative). Returns one message per disagreement.
 // `ray_inputs` is lsnif_get_ray_inputs' value.

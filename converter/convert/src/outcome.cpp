@@ -1,8 +1,8 @@
 // The one JSON codec of a mesh's outcome (lsnif/converter/outcome.hpp): the manifest's mesh
 // entry, the run's report and the cache record, written and read back strictly.
-#include <lsnif/converter/file_tools.hpp>
+#include <lsnif/converter/json_reader.hpp>
+#include <lsnif/converter/metadata_names.hpp>
 #include <lsnif/converter/outcome.hpp>
-#include "json_reader.hpp"
 
 #include <cstring>
 

@@ -1,8 +1,8 @@
 // What a conversion records as JSON besides a mesh's outcome (outcome.cpp): the model's
 // description and the manifest document.
 #include <lsnif/converter/convert.hpp>
-#include <lsnif/converter/file_tools.hpp>
 #include <lsnif/converter/manifest.hpp>
+#include <lsnif/converter/metadata_names.hpp>
 #include <lsnif/converter/settings.hpp>
 #include "convert_stages.hpp"
 

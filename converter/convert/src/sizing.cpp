@@ -2,7 +2,7 @@
 // option, the choice, the asset and its metadata (convert_stages.hpp has the contracts).
 #include <lsnif/base/clock.hpp>
 #include <lsnif/base/random.hpp>
-#include <lsnif/converter/file_tools.hpp>
+#include <lsnif/converter/metadata_names.hpp>
 #include <lsnif/converter/settings.hpp>
 #include <lsnif/format/quantize.hpp>
 #include "convert_stages.hpp"

@@ -1,6 +1,7 @@
 // Strict reading of the JSON documents lsnif writes (manifest entries, cache records, plans):
 // every field present and of its type, the first problem named by its path
-// ("stats.bvh_bytes: missing"). Internal to the converter.
+// ("stats.bvh_bytes: missing"): the codec of a mesh's outcome (outcome.cpp) and the library's
+// plan (lsnif::library) read with it.
 #pragma once
 
 #include <nlohmann/json.hpp>

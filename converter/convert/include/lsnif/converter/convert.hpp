@@ -191,6 +191,13 @@ struct ConvertOptions {
     bool no_ray_inputs = false;               // the MLP sees the points' features only (1.0/1.1 files)
 };
 
+// The split of --shard (ConvertOptions::shard_count) and of a library's plan
+// (lsnif::library), longest processing time first: items (already in order, costliest
+// first) dealt one after another to the shard (0..count-1) with the least cost so far, ties
+// to the lowest index. Within 4/3 of the best split; a function of the costs alone, so every
+// shard computes it.
+std::vector<std::uint32_t> deal_to_shards(const std::vector<std::uint64_t>& costs, std::uint32_t count);
+
 // Progress events: stage changes and training steps.
 struct ProgressEvent {
     std::string mesh;

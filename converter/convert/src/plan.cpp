@@ -1,7 +1,6 @@
 // Planning a mesh: classification, voxelization, the memory rule, and the order, shards and
 // memory of a run's candidates (convert_stages.hpp has the contracts).
 #include <lsnif/base/clock.hpp>
-#include <lsnif/converter/batch.hpp>
 #include "convert_stages.hpp"
 
 #include <cinttypes>

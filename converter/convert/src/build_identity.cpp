@@ -13,7 +13,7 @@
 namespace lsnif::converter {
 
 namespace detail {
-// Generated at build time by converter/cmake/source_digest.cmake.
+// Generated at build time by converter/convert/cmake/source_digest.cmake.
 extern const char* const kSourceDigest;
 extern const char* const kCompiler;
 extern const char* const kCompileFlags;
