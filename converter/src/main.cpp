@@ -2,11 +2,11 @@
 // everything it calls reports through return values.
 #include <lsnif/base/parallel.hpp>
 #include <lsnif/converter/batch.hpp>
-#include <lsnif/converter/bench.hpp>
 #include <lsnif/converter/convert.hpp>
-#include <lsnif/converter/eval.hpp>
 #include <lsnif/converter/file_tools.hpp>
 #include <lsnif/converter/settings.hpp>
+#include <lsnif/eval/bench.hpp>
+#include <lsnif/eval/eval.hpp>
 #include <lsnif/format/container.hpp>
 #include <lsnif/format/cpu.hpp>
 
@@ -51,7 +51,7 @@ bool parse_floats(const std::string& s, std::size_t n, float* out) {
     return true;
 }
 
-int run_eval(lsnif::converter::EvalOptions opt, const std::string& camera, const std::string& light,
+int run_eval(lsnif::eval::EvalOptions opt, const std::string& camera, const std::string& light,
              const std::vector<std::string>& moves, bool as_json) {
     if (!camera.empty()) {
         float v[7] = {0, 0, 0, 0, 0, 0, 40.0f};
@@ -88,7 +88,7 @@ int run_eval(lsnif::converter::EvalOptions opt, const std::string& camera, const
         }
         opt.instance_transforms.emplace_back(std::uint32_t(idx), t);
     }
-    const auto r = lsnif::converter::render_and_compare(opt);
+    const auto r = lsnif::eval::render_and_compare(opt);
     for (const auto& e : r.errors) std::fprintf(stderr, "error: %s\n", e.c_str());
     if (!r.ok()) return 1;
     if (as_json) {
@@ -572,7 +572,7 @@ void add_arithmetic_options(CLI::App* s, lsnif_arithmetic& arithmetic) {
 
 struct EvalCommand {
     CLI::App* sub = nullptr;
-    lsnif::converter::EvalOptions opt;
+    lsnif::eval::EvalOptions opt;
     std::string camera, light;
     std::vector<std::string> moves;
     std::uint32_t old_repeats = 3;  // --timing-repeats
@@ -633,7 +633,7 @@ struct EvalCommand {
         return run_eval(opt, camera, light, moves, json);
     }
     int run_objects() const {
-        const auto r = lsnif::converter::render_objects(opt);
+        const auto r = lsnif::eval::render_objects(opt);
         for (const auto& e : r.errors) std::fprintf(stderr, "error: %s\n", e.c_str());
         if (!r.ok()) return 1;
         if (json) {
@@ -652,8 +652,8 @@ struct EvalCommand {
 struct BenchCommand {
     CLI::App* sub = nullptr;
     CLI::App *train = nullptr, *infer = nullptr, *memory = nullptr, *rays = nullptr, *convert = nullptr;
-    lsnif::converter::BenchOptions opt;
-    lsnif::converter::SceneBenchOptions scene;
+    lsnif::eval::BenchOptions opt;
+    lsnif::eval::SceneBenchOptions scene;
     lsnif::converter::ConvertOptions convert_opt;
     std::uint32_t threads = 0;  // --threads of every bench subcommand but convert
     bool json = false;
@@ -716,20 +716,20 @@ struct BenchCommand {
         nlohmann::json report;
         std::string err;
         if (*train)
-            report = lsnif::converter::bench_train(opt);
+            report = lsnif::eval::bench_train(opt);
         else if (*infer)
-            report = lsnif::converter::bench_infer(opt);
+            report = lsnif::eval::bench_infer(opt);
         else if (*memory)
-            report = lsnif::converter::bench_memory(scene, err);
+            report = lsnif::eval::bench_memory(scene, err);
         else if (*rays)
-            report = lsnif::converter::bench_rays(scene, err);
+            report = lsnif::eval::bench_rays(scene, err);
         else
-            report = lsnif::converter::bench_convert(convert_opt, err);
+            report = lsnif::eval::bench_convert(convert_opt, err);
         if (report.is_null()) {
             std::fprintf(stderr, "error: %s\n", err.c_str());
             return 1;
         }
-        std::cout << (json ? report.dump(2) + "\n" : lsnif::converter::bench_text(report));
+        std::cout << (json ? report.dump(2) + "\n" : lsnif::eval::bench_text(report));
         return 0;
     }
 };

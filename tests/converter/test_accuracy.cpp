@@ -20,7 +20,7 @@
 
 #include <lsnif/lsnif.h>
 #include <lsnif/converter/convert.hpp>
-#include <lsnif/converter/eval.hpp>
+#include <lsnif/eval/eval.hpp>
 #include <lsnif/format/cpu.hpp>
 #include <lsnif/format/forward.hpp>
 #include <lsnif/samples/held_out.hpp>
@@ -540,11 +540,11 @@ TEST_CASE("dragons composition: the combined image is within FLIP 0.03 of the re
             print_families(mesh);
         }
 
-    lsnif::converter::EvalOptions e;
+    lsnif::eval::EvalOptions e;
     e.outdir = (dir / "out").string();
     e.camera = lsnif::render::Camera{{0.45f, 1.0f, 2.7f}, {0.0f, 0.4f, -0.1f}, {0.0f, 1.0f, 0.0f}, 40.0f};
     e.images_dir = (dir / "eval").string();
-    const lsnif::converter::EvalResult ev = lsnif::converter::render_and_compare(e);
+    const lsnif::eval::EvalResult ev = lsnif::eval::render_and_compare(e);
     REQUIRE_MESSAGE(ev.ok(), (ev.errors.empty() ? "" : ev.errors[0]));
     const auto& rep = ev.report;
     for (const auto& [name, im] : rep["images"].items())

@@ -20,7 +20,7 @@
 #include <utility>
 #include <vector>
 
-namespace lsnif::converter {
+namespace lsnif::eval {
 
 // The render's settings (camera, light, size, AO, threads, seed, timing) and the conversion
 // it renders.
@@ -62,4 +62,4 @@ std::unique_ptr<render::EvalScene> load_scene(const EvalOptions& opt, std::strin
 // the close-ups a report page shows. Errors as render_and_compare's.
 EvalResult render_objects(const EvalOptions& opt);
 
-}  // namespace lsnif::converter
+}  // namespace lsnif::eval

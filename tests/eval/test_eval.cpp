@@ -2,9 +2,9 @@
 // instance transforms, camera/light changes without re-conversion, and bad inputs.
 #include <doctest/doctest.h>
 
-#include <lsnif/converter/bench.hpp>
 #include <lsnif/converter/convert.hpp>
-#include <lsnif/converter/eval.hpp>
+#include <lsnif/eval/bench.hpp>
+#include <lsnif/eval/eval.hpp>
 
 #include <algorithm>
 #include <cmath>
@@ -13,7 +13,10 @@
 #include <iterator>
 #include <random>
 
-using namespace lsnif::converter;
+using namespace lsnif::eval;
+using lsnif::converter::convert;
+using lsnif::converter::ConvertOptions;
+using lsnif::converter::ConvertResult;
 using lsnif::render::EvalScene;
 using lsnif::render::TraceHit;
 using lsnif::render::TraceProfile;

@@ -6,7 +6,7 @@
 // sees the same machine load.
 #include <lsnif/analytic/spheres.hpp>
 #include <lsnif/base/clock.hpp>
-#include <lsnif/converter/bench.hpp>
+#include <lsnif/eval/bench.hpp>
 #include <lsnif/format/bf16.hpp>
 #include <lsnif/format/cpu.hpp>
 #include <lsnif/format/forward.hpp>
@@ -24,7 +24,7 @@
 #include <memory>
 #include <span>
 
-namespace lsnif::converter {
+namespace lsnif::eval {
 
 using nlohmann::json;
 using Clock = std::chrono::steady_clock;
@@ -433,4 +433,4 @@ std::string bench_text(const json& r) {
     return s;
 }
 
-}  // namespace lsnif::converter
+}  // namespace lsnif::eval

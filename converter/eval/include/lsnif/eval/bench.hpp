@@ -1,14 +1,16 @@
-// `lsnif bench ...`: throughput benchmarks (never timed unit tests; DEVELOPERS.md).
+// `lsnif bench ...`: throughput benchmarks (never timed unit tests: CONTRIBUTING.md).
 #pragma once
 
 #include <lsnif/lsnif.h>
+#include <lsnif/converter/convert.hpp>
+
 #include <nlohmann/json.hpp>
 
 #include <cstdint>
 #include <string>
 #include <vector>
 
-namespace lsnif::converter {
+namespace lsnif::eval {
 
 struct BenchOptions {
     std::uint32_t threads = 2;
@@ -26,8 +28,6 @@ struct SceneBenchOptions {
     lsnif_arithmetic arithmetic =
         LSNIF_ARITHMETIC_AUTO;  // LSNIF network arithmetic (auto: what lsnif_open picks)
 };
-struct ConvertOptions;
-
 nlohmann::json bench_train(const BenchOptions& options);
 // memory: per complex object, the bytes a renderer holds once its asset is open (resident:
 // lsnif_info.decoded_bytes with the fp32 network, and with the arithmetic this CPU runs) and
@@ -39,9 +39,9 @@ nlohmann::json bench_memory(const SceneBenchOptions& options, std::string& error
 // rays per object, as ratios, plus hit/miss agreement.
 nlohmann::json bench_rays(const SceneBenchOptions& options, std::string& error);
 // convert: runs the conversion and reports its wall time split by stage.
-nlohmann::json bench_convert(const ConvertOptions& options, std::string& error);
+nlohmann::json bench_convert(const converter::ConvertOptions& options, std::string& error);
 nlohmann::json bench_infer(const BenchOptions& options);
 std::string bench_text(const nlohmann::json& report);
 std::string bench_scene_text(const nlohmann::json& report);  // memory, rays, convert
 
-}  // namespace lsnif::converter
+}  // namespace lsnif::eval

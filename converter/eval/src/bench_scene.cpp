@@ -2,9 +2,9 @@
 // machine in the same run (docs/architecture.md §5 "Speed"; docs/investigations/ has the figures).
 #include <lsnif/lsnif.h>
 #include <lsnif/base/clock.hpp>
-#include <lsnif/converter/bench.hpp>
 #include <lsnif/converter/convert.hpp>
 #include <lsnif/converter/manifest.hpp>
+#include <lsnif/eval/bench.hpp>
 
 #include <lsnif/sampling/sampling.hpp>
 #include <lsnif/scene/scene.hpp>
@@ -18,8 +18,14 @@
 #include <filesystem>
 #include <lsnif/base/parallel.hpp>
 
-namespace lsnif::converter {
+namespace lsnif::eval {
 namespace fs = std::filesystem;
+using converter::ConvertOptions;
+using converter::ConvertResult;
+using converter::LoadedManifest;
+using converter::MeshClass;
+using converter::MeshOutcome;
+using converter::Stage;
 using nlohmann::json;
 using Clock = std::chrono::steady_clock;
 
@@ -47,7 +53,7 @@ struct Loaded {
 
 bool load_objects(const SceneBenchOptions& opt, Loaded& out, std::string& error) {
     LoadedManifest loaded;
-    if (!load_manifest(opt.outdir, opt.sources, loaded, error)) return false;
+    if (!converter::load_manifest(opt.outdir, opt.sources, loaded, error)) return false;
     const fs::path& mp = loaded.path;
     const std::vector<std::string>& sources = loaded.sources;
     std::vector<std::optional<scene::Scene>> scenes(sources.size());
@@ -225,7 +231,7 @@ json bench_rays(const SceneBenchOptions& opt, std::string& error) {
 json bench_convert(const ConvertOptions& copt, std::string& error) {
     ConvertOptions o = copt;
     const auto t0 = Clock::now();
-    const ConvertResult r = convert(o);
+    const ConvertResult r = converter::convert(o);
     const double wall = seconds_since(t0);
     if (!r.ok()) {
         error = r.errors.empty() ? "conversion failed" : r.errors[0];
@@ -235,10 +241,10 @@ json bench_convert(const ConvertOptions& copt, std::string& error) {
     std::map<std::string, double> totals;
     for (const MeshOutcome& m : r.meshes) {
         json t = json::object();
-        for (std::size_t k = 0; k < kStageCount; ++k) {
+        for (std::size_t k = 0; k < converter::kStageCount; ++k) {
             const std::optional<double>& seconds = m.timings.seconds[k];
             if (!seconds) continue;
-            const std::string stage(stage_name(Stage(k)));
+            const std::string stage(converter::stage_name(Stage(k)));
             t[stage] = *seconds;
             totals[stage] += *seconds;
         }
@@ -300,4 +306,4 @@ std::string bench_scene_text(const json& r) {
     return s;
 }
 
-}  // namespace lsnif::converter
+}  // namespace lsnif::eval

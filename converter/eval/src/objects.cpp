@@ -1,8 +1,8 @@
 // `lsnif eval --objects`: every converted object alone in its held-out views, through its
 // shipped asset (eval.hpp, render_objects).
 #include <lsnif/converter/convert.hpp>
-#include <lsnif/converter/eval.hpp>
 #include <lsnif/converter/manifest.hpp>
+#include <lsnif/eval/eval.hpp>
 #include <lsnif/format/container.hpp>
 #include <lsnif/render/object_views.hpp>
 #include <lsnif/scene/scene.hpp>
@@ -10,8 +10,10 @@
 #include <filesystem>
 #include <optional>
 
-namespace lsnif::converter {
+namespace lsnif::eval {
 
+using converter::LoadedManifest;
+using converter::MeshOutcome;
 using render::ObjectViewOptions;
 using render::ObjectViews;
 
@@ -39,7 +41,7 @@ base::Result<nlohmann::json, std::string> object_entry(const scene::Mesh& mesh, 
     return nlohmann::json{{"name", mo.name},
                           {"mesh", mo.id},
                           {"lsnif", mo.asset->file},
-                          {"flip", object_flip_json(*flip)},
+                          {"flip", converter::object_flip_json(*flip)},
                           {"views", files}};
 }
 
@@ -66,7 +68,7 @@ EvalResult render_objects(const EvalOptions& opt) {
     EvalResult res;
     LoadedManifest loaded;
     std::string error;
-    if (!load_manifest(opt.outdir, opt.sources, loaded, error)) {
+    if (!converter::load_manifest(opt.outdir, opt.sources, loaded, error)) {
         res.errors.push_back(error);
         return res;
     }
@@ -77,7 +79,8 @@ EvalResult render_objects(const EvalOptions& opt) {
     ObjectViewOptions o;
     o.threads = opt.threads;
     const nlohmann::json& settings = loaded.doc["settings"];
-    o.seed = held_out_view_seed(settings.value("view_seed", settings.value("seed", std::uint64_t(1))));
+    o.seed =
+        converter::held_out_view_seed(settings.value("view_seed", settings.value("seed", std::uint64_t(1))));
     nlohmann::json objects = nlohmann::json::array();
     std::vector<std::optional<scene::Scene>> scenes(loaded.sources.size());
     for (const MeshOutcome& mo : loaded.meshes) {
@@ -102,4 +105,4 @@ EvalResult render_objects(const EvalOptions& opt) {
     return res;
 }
 
-}  // namespace lsnif::converter
+}  // namespace lsnif::eval

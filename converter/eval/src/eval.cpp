@@ -1,8 +1,8 @@
 // `lsnif eval`: reference (Embree everywhere) and hybrid (Embree + LSNIF reader) renders of
 // a converted scene, compared with FLIP and PSNR (eval.hpp has the contract).
 #include <lsnif/base/parallel.hpp>
-#include <lsnif/converter/eval.hpp>
 #include <lsnif/converter/manifest.hpp>
+#include <lsnif/eval/eval.hpp>
 #include <lsnif/scene/scene.hpp>
 
 #include <algorithm>
@@ -10,8 +10,11 @@
 #include <filesystem>
 #include <fstream>
 
-namespace lsnif::converter {
+namespace lsnif::eval {
 namespace fs = std::filesystem;
+using converter::LoadedManifest;
+using converter::MeshClass;
+using converter::MeshOutcome;
 using nlohmann::json;
 using namespace render;
 
@@ -89,7 +92,7 @@ bool add_instance(std::size_t i, const json& ij, const EvalOptions& opt, const s
 
 std::unique_ptr<EvalScene> load_scene(const EvalOptions& opt, std::string& error) {
     LoadedManifest loaded;
-    if (!load_manifest(opt.outdir, opt.sources, loaded, error)) return nullptr;
+    if (!converter::load_manifest(opt.outdir, opt.sources, loaded, error)) return nullptr;
     const std::string manifest_path = loaded.path.string();
     std::vector<scene::Scene> scenes;
     if (!import_sources(loaded, scenes, error)) return nullptr;
@@ -279,4 +282,4 @@ EvalResult render_and_compare(const EvalOptions& opt) {
     return res;
 }
 
-}  // namespace lsnif::converter
+}  // namespace lsnif::eval
