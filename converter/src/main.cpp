@@ -1,7 +1,6 @@
 // The `lsnif` command. Only this file prints "error: ..." and chooses exit codes;
 // everything it calls reports through return values.
 #include <lsnif/base/parallel.hpp>
-#include <lsnif/converter/batch.hpp>
 #include <lsnif/converter/convert.hpp>
 #include <lsnif/converter/file_tools.hpp>
 #include <lsnif/converter/settings.hpp>
@@ -9,6 +8,7 @@
 #include <lsnif/eval/eval.hpp>
 #include <lsnif/format/container.hpp>
 #include <lsnif/format/cpu.hpp>
+#include <lsnif/library/batch.hpp>
 
 #include <CLI/CLI.hpp>
 
@@ -389,7 +389,7 @@ struct ConvertCommand {
 
 struct BatchCommand {
     CLI::App* sub = nullptr;
-    lsnif::converter::BatchOptions batch;
+    lsnif::library::BatchOptions batch;
     ConvertSettings settings;
     std::string shard;
     std::uint32_t task = 0;
@@ -460,8 +460,8 @@ struct BatchCommand {
         }
         if (sub->count("--task") > 0) batch.task = task;
         std::string error;
-        if (sub->count("--shard") > 0 && !lsnif::converter::parse_shard(shard, settings.opt.shard_index,
-                                                                        settings.opt.shard_count, error)) {
+        if (sub->count("--shard") > 0 &&
+            !lsnif::library::parse_shard(shard, settings.opt.shard_index, settings.opt.shard_count, error)) {
             std::fprintf(stderr, "error: --shard '%s': %s\n", shard.c_str(), error.c_str());
             return 2;
         }
@@ -470,7 +470,7 @@ struct BatchCommand {
         batch.program = lsnif::converter::executable_path();
         std::set<std::string> streamed;
         ProgressPrinter printer;
-        const auto r = lsnif::converter::batch(
+        const auto r = lsnif::library::batch(
             batch, [&](const lsnif::converter::ProgressEvent& e) { printer(e); },
             [&](const std::string& line) {
                 // One line per asset as soon as it is done (not with
@@ -479,7 +479,7 @@ struct BatchCommand {
                 if (!json) std::cout << line << std::endl;
             });
         for (const auto& w : r.convert.warnings) std::fprintf(stderr, "warning: %s\n", w.c_str());
-        if (r.exit == lsnif::converter::BatchExit::usage) {
+        if (r.exit == lsnif::library::BatchExit::usage) {
             for (const auto& e : r.convert.errors) std::fprintf(stderr, "error: %s\n", e.c_str());
             return 2;
         }
@@ -524,7 +524,7 @@ struct MergeCommand {
         sub->add_flag("--json", json, "Print a machine-readable summary");
     }
     int run() const {
-        const auto r = lsnif::converter::merge(shards, outdir);
+        const auto r = lsnif::library::merge(shards, outdir);
         for (const auto& e : r.errors) std::fprintf(stderr, "error: %s\n", e.c_str());
         if (json) {
             nlohmann::json summary = {{"shards", shards}, {"output", outdir}, {"errors", r.errors}};
@@ -538,7 +538,7 @@ struct MergeCommand {
         if (!r.errors.empty()) return 1;
         if (!junit.empty()) {
             if (const auto e =
-                    lsnif::format::write_text_atomically(junit, lsnif::converter::merge_junit_xml(r))) {
+                    lsnif::format::write_text_atomically(junit, lsnif::library::merge_junit_xml(r))) {
                 std::fprintf(stderr, "error: %s\n", e.message.c_str());
                 return 1;
             }

@@ -2,20 +2,22 @@
 // `--from-plan FILE --task K | --shard I/N` converts part of it without planning the library
 // again, and `--from-plan FILE` alone assembles the manifest through the cache.
 #include <lsnif/cache/cache.hpp>
-#include <lsnif/converter/batch.hpp>
 #include <lsnif/converter/json_reader.hpp>
 #include <lsnif/converter/settings.hpp>
 #include <lsnif/format/container.hpp>
+#include <lsnif/library/batch.hpp>
 #include "batch_internal.hpp"
 
 #include <fstream>
 #include <set>
 
-namespace lsnif::converter {
+namespace lsnif::library {
 
-using json_reader::Reader;
+using converter::ConvertOptions;
+using converter::ConvertProgress;
+using converter::json_reader::Reader;
 using nlohmann::json;
-using namespace batch_detail;
+using namespace detail;
 
 json plan_json(const LibraryPlan& plan) {
     json inputs = json::array(), tasks = json::array();
@@ -107,9 +109,9 @@ std::optional<LibraryPlan> read_plan(const std::string& path, BatchResult& r) {
 // it can. `inputs`: the indexes to check.
 std::string plan_problem(const std::string& path, const LibraryPlan& plan,
                          const std::set<std::size_t>& inputs) {
-    if (plan.identity != tool_identity().digest)
+    if (plan.identity != converter::tool_identity().digest)
         return path + ": planned by another lsnif build (identity " + plan.identity + ", this one is " +
-               tool_identity().digest + "): plan again";
+               converter::tool_identity().digest + "): plan again";
     for (std::size_t i : inputs) {
         std::string error;
         const auto now = file_sha256(plan.inputs[i].path, error);
@@ -137,7 +139,7 @@ std::optional<std::vector<std::size_t>> selected_tasks(const BatchOptions& optio
     } else if (c.shard_count > 0) {
         std::vector<std::uint64_t> costs;
         for (const PlannedTask& t : plan.tasks) costs.push_back(t.estimated_ms);
-        const std::vector<std::uint32_t> shard = deal_to_shards(costs, c.shard_count);
+        const std::vector<std::uint32_t> shard = converter::deal_to_shards(costs, c.shard_count);
         for (std::size_t k = 0; k < shard.size(); ++k)
             if (shard[k] + 1 == c.shard_index) chosen.push_back(k);
     } else {
@@ -148,15 +150,15 @@ std::optional<std::vector<std::size_t>> selected_tasks(const BatchOptions& optio
 
 }  // namespace
 
-namespace batch_detail {
+namespace detail {
 
 void write_plan(const BatchOptions& options, const ConvertProgress& progress, BatchResult& r) {
     const auto objects = plan_library(options.convert, progress, r);
     if (!objects) return;
     LibraryPlan plan;
     plan.version = LSNIF_VERSION_STRING;
-    plan.identity = tool_identity().digest;
-    plan.settings = settings_arguments(options.convert);
+    plan.identity = converter::tool_identity().digest;
+    plan.settings = converter::settings_arguments(options.convert);
     for (const std::string& scene : r.scenes) {
         std::string error;
         const auto sha = file_sha256(scene, error);
@@ -195,7 +197,7 @@ void run_from_plan(const BatchOptions& options, const ConvertProgress& progress,
     ConvertOptions c = options.convert;
     c.shard_count = c.shard_index = 0;  // the plan's tasks are the shares
     std::string error;
-    if (!apply_settings_arguments(plan->settings, c, error))
+    if (!converter::apply_settings_arguments(plan->settings, c, error))
         return fail(r, options.from_plan + ": its settings: " + error);
     for (std::size_t i : inputs) r.scenes.push_back(plan->inputs[i].path);
     if (!assembly) {
@@ -208,6 +210,6 @@ void run_from_plan(const BatchOptions& options, const ConvertProgress& progress,
     convert_library(options, c, progress, on_line, r);
 }
 
-}  // namespace batch_detail
+}  // namespace detail
 
-}  // namespace lsnif::converter
+}  // namespace lsnif::library

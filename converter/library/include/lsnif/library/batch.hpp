@@ -7,6 +7,7 @@
 
 #include <lsnif/base/result.hpp>
 #include <lsnif/converter/convert.hpp>
+#include <lsnif/converter/outcome.hpp>
 
 #include <nlohmann/json.hpp>
 
@@ -16,7 +17,7 @@
 #include <string>
 #include <vector>
 
-namespace lsnif::converter {
+namespace lsnif::library {
 
 // Exit codes of `lsnif batch` (and what the library reports as its verdict).
 enum class BatchExit : int {
@@ -34,7 +35,7 @@ struct BatchOptions {
     // "lsnif batch SETTINGS" (settings_arguments: canonical, inputs and outputs left out, the
     // asset's source is in its metadata), so that a single run, shards, --jobs and the steps
     // of a Ninja file write the same bytes; command_line is not used.
-    ConvertOptions convert;
+    converter::ConvertOptions convert;
     std::string junit_path;  // write JUnit XML here ("" = none)
     // --ninja FILE: plan only, and write a Ninja build file that converts the library with
     // one edge per unique candidate (docs/pipeline.md "Ninja"); `program` is the lsnif
@@ -77,7 +78,7 @@ base::Result<LibraryPlan, std::string> plan_from_json(const nlohmann::json& j);
 struct BatchResult {
     std::vector<std::string> scenes;        // what the inputs expanded to, in order, duplicates removed
     std::vector<std::string> input_errors;  // inputs that expanded to nothing usable
-    ConvertResult convert;
+    converter::ConvertResult convert;
     nlohmann::json summary;          // --json: counts, cache, scene memory, every asset's line
     std::vector<std::string> lines;  // one per asset (and per failed input), for people and logs
     BatchExit exit = BatchExit::ok;
@@ -90,7 +91,7 @@ std::vector<std::string> expand_inputs(const std::vector<std::string>& inputs,
 
 // `on_line` receives each asset's line as soon as the asset is decided or converted (the
 // same lines end up in BatchResult::lines, with the failed inputs'); `progress` every event.
-BatchResult batch(const BatchOptions& options, const ConvertProgress& progress = {},
+BatchResult batch(const BatchOptions& options, const converter::ConvertProgress& progress = {},
                   const std::function<void(const std::string&)>& on_line = {});
 
 // JUnit XML of a batch: one <testcase> per mesh (classname = the input file, name = the mesh;
@@ -107,9 +108,9 @@ std::string merge_junit_xml(const MergeResult& merged);
 bool parse_shard(const std::string& text, std::uint32_t& index, std::uint32_t& count, std::string& error);
 
 struct MergeResult {
-    nlohmann::json manifest;          // what was written to OUTDIR/manifest.json (null on failure)
-    std::vector<InputRecord> inputs;  // the library's inputs and meshes, as in `manifest`
-    std::vector<MeshOutcome> meshes;
+    nlohmann::json manifest;                     // what was written to OUTDIR/manifest.json (null on failure)
+    std::vector<converter::InputRecord> inputs;  // the library's inputs and meshes, as in `manifest`
+    std::vector<converter::MeshOutcome> meshes;
     std::vector<std::string> errors;  // "PATH: problem"; nothing is written when not empty
 };
 
@@ -119,4 +120,4 @@ struct MergeResult {
 // copied, input paths made relative to `outdir`, the scene's memory summed again.
 MergeResult merge(const std::vector<std::string>& shard_dirs, const std::string& outdir);
 
-}  // namespace lsnif::converter
+}  // namespace lsnif::library

@@ -1,14 +1,14 @@
-// What `lsnif batch` (batch.cpp) and its plan files (batch_plan.cpp) share. Internal to the
-// converter: not installed, not an API.
+// What `lsnif batch` (batch.cpp) and its plan files (batch_plan.cpp) share. Private to
+// lsnif::library.
 #pragma once
 
-#include <lsnif/converter/batch.hpp>
+#include <lsnif/library/batch.hpp>
 
 #include <optional>
 #include <string>
 #include <vector>
 
-namespace lsnif::converter::batch_detail {
+namespace lsnif::library::detail {
 
 // One unique candidate of a library's plan: what one task (a Ninja edge, a --task) converts.
 struct PlannedObject {
@@ -26,17 +26,19 @@ std::string shell_line(const std::vector<std::string>& words);
 // Plans the library r.scenes (made absolute, since a source path is part of each key) with
 // the settings of `c` (a dry run): its unique candidates, costliest first, ties by key. None
 // (r.exit set) when the options are refused.
-std::optional<std::vector<PlannedObject>> plan_library(ConvertOptions c, const ConvertProgress& progress,
+std::optional<std::vector<PlannedObject>> plan_library(converter::ConvertOptions c,
+                                                       const converter::ConvertProgress& progress,
                                                        BatchResult& r);
 
 // Converts the library r.scenes with the settings of `c` (its inputs are set here): every
 // asset's line, the counts, the summary, the JUnit file of `options`, the exit code.
-void convert_library(const BatchOptions& options, ConvertOptions c, const ConvertProgress& progress,
+void convert_library(const BatchOptions& options, converter::ConvertOptions c,
+                     const converter::ConvertProgress& progress,
                      const std::function<void(const std::string&)>& on_line, BatchResult& r);
 
 // --plan FILE and --from-plan FILE (batch_plan.cpp).
-void write_plan(const BatchOptions& options, const ConvertProgress& progress, BatchResult& r);
-void run_from_plan(const BatchOptions& options, const ConvertProgress& progress,
+void write_plan(const BatchOptions& options, const converter::ConvertProgress& progress, BatchResult& r);
+void run_from_plan(const BatchOptions& options, const converter::ConvertProgress& progress,
                    const std::function<void(const std::string&)>& on_line, BatchResult& r);
 
-}  // namespace lsnif::converter::batch_detail
+}  // namespace lsnif::library::detail

@@ -1,10 +1,10 @@
 // `lsnif batch` (batch.hpp): inputs expanded, one convert() run with the cache, and the
 // reports a CI system reads.
 #include <lsnif/cache/remote.hpp>
-#include <lsnif/converter/batch.hpp>
 #include <lsnif/converter/manifest.hpp>
 #include <lsnif/converter/settings.hpp>
 #include <lsnif/format/container.hpp>
+#include <lsnif/library/batch.hpp>
 #include <lsnif/scene/scene.hpp>
 #include "batch_internal.hpp"
 
@@ -19,13 +19,23 @@
 #include <map>
 #include <set>
 
-namespace lsnif::converter {
+namespace lsnif::library {
 
 namespace fs = std::filesystem;
+using converter::BvhYardstick;
+using converter::ConvertOptions;
+using converter::ConvertProgress;
+using converter::GatePass;
+using converter::GateVerdict;
+using converter::InputRecord;
+using converter::MeshClass;
+using converter::MeshOutcome;
+using converter::OutcomeFields;
+using converter::ProgressEvent;
 using nlohmann::json;
-using namespace batch_detail;
+using namespace detail;
 
-namespace batch_detail {
+namespace detail {
 
 std::string shell_word(const std::string& w) {
     const bool plain = !w.empty() && std::all_of(w.begin(), w.end(), [](char c) {
@@ -56,7 +66,7 @@ std::string absolute(const std::string& p) {
     return (ec ? fs::path(p) : a).lexically_normal().string();
 }
 
-}  // namespace batch_detail
+}  // namespace detail
 
 namespace {
 
@@ -131,7 +141,7 @@ std::string xml_escaped(const std::string& s) {
 
 // The mesh's last reason, or its decision's name where it has none.
 std::string last_reason(const MeshOutcome& m) {
-    return m.reasons.empty() ? std::string(decision_name(m.decision)) : m.reasons.back();
+    return m.reasons.empty() ? std::string(converter::decision_name(m.decision)) : m.reasons.back();
 }
 
 // A shipped asset's line: its memory against both BVHs, its held-out accuracy and image
@@ -248,7 +258,7 @@ std::string ninja_text(const BatchOptions& options, const std::vector<PlannedObj
     std::vector<std::string> inputs;
     for (const std::string& in : options.inputs) inputs.push_back(absolute(in));
     // Each step's threads (how fast, not what): as given, else all cores.
-    std::vector<std::string> step_settings = settings_arguments(c);
+    std::vector<std::string> step_settings = converter::settings_arguments(c);
     if (c.threads) step_settings.insert(step_settings.end(), {"--threads", std::to_string(c.threads)});
     const std::string settings = shell_line(step_settings);
     const std::string junit =
@@ -391,14 +401,14 @@ void plan_summary(const BatchResult& r, const char* what, const std::string& fil
 
 }  // namespace
 
-namespace batch_detail {
+namespace detail {
 
 std::optional<std::vector<PlannedObject>> plan_library(ConvertOptions c, const ConvertProgress& progress,
                                                        BatchResult& r) {
     for (std::string& scene : r.scenes) scene = absolute(scene);
     c.inputs = r.scenes;
     c.dry_run = true;
-    r.convert = convert(c, progress);
+    r.convert = converter::convert(c, progress);
     if (r.convert.usage_error) {
         r.exit = BatchExit::usage;
         return std::nullopt;
@@ -421,20 +431,21 @@ void convert_library(const BatchOptions& options, ConvertOptions c, const Conver
     std::size_t converted = 0, bvh = 0, failed = r.input_errors.size();
     if (!r.scenes.empty()) {
         c.inputs = r.scenes;
-        c.command_line = "lsnif batch " + shell_line(settings_arguments(c));
+        c.command_line = "lsnif batch " + shell_line(converter::settings_arguments(c));
         c.write_gltf = false;  // a library, not a scene
         // One object's job (--object, --from-plan --task) reports its objects: the meshes that
         // classification decided belong to the library's own run.
         const bool objects_only = !c.only_keys.empty();
         const auto reported = [objects_only](const MeshOutcome& m) {
-            return m.cls() != MeshClass::deferred && !(objects_only && decided_in_plan(m.decision));
+            return m.cls() != MeshClass::deferred &&
+                   !(objects_only && converter::decided_in_plan(m.decision));
         };
         const auto forward = [&](const ProgressEvent& e) {
             if (e.stage == "done" && e.outcome && on_line && reported(*e.outcome))
                 on_line(asset_line(*e.outcome, r.scenes.at(e.outcome->input)));
             if (progress) progress(e);
         };
-        r.convert = convert(c, forward);
+        r.convert = converter::convert(c, forward);
         if (r.convert.usage_error) {
             r.exit = BatchExit::usage;
             return;
@@ -477,7 +488,7 @@ void convert_library(const BatchOptions& options, ConvertOptions c, const Conver
     }
 }
 
-}  // namespace batch_detail
+}  // namespace detail
 
 BatchResult batch(const BatchOptions& options, const ConvertProgress& progress,
                   const std::function<void(const std::string&)>& on_line) {
@@ -583,9 +594,10 @@ std::string read_shard(const fs::path& dir, ShardManifest& out) {
     out.dir = dir;
     out.doc = json::parse(f, nullptr, false);
     const json& doc = out.doc;
-    if (!doc.is_object() || doc.value("format", json()) != kManifestFormat || !doc.contains("meshes") ||
-        !doc["meshes"].is_array() || !doc.contains("inputs") || !doc["inputs"].is_array())
-        return where + "not an lsnif manifest of format " + kManifestFormat;
+    if (!doc.is_object() || doc.value("format", json()) != converter::kManifestFormat ||
+        !doc.contains("meshes") || !doc["meshes"].is_array() || !doc.contains("inputs") ||
+        !doc["inputs"].is_array())
+        return where + "not an lsnif manifest of format " + converter::kManifestFormat;
     const json& shard = doc.value("shard", json());
     if (!shard.is_object() || !shard.value("index", json()).is_number_unsigned() ||
         !shard.value("count", json()).is_number_unsigned())
@@ -593,12 +605,12 @@ std::string read_shard(const fs::path& dir, ShardManifest& out) {
     out.index = shard["index"].get<std::uint32_t>();
     out.count = shard["count"].get<std::uint32_t>();
     for (std::size_t i = 0; i < doc["inputs"].size(); ++i) {
-        auto in = input_from_json(doc["inputs"][i]);
+        auto in = converter::input_from_json(doc["inputs"][i]);
         if (!in) return where + "inputs[" + std::to_string(i) + "]." + in.error();
         out.inputs.push_back(std::move(*in));
     }
     for (std::size_t i = 0; i < doc["meshes"].size(); ++i) {
-        auto m = outcome_from_json(doc["meshes"][i], OutcomeFields::reproducible);
+        auto m = converter::outcome_from_json(doc["meshes"][i], OutcomeFields::reproducible);
         if (!m) return where + "meshes[" + std::to_string(i) + "]." + m.error();
         if (m->input >= out.inputs.size())
             return where + "meshes[" + std::to_string(i) + "].input: no such input";
@@ -709,21 +721,21 @@ MergeResult merge(const std::vector<std::string>& shard_dirs, const std::string&
     for (InputRecord& in : r.inputs) {
         fs::path p = in.path;
         if (p.is_relative()) p = first.dir / p;
-        in.path = manifest_relative_path(p, outdir);
+        in.path = converter::manifest_relative_path(p, outdir);
     }
     if (!r.errors.empty()) return r;
     json merged = first.doc;
     merged.erase("shard");
     merged["inputs"] = json::array();
-    for (const InputRecord& in : r.inputs) merged["inputs"].push_back(input_json(in));
+    for (const InputRecord& in : r.inputs) merged["inputs"].push_back(converter::input_json(in));
     merged["meshes"] = json::array();
     for (const MeshOutcome& m : r.meshes)
-        merged["meshes"].push_back(outcome_json(m, OutcomeFields::reproducible));
+        merged["meshes"].push_back(converter::outcome_json(m, OutcomeFields::reproducible));
     // The shards' meshes were measured on the settings' yardstick, which the first records.
-    const SceneMemory memory = scene_memory(r.meshes, BvhYardstick::embree, 0, false);
+    const converter::SceneMemory memory = converter::scene_memory(r.meshes, BvhYardstick::embree, 0, false);
     merged["scene_memory"]["before"] = memory.before;
     merged["scene_memory"]["after"] = memory.after;
-    if (std::string e = write_manifest(outdir, merged); !e.empty()) {
+    if (std::string e = converter::write_manifest(outdir, merged); !e.empty()) {
         r.errors.push_back(e);
         return r;
     }
@@ -731,4 +743,4 @@ MergeResult merge(const std::vector<std::string>& shard_dirs, const std::string&
     return r;
 }
 
-}  // namespace lsnif::converter
+}  // namespace lsnif::library
