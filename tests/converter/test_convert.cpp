@@ -5,8 +5,8 @@
 #include "../test_data.hpp"
 
 #include <lsnif/lsnif.h>
+#include <lsnif/cli/file_tools.hpp>
 #include <lsnif/converter/convert.hpp>
-#include <lsnif/converter/file_tools.hpp>
 #include <lsnif/converter/gltf_out.hpp>
 #include <lsnif/converter/json_schema.hpp>
 #include <lsnif/converter/manifest.hpp>
@@ -21,6 +21,8 @@
 #include <iterator>
 
 using namespace lsnif::converter;
+using lsnif::cli::validate_file;
+using lsnif::cli::ValidationReport;
 using nlohmann::json;
 namespace fs = std::filesystem;
 

@@ -3,12 +3,13 @@
 
 #include "../test_data.hpp"
 
-#include <lsnif/converter/file_tools.hpp>
+#include <lsnif/cli/file_tools.hpp>
 #include <lsnif/converter/json_schema.hpp>
 
 #include <filesystem>
 #include <fstream>
 
+using namespace lsnif::cli;
 using namespace lsnif::converter;
 using nlohmann::json;
 namespace fs = std::filesystem;

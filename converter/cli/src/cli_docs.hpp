@@ -9,7 +9,7 @@ namespace CLI {
 class App;
 }
 
-namespace lsnif::converter {
+namespace lsnif::cli {
 
 // Every subcommand and option as Markdown tables (`lsnif --help-markdown`), for README.md
 // "Every command and option".
@@ -25,4 +25,4 @@ std::string man_page(const CLI::App& app, const std::string& version);
 // and file names where a value is a path.
 std::string bash_completion(const CLI::App& app);
 
-}  // namespace lsnif::converter
+}  // namespace lsnif::cli

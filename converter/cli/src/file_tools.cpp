@@ -1,5 +1,5 @@
 #include <lsnif/lsnif.h>
-#include <lsnif/converter/file_tools.hpp>
+#include <lsnif/cli/file_tools.hpp>
 #include <lsnif/converter/json_schema.hpp>
 #include <lsnif/converter/metadata_names.hpp>
 
@@ -9,8 +9,12 @@
 #include <memory>
 #include <sstream>
 
-namespace lsnif::converter {
+namespace lsnif::cli {
 
+using converter::distance_encoding_name;
+using converter::grid_encoding_name;
+using converter::ray_inputs_name;
+using converter::SchemaViolation;
 using nlohmann::json;
 
 namespace {
@@ -212,7 +216,7 @@ ValidationReport validate_bytes(std::span<const std::uint8_t> bytes, const std::
             {"metadata", UINT64_MAX, std::string("metadata is not valid JSON: ") + e.what()});
         return r;
     }
-    for (const SchemaViolation& v : metadata_schema().validate(meta))
+    for (const SchemaViolation& v : converter::metadata_schema().validate(meta))
         r.problems.push_back(
             {"metadata", UINT64_MAX,
              "metadata " + (v.pointer.empty() ? std::string("(root)") : v.pointer) + " " + v.message});
@@ -369,4 +373,4 @@ std::string inspect_text(const json& r) {
     return o.str();
 }
 
-}  // namespace lsnif::converter
+}  // namespace lsnif::cli

@@ -6,7 +6,7 @@
 #include <string>
 #include <vector>
 
-namespace lsnif::converter {
+namespace lsnif::cli {
 namespace {
 
 // One option as its documentation shows it, read from its CLI11 definition.
@@ -285,4 +285,4 @@ std::string bash_completion(const CLI::App& app) {
     return out;
 }
 
-}  // namespace lsnif::converter
+}  // namespace lsnif::cli

@@ -1,8 +1,8 @@
 // The `lsnif` command. Only this file prints "error: ..." and chooses exit codes;
 // everything it calls reports through return values.
 #include <lsnif/base/parallel.hpp>
+#include <lsnif/cli/file_tools.hpp>
 #include <lsnif/converter/convert.hpp>
-#include <lsnif/converter/file_tools.hpp>
 #include <lsnif/converter/settings.hpp>
 #include <lsnif/eval/bench.hpp>
 #include <lsnif/eval/eval.hpp>
@@ -152,11 +152,11 @@ int run_inspect(const std::string& path, bool as_json) {
         std::fprintf(stderr, "error: %s\n", bytes.error().message.c_str());
         return 1;
     }
-    const auto report = lsnif::converter::inspect_bytes(bytes.value(), path);
+    const auto report = lsnif::cli::inspect_bytes(bytes.value(), path);
     if (as_json)
         std::cout << report.dump(2) << "\n";
     else
-        std::cout << lsnif::converter::inspect_text(report);
+        std::cout << lsnif::cli::inspect_text(report);
     if (report.contains("error")) {
         if (as_json)  // text mode already printed the error line in the report
             std::fprintf(stderr, "error: %s: %s\n", path.c_str(),
@@ -170,7 +170,7 @@ int run_validate(const std::vector<std::string>& paths, bool as_json) {
     nlohmann::json all = nlohmann::json::array();
     bool ok = true;
     for (const std::string& p : paths) {
-        const auto r = lsnif::converter::validate_file(p);
+        const auto r = lsnif::cli::validate_file(p);
         ok = ok && r.valid();
         if (as_json)
             all.push_back(r.to_json());
@@ -772,15 +772,15 @@ int main(int argc, char** argv) {
     bench.add_to(app);
     // The command line described from itself (cli_docs.hpp): README tables, man page, completion.
     if (argc == 2 && std::string(argv[1]) == "--help-markdown") {
-        std::cout << lsnif::converter::markdown_reference(app);
+        std::cout << lsnif::cli::markdown_reference(app);
         return 0;
     }
     if (argc == 2 && std::string(argv[1]) == "--help-man") {
-        std::cout << lsnif::converter::man_page(app, lsnif::converter::tool_identity().version);
+        std::cout << lsnif::cli::man_page(app, lsnif::converter::tool_identity().version);
         return 0;
     }
     if (argc == 2 && std::string(argv[1]) == "--completion-bash") {
-        std::cout << lsnif::converter::bash_completion(app);
+        std::cout << lsnif::cli::bash_completion(app);
         return 0;
     }
     try {

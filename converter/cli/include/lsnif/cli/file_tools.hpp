@@ -12,7 +12,7 @@
 #include <string>
 #include <vector>
 
-namespace lsnif::converter {
+namespace lsnif::cli {
 
 struct Problem {
     std::string status;    // lsnif_status_string() of the failure, or "metadata"
@@ -50,4 +50,4 @@ std::string inspect_text(const nlohmann::json& report);
 std::vector<std::string> metadata_consistency(const nlohmann::json& metadata, const lsnif_info& info,
                                               std::uint32_t ray_inputs);
 
-}  // namespace lsnif::converter
+}  // namespace lsnif::cli
