@@ -192,9 +192,9 @@ void check_targets(const nlohmann::json& mesh) {
 }
 
 // The sizing search as the manifest records it (docs/model.md "Sizing to the target"): the
-// first rung is the preset's first size (or the plan's, when smaller); a larger rung was
+// first rung is the preset's first size (or triage's, when smaller); a larger rung was
 // trained exactly when that rung ran to its end, missed the target and was near it on the
-// decision rays (near_target); nothing larger than the plan's size. Returns the table size
+// decision rays (near_target); nothing larger than triage's size. Returns the table size
 // shipped (0 when none).
 std::uint32_t check_search(const nlohmann::json& mesh) {
     lsnif::converter::Preset preset;
@@ -440,8 +440,8 @@ void check_reduced_inference(const Shipped& s, const std::string& name) {
 }  // namespace
 
 // Held in memory, the 20k-triangle dragon's default model at 2^17 rows (0.67 MB) just halves
-// its Embree BVH (1.4 MB), so the memory rule's plan (tests/converter/test_convert.cpp checks
-// it) hangs on a few KB; the model's accuracy is measured forced, at the preset's size,
+// its Embree BVH (1.4 MB), so the memory rule's estimate at triage (tests/converter/test_convert.cpp
+// checks it) hangs on a few KB; the model's accuracy is measured forced, at the preset's size,
 // whatever the rule decides.
 TEST_CASE("the default model meets the accuracy targets on CGAL's Chinese dragon (forced)") {
     const auto mesh = convert_default(cgal_mesh("ChineseDragon-10kv.off"), "ChineseDragon-10kv", true);

@@ -356,9 +356,9 @@ TEST_CASE("forced classification by mesh name") {
 
 namespace {
 
-// The resident bytes the plan estimates for the default preset's model at 2^log2 rows in 8
-// bits, with the plan's 2 KiB of metadata.
-double planned_resident(std::uint32_t log2) {
+// The resident bytes triage estimates for the default preset's model at 2^log2 rows in 8
+// bits, with its 2 KiB of metadata.
+double triage_estimate(std::uint32_t log2) {
     namespace format = lsnif::format;
     Preset p;
     REQUIRE(find_preset("default", p));
@@ -393,13 +393,13 @@ TEST_CASE("the model is sized to the mesh: tables shrink until the asset, held i
         // next larger one would not (or is the cap).
         const double factor = ClassifyRule{}.min_memory_ratio;
         const int log2 = st["log2_table_size"].get<int>();
-        CHECK(st["resident_estimate"].get<double>() == planned_resident(std::uint32_t(log2)));
+        CHECK(st["resident_estimate"].get<double>() == triage_estimate(std::uint32_t(log2)));
         CHECK(bvh >= factor * st["resident_estimate"].get<double>());
         CHECK(m["memory"]["after"] == st["resident_estimate"]);
         CHECK(log2 <= 18);
         CHECK(log2 >= 15);
         if (log2 < 18) {
-            CHECK(bvh < factor * planned_resident(std::uint32_t(log2 + 1)));
+            CHECK(bvh < factor * triage_estimate(std::uint32_t(log2 + 1)));
             CHECK(m["reasons"].back().get<std::string>().find("sized to 2^" + std::to_string(log2)) !=
                   std::string::npos);
         }

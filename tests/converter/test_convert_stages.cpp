@@ -588,7 +588,7 @@ TEST_CASE("size_to_target climbs from its first size only after a near miss, wit
     const json candidates = candidates_json(climbed);
     REQUIRE_MESSAGE(climbed.rungs.size() == 2, candidates.dump());
     CHECK(candidates[0]["log2_table_size"] == 11);
-    CHECK(candidates[2]["log2_table_size"] == 12);  // one size up, never past the plan's
+    CHECK(candidates[2]["log2_table_size"] == 12);  // one size up, never past triage's
     CHECK(candidates[0]["steps"] == run.preset.train.steps);
     CHECK(candidates[2]["steps_planned"] == run.preset.train.steps);
     REQUIRE(climbed.chosen.has_value());
@@ -647,24 +647,24 @@ TEST_CASE("shard_owners deals the costliest candidates first to the least loaded
     o.shard_count = 3;
     const Run run = make_run(o, fresh_dir("shard_owners"));
     // One mesh whose triangles alone outweigh two small candidates, six small ones, and a
-    // mesh that was decided in the plan (no shard converts it).
+    // mesh that was decided in triage (no shard converts it).
     std::vector<scene::Mesh> meshes(8);
     for (std::size_t i = 0; i < meshes.size(); ++i) {
         meshes[i].name = "m" + std::to_string(i);
         meshes[i].positions = {0, 0, 0, 1, 0, 0, 0, 1, float(i)};
         meshes[i].indices.assign(3 * (i == 0 ? 20'000'000 : 1000 + i), 0);
     }
-    std::vector<Planned> planned(meshes.size());
+    std::vector<Triaged> triaged(meshes.size());
     for (std::size_t i = 0; i < meshes.size(); ++i) {
-        planned[i].mesh = &meshes[i];
-        planned[i].source = "library.glb";
+        triaged[i].mesh = &meshes[i];
+        triaged[i].source = "library.glb";
         if (i == 7)
-            planned[i].decided = true;
+            triaged[i].decided = true;
         else
-            planned[i].candidate.emplace();
+            triaged[i].candidate.emplace();
     }
-    REQUIRE(estimated_cost_ms(run, planned[0]) > 2 * estimated_cost_ms(run, planned[1]));
-    const std::vector<std::uint32_t> owner = shard_owners(run, planned);
+    REQUIRE(estimated_cost_ms(run, triaged[0]) > 2 * estimated_cost_ms(run, triaged[1]));
+    const std::vector<std::uint32_t> owner = shard_owners(run, triaged);
     CHECK(owner[7] == 0);
     std::array<int, 4> count{};
     for (std::size_t i = 0; i < 7; ++i) {
@@ -677,8 +677,8 @@ TEST_CASE("shard_owners deals the costliest candidates first to the least loaded
     for (std::uint32_t s = 1; s <= 3; ++s)
         if (s != owner[0]) CHECK(count[s] == 3);
     // The same split from the candidates in reverse order: every shard computes it alone.
-    std::vector<Planned> reversed;
-    for (std::size_t i = planned.size(); i-- > 0;) reversed.push_back(std::move(planned[i]));
+    std::vector<Triaged> reversed;
+    for (std::size_t i = triaged.size(); i-- > 0;) reversed.push_back(std::move(triaged[i]));
     const std::vector<std::uint32_t> again = shard_owners(run, reversed);
     for (std::size_t i = 0; i < owner.size(); ++i) CHECK(again[owner.size() - 1 - i] == owner[i]);
 }

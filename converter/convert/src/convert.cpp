@@ -36,7 +36,7 @@ struct Settled {
 
 // Settles candidate `p` given the scene's memory `total` so far: recorded as another shard's,
 // kept as BVH because the budget is met, or converted (through the cache). Reports "done".
-Settled settle_candidate(const Run& run, Planned& p, std::uint32_t owner, std::uint64_t total) {
+Settled settle_candidate(const Run& run, Triaged& p, std::uint32_t owner, std::uint64_t total) {
     Settled s;
     s.after = p.bvh_bytes;
     const std::uint64_t budget = run.opt.memory_budget;
@@ -66,15 +66,15 @@ Settled settle_candidate(const Run& run, Planned& p, std::uint32_t owner, std::u
 // Settles the candidates in `order`: one after another when a budget decides each from the
 // ones before it, otherwise up to run.opt.jobs at a time, each on its own thread (the
 // conversions are independent; their results do not depend on which job ran them).
-std::vector<Settled> settle_candidates(const Run& run, std::vector<Planned>& planned,
+std::vector<Settled> settle_candidates(const Run& run, std::vector<Triaged>& triaged,
                                        const std::vector<std::size_t>& order,
                                        std::vector<std::uint64_t>& after) {
-    std::vector<Settled> settled(planned.size());
-    const std::vector<std::uint32_t> owner = shard_owners(run, planned);
+    std::vector<Settled> settled(triaged.size());
+    const std::vector<std::uint32_t> owner = shard_owners(run, triaged);
     if (run.opt.memory_budget > 0 || run.opt.jobs <= 1 || order.size() <= 1) {
         for (std::size_t i : order) {
             const std::uint64_t total = std::accumulate(after.begin(), after.end(), std::uint64_t(0));
-            settled[i] = settle_candidate(run, planned[i], owner[i], total);
+            settled[i] = settle_candidate(run, triaged[i], owner[i], total);
             after[i] = settled[i].after;
         }
         return settled;
@@ -88,7 +88,7 @@ std::vector<Settled> settle_candidates(const Run& run, std::vector<Planned>& pla
         try {
             for (std::size_t k; (k = next.fetch_add(1)) < order.size();) {
                 const std::size_t i = order[k];
-                settled[i] = settle_candidate(run, planned[i], owner[i], 0);
+                settled[i] = settle_candidate(run, triaged[i], owner[i], 0);
             }
         } catch (...) {
             std::lock_guard lock(failed_mutex);
@@ -105,22 +105,22 @@ std::vector<Settled> settle_candidates(const Run& run, std::vector<Planned>& pla
     return settled;
 }
 
-std::vector<MeshOutcome> convert_meshes(const Run& run, std::vector<Planned>& planned,
+std::vector<MeshOutcome> convert_meshes(const Run& run, std::vector<Triaged>& triaged,
                                         std::vector<std::string>& errors, std::vector<std::string>& warnings,
                                         CacheCounts& counts) {
-    std::vector<std::uint64_t> after(planned.size());
-    for (std::size_t i = 0; i < planned.size(); ++i) {
-        after[i] = planned[i].bvh_bytes;
-        if (planned[i].decided) run.report({planned[i].mesh->name, "done", 0, 0, 0, 0, &planned[i].out});
+    std::vector<std::uint64_t> after(triaged.size());
+    for (std::size_t i = 0; i < triaged.size(); ++i) {
+        after[i] = triaged[i].bvh_bytes;
+        if (triaged[i].decided) run.report({triaged[i].mesh->name, "done", 0, 0, 0, 0, &triaged[i].out});
     }
-    mark_shared_assets(run, planned);
-    const std::vector<std::size_t> order = conversion_order(planned, run.opt.memory_budget > 0);
-    std::vector<Settled> settled = settle_candidates(run, planned, order, after);
-    for (std::size_t i = 0; i < planned.size(); ++i) {
-        if (!planned[i].leader) continue;
-        follow_leader(planned[i], planned[*planned[i].leader]);
-        after[i] = bytes_after(planned[i]);
-        run.report({planned[i].mesh->name, "done", 0, 0, 0, 0, &planned[i].out});
+    mark_shared_assets(run, triaged);
+    const std::vector<std::size_t> order = conversion_order(triaged, run.opt.memory_budget > 0);
+    std::vector<Settled> settled = settle_candidates(run, triaged, order, after);
+    for (std::size_t i = 0; i < triaged.size(); ++i) {
+        if (!triaged[i].leader) continue;
+        follow_leader(triaged[i], triaged[*triaged[i].leader]);
+        after[i] = bytes_after(triaged[i]);
+        run.report({triaged[i].mesh->name, "done", 0, 0, 0, 0, &triaged[i].out});
     }
     for (std::size_t i : order) {
         errors.insert(errors.end(), settled[i].errors.begin(), settled[i].errors.end());
@@ -130,11 +130,11 @@ std::vector<MeshOutcome> convert_meshes(const Run& run, std::vector<Planned>& pl
         counts.corrupt += settled[i].counts.corrupt;
     }
     std::vector<MeshOutcome> outcomes;
-    outcomes.reserve(planned.size());
-    for (std::size_t i = 0; i < planned.size(); ++i) {
-        MeshOutcome& o = outcomes.emplace_back(std::move(planned[i].out));
+    outcomes.reserve(triaged.size());
+    for (std::size_t i = 0; i < triaged.size(); ++i) {
+        MeshOutcome& o = outcomes.emplace_back(std::move(triaged[i].out));
         o.memory =
-            MeshMemory{planned[i].bvh_bytes, after[i], run.opt.dry_run && o.cls() == MeshClass::complex};
+            MeshMemory{triaged[i].bvh_bytes, after[i], run.opt.dry_run && o.cls() == MeshClass::complex};
     }
     return outcomes;
 }
@@ -148,12 +148,12 @@ void keep_scene_place(MeshOutcome& result, const MeshOutcome& own) {
     result.timings = own.timings;
 }
 
-void follow_leader(Planned& follower, const Planned& leader) {
+void follow_leader(Triaged& follower, const Triaged& leader) {
     MeshOutcome o = leader.out;
     const MeshOutcome& own = follower.out;
     keep_scene_place(o, own);
-    o.reasons.assign(own.reasons.begin(), own.reasons.begin() + std::ptrdiff_t(follower.planned_reasons));
-    o.reasons.insert(o.reasons.end(), leader.out.reasons.begin() + std::ptrdiff_t(leader.planned_reasons),
+    o.reasons.assign(own.reasons.begin(), own.reasons.begin() + std::ptrdiff_t(follower.triage_reasons));
+    o.reasons.insert(o.reasons.end(), leader.out.reasons.begin() + std::ptrdiff_t(leader.triage_reasons),
                      leader.out.reasons.end());
     o.reasons.push_back("the same geometry and settings as mesh '" + leader.out.name + "' of input " +
                         std::to_string(leader.out.input) + ": its result" + (o.asset ? " and asset" : ""));
@@ -164,9 +164,9 @@ void follow_leader(Planned& follower, const Planned& leader) {
 }
 
 // The cache keys of the candidates; call before convert_meshes, which releases them.
-std::set<std::string> candidate_keys(const Run& run, std::vector<Planned>& planned) {
+std::set<std::string> candidate_keys(const Run& run, std::vector<Triaged>& triaged) {
     std::set<std::string> keys;
-    for (Planned& p : planned)
+    for (Triaged& p : triaged)
         if (!p.decided) keys.insert(cache_key(run, p));
     return keys;
 }
@@ -185,9 +185,9 @@ void check_selected_stored(const Run& run, const cache::Cache& store, const std:
     }
 }
 
-std::string unreachable_budget(const Run& run, const std::vector<Planned>& planned) {
+std::string unreachable_budget(const Run& run, const std::vector<Triaged>& triaged) {
     std::uint64_t fixed = 0;
-    for (const Planned& p : planned)
+    for (const Triaged& p : triaged)
         if (p.decided) fixed += p.bvh_bytes;
     if (run.opt.memory_budget == 0 || run.opt.memory_budget >= fixed) return {};
     return "--memory-budget " + std::to_string(run.opt.memory_budget) +
@@ -276,12 +276,12 @@ ConvertProgress serialized(const ConvertProgress& progress, std::uint32_t jobs) 
     };
 }
 
-// Every input imported and its meshes planned (classified, voxelized; decided or candidates).
+// Every input imported and its meshes triaged (classified, voxelized; decided or candidates).
 struct Imported {
     json instances = json::array();   // as the manifest records them
     std::deque<scene::Scene> scenes;  // every input stays imported: candidates borrow their meshes
     std::vector<GltfSource> sources;  // per input, for scene.gltf
-    std::vector<Planned> planned;
+    std::vector<Triaged> triaged;
     std::size_t ok_inputs = 0;
 };
 
@@ -307,10 +307,10 @@ void import_input(const Run& run, std::size_t in, Imported& im, ConvertResult& r
     im.sources.back().scene = &sc;
     record.warnings = sc.warnings;
     for (const auto& w : sc.warnings) res.warnings.push_back(path + ": " + w);
-    const std::size_t first_id = im.planned.size();
+    const std::size_t first_id = im.triaged.size();
     for (std::size_t k = 0; k < sc.meshes.size(); ++k)
-        im.planned.push_back(
-            plan_mesh(run, path, sc.meshes[k], new_outcome(sc, in, k, im.planned.size()), res.warnings));
+        im.triaged.push_back(
+            triage_mesh(run, path, sc.meshes[k], new_outcome(sc, in, k, im.triaged.size()), res.warnings));
     for (const auto& i : sc.instances)
         im.instances.push_back({{"mesh", first_id + i.mesh},
                                 {"name", i.node_name},
@@ -384,15 +384,15 @@ ConvertResult convert(const ConvertOptions& opt, const ConvertProgress& progress
     Imported im;
     for (std::size_t in = 0; in < opt.inputs.size(); ++in) import_input(run, in, im, res);
     res.instances = im.instances.size();
-    if (std::string why = unreachable_budget(run, im.planned); !why.empty()) {
+    if (std::string why = unreachable_budget(run, im.triaged); !why.empty()) {
         res.errors.push_back(why);
         res.usage_error = true;
         return res;  // nothing trained, nothing written
     }
     CacheCounts counts;
     const std::set<std::string> keys =
-        opt.only_keys.empty() ? std::set<std::string>() : candidate_keys(run, im.planned);
-    res.meshes = convert_meshes(run, im.planned, res.errors, res.warnings, counts);
+        opt.only_keys.empty() ? std::set<std::string>() : candidate_keys(run, im.triaged);
+    res.meshes = convert_meshes(run, im.triaged, res.errors, res.warnings, counts);
     res.memory = scene_memory(res.meshes, run.preset.classify.yardstick, opt.memory_budget, opt.dry_run);
     if (store) res.cache = counts;
     if (!res.memory->fits())

@@ -43,7 +43,7 @@ base::Result<MeshOutcome, std::string> stored_outcome(const cache::Entry& entry)
 // A stored result as this scene's outcome: its asset written into OUTDIR, where the mesh is
 // in this scene and this run's own stages (classification, voxelization) put back. False
 // (and `error`) when the asset cannot be written.
-bool restore_cached(const Run& run, Planned& p, MeshOutcome stored, const cache::Entry& entry,
+bool restore_cached(const Run& run, Triaged& p, MeshOutcome stored, const cache::Entry& entry,
                     std::string& error) {
     if (stored.asset) {
         error = write_asset(run, *p.mesh, entry.payload, run.outdir / stored.asset->file, p.out);
@@ -76,7 +76,7 @@ bool entry_to_store(const Run& run, const MeshOutcome& result, cache::Entry& ent
 
 }  // namespace
 
-const std::string& cache_key(const Run& run, Planned& p) {
+const std::string& cache_key(const Run& run, Triaged& p) {
     static_assert(std::endian::native == std::endian::little, "cache keys hash little-endian arrays");
     if (!p.key.empty()) return p.key;
     const scene::Mesh& m = *p.mesh;
@@ -101,7 +101,7 @@ const std::string& cache_key(const Run& run, Planned& p) {
     return p.key;
 }
 
-void convert_cached(const Run& run, Planned& p, std::vector<std::string>& errors,
+void convert_cached(const Run& run, Triaged& p, std::vector<std::string>& errors,
                     std::vector<std::string>& warnings, CacheCounts& counts) {
     if (!run.cache || run.opt.dry_run) return convert_candidate(run, p, errors);
     const std::string& key = cache_key(run, p);

@@ -1,5 +1,5 @@
 // The stages of `lsnif convert` (convert.cpp), one function each, in pipeline order:
-//   resolve_preset; per mesh, plan_mesh: classify -> voxelize_mesh -> worth_an_lsnif and the
+//   resolve_preset; per mesh, triage_mesh: classify -> voxelize_mesh -> worth_an_lsnif and the
 //   BVH's bytes; then convert_meshes, per candidate in conversion_order() until the memory
 //   budget is met, convert_candidate: asset_key -> (reusable_metrics -> shipped |
 //   draw_measure_rays -> size_to_target [train_rung (-> active_neurons -> remove_inactive_neurons)
@@ -248,7 +248,7 @@ std::string option_summary(const Option& o);
 std::optional<voxelize::Occupancy> refine_grid(const Run& run, const Candidate& c, format::ModelDesc& desc,
                                                const std::string& why, MeshOutcome& out);
 
-// The search of Sizing over table sizes up to c.desc's (the plan's): the first rung, then down
+// The search of Sizing over table sizes up to c.desc's (triage's): the first rung, then down
 // while rungs meet the target and steps are left, or up while a rung narrowly misses it
 // (near_target), each larger rung with a whole budget.
 Sized size_to_target(const Run& run, const scene::Mesh& mesh, Candidate& c, const voxelize::Occupancy& occ,
@@ -300,37 +300,37 @@ void shipped(const Run& run, HeldOut metrics, std::optional<render::ObjectFlip> 
 // Settles a mesh none of whose rungs passes the gate (`abandoned`: given up during training).
 void below_gate(const HeldOut& metrics, bool abandoned, MeshOutcome& out);
 
-// A mesh after classification (plan_mesh): decided (it stays BVH; `out` is settled) or a
+// A mesh after classification (triage_mesh): decided (it stays BVH; `out` is settled) or a
 // candidate that convert_candidate may still turn into an LSNIF. The scene's memory is
 // counted from these before anything is trained.
-struct Planned {
+struct Triaged {
     const scene::Mesh* mesh = nullptr;   // borrowed from the imported scene, alive for the run
     std::string source;                  // the input file, as given
     MeshOutcome out;                     // settled once decided
     std::optional<Candidate> candidate;  // a candidate's model and Embree scene
     std::optional<voxelize::Occupancy> occupancy;
-    bool decided = false;         // stays BVH whatever happens next (`out` settled by the plan)
+    bool decided = false;         // stays BVH whatever happens next (`out` settled by triage)
     std::uint64_t bvh_bytes = 0;  // the mesh's own BVH on the run's yardstick: what it costs as BVH
     std::uint64_t estimate = 0;   // a candidate's estimated resident asset bytes
     std::string key;              // its cache key once cache_key computed it ("" until then)
     // A candidate whose asset another candidate of the run makes (mark_shared_assets): the
-    // index of that leader in `planned`. A follower is never converted; it takes the leader's
+    // index of that leader in `triaged`. A follower is never converted; it takes the leader's
     // result (follow_leader).
     std::optional<std::size_t> leader;
-    std::size_t planned_reasons = 0;  // out.reasons.size() before settling: the plan's own
+    std::size_t triage_reasons = 0;  // out.reasons.size() before settling: triage's own
     bool forced() const { return candidate && candidate->forced; }
 };
 
 // Classification of one mesh (--simple, triangle count, classify, voxelize_mesh,
 // worth_an_lsnif) and the bytes of its BVH. A mesh whose BVH cannot be measured counts 0
 // bytes, with a warning appended to `warnings`.
-Planned plan_mesh(const Run& run, const std::string& source, const scene::Mesh& mesh, MeshOutcome out,
-                  std::vector<std::string>& warnings);
+Triaged triage_mesh(const Run& run, const std::string& source, const scene::Mesh& mesh, MeshOutcome out,
+                    std::vector<std::string>& warnings);
 
 // A candidate through the remaining stages (reuse, sizing, gate, encoding, memory rule,
 // writing), which settle p.out. In a dry run, the plan (Decision::planned). Errors that
 // concern the run (an asset that could not be written) are appended to `errors`.
-void convert_candidate(const Run& run, Planned& p, std::vector<std::string>& errors);
+void convert_candidate(const Run& run, Triaged& p, std::vector<std::string>& errors);
 
 // The cache key of a candidate's result (docs/pipeline.md "Cache keys"): SHA-256 over the
 // build identity, every setting that changes the result (asset_key's, the gate, whether the
@@ -338,30 +338,30 @@ void convert_candidate(const Run& run, Planned& p, std::vector<std::string>& err
 // geometry (positions, indices, shading normals, triangle materials). Computed once per
 // candidate (it hashes every geometry array) and kept in p.key; the first call must come
 // while p.candidate is set.
-const std::string& cache_key(const Run& run, Planned& p);
+const std::string& cache_key(const Run& run, Triaged& p);
 
 // convert_candidate through run.cache: a hit restores the stored outcome (and writes its
 // asset into OUTDIR); a miss converts and stores the result; a corrupt entry is reported in
 // `warnings`, converted again and replaced. Without a cache, convert_candidate.
-void convert_cached(const Run& run, Planned& p, std::vector<std::string>& errors,
+void convert_cached(const Run& run, Triaged& p, std::vector<std::string>& errors,
                     std::vector<std::string>& warnings, CacheCounts& counts);
 
 // A candidate's estimated conversion time in milliseconds on the reference machine
 // (docs/pipeline.md "Shards"), from the preset's training samples and the mesh's triangles.
-std::uint64_t estimated_cost_ms(const Run& run, const Planned& p);
+std::uint64_t estimated_cost_ms(const Run& run, const Triaged& p);
 
-// The shard (1..shard_count) that converts each candidate of `planned` (0 for the others
+// The shard (1..shard_count) that converts each candidate of `triaged` (0 for the others
 // and without sharding; a follower gets its leader's): candidates costliest first (estimated_cost_ms; ties by
 // cache key), each to the shard with the least estimated work so far. Every shard computes the same
-// assignment, whatever the order of `planned`.
-std::vector<std::uint32_t> shard_owners(const Run& run, std::vector<Planned>& planned);
+// assignment, whatever the order of `triaged`.
+std::vector<std::uint32_t> shard_owners(const Run& run, std::vector<Triaged>& triaged);
 
 // Candidates whose assets would be the same file (the same geometry and settings, so the
 // same asset_key) share one conversion: the first in input order leads, the others follow
-// it (Planned::leader), whether or not either was forced. So the asset, which records its
+// it (Triaged::leader), whether or not either was forced. So the asset, which records its
 // mesh's name and source, names the first user whatever the number of jobs or the order in
 // which they finish.
-void mark_shared_assets(const Run& run, std::vector<Planned>& planned);
+void mark_shared_assets(const Run& run, std::vector<Triaged>& triaged);
 
 // Puts into `result` (a stored or a leader's outcome) what belongs to this mesh of this run:
 // where it is in the scene (id, name, input, source mesh, instances, the fields a cache
@@ -369,31 +369,31 @@ void mark_shared_assets(const Run& run, std::vector<Planned>& planned);
 void keep_scene_place(MeshOutcome& result, const MeshOutcome& own);
 
 // A follower's outcome from its settled leader's: the same decision, metrics, candidates and
-// asset, with the follower's own place in the scene and plan reasons, and a reason naming
+// asset, with the follower's own place in the scene and triage reasons, and a reason naming
 // the leader.
-void follow_leader(Planned& follower, const Planned& leader);
+void follow_leader(Triaged& follower, const Triaged& leader);
 
-// Order in which candidates (indices into `planned`; not followers) are converted: the scene's order, or
+// Order in which candidates (indices into `triaged`; not followers) are converted: the scene's order, or
 // with a memory budget, forced meshes first, then by estimated BVH bytes saved per asset
 // byte, highest first (ties in scene order).
-std::vector<std::size_t> conversion_order(const std::vector<Planned>& planned, bool budgeted);
+std::vector<std::size_t> conversion_order(const std::vector<Triaged>& triaged, bool budgeted);
 
 // The bytes a mesh costs once it is settled: its asset's resident bytes when it became an LSNIF (the
 // estimate in a dry run), else its BVH's.
-std::uint64_t bytes_after(const Planned& p);
+std::uint64_t bytes_after(const Triaged& p);
 
-// Every mesh's outcome (indexed like `planned`) with its memory {before, after}:
+// Every mesh's outcome (indexed like `triaged`) with its memory {before, after}:
 // candidates converted in conversion_order() until the scene's total (every mesh once,
 // instances share it) fits run.opt.memory_budget; the ones left stay BVH with the reason.
 // Without a budget every candidate is converted. Releases each candidate's Embree scene
 // once it is done.
-std::vector<MeshOutcome> convert_meshes(const Run& run, std::vector<Planned>& planned,
+std::vector<MeshOutcome> convert_meshes(const Run& run, std::vector<Triaged>& triaged,
                                         std::vector<std::string>& errors, std::vector<std::string>& warnings,
                                         CacheCounts& counts);
 
 // Why run.opt.memory_budget cannot be met whatever is converted: it is below the BVH bytes
 // of the meshes that are not candidates. Empty when it can (or when there is no budget).
-std::string unreachable_budget(const Run& run, const std::vector<Planned>& planned);
+std::string unreachable_budget(const Run& run, const std::vector<Triaged>& triaged);
 
 // The outcome of mesh k of input `in` before any stage ran: where it is, its counts.
 MeshOutcome new_outcome(const scene::Scene& sc, std::size_t in, std::size_t k, std::size_t id);

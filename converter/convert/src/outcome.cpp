@@ -358,7 +358,7 @@ MeshClass mesh_class(Decision d) {
     }
 }
 
-bool decided_in_plan(Decision d) {
+bool decided_in_triage(Decision d) {
     return d == Decision::forced_simple || d == Decision::few_triangles || d == Decision::not_modelable ||
            d == Decision::voxelization_failed || d == Decision::no_memory_benefit;
 }

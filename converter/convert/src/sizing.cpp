@@ -385,7 +385,7 @@ Sized size_to_target(const Run& run, const scene::Mesh& mesh, Candidate& c, cons
     Sized sized;
     const Preset& p = run.preset;
     const Target aim = effective_target(run.opt.target, p.gate);
-    const std::uint32_t largest = c.desc.log2_table_size;  // the plan's: the memory rule's cap
+    const std::uint32_t largest = c.desc.log2_table_size;  // triage's: the memory rule's cap
     format::ModelDesc desc = c.desc;
     desc.log2_table_size = first_rung_log2(p, largest);
     std::uint32_t budget = p.train.steps;      // steps left to the rungs of this budget
@@ -563,7 +563,7 @@ std::string write_asset(const Run& run, const scene::Mesh& mesh, std::span<const
     return e ? e.message : std::string();
 }
 
-void convert_candidate(const Run& run, Planned& p, std::vector<std::string>& errors) {
+void convert_candidate(const Run& run, Triaged& p, std::vector<std::string>& errors) {
     const scene::Mesh& mesh = *p.mesh;
     const std::string& source = p.source;
     MeshOutcome& out = p.out;

@@ -438,7 +438,7 @@ void convert_library(const BatchOptions& options, ConvertOptions c, const Conver
         const bool objects_only = !c.only_keys.empty();
         const auto reported = [objects_only](const MeshOutcome& m) {
             return m.cls() != MeshClass::deferred &&
-                   !(objects_only && converter::decided_in_plan(m.decision));
+                   !(objects_only && converter::decided_in_triage(m.decision));
         };
         const auto forward = [&](const ProgressEvent& e) {
             if (e.stage == "done" && e.outcome && on_line && reported(*e.outcome))

@@ -59,7 +59,7 @@ inline constexpr std::size_t kDecisionCount = 15;
 MeshClass mesh_class(Decision d);
 // Whether classification alone decided (the mesh never was a candidate): forced_simple,
 // few_triangles, not_modelable, voxelization_failed, no_memory_benefit.
-bool decided_in_plan(Decision d);
+bool decided_in_triage(Decision d);
 std::string_view class_name(MeshClass c);
 std::string_view decision_name(Decision d);
 

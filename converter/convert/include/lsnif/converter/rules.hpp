@@ -148,17 +148,17 @@ struct TargetStop {
 
 // Sizing to the target (docs/model.md "Sizing to the target"): the ladder is the table sizes
 // from 2^ClassifyRule::min_log2_table_size up to the largest that passes the memory rule (the
-// plan's size). The search starts at 2^first_log2_table_size rows (or the plan's size when
-// that is smaller) and moves one rung at a time:
+// size triage gave the mesh). The search starts at 2^first_log2_table_size rows (or triage's
+// size when that is smaller) and moves one rung at a time:
 //   - down, when the rung met the target: the next smaller rung is trained from the steps
 //     left of the preset's budget (given up early by falls_behind), and so on while each
 //     smaller rung meets the target;
 //   - up, when the rung ended short of the target by no more than the climb margins: the
-//     next larger rung (up to the plan's) is trained with a whole budget of its own.
+//     next larger rung (up to triage's) is trained with a whole budget of its own.
 // The smallest asset that meets the target ships. Going down never trains more steps than one
 // budget; only a near miss costs a second one.
 struct Sizing {
-    bool explore_smaller = true;  // false: train the plan's size only (--fixed-model)
+    bool explore_smaller = true;  // false: train triage's size only (--fixed-model)
     // Also measure every rung with its hash-grid features quantized to 8 bits (FORMAT.md
     // §6.4.1): the grid's bytes halve, and the option ships when it still meets the target.
     bool quantize = true;
@@ -182,7 +182,7 @@ struct Sizing {
     // real assemblies and thin geometry, with margin (docs/investigations/judged-by-how-it-looks.md
     // "How much headroom the validation curve has").
     double finer_grid_headroom = 0.035;
-    // The rung the search starts at (--first-log2-table; 0: the plan's size): the size most
+    // The rung the search starts at (--first-log2-table; 0: triage's size): the size most
     // objects of the sizing set end at when each size is trained alone with the whole budget
     // (docs/investigations/sizing.md), so that most objects train once; starting at the
     // smallest would train most objects twice.

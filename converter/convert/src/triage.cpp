@@ -1,4 +1,4 @@
-// Planning a mesh: classification, voxelization, the memory rule, and the order, shards and
+// Triage of a mesh: classification, voxelization, the memory rule; and the order, shards and
 // memory of a run's candidates (convert_stages.hpp has the contracts).
 #include <lsnif/base/clock.hpp>
 #include "convert_stages.hpp"
@@ -54,8 +54,8 @@ double surface_area(const scene::Mesh& m) {
 
 // The resident bytes of an asset of `d` with its grid stored as `encoding`, before training
 // (format::resident_bytes of a model of zeros of that shape): exact but for the metadata,
-// counted as kMetadataEstimate bytes, and the neurons pruning removes (fewer bytes). Only a
-// plan: the memory rule is checked again on the asset actually chosen.
+// counted as kMetadataEstimate bytes, and the neurons pruning removes (fewer bytes). Only an
+// estimate: the memory rule is checked again on the asset actually chosen.
 constexpr std::size_t kMetadataEstimate = 2048;
 
 std::uint64_t resident_estimate(format::ModelDesc d, format::GridEncoding encoding) {
@@ -221,9 +221,9 @@ std::string memory_rule_failure(const Run& run, const Candidate& c, std::uint64_
     return why;
 }
 
-// The classification half of plan_mesh: whether the mesh stays BVH whatever happens next
+// The classification half of triage_mesh: whether the mesh stays BVH whatever happens next
 // (p.out settled), else a candidate (p.candidate and p.occupancy set).
-bool plan_decision(const Run& run, const scene::Mesh& mesh, Planned& p) {
+bool triage_decision(const Run& run, const scene::Mesh& mesh, Triaged& p) {
     MeshOutcome& out = p.out;
     if (run.forced(run.opt.force_simple, mesh.name)) {
         out.settle(Decision::forced_simple, "forced simple by --simple " + mesh.name);
@@ -243,13 +243,13 @@ bool plan_decision(const Run& run, const scene::Mesh& mesh, Planned& p) {
     return !p.occupancy || !worth_an_lsnif(run, mesh, *p.candidate, out);
 }
 
-Planned plan_mesh(const Run& run, const std::string& source, const scene::Mesh& mesh, MeshOutcome out,
-                  std::vector<std::string>& warnings) {
-    Planned p;
+Triaged triage_mesh(const Run& run, const std::string& source, const scene::Mesh& mesh, MeshOutcome out,
+                    std::vector<std::string>& warnings) {
+    Triaged p;
     p.mesh = &mesh;
     p.source = source;
     p.out = std::move(out);
-    p.decided = plan_decision(run, mesh, p);
+    p.decided = triage_decision(run, mesh, p);
     const BvhYardstick yardstick = run.preset.classify.yardstick;
     if (p.candidate && p.candidate->source) {
         p.bvh_bytes = p.candidate->bvh.of(yardstick);
@@ -271,51 +271,51 @@ Planned plan_mesh(const Run& run, const std::string& source, const scene::Mesh& 
 }
 
 // Estimated BVH bytes saved per asset byte: the budget's conversion order.
-double saving_per_byte(const Planned& p) {
+double saving_per_byte(const Triaged& p) {
     return (double(p.bvh_bytes) - double(p.estimate)) / double(std::max<std::uint64_t>(1, p.estimate));
 }
 
-std::vector<std::size_t> conversion_order(const std::vector<Planned>& planned, bool budgeted) {
+std::vector<std::size_t> conversion_order(const std::vector<Triaged>& triaged, bool budgeted) {
     std::vector<std::size_t> order;
-    for (std::size_t i = 0; i < planned.size(); ++i)
-        if (!planned[i].decided && !planned[i].leader) order.push_back(i);
+    for (std::size_t i = 0; i < triaged.size(); ++i)
+        if (!triaged[i].decided && !triaged[i].leader) order.push_back(i);
     if (budgeted)
         std::stable_sort(order.begin(), order.end(), [&](std::size_t a, std::size_t b) {
-            if (planned[a].forced() != planned[b].forced()) return planned[a].forced();
-            return saving_per_byte(planned[a]) > saving_per_byte(planned[b]);
+            if (triaged[a].forced() != triaged[b].forced()) return triaged[a].forced();
+            return saving_per_byte(triaged[a]) > saving_per_byte(triaged[b]);
         });
     return order;
 }
 
-void mark_shared_assets(const Run& run, std::vector<Planned>& planned) {
+void mark_shared_assets(const Run& run, std::vector<Triaged>& triaged) {
     std::map<std::string, std::size_t> first;  // asset_key -> leader
-    for (std::size_t i = 0; i < planned.size(); ++i) {
-        Planned& p = planned[i];
-        p.planned_reasons = p.out.reasons.size();
+    for (std::size_t i = 0; i < triaged.size(); ++i) {
+        Triaged& p = triaged[i];
+        p.triage_reasons = p.out.reasons.size();
         if (p.decided) continue;
         const auto [it, inserted] = first.emplace(asset_key(run, *p.mesh, p.candidate->desc), i);
         if (!inserted) p.leader = it->second;
     }
 }
 
-std::uint64_t bytes_after(const Planned& p) {
+std::uint64_t bytes_after(const Triaged& p) {
     if (p.out.cls() != MeshClass::complex) return p.bvh_bytes;
     if (p.out.asset) return p.out.asset->resident_bytes;
-    return p.estimate;  // a dry run's plan
+    return p.estimate;  // a dry run's estimate
 }
 
 // The constants were measured on the 2-core reference machine (docs/pipeline.md "Shards").
 // Training dominates and scales with steps x batch; drawing the rays scales with triangles.
 // Integer arithmetic: every shard must compute the same estimate on any machine.
-std::uint64_t estimated_cost_ms(const Run& run, const Planned& p) {
+std::uint64_t estimated_cost_ms(const Run& run, const Triaged& p) {
     const std::uint64_t samples = std::uint64_t(run.preset.train.steps) * run.preset.train.batch_size;
     return 4200 + samples * 255 / 100000 + std::uint64_t(p.mesh->triangle_count()) * 18 / 10000;
 }
 
 // Longest processing time first (deal_to_shards); equal costs in key order, so the split is
 // a function of the inputs and settings alone.
-std::vector<std::uint32_t> shard_owners(const Run& run, std::vector<Planned>& planned) {
-    std::vector<std::uint32_t> owner(planned.size(), 0);
+std::vector<std::uint32_t> shard_owners(const Run& run, std::vector<Triaged>& triaged) {
+    std::vector<std::uint32_t> owner(triaged.size(), 0);
     if (run.opt.shard_count == 0) return owner;
     struct Job {
         std::uint64_t cost;
@@ -323,17 +323,17 @@ std::vector<std::uint32_t> shard_owners(const Run& run, std::vector<Planned>& pl
         std::size_t index;
     };
     std::vector<Job> jobs;
-    for (std::size_t i = 0; i < planned.size(); ++i)
-        if (!planned[i].decided && !planned[i].leader)
-            jobs.push_back({estimated_cost_ms(run, planned[i]), cache_key(run, planned[i]), i});
+    for (std::size_t i = 0; i < triaged.size(); ++i)
+        if (!triaged[i].decided && !triaged[i].leader)
+            jobs.push_back({estimated_cost_ms(run, triaged[i]), cache_key(run, triaged[i]), i});
     std::sort(jobs.begin(), jobs.end(),
               [](const Job& a, const Job& b) { return a.cost != b.cost ? a.cost > b.cost : a.key < b.key; });
     std::vector<std::uint64_t> costs;
     for (const Job& j : jobs) costs.push_back(j.cost);
     const std::vector<std::uint32_t> shard = deal_to_shards(costs, run.opt.shard_count);
     for (std::size_t k = 0; k < jobs.size(); ++k) owner[jobs[k].index] = shard[k] + 1;
-    for (std::size_t i = 0; i < planned.size(); ++i)
-        if (planned[i].leader) owner[i] = owner[*planned[i].leader];
+    for (std::size_t i = 0; i < triaged.size(); ++i)
+        if (triaged[i].leader) owner[i] = owner[*triaged[i].leader];
     return owner;
 }
 
