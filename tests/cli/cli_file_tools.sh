@@ -44,7 +44,7 @@ grep -q '"input_width": 108' <<<"$("$lsnif" inspect --json "$data/valid/v1_defau
 
 # Truncations and header/table bit flips of a valid file, as processes (exit code 1, never
 # a signal). Every truncation and every flip is also checked in-process through the same
-# validate code (tests/converter/test_file_tools.cpp); here a sample checks that the
+# validate code (tests/cli/test_file_tools.cpp); here a sample checks that the
 # process turns each kind of damage into exit 1, and keeps the sanitizer run short (a
 # sanitized process start costs a third of a second of CPU): every 11th offset in header and
 # table, every 61st beyond; one bit of every 11th header/table byte, cycling through the bit

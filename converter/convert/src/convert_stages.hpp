@@ -7,9 +7,9 @@
 //   asset_metadata -> encode_asset -> memory_rule_failure -> write_asset -> shipped);
 //   finally scene_memory, manifest_json -> write_manifest (manifest.hpp).
 // A stage that decides the mesh stays BVH returns nothing (or false) and settles the mesh's
-// MeshOutcome (lsnif/converter/outcome.hpp) with the decision and its reason. Internal to the converter:
-// exposed so that each stage is tested on its own (tests/converter/test_convert_stages.cpp); not installed,
-// not an API.
+// MeshOutcome (lsnif/converter/outcome.hpp) with the decision and its reason. Private to
+// lsnif::convert: exposed to its own tests only, so that each stage is tested on its own
+// (tests/convert/test_convert_stages.cpp); not installed, not an API.
 #pragma once
 
 #include <lsnif/converter/convert.hpp>

@@ -313,7 +313,7 @@ void dense_output_layer(const float* A, std::size_t n, std::size_t in, std::size
 // both, bias, ReLU and the output layer stay fp32 (the visibility logit and the distance are
 // read from the output layer directly, so its inputs keep full precision). Hit decisions
 // agree with fp32 on >= 99.5 % of rays and the held-out metrics move by <= 0.1 point
-// (tests/converter/test_accuracy.cpp, on the shipped assets).
+// (tests/convert/test_accuracy.cpp, on the shipped assets).
 enum class MlpArithmetic : std::uint8_t { fp32, bf16, int8 };
 // The fastest the CPU runs: int8 with AVX-512 VNNI, else bf16 with AVX-512 BF16, else fp32.
 MlpArithmetic best_mlp_arithmetic();

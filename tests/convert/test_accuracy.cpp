@@ -440,9 +440,9 @@ void check_reduced_inference(const Shipped& s, const std::string& name) {
 }  // namespace
 
 // Held in memory, the 20k-triangle dragon's default model at 2^17 rows (0.67 MB) just halves
-// its Embree BVH (1.4 MB), so the memory rule's estimate at triage (tests/converter/test_convert.cpp
-// checks it) hangs on a few KB; the model's accuracy is measured forced, at the preset's size,
-// whatever the rule decides.
+// its Embree BVH (1.4 MB), so the memory rule's estimate at triage
+// (tests/convert/test_convert.cpp checks it) hangs on a few KB; the model's accuracy is
+// measured forced, at the preset's size, whatever the rule decides.
 TEST_CASE("the default model meets the accuracy targets on CGAL's Chinese dragon (forced)") {
     const auto mesh = convert_default(cgal_mesh("ChineseDragon-10kv.off"), "ChineseDragon-10kv", true);
     check_targets(mesh);
