@@ -1,4 +1,4 @@
-// Each stage of `lsnif convert` on its own (converter/src/convert_stages.hpp), on CGAL's
+// Each stage of `lsnif convert` on its own (converter/convert/src/convert_stages.hpp), on CGAL's
 // ChineseDragon-10kv (real data) and on meshes built here to break one rule at a time. The
 // whole pipeline is tested end to end in test_convert.cpp.
 #include <doctest/doctest.h>

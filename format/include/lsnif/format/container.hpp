@@ -90,7 +90,7 @@ struct OutputLayout {
 };
 
 // Hyperparameters of one LSNIF. The defaults are the original model (V = 32, H = 18, levels
-// 64 and 128; the shipped preset differs: converter/src/presets.cpp); a reader never uses
+// 64 and 128; the shipped preset differs: converter/convert/src/presets.cpp); a reader never uses
 // them — every value is read from the file.
 struct ModelDesc {
     std::uint32_t grid_resolution = 32;

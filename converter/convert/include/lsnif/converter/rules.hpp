@@ -1,7 +1,7 @@
 // The rules a conversion decides by, over typed metrics: which meshes are candidates
 // (ClassifyRule), what may ship (Gate), what a user asks for (Target), giving up and stopping
 // during training (EarlyAbort, TargetStop) and the sizing ladder (Sizing), with the functions
-// that apply them (converter/src/rules.cpp). docs/architecture.md §3 and docs/model.md
+// that apply them (converter/convert/src/rules.cpp). docs/architecture.md §3 and docs/model.md
 // "Validation curve and deciding early" explain them.
 #pragma once
 

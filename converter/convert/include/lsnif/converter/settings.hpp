@@ -1,5 +1,5 @@
 // The settings of `lsnif convert` and `lsnif batch`, one row each. The table is the one place
-// a setting is described: the command line registers every row (converter/src/main.cpp), its
+// a setting is described: the command line registers every row (converter/cli/src/main.cpp), its
 // help shows the default, `settings_arguments` writes the rows that change a result (what a
 // batch records and a Ninja step passes on), cache keys hash them (`mesh_settings_key`) and
 // the manifest's `settings` holds them (`settings_json`). A new setting is one new row.
