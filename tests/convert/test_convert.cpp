@@ -761,22 +761,34 @@ TEST_CASE("the gate: each rule fails on its own, and an unmeasured family is a f
     const Gate gate;  // defaults: 95 % pooled, 90 % per family, 2 %, 30 deg, 100 rays
     CHECK(gate_failures(good, gate).empty());
 
-    auto one = [&](auto change, const char* expected) {
+    using lsnif::samples::Family;
+    auto one = [&](auto change, Measure measure, std::optional<Family> family, double value, double limit,
+                   const char* expected) {
         lsnif::samples::Metrics m = good;
         change(m);
         const auto fails = gate_failures(m, gate);
         CAPTURE(expected);
         REQUIRE(fails.size() == 1);
-        CHECK(fails[0].find(expected) != std::string::npos);
+        CHECK(fails[0].measure == measure);
+        CHECK(fails[0].bound == Bound::gate);
+        CHECK(fails[0].family == family);
+        CHECK(fails[0].value == doctest::Approx(value));
+        CHECK(fails[0].limit == doctest::Approx(limit));
+        CHECK(describe(fails[0]).find(expected) != std::string::npos);
     };
-    one([](auto& m) { m.pooled.visibility_accuracy = 0.94; }, "visibility accuracy 94% < gate 95%");
-    one([](auto& m) { m.family[1].visibility_accuracy = 0.89; }, "surface visibility 89% < gate 90%");
-    one([](auto& m) { m.pooled.distance_median_pct = 2.5; },
+    one([](auto& m) { m.pooled.visibility_accuracy = 0.94; }, Measure::visibility, std::nullopt, 0.94, 0.95,
+        "visibility accuracy 94% < gate 95%");
+    one([](auto& m) { m.family[1].visibility_accuracy = 0.89; }, Measure::visibility, Family::surface, 0.89,
+        0.90, "surface visibility 89% < gate 90%");
+    one([](auto& m) { m.pooled.distance_median_pct = 2.5; }, Measure::distance, std::nullopt, 2.5, 2.0,
         "median distance error 2.5% of diagonal > gate 2");
-    one([](auto& m) { m.pooled.normal_median_deg = 31; }, "median normal error 31 deg > gate 30");
+    one([](auto& m) { m.pooled.normal_median_deg = 31; }, Measure::normal, std::nullopt, 31, 30,
+        "median normal error 31 deg > gate 30");
     // A family almost entirely culled has no measurement: not a pass by default.
-    one([](auto& m) { m.family[0].rays = 40; }, "outside rays reaching the network: 40 < 100");
-    one([](auto& m) { m.family[2].rays = 0; }, "interior rays reaching the network: 0 < 100");
+    one([](auto& m) { m.family[0].rays = 40; }, Measure::family_rays, Family::outside, 40, 100,
+        "outside rays reaching the network: 40 < 100");
+    one([](auto& m) { m.family[2].rays = 0; }, Measure::family_rays, Family::interior, 0, 100,
+        "interior rays reaching the network: 0 < 100");
 }
 
 TEST_CASE("giving up early: each rule on its own, and never before the curve can be judged") {
@@ -789,7 +801,8 @@ TEST_CASE("giving up early: each rule on its own, and never before the curve can
         const auto why = early_abort_reasons(point, rule.min_samples, gate, rule);
         CAPTURE(expected);
         REQUIRE(why.size() == 1);
-        CHECK(why[0] == expected);
+        CHECK(why[0].bound == Bound::gate_out_of_reach);
+        CHECK(describe(why[0]) == expected);
         // The same point before min_samples training samples: too early to judge.
         CHECK(early_abort_reasons(point, rule.min_samples - 1, gate, rule).empty());
     };
@@ -798,6 +811,22 @@ TEST_CASE("giving up early: each rule on its own, and never before the curve can
     one({0, 0.96, 6.0, 20.0}, "validation distance error 6.00 % cannot reach the gate's 2.00 %");
     // Just inside the headrooms: still reachable.
     CHECK(early_abort_reasons({0, 0.901, 5.7, 49.9}, rule.min_samples, gate, rule).empty());
+}
+
+TEST_CASE("the grid rung: a first curve short of the target's visibility by more than the headroom") {
+    const Target aim{0.985, 0.6, 8.0};
+    const EarlyAbort abort;
+    const Sizing rule;  // 3.5 points of headroom
+    const std::optional<RuleMiss> thin =
+        finer_grid_reason({240, 0.787, 2.0, 50.0}, abort.min_samples, aim, abort, rule);
+    REQUIRE(thin);
+    CHECK(thin->bound == Bound::target_out_of_reach);
+    CHECK(thin->step == 240);
+    CHECK(thin->limit == doctest::Approx(0.985));
+    CHECK(describe(*thin) == "validation visibility 78.7 % at step 240 cannot reach the target's 98.5 %");
+    CHECK_FALSE(
+        finer_grid_reason({240, 0.787, 2.0, 50.0}, abort.min_samples - 1, aim, abort, rule));  // too early
+    CHECK_FALSE(finer_grid_reason({240, 0.951, 2.0, 50.0}, abort.min_samples, aim, abort, rule));  // in reach
 }
 
 TEST_CASE("--target: parsed as VIS,DIST,NORMAL, bad values named, misses listed rule by rule") {
@@ -830,16 +859,24 @@ TEST_CASE("--target: parsed as VIS,DIST,NORMAL, bad values named, misses listed 
     pooled.normal_median_deg = 14.0;
     const auto misses = target_misses(pooled, std::nullopt, Target{0.97, 1.0, 15.0});
     REQUIRE(misses.size() == 2);
-    CHECK(misses[0] == "visibility 96.50 % < target 97.00 %");
-    CHECK(misses[1] == "median distance error 1.2 % > target 1 %");
+    CHECK((misses[0].measure == Measure::visibility && misses[0].bound == Bound::target));
+    CHECK(misses[0].value == doctest::Approx(0.965));
+    CHECK(misses[0].limit == doctest::Approx(0.97));
+    CHECK(describe(misses[0]) == "visibility 96.50 % < target 97.00 %");
+    CHECK(misses[1].measure == Measure::distance);
+    CHECK(describe(misses[1]) == "median distance error 1.2 % > target 1 %");
     CHECK(target_misses(pooled, std::nullopt, Target{0.96, 1.5, 20}).empty());
     // The visual term: judged when the visual check ran, alone when only images are accepted.
     CHECK(target_misses(pooled, 0.02, Target{0.96, 1.5, 20, 0.03}).empty());
     const auto blurred = target_misses(pooled, 0.05, Target{0.96, 1.5, 20, 0.03});
     REQUIRE(blurred.size() == 1);
-    CHECK(blurred[0] == "image error FLIP 0.05 over the object's pixels > target 0.03");
+    CHECK(blurred[0].measure == Measure::image);
+    CHECK(describe(blurred[0]) == "image error FLIP 0.05 over the object's pixels > target 0.03");
     CHECK(target_misses(pooled, 0.02, Target{0.99, 0.1, 1, 0.03}, Acceptance::images).empty());
-    CHECK(target_misses(pooled, std::nullopt, Target{}, Acceptance::images).size() == 1);  // not measured
+    const auto unmeasured = target_misses(pooled, std::nullopt, Target{}, Acceptance::images);
+    REQUIRE(unmeasured.size() == 1);
+    CHECK(unmeasured[0].measure == Measure::image_unmeasured);
+    CHECK(describe(unmeasured[0]) == "image error not measured (the visual check is off)");
 }
 
 TEST_CASE("the gate's verdict: rays, images or either pass it; training failures always fail") {

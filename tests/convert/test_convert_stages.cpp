@@ -629,17 +629,23 @@ TEST_CASE("falls_behind: a smaller size is given up when the larger one's later 
         return falls_behind({step, vis, 0, 0}, larger, target, stop, rule);
     };
     // At step 240 the larger gained 1.79 points afterwards: 94.4 + 1.79 + 1 < 97.3.
-    CHECK(at(240, 0.944) ==
+    const std::optional<RuleMiss> behind = at(240, 0.944);
+    REQUIRE(behind);
+    CHECK(behind->bound == Bound::larger_rung);
+    CHECK(behind->step == 240);
+    CHECK(behind->value == doctest::Approx(0.944));
+    CHECK(behind->larger_gain == doctest::Approx(0.0179));
+    CHECK(behind->limit == doctest::Approx(0.973));
+    CHECK(describe(*behind) ==
           "validation visibility 94.40 % at step 240; the larger model gained 1.79 points after that step, "
-          "short "
-          "of the 97.30 % needed");
-    CHECK(at(240, 0.9455).empty());       // 94.55 + 1.79 + 1 >= 97.3
-    CHECK(at(288, 0.9473).empty());       // the blob's 2^16 rung at step 288: it went on to meet the target
-    CHECK_FALSE(at(720, 0.961).empty());  // gain 0.11 after 720
-    CHECK(at(720, 0.9625).empty());
-    CHECK(at(1200, 0.90).empty());  // beyond the larger curve: not judged
-    CHECK(at(100, 0.50).empty());   // before its first check: not judged
-    CHECK(falls_behind({240, 0.5, 0, 0}, {}, target, stop, rule).empty());  // the first rung
+          "short of the 97.30 % needed");
+    CHECK_FALSE(at(240, 0.9455));  // 94.55 + 1.79 + 1 >= 97.3
+    CHECK_FALSE(at(288, 0.9473));  // the blob's 2^16 rung at step 288: it went on to meet the target
+    CHECK(at(720, 0.961));         // gain 0.11 after 720
+    CHECK_FALSE(at(720, 0.9625));
+    CHECK_FALSE(at(1200, 0.90));  // beyond the larger curve: not judged
+    CHECK_FALSE(at(100, 0.50));   // before its first check: not judged
+    CHECK_FALSE(falls_behind({240, 0.5, 0, 0}, {}, target, stop, rule));  // the first rung
 }
 
 TEST_CASE("shard_owners deals the costliest candidates first to the least loaded shard, in any input order") {

@@ -100,15 +100,15 @@ struct Trained {
     trainer::StreamedResult stream;
     std::vector<ValidationPoint> validation;  // the curve, one point per check
     // Why training was given up at step `abandoned_at` (EarlyAbort); empty when it ran to the end.
-    std::vector<std::string> abandoned;
+    std::vector<RuleMiss> abandoned;
     std::uint32_t abandoned_at = 0;
     // The step at which training stopped because the validation curve met the target
     // (TargetStop); 0 when it did not.
     std::uint32_t target_met_at = 0;
     // Why a smaller rung was given up against the larger rung's curve (falls_behind).
-    std::string fell_behind;
-    // Why the first rung stopped for a finer grid (finer_grid_reason); empty otherwise.
-    std::string finer_grid;
+    std::optional<RuleMiss> fell_behind;
+    // Why the first rung stopped for a finer grid (finer_grid_reason); none otherwise.
+    std::optional<RuleMiss> finer_grid;
     double seconds = 0;  // wall time of this rung: drawing, preparing, training, validating, pruning
     // Hidden neurons removed from `model` per layer (Preset::prune_inactive); empty when off.
     std::vector<std::uint32_t> pruned;

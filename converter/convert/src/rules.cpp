@@ -3,6 +3,9 @@
 #include <lsnif/converter/convert.hpp>
 #include "convert_stages.hpp"
 
+#include <cstdarg>
+#include <cstdio>
+
 namespace lsnif::converter {
 
 using nlohmann::json;
@@ -10,35 +13,130 @@ using namespace stages;
 
 namespace {
 
-std::string gate_reason(const char* what, double value, const char* op, double limit, const char* unit) {
-    char buf[160];
-    std::snprintf(buf, sizeof buf, "%s %.4g%s %s gate %.4g%s", what, value, unit, op, limit, unit);
+[[gnu::format(printf, 1, 2)]] std::string printed(const char* format, ...) {
+    char buf[240];
+    va_list args;
+    va_start(args, format);
+    std::vsnprintf(buf, sizeof buf, format, args);
+    va_end(args);
     return buf;
+}
+
+// A gate line: "visibility accuracy 82.73% < gate 95%".
+std::string gate_line(const std::string& what, double value, const char* op, double limit, const char* unit) {
+    return printed("%s %.4g%s %s gate %.4g%s", what.c_str(), value, unit, op, limit, unit);
+}
+
+// A miss of `measure` against `bound`: measured `value`, allowed `limit`.
+RuleMiss miss(Measure measure, Bound bound, double value = 0, double limit = 0,
+              std::optional<samples::Family> family = std::nullopt, std::uint32_t step = 0) {
+    RuleMiss m;
+    m.measure = measure;
+    m.bound = bound;
+    m.value = value;
+    m.limit = limit;
+    m.family = family;
+    m.step = step;
+    return m;
+}
+
+std::string family_prefix(const RuleMiss& m) {
+    return m.family ? std::string(samples::family_name(*m.family)) + " " : std::string();
+}
+
+std::string describe_gate(const RuleMiss& m) {
+    switch (m.measure) {
+        case Measure::visibility:
+            return gate_line(m.family ? family_prefix(m) + "visibility" : "visibility accuracy",
+                             100 * m.value, "<", 100 * m.limit, "%");
+        case Measure::family_rays:
+            return family_prefix(m) + "rays reaching the network: " + std::to_string(std::uint64_t(m.value)) +
+                   " < " + std::to_string(std::uint64_t(m.limit)) + " (too few to measure)";
+        case Measure::distance:
+            return gate_line("median distance error", m.value, ">", m.limit, "% of diagonal");
+        case Measure::normal: return gate_line("median normal error", m.value, ">", m.limit, " deg");
+        default: break;
+    }
+    return {};
+}
+
+std::string describe_target(const RuleMiss& m) {
+    switch (m.measure) {
+        case Measure::visibility:
+            return printed("visibility %.2f %% < target %.2f %%", 100 * m.value, 100 * m.limit);
+        case Measure::distance:
+            return printed("median distance error %.3g %% > target %.3g %%", m.value, m.limit);
+        case Measure::normal:
+            return printed("median normal error %.3g deg > target %.3g deg", m.value, m.limit);
+        default: break;
+    }
+    return {};
+}
+
+std::string describe_curve(const RuleMiss& m) {
+    if (m.bound == Bound::larger_rung)
+        return printed(
+            "validation visibility %.2f %% at step %u; the larger model gained %.2f points after that "
+            "step, short of the %.2f %% needed",
+            100 * m.value, m.step, 100 * m.larger_gain, 100 * m.limit);
+    if (m.bound == Bound::target_out_of_reach)
+        return printed("validation visibility %.1f %% at step %u cannot reach the target's %.1f %%",
+                       100 * m.value, m.step, 100 * m.limit);
+    switch (m.measure) {
+        case Measure::visibility:
+            return printed("validation visibility %.1f %% cannot reach the gate's %.1f %%", 100 * m.value,
+                           100 * m.limit);
+        case Measure::normal:
+            return printed("validation normal error %.1f deg cannot reach the gate's %.1f deg", m.value,
+                           m.limit);
+        case Measure::distance:
+            return printed("validation distance error %.2f %% cannot reach the gate's %.2f %%", m.value,
+                           m.limit);
+        default: break;
+    }
+    return {};
 }
 
 }  // namespace
 
-std::vector<std::string> gate_failures(const samples::Metrics& m, const Gate& g) {
-    std::vector<std::string> fails;
+std::string describe(const RuleMiss& m) {
+    if (m.measure == Measure::image_unmeasured) return "image error not measured (the visual check is off)";
+    if (m.measure == Measure::image)
+        return printed("image error FLIP %.3g over the object's pixels > %s %.3g", m.value,
+                       m.bound == Bound::target ? "target" : "gate", m.limit);
+    switch (m.bound) {
+        case Bound::gate: return describe_gate(m);
+        case Bound::target: return describe_target(m);
+        case Bound::gate_out_of_reach:
+        case Bound::target_out_of_reach:
+        case Bound::larger_rung: return describe_curve(m);
+    }
+    return {};
+}
+
+std::vector<std::string> describe(std::span<const RuleMiss> misses) {
+    std::vector<std::string> lines;
+    for (const RuleMiss& m : misses) lines.push_back(describe(m));
+    return lines;
+}
+
+std::vector<RuleMiss> gate_failures(const samples::Metrics& m, const Gate& g) {
+    std::vector<RuleMiss> fails;
+    const Bound b = Bound::gate;
     if (m.pooled.visibility_accuracy < g.min_visibility)
-        fails.push_back(gate_reason("visibility accuracy", 100 * m.pooled.visibility_accuracy, "<",
-                                    100 * g.min_visibility, "%"));
+        fails.push_back(miss(Measure::visibility, b, m.pooled.visibility_accuracy, g.min_visibility));
     for (int f = 0; f < samples::kFamilyCount; ++f)
         if (m.family[f].rays < g.min_family_rays)
-            fails.push_back(std::string(samples::family_name(samples::Family(f))) +
-                            " rays reaching the network: " + std::to_string(m.family[f].rays) + " < " +
-                            std::to_string(g.min_family_rays) + " (too few to measure)");
+            fails.push_back(miss(Measure::family_rays, b, double(m.family[f].rays), double(g.min_family_rays),
+                                 samples::Family(f)));
     for (int f = 0; f < samples::kFamilyCount; ++f)
         if (m.family[f].rays && m.family[f].visibility_accuracy < g.min_family_visibility)
-            fails.push_back(
-                gate_reason((std::string(samples::family_name(samples::Family(f))) + " visibility").c_str(),
-                            100 * m.family[f].visibility_accuracy, "<", 100 * g.min_family_visibility, "%"));
+            fails.push_back(miss(Measure::visibility, b, m.family[f].visibility_accuracy,
+                                 g.min_family_visibility, samples::Family(f)));
     if (m.pooled.distance_median_pct > g.max_distance_median_pct)
-        fails.push_back(gate_reason("median distance error", m.pooled.distance_median_pct, ">",
-                                    g.max_distance_median_pct, "% of diagonal"));
+        fails.push_back(miss(Measure::distance, b, m.pooled.distance_median_pct, g.max_distance_median_pct));
     if (m.pooled.normal_median_deg > g.max_normal_median_deg)
-        fails.push_back(gate_reason("median normal error", m.pooled.normal_median_deg, ">",
-                                    g.max_normal_median_deg, " deg"));
+        fails.push_back(miss(Measure::normal, b, m.pooled.normal_median_deg, g.max_normal_median_deg));
     return fails;
 }
 
@@ -69,17 +167,11 @@ bool parse_acceptance(const std::string& text, Acceptance& out) {
 
 namespace {
 
-// Why `flip` misses `limit` ("image error FLIP 0.083 > gate 0.066"), or empty when it does not.
-std::string flip_miss(std::optional<double> flip, double limit, const char* what) {
-    char buf[120];
-    if (!flip) {
-        std::snprintf(buf, sizeof buf, "image error not measured (the visual check is off)");
-        return buf;
-    }
-    if (*flip <= limit) return {};
-    std::snprintf(buf, sizeof buf, "image error FLIP %.3g over the object's pixels > %s %.3g", *flip, what,
-                  limit);
-    return buf;
+// The image rule against `limit` (`bound`: gate or target): none when `flip` meets it.
+std::optional<RuleMiss> flip_miss(std::optional<double> flip, double limit, Bound bound) {
+    if (!flip) return miss(Measure::image_unmeasured, bound);
+    if (*flip <= limit) return std::nullopt;
+    return miss(Measure::image, bound, *flip, limit);
 }
 
 }  // namespace
@@ -87,47 +179,39 @@ std::string flip_miss(std::optional<double> flip, double limit, const char* what
 GateVerdict gate_verdict(const samples::Metrics& m, std::optional<double> flip,
                          std::vector<std::string> training_failures, const Gate& g) {
     GateVerdict v;
-    const std::vector<std::string> rays = gate_failures(m, g);
-    const std::string image = flip_miss(flip, g.max_flip, "gate");
-    const bool rays_pass = rays.empty(), image_pass = image.empty();
+    const std::vector<RuleMiss> rays = gate_failures(m, g);
+    const std::optional<RuleMiss> image = flip_miss(flip, g.max_flip, Bound::gate);
+    const bool rays_pass = rays.empty(), image_pass = !image;
     const bool by_rays = g.accept != Acceptance::images && rays_pass;
     const bool by_images = g.accept != Acceptance::rays && image_pass;
     v.passed = training_failures.empty() && (by_rays || by_images);
     if (v.passed) {
         v.by = by_rays && by_images ? GatePass::both : by_rays ? GatePass::rays : GatePass::images;
         if (*v.by == GatePass::images) {
-            v.rays_failed = rays;
+            v.rays_failed = describe(rays);
             v.above_calibrated = flip && *flip > Gate::kCalibratedMaxFlip;
         }
         return v;
     }
-    if (g.accept != Acceptance::images) v.reasons = rays;
-    if (g.accept != Acceptance::rays && !image.empty()) v.reasons.push_back(image);
+    if (g.accept != Acceptance::images) v.reasons = describe(rays);
+    if (g.accept != Acceptance::rays && image) v.reasons.push_back(describe(*image));
     for (std::string& why : training_failures) v.reasons.push_back(std::move(why));
     return v;
 }
 
-std::vector<std::string> target_misses(const samples::FamilyMetrics& p, std::optional<double> flip,
-                                       const Target& t, Acceptance accept) {
-    std::vector<std::string> misses;
-    char buf[160];
-    const double vis = p.visibility_accuracy, dist = p.distance_median_pct, normal = p.normal_median_deg;
-    if (accept != Acceptance::images && vis < t.visibility) {
-        std::snprintf(buf, sizeof buf, "visibility %.2f %% < target %.2f %%", 100 * vis, 100 * t.visibility);
-        misses.push_back(buf);
-    }
-    if (accept != Acceptance::images && dist > t.distance_pct) {
-        std::snprintf(buf, sizeof buf, "median distance error %.3g %% > target %.3g %%", dist,
-                      t.distance_pct);
-        misses.push_back(buf);
-    }
-    if (accept != Acceptance::images && normal > t.normal_deg) {
-        std::snprintf(buf, sizeof buf, "median normal error %.3g deg > target %.3g deg", normal,
-                      t.normal_deg);
-        misses.push_back(buf);
-    }
+std::vector<RuleMiss> target_misses(const samples::FamilyMetrics& p, std::optional<double> flip,
+                                    const Target& t, Acceptance accept) {
+    std::vector<RuleMiss> misses;
+    const Bound b = Bound::target;
+    const bool rays = accept != Acceptance::images;
+    if (rays && p.visibility_accuracy < t.visibility)
+        misses.push_back(miss(Measure::visibility, b, p.visibility_accuracy, t.visibility));
+    if (rays && p.distance_median_pct > t.distance_pct)
+        misses.push_back(miss(Measure::distance, b, p.distance_median_pct, t.distance_pct));
+    if (rays && p.normal_median_deg > t.normal_deg)
+        misses.push_back(miss(Measure::normal, b, p.normal_median_deg, t.normal_deg));
     if (flip || accept == Acceptance::images)
-        if (std::string miss = flip_miss(flip, t.flip, "target"); !miss.empty()) misses.push_back(miss);
+        if (std::optional<RuleMiss> miss = flip_miss(flip, t.flip, b)) misses.push_back(*miss);
     return misses;
 }
 
@@ -141,41 +225,29 @@ json validation_json(std::span<const ValidationPoint> curve) {
     return j;
 }
 
-std::vector<std::string> early_abort_reasons(const ValidationPoint& point, std::uint64_t samples,
-                                             const Gate& g, const EarlyAbort& rule) {
-    std::vector<std::string> why;
+std::vector<RuleMiss> early_abort_reasons(const ValidationPoint& point, std::uint64_t samples, const Gate& g,
+                                          const EarlyAbort& rule) {
+    std::vector<RuleMiss> why;
     if (samples < rule.min_samples) return why;
-    char buf[200];
-    const double vis = point.visibility;
-    if (vis + rule.visibility_headroom < g.min_visibility) {
-        std::snprintf(buf, sizeof buf, "validation visibility %.1f %% cannot reach the gate's %.1f %%",
-                      100 * vis, 100 * g.min_visibility);
-        why.push_back(buf);
-    }
-    const double normal = point.normal_deg;
-    if (normal - rule.normal_headroom_deg > g.max_normal_median_deg) {
-        std::snprintf(buf, sizeof buf, "validation normal error %.1f deg cannot reach the gate's %.1f deg",
-                      normal, g.max_normal_median_deg);
-        why.push_back(buf);
-    }
-    const double dist = point.distance_pct;
-    if (dist * rule.distance_factor > g.max_distance_median_pct) {
-        std::snprintf(buf, sizeof buf, "validation distance error %.2f %% cannot reach the gate's %.2f %%",
-                      dist, g.max_distance_median_pct);
-        why.push_back(buf);
-    }
+    const Bound b = Bound::gate_out_of_reach;
+    if (point.visibility + rule.visibility_headroom < g.min_visibility)
+        why.push_back(
+            miss(Measure::visibility, b, point.visibility, g.min_visibility, std::nullopt, point.step));
+    if (point.normal_deg - rule.normal_headroom_deg > g.max_normal_median_deg)
+        why.push_back(
+            {Measure::normal, b, point.normal_deg, g.max_normal_median_deg, std::nullopt, point.step});
+    if (point.distance_pct * rule.distance_factor > g.max_distance_median_pct)
+        why.push_back(
+            {Measure::distance, b, point.distance_pct, g.max_distance_median_pct, std::nullopt, point.step});
     return why;
 }
 
-std::string finer_grid_reason(const ValidationPoint& point, std::uint64_t samples, const Target& aim,
-                              const EarlyAbort& abort, const Sizing& rule) {
+std::optional<RuleMiss> finer_grid_reason(const ValidationPoint& point, std::uint64_t samples,
+                                          const Target& aim, const EarlyAbort& abort, const Sizing& rule) {
     if (samples < abort.min_samples || point.visibility + rule.finer_grid_headroom >= aim.visibility)
-        return {};
-    char buf[200];
-    std::snprintf(buf, sizeof buf,
-                  "validation visibility %.1f %% at step %u cannot reach the target's %.1f %%",
-                  100 * point.visibility, point.step, 100 * aim.visibility);
-    return buf;
+        return std::nullopt;
+    return miss(Measure::visibility, Bound::target_out_of_reach, point.visibility, aim.visibility,
+                std::nullopt, point.step);
 }
 
 Target effective_target(const Target& t, const Gate& g) {
@@ -195,27 +267,24 @@ bool near_target(const samples::FamilyMetrics& pooled, const Target& t, const Si
            pooled.normal_median_deg <= t.normal_deg + rule.climb_normal_deg;
 }
 
-std::string falls_behind(const ValidationPoint& point, std::span<const ValidationPoint> larger,
-                         const Target& target, const TargetStop& stop, const Sizing& rule) {
+std::optional<RuleMiss> falls_behind(const ValidationPoint& point, std::span<const ValidationPoint> larger,
+                                     const Target& target, const TargetStop& stop, const Sizing& rule) {
     // The larger rung's visibility at the last check at or before the point's step, and the
     // most it gained from there on.
     const std::uint32_t step = point.step;
     const ValidationPoint* at = nullptr;
     for (const ValidationPoint& q : larger)
         if (q.step <= step) at = &q;
-    if (!at || larger.back().step < step) return {};
+    if (!at || larger.back().step < step) return std::nullopt;
     double best = 0;
     for (const ValidationPoint& q : larger)
         if (q.step >= at->step) best = std::max(best, q.visibility);
     const double gain = best - at->visibility;
     const double vis = point.visibility, needed = target.visibility + stop.visibility_margin;
-    if (vis + gain + rule.curve_slack >= needed) return {};
-    char buf[240];
-    std::snprintf(buf, sizeof buf,
-                  "validation visibility %.2f %% at step %u; the larger model gained %.2f points after that "
-                  "step, short of the %.2f %% needed",
-                  100 * vis, step, 100 * gain, 100 * needed);
-    return buf;
+    if (vis + gain + rule.curve_slack >= needed) return std::nullopt;
+    RuleMiss behind = miss(Measure::visibility, Bound::larger_rung, vis, needed, std::nullopt, step);
+    behind.larger_gain = gain;
+    return behind;
 }
 
 }  // namespace lsnif::converter

@@ -205,7 +205,7 @@ Trained train_rung(const Run& run, const scene::Mesh& mesh, Candidate& c, const 
         if (may_refine) {
             t.finer_grid = finer_grid_reason(point, std::uint64_t(step) * t.config.batch_size, aim,
                                              p.early_abort, p.sizing);
-            if (!t.finer_grid.empty()) return false;
+            if (t.finer_grid) return false;
         }
         // Once the images were within reach of the gate, they decide at the end: the curve's
         // rays are not asked again (each asking renders the views).
@@ -222,7 +222,7 @@ Trained train_rung(const Run& run, const scene::Mesh& mesh, Candidate& c, const 
         }
         if (role == RungRole::smaller) {
             t.fell_behind = falls_behind(point, above, aim, p.target_stop, p.sizing);
-            if (!t.fell_behind.empty()) return false;
+            if (t.fell_behind) return false;
         }
         met_in_a_row = meets_target_with_margin(point, aim, p.target_stop) ? met_in_a_row + 1 : 0;
         if (p.target_stop.consecutive && met_in_a_row >= p.target_stop.consecutive && step < of) {
@@ -275,9 +275,9 @@ HeldOut evaluate(const Run& run, const scene::Mesh& mesh, const format::ModelDat
     h.metrics = samples::held_out_metrics(rt, rays.held_out, run.threads, rays.held_out_geometric_normals);
     std::vector<std::string> training;
     if (t.stream.train.diverged) training.push_back(t.stream.train.message);
-    for (const std::string& why : t.abandoned)
+    for (const RuleMiss& why : t.abandoned)
         training.push_back("training given up at step " + std::to_string(t.abandoned_at) + " of " +
-                           std::to_string(t.config.steps) + ": " + why);
+                           std::to_string(t.config.steps) + ": " + describe(why));
     h.gate = gate_verdict(decided, image_error(flip), std::move(training), run.preset.gate);
     h.flip = flip;
     out.timings.add(Stage::evaluate, seconds_since(t0));
@@ -311,8 +311,8 @@ CandidateRecord candidate_record(const Option& o, const Trained& t, std::size_t 
     // The curve is the training's: recorded once, with the rung's fp16 export.
     if (d.grid_encoding == format::GridEncoding::fp16) c.validation = t.validation;
     if (t.target_met_at) c.stop = StopKind::target_met;
-    if (!t.abandoned.empty()) c.stop = StopKind::given_up, c.stop_why = t.abandoned.front();
-    if (!t.fell_behind.empty()) c.stop = StopKind::given_up, c.stop_why = t.fell_behind;
+    if (!t.abandoned.empty()) c.stop = StopKind::given_up, c.stop_why = describe(t.abandoned.front());
+    if (t.fell_behind) c.stop = StopKind::given_up, c.stop_why = describe(*t.fell_behind);
     c.pruned_neurons = t.pruned;
     c.flip = o.flip;
     return c;
@@ -398,13 +398,13 @@ Sized size_to_target(const Run& run, const scene::Mesh& mesh, Candidate& c, cons
                                       : std::span<const ValidationPoint>();
         Trained trained =
             train_rung(run, mesh, c, desc, finer ? *finer : occ, rays, budget, role, above, out);
-        if (!trained.finer_grid.empty()) {
+        if (trained.finer_grid) {
             // The first size at this grid cannot reach the target: start again, twice as fine.
-            if (auto g = refine_grid(run, c, desc, trained.finer_grid, out)) {
+            if (auto g = refine_grid(run, c, desc, describe(*trained.finer_grid), out)) {
                 finer = std::move(*g);
                 continue;
             }
-            trained.finer_grid.clear();  // voxelization failed: this training is what there is
+            trained.finer_grid.reset();  // voxelization failed: this training is what there is
         }
         sized.rungs.push_back(std::move(trained));
         const std::size_t rung = sized.rungs.size() - 1;
@@ -640,8 +640,9 @@ std::optional<render::ObjectFlip> held_out_images(const Run& run, const scene::M
 void shipped(const Run& run, HeldOut metrics, std::optional<render::ObjectFlip> images,
              const std::string& file, const fs::path& asset, bool reused, MeshOutcome& out) {
     // The target's verdict on what is reported: the held-out rays and the held-out views.
-    out.target = TargetVerdict{run.opt.target, target_misses(metrics.metrics.pooled, image_error(images),
-                                                             run.opt.target, run.preset.gate.accept)};
+    out.target =
+        TargetVerdict{run.opt.target, describe(target_misses(metrics.metrics.pooled, image_error(images),
+                                                             run.opt.target, run.preset.gate.accept))};
     out.held_out_images = std::move(images);
     out.held_out = std::move(metrics);
     out.asset = asset_file(asset, file, reused);

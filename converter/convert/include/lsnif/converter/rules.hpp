@@ -80,11 +80,43 @@ struct Gate {
     static constexpr double kCalibratedMaxFlip = 0.070;
 };
 
+// A rule a measurement misses, as numbers: what was measured, against which bound, the value
+// and what the bound allows. The decisions read these; they become sentences (describe) only
+// where reasons are written for people: the manifest, the text report, a candidate's stop.
+enum class Measure : std::uint8_t {
+    visibility,        // visibility accuracy, a fraction: pooled, or `family`'s
+    family_rays,       // rays of `family` that reach the network: too few to measure
+    distance,          // median distance error, % of the box diagonal
+    normal,            // median shading-normal error, degrees
+    image,             // FLIP of the combined render over the object's own pixels
+    image_unmeasured,  // no image error: the visual check is off (value and limit unused)
+};
+enum class Bound : std::uint8_t {
+    gate,                 // the gate, on measured metrics (gate_failures)
+    target,               // the target, on measured metrics (target_misses)
+    gate_out_of_reach,    // the gate, from a validation check (early_abort_reasons)
+    target_out_of_reach,  // the target's visibility, from the first rung's curve (finer_grid_reason)
+    larger_rung,          // what TargetStop needs, against the larger rung's curve (falls_behind)
+};
+struct RuleMiss {
+    Measure measure = Measure::visibility;
+    Bound bound = Bound::gate;
+    double value = 0;                       // measured, in the measure's unit (visibility as a fraction)
+    double limit = 0;                       // what the bound allows, same unit
+    std::optional<samples::Family> family;  // a family's rule; none: pooled
+    std::uint32_t step = 0;                 // target_out_of_reach, larger_rung: the check's step
+    double larger_gain = 0;  // larger_rung: visibility (a fraction) the larger rung gained after `step`
+};
+// One line for people ("visibility accuracy 82.73% < gate 95%"), the text of the manifest's
+// reasons after "gate: " and of the report.
+std::string describe(const RuleMiss& miss);
+std::vector<std::string> describe(std::span<const RuleMiss> misses);
+
 // The gate's verdict: passed, or why not; and which rules passed (the manifest's `by`).
 enum class GatePass : std::uint8_t { rays, images, both };
 struct GateVerdict {
     bool passed = false;
-    std::vector<std::string> reasons;  // empty when passed
+    std::vector<std::string> reasons;  // empty when passed (written: describe()'s lines)
     std::optional<GatePass> by;        // set when passed
     // Passed by its images alone: the ray rules it fails (gate_failures), named.
     std::vector<std::string> rays_failed;
@@ -202,19 +234,19 @@ struct Sizing {
     double descend_budget_fraction = 0.5;
 };
 
-// The gate's ray rules on measured metrics: one "... " reason per failed rule (the text the
-// manifest's reasons carry after "gate: "); empty when they pass.
-std::vector<std::string> gate_failures(const samples::Metrics& metrics, const Gate& gate);
+// The gate's ray rules on measured metrics: one miss per failed rule, Bound::gate; empty when
+// they pass.
+std::vector<RuleMiss> gate_failures(const samples::Metrics& metrics, const Gate& gate);
 // The gate's verdict on an option: `metrics` (decision rays), `flip` (the combined render's
 // FLIP; none when the visual check is off) and what training says against it (divergence,
 // giving up: these always fail). Gate::accept says which of the ray and image rules may pass it.
 GateVerdict gate_verdict(const samples::Metrics& metrics, std::optional<double> flip,
                          std::vector<std::string> training_failures, const Gate& gate);
-// What an option misses of `target`: one line per missed rule, empty when the target is met.
-// The ray rules on pooled metrics (left out when only images are accepted), the visual term
-// on `flip` when there is one.
-std::vector<std::string> target_misses(const samples::FamilyMetrics& pooled, std::optional<double> flip,
-                                       const Target& target, Acceptance accept = Acceptance::either);
+// What an option misses of `target`: one miss per rule, Bound::target, empty when the target
+// is met. The ray rules on pooled metrics (left out when only images are accepted), the
+// visual term on `flip` when there is one.
+std::vector<RuleMiss> target_misses(const samples::FamilyMetrics& pooled, std::optional<double> flip,
+                                    const Target& target, Acceptance accept = Acceptance::either);
 
 // One check of the validation curve (docs/model.md "Validation curve and deciding early"):
 // pooled metrics of the validation rays after `step` steps. The manifest's candidates carry
@@ -228,14 +260,16 @@ struct ValidationPoint {
 nlohmann::json validation_json(std::span<const ValidationPoint> curve);
 
 // Why a validation point, after `samples` training samples, shows that training cannot
-// reach `gate`; empty when it may (or when fewer than rule.min_samples samples were seen).
-std::vector<std::string> early_abort_reasons(const ValidationPoint& point, std::uint64_t samples,
-                                             const Gate& gate, const EarlyAbort& rule);
+// reach `gate` (Bound::gate_out_of_reach); empty when it may (or when fewer than
+// rule.min_samples samples were seen).
+std::vector<RuleMiss> early_abort_reasons(const ValidationPoint& point, std::uint64_t samples,
+                                          const Gate& gate, const EarlyAbort& rule);
 
 // Why the first size's curve at `point`, after `samples` training samples, asks for a finer
-// grid (Sizing::max_grid_resolution); empty when it does not (or too early to judge).
-std::string finer_grid_reason(const ValidationPoint& point, std::uint64_t samples, const Target& aim,
-                              const EarlyAbort& abort, const Sizing& rule);
+// grid (Sizing::max_grid_resolution; Bound::target_out_of_reach); none when it does not (or
+// too early to judge).
+std::optional<RuleMiss> finer_grid_reason(const ValidationPoint& point, std::uint64_t samples,
+                                          const Target& aim, const EarlyAbort& abort, const Sizing& rule);
 
 // The target training aims at: `target`, made at least as strict as `gate` on each pooled
 // rule, since a model that meets a lenient target below the gate still may not ship.
@@ -249,9 +283,9 @@ bool meets_target_with_margin(const ValidationPoint& point, const Target& target
 bool near_target(const samples::FamilyMetrics& pooled, const Target& target, const Sizing& rule);
 
 // Why a smaller rung, at a validation point, cannot catch up with the target given the larger
-// rung's validation curve `larger`; empty when it may. Only steps within the larger curve are
-// judged.
-std::string falls_behind(const ValidationPoint& point, std::span<const ValidationPoint> larger,
-                         const Target& target, const TargetStop& stop, const Sizing& rule);
+// rung's validation curve `larger` (Bound::larger_rung); none when it may. Only steps within
+// the larger curve are judged.
+std::optional<RuleMiss> falls_behind(const ValidationPoint& point, std::span<const ValidationPoint> larger,
+                                     const Target& target, const TargetStop& stop, const Sizing& rule);
 
 }  // namespace lsnif::converter
