@@ -546,29 +546,35 @@ TEST_CASE("dragons composition: the combined image is within FLIP 0.03 of the re
     e.images_dir = (dir / "eval").string();
     const lsnif::eval::EvalResult ev = lsnif::eval::render_and_compare(e);
     REQUIRE_MESSAGE(ev.ok(), (ev.errors.empty() ? "" : ev.errors[0]));
-    const auto& rep = ev.report;
-    for (const auto& [name, im] : rep["images"].items())
-        MESSAGE("dragons " << name << ": FLIP mean " << im["flip_mean"].get<double>() << " over the frame, "
-                           << im["flip_mean_lsnif_pixels"].get<double>() << " over the LSNIF pixels");
-    MESSAGE("dragons: " << rep["lsnif_pixels"] << " LSNIF pixels; secondary-ray time hybrid/reference "
-                        << rep["secondary_time_ratio"]);
-    CHECK(rep["lsnif_instances"] == 3);
+    const lsnif::eval::EvalReport& rep = *ev.report;
+    using lsnif::render::kCombined;
+    for (int e = 0; e < lsnif::render::kEffects; ++e) {
+        const auto& im = rep.hybrid.effect[e];
+        MESSAGE("dragons " << lsnif::render::kEffectNames[e] << ": FLIP mean " << im.flip.mean
+                           << " over the frame, " << (im.flip_lsnif_pixels ? im.flip_lsnif_pixels->mean : 0.0)
+                           << " over the LSNIF pixels");
+    }
+    MESSAGE("dragons: " << rep.lsnif_pixels << " LSNIF pixels; secondary-ray time hybrid/reference "
+                        << rep.secondary_time_ratio());
+    CHECK(rep.lsnif_instances == 3);
     // The dragons fill the frame: over a quarter of its pixels are LSNIF hits.
-    CHECK(rep["lsnif_pixels"].get<double>() > 0.25 * e.width * e.height);
-    CHECK(rep["images"]["combined"]["flip_mean"].get<double>() <= 0.03);
+    CHECK(double(rep.lsnif_pixels) > 0.25 * e.width * e.height);
+    CHECK(rep.hybrid.effect[kCombined].flip.mean <= 0.03);
     // All-neural: the primary rays through the assets too. Silhouettes and shading normals are
     // the network's, so its error is larger (0.041 over the frame, 0.12 over the LSNIF pixels,
     // docs/eval_scenes.md); the assets cover about the pixels the meshes do.
-    const auto& neural = rep["all_neural"];
+    const auto& neural = rep.neural.effect[kCombined];
+    const auto& hybrid = rep.hybrid.effect[kCombined];
+    REQUIRE(neural.flip_lsnif_pixels);
+    REQUIRE(hybrid.flip_lsnif_pixels);
     MESSAGE("dragons all-neural: combined FLIP "
-            << neural["images"]["combined"]["flip_mean"] << " over the frame, "
-            << neural["images"]["combined"]["flip_mean_lsnif_pixels"] << " over " << neural["lsnif_pixels"]
-            << " LSNIF pixels; time all-neural/reference " << neural["time_ratio"]);
-    CHECK(neural["images"]["combined"]["flip_mean"].get<double>() <= 0.05);
-    CHECK(neural["images"]["combined"]["flip_mean_lsnif_pixels"].get<double>() >
-          rep["images"]["combined"]["flip_mean_lsnif_pixels"].get<double>());
-    CHECK(neural["lsnif_pixels"].get<double>() >= rep["lsnif_pixels"].get<double>());
-    CHECK(neural["time_ratio"].get<double>() > 0.0);
+            << neural.flip.mean << " over the frame, " << neural.flip_lsnif_pixels->mean << " over "
+            << rep.neural_lsnif_pixels << " LSNIF pixels; time all-neural/reference "
+            << rep.neural_time_ratio());
+    CHECK(neural.flip.mean <= 0.05);
+    CHECK(neural.flip_lsnif_pixels->mean > hybrid.flip_lsnif_pixels->mean);
+    CHECK(rep.neural_lsnif_pixels >= rep.lsnif_pixels);
+    CHECK(rep.neural_time_ratio() > 0.0);
     for (const auto& mesh : r.manifest["meshes"])
         if (mesh.contains("lsnif")) check_shipped_asset(mesh, dir / "out");
 }

@@ -196,31 +196,40 @@ TEST_CASE("eval renders, compares with FLIP, and camera and light change without
     o.ao_samples = 4;
     o.threads = 2;
     const EvalResult a = render_into(o, "eval_images_a");
-    const json& ra = a.report;
-    CHECK(ra["lsnif_instances"] == 1);
+    const EvalReport& ra = *a.report;
+    CHECK(ra.lsnif_instances == 1);
     // The dragon is the only mesh, so its pixels are the frame's covered ones.
-    const auto lsnif_pixels = ra["lsnif_pixels"].get<std::size_t>();
-    CHECK(lsnif_pixels > 96 * 72 / 20);
-    CHECK(lsnif_pixels < 96 * 72);
+    CHECK(ra.lsnif_pixels > 96 * 72 / 20);
+    CHECK(ra.lsnif_pixels < 96 * 72);
     double separate = 0;
-    for (const char* e : {"shadow", "ao", "reflection", "combined"}) {
-        INFO(e);
-        const json& im = ra["images"][e];
-        CHECK(im["flip_mean"].get<double>() >= 0.0);
-        CHECK(im["flip_mean"].get<double>() <= 1.0);
-        CHECK(im["flip_max"].get<double>() <= 1.0);
+    for (int e = 0; e < lsnif::render::kEffects; ++e) {
+        INFO(lsnif::render::kEffectNames[e]);
+        const lsnif::render::EffectComparison& im = ra.hybrid.effect[e];
+        CHECK(im.flip.mean >= 0.0);
+        CHECK(im.flip.mean <= 1.0);
+        CHECK(im.flip.max <= 1.0);
         // Background pixels are identical in both renders: the error sits on the object.
-        CHECK(im["flip_mean_lsnif_pixels"].get<double>() > im["flip_mean"].get<double>());
-        CHECK(im["flip_mean_lsnif_pixels"].get<double>() <= im["flip_max"].get<double>());
-        for (const char* f : {"reference", "hybrid", "flip"})
-            CHECK(fs::file_size(fs::path(o.images_dir) / im["files"][f].get<std::string>()) > 100);
-        if (std::string(e) != "combined") separate += im["flip_mean"].get<double>() / 3;
+        REQUIRE(im.flip_lsnif_pixels);
+        CHECK(im.flip_lsnif_pixels->mean > im.flip.mean);
+        CHECK(im.flip_lsnif_pixels->mean <= im.flip.max);
+        REQUIRE(im.files.size() == 3);  // reference, hybrid, FLIP
+        for (const std::string& f : im.files) CHECK(fs::file_size(fs::path(o.images_dir) / f) > 100);
+        if (e != lsnif::render::kCombined) separate += im.flip.mean / 3;
     }
     // The network is not exact: some pixel differs somewhere, but the picture is the same.
-    CHECK(ra["flip_mean"].get<double>() > 0.0);
-    CHECK(ra["flip_mean"].get<double>() < 0.2);
-    CHECK(ra["flip_mean"].get<double>() == doctest::Approx(separate));  // the combined image is extra
-    CHECK(fs::exists(fs::path(o.images_dir) / "report.json"));
+    CHECK(ra.hybrid.flip_mean > 0.0);
+    CHECK(ra.hybrid.flip_mean < 0.2);
+    CHECK(ra.hybrid.flip_mean == doctest::Approx(separate));  // the combined image is extra
+    // report.json is the report's one JSON form, the one --json prints.
+    const json written = json::parse(file_bytes(fs::path(o.images_dir) / "report.json"));
+    CHECK(written == eval_report_json(ra));
+    CHECK(written["lsnif_pixels"] == ra.lsnif_pixels);
+    CHECK(written["images"]["ao"]["flip_mean"].get<double>() ==
+          ra.hybrid.effect[lsnif::render::kAo].flip.mean);
+    CHECK(written["all_neural"]["time_ratio"].get<double>() == ra.neural_time_ratio());
+    CHECK(written["secondary_profile"]["hybrid"]["ao"]["reader_rays"] ==
+          ra.hybrid_profile[1].box_hits);  // families in kRayFamilyNames order: shadow, ao, reflection
+    CHECK(eval_report_text(ra).find("  combined   FLIP mean") != std::string::npos);
 
     // Surface-leaving rays started half a voxel later (hybrid only): the reference is the
     // same picture, the hybrid one changes, and the report says which setting made it.
@@ -228,8 +237,8 @@ TEST_CASE("eval renders, compares with FLIP, and camera and light change without
         EvalOptions later = o;
         later.surface_tmin_voxels = 0.5f;
         const EvalResult l = render_into(later, "eval_images_later");
-        CHECK(l.report["surface_tmin_voxels"] == 0.5);
-        CHECK(ra["surface_tmin_voxels"] == 0.0);
+        CHECK(l.report->surface_tmin_voxels == 0.5f);
+        CHECK(ra.surface_tmin_voxels == 0.0f);
         const fs::path a_dir = o.images_dir, l_dir = later.images_dir;
         CHECK(file_bytes(l_dir / "reference_shadow.png") == file_bytes(a_dir / "reference_shadow.png"));
         CHECK(file_bytes(l_dir / "hybrid_ao.png") != file_bytes(a_dir / "hybrid_ao.png"));
@@ -241,29 +250,28 @@ TEST_CASE("eval renders, compares with FLIP, and camera and light change without
         EvalOptions once = o;
         once.timing_repeats = 1;
         const EvalResult r1 = render_into(once, "eval_images_once");
-        CHECK(r1.report["timing_repeats"] == 1);
-        CHECK(ra["timing_repeats"] == 3);
-        CHECK(r1.report["timings"]["secondary_hybrid"].get<double>() > 0.0);
+        CHECK(r1.report->timing_repeats == 1);
+        CHECK(ra.timing_repeats == 3);
+        CHECK(r1.report->timings.secondary_hybrid > 0.0);
         for (const char* f : {"hybrid_combined.png", "hybrid_ao.png", "reference_reflection.png"})
             CHECK(file_bytes(fs::path(once.images_dir) / f) == file_bytes(fs::path(o.images_dir) / f));
     }
 
     // A moved camera and light, same assets: different pictures, assets untouched.
-    const auto c = ra["camera"];
+    const lsnif::render::Camera c = ra.camera;
     lsnif::render::Camera cam;
     for (int k = 0; k < 3; ++k) {
-        cam.target[k] = c["target"][k].get<float>();
-        cam.eye[k] = 2.0f * c["target"][k].get<float>() - c["eye"][k].get<float>();  // from the other side
+        cam.target[k] = c.target[k];
+        cam.eye[k] = 2.0f * c.target[k] - c.eye[k];  // from the other side
     }
     o.camera = cam;
-    o.light = {c["target"][0].get<float>(), c["target"][1].get<float>() - 500.0f,
-               c["target"][2].get<float>()};
+    o.light = {c.target[0], c.target[1] - 500.0f, c.target[2]};
     const EvalResult b = render_into(o, "eval_images_b");
-    CHECK(b.report["camera"]["eye"] != ra["camera"]["eye"]);
-    CHECK(b.report["light"] != ra["light"]);
+    CHECK(b.report->camera.eye != ra.camera.eye);
+    CHECK(b.report->light != ra.light);
     CHECK(file_bytes(fs::path(o.images_dir) / "reference_shadow.png") !=
           file_bytes(fs::path(LSNIF_TEST_WORK_DIR) / "eval_images_a" / "reference_shadow.png"));
-    CHECK(b.report["flip_mean"].get<double>() < 0.2);
+    CHECK(b.report->hybrid.flip_mean < 0.2);
     CHECK(file_bytes(asset) == asset_before);
     CHECK(file_bytes(dir / "manifest.json") == manifest_before);
 }

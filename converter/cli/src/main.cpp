@@ -91,58 +91,10 @@ int run_eval(lsnif::eval::EvalOptions opt, const std::string& camera, const std:
     const auto r = lsnif::eval::render_and_compare(opt);
     for (const auto& e : r.errors) std::fprintf(stderr, "error: %s\n", e.c_str());
     if (!r.ok()) return 1;
-    if (as_json) {
-        std::cout << r.report.dump(2) << "\n";
-    } else {
-        const auto& j = r.report;
-        std::printf("rendered %ux%u, %zu instances (%zu through LSNIF), images in %s\n",
-                    j["width"].get<unsigned>(), j["height"].get<unsigned>(),
-                    j["instances"].get<std::size_t>(), j["lsnif_instances"].get<std::size_t>(),
-                    j["images_dir"].get<std::string>().c_str());
-        for (const auto& [name, v] : j["images"].items()) {
-            const auto& on_lsnif = v["flip_mean_lsnif_pixels"];
-            std::printf("  %-10s FLIP mean %.4f (median %.4f, p95 %.4f; on LSNIF pixels %s)  PSNR %s dB\n",
-                        name.c_str(), v["flip_mean"].get<double>(), v["flip_median"].get<double>(),
-                        v["flip_p95"].get<double>(),
-                        on_lsnif.is_null() ? "none" : std::to_string(on_lsnif.get<double>()).c_str(),
-                        v["psnr_db"].is_null() ? "inf" : std::to_string(v["psnr_db"].get<double>()).c_str());
-        }
-        std::printf(
-            "  overall    FLIP mean %.4f (shadow, ao, reflection); %zu LSNIF pixels; secondary-ray time "
-            "hybrid/reference %.2f\n",
-            j["flip_mean"].get<double>(), j["lsnif_pixels"].get<std::size_t>(),
-            j["secondary_time_ratio"].get<double>());
-        const auto& n = j["all_neural"];
-        const auto& nc = n["images"]["combined"];
-        std::printf(
-            "  all-neural (primary rays through the assets too): combined FLIP %.4f over the frame, %s over "
-            "%zu LSNIF pixels; time all-neural/reference %.2f\n",
-            nc["flip_mean"].get<double>(),
-            nc["flip_mean_lsnif_pixels"].is_null()
-                ? "none"
-                : std::to_string(nc["flip_mean_lsnif_pixels"].get<double>()).c_str(),
-            n["lsnif_pixels"].get<std::size_t>(), n["time_ratio"].get<double>());
-        std::printf(
-            "  secondary rays' time (seconds over all threads; hybrid = Embree on the meshes + box tests "
-            "and batching + the reader):\n");
-        const auto& prof = j["secondary_profile"];
-        for (const auto& [family, h] : prof["hybrid"].items()) {
-            const auto& ref = prof["reference"][family];
-            const auto reader_rays = h["reader_rays"].get<std::uint64_t>();
-            const auto calls = h["reader_calls"].get<std::uint64_t>();
-            std::printf(
-                "    %-10s reference %.3f | hybrid %.3f = %.3f + %.3f + %.3f; %llu of %llu rays to the "
-                "reader "
-                "in %llu calls (%.0f per call), %.1f %% of them hit\n",
-                family.c_str(), ref["seconds"].get<double>(), h["seconds"].get<double>(),
-                h["embree_seconds"].get<double>(), h["cull_and_batch_seconds"].get<double>(),
-                h["reader_seconds"].get<double>(), (unsigned long long)reader_rays,
-                (unsigned long long)h["rays"].get<std::uint64_t>(), (unsigned long long)calls,
-                calls ? double(reader_rays) / double(calls) : 0.0,
-                reader_rays ? 100.0 * double(h["reader_hits"].get<std::uint64_t>()) / double(reader_rays)
-                            : 0.0);
-        }
-    }
+    if (as_json)
+        std::cout << lsnif::eval::eval_report_json(*r.report).dump(2) << "\n";
+    else
+        std::cout << lsnif::eval::eval_report_text(*r.report);
     return 0;
 }
 
@@ -484,22 +436,20 @@ struct BatchCommand {
             return 2;
         }
         if (json) {
-            std::cout << r.summary.dump(2) << "\n";
-        } else if (!r.summary.contains("assets")) {  // a plan (--ninja, --plan) or nothing to do
+            std::cout << lsnif::library::batch_summary_json(r).dump(2) << "\n";
+        } else if (!r.assets) {  // a plan (--ninja, --plan) or nothing to do
             for (const auto& line : r.lines) std::cout << line << "\n";
         } else {
             for (const auto& line : r.lines)  // what was not streamed: the inputs that failed
                 if (!streamed.count(line)) std::cout << line << "\n";
-            const auto& a = r.summary["assets"];
-            std::cout << a["lsnif"] << " LSNIF, " << a["bvh"] << " BVH, " << a["failed"] << " failed";
-            if (r.summary.contains("cache"))
-                std::cout << "; cache: " << r.summary["cache"]["hits"] << " found, "
-                          << r.summary["cache"]["stored"] << " stored, " << r.summary["cache"]["corrupt"]
+            const auto& a = *r.assets;
+            std::cout << a.lsnif << " LSNIF, " << a.bvh << " BVH, " << a.failed << " failed";
+            if (const auto& c = r.convert.cache)
+                std::cout << "; cache: " << c->hits << " found, " << c->stored << " stored, " << c->corrupt
                           << " corrupt";
             std::cout << "\n";
         }
-        for (const auto& e : r.summary["errors"])
-            std::fprintf(stderr, "error: %s\n", e.get<std::string>().c_str());
+        for (const auto& e : r.errors) std::fprintf(stderr, "error: %s\n", e.c_str());
         return int(r.exit);
     }
 };
@@ -636,15 +586,10 @@ struct EvalCommand {
         const auto r = lsnif::eval::render_objects(opt);
         for (const auto& e : r.errors) std::fprintf(stderr, "error: %s\n", e.c_str());
         if (!r.ok()) return 1;
-        if (json) {
-            std::cout << r.report.dump(2) << "\n";
-            return 0;
-        }
-        for (const auto& o : r.report["objects"])
-            std::printf("%-24s FLIP over its pixels %.4f (p95 %.4f), over the frame %.4f\n",
-                        o["name"].get<std::string>().c_str(), o["flip"]["combined_object"].get<double>(),
-                        o["flip"]["combined_object_p95"].get<double>(), o["flip"]["combined"].get<double>());
-        std::printf("images in %s\n", r.report["images_dir"].get<std::string>().c_str());
+        if (json)
+            std::cout << lsnif::eval::objects_report_json(*r.report).dump(2) << "\n";
+        else
+            std::cout << lsnif::eval::objects_report_text(*r.report);
         return 0;
     }
 };

@@ -332,7 +332,7 @@ json run_report(const Run& run, const ConvertResult& res) {
     report["timings"] = {{"import", res.import_seconds}};  // per-mesh stages are in meshes[].timings
     if (run.opt.dry_run) report["dry_run"] = true;
     if (res.cache)
-        report["cache"] = {{"location", run.cache->describe()},
+        report["cache"] = {{"location", res.cache->location},
                            {"hits", res.cache->hits},
                            {"stored", res.cache->stored},
                            {"corrupt", res.cache->corrupt}};
@@ -394,7 +394,10 @@ ConvertResult convert(const ConvertOptions& opt, const ConvertProgress& progress
         opt.only_keys.empty() ? std::set<std::string>() : candidate_keys(run, im.triaged);
     res.meshes = convert_meshes(run, im.triaged, res.errors, res.warnings, counts);
     res.memory = scene_memory(res.meshes, run.preset.classify.yardstick, opt.memory_budget, opt.dry_run);
-    if (store) res.cache = counts;
+    if (store) {
+        res.cache = counts;
+        res.cache->location = store->describe();
+    }
     if (!res.memory->fits())
         res.warnings.push_back("the scene needs " + std::to_string(res.memory->after) +
                                " bytes, over the memory budget of " + std::to_string(opt.memory_budget) +

@@ -7,6 +7,8 @@
 
 #include <algorithm>
 #include <cmath>
+#include <cstdarg>
+#include <cstdio>
 #include <filesystem>
 #include <fstream>
 
@@ -152,33 +154,6 @@ bool write_text_atomically(const fs::path& path, const std::string& text, std::s
     return true;
 }
 
-// The report's account of what was rendered and how: the LSNIF models' arithmetic and
-// memory, the image size, ambient occlusion and timing settings, camera, light and
-// instance counts. The results (images, FLIP, timings) are added by the caller.
-json describe_run(const EvalScene& scene, const EvalOptions& opt, const View& view) {
-    const AssetMemory memory = scene.asset_memory();
-    json report;
-    report["lsnif_arithmetic"] = lsnif_arithmetic_string(memory.arithmetic);
-    report["width"] = view.W;
-    report["height"] = view.H;
-    report["ao_samples"] = std::max(1u, opt.ao_samples);
-    report["ao_radius"] = opt.ao_radius * view.diag;
-    report["surface_tmin_voxels"] = opt.surface_tmin_voxels;
-    report["timing_repeats"] = std::max(1u, opt.timing_repeats);
-    report["camera"] = {{"eye", view.cam.eye},
-                        {"target", view.cam.target},
-                        {"up", view.cam.up},
-                        {"fov_deg", view.cam.fov_deg}};
-    report["light"] = view.light;
-    report["instances"] = scene.instance_count();
-    report["lsnif_instances"] = scene.lsnif_instance_count();
-    // Resident bytes of the opened assets (lsnif_info.decoded_bytes) against Embree's BVHs of
-    // the meshes they replace, measured in this render's device.
-    report["memory"] = {{"lsnif_resident_bytes", memory.lsnif_resident_bytes},
-                        {"bvh_bytes_replaced", memory.bvh_bytes_replaced}};
-    return report;
-}
-
 // A tracer's profile per ray family, for the report (docs/eval.md "Where the secondary rays'
 // time goes"): seconds summed over threads, counts over the frame.
 json profile_json(const SecondaryProfile& profile) {
@@ -254,32 +229,146 @@ EvalResult render_and_compare(const EvalOptions& opt) {
         res.errors.push_back(err);
         return res;
     }
-    json report = describe_run(*scene, opt, view);
-    report["images"] = comparison_json(compared);
-    report["flip_mean"] = compared.flip_mean;
-    report["lsnif_pixels"] = std::count(lsnif_pixels.begin(), lsnif_pixels.end(), 1);
-    const double reference_seconds = primary_seconds + reference.trace_seconds;
-    const double neural_seconds = neural_primary_seconds + neural.trace_seconds;
-    report["all_neural"] = {{"images", comparison_json(compared_neural)},
-                            {"flip_mean", compared_neural.flip_mean},
-                            {"lsnif_pixels", std::count(neural_pixels.begin(), neural_pixels.end(), 1)},
-                            {"time_ratio", reference_seconds > 0 ? neural_seconds / reference_seconds : 0.0}};
-    report["timings"] = {{"primary", primary_seconds},
-                         {"primary_neural", neural_primary_seconds},
-                         {"secondary_reference", reference.trace_seconds},
-                         {"secondary_hybrid", hybrid.trace_seconds},
-                         {"secondary_neural", neural.trace_seconds}};
-    report["secondary_time_ratio"] =
-        reference.trace_seconds > 0 ? hybrid.trace_seconds / reference.trace_seconds : 0.0;
-    report["secondary_profile"] = {{"reference", profile_json(reference.profile)},
-                                   {"hybrid", profile_json(hybrid.profile)}};
-    report["images_dir"] = images.string();
-    if (opt.write_images && !write_text_atomically(images / "report.json", report.dump(2) + "\n", err)) {
+    EvalReport report;
+    report.memory = scene->asset_memory();
+    report.width = view.W;
+    report.height = view.H;
+    report.ao_samples = std::max(1u, opt.ao_samples);
+    report.ao_radius = opt.ao_radius * view.diag;
+    report.surface_tmin_voxels = opt.surface_tmin_voxels;
+    report.timing_repeats = std::max(1u, opt.timing_repeats);
+    report.camera = view.cam;
+    report.light = view.light;
+    report.instances = scene->instance_count();
+    report.lsnif_instances = scene->lsnif_instance_count();
+    report.hybrid = std::move(compared);
+    report.neural = std::move(compared_neural);
+    report.lsnif_pixels = std::size_t(std::count(lsnif_pixels.begin(), lsnif_pixels.end(), 1));
+    report.neural_lsnif_pixels = std::size_t(std::count(neural_pixels.begin(), neural_pixels.end(), 1));
+    report.timings = {primary_seconds, neural_primary_seconds, reference.trace_seconds, hybrid.trace_seconds,
+                      neural.trace_seconds};
+    report.reference_profile = reference.profile;
+    report.hybrid_profile = hybrid.profile;
+    report.images_dir = images.string();
+    if (opt.write_images &&
+        !write_text_atomically(images / "report.json", eval_report_json(report).dump(2) + "\n", err)) {
         res.errors.push_back(err);
         return res;
     }
     res.report = std::move(report);
     return res;
+}
+
+double EvalReport::secondary_time_ratio() const {
+    return timings.secondary_reference > 0 ? timings.secondary_hybrid / timings.secondary_reference : 0.0;
+}
+
+double EvalReport::neural_time_ratio() const {
+    const double reference = timings.primary + timings.secondary_reference;
+    return reference > 0 ? (timings.primary_neural + timings.secondary_neural) / reference : 0.0;
+}
+
+json eval_report_json(const EvalReport& r) {
+    json j;
+    j["lsnif_arithmetic"] = lsnif_arithmetic_string(r.memory.arithmetic);
+    j["width"] = r.width;
+    j["height"] = r.height;
+    j["ao_samples"] = r.ao_samples;
+    j["ao_radius"] = r.ao_radius;
+    j["surface_tmin_voxels"] = r.surface_tmin_voxels;
+    j["timing_repeats"] = r.timing_repeats;
+    j["camera"] = {{"eye", r.camera.eye},
+                   {"target", r.camera.target},
+                   {"up", r.camera.up},
+                   {"fov_deg", r.camera.fov_deg}};
+    j["light"] = r.light;
+    j["instances"] = r.instances;
+    j["lsnif_instances"] = r.lsnif_instances;
+    // Resident bytes of the opened assets (lsnif_info.decoded_bytes) against Embree's BVHs of
+    // the meshes they replace, measured in this render's device.
+    j["memory"] = {{"lsnif_resident_bytes", r.memory.lsnif_resident_bytes},
+                   {"bvh_bytes_replaced", r.memory.bvh_bytes_replaced}};
+    j["images"] = comparison_json(r.hybrid);
+    j["flip_mean"] = r.hybrid.flip_mean;
+    j["lsnif_pixels"] = r.lsnif_pixels;
+    j["all_neural"] = {{"images", comparison_json(r.neural)},
+                       {"flip_mean", r.neural.flip_mean},
+                       {"lsnif_pixels", r.neural_lsnif_pixels},
+                       {"time_ratio", r.neural_time_ratio()}};
+    j["timings"] = {{"primary", r.timings.primary},
+                    {"primary_neural", r.timings.primary_neural},
+                    {"secondary_reference", r.timings.secondary_reference},
+                    {"secondary_hybrid", r.timings.secondary_hybrid},
+                    {"secondary_neural", r.timings.secondary_neural}};
+    j["secondary_time_ratio"] = r.secondary_time_ratio();
+    j["secondary_profile"] = {{"reference", profile_json(r.reference_profile)},
+                              {"hybrid", profile_json(r.hybrid_profile)}};
+    j["images_dir"] = r.images_dir;
+    return j;
+}
+
+namespace {
+
+[[gnu::format(printf, 2, 3)]] void append(std::string& out, const char* format, ...) {
+    char buf[512];
+    va_list args;
+    va_start(args, format);
+    std::vsnprintf(buf, sizeof buf, format, args);
+    va_end(args);
+    out += buf;
+}
+
+std::string number_or(const std::optional<double>& v, const char* none) {
+    return v ? std::to_string(*v) : std::string(none);
+}
+
+}  // namespace
+
+std::string eval_report_text(const EvalReport& r) {
+    std::string out;
+    append(out, "rendered %ux%u, %zu instances (%zu through LSNIF), images in %s\n", r.width, r.height,
+           r.instances, r.lsnif_instances, r.images_dir.c_str());
+    for (int e = 0; e < kEffects; ++e) {
+        const EffectComparison& c = r.hybrid.effect[e];
+        const std::optional<double> on_lsnif =
+            c.flip_lsnif_pixels ? std::optional<double>(c.flip_lsnif_pixels->mean) : std::nullopt;
+        const std::optional<double> psnr =
+            std::isfinite(c.psnr_db) ? std::optional<double>(c.psnr_db) : std::nullopt;
+        append(out, "  %-10s FLIP mean %.4f (median %.4f, p95 %.4f; on LSNIF pixels %s)  PSNR %s dB\n",
+               kEffectNames[e], c.flip.mean, c.flip.median, c.flip.p95, number_or(on_lsnif, "none").c_str(),
+               number_or(psnr, "inf").c_str());
+    }
+    append(out,
+           "  overall    FLIP mean %.4f (shadow, ao, reflection); %zu LSNIF pixels; secondary-ray time "
+           "hybrid/reference %.2f\n",
+           r.hybrid.flip_mean, r.lsnif_pixels, r.secondary_time_ratio());
+    const EffectComparison& nc = r.neural.effect[kCombined];
+    append(out,
+           "  all-neural (primary rays through the assets too): combined FLIP %.4f over the frame, %s over "
+           "%zu LSNIF pixels; time all-neural/reference %.2f\n",
+           nc.flip.mean,
+           number_or(nc.flip_lsnif_pixels ? std::optional<double>(nc.flip_lsnif_pixels->mean) : std::nullopt,
+                     "none")
+               .c_str(),
+           r.neural_lsnif_pixels, r.neural_time_ratio());
+    out +=
+        "  secondary rays' time (seconds over all threads; hybrid = Embree on the meshes + box tests and "
+        "batching "
+        "+ the reader):\n";
+    for (int f = 0; f < kRayFamilies; ++f) {
+        const TraceProfile& ref = r.reference_profile[f];
+        const TraceProfile& h = r.hybrid_profile[f];
+        const double cull = std::max(0.0, h.seconds - h.embree_seconds - h.reader_seconds);
+        append(
+            out,
+            "    %-10s reference %.3f | hybrid %.3f = %.3f + %.3f + %.3f; %llu of %llu rays to the reader in "
+            "%llu calls (%.0f per call), %.1f %% of them hit\n",
+            kRayFamilyNames[f], ref.seconds, h.seconds, h.embree_seconds, cull, h.reader_seconds,
+            (unsigned long long)h.box_hits, (unsigned long long)h.rays, (unsigned long long)h.reader_calls,
+            h.reader_calls ? double(h.box_hits) / double(h.reader_calls) : 0.0,
+            h.box_hits ? 100.0 * double(h.reader_hits) / double(h.box_hits) : 0.0);
+    }
+    return out;
 }
 
 }  // namespace lsnif::eval

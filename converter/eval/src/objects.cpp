@@ -20,10 +20,10 @@ using render::ObjectViews;
 namespace {
 
 // One converted object's views into `dir`: its report entry, or an error.
-base::Result<nlohmann::json, std::string> object_entry(const scene::Mesh& mesh, const MeshOutcome& mo,
-                                                       const std::filesystem::path& asset,
-                                                       const ObjectViewOptions& o,
-                                                       const std::filesystem::path& dir) {
+base::Result<ObjectImages, std::string> object_entry(const scene::Mesh& mesh, const MeshOutcome& mo,
+                                                     const std::filesystem::path& asset,
+                                                     const ObjectViewOptions& o,
+                                                     const std::filesystem::path& dir) {
     auto bytes = format::read_file_bytes(asset.string());
     if (!bytes) return bytes.error().message;
     std::string error;
@@ -31,18 +31,12 @@ base::Result<nlohmann::json, std::string> object_entry(const scene::Mesh& mesh, 
     if (!views) return mesh.name + ": " + error;
     auto flip = views->compare(*bytes, dir.string());
     if (!flip) return asset.string() + ": " + flip.error();
-    nlohmann::json files = nlohmann::json::array();
+    ObjectImages entry{mo.name, mo.id, mo.asset->file, *flip, {}};
     for (std::uint32_t k = 0; k < views->view_count(); ++k) {
         const std::string stem = (dir.filename() / ("view" + std::to_string(k) + "_")).string();
-        files.push_back({{"reference", stem + "reference.png"},
-                         {"hybrid", stem + "hybrid.png"},
-                         {"flip", stem + "flip.png"}});
+        entry.views.push_back({stem + "reference.png", stem + "hybrid.png", stem + "flip.png"});
     }
-    return nlohmann::json{{"name", mo.name},
-                          {"mesh", mo.id},
-                          {"lsnif", mo.asset->file},
-                          {"flip", converter::object_flip_json(*flip)},
-                          {"views", files}};
+    return entry;
 }
 
 // The source mesh of `mo`, imported once per input into `scenes`; an error when it cannot be
@@ -64,8 +58,8 @@ base::Result<const scene::Mesh*, std::string> source_mesh(const LoadedManifest& 
 
 }  // namespace
 
-EvalResult render_objects(const EvalOptions& opt) {
-    EvalResult res;
+ObjectsResult render_objects(const EvalOptions& opt) {
+    ObjectsResult res;
     LoadedManifest loaded;
     std::string error;
     if (!converter::load_manifest(opt.outdir, opt.sources, loaded, error)) {
@@ -81,7 +75,7 @@ EvalResult render_objects(const EvalOptions& opt) {
     const nlohmann::json& settings = loaded.doc["settings"];
     o.seed =
         converter::held_out_view_seed(settings.value("view_seed", settings.value("seed", std::uint64_t(1))));
-    nlohmann::json objects = nlohmann::json::array();
+    ObjectsReport report;
     std::vector<std::optional<scene::Scene>> scenes(loaded.sources.size());
     for (const MeshOutcome& mo : loaded.meshes) {
         if (!mo.asset) continue;
@@ -97,12 +91,43 @@ EvalResult render_objects(const EvalOptions& opt) {
             res.errors.push_back(entry.error());
             return res;
         }
-        objects.push_back(std::move(*entry));
+        report.objects.push_back(std::move(*entry));
     }
-    res.report = {{"objects", objects}, {"images_dir", images.string()},
-                  {"views", o.views},   {"width", o.width},
-                  {"height", o.height}, {"ao_samples", o.ao_samples}};
+    report.images_dir = images.string();
+    report.views = o.views;
+    report.width = o.width;
+    report.height = o.height;
+    report.ao_samples = o.ao_samples;
+    res.report = std::move(report);
     return res;
+}
+
+nlohmann::json objects_report_json(const ObjectsReport& r) {
+    nlohmann::json objects = nlohmann::json::array();
+    for (const ObjectImages& o : r.objects) {
+        nlohmann::json views = nlohmann::json::array();
+        for (const auto& v : o.views)
+            views.push_back({{"reference", v[0]}, {"hybrid", v[1]}, {"flip", v[2]}});
+        objects.push_back({{"name", o.name},
+                           {"mesh", o.mesh},
+                           {"lsnif", o.asset},
+                           {"flip", converter::object_flip_json(o.flip)},
+                           {"views", views}});
+    }
+    return {{"objects", objects}, {"images_dir", r.images_dir}, {"views", r.views},
+            {"width", r.width},   {"height", r.height},         {"ao_samples", r.ao_samples}};
+}
+
+std::string objects_report_text(const ObjectsReport& r) {
+    std::string out;
+    char buf[512];
+    for (const ObjectImages& o : r.objects) {
+        std::snprintf(buf, sizeof buf, "%-24s FLIP over its pixels %.4f (p95 %.4f), over the frame %.4f\n",
+                      o.name.c_str(), o.flip.combined_object, o.flip.combined_object_p95, o.flip.combined);
+        out += buf;
+    }
+    out += "images in " + r.images_dir + "\n";
+    return out;
 }
 
 }  // namespace lsnif::eval

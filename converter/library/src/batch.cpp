@@ -388,15 +388,12 @@ void plan_ninja(const BatchOptions& options, const ConvertProgress& progress, Ba
     r.exit = BatchExit::ok;
 }
 
-// The summary of a run that planned (--ninja, --plan FILE): what was planned, no counts.
-void plan_summary(const BatchResult& r, const char* what, const std::string& file, BatchResult& out) {
-    out.summary = {{"scenes", r.scenes},
-                   {"lines", r.lines},
-                   {"errors", r.input_errors},
-                   {"warnings", r.convert.warnings},
-                   {what, file}};
-    for (const std::string& e : r.convert.errors) out.summary["errors"].push_back(e);
-    out.summary["exit_code"] = int(r.exit);
+// A run that planned (--ninja, --plan FILE, or --from-plan without a task): what was
+// planned, no counts.
+void planned(PlanFile kind, const std::string& file, BatchResult& r) {
+    r.plan_file = {kind, file};
+    r.errors = r.input_errors;
+    r.errors.insert(r.errors.end(), r.convert.errors.begin(), r.convert.errors.end());
 }
 
 }  // namespace
@@ -467,23 +464,16 @@ void convert_library(const BatchOptions& options, ConvertOptions c, const Conver
         r.input_errors.push_back("no inputs");
         ++failed;
     }
-    r.summary = {{"scenes", r.scenes},
-                 {"assets", {{"lsnif", converted}, {"bvh", bvh}, {"failed", failed}}},
-                 {"lines", r.lines},
-                 {"errors", r.input_errors},
-                 {"warnings", r.convert.warnings}};
-    for (const std::string& e : r.convert.errors) r.summary["errors"].push_back(e);
-    for (const char* k : {"cache", "scene_memory", "manifest"})
-        if (r.convert.report.contains(k)) r.summary[k] = r.convert.report[k];
+    r.assets = AssetCounts{converted, bvh, failed};
+    r.errors = r.input_errors;
+    r.errors.insert(r.errors.end(), r.convert.errors.begin(), r.convert.errors.end());
     r.exit = failed ? BatchExit::failed : BatchExit::ok;
-    r.summary["exit_code"] = int(r.exit);
     if (!options.junit_path.empty()) {
         const format::Error e = format::write_text_atomically(options.junit_path, junit_xml(r));
         if (e) {
-            r.summary["errors"].push_back(e.message);
+            r.errors.push_back(e.message);
             r.input_errors.push_back(e.message);
             r.exit = BatchExit::failed;
-            r.summary["exit_code"] = int(r.exit);
         }
     }
 }
@@ -495,21 +485,43 @@ BatchResult batch(const BatchOptions& options, const ConvertProgress& progress,
     BatchResult r;
     if (!options.from_plan.empty()) {  // the plan names the inputs
         run_from_plan(options, progress, on_line, r);
-        if (r.summary.is_null()) plan_summary(r, "from_plan", options.from_plan, r);
+        if (!r.assets) planned(PlanFile::from_plan, options.from_plan, r);
         return r;
     }
     r.scenes = expand_inputs(options.inputs, r.input_errors);
     for (const std::string& e : r.input_errors) r.lines.push_back("failed   " + e);
     if (!options.ninja_path.empty()) {
         plan_ninja(options, progress, r);
-        plan_summary(r, "ninja", options.ninja_path, r);
+        planned(PlanFile::ninja, options.ninja_path, r);
     } else if (!options.plan_path.empty()) {
         write_plan(options, progress, r);
-        plan_summary(r, "plan", options.plan_path, r);
+        planned(PlanFile::plan, options.plan_path, r);
     } else {
         convert_library(options, options.convert, progress, on_line, r);
     }
     return r;
+}
+
+nlohmann::json batch_summary_json(const BatchResult& r) {
+    nlohmann::json j = {{"scenes", r.scenes},
+                        {"lines", r.lines},
+                        {"errors", r.errors},
+                        {"warnings", r.convert.warnings},
+                        {"exit_code", int(r.exit)}};
+    if (r.plan_file) {
+        static constexpr const char* kKeys[] = {"ninja", "plan", "from_plan"};
+        j[kKeys[int(r.plan_file->first)]] = r.plan_file->second;
+    }
+    if (r.assets)
+        j["assets"] = {{"lsnif", r.assets->lsnif}, {"bvh", r.assets->bvh}, {"failed", r.assets->failed}};
+    if (r.assets && r.convert.cache) {
+        const converter::CacheCounts& c = *r.convert.cache;
+        j["cache"] = {
+            {"location", c.location}, {"hits", c.hits}, {"stored", c.stored}, {"corrupt", c.corrupt}};
+    }
+    if (r.assets && r.convert.memory) j["scene_memory"] = converter::scene_memory_json(*r.convert.memory);
+    if (r.assets && !r.convert.manifest_path.empty()) j["manifest"] = r.convert.manifest_path;
+    return j;
 }
 
 std::string junit_xml(const BatchResult& r) {

@@ -214,6 +214,7 @@ using ConvertProgress = std::function<void(const ProgressEvent&)>;
 // What the cache did in a run.
 struct CacheCounts {
     std::size_t hits = 0, stored = 0, corrupt = 0;
+    std::string location;  // the cache's directory or server (cache::Cache::describe)
 };
 
 struct ConvertResult {

@@ -8,6 +8,7 @@
 #pragma once
 
 #include <lsnif/lsnif.h>
+#include <lsnif/render/object_views.hpp>
 #include <lsnif/render/render.hpp>
 #include <lsnif/render/scene.hpp>
 
@@ -16,6 +17,7 @@
 #include <array>
 #include <cstdint>
 #include <memory>
+#include <optional>
 #include <string>
 #include <utility>
 #include <vector>
@@ -40,9 +42,42 @@ struct EvalOptions : render::RenderOptions {
     float surface_tmin_voxels = 0.0f;
 };
 
+// Seconds of each trace, summed over threads, each the fastest of the timing repeats.
+struct EvalTimings {
+    double primary = 0, primary_neural = 0;  // primary rays from the meshes / through the assets
+    double secondary_reference = 0, secondary_hybrid = 0, secondary_neural = 0;
+};
+
+// What `lsnif eval` rendered and measured (docs/eval.md). eval_report_json writes it
+// (report.json, --json); eval_report_text is what the command prints.
+struct EvalReport {
+    // How it rendered.
+    render::AssetMemory memory;  // the opened assets against the BVHs they replace, their arithmetic
+    std::uint32_t width = 0, height = 0;
+    std::uint32_t ao_samples = 0;
+    float ao_radius = 0;  // AO ray length, world units
+    float surface_tmin_voxels = 0;
+    std::uint32_t timing_repeats = 0;
+    render::Camera camera;
+    render::Vec3 light{};
+    std::size_t instances = 0, lsnif_instances = 0;
+    // What it measured: the hybrid render and the all-neural one (primary rays through the
+    // assets too), each against the reference, over the frame and over their asset pixels.
+    render::Comparison hybrid, neural;
+    std::size_t lsnif_pixels = 0, neural_lsnif_pixels = 0;
+    EvalTimings timings;
+    render::SecondaryProfile reference_profile, hybrid_profile;
+    std::string images_dir;
+
+    double secondary_time_ratio() const;  // hybrid over reference secondary-ray time; 0 unmeasured
+    double neural_time_ratio() const;     // all-neural over reference, primary and secondary; 0 unmeasured
+};
+nlohmann::json eval_report_json(const EvalReport& report);
+std::string eval_report_text(const EvalReport& report);
+
 struct EvalResult {
-    nlohmann::json report;            // see schema in docs and tests; empty on failure
-    std::vector<std::string> errors;  // "<file>: <problem>"
+    std::optional<EvalReport> report;  // none on failure
+    std::vector<std::string> errors;   // "<file>: <problem>"
     bool ok() const { return errors.empty(); }
 };
 
@@ -60,6 +95,26 @@ std::unique_ptr<render::EvalScene> load_scene(const EvalOptions& opt, std::strin
 // its visual check (render::ObjectViews), through its shipped asset: the report lists each
 // object's FLIP and image files (IMAGES/objects/<asset file stem>/view<K>_{reference,hybrid,flip}.png),
 // the close-ups a report page shows. Errors as render_and_compare's.
-EvalResult render_objects(const EvalOptions& opt);
+struct ObjectImages {
+    std::string name;        // the mesh's
+    std::uint64_t mesh = 0;  // its id in the manifest
+    std::string asset;       // its asset file, relative to OUTDIR
+    render::ObjectFlip flip;
+    std::vector<std::array<std::string, 3>>
+        views;  // per view: reference, hybrid and FLIP PNG, relative to images_dir
+};
+struct ObjectsReport {
+    std::vector<ObjectImages> objects;
+    std::string images_dir;
+    std::uint32_t views = 0, width = 0, height = 0, ao_samples = 0;
+};
+nlohmann::json objects_report_json(const ObjectsReport& report);
+std::string objects_report_text(const ObjectsReport& report);
+struct ObjectsResult {
+    std::optional<ObjectsReport> report;  // none on failure
+    std::vector<std::string> errors;      // "<file>: <problem>"
+    bool ok() const { return errors.empty(); }
+};
+ObjectsResult render_objects(const EvalOptions& opt);
 
 }  // namespace lsnif::eval

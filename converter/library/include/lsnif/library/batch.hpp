@@ -75,14 +75,30 @@ nlohmann::json plan_json(const LibraryPlan& plan);
 // Strict: an error names the field ("tasks[3].key: missing").
 base::Result<LibraryPlan, std::string> plan_from_json(const nlohmann::json& j);
 
+// What a run that converted a library did with its objects.
+struct AssetCounts {
+    std::size_t lsnif = 0;   // shipped as an LSNIF asset (converted or from the cache)
+    std::size_t bvh = 0;     // stays in the BVH, with its reason
+    std::size_t failed = 0;  // meshes and inputs that failed, and errors of the run itself
+};
+// The file a run that only plans wrote (--ninja FILE, --plan FILE), or the plan it ran from.
+enum class PlanFile : std::uint8_t { ninja, plan, from_plan };
 struct BatchResult {
     std::vector<std::string> scenes;        // what the inputs expanded to, in order, duplicates removed
     std::vector<std::string> input_errors;  // inputs that expanded to nothing usable
     converter::ConvertResult convert;
-    nlohmann::json summary;          // --json: counts, cache, scene memory, every asset's line
     std::vector<std::string> lines;  // one per asset (and per failed input), for people and logs
+    // Set when the run converted a library (or took it from the cache); none when it planned.
+    std::optional<AssetCounts> assets;
+    std::optional<std::pair<PlanFile, std::string>> plan_file;  // set when the run planned: the file
+    // Every error of the run: the inputs', the conversion's and the JUnit file's, in that order.
+    std::vector<std::string> errors;
     BatchExit exit = BatchExit::ok;
 };
+
+// The `lsnif batch --json` document of a run: its scenes, asset lines and errors, the counts,
+// the cache and scene memory when it converted, or the file it planned.
+nlohmann::json batch_summary_json(const BatchResult& result);
 
 // Expands inputs as BatchOptions::inputs says. Inputs that do not exist, unreadable list
 // files and directories without scene files are reported in `errors` ("PATH: problem").
