@@ -1,6 +1,7 @@
 // Reader and writer of the .lsnif container (schema/FORMAT.md). Every check below
 // quotes the FORMAT.md section that requires it. All size arithmetic is done in 64 bits
 // after bounding each operand, so no sum or product can wrap.
+#include <lsnif/base/text.hpp>
 #include <lsnif/format/container.hpp>
 #include <lsnif/format/half.hpp>
 #include <lsnif/format/quantize.hpp>
@@ -38,12 +39,11 @@ Error make_error(lsnif_status status, std::uint64_t offset, const char* fmt, ...
     __attribute__((format(printf, 3, 4)));
 
 Error make_error(lsnif_status status, std::uint64_t offset, const char* fmt, ...) {
-    char buf[512];
     va_list ap;
     va_start(ap, fmt);
-    std::vsnprintf(buf, sizeof buf, fmt, ap);
+    std::string message = base::vprinted(fmt, ap);
     va_end(ap);
-    return Error{status, offset, buf};
+    return Error{status, offset, std::move(message)};
 }
 
 // FORMAT.md §3: CRC-32C, reflected, init ~0, final xor ~0.

@@ -3,24 +3,16 @@
 #include <lsnif/converter/convert.hpp>
 #include "convert_stages.hpp"
 
-#include <cstdarg>
-#include <cstdio>
+#include <lsnif/base/text.hpp>
 
 namespace lsnif::converter {
+
+using base::printed;
 
 using nlohmann::json;
 using namespace stages;
 
 namespace {
-
-[[gnu::format(printf, 1, 2)]] std::string printed(const char* format, ...) {
-    char buf[240];
-    va_list args;
-    va_start(args, format);
-    std::vsnprintf(buf, sizeof buf, format, args);
-    va_end(args);
-    return buf;
-}
 
 // A gate line: "visibility accuracy 82.73% < gate 95%".
 std::string gate_line(const std::string& what, double value, const char* op, double limit, const char* unit) {

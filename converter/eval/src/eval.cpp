@@ -1,14 +1,13 @@
 // `lsnif eval`: reference (Embree everywhere) and hybrid (Embree + LSNIF reader) renders of
 // a converted scene, compared with FLIP and PSNR (eval.hpp has the contract).
 #include <lsnif/base/parallel.hpp>
+#include <lsnif/base/text.hpp>
 #include <lsnif/converter/manifest.hpp>
 #include <lsnif/eval/eval.hpp>
 #include <lsnif/scene/scene.hpp>
 
 #include <algorithm>
 #include <cmath>
-#include <cstdarg>
-#include <cstdio>
 #include <filesystem>
 #include <fstream>
 
@@ -309,15 +308,6 @@ json eval_report_json(const EvalReport& r) {
 
 namespace {
 
-[[gnu::format(printf, 2, 3)]] void append(std::string& out, const char* format, ...) {
-    char buf[512];
-    va_list args;
-    va_start(args, format);
-    std::vsnprintf(buf, sizeof buf, format, args);
-    va_end(args);
-    out += buf;
-}
-
 std::string number_or(const std::optional<double>& v, const char* none) {
     return v ? std::to_string(*v) : std::string(none);
 }
@@ -326,31 +316,32 @@ std::string number_or(const std::optional<double>& v, const char* none) {
 
 std::string eval_report_text(const EvalReport& r) {
     std::string out;
-    append(out, "rendered %ux%u, %zu instances (%zu through LSNIF), images in %s\n", r.width, r.height,
-           r.instances, r.lsnif_instances, r.images_dir.c_str());
+    out += base::printed("rendered %ux%u, %zu instances (%zu through LSNIF), images in %s\n", r.width,
+                         r.height, r.instances, r.lsnif_instances, r.images_dir.c_str());
     for (int e = 0; e < kEffects; ++e) {
         const EffectComparison& c = r.hybrid.effect[e];
         const std::optional<double> on_lsnif =
             c.flip_lsnif_pixels ? std::optional<double>(c.flip_lsnif_pixels->mean) : std::nullopt;
         const std::optional<double> psnr =
             std::isfinite(c.psnr_db) ? std::optional<double>(c.psnr_db) : std::nullopt;
-        append(out, "  %-10s FLIP mean %.4f (median %.4f, p95 %.4f; on LSNIF pixels %s)  PSNR %s dB\n",
-               kEffectNames[e], c.flip.mean, c.flip.median, c.flip.p95, number_or(on_lsnif, "none").c_str(),
-               number_or(psnr, "inf").c_str());
+        out +=
+            base::printed("  %-10s FLIP mean %.4f (median %.4f, p95 %.4f; on LSNIF pixels %s)  PSNR %s dB\n",
+                          kEffectNames[e], c.flip.mean, c.flip.median, c.flip.p95,
+                          number_or(on_lsnif, "none").c_str(), number_or(psnr, "inf").c_str());
     }
-    append(out,
-           "  overall    FLIP mean %.4f (shadow, ao, reflection); %zu LSNIF pixels; secondary-ray time "
-           "hybrid/reference %.2f\n",
-           r.hybrid.flip_mean, r.lsnif_pixels, r.secondary_time_ratio());
+    out += base::printed(
+        "  overall    FLIP mean %.4f (shadow, ao, reflection); %zu LSNIF pixels; secondary-ray time "
+        "hybrid/reference %.2f\n",
+        r.hybrid.flip_mean, r.lsnif_pixels, r.secondary_time_ratio());
     const EffectComparison& nc = r.neural.effect[kCombined];
-    append(out,
-           "  all-neural (primary rays through the assets too): combined FLIP %.4f over the frame, %s over "
-           "%zu LSNIF pixels; time all-neural/reference %.2f\n",
-           nc.flip.mean,
-           number_or(nc.flip_lsnif_pixels ? std::optional<double>(nc.flip_lsnif_pixels->mean) : std::nullopt,
-                     "none")
-               .c_str(),
-           r.neural_lsnif_pixels, r.neural_time_ratio());
+    out += base::printed(
+        "  all-neural (primary rays through the assets too): combined FLIP %.4f over the frame, %s over "
+        "%zu LSNIF pixels; time all-neural/reference %.2f\n",
+        nc.flip.mean,
+        number_or(nc.flip_lsnif_pixels ? std::optional<double>(nc.flip_lsnif_pixels->mean) : std::nullopt,
+                  "none")
+            .c_str(),
+        r.neural_lsnif_pixels, r.neural_time_ratio());
     out +=
         "  secondary rays' time (seconds over all threads; hybrid = Embree on the meshes + box tests and "
         "batching "
@@ -359,8 +350,7 @@ std::string eval_report_text(const EvalReport& r) {
         const TraceProfile& ref = r.reference_profile[f];
         const TraceProfile& h = r.hybrid_profile[f];
         const double cull = std::max(0.0, h.seconds - h.embree_seconds - h.reader_seconds);
-        append(
-            out,
+        out += base::printed(
             "    %-10s reference %.3f | hybrid %.3f = %.3f + %.3f + %.3f; %llu of %llu rays to the reader in "
             "%llu calls (%.0f per call), %.1f %% of them hit\n",
             kRayFamilyNames[f], ref.seconds, h.seconds, h.embree_seconds, cull, h.reader_seconds,

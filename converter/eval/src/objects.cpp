@@ -1,5 +1,6 @@
 // `lsnif eval --objects`: every converted object alone in its held-out views, through its
 // shipped asset (eval.hpp, render_objects).
+#include <lsnif/base/text.hpp>
 #include <lsnif/converter/convert.hpp>
 #include <lsnif/converter/manifest.hpp>
 #include <lsnif/eval/eval.hpp>
@@ -120,12 +121,10 @@ nlohmann::json objects_report_json(const ObjectsReport& r) {
 
 std::string objects_report_text(const ObjectsReport& r) {
     std::string out;
-    char buf[512];
-    for (const ObjectImages& o : r.objects) {
-        std::snprintf(buf, sizeof buf, "%-24s FLIP over its pixels %.4f (p95 %.4f), over the frame %.4f\n",
-                      o.name.c_str(), o.flip.combined_object, o.flip.combined_object_p95, o.flip.combined);
-        out += buf;
-    }
+    for (const ObjectImages& o : r.objects)
+        out +=
+            base::printed("%-24s FLIP over its pixels %.4f (p95 %.4f), over the frame %.4f\n", o.name.c_str(),
+                          o.flip.combined_object, o.flip.combined_object_p95, o.flip.combined);
     out += "images in " + r.images_dir + "\n";
     return out;
 }
