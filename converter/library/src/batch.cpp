@@ -388,12 +388,17 @@ void plan_ninja(const BatchOptions& options, const ConvertProgress& progress, Ba
     r.exit = BatchExit::ok;
 }
 
+// The run's errors as BatchResult::errors lists them: the inputs', then the conversion's.
+void collect_errors(BatchResult& r) {
+    r.errors = r.input_errors;
+    r.errors.insert(r.errors.end(), r.convert.errors.begin(), r.convert.errors.end());
+}
+
 // A run that planned (--ninja, --plan FILE, or --from-plan without a task): what was
 // planned, no counts.
 void planned(PlanFile kind, const std::string& file, BatchResult& r) {
     r.plan_file = {kind, file};
-    r.errors = r.input_errors;
-    r.errors.insert(r.errors.end(), r.convert.errors.begin(), r.convert.errors.end());
+    collect_errors(r);
 }
 
 }  // namespace
@@ -465,8 +470,7 @@ void convert_library(const BatchOptions& options, ConvertOptions c, const Conver
         ++failed;
     }
     r.assets = AssetCounts{converted, bvh, failed};
-    r.errors = r.input_errors;
-    r.errors.insert(r.errors.end(), r.convert.errors.begin(), r.convert.errors.end());
+    collect_errors(r);
     r.exit = failed ? BatchExit::failed : BatchExit::ok;
     if (!options.junit_path.empty()) {
         const format::Error e = format::write_text_atomically(options.junit_path, junit_xml(r));
