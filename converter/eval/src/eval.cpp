@@ -308,8 +308,9 @@ json eval_report_json(const EvalReport& r) {
 
 namespace {
 
-std::string number_or(const std::optional<double>& v, const char* none) {
-    return v ? std::to_string(*v) : std::string(none);
+// The mean FLIP over a comparison's LSNIF pixels, or "none" when there are none.
+std::string lsnif_pixels_mean(const EffectComparison& c) {
+    return c.flip_lsnif_pixels ? std::to_string(c.flip_lsnif_pixels->mean) : std::string("none");
 }
 
 }  // namespace
@@ -320,14 +321,11 @@ std::string eval_report_text(const EvalReport& r) {
                          r.height, r.instances, r.lsnif_instances, r.images_dir.c_str());
     for (int e = 0; e < kEffects; ++e) {
         const EffectComparison& c = r.hybrid.effect[e];
-        const std::optional<double> on_lsnif =
-            c.flip_lsnif_pixels ? std::optional<double>(c.flip_lsnif_pixels->mean) : std::nullopt;
-        const std::optional<double> psnr =
-            std::isfinite(c.psnr_db) ? std::optional<double>(c.psnr_db) : std::nullopt;
+        const std::string psnr = std::isfinite(c.psnr_db) ? std::to_string(c.psnr_db) : std::string("inf");
         out +=
             base::printed("  %-10s FLIP mean %.4f (median %.4f, p95 %.4f; on LSNIF pixels %s)  PSNR %s dB\n",
                           kEffectNames[e], c.flip.mean, c.flip.median, c.flip.p95,
-                          number_or(on_lsnif, "none").c_str(), number_or(psnr, "inf").c_str());
+                          lsnif_pixels_mean(c).c_str(), psnr.c_str());
     }
     out += base::printed(
         "  overall    FLIP mean %.4f (shadow, ao, reflection); %zu LSNIF pixels; secondary-ray time "
@@ -337,11 +335,7 @@ std::string eval_report_text(const EvalReport& r) {
     out += base::printed(
         "  all-neural (primary rays through the assets too): combined FLIP %.4f over the frame, %s over "
         "%zu LSNIF pixels; time all-neural/reference %.2f\n",
-        nc.flip.mean,
-        number_or(nc.flip_lsnif_pixels ? std::optional<double>(nc.flip_lsnif_pixels->mean) : std::nullopt,
-                  "none")
-            .c_str(),
-        r.neural_lsnif_pixels, r.neural_time_ratio());
+        nc.flip.mean, lsnif_pixels_mean(nc).c_str(), r.neural_lsnif_pixels, r.neural_time_ratio());
     out +=
         "  secondary rays' time (seconds over all threads; hybrid = Embree on the meshes + box tests and "
         "batching "
