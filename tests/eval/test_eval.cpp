@@ -298,40 +298,76 @@ TEST_CASE("bench memory, rays and convert measure a real conversion against Embr
     o.threads = 2;
     o.rays = 8192;
     o.repeats = 1;
-    std::string err;
-    const json mem = bench_memory(o, err);
-    REQUIRE_MESSAGE(!mem.is_null(), err);
-    REQUIRE(mem["objects"].size() == 1);
-    const json& m = mem["objects"][0];
-    CHECK(m["triangles"] == 19994);
+    const auto mem = bench_memory(o);
+    REQUIRE_MESSAGE(mem.ok(), (mem.ok() ? "" : mem.error()));
+    REQUIRE(mem->objects.size() == 1);
+    const MemoryObject& m = mem->objects[0];
+    CHECK(m.triangles == 19994);
     // The asset's bytes as the manifest records them: the file's, and what a renderer holds
     // once it is open (the fp32 network); the ratios compare the BVHs with the latter.
     const json asset = json::parse(file_bytes(converted_dragon() / "manifest.json"))["meshes"][0]["lsnif"];
-    CHECK(m["lsnif_file_bytes"] == asset["bytes"]);
-    CHECK(m["lsnif_resident_bytes"] == asset["resident_bytes"]);
-    CHECK(m["lsnif_resident_bytes"].get<double>() > m["lsnif_file_bytes"].get<double>());
+    CHECK(m.lsnif_file_bytes == asset["bytes"].get<std::uint64_t>());
+    CHECK(m.lsnif_resident_bytes == asset["resident_bytes"].get<std::uint64_t>());
+    CHECK(m.lsnif_resident_bytes > m.lsnif_file_bytes);
     // The fp32 network holds the weights once, in fp16; a reduced arithmetic adds its packing.
-    CHECK(m["lsnif_resident_bytes_here"].get<double>() >= m["lsnif_resident_bytes"].get<double>());
-    CHECK(m["ratio_embree_over_resident"].get<double>() ==
-          doctest::Approx(m["embree_bvh_bytes"].get<double>() / m["lsnif_resident_bytes"].get<double>()));
-    CHECK(m["ratio_bvh8_over_resident"].get<double>() ==
-          doctest::Approx(m["bvh8_compressed_bytes_estimate"].get<double>() /
-                          m["lsnif_resident_bytes"].get<double>()));
-    CHECK(m["embree_bvh_bytes"].get<double>() > 100000.0);  // ~1.4 MB for 20k triangles
+    CHECK(m.lsnif_resident_bytes_here >= m.lsnif_resident_bytes);
+    CHECK(m.ratio_embree_over_resident() ==
+          doctest::Approx(double(m.embree_bvh_bytes) / double(m.lsnif_resident_bytes)));
+    CHECK(m.ratio_bvh8_over_resident() ==
+          doctest::Approx(double(m.bvh8_compressed_bytes_estimate) / double(m.lsnif_resident_bytes)));
+    CHECK(m.embree_bvh_bytes > 100000u);  // ~1.4 MB for 20k triangles
     // An 8-wide tree over 20k triangles in leaves of <= 3: at least n/3/8 inner nodes,
     // fewer than the triangle count.
-    CHECK(m["bvh8_inner_nodes"].get<double>() > 19994.0 / 24.0);
-    CHECK(m["bvh8_inner_nodes"].get<double>() < 19994.0);
-    CHECK(m["bvh8_compressed_bytes_estimate"] == 80 * m["bvh8_inner_nodes"].get<std::uint64_t>());
+    CHECK(double(m.bvh8_inner_nodes) > 19994.0 / 24.0);
+    CHECK(m.bvh8_inner_nodes < 19994u);
+    CHECK(m.bvh8_compressed_bytes_estimate == 80 * m.bvh8_inner_nodes);
+    CHECK(mem->total.lsnif_resident_bytes == m.lsnif_resident_bytes);
+    CHECK(mem->total.embree_bvh_bytes == m.embree_bvh_bytes);
+    // --json: the keys scripts/bench_table and the investigations read, with the struct's values.
+    const json mj = bench_json(*mem);
+    CHECK(mj["benchmark"] == "memory");
+    CHECK(mj["outdir"] == o.outdir);
+    CHECK(mj.contains("yardstick"));
+    REQUIRE(mj["objects"].size() == 1);
+    const json& mo = mj["objects"][0];
+    for (const char* key :
+         {"name", "triangles", "instances", "lsnif_file_bytes", "lsnif_resident_bytes",
+          "lsnif_resident_bytes_here", "arithmetic_here", "embree_bvh_bytes", "embree_device_bytes",
+          "bvh8_inner_nodes", "bvh8_leaves", "bvh8_compressed_bytes_estimate", "ratio_embree_over_resident",
+          "ratio_bvh8_over_resident", "ratio_embree_over_file"})
+        CHECK_MESSAGE(mo.contains(key), key);
+    CHECK(mo.size() == 15);
+    CHECK(mo["triangles"] == 19994);
+    CHECK(mo["lsnif_resident_bytes"] == asset["resident_bytes"]);
+    CHECK(mo["ratio_embree_over_resident"].get<double>() == m.ratio_embree_over_resident());
+    for (const char* key :
+         {"lsnif_file_bytes", "lsnif_resident_bytes", "embree_bvh_bytes", "bvh8_compressed_bytes_estimate",
+          "ratio_embree_over_resident", "ratio_bvh8_over_resident"})
+        CHECK_MESSAGE(mj["total"].contains(key), key);
+    CHECK(mj["total"].size() == 6);
 
-    const json rays = bench_rays(o, err);
-    REQUIRE_MESSAGE(!rays.is_null(), err);
-    const json& r = rays["objects"][0];
-    CHECK(r["rays"] == 8192);
-    CHECK(r["lsnif_rays_per_second"].get<double>() > 0.0);
-    CHECK(r["ratio_lsnif_over_rtcintersect1"].get<double>() > 0.0);
-    CHECK(r["hit_agreement"].get<double>() > 0.75);  // the smoke model is small
-    CHECK(bench_scene_text(rays).find("ChineseDragon-10kv") != std::string::npos);
+    const auto rays = bench_rays(o);
+    REQUIRE_MESSAGE(rays.ok(), (rays.ok() ? "" : rays.error()));
+    REQUIRE(rays->objects.size() == 1);
+    const RaysObject& r = rays->objects[0];
+    CHECK(r.rays == 8192);
+    CHECK(r.lsnif_rays_per_second > 0.0);
+    CHECK(r.ratio_lsnif_over_rtcintersect1() > 0.0);
+    CHECK(r.hit_agreement > 0.75);  // the smoke model is small
+    CHECK(bench_text(*rays).find("ChineseDragon-10kv") != std::string::npos);
+    const json rj = bench_json(*rays);
+    CHECK(rj["benchmark"] == "rays");
+    CHECK(rj["outdir"] == o.outdir);
+    REQUIRE(rj["objects"].size() == 1);
+    const json& ro = rj["objects"][0];
+    for (const char* key : {"name", "triangles", "rays", "threads", "lsnif_rays_per_second",
+                            "rtcintersect1_rays_per_second", "rtcintersect16_rays_per_second",
+                            "ratio_lsnif_over_rtcintersect1", "ratio_lsnif_over_rtcintersect16",
+                            "time_ratio_lsnif_over_rtcintersect1", "hit_agreement", "lsnif_arithmetic"})
+        CHECK_MESSAGE(ro.contains(key), key);
+    CHECK(ro.size() == 12);
+    CHECK(ro["rays"] == 8192);
+    CHECK(ro["hit_agreement"].get<double>() == r.hit_agreement);
 
     ConvertOptions c;
     c.inputs = {kDragon};
@@ -340,18 +376,33 @@ TEST_CASE("bench memory, rays and convert measure a real conversion against Embr
     c.preset = "smoke";
     c.threads = 2;
     c.force_complex = {"ChineseDragon-10kv"};
-    const json conv = bench_convert(c, err);
-    REQUIRE_MESSAGE(!conv.is_null(), err);
+    const auto conv = bench_convert(c);
+    REQUIRE_MESSAGE(conv.ok(), (conv.ok() ? "" : conv.error()));
     for (const char* stage : {"classify", "voxelize", "sample", "train", "evaluate", "write"})
-        CHECK_MESSAGE(conv["stage_totals"].contains(stage), stage);
-    CHECK(conv["run_timings"].contains("import"));
-    double sum = conv["run_timings"]["import"].get<double>();
-    for (const auto& [k, v] : conv["stage_totals"].items()) sum += v.get<double>();
-    CHECK(conv["wall_seconds"].get<double>() >= sum * 0.99);
+        CHECK_MESSAGE(conv->stage_totals.count(stage) == 1, stage);
+    double sum = conv->import_seconds;
+    for (const auto& [k, v] : conv->stage_totals) sum += v;
+    CHECK(conv->wall_seconds >= sum * 0.99);
+    const json cj = bench_json(*conv);
+    CHECK(cj["benchmark"] == "convert");
+    CHECK(cj["preset"] == "smoke");
+    CHECK(cj["threads"] == 2);
+    CHECK(cj["wall_seconds"].get<double>() == conv->wall_seconds);
+    CHECK(cj["run_timings"] == json{{"import", conv->import_seconds}});
+    CHECK(cj["stage_totals"].size() == conv->stage_totals.size());
+    for (const auto& [k, v] : conv->stage_totals) CHECK(cj["stage_totals"][k].get<double>() == v);
+    REQUIRE(cj["objects"].size() == conv->objects.size());
+    const json& co = cj["objects"][0];
+    CHECK(co["name"] == "ChineseDragon-10kv");
+    CHECK(co["class"] == "complex");
+    CHECK(co["triangles"] == 19994);
+    CHECK(co["timings"].contains("train"));
+    CHECK(co.size() == 4);
 
     o.outdir = (fs::path(LSNIF_TEST_WORK_DIR) / "no_such_conversion").string();
-    CHECK(bench_memory(o, err).is_null());
-    CHECK(err.find("manifest.json") != std::string::npos);
+    const auto missing = bench_memory(o);
+    REQUIRE(!missing.ok());
+    CHECK(missing.error().find("manifest.json") != std::string::npos);
 }
 
 namespace {

@@ -658,24 +658,24 @@ struct BenchCommand {
     int run() {
         // One meaning of --threads everywhere: 0 (the default) is every core.
         opt.threads = scene.threads = lsnif::base::resolve_threads(threads);
-        nlohmann::json report;
-        std::string err;
-        if (*train)
-            report = lsnif::eval::bench_train(opt);
-        else if (*infer)
-            report = lsnif::eval::bench_infer(opt);
-        else if (*memory)
-            report = lsnif::eval::bench_memory(scene, err);
-        else if (*rays)
-            report = lsnif::eval::bench_rays(scene, err);
-        else
-            report = lsnif::eval::bench_convert(convert_opt, err);
-        if (report.is_null()) {
-            std::fprintf(stderr, "error: %s\n", err.c_str());
-            return 1;
-        }
-        std::cout << (json ? report.dump(2) + "\n" : lsnif::eval::bench_text(report));
-        return 0;
+        // Each result through its own writers: bench_json's for --json, else bench_text's.
+        const auto print = [&](const auto& bench) {
+            std::cout << (json ? lsnif::eval::bench_json(bench).dump(2) + "\n"
+                               : lsnif::eval::bench_text(bench));
+            return 0;
+        };
+        const auto print_or_fail = [&](const auto& result) {
+            if (!result) {
+                std::fprintf(stderr, "error: %s\n", result.error().c_str());
+                return 1;
+            }
+            return print(*result);
+        };
+        if (*train) return print(lsnif::eval::bench_train(opt));
+        if (*infer) return print(lsnif::eval::bench_infer(opt));
+        if (*memory) return print_or_fail(lsnif::eval::bench_memory(scene));
+        if (*rays) return print_or_fail(lsnif::eval::bench_rays(scene));
+        return print_or_fail(lsnif::eval::bench_convert(convert_opt));
     }
 };
 

@@ -80,7 +80,7 @@ double sgemm_gflops(int n, int threads, double min_seconds) {
 }
 
 // The training-shaped product (rows x 108 -> 128) single-threaded: ours vs OpenBLAS.
-json kernel_comparison(double min_seconds) {
+DenseKernelBench kernel_comparison(double min_seconds) {
     const int rows = 4096, in = 108, out = 128;
     std::vector<float> A(std::size_t(rows) * in, 0.3f), W(std::size_t(in) * out, 0.01f), bias(out, 0.f),
         C(std::size_t(rows) * out);
@@ -101,7 +101,10 @@ json kernel_comparison(double min_seconds) {
         cblas_sgemm(CblasRowMajor, CblasNoTrans, CblasNoTrans, rows, out, in, 1.f, A.data(), in, W.data(),
                     out, 0.f, C.data(), out);
     });
-    json r = {{"shape", "4096x108 * 108x128, 1 thread"}, {"lsnif_gflops", ours}, {"openblas_gflops", blas}};
+    DenseKernelBench r{.shape = "4096x108 * 108x128, 1 thread",
+                       .lsnif_gflops = ours,
+                       .openblas_gflops = blas,
+                       .bf16 = std::nullopt};
     // The bf16 kernel on the same product (K padded to 128 as the trainer and reader pad it;
     // the FLOPs counted are the padded ones the instructions execute): this machine's bf16
     // rate on our shapes, against which the bf16 MLP fractions are read.
@@ -115,20 +118,21 @@ json kernel_comparison(double min_seconds) {
                                                    out, {bias.data(), true, false});
                           }) *
                           double(kp) / in;
-        r["bf16_shape"] = "4096x128 * 128x128 (K padded), 1 thread";
-        r["lsnif_bf16_gflops"] = bf;
+        r.bf16 = DenseKernelBench::Bf16{"4096x128 * 128x128 (K padded), 1 thread", bf};
     }
     return r;
 }
 
+const char* const kModel = "V=32 H=18 levels 64,128 T=2^17 F=3 hidden 128x128 (v1)";
+
 }  // namespace
 
-json bench_train(const BenchOptions& o) {
+TrainBench bench_train(const BenchOptions& o) {
     const format::ModelDesc d = v1_desc();
     analytic::SpheresSource src = bench_scene(d);
     std::vector<samples::Sample> raw;
     src.generate(1, 1u << 18, raw);
-    json runs = json::array();
+    TrainBench out;
     const double peak = sgemm_gflops(2048, int(o.threads), o.min_seconds);
     bool bf16_available = false;
     for (std::uint32_t b : {1u << 14, 1u << 15, 1u << 16}) {
@@ -178,26 +182,23 @@ json bench_train(const BenchOptions& o) {
             const double mlp_gflops = sps * r.tr->mlp_flops_per_sample() / 1e9;
             const bool fp32 = r.tr->mlp_precision() == trainer::MlpPrecision::fp32;
             if (fp32) fp32_sps = sps;
-            json run = {{"batch_size", b},
-                        {"precision", trainer::precision_name(r.tr->mlp_precision())},
-                        {"steps", r.steps},
-                        {"samples_per_second", sps},
-                        {"mlp_gflops", mlp_gflops},
-                        {"mlp_fraction_of_sgemm", mlp_gflops / peak},
-                        {"prepare_rays_per_second", prep_rays_per_second}};
-            if (!fp32) run["speedup_vs_fp32"] = sps / fp32_sps;
-            runs.push_back(run);
+            TrainRun run{.batch_size = b,
+                         .precision = r.tr->mlp_precision(),
+                         .steps = r.steps,
+                         .samples_per_second = sps,
+                         .mlp_gflops = mlp_gflops,
+                         .mlp_fraction_of_sgemm = mlp_gflops / peak,
+                         .prepare_rays_per_second = prep_rays_per_second,
+                         .speedup_vs_fp32 = fp32 ? std::nullopt : std::optional(sps / fp32_sps)};
+            out.runs.push_back(run);
         }
     }
-    return {{"benchmark", "train"},
-            {"model", "V=32 H=18 levels 64,128 T=2^17 F=3 hidden 128x128 (v1)"},
-            {"cpu", cpu_model()},
-            {"threads", o.threads},
-            {"bf16_available", bf16_available},
-            {"bf16_arithmetic", trainer::mlp_arithmetic(trainer::MlpPrecision::bf16)},
-            {"sgemm_gflops_openblas_2048", peak},
-            {"dense_kernel", kernel_comparison(o.min_seconds)},
-            {"runs", runs}};
+    out.machine = {kModel, cpu_model(), o.threads};
+    out.bf16_available = bf16_available;
+    out.bf16_arithmetic = trainer::mlp_arithmetic(trainer::MlpPrecision::bf16);
+    out.sgemm_gflops_openblas_2048 = peak;
+    out.dense_kernel = kernel_comparison(o.min_seconds);
+    return out;
 }
 
 namespace {
@@ -205,8 +206,8 @@ namespace {
 // Rays per second of format::intersect on `rays` with `threads` threads, repeated for at
 // least `min_seconds`, and the fractions of the rays that reached the network and that
 // occupancy culled.
-json intersect_rate(const format::Runtime& rt, const std::vector<format::Ray>& rays, std::uint32_t threads,
-                    double min_seconds) {
+IntersectRate intersect_rate(const format::Runtime& rt, const std::vector<format::Ray>& rays,
+                             std::uint32_t threads, double min_seconds) {
     std::vector<format::Hit> hits(rays.size());
     const std::uint32_t T = threads;
     const std::size_t per = (rays.size() + T - 1) / T;
@@ -225,16 +226,14 @@ json intersect_rate(const format::Runtime& rt, const std::vector<format::Ray>& r
         total += rays.size();
     } while (seconds_since(t0) < min_seconds);
     const double secs = seconds_since(t0);
-    return json{{"rays", rays.size()},
-                {"rays_per_second", double(total) / secs},
-                {"network_fraction", double(st.inferred) / double(rays.size())},
-                {"culled_fraction", double(st.culled) / double(rays.size())}};
+    return {rays.size(), double(total) / secs, double(st.inferred) / double(rays.size()),
+            double(st.culled) / double(rays.size())};
 }
 
 // The pass's stages, cumulatively, on the rays that reach the network: each rate covers
 // its stage and those before it, so 1/rate differences are per-stage costs.
-json stage_rates(const format::Runtime& rt, const std::vector<format::Ray>& reach, std::uint32_t threads,
-                 double min_seconds) {
+InferStages stage_rates(const format::Runtime& rt, const std::vector<format::Ray>& reach,
+                        std::uint32_t threads, double min_seconds) {
     constexpr std::size_t kChunk = 256;  // intersect()'s chunk
     auto rate = [&](auto&& chunk) {
         const std::uint32_t T = threads;
@@ -270,18 +269,16 @@ json stage_rates(const format::Runtime& rt, const std::vector<format::Ray>& reac
             if (status[i] == format::TraceStatus::ok) which[k++] = std::uint32_t(i);
         format::encode_batch(rt.geo, grid.data(), pts.data(), std::span(which, k), row.data());
     };
-    return json{{"walk_scalar_rays_per_second", rate(scalar_walk)},
-                {"walk_rays_per_second", rate(walk)},
-                {"walk_16_lane", format::cpu_features().avx512},
-                {"walk_encode_rays_per_second", rate(walk_encode)}};
+    // Braced initializers run in order: the scalar walk, the batched walk, walk + encode.
+    return {rate(scalar_walk), rate(walk), format::cpu_features().avx512, rate(walk_encode)};
 }
 
 // What holding the weights in fp16 costs the fp32 arithmetic: `rt` (a model's network, fp16
 // W^T widened on load) against the same runtime with the same values stored in fp32, timed in
 // turns on the rays that reach the network, and the median of the per-turn ratios (pairs
 // keep the ratio meaningful on a machine whose speed drifts).
-json weight_storage_cost(const format::Runtime& rt, const format::ModelData& model,
-                         const std::vector<format::Ray>& reach, const BenchOptions& o) {
+WeightStorageCost weight_storage_cost(const format::Runtime& rt, const format::ModelData& model,
+                                      const std::vector<format::Ray>& reach, const BenchOptions& o) {
     format::Runtime fp32_stored = rt;
     std::vector<std::vector<float>> w, b;
     for (std::size_t k = 0; k < model.weights.size(); ++k) {
@@ -293,20 +290,17 @@ json weight_storage_cost(const format::Runtime& rt, const format::ModelData& mod
     std::vector<double> ratios;
     double fp16_rate = 0, fp32_rate = 0;
     for (int t = 0; t < kTurns; ++t) {
-        fp16_rate = intersect_rate(rt, reach, o.threads, o.min_seconds / kTurns)["rays_per_second"];
-        fp32_rate = intersect_rate(fp32_stored, reach, o.threads, o.min_seconds / kTurns)["rays_per_second"];
+        fp16_rate = intersect_rate(rt, reach, o.threads, o.min_seconds / kTurns).rays_per_second;
+        fp32_rate = intersect_rate(fp32_stored, reach, o.threads, o.min_seconds / kTurns).rays_per_second;
         ratios.push_back(fp16_rate / fp32_rate);
     }
     std::sort(ratios.begin(), ratios.end());
-    return {{"turns", kTurns},
-            {"median_speed_ratio_fp16_over_fp32_storage", ratios[kTurns / 2]},
-            {"runtime_bytes_fp16_storage", rt.heap_bytes()},
-            {"runtime_bytes_fp32_storage", fp32_stored.heap_bytes()}};
+    return {kTurns, ratios[kTurns / 2], rt.heap_bytes(), fp32_stored.heap_bytes()};
 }
 
 }  // namespace
 
-json bench_infer(const BenchOptions& o) {
+InferBench bench_infer(const BenchOptions& o) {
     const format::ModelDesc d = v1_desc();
     analytic::SpheresSource src = bench_scene(d);
     trainer::TrainConfig cfg;
@@ -327,109 +321,182 @@ json bench_infer(const BenchOptions& o) {
     // bf16 hidden layers (AVX-512 BF16) and int8 ones (AVX-512 VNNI, what lsnif_open picks
     // there).
     const format::Runtime rt32 = format::make_runtime(model, format::MlpArithmetic::fp32);
-    json r = {{"benchmark", "infer"},
-              {"model", "V=32 H=18 levels 64,128 T=2^17 F=3 hidden 128x128 (v1)"},
-              {"cpu", cpu_model()},
-              {"threads", o.threads},
-              {"through_network", run(rt32, reach)},
-              {"mixed_with_early_out", run(rt32, mix)},
-              {"stages", stage_rates(rt32, reach, o.threads, o.min_seconds)}};
-    r["fp16_weight_storage"] = weight_storage_cost(rt32, model, reach, o);
+    InferBench r;
+    r.machine = {kModel, cpu_model(), o.threads};
+    r.fp32 = {run(rt32, reach), run(rt32, mix)};
+    r.stages = stage_rates(rt32, reach, o.threads, o.min_seconds);
+    r.fp16_weight_storage = weight_storage_cost(rt32, model, reach, o);
     const format::Runtime rt16 = format::make_runtime(model, format::MlpArithmetic::bf16);
     if (format::mlp_arithmetic(rt16.net) == format::MlpArithmetic::bf16)
-        r["bf16"] = {{"through_network", run(rt16, reach)}, {"mixed_with_early_out", run(rt16, mix)}};
+        r.bf16 = InferRates{run(rt16, reach), run(rt16, mix)};
     const format::Runtime rt8 = format::make_runtime(model, format::MlpArithmetic::int8);
     if (format::mlp_arithmetic(rt8.net) == format::MlpArithmetic::int8)
-        r["int8"] = {{"through_network", run(rt8, reach)}, {"mixed_with_early_out", run(rt8, mix)}};
+        r.int8 = InferRates{run(rt8, reach), run(rt8, mix)};
     return r;
 }
 
-std::string bench_text(const json& r) {
-    if (r["benchmark"] == "memory" || r["benchmark"] == "rays" || r["benchmark"] == "convert")
-        return bench_scene_text(r);
+namespace {
+
+json machine_json(const BenchMachine& m) {
+    return {{"model", m.model}, {"cpu", m.cpu}, {"threads", m.threads}};
+}
+
+json kernel_json(const DenseKernelBench& k) {
+    json j = {{"shape", k.shape}, {"lsnif_gflops", k.lsnif_gflops}, {"openblas_gflops", k.openblas_gflops}};
+    if (k.bf16) {
+        j["bf16_shape"] = k.bf16->shape;
+        j["lsnif_bf16_gflops"] = k.bf16->lsnif_gflops;
+    }
+    return j;
+}
+
+json run_json(const TrainRun& r) {
+    json j = {{"batch_size", r.batch_size},
+              {"precision", trainer::precision_name(r.precision)},
+              {"steps", r.steps},
+              {"samples_per_second", r.samples_per_second},
+              {"mlp_gflops", r.mlp_gflops},
+              {"mlp_fraction_of_sgemm", r.mlp_fraction_of_sgemm},
+              {"prepare_rays_per_second", r.prepare_rays_per_second}};
+    if (r.speedup_vs_fp32) j["speedup_vs_fp32"] = *r.speedup_vs_fp32;
+    return j;
+}
+
+json rate_json(const IntersectRate& r) {
+    return {{"rays", r.rays},
+            {"rays_per_second", r.rays_per_second},
+            {"network_fraction", r.network_fraction},
+            {"culled_fraction", r.culled_fraction}};
+}
+
+json rates_json(const InferRates& r) {
+    return {{"through_network", rate_json(r.through_network)},
+            {"mixed_with_early_out", rate_json(r.mixed_with_early_out)}};
+}
+
+json stages_json(const InferStages& s) {
+    return {{"walk_scalar_rays_per_second", s.walk_scalar_rays_per_second},
+            {"walk_rays_per_second", s.walk_rays_per_second},
+            {"walk_16_lane", s.walk_16_lane},
+            {"walk_encode_rays_per_second", s.walk_encode_rays_per_second}};
+}
+
+json storage_json(const WeightStorageCost& w) {
+    return {{"turns", w.turns},
+            {"median_speed_ratio_fp16_over_fp32_storage", w.median_speed_ratio_fp16_over_fp32_storage},
+            {"runtime_bytes_fp16_storage", w.runtime_bytes_fp16_storage},
+            {"runtime_bytes_fp32_storage", w.runtime_bytes_fp32_storage}};
+}
+
+std::string machine_text(const BenchMachine& m) {
+    return "cpu: " + m.cpu + ", threads " + std::to_string(int(m.threads)) + "\nmodel: " + m.model + "\n";
+}
+
+}  // namespace
+
+json bench_json(const TrainBench& b) {
+    json j = machine_json(b.machine);
+    j["benchmark"] = "train";
+    j["bf16_available"] = b.bf16_available;
+    j["bf16_arithmetic"] = b.bf16_arithmetic;
+    j["sgemm_gflops_openblas_2048"] = b.sgemm_gflops_openblas_2048;
+    j["dense_kernel"] = kernel_json(b.dense_kernel);
+    j["runs"] = json::array();
+    for (const TrainRun& r : b.runs) j["runs"].push_back(run_json(r));
+    return j;
+}
+
+json bench_json(const InferBench& b) {
+    json j = machine_json(b.machine);
+    j["benchmark"] = "infer";
+    // The fp32 figures at the top level: the reference the reduced arithmetics are read against.
+    j.update(rates_json(b.fp32));
+    j["stages"] = stages_json(b.stages);
+    j["fp16_weight_storage"] = storage_json(b.fp16_weight_storage);
+    if (b.bf16) j["bf16"] = rates_json(*b.bf16);
+    if (b.int8) j["int8"] = rates_json(*b.int8);
+    return j;
+}
+
+std::string bench_text(const TrainBench& r) {
     char buf[512];
-    std::string s = "cpu: " + r["cpu"].get<std::string>() + ", threads " +
-                    std::to_string(r["threads"].get<int>()) + "\nmodel: " + r["model"].get<std::string>() +
-                    "\n";
-    if (r["benchmark"] == "train") {
-        std::snprintf(buf, sizeof buf, "OpenBLAS sgemm 2048^3: %.1f GFLOP/s\n",
-                      r["sgemm_gflops_openblas_2048"].get<double>());
-        s += buf;
-        const json& k = r["dense_kernel"];
-        std::snprintf(buf, sizeof buf, "dense kernel %s: lsnif %.1f GFLOP/s, OpenBLAS %.1f GFLOP/s\n",
-                      k["shape"].get<std::string>().c_str(), k["lsnif_gflops"].get<double>(),
-                      k["openblas_gflops"].get<double>());
-        s += buf;
-        if (k.contains("lsnif_bf16_gflops")) {
-            std::snprintf(buf, sizeof buf, "bf16 kernel %s: lsnif %.1f GFLOP/s\n",
-                          k["bf16_shape"].get<std::string>().c_str(), k["lsnif_bf16_gflops"].get<double>());
-            s += buf;
-        }
-        if (!r["bf16_available"].get<bool>())
-            s += "bf16 MLP products: neither AMX nor AVX-512 BF16 on this machine, fp32 only\n";
-        else
-            s += "bf16 MLP products on " + r["bf16_arithmetic"].get<std::string>().substr(5) + "\n";
-        for (const json& x : r["runs"]) {
-            std::snprintf(buf, sizeof buf,
-                          "batch %6d %-4s: %10.0f samples/s, MLP %.1f GFLOP/s (%.0f%% of sgemm); ray "
-                          "preparation %.0f rays/s",
-                          x["batch_size"].get<int>(), x["precision"].get<std::string>().c_str(),
-                          x["samples_per_second"].get<double>(), x["mlp_gflops"].get<double>(),
-                          100 * x["mlp_fraction_of_sgemm"].get<double>(),
-                          x["prepare_rays_per_second"].get<double>());
-            s += buf;
-            if (x.contains("speedup_vs_fp32")) {
-                std::snprintf(buf, sizeof buf, "; %.2fx fp32", x["speedup_vs_fp32"].get<double>());
-                s += buf;
-            }
-            s += "\n";
-        }
-    } else {
-        for (const char* key : {"through_network", "mixed_with_early_out"}) {
-            const json& x = r[key];
-            std::snprintf(buf, sizeof buf, "%-22s fp32 %10.0f rays/s (%.0f%% reach the network)", key,
-                          x["rays_per_second"].get<double>(), 100 * x["network_fraction"].get<double>());
-            s += buf;
-            for (const char* a : {"bf16", "int8"})
-                if (r.contains(a)) {
-                    const double b = r[a][key]["rays_per_second"].get<double>();
-                    std::snprintf(buf, sizeof buf, "; %s %10.0f rays/s (%.2fx)", a, b,
-                                  b / x["rays_per_second"].get<double>());
-                    s += buf;
-                }
-            s += "\n";
-        }
-        const json& st = r["stages"];
-        const double T = r["threads"].get<int>();
-        const double walk1 = st["walk_scalar_rays_per_second"].get<double>(),
-                     walk = st["walk_rays_per_second"].get<double>(),
-                     enc = st["walk_encode_rays_per_second"].get<double>();
-        // The MLP + decode stage of each reduced arithmetic measured (fp32 where none was).
-        std::string mlp;
-        const auto stage = [&](const json& through, const char* name) {
-            const double ns = 1e9 * T * (1 / through["rays_per_second"].get<double>() - 1 / enc);
-            mlp += (mlp.empty() ? "" : ", ") + std::to_string(int(std::lround(ns))) + " (" + name + ")";
-        };
-        for (const char* a : {"bf16", "int8"})
-            if (r.contains(a)) stage(r[a]["through_network"], a);
-        if (mlp.empty()) stage(r["through_network"], "fp32");
-        std::snprintf(
-            buf, sizeof buf,
-            "stages, thread-ns per ray reaching the network: walk %.0f (%s; scalar walk %.0f, %.2fx), "
-            "encode %.0f, MLP + decode %s\n",
-            1e9 * T / walk, st["walk_16_lane"].get<bool>() ? "16 lanes" : "scalar", 1e9 * T / walk1,
-            walk / walk1, 1e9 * T * (1 / enc - 1 / walk), mlp.c_str());
-        s += buf;
-        const json& ws = r["fp16_weight_storage"];
-        std::snprintf(
-            buf, sizeof buf,
-            "fp32 arithmetic on fp16-stored weights: %.3fx the speed of fp32-stored ones (median of "
-            "%d turns), runtime %.0f KiB against %.0f KiB\n",
-            ws["median_speed_ratio_fp16_over_fp32_storage"].get<double>(), ws["turns"].get<int>(),
-            ws["runtime_bytes_fp16_storage"].get<double>() / 1024,
-            ws["runtime_bytes_fp32_storage"].get<double>() / 1024);
+    std::string s = machine_text(r.machine);
+    std::snprintf(buf, sizeof buf, "OpenBLAS sgemm 2048^3: %.1f GFLOP/s\n", r.sgemm_gflops_openblas_2048);
+    s += buf;
+    const DenseKernelBench& k = r.dense_kernel;
+    std::snprintf(buf, sizeof buf, "dense kernel %s: lsnif %.1f GFLOP/s, OpenBLAS %.1f GFLOP/s\n",
+                  k.shape.c_str(), k.lsnif_gflops, k.openblas_gflops);
+    s += buf;
+    if (k.bf16) {
+        std::snprintf(buf, sizeof buf, "bf16 kernel %s: lsnif %.1f GFLOP/s\n", k.bf16->shape.c_str(),
+                      k.bf16->lsnif_gflops);
         s += buf;
     }
+    if (!r.bf16_available)
+        s += "bf16 MLP products: neither AMX nor AVX-512 BF16 on this machine, fp32 only\n";
+    else
+        s += "bf16 MLP products on " + r.bf16_arithmetic.substr(5) + "\n";
+    for (const TrainRun& x : r.runs) {
+        std::snprintf(buf, sizeof buf,
+                      "batch %6d %-4s: %10.0f samples/s, MLP %.1f GFLOP/s (%.0f%% of sgemm); ray "
+                      "preparation %.0f rays/s",
+                      int(x.batch_size), trainer::precision_name(x.precision), x.samples_per_second,
+                      x.mlp_gflops, 100 * x.mlp_fraction_of_sgemm, x.prepare_rays_per_second);
+        s += buf;
+        if (x.speedup_vs_fp32) {
+            std::snprintf(buf, sizeof buf, "; %.2fx fp32", *x.speedup_vs_fp32);
+            s += buf;
+        }
+        s += "\n";
+    }
+    return s;
+}
+
+std::string bench_text(const InferBench& r) {
+    char buf[512];
+    std::string s = machine_text(r.machine);
+    const std::pair<const char*, const std::optional<InferRates>*> reduced[] = {{"bf16", &r.bf16},
+                                                                                {"int8", &r.int8}};
+    for (const auto& [key, set] : {std::pair{"through_network", &InferRates::through_network},
+                                   std::pair{"mixed_with_early_out", &InferRates::mixed_with_early_out}}) {
+        const IntersectRate& x = r.fp32.*set;
+        std::snprintf(buf, sizeof buf, "%-22s fp32 %10.0f rays/s (%.0f%% reach the network)", key,
+                      x.rays_per_second, 100 * x.network_fraction);
+        s += buf;
+        for (const auto& [a, rates] : reduced)
+            if (*rates) {
+                const double b = ((**rates).*set).rays_per_second;
+                std::snprintf(buf, sizeof buf, "; %s %10.0f rays/s (%.2fx)", a, b, b / x.rays_per_second);
+                s += buf;
+            }
+        s += "\n";
+    }
+    const InferStages& st = r.stages;
+    const double T = int(r.machine.threads);
+    const double walk1 = st.walk_scalar_rays_per_second, walk = st.walk_rays_per_second,
+                 enc = st.walk_encode_rays_per_second;
+    // The MLP + decode stage of each reduced arithmetic measured (fp32 where none was).
+    std::string mlp;
+    const auto stage = [&](const IntersectRate& through, const char* name) {
+        const double ns = 1e9 * T * (1 / through.rays_per_second - 1 / enc);
+        mlp += (mlp.empty() ? "" : ", ") + std::to_string(int(std::lround(ns))) + " (" + name + ")";
+    };
+    for (const auto& [a, rates] : reduced)
+        if (*rates) stage((*rates)->through_network, a);
+    if (mlp.empty()) stage(r.fp32.through_network, "fp32");
+    std::snprintf(buf, sizeof buf,
+                  "stages, thread-ns per ray reaching the network: walk %.0f (%s; scalar walk %.0f, %.2fx), "
+                  "encode %.0f, MLP + decode %s\n",
+                  1e9 * T / walk, st.walk_16_lane ? "16 lanes" : "scalar", 1e9 * T / walk1, walk / walk1,
+                  1e9 * T * (1 / enc - 1 / walk), mlp.c_str());
+    s += buf;
+    const WeightStorageCost& ws = r.fp16_weight_storage;
+    std::snprintf(buf, sizeof buf,
+                  "fp32 arithmetic on fp16-stored weights: %.3fx the speed of fp32-stored ones (median of "
+                  "%d turns), runtime %.0f KiB against %.0f KiB\n",
+                  ws.median_speed_ratio_fp16_over_fp32_storage, ws.turns,
+                  double(ws.runtime_bytes_fp16_storage) / 1024, double(ws.runtime_bytes_fp32_storage) / 1024);
+    s += buf;
     return s;
 }
 

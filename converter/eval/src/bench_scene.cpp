@@ -101,6 +101,11 @@ bool load_objects(const SceneBenchOptions& opt, Loaded& out, std::string& error)
     return true;
 }
 
+// BVH bytes over an asset's; an asset of 0 bytes counts as 1.
+double bytes_ratio(std::uint64_t bvh, std::uint64_t asset) {
+    return double(bvh) / double(std::max<std::uint64_t>(1, asset));
+}
+
 std::unique_ptr<sampling::EmbreeSource> make_source(const Object& o, std::uint32_t threads,
                                                     std::string& error) {
     sampling::MeshView v{o.mesh.positions, o.mesh.indices, o.mesh.normals, o.mesh.triangle_materials};
@@ -111,27 +116,39 @@ std::unique_ptr<sampling::EmbreeSource> make_source(const Object& o, std::uint32
 
 }  // namespace
 
-json bench_memory(const SceneBenchOptions& opt, std::string& error) {
+double MemoryBytes::ratio_embree_over_resident() const {
+    return bytes_ratio(embree_bvh_bytes, lsnif_resident_bytes);
+}
+double MemoryBytes::ratio_bvh8_over_resident() const {
+    return bytes_ratio(bvh8_compressed_bytes_estimate, lsnif_resident_bytes);
+}
+double MemoryBytes::ratio_embree_over_file() const {
+    return bytes_ratio(embree_bvh_bytes, lsnif_file_bytes);
+}
+
+double RaysObject::ratio_lsnif_over_rtcintersect1() const {
+    return lsnif_rays_per_second / rtcintersect1_rays_per_second;
+}
+double RaysObject::ratio_lsnif_over_rtcintersect16() const {
+    return lsnif_rays_per_second / rtcintersect16_rays_per_second;
+}
+double RaysObject::time_ratio_lsnif_over_rtcintersect1() const {
+    return rtcintersect1_rays_per_second / lsnif_rays_per_second;
+}
+
+base::Result<MemoryBench, std::string> bench_memory(const SceneBenchOptions& opt) {
     Loaded l;
-    if (!load_objects(opt, l, error)) return {};
-    json objects = json::array();
-    std::uint64_t total_file = 0, total_resident = 0, total_bvh = 0, total_bvh8 = 0;
-    auto ratio = [](std::uint64_t bvh, std::uint64_t asset) {
-        return double(bvh) / double(std::max<std::uint64_t>(1, asset));
-    };
+    std::string error;
+    if (!load_objects(opt, l, error)) return error;
+    MemoryBench out;
+    out.outdir = opt.outdir;
     for (const Object& o : l.objects) {
         auto src = make_source(o, opt.threads, error);
-        if (!src) {
-            error = o.name + ": " + error;
-            return {};
-        }
+        if (!src) return o.name + ": " + error;
         const sampling::MeshView view{o.mesh.positions, o.mesh.indices, o.mesh.normals,
                                       o.mesh.triangle_materials};
         const auto bvh8 = sampling::measure_compressed_bvh(view, error);
-        if (!bvh8) {
-            error = o.name + ": " + error;
-            return {};
-        }
+        if (!bvh8) return o.name + ": " + error;
         // What the renderer holds on this CPU (the arithmetic opened with), and with the fp32
         // network, the same on every CPU and the least (what conversion counts).
         lsnif_info here{}, fp32{};
@@ -140,51 +157,37 @@ json bench_memory(const SceneBenchOptions& opt, std::string& error) {
         lsnif_set_arithmetic(o.model, LSNIF_ARITHMETIC_FP32, nullptr);
         lsnif_get_info(o.model, &fp32);
         lsnif_set_arithmetic(o.model, chosen, nullptr);
-        const std::uint64_t resident = fp32.decoded_bytes;
-        total_file += o.lsnif_bytes;
-        total_resident += resident;
-        total_bvh += src->bvh_bytes();
-        total_bvh8 += bvh8->bytes();
-        objects.push_back({{"name", o.name},
-                           {"triangles", o.mesh.triangle_count()},
-                           {"instances", o.instances},
-                           {"lsnif_file_bytes", o.lsnif_bytes},
-                           {"lsnif_resident_bytes", resident},
-                           {"lsnif_resident_bytes_here", here.decoded_bytes},
-                           {"arithmetic_here", lsnif_arithmetic_string(chosen)},
-                           {"embree_bvh_bytes", src->bvh_bytes()},
-                           {"embree_device_bytes", src->device_bytes()},
-                           {"bvh8_inner_nodes", bvh8->inner_nodes},
-                           {"bvh8_leaves", bvh8->leaves},
-                           {"bvh8_compressed_bytes_estimate", bvh8->bytes()},
-                           {"ratio_embree_over_resident", ratio(src->bvh_bytes(), resident)},
-                           {"ratio_bvh8_over_resident", ratio(bvh8->bytes(), resident)},
-                           {"ratio_embree_over_file", ratio(src->bvh_bytes(), o.lsnif_bytes)}});
+        MemoryObject m;
+        m.name = o.name;
+        m.triangles = o.mesh.triangle_count();
+        m.instances = o.instances;
+        m.lsnif_file_bytes = o.lsnif_bytes;
+        m.lsnif_resident_bytes = fp32.decoded_bytes;
+        m.lsnif_resident_bytes_here = here.decoded_bytes;
+        m.arithmetic_here = lsnif_arithmetic_string(chosen);
+        m.embree_bvh_bytes = src->bvh_bytes();
+        m.embree_device_bytes = src->device_bytes();
+        m.bvh8_inner_nodes = bvh8->inner_nodes;
+        m.bvh8_leaves = bvh8->leaves;
+        m.bvh8_compressed_bytes_estimate = bvh8->bytes();
+        out.total.lsnif_file_bytes += m.lsnif_file_bytes;
+        out.total.lsnif_resident_bytes += m.lsnif_resident_bytes;
+        out.total.embree_bvh_bytes += m.embree_bvh_bytes;
+        out.total.bvh8_compressed_bytes_estimate += m.bvh8_compressed_bytes_estimate;
+        out.objects.push_back(std::move(m));
     }
-    return {
-        {"benchmark", "memory"},
-        {"outdir", opt.outdir},
-        {"yardstick", "resident: lsnif_info.decoded_bytes with the fp32 network (the most any CPU holds)"},
-        {"objects", objects},
-        {"total",
-         {{"lsnif_file_bytes", total_file},
-          {"lsnif_resident_bytes", total_resident},
-          {"embree_bvh_bytes", total_bvh},
-          {"bvh8_compressed_bytes_estimate", total_bvh8},
-          {"ratio_embree_over_resident", ratio(total_bvh, total_resident)},
-          {"ratio_bvh8_over_resident", ratio(total_bvh8, total_resident)}}}};
+    return out;
 }
 
-json bench_rays(const SceneBenchOptions& opt, std::string& error) {
+base::Result<RaysBench, std::string> bench_rays(const SceneBenchOptions& opt) {
     Loaded l;
-    if (!load_objects(opt, l, error)) return {};
-    json objects = json::array();
+    std::string error;
+    if (!load_objects(opt, l, error)) return error;
+    RaysBench out;
+    out.outdir = opt.outdir;
     for (const Object& o : l.objects) {
         auto src = make_source(o, opt.threads, error);
-        if (!src) {
-            error = o.name + ": " + error;
-            return {};
-        }
+        if (!src) return o.name + ": " + error;
         // Embree: rtcIntersect1 loop and rtcIntersect16 packets over the rays generate()
         // makes (all three families, a quarter shadow rays), best of `repeats`.
         const sampling::GenerationStats g =
@@ -211,97 +214,170 @@ json bench_rays(const SceneBenchOptions& opt, std::string& error) {
         std::size_t agree = 0;
         for (std::size_t i = 0; i < rays.size(); ++i) agree += (hits[i].hit != 0) == (samples[i].hit != 0);
         const double lsnif_rps = double(rays.size()) / best;
-        objects.push_back(
-            {{"name", o.name},
-             {"triangles", o.mesh.triangle_count()},
-             {"rays", rays.size()},
-             {"threads", opt.threads},
-             {"lsnif_rays_per_second", lsnif_rps},
-             {"rtcintersect1_rays_per_second", g.plain_rtcintersect_rays_per_second},
-             {"rtcintersect16_rays_per_second", g.packet_rays_per_second},
-             {"ratio_lsnif_over_rtcintersect1", lsnif_rps / g.plain_rtcintersect_rays_per_second},
-             {"ratio_lsnif_over_rtcintersect16", lsnif_rps / g.packet_rays_per_second},
-             {"time_ratio_lsnif_over_rtcintersect1", g.plain_rtcintersect_rays_per_second / lsnif_rps},
-             {"hit_agreement", double(agree) / double(rays.size())},
-             {"lsnif_arithmetic", lsnif_arithmetic_string(lsnif_get_arithmetic(o.model))}});
+        RaysObject x;
+        x.name = o.name;
+        x.triangles = o.mesh.triangle_count();
+        x.rays = rays.size();
+        x.threads = opt.threads;
+        x.lsnif_rays_per_second = lsnif_rps;
+        x.rtcintersect1_rays_per_second = g.plain_rtcintersect_rays_per_second;
+        x.rtcintersect16_rays_per_second = g.packet_rays_per_second;
+        x.hit_agreement = double(agree) / double(rays.size());
+        x.lsnif_arithmetic = lsnif_arithmetic_string(lsnif_get_arithmetic(o.model));
+        out.objects.push_back(std::move(x));
     }
-    return {{"benchmark", "rays"}, {"outdir", opt.outdir}, {"objects", objects}};
+    return out;
 }
 
-json bench_convert(const ConvertOptions& copt, std::string& error) {
+base::Result<ConvertBench, std::string> bench_convert(const ConvertOptions& copt) {
     ConvertOptions o = copt;
     const auto t0 = Clock::now();
     const ConvertResult r = converter::convert(o);
     const double wall = seconds_since(t0);
-    if (!r.ok()) {
-        error = r.errors.empty() ? "conversion failed" : r.errors[0];
-        return {};
-    }
-    json objects = json::array();
-    std::map<std::string, double> totals;
+    if (!r.ok()) return r.errors.empty() ? std::string("conversion failed") : r.errors[0];
+    ConvertBench out;
+    out.preset = o.preset;
+    out.threads = o.threads;
+    out.wall_seconds = wall;
+    out.import_seconds = r.import_seconds;
     for (const MeshOutcome& m : r.meshes) {
-        json t = json::object();
-        for (std::size_t k = 0; k < converter::kStageCount; ++k) {
-            const std::optional<double>& seconds = m.timings.seconds[k];
-            if (!seconds) continue;
-            const std::string stage(converter::stage_name(Stage(k)));
-            t[stage] = *seconds;
-            totals[stage] += *seconds;
-        }
-        objects.push_back(
-            {{"name", m.name}, {"class", class_name(m.cls())}, {"triangles", m.triangles}, {"timings", t}});
+        for (std::size_t k = 0; k < converter::kStageCount; ++k)
+            if (const std::optional<double>& seconds = m.timings.seconds[k])
+                out.stage_totals[std::string(converter::stage_name(Stage(k)))] += *seconds;
+        out.objects.push_back({m.name, m.cls(), m.triangles, m.timings});
     }
-    json out = {{"benchmark", "convert"}, {"preset", o.preset}, {"threads", o.threads},
-                {"wall_seconds", wall},   {"objects", objects}, {"stage_totals", totals}};
-    out["run_timings"] = {{"import", r.import_seconds}};
     return out;
 }
 
-std::string bench_scene_text(const json& r) {
+namespace {
+
+json memory_bytes_json(const MemoryBytes& b) {
+    return {{"lsnif_file_bytes", b.lsnif_file_bytes},
+            {"lsnif_resident_bytes", b.lsnif_resident_bytes},
+            {"embree_bvh_bytes", b.embree_bvh_bytes},
+            {"bvh8_compressed_bytes_estimate", b.bvh8_compressed_bytes_estimate},
+            {"ratio_embree_over_resident", b.ratio_embree_over_resident()},
+            {"ratio_bvh8_over_resident", b.ratio_bvh8_over_resident()}};
+}
+
+json memory_object_json(const MemoryObject& m) {
+    json j = memory_bytes_json(m);
+    j.update({{"name", m.name},
+              {"triangles", m.triangles},
+              {"instances", m.instances},
+              {"lsnif_resident_bytes_here", m.lsnif_resident_bytes_here},
+              {"arithmetic_here", m.arithmetic_here},
+              {"embree_device_bytes", m.embree_device_bytes},
+              {"bvh8_inner_nodes", m.bvh8_inner_nodes},
+              {"bvh8_leaves", m.bvh8_leaves},
+              {"ratio_embree_over_file", m.ratio_embree_over_file()}});
+    return j;
+}
+
+json rays_object_json(const RaysObject& x) {
+    return {{"name", x.name},
+            {"triangles", x.triangles},
+            {"rays", x.rays},
+            {"threads", x.threads},
+            {"lsnif_rays_per_second", x.lsnif_rays_per_second},
+            {"rtcintersect1_rays_per_second", x.rtcintersect1_rays_per_second},
+            {"rtcintersect16_rays_per_second", x.rtcintersect16_rays_per_second},
+            {"ratio_lsnif_over_rtcintersect1", x.ratio_lsnif_over_rtcintersect1()},
+            {"ratio_lsnif_over_rtcintersect16", x.ratio_lsnif_over_rtcintersect16()},
+            {"time_ratio_lsnif_over_rtcintersect1", x.time_ratio_lsnif_over_rtcintersect1()},
+            {"hit_agreement", x.hit_agreement},
+            {"lsnif_arithmetic", x.lsnif_arithmetic}};
+}
+
+// A stage that did not run is absent, as in the manifest's `timings`.
+json timings_json(const converter::Timings& t) {
+    json j = json::object();
+    for (std::size_t k = 0; k < converter::kStageCount; ++k)
+        if (t.seconds[k]) j[std::string(converter::stage_name(Stage(k)))] = *t.seconds[k];
+    return j;
+}
+
+json convert_object_json(const ConvertObject& m) {
+    return {{"name", m.name},
+            {"class", converter::class_name(m.cls)},
+            {"triangles", m.triangles},
+            {"timings", timings_json(m.timings)}};
+}
+
+}  // namespace
+
+json bench_json(const MemoryBench& b) {
+    json objects = json::array();
+    for (const MemoryObject& m : b.objects) objects.push_back(memory_object_json(m));
+    return {
+        {"benchmark", "memory"},
+        {"outdir", b.outdir},
+        {"yardstick", "resident: lsnif_info.decoded_bytes with the fp32 network (the most any CPU holds)"},
+        {"objects", objects},
+        {"total", memory_bytes_json(b.total)}};
+}
+
+json bench_json(const RaysBench& b) {
+    json objects = json::array();
+    for (const RaysObject& x : b.objects) objects.push_back(rays_object_json(x));
+    return {{"benchmark", "rays"}, {"outdir", b.outdir}, {"objects", objects}};
+}
+
+json bench_json(const ConvertBench& b) {
+    json objects = json::array();
+    for (const ConvertObject& m : b.objects) objects.push_back(convert_object_json(m));
+    return {{"benchmark", "convert"},
+            {"preset", b.preset},
+            {"threads", b.threads},
+            {"wall_seconds", b.wall_seconds},
+            {"objects", objects},
+            {"stage_totals", b.stage_totals},
+            {"run_timings", {{"import", b.import_seconds}}}};
+}
+
+std::string bench_text(const MemoryBench& r) {
     char buf[640];
-    std::string s;
-    if (r["benchmark"] == "memory") {
-        s += "Assets as a renderer holds them once open (fp32 network: the most any CPU holds), against\n"
-             "Embree's BVH as built and an 8-wide compressed BVH (80 bytes per inner node)\n";
-        s += "object                      triangles  held in memory   file bytes  Embree BVH (ratio)        "
-             "compressed BVH (ratio)\n";
-        for (const json& o : r["objects"]) {
-            std::snprintf(buf, sizeof buf, "%-26s %10llu %15llu %12llu %13llu (%6.2fx) %15llu (%6.2fx)\n",
-                          o["name"].get<std::string>().c_str(), o["triangles"].get<unsigned long long>(),
-                          o["lsnif_resident_bytes"].get<unsigned long long>(),
-                          o["lsnif_file_bytes"].get<unsigned long long>(),
-                          o["embree_bvh_bytes"].get<unsigned long long>(),
-                          o["ratio_embree_over_resident"].get<double>(),
-                          o["bvh8_compressed_bytes_estimate"].get<unsigned long long>(),
-                          o["ratio_bvh8_over_resident"].get<double>());
-            s += buf;
-        }
-    } else if (r["benchmark"] == "rays") {
-        s += "object                      rays     LSNIF rays/s  rtcIntersect1 rays/s (LSNIF ratio)  "
-             "rtcIntersect16 (ratio)  hit agreement\n";
-        for (const json& o : r["objects"]) {
-            std::snprintf(
-                buf, sizeof buf, "%-26s %8llu %12.0f %20.0f (%5.2fx) %16.0f (%5.2fx) %8.2f%%\n",
-                o["name"].get<std::string>().c_str(), o["rays"].get<unsigned long long>(),
-                o["lsnif_rays_per_second"].get<double>(), o["rtcintersect1_rays_per_second"].get<double>(),
-                o["ratio_lsnif_over_rtcintersect1"].get<double>(),
-                o["rtcintersect16_rays_per_second"].get<double>(),
-                o["ratio_lsnif_over_rtcintersect16"].get<double>(), 100 * o["hit_agreement"].get<double>());
-            s += buf;
-        }
-    } else {
-        std::snprintf(buf, sizeof buf, "preset %s, wall %.2f s\n", r["preset"].get<std::string>().c_str(),
-                      r["wall_seconds"].get<double>());
+    std::string s =
+        "Assets as a renderer holds them once open (fp32 network: the most any CPU holds), against\n"
+        "Embree's BVH as built and an 8-wide compressed BVH (80 bytes per inner node)\n";
+    s += "object                      triangles  held in memory   file bytes  Embree BVH (ratio)        "
+         "compressed BVH (ratio)\n";
+    for (const MemoryObject& o : r.objects) {
+        std::snprintf(buf, sizeof buf, "%-26s %10llu %15llu %12llu %13llu (%6.2fx) %15llu (%6.2fx)\n",
+                      o.name.c_str(), (unsigned long long)o.triangles,
+                      (unsigned long long)o.lsnif_resident_bytes, (unsigned long long)o.lsnif_file_bytes,
+                      (unsigned long long)o.embree_bvh_bytes, o.ratio_embree_over_resident(),
+                      (unsigned long long)o.bvh8_compressed_bytes_estimate, o.ratio_bvh8_over_resident());
         s += buf;
-        if (r.contains("run_timings"))
-            for (const auto& [k, v] : r["run_timings"].items()) {
-                std::snprintf(buf, sizeof buf, "  %-10s %8.3f s\n", k.c_str(), v.get<double>());
-                s += buf;
-            }
-        for (const auto& [k, v] : r["stage_totals"].items()) {
-            std::snprintf(buf, sizeof buf, "  %-10s %8.3f s (all objects)\n", k.c_str(), v.get<double>());
-            s += buf;
-        }
+    }
+    return s;
+}
+
+std::string bench_text(const RaysBench& r) {
+    char buf[640];
+    std::string s =
+        "object                      rays     LSNIF rays/s  rtcIntersect1 rays/s (LSNIF ratio)  "
+        "rtcIntersect16 (ratio)  hit agreement\n";
+    for (const RaysObject& o : r.objects) {
+        std::snprintf(buf, sizeof buf, "%-26s %8llu %12.0f %20.0f (%5.2fx) %16.0f (%5.2fx) %8.2f%%\n",
+                      o.name.c_str(), (unsigned long long)o.rays, o.lsnif_rays_per_second,
+                      o.rtcintersect1_rays_per_second, o.ratio_lsnif_over_rtcintersect1(),
+                      o.rtcintersect16_rays_per_second, o.ratio_lsnif_over_rtcintersect16(),
+                      100 * o.hit_agreement);
+        s += buf;
+    }
+    return s;
+}
+
+std::string bench_text(const ConvertBench& r) {
+    char buf[640];
+    std::snprintf(buf, sizeof buf, "preset %s, wall %.2f s\n", r.preset.c_str(), r.wall_seconds);
+    std::string s = buf;
+    std::snprintf(buf, sizeof buf, "  %-10s %8.3f s\n", "import", r.import_seconds);
+    s += buf;
+    for (const auto& [k, v] : r.stage_totals) {
+        std::snprintf(buf, sizeof buf, "  %-10s %8.3f s (all objects)\n", k.c_str(), v);
+        s += buf;
     }
     return s;
 }
