@@ -45,7 +45,9 @@ PY
 python3 -c "
 import json, sys
 s = json.load(open(sys.argv[1]))
-assert s['errors'] == [] and s['meshes'] >= 3 and s['manifest'].endswith('merged/manifest.json'), s" "$work/merge.json" \
+assert s['errors'] == [] and s['meshes'] >= 3 and s['manifest'].endswith('merged/manifest.json'), s
+m = json.load(open(s['manifest']))
+assert s['scene_memory'] == m['scene_memory'] and s['scene_memory']['after'] > 0, (s, m['scene_memory'])" "$work/merge.json" \
   || bad "merge --json: $(cat "$work/merge.json")"
 "$lsnif" batch "${inputs[@]}" -o "$work/single" --cache "$work/cache_single" "${settings[@]}" >/dev/null 2>&1 \
   || bad "single run exited $?"

@@ -107,22 +107,64 @@ TEST_CASE("metadata must agree with the binary descriptor") {
 
 TEST_CASE("inspect reports sections, model and metadata; keeps the table of a damaged file") {
     auto bytes = load(data_dir() / "valid" / "unknown_optional_section.lsnif");
-    json r = inspect_bytes(bytes, "x");
-    REQUIRE(r.contains("model"));
-    CHECK(r["sections"].size() == 6);
-    CHECK(r["sections"][5]["tag"] == "XTRA");
-    CHECK(r["sections"][5]["known"] == false);
-    CHECK(r["model"]["input_width"] == 2 * 1 * 2);
-    CHECK(r["metadata"]["format"] == "lsnif-metadata/1");
-    CHECK_FALSE(r.contains("error"));
+    InspectReport r = inspect_bytes(bytes, "x");
+    REQUIRE(r.model);
+    REQUIRE(r.sections.size() == 6);
+    CHECK(std::string(r.sections[5].tag) == "XTRA");
+    CHECK_FALSE(r.sections[5].known);
+    CHECK(r.model->info.input_width == 2 * 1 * 2);
+    REQUIRE(r.metadata);
+    CHECK((*r.metadata)["format"] == "lsnif-metadata/1");
+    CHECK(r.ok());
     const std::string text = inspect_text(r);
     CHECK(text.find("XTRA") != std::string::npos);
     CHECK(text.find("unknown, skipped") != std::string::npos);
+    // The JSON writer carries the same facts under the documented keys.
+    const json j = inspect_json(r);
+    CHECK(j["sections"][5]["tag"] == "XTRA");
+    CHECK(j["sections"][5]["known"] == false);
+    CHECK(j["model"]["input_width"] == 2 * 1 * 2);
+    CHECK(j["model"]["grid"]["encoding"] == "fp16");
+    CHECK_FALSE(j["model"]["grid"].contains("levels"));
+    CHECK(j["memory"]["file_bytes"] == bytes.size());
+    CHECK(j["metadata"]["format"] == "lsnif-metadata/1");
+    CHECK_FALSE(j.contains("error"));
 
-    bytes[r["sections"][3]["offset"].get<std::size_t>()] ^= 4;
+    bytes[r.sections[3].offset] ^= 4;
     r = inspect_bytes(bytes, "x");
-    CHECK(r.contains("error"));
-    CHECK(r["sections"][3]["checksum"] == "mismatch");
-    CHECK(r["sections"][2]["checksum"] == "ok");
-    CHECK_FALSE(r.contains("model"));
+    REQUIRE(r.error);
+    CHECK_FALSE(r.ok());
+    REQUIRE(r.sections.size() == 6);
+    CHECK_FALSE(r.sections[3].checksum_ok);
+    CHECK(r.sections[2].checksum_ok);
+    CHECK_FALSE(r.model);
+    const json damaged = inspect_json(r);
+    CHECK(damaged["sections"][3]["checksum"] == "mismatch");
+    CHECK(damaged["error"]["message"] == r.error->message);
+    CHECK_FALSE(damaged.contains("model"));
+    CHECK(inspect_text(r).find("  error: " + r.error->message) != std::string::npos);
+}
+
+TEST_CASE("a quantized grid's dequantization pairs reach validate and inspect alike") {
+    const auto bytes = load(data_dir() / "valid" / "quantized_u8.lsnif");
+    const ValidationReport v = validate_bytes(bytes, "q");
+    REQUIRE(v.valid());
+    REQUIRE(v.grid);
+    CHECK(v.grid->quantized);
+    CHECK(v.grid->encoding == "u8_affine");
+    const InspectReport r = inspect_bytes(bytes, "q");
+    REQUIRE(r.model);
+    REQUIRE(v.grid->levels.size() == r.model->info.level_count);
+    REQUIRE(r.model->grid.levels.size() == r.model->info.level_count);
+    for (std::size_t l = 0; l < v.grid->levels.size(); ++l) {
+        CHECK(v.grid->levels[l].scale > 0);
+        CHECK(v.grid->levels[l].scale == r.model->grid.levels[l].scale);
+        CHECK(v.grid->levels[l].offset == r.model->grid.levels[l].offset);
+    }
+    CHECK(v.to_text().find("q: ok\n  format ") == 0);
+    CHECK(v.to_text().find(", grid u8_affine: level 0 scale ") != std::string::npos);
+    const json j = v.to_json();
+    REQUIRE(j["grid"]["levels"].size() == v.grid->levels.size());
+    CHECK(j["grid"]["levels"][0]["scale"].get<float>() == v.grid->levels[0].scale);
+    CHECK(inspect_json(r)["model"]["grid"] == j["grid"]);
 }

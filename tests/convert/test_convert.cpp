@@ -119,7 +119,8 @@ TEST_CASE("scene.gltf keeps a glTF input whole and tags exactly its converted me
     const fs::path out = fresh_dir("gltf_kept");
     const ConvertResult r = convert(smoke({LSNIF_EXAMPLE_SCENE_GLB}, out));
     REQUIRE_MESSAGE(r.ok(), (r.errors.empty() ? "" : r.errors[0]));
-    REQUIRE(r.report.contains("gltf"));
+    REQUIRE_FALSE(r.gltf_path.empty());
+    CHECK(convert_report_json(r)["gltf"] == r.gltf_path);
     check_scene_gltf(out, r.manifest, {LSNIF_EXAMPLE_SCENE_GLB});
     // Kept whole: the nodes, names and materials of the input, its binary chunk as scene.bin.
     std::ifstream f(out / "scene.gltf");
@@ -381,10 +382,11 @@ TEST_CASE("the model is sized to the mesh: tables shrink until the asset, held i
     o.dry_run = true;
     const ConvertResult r = convert(o);
     REQUIRE_MESSAGE(r.ok(), (r.errors.empty() ? "" : r.errors[0]));
-    CHECK(r.report["dry_run"] == true);
+    const json report = convert_report_json(r);
+    CHECK(report["dry_run"] == true);
     CHECK_FALSE(fs::exists(out));  // a plan writes nothing
-    REQUIRE(r.report["meshes"].size() == 2);
-    for (const json& m : r.report["meshes"]) {
+    REQUIRE(report["meshes"].size() == 2);
+    for (const json& m : report["meshes"]) {
         INFO(m.dump());
         REQUIRE(m["class"] == "complex");
         const json& st = m["stats"];
@@ -407,20 +409,24 @@ TEST_CASE("the model is sized to the mesh: tables shrink until the asset, held i
     // Held in memory, the 20k-triangle dragon's Embree BVH (1.41 MB) is more than twice a
     // 2^17 model (0.67 MB) but less than twice a 2^18 one (1.06 MB); the 52k-triangle
     // armadillo's (3.65 MB) is more than twice a 2^18 one's.
-    CHECK(r.report["meshes"][0]["stats"]["log2_table_size"] == 17);
-    CHECK(r.report["meshes"][1]["stats"]["log2_table_size"] == 18);
+    CHECK(report["meshes"][0]["stats"]["log2_table_size"] == 17);
+    CHECK(report["meshes"][1]["stats"]["log2_table_size"] == 18);
     // --complex keeps the preset's model.
     o.force_complex = {"ChineseDragon-10kv"};
     const ConvertResult f = convert(o);
     REQUIRE(f.ok());
-    CHECK(f.report["meshes"][0]["stats"]["log2_table_size"] == 18);
+    REQUIRE(f.meshes[0].stats);
+    CHECK(f.meshes[0].stats->log2_table_size == 18);
     // On the compressed yardstick (0.30 MB for the dragon) no table size halves the memory.
     o.force_complex.clear();
     o.bvh_yardstick = BvhYardstick::compressed;
     const ConvertResult c = convert(o);
     REQUIRE(c.ok());
-    CHECK(c.report["scene_memory"]["yardstick"] == "compressed");
-    const json& dragon = c.report["meshes"][0];
+    REQUIRE(c.memory);
+    CHECK(c.memory->yardstick == BvhYardstick::compressed);
+    const json compressed = convert_report_json(c);
+    CHECK(compressed["scene_memory"]["yardstick"] == "compressed");
+    const json& dragon = compressed["meshes"][0];
     CHECK(dragon["decision"] == "no_memory_benefit");
     CHECK(dragon["memory"]["before"] == dragon["stats"]["bvh"]["compressed"]);
     CHECK(dragon["reasons"][0].get<std::string>().find("compressed BVH") != std::string::npos);
@@ -488,49 +494,54 @@ TEST_CASE("--memory-budget (dry run): most bytes saved per asset byte first, unt
     o.preset = "default";
     o.dry_run = true;
     const ConvertResult all = convert(o);
+    const json all_report = convert_report_json(all);
     REQUIRE_MESSAGE(all.ok(), (all.errors.empty() ? "" : all.errors[0]));
-    check_memory_accounting(all.report);
-    const json& plan = all.report["meshes"];
+    check_memory_accounting(all_report);
+    const json& plan = all_report["meshes"];
     REQUIRE(plan.size() == 2);
     for (const json& m : plan) REQUIRE(m["class"] == "complex");
-    CHECK_FALSE(all.report["scene_memory"].contains("budget"));
-    CHECK(all.report["scene_memory"]["estimated"] == true);
-    const std::uint64_t before = all.report["scene_memory"]["before"].get<std::uint64_t>();
+    CHECK_FALSE(all_report["scene_memory"].contains("budget"));
+    CHECK(all_report["scene_memory"]["estimated"] == true);
+    const std::uint64_t before = all_report["scene_memory"]["before"].get<std::uint64_t>();
     const std::size_t first = saving_per_byte(plan[0]) > saving_per_byte(plan[1]) ? 0 : 1;
 
     // Just under the scene's BVHs: converting the best saver is enough; the other stays BVH.
     o.memory_budget = before - 1;
     const ConvertResult one = convert(o);
+    const json one_report = convert_report_json(one);
     REQUIRE(one.ok());
-    check_memory_accounting(one.report);
-    const json& m = one.report["meshes"];
+    check_memory_accounting(one_report);
+    const json& m = one_report["meshes"];
     CHECK(m[first]["class"] == "complex");
     CHECK(m[1 - first]["class"] == "simple");
     CHECK(has_reason(m[1 - first], "fits the memory budget without it"));
-    CHECK(one.report["scene_memory"]["budget"] == before - 1);
-    CHECK(one.report["scene_memory"]["fits"] == true);
+    CHECK(one_report["scene_memory"]["budget"] == before - 1);
+    CHECK(one_report["scene_memory"]["fits"] == true);
     CHECK(one.warnings.empty());
 
     // A budget the BVHs already fit: nothing converted.
     o.memory_budget = before;
     const ConvertResult none = convert(o);
+    const json none_report = convert_report_json(none);
     REQUIRE(none.ok());
-    for (const json& n : none.report["meshes"]) CHECK(n["class"] == "simple");
-    CHECK(none.report["scene_memory"]["after"] == before);
+    for (const json& n : none_report["meshes"]) CHECK(n["class"] == "simple");
+    CHECK(none_report["scene_memory"]["after"] == before);
     // ... unless forced: --complex converts whatever the budget.
     o.force_complex = {plan[1 - first]["name"].get<std::string>()};
     const ConvertResult forced = convert(o);
+    const json forced_report = convert_report_json(forced);
     REQUIRE(forced.ok());
-    CHECK(forced.report["meshes"][1 - first]["class"] == "complex");
-    CHECK(forced.report["meshes"][first]["class"] == "simple");
+    CHECK(forced_report["meshes"][1 - first]["class"] == "complex");
+    CHECK(forced_report["meshes"][first]["class"] == "simple");
     o.force_complex.clear();
 
     // A budget no conversion reaches: everything converted, a warning, not an error.
     o.memory_budget = 1000;
     const ConvertResult over = convert(o);
+    const json over_report = convert_report_json(over);
     REQUIRE(over.ok());
-    for (const json& n : over.report["meshes"]) CHECK(n["class"] == "complex");
-    CHECK(over.report["scene_memory"]["fits"] == false);
+    for (const json& n : over_report["meshes"]) CHECK(n["class"] == "complex");
+    CHECK(over_report["scene_memory"]["fits"] == false);
     REQUIRE(over.warnings.size() == 1);
     CHECK(over.warnings[0].find("over the memory budget of 1000 bytes") != std::string::npos);
 }
@@ -540,17 +551,19 @@ TEST_CASE("--memory-budget: the manifest records the budget and the scene's real
     ConvertOptions o = smoke({kDragon, std::string(LSNIF_TEST_MESH_DIR) + "/armadillo.off"}, out);
     o.dry_run = true;
     const ConvertResult plan = convert(o);
+    const json plan_report = convert_report_json(plan);
     REQUIRE(plan.ok());
-    const std::uint64_t before = plan.report["scene_memory"]["before"].get<std::uint64_t>();
+    const std::uint64_t before = plan_report["scene_memory"]["before"].get<std::uint64_t>();
     o.dry_run = false;
     o.memory_budget = before - 1;
     const ConvertResult r = convert(o);
+    const json r_report = convert_report_json(r);
     REQUIRE_MESSAGE(r.ok(), (r.errors.empty() ? "" : r.errors[0]));
     CHECK_MESSAGE(violations(manifest_schema(), r.manifest).empty(),
                   violations(manifest_schema(), r.manifest));
     check_memory_accounting(r.manifest);
     CHECK(r.manifest["settings"]["memory_budget"] == before - 1);
-    CHECK(r.manifest["scene_memory"] == r.report["scene_memory"]);
+    CHECK(r.manifest["scene_memory"] == r_report["scene_memory"]);
     CHECK_FALSE(r.manifest["scene_memory"].contains("estimated"));
     // One mesh converted (the first in the budget's order), the other left as BVH: one asset.
     std::size_t assets = 0, left = 0;
@@ -575,15 +588,17 @@ TEST_CASE("--cache: a warm run converts nothing; damaged entries are rebuilt; se
     ConvertOptions o = smoke(inputs, fresh_dir("cache_cold"));
     o.cache = cache.string();
     const ConvertResult cold = convert(o);
+    const json cold_report = convert_report_json(cold);
     REQUIRE_MESSAGE(cold.ok(), (cold.errors.empty() ? "" : cold.errors[0]));
-    CHECK(cold.report["cache"]["stored"] == 2);
-    CHECK(cold.report["cache"]["hits"] == 0);
+    CHECK(cold_report["cache"]["stored"] == 2);
+    CHECK(cold_report["cache"]["hits"] == 0);
 
     o.outdir = fresh_dir("cache_warm").string();
     const ConvertResult warm = convert(o);
+    const json warm_report = convert_report_json(warm);
     REQUIRE(warm.ok());
-    CHECK(warm.report["cache"]["hits"] == 2);
-    CHECK(warm.report["cache"]["stored"] == 0);
+    CHECK(warm_report["cache"]["hits"] == 2);
+    CHECK(warm_report["cache"]["stored"] == 0);
     CHECK(warm.warnings.empty());
     // The same manifest but for "reused" and the timings (a warm run records its own stages:
     // classification, voxelization, writing; cache entries hold no timings), and the same
@@ -596,7 +611,7 @@ TEST_CASE("--cache: a warm run converts nothing; damaged entries are rebuilt; se
         CHECK_FALSE(b["meshes"][i]["timings"].contains("train"));
         const std::string file = a["meshes"][i]["lsnif"]["file"];
         CHECK(read_bytes(fs::path(o.outdir) / file) ==
-              read_bytes(fs::path(cold.report["manifest"].get<std::string>()).parent_path() / file));
+              read_bytes(fs::path(cold_report["manifest"].get<std::string>()).parent_path() / file));
         for (json* m : {&a["meshes"][i], &b["meshes"][i]}) {
             (*m)["lsnif"].erase("reused");
             m->erase("timings");
@@ -622,26 +637,28 @@ TEST_CASE("--cache: a warm run converts nothing; damaged entries are rebuilt; se
     fs::resize_file(entries[1], fs::file_size(entries[1]) / 2);
     o.outdir = fresh_dir("cache_damaged").string();
     const ConvertResult damaged = convert(o);
+    const json damaged_report = convert_report_json(damaged);
     REQUIRE(damaged.ok());
-    CHECK(damaged.report["cache"]["corrupt"] == 2);
-    CHECK(damaged.report["cache"]["stored"] == 2);
+    CHECK(damaged_report["cache"]["corrupt"] == 2);
+    CHECK(damaged_report["cache"]["stored"] == 2);
     REQUIRE(damaged.warnings.size() == 2);
     for (const auto& w : damaged.warnings) CHECK_MESSAGE(w.find("corrupt cache entry") == 0, w);
     for (std::size_t i = 0; i < 2; ++i) {
         const std::string file = a["meshes"][i]["lsnif"]["file"];
         CHECK(read_bytes(fs::path(o.outdir) / file) ==
-              read_bytes(fs::path(cold.report["manifest"].get<std::string>()).parent_path() / file));
+              read_bytes(fs::path(cold_report["manifest"].get<std::string>()).parent_path() / file));
     }
     o.outdir = fresh_dir("cache_after").string();
-    CHECK(convert(o).report["cache"]["hits"] == 2);
+    CHECK(convert_report_json(convert(o))["cache"]["hits"] == 2);
 
     // Another seed is another result: nothing found.
     o.seed = 8;
     o.outdir = fresh_dir("cache_seed").string();
     const ConvertResult other = convert(o);
+    const json other_report = convert_report_json(other);
     REQUIRE(other.ok());
-    CHECK(other.report["cache"]["hits"] == 0);
-    CHECK(other.report["cache"]["stored"] == 2);
+    CHECK(other_report["cache"]["hits"] == 0);
+    CHECK(other_report["cache"]["stored"] == 2);
 }
 
 TEST_CASE("2CylinderEngine converts: all meshes and 67 instances in the manifest and scene.gltf") {
@@ -654,9 +671,10 @@ TEST_CASE("2CylinderEngine converts: all meshes and 67 instances in the manifest
     // after the plan all the same, so that it keeps its time budget whatever the rule decides.
     o.dry_run = true;
     const ConvertResult plan = convert(o);
+    const json plan_report = convert_report_json(plan);
     REQUIRE_MESSAGE(plan.ok(), (plan.errors.empty() ? "" : plan.errors[0]));
     std::size_t candidates = 0;
-    for (const auto& m : plan.report["meshes"]) {
+    for (const auto& m : plan_report["meshes"]) {
         candidates += m["class"] == "complex";
         o.force_simple.push_back(m["name"].get<std::string>());
     }
@@ -664,7 +682,7 @@ TEST_CASE("2CylinderEngine converts: all meshes and 67 instances in the manifest
     // A budget below the BVHs of the meshes that stay BVH in any case: a usage error
     // before anything is trained or written.
     std::uint64_t simple_bytes = 0;
-    for (const auto& m : plan.report["meshes"])
+    for (const auto& m : plan_report["meshes"])
         if (m["class"] == "simple") simple_bytes += m["memory"]["before"].get<std::uint64_t>();
     REQUIRE(simple_bytes > 0);
     // (Embree's multi-threaded builder varies a BVH's bytes a little from build to build.)

@@ -393,7 +393,8 @@ TEST_CASE("reusable_metrics: an asset is reused only when it is intact and was w
     o.gate_min_visibility = 0;
     const ConvertResult r = convert(o);
     REQUIRE_MESSAGE(r.ok(), (r.errors.empty() ? "" : r.errors[0]));
-    const json& m = r.report["meshes"][0];
+    const json report = convert_report_json(r);
+    const json& m = report["meshes"][0];
     REQUIRE(m["class"] == "complex");
     const fs::path asset = dir / m["lsnif"]["file"].get<std::string>();
     REQUIRE(fs::exists(asset));

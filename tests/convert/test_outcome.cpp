@@ -262,4 +262,26 @@ TEST_CASE("inputs and the scene's memory: records and sums") {
           json{{"yardstick", "compressed"}, {"before", 150}, {"after", 60}, {"budget", 40}, {"fits", false}});
     CHECK(scene_memory_json(scene_memory(meshes, BvhYardstick::embree, 0, true)) ==
           json{{"yardstick", "embree"}, {"before", 150}, {"after", 60}, {"estimated", true}});
+
+    // Read back (lsnif merge sums a library's again on the settings its shards recorded).
+    for (const SceneMemory& written : {m, scene_memory(meshes, BvhYardstick::embree, 0, true),
+                                       scene_memory(meshes, BvhYardstick::embree, 0, false)}) {
+        const auto read = scene_memory_from_json(scene_memory_json(written));
+        REQUIRE_MESSAGE(read.ok(), read.error());
+        CHECK(read->yardstick == written.yardstick);
+        CHECK(read->before == written.before);
+        CHECK(read->after == written.after);
+        CHECK(read->budget == written.budget);
+        CHECK(read->estimated == written.estimated);
+    }
+    json unknown = scene_memory_json(m);
+    unknown["yardstick"] = "bvh4";
+    CHECK(scene_memory_from_json(unknown).error() == "yardstick: not a BVH yardstick: bvh4");
+    json no_fits = scene_memory_json(m);
+    no_fits.erase("fits");
+    CHECK(scene_memory_from_json(no_fits).error() == "fits: goes with budget, and only with it");
+    json negative = scene_memory_json(m);
+    negative["after"] = -1;
+    CHECK(scene_memory_from_json(negative).error() == "after: not a whole number in range");
+    CHECK(scene_memory_from_json(json()).error() == "not an object");
 }

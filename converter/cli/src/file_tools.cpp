@@ -3,6 +3,7 @@
 #include <lsnif/converter/json_schema.hpp>
 #include <lsnif/converter/metadata_names.hpp>
 
+#include <algorithm>
 #include <cinttypes>
 #include <cstdio>
 #include <fstream>
@@ -28,30 +29,26 @@ Problem problem_from(const lsnif_error& e) {
     return {lsnif_status_string(e.status), e.offset, e.message};
 }
 
-// The grid encoding and, for a quantized grid, each level's dequantization pair
-// (FORMAT.md §6.4.1) as the C API hands it to a GPU uploader.
-json grid_json(const lsnif_model* model, const lsnif_info& info) {
-    json g = {{"encoding", grid_encoding_name(info.grid_encoding)}};
-    if (info.grid_encoding != LSNIF_GRID_U8_AFFINE) return g;
-    json levels = json::array();
+GridInfo grid_info(const lsnif_model* model, const lsnif_info& info) {
+    GridInfo g{grid_encoding_name(info.grid_encoding), info.grid_encoding == LSNIF_GRID_U8_AFFINE, {}};
+    if (!g.quantized) return g;
     for (std::uint32_t l = 0; l < info.level_count; ++l) {
         lsnif_array a{};
         if (lsnif_get_array(model, LSNIF_ARRAY_GRID_DEQUANT, l, &a) != LSNIF_OK) break;
         const float* p = static_cast<const float*>(a.data);
-        levels.push_back({{"scale", p[0]}, {"offset", p[1]}});
+        g.levels.push_back({p[0], p[1]});
     }
-    g["levels"] = levels;
     return g;
 }
 
-std::string grid_text(const json& g) {
-    std::string out = g["encoding"].get<std::string>();
-    if (!g.contains("levels")) return out;
-    for (std::size_t l = 0; l < g["levels"].size(); ++l) {
+std::string grid_text(const GridInfo& g) {
+    std::string out = g.encoding;
+    if (!g.quantized) return out;
+    for (std::size_t l = 0; l < g.levels.size(); ++l) {
         char buf[96];
         // %.9g round-trips a float exactly.
         std::snprintf(buf, sizeof buf, "%s level %zu scale %.9g offset %.9g", l ? ";" : ":", l,
-                      g["levels"][l]["scale"].get<double>(), g["levels"][l]["offset"].get<double>());
+                      double(g.levels[l].scale), double(g.levels[l].offset));
         out += buf;
     }
     return out;
@@ -63,7 +60,21 @@ std::uint32_t ray_inputs_of(const lsnif_model* model) {
     return bits;
 }
 
-json info_json(const lsnif_model* model, const lsnif_info& info) {
+double occupied_fraction(const lsnif_info& info) {
+    const double v = info.grid_resolution;
+    return double(info.occupied_voxels) / (v * v * v);
+}
+
+const char* compression_name(const lsnif_section_info& s) {
+    return s.compression == LSNIF_COMPRESSION_ZSTD ? "zstd" : "none";
+}
+
+double compression_ratio(const lsnif_section_info& s) {
+    return s.stored_size ? double(s.raw_size) / double(s.stored_size) : 1.0;
+}
+
+json model_json(const InspectModel& m) {
+    const lsnif_info& info = m.info;
     json levels = json::array();
     for (std::uint32_t l = 0; l < info.level_count; ++l)
         levels.push_back({{"resolution", info.level_resolution[l]},
@@ -71,43 +82,61 @@ json info_json(const lsnif_model* model, const lsnif_info& info) {
                           {"indexing", info.level_dense[l] ? "dense" : "hashed"}});
     json hidden = json::array();
     for (std::uint32_t k = 0; k < info.hidden_layer_count; ++k) hidden.push_back(info.hidden_width[k]);
-    return {
-        {"grid_resolution", info.grid_resolution},
-        {"occupied_voxels", info.occupied_voxels},
-        {"occupied_fraction", double(info.occupied_voxels) / (double(info.grid_resolution) *
-                                                              info.grid_resolution * info.grid_resolution)},
-        {"max_points", info.max_points},
-        {"features_per_level", info.features_per_level},
-        {"log2_table_size", info.log2_table_size},
-        {"levels", levels},
-        {"hash_primes", {info.hash_primes[0], info.hash_primes[1], info.hash_primes[2]}},
-        {"input_width", info.input_width},
-        {"ray_inputs", ray_inputs_name(ray_inputs_of(model))},
-        {"hidden_widths", hidden},
-        {"grid", grid_json(model, info)},
-        {"output_count", info.output_count},
-        {"material_count", info.material_count},
-        {"activation", "relu"},
-        {"distance_encoding", distance_encoding_name(info.distance_encoding)},
-        {"box_min", {info.box_min[0], info.box_min[1], info.box_min[2]}},
-        {"box_max", {info.box_max[0], info.box_max[1], info.box_max[2]}},
-        {"parameter_count", info.parameter_count},
-        {"decoded_bytes", info.decoded_bytes}};
+    return {{"grid_resolution", info.grid_resolution},
+            {"occupied_voxels", info.occupied_voxels},
+            {"occupied_fraction", occupied_fraction(info)},
+            {"max_points", info.max_points},
+            {"features_per_level", info.features_per_level},
+            {"log2_table_size", info.log2_table_size},
+            {"levels", levels},
+            {"hash_primes", {info.hash_primes[0], info.hash_primes[1], info.hash_primes[2]}},
+            {"input_width", info.input_width},
+            {"ray_inputs", ray_inputs_name(m.ray_inputs)},
+            {"hidden_widths", hidden},
+            {"grid", grid_info_json(m.grid)},
+            {"output_count", info.output_count},
+            {"material_count", info.material_count},
+            {"activation", "relu"},
+            {"distance_encoding", distance_encoding_name(info.distance_encoding)},
+            {"box_min", {info.box_min[0], info.box_min[1], info.box_min[2]}},
+            {"box_max", {info.box_max[0], info.box_max[1], info.box_max[2]}},
+            {"parameter_count", info.parameter_count},
+            {"decoded_bytes", info.decoded_bytes}};
 }
 
-// What a renderer holds with this asset open: on this CPU, in the arithmetic lsnif_open
-// chose, and with the fp32 network, which every CPU runs and which holds the least (the figure
-// conversion's rules count); beside the file. Leaves `model` in fp32.
-json memory_json(lsnif_model* model, const lsnif_info& opened) {
+// Leaves `model` in fp32.
+InspectMemory memory_of(lsnif_model* model, const lsnif_info& opened) {
     const lsnif_arithmetic chosen = lsnif_get_arithmetic(model);
     lsnif_info fp32{};
     if (lsnif_set_arithmetic(model, LSNIF_ARITHMETIC_FP32, nullptr) != LSNIF_OK ||
         lsnif_get_info(model, &fp32) != LSNIF_OK)
         fp32 = opened;
-    return {{"file_bytes", opened.file_size},
-            {"resident_bytes", opened.decoded_bytes},
-            {"arithmetic", lsnif_arithmetic_string(chosen)},
-            {"resident_bytes_fp32", fp32.decoded_bytes}};
+    return {opened.file_size, opened.decoded_bytes, fp32.decoded_bytes, lsnif_arithmetic_string(chosen)};
+}
+
+json memory_json(const InspectMemory& m) {
+    return {{"file_bytes", m.file_bytes},
+            {"resident_bytes", m.resident_bytes},
+            {"arithmetic", m.arithmetic},
+            {"resident_bytes_fp32", m.resident_bytes_fp32}};
+}
+
+json section_json(const lsnif_section_info& s) {
+    return {{"tag", s.tag},
+            {"known", bool(s.known)},
+            {"required", bool(s.flags & LSNIF_SECTION_REQUIRED)},
+            {"compression", compression_name(s)},
+            {"offset", s.offset},
+            {"stored_size", s.stored_size},
+            {"raw_size", s.raw_size},
+            {"compression_ratio", compression_ratio(s)},
+            {"stored_crc32c", s.stored_crc32c},
+            {"raw_crc32c", s.raw_crc32c},
+            {"checksum", s.checksum_ok ? "ok" : "mismatch"}};
+}
+
+std::string version_of(const lsnif_header_info& h) {
+    return std::to_string(h.version_major) + "." + std::to_string(h.version_minor);
 }
 
 std::string fmt_bytes(std::uint64_t n) {
@@ -122,6 +151,15 @@ std::string fmt_bytes(std::uint64_t n) {
 }
 
 }  // namespace
+
+json grid_info_json(const GridInfo& grid) {
+    json g = {{"encoding", grid.encoding}};
+    if (!grid.quantized) return g;
+    json levels = json::array();
+    for (const GridDequant& l : grid.levels) levels.push_back({{"scale", l.scale}, {"offset", l.offset}});
+    g["levels"] = levels;
+    return g;
+}
 
 std::vector<std::string> metadata_consistency(const json& meta, const lsnif_info& info,
                                               std::uint32_t ray_inputs) {
@@ -205,7 +243,7 @@ ValidationReport validate_bytes(std::span<const std::uint8_t> bytes, const std::
     lsnif_info info{};
     lsnif_get_info(model.get(), &info);
     r.version = std::to_string(info.version_major) + "." + std::to_string(info.version_minor);
-    r.grid = grid_json(model.get(), info);
+    r.grid = grid_info(model.get(), info);
     std::size_t len = 0;
     const char* text = lsnif_metadata(model.get(), &len);
     json meta;
@@ -242,7 +280,7 @@ json ValidationReport::to_json() const {
     }
     json j = {{"path", path}, {"valid", valid()}, {"problems", probs}};
     if (!version.empty()) j["version"] = version;
-    if (!grid.is_null()) j["grid"] = grid;
+    if (grid) j["grid"] = grid_info_json(*grid);
     return j;
 }
 
@@ -250,8 +288,8 @@ std::string ValidationReport::to_text() const {
     if (valid()) {
         // The verdict line stays "PATH: ok" (scripts match it); a quantized grid adds one
         // indented line with its dequantization pairs.
-        if (grid.is_object() && grid.contains("levels"))
-            return path + ": ok\n  format " + version + ", grid " + grid_text(grid) + "\n";
+        if (grid && grid->quantized)
+            return path + ": ok\n  format " + version + ", grid " + grid_text(*grid) + "\n";
         return path + ": ok\n";
     }
     std::string out;
@@ -263,8 +301,10 @@ std::string ValidationReport::to_text() const {
     return out;
 }
 
-json inspect_bytes(std::span<const std::uint8_t> bytes, const std::string& name) {
-    json report = {{"path", name}, {"file_size", bytes.size()}};
+InspectReport inspect_bytes(std::span<const std::uint8_t> bytes, const std::string& name) {
+    InspectReport r;
+    r.path = name;
+    r.file_size = bytes.size();
     lsnif_error err{};
     lsnif_header_info header{};
     std::vector<lsnif_section_info> sections(64);
@@ -272,104 +312,106 @@ json inspect_bytes(std::span<const std::uint8_t> bytes, const std::string& name)
     const lsnif_status st = lsnif_scan_memory(bytes.data(), bytes.size(), &header, sections.data(),
                                               std::uint32_t(sections.size()), &count, &err);
     if (count > 0 || st == LSNIF_OK) {
-        report["header"] = {
-            {"version", std::to_string(header.version_major) + "." + std::to_string(header.version_minor)},
-            {"file_size", header.file_size},
-            {"table_offset", header.table_offset},
-            {"section_count", header.section_count}};
-        json secs = json::array();
-        for (std::uint32_t i = 0; i < count && i < sections.size(); ++i) {
-            const auto& s = sections[i];
-            secs.push_back(
-                {{"tag", s.tag},
-                 {"known", bool(s.known)},
-                 {"required", bool(s.flags & LSNIF_SECTION_REQUIRED)},
-                 {"compression", s.compression == LSNIF_COMPRESSION_ZSTD ? "zstd" : "none"},
-                 {"offset", s.offset},
-                 {"stored_size", s.stored_size},
-                 {"raw_size", s.raw_size},
-                 {"compression_ratio", s.stored_size ? double(s.raw_size) / double(s.stored_size) : 1.0},
-                 {"stored_crc32c", s.stored_crc32c},
-                 {"raw_crc32c", s.raw_crc32c},
-                 {"checksum", s.checksum_ok ? "ok" : "mismatch"}});
-        }
-        report["sections"] = secs;
+        r.header = header;
+        sections.resize(std::min<std::size_t>(count, sections.size()));
+        r.sections = std::move(sections);
     }
     if (st != LSNIF_OK) {
-        report["error"] = {{"status", lsnif_status_string(err.status)}, {"message", err.message}};
-        return report;
+        r.error = problem_from(err);
+        return r;
     }
     lsnif_model* raw = nullptr;
     if (lsnif_open_memory(bytes.data(), bytes.size(), &raw, &err) != LSNIF_OK) {
-        report["error"] = {{"status", lsnif_status_string(err.status)}, {"message", err.message}};
-        return report;
+        r.error = problem_from(err);
+        return r;
     }
     ModelPtr model(raw);
     lsnif_info info{};
     lsnif_get_info(model.get(), &info);
-    report["model"] = info_json(model.get(), info);
-    report["memory"] = memory_json(model.get(), info);
+    r.model = InspectModel{info, ray_inputs_of(model.get()), grid_info(model.get(), info)};
+    r.memory = memory_of(model.get(), info);
     std::size_t len = 0;
     const char* text = lsnif_metadata(model.get(), &len);
+    r.metadata_text.assign(text, len);
     try {
-        report["metadata"] = json::parse(text, text + len);
+        r.metadata = json::parse(r.metadata_text);
     } catch (const json::parse_error&) {
-        report["metadata_text"] = std::string(text, len);
     }
-    return report;
+    return r;
 }
 
-std::string inspect_text(const json& r) {
+json inspect_json(const InspectReport& r) {
+    json j = {{"path", r.path}, {"file_size", r.file_size}};
+    if (r.header) {
+        j["header"] = {{"version", version_of(*r.header)},
+                       {"file_size", r.header->file_size},
+                       {"table_offset", r.header->table_offset},
+                       {"section_count", r.header->section_count}};
+        json secs = json::array();
+        for (const lsnif_section_info& s : r.sections) secs.push_back(section_json(s));
+        j["sections"] = secs;
+    }
+    if (r.error) j["error"] = {{"status", r.error->status}, {"message", r.error->message}};
+    if (r.model) j["model"] = model_json(*r.model);
+    if (r.memory) j["memory"] = memory_json(*r.memory);
+    if (r.metadata)
+        j["metadata"] = *r.metadata;
+    else if (r.model)
+        j["metadata_text"] = r.metadata_text;
+    return j;
+}
+
+std::string inspect_text(const InspectReport& r) {
     std::ostringstream o;
-    o << r["path"].get<std::string>() << "\n";
-    if (r.contains("header")) {
-        const json& h = r["header"];
-        o << "  format version " << h["version"].get<std::string>() << ", " << fmt_bytes(h["file_size"])
-          << ", " << h["section_count"] << " sections (table at byte " << h["table_offset"] << ")\n";
+    o << r.path << "\n";
+    if (r.header) {
+        const lsnif_header_info& h = *r.header;
+        o << "  format version " << version_of(h) << ", " << fmt_bytes(h.file_size) << ", " << h.section_count
+          << " sections (table at byte " << h.table_offset << ")\n";
         o << "  tag   req  codec  offset      stored       raw  ratio  checksum\n";
-        for (const json& s : r["sections"]) {
+        for (const lsnif_section_info& s : r.sections) {
             char line[256];
             std::snprintf(line, sizeof line, "  %-4s  %-3s  %-5s  %6" PRIu64 "  %10s  %10s  %5.2f  %s%s\n",
-                          s["tag"].get<std::string>().c_str(), s["required"].get<bool>() ? "yes" : "no",
-                          s["compression"].get<std::string>().c_str(), s["offset"].get<std::uint64_t>(),
-                          fmt_bytes(s["stored_size"]).c_str(), fmt_bytes(s["raw_size"]).c_str(),
-                          s["compression_ratio"].get<double>(), s["checksum"].get<std::string>().c_str(),
-                          s["known"].get<bool>() ? "" : "  (unknown, skipped)");
+                          s.tag, s.flags & LSNIF_SECTION_REQUIRED ? "yes" : "no", compression_name(s),
+                          std::uint64_t(s.offset), fmt_bytes(s.stored_size).c_str(),
+                          fmt_bytes(s.raw_size).c_str(), compression_ratio(s),
+                          s.checksum_ok ? "ok" : "mismatch", s.known ? "" : "  (unknown, skipped)");
             o << line;
         }
     }
-    if (r.contains("error")) o << "  error: " << r["error"]["message"].get<std::string>() << "\n";
-    if (r.contains("model")) {
-        const json& m = r["model"];
-        o << "  model: V=" << m["grid_resolution"] << " (" << m["occupied_voxels"] << " occupied, "
-          << std::fixed;
+    if (r.error) o << "  error: " << r.error->message << "\n";
+    if (r.model) {
+        const lsnif_info& m = r.model->info;
+        o << "  model: V=" << m.grid_resolution << " (" << m.occupied_voxels << " occupied, " << std::fixed;
         o.precision(1);
-        o << 100.0 * m["occupied_fraction"].get<double>() << "%), H=" << m["max_points"]
-          << ", F=" << m["features_per_level"] << ", T=2^" << m["log2_table_size"] << ", levels";
-        for (const json& l : m["levels"])
-            o << " " << l["resolution"] << "(" << l["indexing"].get<std::string>() << ")";
-        o << "\n  mlp: " << m["input_width"];
-        if (m.value("ray_inputs", "none") != "none")
-            o << " (ray inputs: " << m["ray_inputs"].get<std::string>() << ")";
-        for (const json& w : m["hidden_widths"]) o << " -> " << w;
-        o << " -> " << m["output_count"] << " (ReLU), distance " << m["distance_encoding"].get<std::string>()
+        o << 100.0 * occupied_fraction(m) << "%), H=" << m.max_points << ", F=" << m.features_per_level
+          << ", T=2^" << m.log2_table_size << ", levels";
+        for (std::uint32_t l = 0; l < m.level_count; ++l)
+            o << " " << m.level_resolution[l] << "(" << (m.level_dense[l] ? "dense" : "hashed") << ")";
+        o << "\n  mlp: " << m.input_width;
+        if (const std::string inputs = ray_inputs_name(r.model->ray_inputs); inputs != "none")
+            o << " (ray inputs: " << inputs << ")";
+        for (std::uint32_t k = 0; k < m.hidden_layer_count; ++k) o << " -> " << m.hidden_width[k];
+        o << " -> " << m.output_count << " (ReLU), distance " << distance_encoding_name(m.distance_encoding)
           << "\n";
-        o << "  grid: " << grid_text(m["grid"]) << "\n";
+        o << "  grid: " << grid_text(r.model->grid) << "\n";
         o.precision(6);
-        o << std::defaultfloat << "  box: " << m["box_min"].dump() << " .. " << m["box_max"].dump() << "\n";
-        o << "  parameters: " << m["parameter_count"] << "\n";
+        // The box as JSON writes it: the same shortest round-trip digits as --json.
+        const json box_min = {m.box_min[0], m.box_min[1], m.box_min[2]};
+        const json box_max = {m.box_max[0], m.box_max[1], m.box_max[2]};
+        o << std::defaultfloat << "  box: " << box_min.dump() << " .. " << box_max.dump() << "\n";
+        o << "  parameters: " << m.parameter_count << "\n";
     }
-    if (r.contains("memory")) {
-        const json& m = r["memory"];
-        o << "  memory: " << fmt_bytes(m["resident_bytes"]) << " held once open ("
-          << m["arithmetic"].get<std::string>() << " network on this CPU; "
-          << fmt_bytes(m["resident_bytes_fp32"]) << " with the fp32 network, on any CPU), "
-          << fmt_bytes(m["file_bytes"]) << " in the file\n";
+    if (r.memory) {
+        const InspectMemory& m = *r.memory;
+        o << "  memory: " << fmt_bytes(m.resident_bytes) << " held once open (" << m.arithmetic
+          << " network on this CPU; " << fmt_bytes(m.resident_bytes_fp32)
+          << " with the fp32 network, on any CPU), " << fmt_bytes(m.file_bytes) << " in the file\n";
     }
-    if (r.contains("metadata"))
-        o << "  metadata: " << r["metadata"].dump(2) << "\n";
-    else if (r.contains("metadata_text"))
-        o << "  metadata (not JSON): " << r["metadata_text"].get<std::string>() << "\n";
+    if (r.metadata)
+        o << "  metadata: " << r.metadata->dump(2) << "\n";
+    else if (r.model)
+        o << "  metadata (not JSON): " << r.metadata_text << "\n";
     return o.str();
 }
 

@@ -106,13 +106,12 @@ int run_inspect(const std::string& path, bool as_json) {
     }
     const auto report = lsnif::cli::inspect_bytes(bytes.value(), path);
     if (as_json)
-        std::cout << report.dump(2) << "\n";
+        std::cout << lsnif::cli::inspect_json(report).dump(2) << "\n";
     else
         std::cout << lsnif::cli::inspect_text(report);
-    if (report.contains("error")) {
+    if (!report.ok()) {
         if (as_json)  // text mode already printed the error line in the report
-            std::fprintf(stderr, "error: %s: %s\n", path.c_str(),
-                         report["error"]["message"].get<std::string>().c_str());
+            std::fprintf(stderr, "error: %s: %s\n", path.c_str(), report.error->message.c_str());
         return 1;
     }
     return 0;
@@ -182,7 +181,7 @@ int run_convert(lsnif::converter::ConvertOptions opt, bool as_json) {
         return 2;
     }
     if (as_json)
-        std::cout << r.report.dump(2) << "\n";
+        std::cout << lsnif::converter::convert_report_json(r).dump(2) << "\n";
     else
         std::cout << lsnif::converter::convert_text(r);
     for (const auto& e : r.errors) std::fprintf(stderr, "error: %s\n", e.c_str());
@@ -481,7 +480,7 @@ struct MergeCommand {
             if (r.errors.empty()) {
                 summary["manifest"] = outdir + "/manifest.json";
                 summary["meshes"] = r.meshes.size();
-                summary["scene_memory"] = r.manifest["scene_memory"];
+                summary["scene_memory"] = lsnif::converter::scene_memory_json(r.memory);
             }
             std::cout << summary.dump(2) << "\n";
         }

@@ -317,30 +317,6 @@ void import_input(const Run& run, std::size_t in, Imported& im, ConvertResult& r
                                 {"transform", std::vector<float>(i.transform.begin(), i.transform.end())}});
 }
 
-// The machine-readable report of a run (--json): what every stage decided, the memory, the
-// errors and warnings, the import time and the cache's counts.
-json run_report(const Run& run, const ConvertResult& res) {
-    json inputs = json::array(), meshes = json::array();
-    for (const InputRecord& in : res.inputs) inputs.push_back(input_json(in));
-    for (const MeshOutcome& o : res.meshes) meshes.push_back(outcome_json(o));
-    json report = {{"inputs", inputs},
-                   {"meshes", meshes},
-                   {"instances", res.instances},
-                   {"errors", res.errors},
-                   {"warnings", res.warnings}};
-    if (res.memory) report["scene_memory"] = scene_memory_json(*res.memory);
-    report["timings"] = {{"import", res.import_seconds}};  // per-mesh stages are in meshes[].timings
-    if (run.opt.dry_run) report["dry_run"] = true;
-    if (res.cache)
-        report["cache"] = {{"location", res.cache->location},
-                           {"hits", res.cache->hits},
-                           {"stored", res.cache->stored},
-                           {"corrupt", res.cache->corrupt}};
-    if (!res.manifest_path.empty()) report["manifest"] = res.manifest_path;
-    if (!res.gltf_path.empty()) report["gltf"] = res.gltf_path;
-    return report;
-}
-
 // The manifest (and scene.gltf) of a finished run into OUTDIR; errors into `res`.
 void write_outputs(const Run& run, const Imported& im, ConvertResult& res) {
     const OutcomeFields fields =
@@ -409,8 +385,29 @@ ConvertResult convert(const ConvertOptions& opt, const ConvertProgress& progress
             write_outputs(run, im, res);
         }
     }
-    res.report = run_report(run, res);
     return res;
+}
+
+json convert_report_json(const ConvertResult& res) {
+    json inputs = json::array(), meshes = json::array();
+    for (const InputRecord& in : res.inputs) inputs.push_back(input_json(in));
+    for (const MeshOutcome& o : res.meshes) meshes.push_back(outcome_json(o));
+    json report = {{"inputs", inputs},
+                   {"meshes", meshes},
+                   {"instances", res.instances},
+                   {"errors", res.errors},
+                   {"warnings", res.warnings}};
+    if (res.memory) report["scene_memory"] = scene_memory_json(*res.memory);
+    report["timings"] = {{"import", res.import_seconds}};  // per-mesh stages are in meshes[].timings
+    if (res.dry_run) report["dry_run"] = true;
+    if (res.cache)
+        report["cache"] = {{"location", res.cache->location},
+                           {"hits", res.cache->hits},
+                           {"stored", res.cache->stored},
+                           {"corrupt", res.cache->corrupt}};
+    if (!res.manifest_path.empty()) report["manifest"] = res.manifest_path;
+    if (!res.gltf_path.empty()) report["gltf"] = res.gltf_path;
+    return report;
 }
 
 }  // namespace lsnif::converter

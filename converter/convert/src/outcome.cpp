@@ -544,6 +544,22 @@ SceneMemory scene_memory(const std::vector<MeshOutcome>& meshes, BvhYardstick ya
     return m;
 }
 
+base::Result<SceneMemory, std::string> scene_memory_from_json(const json& j) {
+    SceneMemory m;
+    Reader r(j, "");
+    std::string yardstick;
+    r.read("yardstick", yardstick);
+    if (r.ok() && !parse_bvh_yardstick(yardstick, m.yardstick))
+        r.fail("yardstick", "not a BVH yardstick: " + yardstick);
+    r.read("before", m.before);
+    r.read("after", m.after);
+    r.read("budget", m.budget);
+    if (r.has("estimated")) r.read("estimated", m.estimated);
+    if (r.ok() && m.budget.has_value() != r.has("fits")) r.fail("fits", "goes with budget, and only with it");
+    if (!r.ok()) return r.error();
+    return m;
+}
+
 json scene_memory_json(const SceneMemory& m) {
     json j = {{"yardstick", bvh_yardstick_name(m.yardstick)}, {"before", m.before}, {"after", m.after}};
     if (m.budget) {

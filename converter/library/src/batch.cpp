@@ -600,6 +600,7 @@ struct ShardManifest {
     std::uint32_t index = 0, count = 0;
     std::vector<InputRecord> inputs;
     std::vector<MeshOutcome> meshes;
+    converter::SceneMemory memory;  // the shard's own scene_memory: its settings' yardstick and budget
 };
 
 std::string read_shard(const fs::path& dir, ShardManifest& out) {
@@ -633,6 +634,9 @@ std::string read_shard(const fs::path& dir, ShardManifest& out) {
         if (!m->memory) return where + "meshes[" + std::to_string(i) + "].memory: missing";
         out.meshes.push_back(std::move(*m));
     }
+    auto memory = converter::scene_memory_from_json(doc.value("scene_memory", json()));
+    if (!memory) return where + "scene_memory." + memory.error();
+    out.memory = *memory;
     return {};
 }
 
@@ -747,15 +751,12 @@ MergeResult merge(const std::vector<std::string>& shard_dirs, const std::string&
     merged["meshes"] = json::array();
     for (const MeshOutcome& m : r.meshes)
         merged["meshes"].push_back(converter::outcome_json(m, OutcomeFields::reproducible));
-    // The shards' meshes were measured on the settings' yardstick, which the first records.
-    const converter::SceneMemory memory = converter::scene_memory(r.meshes, BvhYardstick::embree, 0, false);
-    merged["scene_memory"]["before"] = memory.before;
-    merged["scene_memory"]["after"] = memory.after;
-    if (std::string e = converter::write_manifest(outdir, merged); !e.empty()) {
-        r.errors.push_back(e);
-        return r;
-    }
-    r.manifest = std::move(merged);
+    // The shards' meshes were measured on the settings' yardstick and budget, which every
+    // shard records alike (shard_mismatch); the sums are the whole library's again.
+    r.memory = converter::scene_memory(r.meshes, first.memory.yardstick, first.memory.budget.value_or(0),
+                                       first.memory.estimated);
+    merged["scene_memory"] = converter::scene_memory_json(r.memory);
+    if (std::string e = converter::write_manifest(outdir, merged); !e.empty()) r.errors.push_back(e);
     return r;
 }
 

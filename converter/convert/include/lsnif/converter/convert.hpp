@@ -226,7 +226,6 @@ struct ConvertResult {
     std::optional<CacheCounts> cache;      // with --cache
     std::string manifest_path, gltf_path;  // what was written; empty if nothing
     nlohmann::json manifest;               // what was written to OUTDIR/manifest.json (empty if nothing)
-    nlohmann::json report;                 // the machine-readable report (--json), from the above
     std::vector<std::string> errors;       // "FILE: problem", one per failed input
     std::vector<std::string> warnings;
     // The options cannot be met whatever conversion does (a --memory-budget below the bytes
@@ -264,7 +263,10 @@ const ToolIdentity& tool_identity();
 // The absolute path of the running executable (/proc/self/exe); "" when it cannot be read.
 std::string executable_path();
 
-// Human-readable summary of a report (what `lsnif convert` prints).
+// Human-readable summary of a run (what `lsnif convert` prints).
 std::string convert_text(const ConvertResult& result);
+// The machine-readable report of a run (`lsnif convert --json`): what every stage decided,
+// the memory, the errors and warnings, the import time and the cache's counts.
+nlohmann::json convert_report_json(const ConvertResult& result);
 
 }  // namespace lsnif::converter

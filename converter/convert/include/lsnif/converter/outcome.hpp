@@ -257,6 +257,7 @@ struct SceneMemory {
 SceneMemory scene_memory(const std::vector<MeshOutcome>& meshes, BvhYardstick yardstick, std::uint64_t budget,
                          bool estimated);
 nlohmann::json scene_memory_json(const SceneMemory& m);
+base::Result<SceneMemory, std::string> scene_memory_from_json(const nlohmann::json& j);
 
 // A candidate's outcome as the manifest says it ("chosen: the smallest of 4 candidates that
 // meets the target", "fails the gate", ...).

@@ -124,9 +124,10 @@ std::string merge_junit_xml(const MergeResult& merged);
 bool parse_shard(const std::string& text, std::uint32_t& index, std::uint32_t& count, std::string& error);
 
 struct MergeResult {
-    nlohmann::json manifest;                     // what was written to OUTDIR/manifest.json (null on failure)
-    std::vector<converter::InputRecord> inputs;  // the library's inputs and meshes, as in `manifest`
+    std::vector<converter::InputRecord>
+        inputs;  // the library's inputs and meshes, as OUTDIR/manifest.json lists them
     std::vector<converter::MeshOutcome> meshes;
+    converter::SceneMemory memory;    // the merged scene's, as OUTDIR/manifest.json says it
     std::vector<std::string> errors;  // "PATH: problem"; nothing is written when not empty
 };
 
