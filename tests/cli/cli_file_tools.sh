@@ -46,18 +46,18 @@ grep -q '"input_width": 108' <<<"$("$lsnif" inspect --json "$data/valid/v1_defau
 # a signal). Every truncation and every flip is also checked in-process through the same
 # validate code (tests/cli/test_file_tools.cpp); here a sample checks that the
 # process turns each kind of damage into exit 1, and keeps the sanitizer run short (a
-# sanitized process start costs a third of a second of CPU): every 11th offset in header and
-# table, every 61st beyond; one bit of every 11th header/table byte, cycling through the bit
+# sanitized process start costs a third of a second of CPU): every 19th offset in header and
+# table, every 97th beyond; one bit of every 19th header/table byte, cycling through the bit
 # positions.
 src="$data/valid/tiny.lsnif"
 size=$(stat -c %s "$src")
-for ((n = 0; n < size; n += (n < 384 ? 11 : 61))); do
+for ((n = 0; n < size; n += (n < 384 ? 19 : 97))); do
   head -c "$n" "$src" >"$work/t.lsnif"
   "$lsnif" validate "$work/t.lsnif" >/dev/null 2>&1; rc=$?
   [[ $rc == 1 ]] || { bad "truncation to $n bytes: exit $rc"; break; }
 done
-for ((byte = 0; byte < 384; byte += 11)); do
-  for bit in $(((byte / 11) % 8)); do
+for ((byte = 0; byte < 384; byte += 19)); do
+  for bit in $(((byte / 19) % 8)); do
     cp "$src" "$work/f.lsnif"
     orig=$(od -An -tu1 -j "$byte" -N1 "$src" | tr -d ' ')
     printf "$(printf '\\%03o' $((orig ^ (1 << bit))))" | dd of="$work/f.lsnif" bs=1 seek="$byte" conv=notrunc status=none

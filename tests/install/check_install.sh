@@ -3,10 +3,11 @@
 # pkg-config from C and C++, linked static or shared (docs/packaging.md).
 #
 #   check_install.sh WORK_DIR REFERENCE_C REFERENCE_CPP REFERENCE_EMBREE build SOURCE_DIR NATIVE ASSET...
-#       builds format/ and embree/ alone (LSNIF_READER_ONLY, LSNIF_EMBREE) twice, with and
-#       without LSNIF_SHARED,
-#       installs each with --prefix WORK_DIR/staged-*, moves the tree to WORK_DIR/moved-*
-#       and checks every consumer against the moved tree.
+#       builds format/ and embree/ alone (LSNIF_READER_ONLY, LSNIF_EMBREE), static (no
+#       LSNIF_SHARED), installs them with --prefix WORK_DIR/staged, moves the tree to
+#       WORK_DIR/moved and checks every consumer against the moved tree. The shared install
+#       (LSNIF_SHARED: the .so and the archive) is what the Debian packages hold;
+#       scripts/check_packages checks it with the prefix mode below on /usr.
 #   check_install.sh WORK_DIR REFERENCE_C REFERENCE_CPP REFERENCE_EMBREE prefix PREFIX KIND ASSET...
 #       checks the consumers against an existing install (KIND: shared or static), e.g.
 #       /usr after `apt-get install ./*.deb` (scripts/check_packages).
@@ -179,27 +180,19 @@ mkdir -p "$work"
 case $mode in
 build)
     source_dir=$6 native=$7
-    for kind in shared static; do
-        shared=OFF
-        [[ $kind == shared ]] && shared=ON
-        build="$work/build-$kind"
-        cmake -S "$source_dir" -B "$build" -DCMAKE_BUILD_TYPE=Release -DLSNIF_READER_ONLY=ON -DLSNIF_EMBREE=ON \
-            -DLSNIF_SHARED=$shared -DLSNIF_NATIVE="$native" >"$build.log" 2>&1 ||
-            { cat "$build.log" >&2; fail "configure of the reader ($kind) failed"; }
-        cmake --build "$build" -j 2 >>"$build.log" 2>&1 || { cat "$build.log" >&2; fail "build ($kind) failed"; }
-        cmake --install "$build" --prefix "$work/staged-$kind" >>"$build.log" 2>&1 || fail "install ($kind) failed"
-        # Relocation: nothing may remember where the tree was installed.
-        mv "$work/staged-$kind" "$work/moved-$kind"
-        if grep -rq "$work/staged-$kind" "$work/moved-$kind"; then
-            fail "the installed tree names its install prefix: $(grep -rl "$work/staged-$kind" "$work/moved-$kind")"
-        fi
-        if [[ $kind == shared ]]; then
-            check_shared_library "$(find "$work/moved-$kind" -name 'liblsnif_format.so.*.*' -print -quit)"
-        else
-            ! find "$work/moved-$kind" -name 'liblsnif_format.so*' | grep -q . || fail "static install has a .so"
-        fi
-        check_prefix "$work/moved-$kind" "$kind" "$work/consumers-$kind"
-    done
+    build="$work/build"
+    cmake -S "$source_dir" -B "$build" -DCMAKE_BUILD_TYPE=Release -DLSNIF_READER_ONLY=ON -DLSNIF_EMBREE=ON \
+        -DLSNIF_SHARED=OFF -DLSNIF_NATIVE="$native" >"$build.log" 2>&1 ||
+        { cat "$build.log" >&2; fail "configure of the reader failed"; }
+    cmake --build "$build" -j 2 >>"$build.log" 2>&1 || { cat "$build.log" >&2; fail "build failed"; }
+    cmake --install "$build" --prefix "$work/staged" >>"$build.log" 2>&1 || fail "install failed"
+    # Relocation: nothing may remember where the tree was installed.
+    mv "$work/staged" "$work/moved"
+    if grep -rq "$work/staged" "$work/moved"; then
+        fail "the installed tree names its install prefix: $(grep -rl "$work/staged" "$work/moved")"
+    fi
+    ! find "$work/moved" -name 'liblsnif_format.so*' | grep -q . || fail "static install has a .so"
+    check_prefix "$work/moved" static "$work/consumers"
     ;;
 prefix)
     prefix=$6 kind=$7
