@@ -69,6 +69,14 @@ const char* compression_name(const lsnif_section_info& s) {
     return s.compression == LSNIF_COMPRESSION_ZSTD ? "zstd" : "none";
 }
 
+const char* checksum_name(const lsnif_section_info& s) {
+    return s.checksum_ok ? "ok" : "mismatch";
+}
+
+const char* indexing_name(const lsnif_info& info, std::uint32_t level) {
+    return info.level_dense[level] ? "dense" : "hashed";
+}
+
 double compression_ratio(const lsnif_section_info& s) {
     return s.stored_size ? double(s.raw_size) / double(s.stored_size) : 1.0;
 }
@@ -79,7 +87,7 @@ json model_json(const InspectModel& m) {
     for (std::uint32_t l = 0; l < info.level_count; ++l)
         levels.push_back({{"resolution", info.level_resolution[l]},
                           {"entries", info.level_entries[l]},
-                          {"indexing", info.level_dense[l] ? "dense" : "hashed"}});
+                          {"indexing", indexing_name(info, l)}});
     json hidden = json::array();
     for (std::uint32_t k = 0; k < info.hidden_layer_count; ++k) hidden.push_back(info.hidden_width[k]);
     return {{"grid_resolution", info.grid_resolution},
@@ -132,7 +140,7 @@ json section_json(const lsnif_section_info& s) {
             {"compression_ratio", compression_ratio(s)},
             {"stored_crc32c", s.stored_crc32c},
             {"raw_crc32c", s.raw_crc32c},
-            {"checksum", s.checksum_ok ? "ok" : "mismatch"}};
+            {"checksum", checksum_name(s)}};
 }
 
 std::string version_of(const lsnif_header_info& h) {
@@ -374,8 +382,8 @@ std::string inspect_text(const InspectReport& r) {
             std::snprintf(line, sizeof line, "  %-4s  %-3s  %-5s  %6" PRIu64 "  %10s  %10s  %5.2f  %s%s\n",
                           s.tag, s.flags & LSNIF_SECTION_REQUIRED ? "yes" : "no", compression_name(s),
                           std::uint64_t(s.offset), fmt_bytes(s.stored_size).c_str(),
-                          fmt_bytes(s.raw_size).c_str(), compression_ratio(s),
-                          s.checksum_ok ? "ok" : "mismatch", s.known ? "" : "  (unknown, skipped)");
+                          fmt_bytes(s.raw_size).c_str(), compression_ratio(s), checksum_name(s),
+                          s.known ? "" : "  (unknown, skipped)");
             o << line;
         }
     }
@@ -387,7 +395,7 @@ std::string inspect_text(const InspectReport& r) {
         o << 100.0 * occupied_fraction(m) << "%), H=" << m.max_points << ", F=" << m.features_per_level
           << ", T=2^" << m.log2_table_size << ", levels";
         for (std::uint32_t l = 0; l < m.level_count; ++l)
-            o << " " << m.level_resolution[l] << "(" << (m.level_dense[l] ? "dense" : "hashed") << ")";
+            o << " " << m.level_resolution[l] << "(" << indexing_name(m, l) << ")";
         o << "\n  mlp: " << m.input_width;
         if (const std::string inputs = ray_inputs_name(r.model->ray_inputs); inputs != "none")
             o << " (ray inputs: " << inputs << ")";
