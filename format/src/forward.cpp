@@ -9,6 +9,7 @@
 #include <lsnif/format/simd.hpp>
 
 #include <algorithm>
+#include <bit>
 #include <cmath>
 #include <cstring>
 #include <limits>
@@ -393,21 +394,18 @@ LSNIF_AVX512 inline void load_features(const GridView& g, __m512i off, __mmask16
     }
 }
 
-// One level's F features of points [i, i + 16) of `pl` (lanes past pl.n masked off),
-// written to the rows: encode_points' per-point arithmetic, 16 points per vector. Each lane
-// walks its own live corners (those level_corners keeps: no zero factor) in level_corners'
-// order, so a point on a voxel face of an aligned level costs 4 gathers, not 8. kF = geo.F
-// known at compile time (0: read at run time) and the table's element type E let the
-// accumulators stay in registers: with a run-time F and a switch on the element type per
-// corner they lived on the stack, each corner's masked store waiting for the last.
+// One level's F features of 16 points (grid coordinates `points`, the lanes in `lanes`),
+// written to feature rows f of `tmp` (16 floats each, one lane per point): encode_points'
+// per-point arithmetic, 16 points per vector. Each lane walks its own live corners (those
+// level_corners keeps: no zero factor) in level_corners' order, so a point on a voxel face
+// of an aligned level costs 4 gathers, not 8. kF = geo.F known at compile time (0: read at
+// run time) and the table's element type E let the accumulators stay in registers: with a
+// run-time F and a switch on the element type per corner they lived on the stack, each
+// corner's masked store waiting for the last.
 template <std::uint32_t kF, GridElement E>
-LSNIF_AVX512 void encode_level16(const Geometry& geo, const LevelInfo& lv, const GridView& g,
-                                 std::uint32_t level, const PointList& pl, std::size_t i, float* rows) {
+LSNIF_AVX512 void level_features16(const Geometry& geo, const LevelInfo& lv, const GridView& g,
+                                   const __m512 (&points)[3], __mmask16 lanes, float* tmp) {
     const std::uint32_t F = kF ? kF : geo.F;
-    const __mmask16 lanes = detail::lane_mask16(i, pl.n);
-    const __m512 points[3] = {_mm512_maskz_loadu_ps(lanes, pl.g[0].data() + i),
-                              _mm512_maskz_loadu_ps(lanes, pl.g[1].data() + i),
-                              _mm512_maskz_loadu_ps(lanes, pl.g[2].data() + i)};
     const LaneCorners c = lane_corners(geo, lv, points);
     const std::uint32_t slots = _mm512_mask_reduce_max_epu32(lanes, c.n);
     const __m512i stride = _mm512_set1_epi32(int(g.stride));
@@ -421,10 +419,7 @@ LSNIF_AVX512 void encode_level16(const Geometry& geo, const LevelInfo& lv, const
         load_features<E>(g, _mm512_mullo_epi32(idx, stride), k, F, v);
         for (std::uint32_t f = 0; f < F; ++f) acc[f] = _mm512_mask3_fmadd_ps(w, v[f], acc[f], k);
     }
-    const __m512i out = _mm512_maskz_loadu_epi32(lanes, pl.out.data() + i);
-    for (std::uint32_t f = 0; f < F; ++f)
-        _mm512_mask_i32scatter_ps(rows, lanes, _mm512_add_epi32(out, _mm512_set1_epi32(int(level * F + f))),
-                                  acc[f], 4);
+    for (std::uint32_t f = 0; f < F; ++f) _mm512_store_ps(tmp + 16 * f, acc[f]);
 }
 
 LSNIF_AVX512 void level_corners16_avx512(const Geometry& geo, const LevelInfo& lv, const float* x,
@@ -445,21 +440,113 @@ LSNIF_AVX512 void level_corners16_avx512(const Geometry& geo, const LevelInfo& l
     }
 }
 
-// encode_level16 for a model's F and a table's element type: every preset's F = 3 compiled
-// as a constant, any other F read at run time.
-using EncodeLevel16 = void (*)(const Geometry&, const LevelInfo&, const GridView&, std::uint32_t,
-                               const PointList&, std::size_t, float*);
+// level_features16 for a u8 table of a dense level with F = 3 features (stride 3): a
+// lattice cell's two corners along x are neighbouring entries, 6 bytes, so one 64-bit
+// gather lane reads both. Each lane walks its live (y, z) corner pairs in level_corners'
+// order, and per pair its lower x corner, then its upper one, each only where its factor is
+// non-zero: the corners, weights ((w_x * w_y) * w_z) and fused multiply-adds of
+// level_features16, in the same order, from half as many gathered elements.
+LSNIF_AVX512 void level_features16_pairs(const Geometry& geo, const LevelInfo& lv, const GridView& g,
+                                         const __m512 (&points)[3], __mmask16 lanes, float* tmp) {
+    constexpr std::uint32_t F = 3;
+    const LaneCorners c = lane_corners(geo, lv, points);
+    // (y, z) pairs per lane: its live corners over the x sides it has.
+    const __m512i pairs = _mm512_mask_srli_epi32(c.n, c.both[0], c.n, 1);
+    const std::uint32_t slots = _mm512_mask_reduce_max_epu32(lanes, pairs);
+    const __m512i stride = _mm512_set1_epi32(int(g.stride));
+    const __m512i one = _mm512_set1_epi32(1);
+    // The 64 bits read start a byte before the lower corner's entry (the table's tail pad
+    // holds one byte after the last entry), or at the entry itself for entry 0.
+    const __m512i even = _mm512_setr_epi32(0, 2, 4, 6, 8, 10, 12, 14, 16, 18, 20, 22, 24, 26, 28, 30);
+    const __m512i odd = _mm512_add_epi32(even, one);
+    const __m512i byte = _mm512_set1_epi32(0xFF);
+    const __m512 scale = _mm512_set1_ps(g.scale), offset = _mm512_set1_ps(g.offset);
+    const auto* table = static_cast<const std::uint8_t*>(g.data);
+    __m512 acc[3] = {_mm512_setzero_ps(), _mm512_setzero_ps(), _mm512_setzero_ps()};
+    for (std::uint32_t s = 0; s < slots; ++s) {
+        const __mmask16 k = lanes & _mm512_cmpgt_epu32_mask(pairs, _mm512_set1_epi32(int(s)));
+        // slot_corner's digits over y and z only.
+        __m512i digits = _mm512_set1_epi32(int(s));
+        __m512i term = c.ax[0].term[0];
+        __m512 wyz[2];
+        for (int a = 1; a < 3; ++a) {
+            const __mmask16 up =
+                (c.both[a] & _mm512_test_epi32_mask(digits, one)) | (~c.both[a] & c.upper[a]);
+            digits = _mm512_mask_srli_epi32(digits, c.both[a], digits, 1);
+            term = _mm512_add_epi32(term, _mm512_mask_blend_epi32(up, c.ax[a].term[0], c.ax[a].term[1]));
+            wyz[a - 1] = _mm512_mask_blend_ps(up, c.ax[a].weight[0], c.ax[a].weight[1]);
+        }
+        const __m512i entry = _mm512_mullo_epi32(term, stride);
+        const __m512i start = _mm512_max_epi32(_mm512_sub_epi32(entry, one), _mm512_setzero_si512());
+        const __m512i skip = _mm512_slli_epi32(_mm512_sub_epi32(entry, start), 3);  // 0 or 8 bits
+        const auto half = [&](int h) LSNIF_AVX512 {
+            const __m256i at = h ? _mm512_extracti64x4_epi64(start, 1) : _mm512_castsi512_si256(start);
+            const __m256i bits = h ? _mm512_extracti64x4_epi64(skip, 1) : _mm512_castsi512_si256(skip);
+            const __m512i q =
+                _mm512_mask_i32gather_epi64(_mm512_setzero_si512(), __mmask8(k >> (8 * h)), at, table, 1);
+            return _mm512_srlv_epi64(q, _mm512_cvtepu32_epi64(bits));
+        };
+        const __m512i lo = half(0), hi = half(1);
+        const __m512i bytes0_3 = _mm512_permutex2var_epi32(lo, even, hi);
+        const __m512i bytes4_7 = _mm512_permutex2var_epi32(lo, odd, hi);
+        const auto feature = [&](std::uint32_t b) LSNIF_AVX512 {  // byte b of the 2F, dequantized
+            const __m512i word = b < 4 ? bytes0_3 : bytes4_7;
+            const __m512 x =
+                _mm512_cvtepi32_ps(_mm512_and_si512(_mm512_srli_epi32(word, int(8 * (b % 4))), byte));
+            return _mm512_fmadd_ps(x, scale, offset);
+        };
+        for (int side = 0; side < 2; ++side) {
+            const __mmask16 live = k & c.ax[0].nonzero[side];
+            const __m512 w = _mm512_mul_ps(_mm512_mul_ps(c.ax[0].weight[side], wyz[0]), wyz[1]);
+            for (std::uint32_t f = 0; f < F; ++f)
+                acc[f] = _mm512_mask3_fmadd_ps(w, feature(side * F + f), acc[f], live);
+        }
+    }
+    for (std::uint32_t f = 0; f < F; ++f) _mm512_store_ps(tmp + 16 * f, acc[f]);
+}
+
+// level_features16 for a model's F and a table's element type: every preset's F = 3
+// compiled as a constant, any other F read at run time.
+using LevelFeatures16 = void (*)(const Geometry&, const LevelInfo&, const GridView&, const __m512 (&)[3],
+                                 __mmask16, float*);
 template <std::uint32_t kF>
-EncodeLevel16 encode_level16_of(GridElement e) {
+LevelFeatures16 level_features16_of(GridElement e) {
     switch (e) {
-        case GridElement::u8: return encode_level16<kF, GridElement::u8>;
-        case GridElement::f16: return encode_level16<kF, GridElement::f16>;
+        case GridElement::u8: return level_features16<kF, GridElement::u8>;
+        case GridElement::f16: return level_features16<kF, GridElement::f16>;
         case GridElement::f32: break;
     }
-    return encode_level16<kF, GridElement::f32>;
+    return level_features16<kF, GridElement::f32>;
 }
-EncodeLevel16 encode_level16_for(std::uint32_t F, GridElement e) {
-    return F == 3 ? encode_level16_of<3>(e) : encode_level16_of<0>(e);
+LevelFeatures16 level_features16_for(std::uint32_t F, GridElement e) {
+    return F == 3 ? level_features16_of<3>(e) : level_features16_of<0>(e);
+}
+
+// Every level's features of points [i, i + 16) of `pl` (lanes past pl.n masked off), written
+// to the rows at the points' offsets: the L * F columns of a point are contiguous in its row,
+// so the 16 points' columns, computed one column per vector, are transposed in registers and
+// stored a point at a time.
+LSNIF_AVX512 void encode_block16(const Geometry& geo, const GridView* grid, const LevelFeatures16* level,
+                                 const PointList& pl, std::size_t i, float* rows) {
+    alignas(64) float tmp[LSNIF_MAX_LEVELS * 4 * 16];
+    const __mmask16 lanes = detail::lane_mask16(i, pl.n);
+    const __m512 points[3] = {_mm512_maskz_loadu_ps(lanes, pl.g[0].data() + i),
+                              _mm512_maskz_loadu_ps(lanes, pl.g[1].data() + i),
+                              _mm512_maskz_loadu_ps(lanes, pl.g[2].data() + i)};
+    for (std::uint32_t l = 0; l < geo.L; ++l)
+        level[l](geo, geo.levels[l], grid[l], points, lanes, tmp + std::size_t(16) * geo.F * l);
+    const std::uint32_t columns = geo.L * geo.F;
+    const std::int32_t* out = pl.out.data() + i;
+    const std::uint32_t n = std::uint32_t(std::popcount(std::uint32_t(lanes)));
+    for (std::uint32_t c0 = 0; c0 < columns; c0 += 16) {
+        const std::uint32_t width = std::min(16u, columns - c0);
+        __m512i r[16];
+        for (std::uint32_t j = 0; j < 16; ++j)
+            r[j] = j < width ? _mm512_load_si512(tmp + std::size_t(16) * (c0 + j)) : _mm512_setzero_si512();
+        detail::transpose16(r);  // r[p]: columns c0.. of point p
+        const __mmask16 keep = detail::lane_mask16(0, width);
+        for (std::uint32_t p = 0; p < n; ++p) _mm512_mask_storeu_epi32(rows + out[p] + c0, keep, r[p]);
+    }
 }
 
 // The vector encoder reads an entry's features with dword gathers: up to 4 of them (GridView's
@@ -536,10 +623,13 @@ LSNIF_AVX512 void encode_batch_avx512(const Geometry& geo, const GridView* grid,
     }
     const std::vector<SharedPoint>& shared = shared_first_points(geo, pts, which, add);
     pl.n = i;  // at most total: shared first points are copied, not listed
-    for (std::uint32_t l = 0; l < geo.L; ++l) {
-        const auto encode = encode_level16_for(geo.F, grid[l].element);
-        for (std::size_t b = 0; b < pl.n; b += 16) encode(geo, geo.levels[l], grid[l], l, pl, b, rows);
-    }
+    LevelFeatures16 level[LSNIF_MAX_LEVELS];
+    for (std::uint32_t l = 0; l < geo.L; ++l)
+        level[l] =
+            geo.levels[l].dense && grid[l].element == GridElement::u8 && grid[l].stride == 3 && geo.F == 3
+                ? level_features16_pairs
+                : level_features16_for(geo.F, grid[l].element);
+    for (std::size_t b = 0; b < pl.n; b += 16) encode_block16(geo, grid, level, pl, b, rows);
     for (const SharedPoint& c : shared) std::memcpy(rows + c.to, rows + c.from, slot * sizeof(float));
 }
 
