@@ -14,6 +14,7 @@
 
 #include "x86.hpp"
 #if LSNIF_HAVE_X86
+#include "avx512_transpose.hpp"
 // GCC 12's AVX-512 intrinsics start from _mm512_undefined_*(), which its
 // -W(maybe-)uninitialized reports as a use of an uninitialized value (a false positive).
 #pragma GCC diagnostic ignored "-Wmaybe-uninitialized"
@@ -320,10 +321,18 @@ struct Lanes {
     std::uint32_t ray[kLanes];
 };
 
-// Field k (0..7 in float units) of the rays in `lanes`, `base` holding each lane's ray offset.
-LSNIF_AVX512 inline __m512 ray_field(const float* f, __m512i base, __mmask16 lanes, int k) {
-    return _mm512_mask_i32gather_ps(_mm512_setzero_ps(), lanes, _mm512_add_epi32(base, _mm512_set1_epi32(k)),
-                                    f, 4);
+// The n <= 16 rays' eight floats (org, tmin, dir, tmax) as eight vectors, field k of ray j
+// in lane j of field[k] (0 past n): the rays loaded whole and transposed in registers.
+LSNIF_AVX512 inline void ray_fields(const Ray* rays, int n, __m512 (&field)[8]) {
+    static_assert(sizeof(Ray) == 8 * sizeof(float) && offsetof(Ray, tmin) == 12 && offsetof(Ray, dir) == 16 &&
+                  offsetof(Ray, tmax) == 28);
+    const float* f = reinterpret_cast<const float*>(rays);
+    __m512i r[16];
+    for (int j = 0; j < 16; ++j)
+        r[j] = j < n ? _mm512_castsi256_si512(_mm256_loadu_si256(reinterpret_cast<const __m256i*>(f + 8 * j)))
+                     : _mm512_setzero_si512();
+    detail::transpose16(r);
+    for (int k = 0; k < 8; ++k) field[k] = _mm512_castsi512_ps(r[k]);
 }
 
 // make_ray_grid's grid mapping, (x - box_min) / cell (shift) or x / cell, in double and
@@ -368,18 +377,13 @@ LSNIF_AVX512 inline __m512i move_while(__m512i x, __mmask16 m, int delta, int of
 LSNIF_AVX512 std::uint32_t start_walks(const Geometry& geo, const Ray* rays, int n, std::uint32_t first,
                                        RayPoints* out, TraceStatus* status, Lanes& Q) {
     const __mmask16 lanes = __mmask16((1u << n) - 1);
-    // Field f of ray j sits at float j * 8 + f (Ray is 8 floats).
-    const __m512i base =
-        _mm512_mullo_epi32(_mm512_setr_epi32(0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 11, 12, 13, 14, 15),
-                           _mm512_set1_epi32(int(sizeof(Ray) / sizeof(float))));
-    const float* f = reinterpret_cast<const float*>(rays);
-    static_assert(sizeof(Ray) == 8 * sizeof(float) && offsetof(Ray, tmin) == 12 && offsetof(Ray, dir) == 16 &&
-                  offsetof(Ray, tmax) == 28);
+    __m512 field[8];
+    ray_fields(rays, n, field);
     __m512 org[3], dir[3];
     __mmask16 nonfinite = 0;
     for (int a = 0; a < 3; ++a) {
-        org[a] = ray_field(f, base, lanes, a);
-        dir[a] = ray_field(f, base, lanes, 4 + a);
+        org[a] = field[a];
+        dir[a] = field[4 + a];
         nonfinite |=
             _mm512_fpclass_ps_mask(org[a], 0x99) | _mm512_fpclass_ps_mask(dir[a], 0x99);  // NaN, +-inf
     }
@@ -403,7 +407,7 @@ LSNIF_AVX512 std::uint32_t start_walks(const Geometry& geo, const Ray* rays, int
         _mm512_store_ps(Q.gd[a], gd[a]);
         _mm512_store_ps(Q.inv[a], inv[a]);
     }
-    __m512 t_near = ray_field(f, base, lanes, 3), t_far = ray_field(f, base, lanes, 7);
+    __m512 t_near = field[3], t_far = field[7];
     const __mmask16 invalid = lanes & (nonfinite | ~normalizable | ~moves | overflow |
                                        _mm512_cmp_ps_mask(t_near, t_near, _CMP_UNORD_Q) |
                                        _mm512_cmp_ps_mask(t_far, t_far, _CMP_UNORD_Q));
@@ -500,12 +504,15 @@ inline std::uint32_t lowest_bits(std::uint32_t m, int count) {
 }
 
 // The lanes `to` of L take the walks in the lanes `from` of Q, in order (the i-th lowest of
-// `from` into the i-th lowest of `to`; as many of each): one compress and one expand per
-// field, 16 lanes at a time, instead of a scalar copy of 23 fields per lane.
+// `from` into the i-th lowest of `to`; as many of each): one masked permutation per field,
+// 16 lanes at a time, instead of a scalar copy of 23 fields per lane.
 LSNIF_AVX512 inline void move_lanes(Lanes& L, __mmask16 to, const Lanes& Q, __mmask16 from) {
+    // Each lane of `to` reads the lane of `from` of the same rank, for every field.
+    const __m512i iota = _mm512_setr_epi32(0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 11, 12, 13, 14, 15);
+    const __m512i source = _mm512_maskz_expand_epi32(to, _mm512_maskz_compress_epi32(from, iota));
     const auto move = [&](void* dst, const void* src) LSNIF_AVX512 {
-        const __m512i v = _mm512_maskz_compress_epi32(from, _mm512_loadu_si512(src));
-        _mm512_storeu_si512(dst, _mm512_mask_expand_epi32(_mm512_loadu_si512(dst), to, v));
+        _mm512_storeu_si512(
+            dst, _mm512_mask_permutexvar_epi32(_mm512_loadu_si512(dst), to, source, _mm512_loadu_si512(src)));
     };
     for (int a = 0; a < 3; ++a) {
         move(L.go[a], Q.go[a]);
