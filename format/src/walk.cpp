@@ -318,7 +318,8 @@ struct Lanes {
     alignas(64) float go[3][kLanes], gd[3][kLanes], inv[3][kLanes];
     alignas(64) float enter[3][kLanes], exit[3][kLanes], t_near[kLanes], t_far[kLanes];
     alignas(64) std::int32_t cell[3][kLanes], step[3][kLanes];
-    std::uint32_t ray[kLanes];
+    alignas(64) std::uint32_t ray[kLanes];
+    alignas(64) std::uint32_t count[kLanes];  // the points the lane's walk has recorded
 };
 
 // The n <= 16 rays' eight floats (org, tmin, dir, tmax) as eight vectors, field k of ray j
@@ -449,6 +450,7 @@ LSNIF_AVX512 std::uint32_t start_walks(const Geometry& geo, const Ray* rays, int
         unit_direction(rays[j], p.dir);
         status[j] = (miss & (1u << j)) ? TraceStatus::miss : TraceStatus::ok;
         Q.ray[j] = first + std::uint32_t(j);
+        Q.count[j] = 0;
     }
     if (!live) return 0;
     // The first cell: the largest x whose entry plane is at or before t_near (forward), the
@@ -526,6 +528,7 @@ LSNIF_AVX512 inline void move_lanes(Lanes& L, __mmask16 to, const Lanes& Q, __mm
     move(L.t_near, Q.t_near);
     move(L.t_far, Q.t_far);
     move(L.ray, Q.ray);
+    move(L.count, Q.count);
 }
 
 // Walks started 16 rays at a time (start_walks), handed to lanes as they free up.
@@ -583,27 +586,46 @@ LSNIF_AVX512 inline __m512i voxel_index(const Axis (&ax)[3], __m512i vV) {
         ax[0].cell, _mm512_mullo_epi32(vV, _mm512_add_epi32(ax[1].cell, _mm512_mullo_epi32(vV, ax[2].cell))));
 }
 
-// Where the lanes in `rec` record an entry point, and which voxel.
-struct Entries {
-    alignas(64) float t[kLanes], g[3][kLanes];
-    alignas(64) std::uint32_t voxel[kLanes];
+// Entry points recorded by the 16-lane walk, in the order recorded, before they reach their
+// rays' RayPoints: appending the lanes' points with vector compressions costs no branch on
+// how many lanes record, where writing each lane's point to its ray took one per lane.
+struct Recorded {
+    static constexpr std::size_t kCapacity = 1024;
+    alignas(64) float t[kCapacity + kLanes], g[3][kCapacity + kLanes];
+    alignas(64) std::uint32_t voxel[kCapacity + kLanes], ray[kCapacity + kLanes], slot[kCapacity + kLanes];
+    std::size_t n = 0;
 };
+
+// Writes the recorded points to slot `slot` of their rays' RayPoints, whose count becomes
+// slot + 1 (a ray's points are recorded in slot order), and empties `r`.
+void flush(Recorded& r, RayPoints* out) {
+    for (std::size_t e = 0; e < r.n; ++e) {
+        RayPoints& p = out[r.ray[e]];
+        const std::uint32_t k = r.slot[e];
+        p.t[k] = r.t[e];
+        p.g[k][0] = r.g[0][e];
+        p.g[k][1] = r.g[1][e];
+        p.g[k][2] = r.g[2][e];
+        p.voxel[k] = r.voxel[e];
+        p.count = k + 1;
+    }
+    r.n = 0;
+}
 
 // The scalar walk's visit of an occupied voxel for the lanes in `occupied` (their cell is
 // an occupied voxel): record the entry point where the ray crosses the cell inside its
-// segment (lo <= t_far, lo < exit). Returns the lanes that have recorded their H points
+// segment (lo <= t_far, lo < exit) in slot `count` of the lane's ray (`ray`), appended to
+// `r`, which has room for 16 more. Returns the lanes that have recorded their H points
 // (their walk is over).
 LSNIF_AVX512 inline __mmask16 record_entries(const Axis (&ax)[3], __mmask16 occupied, __m512i idx,
-                                             __m512 t_near, __m512 t_far, const Lanes& L, std::uint32_t H,
-                                             RayPoints* out) {
+                                             __m512 t_near, __m512 t_far, __m512i ray, __m512i& count,
+                                             std::uint32_t H, Recorded& r) {
     const __m512 enter = _mm512_max_ps(_mm512_max_ps(ax[2].enter, ax[1].enter), ax[0].enter);
     const __m512 exit = _mm512_min_ps(_mm512_min_ps(ax[2].exit, ax[1].exit), ax[0].exit);
     const __m512 lo = _mm512_max_ps(enter, t_near);
     __mmask16 rec = _mm512_mask_cmp_ps_mask(occupied, lo, t_far, _CMP_LE_OQ);
     rec = _mm512_mask_cmp_ps_mask(rec, lo, exit, _CMP_LT_OQ);
-    __mmask16 full = 0;
-    if (!rec) return full;
-    Entries e;
+    const std::size_t n = r.n;
 #pragma GCC unroll 3
     for (int a = 0; a < 3; ++a) {  // entry_coordinate()
         const Axis& x = ax[a];
@@ -614,22 +636,15 @@ LSNIF_AVX512 inline __mmask16 record_entries(const Axis (&ax)[3], __mmask16 occu
         const __m512 clamped = _mm512_min_ps(cell1, _mm512_max_ps(cell, pos));
         const __mmask16 face = _mm512_mask_cmp_ps_mask(x.moves, x.enter, lo, _CMP_EQ_OQ);
         const __m512 plane = _mm512_mask_mov_ps(cell1, x.forward, cell);
-        _mm512_store_ps(e.g[a], _mm512_mask_mov_ps(clamped, face, plane));
+        _mm512_storeu_ps(r.g[a] + n, _mm512_maskz_compress_ps(rec, _mm512_mask_mov_ps(clamped, face, plane)));
     }
-    _mm512_store_ps(e.t, lo);
-    _mm512_store_si512(e.voxel, idx);
-    for (std::uint32_t m = rec; m; m &= m - 1) {
-        const int lane = std::countr_zero(m);
-        RayPoints& p = out[L.ray[lane]];
-        const std::uint32_t k = p.count++;
-        p.t[k] = e.t[lane];
-        p.g[k][0] = e.g[0][lane];
-        p.g[k][1] = e.g[1][lane];
-        p.g[k][2] = e.g[2][lane];
-        p.voxel[k] = e.voxel[lane];
-        if (p.count == H) full |= __mmask16(1u << lane);
-    }
-    return full;
+    _mm512_storeu_ps(r.t + n, _mm512_maskz_compress_ps(rec, lo));
+    _mm512_storeu_si512(r.voxel + n, _mm512_maskz_compress_epi32(rec, idx));
+    _mm512_storeu_si512(r.ray + n, _mm512_maskz_compress_epi32(rec, ray));
+    _mm512_storeu_si512(r.slot + n, _mm512_maskz_compress_epi32(rec, count));
+    r.n = n + std::size_t(std::popcount(std::uint32_t(rec)));
+    count = _mm512_mask_add_epi32(count, rec, count, _mm512_set1_epi32(1));
+    return _mm512_mask_cmpeq_epi32_mask(rec, count, _mm512_set1_epi32(int(H)));
 }
 
 // Moves the lanes in `m` out of the aligned box of 2^shift voxels a side around their cell
@@ -754,6 +769,8 @@ LSNIF_AVX512 void trace_batch_avx512(const Geometry& geo, const OccupancyGrid& o
     Lanes L;
     std::size_t next = 0;
     StartQueue q;
+    thread_local Recorded recorded;
+    recorded.n = 0;
     std::uint32_t live = refill(geo, rays, next, out, status, q, L, 0);
     const __m512i vV = _mm512_set1_epi32(int(geo.V));
     const __m512i vS = _mm512_set1_epi32(int(occ.S));
@@ -762,10 +779,13 @@ LSNIF_AVX512 void trace_batch_avx512(const Geometry& geo, const OccupancyGrid& o
         load_axes(L, ax);
         const __m512 t_near = _mm512_load_ps(L.t_near);
         const __m512 t_far = _mm512_load_ps(L.t_far);
+        const __m512i ray = _mm512_load_si512(L.ray);
+        __m512i count = _mm512_load_si512(L.count);
         // Lanes whose walk is over leave `live`; the walks stay in registers until a quarter
         // of the lanes are free (or no rays are left to refill them with).
         const bool draining = next == rays.size() && !q.ready;
         do {
+            if (recorded.n + kLanes > Recorded::kCapacity) flush(recorded, out);
             // One gather reads the voxel's kSubBlock^3 block entry (OccupancyGrid::blocks, in
             // the low 16 bits): its voxels, and whether its larger blocks are occupied.
             const __m512i idx = voxel_index(ax, vV);
@@ -789,7 +809,7 @@ LSNIF_AVX512 void trace_batch_avx512(const Geometry& geo, const OccupancyGrid& o
                             super_occupied = _mm512_test_epi32_mask(
                                 word, _mm512_set1_epi32(1 << OccupancyGrid::kSuperBlockBit));
             const __mmask16 occupied = __mmask16(live) & voxel_occupied;
-            __mmask16 over = occupied ? record_entries(ax, occupied, idx, t_near, t_far, L, geo.H, out) : 0;
+            __mmask16 over = record_entries(ax, occupied, idx, t_near, t_far, ray, count, geo.H, recorded);
             // The box to leave: the cell in an occupied 2^3 block, else the largest empty
             // block, 8^3 (shift 3), 4^3 (2) or 2^3 (1).
             const __m512i shift = _mm512_mask_mov_epi32(
@@ -801,8 +821,10 @@ LSNIF_AVX512 void trace_batch_avx512(const Geometry& geo, const OccupancyGrid& o
             live &= ~std::uint32_t(over);
         } while (live && (draining || std::popcount(live) > kLanes * 3 / 4));
         store_axes(ax, L);
+        _mm512_store_si512(L.count, count);
         live = refill(geo, rays, next, out, status, q, L, live);
     }
+    flush(recorded, out);
     // A walk without a point is a miss; set once here rather than per finished lane inside
     // the loop, where a data-dependent branch per step cost more than this pass.
     for (std::size_t i = 0; i < rays.size(); ++i)
