@@ -588,7 +588,7 @@ LSNIF_AVX512 inline __m512i voxel_index(const Axis (&ax)[3], __m512i vV) {
 
 // Entry points recorded by the 16-lane walk, in the order recorded, before they reach their
 // rays' RayPoints: appending the lanes' points with vector compressions costs no branch on
-// how many lanes record, where writing each lane's point to its ray took one per lane.
+// how many lanes record, which writing each lane's point to its own ray would.
 struct Recorded {
     static constexpr std::size_t kCapacity = 1024;
     alignas(64) float t[kCapacity + kLanes], g[3][kCapacity + kLanes];
