@@ -345,21 +345,29 @@ LSNIF_AVX512 inline LaneCorners lane_corners(const Geometry& geo, const LevelInf
     return c;
 }
 
-// Slot s of every lane: its s-th live corner in corner order c = x + 2y + 4z (x fastest),
-// the digits of s being one bit per axis with both sides live, x first; level_corners'
-// order and values (the weight is (w_x * w_y) * w_z). Meaningful in lanes with s < n.
-LSNIF_AVX512 inline void slot_corner(const LaneCorners& c, const LevelInfo& lv, std::uint32_t s, __m512i& idx,
-                                     __m512& w) {
+// The corner terms and factors of slot s of every lane on axes first..2: the digits of s are
+// one bit per axis with both sides live (the upper side where set), in axis order; an axis
+// with one live side takes that side.
+LSNIF_AVX512 inline void slot_sides(const LaneCorners& c, std::uint32_t s, int first, __m512i (&term)[3],
+                                    __m512 (&weight)[3]) {
     const __m512i one = _mm512_set1_epi32(1);
     __m512i digits = _mm512_set1_epi32(int(s));
-    __m512i term[3];
-    __m512 weight[3];
-    for (int a = 0; a < 3; ++a) {
+    for (int a = first; a < 3; ++a) {
         const __mmask16 up = (c.both[a] & _mm512_test_epi32_mask(digits, one)) | (~c.both[a] & c.upper[a]);
         digits = _mm512_mask_srli_epi32(digits, c.both[a], digits, 1);
         term[a] = _mm512_mask_blend_epi32(up, c.ax[a].term[0], c.ax[a].term[1]);
         weight[a] = _mm512_mask_blend_ps(up, c.ax[a].weight[0], c.ax[a].weight[1]);
     }
+}
+
+// Slot s of every lane: its s-th live corner in corner order c = x + 2y + 4z (x fastest),
+// the digits of s taken x first (slot_sides); level_corners' order and values (the weight
+// is (w_x * w_y) * w_z). Meaningful in lanes with s < n.
+LSNIF_AVX512 inline void slot_corner(const LaneCorners& c, const LevelInfo& lv, std::uint32_t s, __m512i& idx,
+                                     __m512& w) {
+    __m512i term[3];
+    __m512 weight[3];
+    slot_sides(c, s, 0, term, weight);
     idx = lv.dense ? _mm512_add_epi32(_mm512_add_epi32(term[0], term[1]), term[2])
                    : _mm512_and_si512(_mm512_xor_si512(_mm512_xor_si512(term[0], term[1]), term[2]),
                                       _mm512_set1_epi32(int(lv.mask)));
@@ -465,18 +473,12 @@ LSNIF_AVX512 void level_features16_pairs(const Geometry& geo, const LevelInfo& l
     __m512 acc[3] = {_mm512_setzero_ps(), _mm512_setzero_ps(), _mm512_setzero_ps()};
     for (std::uint32_t s = 0; s < slots; ++s) {
         const __mmask16 k = lanes & _mm512_cmpgt_epu32_mask(pairs, _mm512_set1_epi32(int(s)));
-        // slot_corner's digits over y and z only.
-        __m512i digits = _mm512_set1_epi32(int(s));
-        __m512i term = c.ax[0].term[0];
-        __m512 wyz[2];
-        for (int a = 1; a < 3; ++a) {
-            const __mmask16 up =
-                (c.both[a] & _mm512_test_epi32_mask(digits, one)) | (~c.both[a] & c.upper[a]);
-            digits = _mm512_mask_srli_epi32(digits, c.both[a], digits, 1);
-            term = _mm512_add_epi32(term, _mm512_mask_blend_epi32(up, c.ax[a].term[0], c.ax[a].term[1]));
-            wyz[a - 1] = _mm512_mask_blend_ps(up, c.ax[a].weight[0], c.ax[a].weight[1]);
-        }
-        const __m512i entry = _mm512_mullo_epi32(term, stride);
+        // The (y, z) pair's sides; x's lower corner starts the pair.
+        __m512i term[3];
+        __m512 weight[3];
+        slot_sides(c, s, 1, term, weight);
+        const __m512i lower = _mm512_add_epi32(_mm512_add_epi32(c.ax[0].term[0], term[1]), term[2]);
+        const __m512i entry = _mm512_mullo_epi32(lower, stride);
         const __m512i start = _mm512_max_epi32(_mm512_sub_epi32(entry, one), _mm512_setzero_si512());
         const __m512i skip = _mm512_slli_epi32(_mm512_sub_epi32(entry, start), 3);  // 0 or 8 bits
         const auto half = [&](int h) LSNIF_AVX512 {
@@ -497,7 +499,7 @@ LSNIF_AVX512 void level_features16_pairs(const Geometry& geo, const LevelInfo& l
         };
         for (int side = 0; side < 2; ++side) {
             const __mmask16 live = k & c.ax[0].nonzero[side];
-            const __m512 w = _mm512_mul_ps(_mm512_mul_ps(c.ax[0].weight[side], wyz[0]), wyz[1]);
+            const __m512 w = _mm512_mul_ps(_mm512_mul_ps(c.ax[0].weight[side], weight[1]), weight[2]);
             for (std::uint32_t f = 0; f < F; ++f)
                 acc[f] = _mm512_mask3_fmadd_ps(w, feature(side * F + f), acc[f], live);
         }
@@ -506,7 +508,8 @@ LSNIF_AVX512 void level_features16_pairs(const Geometry& geo, const LevelInfo& l
 }
 
 // level_features16 for a model's F and a table's element type: every preset's F = 3
-// compiled as a constant, any other F read at run time.
+// compiled as a constant, any other F read at run time; level_features16_pairs where it
+// applies.
 using LevelFeatures16 = void (*)(const Geometry&, const LevelInfo&, const GridView&, const __m512 (&)[3],
                                  __mmask16, float*);
 template <std::uint32_t kF>
@@ -518,8 +521,10 @@ LevelFeatures16 level_features16_of(GridElement e) {
     }
     return level_features16<kF, GridElement::f32>;
 }
-LevelFeatures16 level_features16_for(std::uint32_t F, GridElement e) {
-    return F == 3 ? level_features16_of<3>(e) : level_features16_of<0>(e);
+LevelFeatures16 level_features16_for(const Geometry& geo, const LevelInfo& lv, const GridView& g) {
+    if (lv.dense && g.element == GridElement::u8 && g.stride == 3 && geo.F == 3)
+        return level_features16_pairs;
+    return geo.F == 3 ? level_features16_of<3>(g.element) : level_features16_of<0>(g.element);
 }
 
 // Every level's features of points [i, i + 16) of `pl` (lanes past pl.n masked off), written
@@ -624,11 +629,7 @@ LSNIF_AVX512 void encode_batch_avx512(const Geometry& geo, const GridView* grid,
     const std::vector<SharedPoint>& shared = shared_first_points(geo, pts, which, add);
     pl.n = i;  // at most total: shared first points are copied, not listed
     LevelFeatures16 level[LSNIF_MAX_LEVELS];
-    for (std::uint32_t l = 0; l < geo.L; ++l)
-        level[l] =
-            geo.levels[l].dense && grid[l].element == GridElement::u8 && grid[l].stride == 3 && geo.F == 3
-                ? level_features16_pairs
-                : level_features16_for(geo.F, grid[l].element);
+    for (std::uint32_t l = 0; l < geo.L; ++l) level[l] = level_features16_for(geo, geo.levels[l], grid[l]);
     for (std::size_t b = 0; b < pl.n; b += 16) encode_block16(geo, grid, level, pl, b, rows);
     for (const SharedPoint& c : shared) std::memcpy(rows + c.to, rows + c.from, slot * sizeof(float));
 }
