@@ -580,10 +580,20 @@ LSNIF_AVX512 inline __m512i exit_plane(const Axis& x, __m512i k) {
     return _mm512_mask_add_epi32(k, x.forward, k, _mm512_set1_epi32(1));
 }
 
+// x + n * (y + n * z) per lane, for coordinates in [0, n): with shifts where n = 2^log2n
+// (log2n >= 0), one cycle each where a 16-lane multiplication takes up to ten on some
+// cores, on the walk's critical path; else with multiplications.
+LSNIF_AVX512 inline __m512i linear_index(__m512i x, __m512i y, __m512i z, __m512i n, int log2n) {
+    if (log2n >= 0) {
+        const __m128i s = _mm_cvtsi32_si128(log2n);
+        return _mm512_add_epi32(x, _mm512_sll_epi32(_mm512_add_epi32(y, _mm512_sll_epi32(z, s)), s));
+    }
+    return _mm512_add_epi32(x, _mm512_mullo_epi32(n, _mm512_add_epi32(y, _mm512_mullo_epi32(n, z))));
+}
+
 // Linear voxel index x + V * (y + V * z) of each lane's cell.
-LSNIF_AVX512 inline __m512i voxel_index(const Axis (&ax)[3], __m512i vV) {
-    return _mm512_add_epi32(
-        ax[0].cell, _mm512_mullo_epi32(vV, _mm512_add_epi32(ax[1].cell, _mm512_mullo_epi32(vV, ax[2].cell))));
+LSNIF_AVX512 inline __m512i voxel_index(const Axis (&ax)[3], __m512i vV, int log2V) {
+    return linear_index(ax[0].cell, ax[1].cell, ax[2].cell, vV, log2V);
 }
 
 // Entry points recorded by the 16-lane walk, in the order recorded, before they reach their
@@ -689,7 +699,7 @@ LSNIF_AVX512 inline __mmask16 leave_box(Axis (&ax)[3], __mmask16 m, __m512i shif
         const __mmask16 moving = _mm512_mask_cmp_ps_mask(m & x.moves, x.exit, box_exit, _CMP_LE_OQ);
         // The guess, kept between the current cell and one cell past the grid.
         const __m512 pos = _mm512_fmadd_ps(box_exit, x.gd, x.go);
-        __m512i c = _mm512_cvtps_epi32(_mm512_roundscale_ps(pos, _MM_FROUND_TO_NEG_INF | _MM_FROUND_NO_EXC));
+        __m512i c = _mm512_cvt_roundps_epi32(pos, _MM_FROUND_TO_NEG_INF | _MM_FROUND_NO_EXC);
         c = _mm512_mask_max_epi32(c, x.forward, c, x.cell);
         c = _mm512_mask_min_epi32(c, x.forward, c, vV);
         c = _mm512_mask_min_epi32(c, ~x.forward, c, x.cell);
@@ -774,6 +784,8 @@ LSNIF_AVX512 void trace_batch_avx512(const Geometry& geo, const OccupancyGrid& o
     std::uint32_t live = refill(geo, rays, next, out, status, q, L, 0);
     const __m512i vV = _mm512_set1_epi32(int(geo.V));
     const __m512i vS = _mm512_set1_epi32(int(occ.S));
+    const auto log2_of = [](std::uint32_t n) { return std::has_single_bit(n) ? std::countr_zero(n) : -1; };
+    const int log2V = log2_of(geo.V), log2S = log2_of(occ.S);
     while (live) {
         Axis ax[3];
         load_axes(L, ax);
@@ -788,13 +800,11 @@ LSNIF_AVX512 void trace_batch_avx512(const Geometry& geo, const OccupancyGrid& o
             if (recorded.n + kLanes > Recorded::kCapacity) flush(recorded, out);
             // One gather reads the voxel's kSubBlock^3 block entry (OccupancyGrid::blocks, in
             // the low 16 bits): its voxels, and whether its larger blocks are occupied.
-            const __m512i idx = voxel_index(ax, vV);
+            const __m512i idx = voxel_index(ax, vV, log2V);
             const __m512i one = _mm512_set1_epi32(1);
-            const __m512i sub = _mm512_add_epi32(
-                _mm512_srli_epi32(ax[0].cell, 1),
-                _mm512_mullo_epi32(
-                    vS, _mm512_add_epi32(_mm512_srli_epi32(ax[1].cell, 1),
-                                         _mm512_mullo_epi32(vS, _mm512_srli_epi32(ax[2].cell, 1)))));
+            const __m512i sub =
+                linear_index(_mm512_srli_epi32(ax[0].cell, 1), _mm512_srli_epi32(ax[1].cell, 1),
+                             _mm512_srli_epi32(ax[2].cell, 1), vS, log2S);
             const __m512i word =
                 _mm512_mask_i32gather_epi32(_mm512_setzero_si512(), __mmask16(live), sub,
                                             reinterpret_cast<const int*>(occ.blocks.data()), 2);
