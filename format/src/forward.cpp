@@ -605,6 +605,37 @@ const std::vector<SharedPoint>& shared_first_points(const Geometry& geo, const R
     return shared;
 }
 
+// encode_ray_inputs for models with H <= 16: the entry offsets of every slot in one vector,
+// with entry_offsets' subtractions, products, fused multiply-adds, square root and division
+// per slot (each correctly rounded at any width), so the same bits. A scalar square root
+// and division per slot cost more than a ray's encoding of a level on some cores.
+LSNIF_AVX512 void encode_ray_inputs16(const Geometry& geo, const RayPoints& pts, float* row) {
+    const std::size_t slot = std::size_t(geo.L) * geo.F;
+    std::memset(row + pts.count * slot, 0, sizeof(float) * (geo.H - pts.count) * slot);
+    if (geo.direction_width) std::memcpy(row + geo.point_width, pts.dir, sizeof(pts.dir));
+    if (!geo.offset_width) return;
+    // Slot k's coordinate on axis a is float 3k + a of pts.g: the first 16 slots' 48 floats
+    // as three vectors, each axis picked out by permutations.
+    static_assert(kMaxPoints >= 16);
+    const float* g = &pts.g[0][0];
+    const __m512 v0 = _mm512_loadu_ps(g), v1 = _mm512_loadu_ps(g + 16), v2 = _mm512_loadu_ps(g + 32);
+    const __m512i three_k = _mm512_setr_epi32(0, 3, 6, 9, 12, 15, 18, 21, 24, 27, 30, 33, 36, 39, 42, 45);
+    __m512 d[3];
+    for (int a = 0; a < 3; ++a) {
+        const __m512i at = _mm512_add_epi32(three_k, _mm512_set1_epi32(a));
+        const __mmask16 third = _mm512_cmpge_epi32_mask(at, _mm512_set1_epi32(32));
+        const __m512 x = _mm512_mask_permutexvar_ps(_mm512_permutex2var_ps(v0, at, v1), third, at, v2);
+        d[a] = _mm512_mul_ps(_mm512_sub_ps(x, _mm512_set1_ps(g[a])), _mm512_set1_ps(geo.cell[a]));
+    }
+    const __m512 squared =
+        _mm512_fmadd_ps(d[2], d[2], _mm512_fmadd_ps(d[1], d[1], _mm512_mul_ps(d[0], d[0])));
+    const __m512 offset = _mm512_div_ps(_mm512_sqrt_ps(squared), _mm512_set1_ps(geo.diagonal));
+    // Slot 0 (entry_offsets writes +0) and the slots past the count up to H: zero.
+    const __mmask16 points = __mmask16(((1u << std::min(pts.count, geo.H)) - 1u) & ~1u);
+    _mm512_mask_storeu_ps(row + geo.point_width + geo.direction_width, __mmask16((1u << geo.H) - 1u),
+                          _mm512_maskz_mov_ps(points, offset));
+}
+
 LSNIF_AVX512 void encode_batch_avx512(const Geometry& geo, const GridView* grid, const RayPoints* pts,
                                       std::span<const std::uint32_t> which, float* rows) {
     thread_local PointList pl;
@@ -624,7 +655,10 @@ LSNIF_AVX512 void encode_batch_avx512(const Geometry& geo, const GridView* grid,
     for (std::size_t j = 0; j < which.size(); ++j) {
         const RayPoints& p = pts[which[j]];
         for (std::uint32_t h = 1; h < p.count; ++h) add(j, h);
-        encode_ray_inputs(geo, p, rows + j * geo.input_width);
+        if (geo.H <= 16)
+            encode_ray_inputs16(geo, p, rows + j * geo.input_width);
+        else
+            encode_ray_inputs(geo, p, rows + j * geo.input_width);
     }
     const std::vector<SharedPoint>& shared = shared_first_points(geo, pts, which, add);
     pl.n = i;  // at most total: shared first points are copied, not listed

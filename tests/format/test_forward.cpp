@@ -317,8 +317,8 @@ TEST_CASE(
     d.level_resolution = {64, 40, 8};
     d.log2_table_size = 12;
     d.ray_inputs = kRayInputDirection | kRayInputEntryOffsets;
-    // H = 7, 18 (the default) and 37 points per ray.
-    for (const std::uint32_t H : {7u, 18u, 37u}) {
+    // H = 7, 16 (the widest whose entry offsets take one vector), 18 and 37 points per ray.
+    for (const std::uint32_t H : {7u, 16u, 18u, 37u}) {
         CAPTURE(H);
         d.max_points = H;
         std::mt19937 rng(11 + H);
