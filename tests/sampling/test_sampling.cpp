@@ -171,11 +171,13 @@ TEST_CASE("same seed gives identical samples with 1 and 2 threads") {
     }
 }
 
-TEST_CASE("Embree is pinned to AVX2: its answers and BVH bytes on another ISA may differ") {
-    // Conversion's ground truth and BVH bytes must be the same on every machine, so the
-    // sources pin Embree's ISA (SamplingConfig::embree_isa, "avx2" by default); create()
-    // refuses a CPU without AVX2. Here, on this CPU, the pin against Embree's other kernels:
-    // the SSE kernels build 4-wide BVH nodes, so the bytes differ at least there.
+TEST_CASE("the ground truth is the same from Embree's SSE4.2, AVX2 and AVX-512 kernels; the BVH is pinned") {
+    // Embree scales its hit distance and barycentrics by an approximate reciprocal, whose
+    // bits differ per instruction set here and per CPU vendor elsewhere; the sources take
+    // only the triangle from Embree and compute t, u and v themselves (exact_hit), so
+    // kernels with three different approximations answer every ray alike. The BVH's bytes
+    // (the memory yardstick) still depend on the ISA, hence the pin to AVX2
+    // (SamplingConfig::embree_isa); create() refuses a CPU without AVX2.
     CHECK(SamplingConfig{}.embree_isa == "avx2");
     const TriMesh& m = dragon();
     SamplingConfig pinned, sse;
@@ -186,27 +188,26 @@ TEST_CASE("Embree is pinned to AVX2: its answers and BVH bytes on another ISA ma
     a->generate(31, 20000, sa);
     b->generate(31, 20000, sb);
     c->generate(31, 20000, sc);
-    std::size_t same = 0, sse_differs = 0;
+    std::size_t same = 0, sse_same = 0, hits = 0;
     for (std::size_t i = 0; i < sa.size(); ++i) {
         same += bit_equal(sa[i], sb[i]);
-        sse_differs += !bit_equal(sa[i], sc[i]);
+        sse_same += bit_equal(sa[i], sc[i]);
+        hits += sa[i].hit;
     }
+    CHECK(hits > 5000);  // the comparison covers hits, not only misses
     CHECK(same == sa.size());
+    CHECK(sse_same == sa.size());  // 9,341 of 20,000 differed with Embree's own t, u, v
     CHECK(a->bvh_bytes() == b->bvh_bytes());
     CHECK(c->bvh_bytes() != a->bvh_bytes());
-    MESSAGE("dragon, 20,000 rays: SSE4.2 kernels answer " << sse_differs << " differently from AVX2; BVH "
-                                                          << c->bvh_bytes() << " B against " << a->bvh_bytes()
-                                                          << " B");
     if (lsnif::format::detected_cpu_features().avx512) {
         SamplingConfig wide;
         wide.embree_isa = "avx512";
         auto d = make(m, 2, wide);
         std::vector<Sample> sd;
         d->generate(31, 20000, sd);
-        std::size_t differ = 0;
-        for (std::size_t i = 0; i < sa.size(); ++i) differ += !bit_equal(sa[i], sd[i]);
-        MESSAGE("AVX-512 kernels answer " << differ << " of 20,000 rays differently; BVH " << d->bvh_bytes()
-                                          << " B");
+        std::size_t wide_same = 0;
+        for (std::size_t i = 0; i < sa.size(); ++i) wide_same += bit_equal(sa[i], sd[i]);
+        CHECK(wide_same == sa.size());  // 2,247 differed with Embree's own t, u, v
     }
 }
 

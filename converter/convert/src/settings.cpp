@@ -98,9 +98,7 @@ std::vector<Setting> make_table() {
                 [](const ConvertOptions& o) { return std::vector<std::string>{std::to_string(o.seed)}; },
                 [](const ConvertOptions& o) { return json(o.seed); }},
         Setting{"--arithmetic", "canonical|machine", false, SettingScope::mesh, "arithmetic", "canonical",
-                "canonical: fp32 in one order, the same training arithmetic on every CPU and thread count "
-                "(Intel and AMD CPUs still differ through Embree's hit distances, docs/pipeline.md); "
-                "machine: bf16 "
+                "canonical: fp32 in one order, the same assets on every CPU and thread count; machine: bf16 "
                 "training products on AMX or AVX-512 BF16 where present (faster there; the assets depend on "
                 "the CPU kind and say so)",
                 [](ConvertOptions& o, const std::string& v, std::string& e, std::string&) {

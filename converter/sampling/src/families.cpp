@@ -4,10 +4,13 @@
 // through the inside test), tracing 16 rays at a time through rtcIntersect16, and trace()
 // for caller-made rays through rtcIntersect1. Both tracing paths decode hits with the
 // same code, which is why they must round identically (-ffp-contract=off) and why the
-// tests can compare them bit for bit.
+// tests can compare them bit for bit. A hit's t, u and v are lsnif's own (exact_hit):
+// Embree only says which triangle.
 #include "sampling_internal.hpp"
 
+#include <algorithm>
 #include <bit>
+#include <cmath>
 
 namespace lsnif::sampling {
 
@@ -67,11 +70,32 @@ EmbreeSource::Impl::RawHit EmbreeSource::Impl::trace_raw(const format::Ray& r) c
     return {rh.ray.tfar, rh.hit.u, rh.hit.v, rh.hit.primID};
 }
 
+// Ray r's hit with triangle h.prim (one Embree reported) computed again from the
+// triangle's stored corner and edges: Möller and Trumbore, "Fast, Minimum Storage
+// Ray/Triangle Intersection" (1997), in double, each operation rounded by IEEE 754 alone.
+// Embree scales its t, u and v by an approximate reciprocal whose bits are the CPU's own
+// (Intel and AMD differ; docs/pipeline.md "The same bytes everywhere"), so the ground
+// truth takes only the triangle from Embree. t stays within the ray's [tmin, tmax], which
+// Embree's exact depth test guaranteed. Embree's values are kept where the ray is parallel
+// to the triangle in double or a result is not finite.
+EmbreeSource::Impl::RawHit EmbreeSource::Impl::exact_hit(const format::Ray& r, const RawHit& h) const {
+    const SurfaceRecord& tri = surface[h.prim];
+    const V3 e1{tri.e1[0], tri.e1[1], tri.e1[2]}, e2{tri.e2[0], tri.e2[1], tri.e2[2]};
+    const V3 dir{r.dir[0], r.dir[1], r.dir[2]};
+    const V3 from_v0 = V3{r.org[0], r.org[1], r.org[2]} - V3{tri.v0[0], tri.v0[1], tri.v0[2]};
+    const V3 p = cross(dir, e2), q = cross(from_v0, e1);
+    const double det = dot(e1, p);
+    const double t = dot(e2, q) / det, u = dot(from_v0, p) / det, v = dot(dir, q) / det;
+    if (det == 0 || !std::isfinite(t) || !std::isfinite(u) || !std::isfinite(v)) return h;
+    return {std::clamp(float(t), r.tmin, r.tmax), float(u), float(v), h.prim};
+}
+
 // Writes the ground-truth fields of s (and x) from Embree's answer.
-void EmbreeSource::Impl::decode(const RawHit& h, Sample& s, SampleExtras* x) const {
+void EmbreeSource::Impl::decode(const RawHit& embree, Sample& s, SampleExtras* x) const {
     // Hits and misses take the same path (a miss reads record 0 and its results are
     // replaced by zeros): whether a ray hits is a coin flip to the branch predictor.
-    const bool hit = h.prim != kNoPrimitive;
+    const bool hit = embree.prim != kNoPrimitive;
+    const RawHit h = hit ? exact_hit(s.ray, embree) : embree;
     const HitRecord& rec = hit_records[hit ? h.prim : 0];
     // Embree's (u, v) are the barycentrics of v1 and v2: P = (1-u-v) v0 + u v1 + v v2.
     const float u = hit ? h.u : 0.0f, v = hit ? h.v : 0.0f, w = 1.0f - u - v;
