@@ -221,13 +221,17 @@ void accumulate_level(const Corners& c, const T* table, std::uint32_t stride, st
     }
 }
 
+// entry_offsets' signature: the batch encoder passes a vector version with the same bits.
+using EntryOffsets = void (*)(const Geometry&, const RayPoints&, float*);
+
 // What encode_points writes besides the occupied slots' features: zeros for the empty
-// slots, then the ray inputs the model has.
-void encode_ray_inputs(const Geometry& geo, const RayPoints& pts, float* row) {
+// slots, then the ray inputs the model has (the entry offsets by `offsets`).
+void encode_ray_inputs(const Geometry& geo, const RayPoints& pts, float* row,
+                       EntryOffsets offsets = entry_offsets) {
     const std::size_t slot = std::size_t(geo.L) * geo.F;
     std::memset(row + pts.count * slot, 0, sizeof(float) * (geo.H - pts.count) * slot);
     if (geo.direction_width) std::memcpy(row + geo.point_width, pts.dir, sizeof(pts.dir));
-    if (geo.offset_width) entry_offsets(geo, pts, row + geo.point_width + geo.direction_width);
+    if (geo.offset_width) offsets(geo, pts, row + geo.point_width + geo.direction_width);
 }
 
 std::size_t element_size(GridElement e) {
@@ -605,15 +609,11 @@ const std::vector<SharedPoint>& shared_first_points(const Geometry& geo, const R
     return shared;
 }
 
-// encode_ray_inputs for models with H <= 16: the entry offsets of every slot in one vector,
-// with entry_offsets' subtractions, products, fused multiply-adds, square root and division
-// per slot (each correctly rounded at any width), so the same bits. A scalar square root
-// and division per slot cost more than a ray's encoding of a level on some cores.
-LSNIF_AVX512 void encode_ray_inputs16(const Geometry& geo, const RayPoints& pts, float* row) {
-    const std::size_t slot = std::size_t(geo.L) * geo.F;
-    std::memset(row + pts.count * slot, 0, sizeof(float) * (geo.H - pts.count) * slot);
-    if (geo.direction_width) std::memcpy(row + geo.point_width, pts.dir, sizeof(pts.dir));
-    if (!geo.offset_width) return;
+// entry_offsets for models with H <= 16: every slot's offset in one vector, with
+// entry_offsets' subtractions, products, fused multiply-adds, square root and division per
+// slot (each correctly rounded at any width), so the same bits. A scalar square root and
+// division per slot cost more than a ray's encoding of a level on some cores.
+LSNIF_AVX512 void entry_offsets16(const Geometry& geo, const RayPoints& pts, float* out) {
     // Slot k's coordinate on axis a is float 3k + a of pts.g: the first 16 slots' 48 floats
     // as three vectors, each axis picked out by permutations.
     static_assert(kMaxPoints >= 16);
@@ -632,8 +632,7 @@ LSNIF_AVX512 void encode_ray_inputs16(const Geometry& geo, const RayPoints& pts,
     const __m512 offset = _mm512_div_ps(_mm512_sqrt_ps(squared), _mm512_set1_ps(geo.diagonal));
     // Slot 0 (entry_offsets writes +0) and the slots past the count up to H: zero.
     const __mmask16 points = __mmask16(((1u << std::min(pts.count, geo.H)) - 1u) & ~1u);
-    _mm512_mask_storeu_ps(row + geo.point_width + geo.direction_width, __mmask16((1u << geo.H) - 1u),
-                          _mm512_maskz_mov_ps(points, offset));
+    _mm512_mask_storeu_ps(out, __mmask16((1u << geo.H) - 1u), _mm512_maskz_mov_ps(points, offset));
 }
 
 LSNIF_AVX512 void encode_batch_avx512(const Geometry& geo, const GridView* grid, const RayPoints* pts,
@@ -652,13 +651,11 @@ LSNIF_AVX512 void encode_batch_avx512(const Geometry& geo, const GridView* grid,
         for (int a = 0; a < 3; ++a) pl.g[a][i] = p.g[h][a];
         pl.out[i++] = std::int32_t(j * geo.input_width + h * slot);
     };
+    const EntryOffsets offsets = geo.H <= 16 ? entry_offsets16 : entry_offsets;
     for (std::size_t j = 0; j < which.size(); ++j) {
         const RayPoints& p = pts[which[j]];
         for (std::uint32_t h = 1; h < p.count; ++h) add(j, h);
-        if (geo.H <= 16)
-            encode_ray_inputs16(geo, p, rows + j * geo.input_width);
-        else
-            encode_ray_inputs(geo, p, rows + j * geo.input_width);
+        encode_ray_inputs(geo, p, rows + j * geo.input_width, offsets);
     }
     const std::vector<SharedPoint>& shared = shared_first_points(geo, pts, which, add);
     pl.n = i;  // at most total: shared first points are copied, not listed
