@@ -68,7 +68,7 @@ std::string attach_caps(EmbreeSource::Impl& m) {
                 cap_pos.push_back(m.positions[3 * std::size_t(m.caps[k]) + std::size_t(a)]);
         cap_index[k] = it->second;
     }
-    return attach_triangles(m, cap_pos, cap_index, kCapMask, 1);
+    return attach_triangles(m, cap_pos, cap_index, kCapMask, kCapGeometry);
 }
 
 // Device with the error and memory callbacks, and an empty scene with the flags the
@@ -135,7 +135,8 @@ std::string index_problem(const MeshView& mesh) {
 
 std::string build_embree_scene(EmbreeSource::Impl& m) {
     if (std::string why = new_device_and_scene(m); !why.empty()) return why;
-    if (std::string why = attach_triangles(m, m.positions, m.indices, kMeshMask, 0); !why.empty()) return why;
+    if (std::string why = attach_triangles(m, m.positions, m.indices, kMeshMask, kMeshGeometry); !why.empty())
+        return why;
     if (!m.caps.empty())
         if (std::string why = attach_caps(m); !why.empty()) return why;
     return commit_scene(m);

@@ -166,10 +166,10 @@ void EmbreeSource::Impl::intersect16(const Sample* s, std::size_t m, RawHit* raw
         pk.ray.tfar[k] = r.tmax;
     }
     rtcIntersect16(valid, scene, &ctx, &pk);
-    // The mask makes geomID 0 (hit) or RTC_INVALID_GEOMETRY_ID (all ones, miss), so
+    // The mask makes geomID kMeshGeometry = 0 (hit) or RTC_INVALID_GEOMETRY_ID (all ones, miss), so
     // or-ing it in gives kNoPrimitive for misses and masking with its complement
     // zeroes their (u, v): no branch on a coin flip per lane.
-    static_assert(RTC_INVALID_GEOMETRY_ID == kNoPrimitive);
+    static_assert(RTC_INVALID_GEOMETRY_ID == kNoPrimitive && kMeshGeometry == 0);
     for (std::size_t k = 0; k < m; ++k) {
         const std::uint32_t miss = pk.hit.geomID[k];
         raw[k] = {pk.ray.tfar[k], std::bit_cast<float>(std::bit_cast<std::uint32_t>(pk.hit.u[k]) & ~miss),

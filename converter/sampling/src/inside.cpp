@@ -121,7 +121,7 @@ bool EmbreeSource::Impl::first_hit_from_inside(const float o[3], V3 d, bool& cle
     // A mesh triangle's t, u and v computed by lsnif (exact_hit: Embree's carry the CPU's
     // approximate reciprocal); a hole cap's stay Embree's (the caps keep no records).
     RawHit h{rh.ray.tfar, rh.hit.u, rh.hit.v, rh.hit.primID};
-    if (rh.hit.geomID == 0)
+    if (rh.hit.geomID == kMeshGeometry)
         h = exact_hit(format::Ray{{o[0], o[1], o[2]}, 0.0f, {dir[0], dir[1], dir[2]}, tfar}, h);
     const double u = h.u, v = h.v;
     clean = std::abs(cosine) >= 1e-3 && std::min({u, v, 1.0 - u - v}) >= 1e-6 && h.t > 1e-7 * diag;

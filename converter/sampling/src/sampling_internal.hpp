@@ -154,9 +154,10 @@ inline constexpr std::size_t kBatch = 256;
 
 // ---- Embree rays -------------------------------------------------------------------------
 
-// Geometry masks: ground-truth rays see the mesh (geomID 0); parity rays also see the
-// caps over small holes (geomID 1), which exist only to make the surface watertight.
+// Geometry masks and IDs: ground-truth rays see the mesh; parity rays also see the caps
+// over small holes, which exist only to make the surface watertight.
 inline constexpr unsigned kMeshMask = 0x1u, kCapMask = 0x2u;
+inline constexpr unsigned kMeshGeometry = 0, kCapGeometry = 1;
 
 // One rtcIntersect1 record: the ray [tnear, tfar] seeing `mask`, the hit cleared as Embree
 // requires before a query.
