@@ -90,6 +90,13 @@ EmbreeSource::Impl::RawHit EmbreeSource::Impl::exact_hit(const format::Ray& r, c
     return {std::clamp(float(t), r.tmin, r.tmax), float(u), float(v), h.prim};
 }
 
+// The two cache lines decode() reads for a hit on triangle `prim`: its vertices
+// (exact_hit) and its normals.
+void EmbreeSource::Impl::prefetch_hit(std::uint32_t prim) const {
+    __builtin_prefetch(&surface[prim]);
+    __builtin_prefetch(&hit_records[prim]);
+}
+
 // Writes the ground-truth fields of s (and x) from Embree's answer.
 void EmbreeSource::Impl::decode(const RawHit& embree, Sample& s, SampleExtras* x) const {
     // Hits and misses take the same path (a miss reads record 0 and its results are
@@ -121,7 +128,7 @@ void EmbreeSource::Impl::decode(const RawHit& embree, Sample& s, SampleExtras* x
 }
 
 // Ground truth for samples [b, e) whose rays are set: all traces first (each issuing a
-// prefetch of the hit triangle's record), then all decodes, so the record loads
+// prefetch of the hit triangle's records), then all decodes, so the record loads
 // overlap the following traversals instead of stalling after each one.
 void EmbreeSource::Impl::trace_range(Sample* s, SampleExtras* x, std::size_t n) const {
     RawHit raw[kBatch];
@@ -129,7 +136,7 @@ void EmbreeSource::Impl::trace_range(Sample* s, SampleExtras* x, std::size_t n) 
         const std::size_t m = std::min(kBatch, n - b);
         for (std::size_t i = 0; i < m; ++i) {
             raw[i] = trace_raw(s[b + i].ray);
-            if (raw[i].prim != kNoPrimitive) __builtin_prefetch(&hit_records[raw[i].prim]);
+            if (raw[i].prim != kNoPrimitive) prefetch_hit(raw[i].prim);
         }
         for (std::size_t i = 0; i < m; ++i) decode(raw[i], s[b + i], x ? &x[b + i] : nullptr);
     }
@@ -184,15 +191,15 @@ void EmbreeSource::Impl::intersect_packets(const Sample* s, std::size_t n, RawHi
 }
 
 // Ground truth for n <= kBatch rays made by finish() (valid by construction: no
-// checks): all packets first, each hit's record prefetched as soon as its packet
+// checks): all packets first, each hit's records prefetched as soon as its packet
 // returns, then all decodes, so the record loads overlap the following traversals.
 void EmbreeSource::Impl::trace_generated(Sample* s, SampleExtras* x, std::size_t n) const {
     RawHit raw[kBatch];
     for (std::size_t b = 0; b < n; b += kLanes) {
         const std::size_t m = std::min(kLanes, n - b);
         intersect16(s + b, m, raw + b);
-        for (std::size_t i = b; i < b + m; ++i)  // a miss prefetches record 0 (no branch)
-            __builtin_prefetch(&hit_records[raw[i].prim != kNoPrimitive ? raw[i].prim : 0]);
+        for (std::size_t i = b; i < b + m; ++i)  // a miss prefetches triangle 0 (no branch)
+            prefetch_hit(raw[i].prim != kNoPrimitive ? raw[i].prim : 0);
     }
     for (std::size_t i = 0; i < n; ++i) decode(raw[i], s[i], x ? &x[i] : nullptr);
 }

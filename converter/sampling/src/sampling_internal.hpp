@@ -277,6 +277,7 @@ struct EmbreeSource::Impl {
     };
     RawHit trace_raw(const format::Ray& r) const;
     RawHit exact_hit(const format::Ray& r, const RawHit& h) const;
+    void prefetch_hit(std::uint32_t prim) const;
     void decode(const RawHit& h, samples::Sample& s, SampleExtras* x) const;
     void trace_range(samples::Sample* s, SampleExtras* x, std::size_t n) const;
 
