@@ -397,19 +397,20 @@ LSNIF_VNNI_TARGET void quantize_to_lanes(const float* x, std::size_t lda, std::s
     for (std::size_t p = live.tail; p < live.end; ++p) quad(p);
 }
 
-// The integer sums of the 16 columns [j0, j0 + 16) of one int8 hidden layer on a block,
+// The integer sums of the N <= 16 columns [j0, j0 + N) of one int8 hidden layer on a block,
 // visiting quads [0, head) and [tail, end) in one loop (two loops, or a lambda per quad, make
 // GCC keep the accumulators on the stack). Signed: the inputs arrive as q + 128, so each
 // column's sum starts at -128 times its weights' sum over the visited quads; the result is
 // the same sum of q * w.
-template <bool Signed>
+template <bool Signed, std::size_t N = 16>
 [[gnu::always_inline]] LSNIF_VNNI_TARGET inline void lanes_sums(const Int8Layer& w, LiveGroups live,
                                                                 const LanesBlock& blk, std::size_t j0,
                                                                 __m512i (&acc)[16]) {
+    static_assert(N >= 1 && N <= 16);
     const std::size_t np = w.out_padded, ldb = 4 * np;
     const std::uint8_t* b = Signed ? w.w_signed.data() : w.b.data();
 #pragma GCC unroll 16
-    for (std::size_t j = 0; j < 16; ++j) {
+    for (std::size_t j = 0; j < N; ++j) {
         std::int32_t start = 0;
         if constexpr (Signed) {
             const std::int32_t* s = w.quad_prefix.data() + j0 + j;
@@ -423,7 +424,7 @@ template <bool Signed>
         const __m512i a = blk.a[p];
         const std::uint8_t* bp = b + p * ldb + 4 * j0;
 #pragma GCC unroll 16
-        for (std::size_t j = 0; j < 16; ++j) acc[j] = dpbusd_broadcast(acc[j], a, bp + 4 * j);
+        for (std::size_t j = 0; j < N; ++j) acc[j] = dpbusd_broadcast(acc[j], a, bp + 4 * j);
     }
 }
 
@@ -459,23 +460,46 @@ LSNIF_VNNI_TARGET __m512 lanes_hidden(const Int8Layer& w, const float* bias, Liv
 // one FMA per input in order, as dense_output_avx512), whose dependency chains then overlap
 // the next column block's products. Writes rows [0, rows) of `c`, 16 columns each (those
 // from OUTS on 0).
+// Columns [j0, j0 + N) of the last hidden layer into the output layer's sums `o` (N <= 16,
+// j0 + N <= out_padded): their products, ReLU and FMAs, in column order.
+template <bool Signed, int OUTS, std::size_t N>
+[[gnu::always_inline]] LSNIF_VNNI_TARGET inline void lanes_last_columns(const Int8Layer& w, const float* bias,
+                                                                        LiveGroups live,
+                                                                        const LanesBlock& blk,
+                                                                        const Int8OutputLayer& out,
+                                                                        std::size_t j0, __m512 (&o)[OUTS]) {
+    __m512i acc[16];
+    lanes_sums<Signed, N>(w, live, blk, j0, acc);
+#pragma GCC unroll 16
+    for (std::size_t j = 0; j < N; ++j) {
+        __m512 y = lanes_value(w, bias, blk, j0 + j, acc[j]);
+        y = _mm512_maskz_mov_ps(_mm512_cmp_ps_mask(y, _mm512_setzero_ps(), _CMP_GT_OQ), y);
+        if (j0 + j < out.in)  // a column of the rounded-up group past the live ones adds nothing
+            for (int i = 0; i < OUTS; ++i)
+                o[i] = _mm512_fmadd_ps(y, _mm512_set1_ps(out.wt[(j0 + j) * 16 + i]), o[i]);
+    }
+}
+
+// The padding columns past out.in (zero weights and bias, and no output-layer weight) are
+// not computed: the last column group runs on its live columns, rounded up to a multiple of
+// 4 (the code for 4, 8, 12 or 16 columns), up to 7 of 16 columns' products saved per
+// quad.
 template <bool Signed, int OUTS>
 LSNIF_VNNI_TARGET void lanes_last(const Int8Layer& w, const float* bias, LiveGroups live,
                                   const LanesBlock& blk, const Int8OutputLayer& out, std::size_t rows,
                                   float* c) {
     __m512 o[OUTS];
     for (int i = 0; i < OUTS; ++i) o[i] = _mm512_set1_ps(out.bias[i]);
-    for (std::size_t j0 = 0; j0 < w.out_padded; j0 += 16) {
-        __m512i acc[16];
-        lanes_sums<Signed>(w, live, blk, j0, acc);
-#pragma GCC unroll 16
-        for (std::size_t j = 0; j < 16; ++j) {
-            __m512 y = lanes_value(w, bias, blk, j0 + j, acc[j]);
-            y = _mm512_maskz_mov_ps(_mm512_cmp_ps_mask(y, _mm512_setzero_ps(), _CMP_GT_OQ), y);
-            if (j0 + j < out.in)
-                for (int i = 0; i < OUTS; ++i)
-                    o[i] = _mm512_fmadd_ps(y, _mm512_set1_ps(out.wt[(j0 + j) * 16 + i]), o[i]);
-        }
+    const std::size_t live_end = std::min(out.in, w.out_padded);
+    std::size_t j0 = 0;
+    for (; j0 + 16 <= live_end; j0 += 16)
+        lanes_last_columns<Signed, OUTS, 16>(w, bias, live, blk, out, j0, o);
+    switch ((live_end - j0 + 3) / 4) {
+        case 1: lanes_last_columns<Signed, OUTS, 4>(w, bias, live, blk, out, j0, o); break;
+        case 2: lanes_last_columns<Signed, OUTS, 8>(w, bias, live, blk, out, j0, o); break;
+        case 3: lanes_last_columns<Signed, OUTS, 12>(w, bias, live, blk, out, j0, o); break;
+        case 4: lanes_last_columns<Signed, OUTS, 16>(w, bias, live, blk, out, j0, o); break;
+        default: break;  // no columns left
     }
     __m512i t[16];
     for (int i = 0; i < 16; ++i) t[i] = i < OUTS ? _mm512_castps_si512(o[i]) : _mm512_setzero_si512();

@@ -238,8 +238,9 @@ TEST_CASE(
 TEST_CASE("the network with rows in vector lanes gives the layer-by-layer results bit for bit") {
     // Shapes: the default model's (143 signed inputs with empty point slots and entry offsets
     // -> 128 -> 98 padded to 112 -> the output layer), a third hidden layer whose input stops
-    // short of the previous padding, a single hidden layer, unsigned first inputs; row counts
-    // around the 16-row block.
+    // short of the previous padding, a single hidden layer, unsigned first inputs; last hidden
+    // layers whose final column group holds 2, 6, 9, 13 and 16 live columns (the kernel runs
+    // 4, 8, 12 or 16 of them); row counts around the 16-row block.
     struct Net {
         std::vector<std::size_t> widths;  // inputs, hidden outputs (unpadded), the output layer's 16
         std::size_t tail, rest_start;     // ZeroColumns of the input (0 = none)
@@ -249,7 +250,8 @@ TEST_CASE("the network with rows in vector lanes gives the layer-by-layer result
     std::uniform_real_distribution<float> u(-1.f, 1.f);
     for (const Net& net :
          {Net{{143, 128, 98, 16}, 126, 129, true}, Net{{143, 128, 98, 70, 16}, 126, 129, true},
-          Net{{33, 48, 16}, 20, 0, true}, Net{{64, 80, 16}, 0, 0, false}}) {
+          Net{{143, 128, 73, 16}, 126, 129, true}, Net{{33, 48, 16}, 20, 0, true},
+          Net{{64, 80, 16}, 0, 0, false}, Net{{64, 45, 16}, 0, 0, false}}) {
         const std::size_t hidden_count = net.widths.size() - 2, in = net.widths[0];
         std::vector<Int8Layer> hidden;
         std::vector<std::vector<float>> bias;
