@@ -475,15 +475,7 @@ struct MergeCommand {
     int run() const {
         const auto r = lsnif::library::merge(shards, outdir);
         for (const auto& e : r.errors) std::fprintf(stderr, "error: %s\n", e.c_str());
-        if (json) {
-            nlohmann::json summary = {{"shards", shards}, {"output", outdir}, {"errors", r.errors}};
-            if (r.errors.empty()) {
-                summary["manifest"] = outdir + "/manifest.json";
-                summary["meshes"] = r.meshes.size();
-                summary["scene_memory"] = lsnif::converter::scene_memory_json(r.memory);
-            }
-            std::cout << summary.dump(2) << "\n";
-        }
+        if (json) std::cout << lsnif::library::merge_summary_json(shards, outdir, r).dump(2) << "\n";
         if (!r.errors.empty()) return 1;
         if (!junit.empty()) {
             if (const auto e =

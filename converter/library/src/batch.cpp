@@ -528,6 +528,17 @@ nlohmann::json batch_summary_json(const BatchResult& r) {
     return j;
 }
 
+nlohmann::json merge_summary_json(const std::vector<std::string>& shard_dirs, const std::string& outdir,
+                                  const MergeResult& merged) {
+    nlohmann::json j = {{"shards", shard_dirs}, {"output", outdir}, {"errors", merged.errors}};
+    if (merged.errors.empty()) {
+        j["manifest"] = outdir + "/manifest.json";
+        j["meshes"] = merged.meshes.size();
+        j["scene_memory"] = converter::scene_memory_json(merged.memory);
+    }
+    return j;
+}
+
 std::string junit_xml(const BatchResult& r) {
     std::string cases;
     std::size_t tests = 0, failures = 0;

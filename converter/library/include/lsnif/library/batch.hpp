@@ -137,4 +137,9 @@ struct MergeResult {
 // copied, input paths made relative to `outdir`, the scene's memory summed again.
 MergeResult merge(const std::vector<std::string>& shard_dirs, const std::string& outdir);
 
+// The `lsnif merge --json` document of a merge: the shards, the output directory and the
+// errors; when it succeeded, the merged manifest, its mesh count and the scene's memory.
+nlohmann::json merge_summary_json(const std::vector<std::string>& shard_dirs, const std::string& outdir,
+                                  const MergeResult& merged);
+
 }  // namespace lsnif::library
