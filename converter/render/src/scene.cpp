@@ -147,6 +147,49 @@ struct ProfileScope {
 
 }  // namespace
 
+namespace {
+
+// The reader's share of a trace call: for every LSNIF instance, the rays that reach its box
+// (reach_box within boxes.tmax, which `bound(inst)` sets first) and that `wanted(i)` still
+// keeps, in batches of kBatch, each batch answered by `query(model, transform, rays, n)` (the
+// reader's instance call, which writes the answers) and each answer k of ray i handed to
+// `take(inst, k, i)`, which returns whether it was a hit (for the profile).
+template <class Bound, class Wanted, class Query, class Take>
+void through_assets(const EvalScene::Impl& im, std::span<const lsnif_ray> rays, BoxTests& boxes,
+                    TraceProfile& profile, Bound&& bound, Wanted&& wanted, Query&& query, Take&& take) {
+    std::vector<lsnif_ray> batch;
+    std::vector<std::uint32_t> idx;
+    batch.reserve(kBatch);
+    idx.reserve(kBatch);
+    for (const std::uint32_t inst : im.lsnif_instances) {
+        const EvalScene::Impl::Instance& in = im.instances[inst];
+        const lsnif_model* model = im.meshes[in.mesh].model;
+        const auto flush = [&] {
+            if (batch.empty()) return;
+            const auto t0 = base::Clock::now();
+            const lsnif_status st = query(model, in.transform.data(), batch.data(), batch.size());
+            profile.reader_seconds += base::seconds_since(t0);
+            ++profile.reader_calls;
+            profile.box_hits += batch.size();
+            if (st == LSNIF_OK)
+                for (std::size_t k = 0; k < batch.size(); ++k) profile.reader_hits += take(inst, k, idx[k]);
+            batch.clear();
+            idx.clear();
+        };
+        bound(inst);
+        reach_box(boxes.slabs, in.box, boxes.tmax.data(), boxes.reach.data(), rays.size());
+        for (std::size_t i = 0; i < rays.size(); ++i) {
+            if (!boxes.reach[i] || !wanted(i)) continue;
+            batch.push_back(rays[i]);
+            idx.push_back(std::uint32_t(i));
+            if (batch.size() == kBatch) flush();
+        }
+        flush();
+    }
+}
+
+}  // namespace
+
 void EvalScene::closest(bool hybrid, std::span<const lsnif_ray> rays, std::span<TraceHit> hits,
                         TraceProfile* profile) const {
     const Impl& im = *impl_;
@@ -163,50 +206,30 @@ void EvalScene::closest(bool hybrid, std::span<const lsnif_ray> rays, std::span<
     }
     prof.embree_done = base::Clock::now();
     if (!hybrid) return;
-    std::vector<lsnif_ray> batch;
-    std::vector<std::uint32_t> idx;
     std::vector<lsnif_hit> out(kBatch);
-    batch.reserve(kBatch);
-    idx.reserve(kBatch);
     BoxTests& boxes = box_tests_for(rays);
-    for (const std::uint32_t inst : im.lsnif_instances) {
-        const Impl::Instance& in = im.instances[inst];
-        const lsnif_model* model = im.meshes[in.mesh].model;
-        auto flush = [&] {
-            if (batch.empty()) return;
-            const auto t0 = base::Clock::now();
-            const lsnif_status st =
-                lsnif_intersect_instance(model, in.transform.data(), batch.data(), batch.size(), out.data());
-            prof.p.reader_seconds += base::seconds_since(t0);
-            ++prof.p.reader_calls;
-            prof.p.box_hits += batch.size();
-            if (st == LSNIF_OK) {
-                for (std::size_t k = 0; k < batch.size(); ++k) {
-                    TraceHit& h = hits[idx[k]];
-                    const lsnif_hit& o = out[k];
-                    prof.p.reader_hits += o.hit;
-                    const float best = h.instance >= 0 ? h.t : batch[k].tmax;
-                    if (o.hit && o.t >= batch[k].tmin && o.t <= best) {
-                        h.t = o.t;
-                        h.normal = normalize({o.normal[0], o.normal[1], o.normal[2]});
-                        h.instance = std::int32_t(inst);
-                    }
-                }
-            }
-            batch.clear();
-            idx.clear();
-        };
+    // An instance's box test is bounded by the closest hit so far.
+    const auto bound = [&](std::uint32_t) {
         for (std::size_t i = 0; i < rays.size(); ++i)
             boxes.tmax[i] = hits[i].instance >= 0 ? hits[i].t : rays[i].tmax;
-        reach_box(boxes.slabs, in.box, boxes.tmax.data(), boxes.reach.data(), rays.size());
-        for (std::size_t i = 0; i < rays.size(); ++i) {
-            if (!boxes.reach[i]) continue;
-            batch.push_back(rays[i]);
-            idx.push_back(std::uint32_t(i));
-            if (batch.size() == kBatch) flush();
+    };
+    const auto query = [&](const lsnif_model* model, const float* transform, const lsnif_ray* batch,
+                           std::size_t n) {
+        return lsnif_intersect_instance(model, transform, batch, n, out.data());
+    };
+    const auto take = [&](std::uint32_t inst, std::size_t k, std::uint32_t i) {
+        TraceHit& h = hits[i];
+        const lsnif_hit& o = out[k];
+        const float best = h.instance >= 0 ? h.t : rays[i].tmax;
+        if (o.hit && o.t >= rays[i].tmin && o.t <= best) {
+            h.t = o.t;
+            h.normal = normalize({o.normal[0], o.normal[1], o.normal[2]});
+            h.instance = std::int32_t(inst);
         }
-        flush();
-    }
+        return o.hit != 0;
+    };
+    through_assets(
+        im, rays, boxes, prof.p, bound, [](std::size_t) { return true; }, query, take);
 }
 
 void EvalScene::occluded(bool hybrid, std::span<const lsnif_ray> rays, std::span<std::uint8_t> occ,
@@ -225,39 +248,20 @@ void EvalScene::occluded(bool hybrid, std::span<const lsnif_ray> rays, std::span
     }
     prof.embree_done = base::Clock::now();
     if (!hybrid) return;
-    std::vector<lsnif_ray> batch;
-    std::vector<std::uint32_t> idx;
     std::vector<std::uint8_t> out(kBatch);
-    BoxTests& boxes = box_tests_for(rays);
-    for (const std::uint32_t inst : im.lsnif_instances) {
-        const Impl::Instance& in = im.instances[inst];
-        const lsnif_model* model = im.meshes[in.mesh].model;
-        // The any-hit query: a hit within the ray's [tmin, tmax] (lsnif.h), as rtcOccluded1.
-        auto flush = [&] {
-            if (batch.empty()) return;
-            const auto t0 = base::Clock::now();
-            const lsnif_status st =
-                lsnif_occluded_instance(model, in.transform.data(), batch.data(), batch.size(), out.data());
-            prof.p.reader_seconds += base::seconds_since(t0);
-            ++prof.p.reader_calls;
-            prof.p.box_hits += batch.size();
-            if (st == LSNIF_OK)
-                for (std::size_t k = 0; k < batch.size(); ++k) {
-                    prof.p.reader_hits += out[k];
-                    if (out[k]) occ[idx[k]] = 1;
-                }
-            batch.clear();
-            idx.clear();
-        };
-        reach_box(boxes.slabs, in.box, boxes.tmax.data(), boxes.reach.data(), rays.size());
-        for (std::size_t i = 0; i < rays.size(); ++i) {
-            if (occ[i] || !boxes.reach[i]) continue;
-            batch.push_back(rays[i]);
-            idx.push_back(std::uint32_t(i));
-            if (batch.size() == kBatch) flush();
-        }
-        flush();
-    }
+    // The any-hit query: a hit within the ray's [tmin, tmax] (lsnif.h), as rtcOccluded1; a ray
+    // already occluded is not traced again.
+    const auto query = [&](const lsnif_model* model, const float* transform, const lsnif_ray* batch,
+                           std::size_t n) {
+        return lsnif_occluded_instance(model, transform, batch, n, out.data());
+    };
+    const auto take = [&](std::uint32_t, std::size_t k, std::uint32_t i) {
+        if (out[k]) occ[i] = 1;
+        return out[k] != 0;
+    };
+    through_assets(
+        im, rays, box_tests_for(rays), prof.p, [](std::uint32_t) {}, [&](std::size_t i) { return !occ[i]; },
+        query, take);
 }
 
 AssetMemory EvalScene::asset_memory() const {
