@@ -78,8 +78,11 @@ EmbreeSource::Impl::RawHit EmbreeSource::Impl::trace_raw(const format::Ray& r) c
 // truth takes only the triangle from Embree. t stays within the ray's [tmin, tmax], which
 // Embree's exact depth test guaranteed. Embree's values are kept where the ray is parallel
 // to the triangle in double or a result is not finite.
-EmbreeSource::Impl::RawHit EmbreeSource::Impl::exact_hit(const format::Ray& r, const RawHit& h) const {
-    const SurfaceRecord& tri = surface[h.prim];
+namespace {
+
+template <class Triangle>
+EmbreeSource::Impl::RawHit moeller_trumbore(const Triangle& tri, const format::Ray& r,
+                                            const EmbreeSource::Impl::RawHit& h) {
     const V3 e1{tri.e1[0], tri.e1[1], tri.e1[2]}, e2{tri.e2[0], tri.e2[1], tri.e2[2]};
     const V3 dir{r.dir[0], r.dir[1], r.dir[2]};
     const V3 from_v0 = V3{r.org[0], r.org[1], r.org[2]} - V3{tri.v0[0], tri.v0[1], tri.v0[2]};
@@ -88,6 +91,19 @@ EmbreeSource::Impl::RawHit EmbreeSource::Impl::exact_hit(const format::Ray& r, c
     const double t = dot(e2, q) / det, u = dot(from_v0, p) / det, v = dot(dir, q) / det;
     if (det == 0 || !std::isfinite(t) || !std::isfinite(u) || !std::isfinite(v)) return h;
     return {std::clamp(float(t), r.tmin, r.tmax), float(u), float(v), h.prim};
+}
+
+}  // namespace
+
+EmbreeSource::Impl::RawHit EmbreeSource::Impl::exact_hit(const format::Ray& r, const RawHit& h) const {
+    return moeller_trumbore(surface[h.prim], r, h);
+}
+
+// The same for a hit on either geometry of the inside test's rays: the mesh's triangles or
+// the hole caps'.
+EmbreeSource::Impl::RawHit EmbreeSource::Impl::exact_hit(const format::Ray& r, const RawHit& h,
+                                                         unsigned geometry) const {
+    return geometry == kCapGeometry ? moeller_trumbore(cap_records[h.prim], r, h) : exact_hit(r, h);
 }
 
 // The two cache lines decode() reads for a hit on triangle `prim`: its vertices

@@ -81,6 +81,13 @@ bool EmbreeSource::Impl::odd_crossings(const float o[3], V3 d, std::vector<Parit
     hits.erase(std::unique(hits.begin(), hits.end(),
                            [](const ParityHit& a, const ParityHit& b) { return a.prim == b.prim; }),
                hits.end());
+    // The crossings' distances computed by lsnif (exact_hit): Embree's carry the CPU's
+    // approximate reciprocal, and the tolerance below compares them.
+    const format::Ray ray{{o[0], o[1], o[2]}, 0.0f, {dir[0], dir[1], dir[2]}, INFINITY};
+    for (ParityHit& h : hits) {
+        const RawHit embree{h.t, 0.0f, 0.0f, std::uint32_t(h.prim & 0xFFFFFFFFu)};
+        h.t = exact_hit(ray, embree, unsigned(h.prim >> 32)).t;
+    }
     // A ray through a shared edge or vertex is reported by every triangle there:
     // crossings closer than 1e-6 x diagonal count once.
     std::sort(hits.begin(), hits.end(), [](const ParityHit& a, const ParityHit& b) { return a.t < b.t; });
@@ -118,11 +125,10 @@ bool EmbreeSource::Impl::first_hit_from_inside(const float o[3], V3 d, bool& cle
     const V3 ng{rh.hit.Ng_x, rh.hit.Ng_y, rh.hit.Ng_z};
     const double len = length(ng);
     const double cosine = len > 0 ? orientation * dot(d, ng) / len : 0.0;
-    // A mesh triangle's t, u and v computed by lsnif (exact_hit: Embree's carry the CPU's
-    // approximate reciprocal); a hole cap's stay Embree's (the caps keep no records).
-    RawHit h{rh.ray.tfar, rh.hit.u, rh.hit.v, rh.hit.primID};
-    if (rh.hit.geomID == kMeshGeometry)
-        h = exact_hit(format::Ray{{o[0], o[1], o[2]}, 0.0f, {dir[0], dir[1], dir[2]}, tfar}, h);
+    // The hit's t, u and v computed by lsnif (exact_hit: Embree's carry the CPU's approximate
+    // reciprocal), on a mesh triangle or a hole cap.
+    const RawHit h = exact_hit(format::Ray{{o[0], o[1], o[2]}, 0.0f, {dir[0], dir[1], dir[2]}, tfar},
+                               RawHit{rh.ray.tfar, rh.hit.u, rh.hit.v, rh.hit.primID}, rh.hit.geomID);
     const double u = h.u, v = h.v;
     clean = std::abs(cosine) >= 1e-3 && std::min({u, v, 1.0 - u - v}) >= 1e-6 && h.t > 1e-7 * diag;
     return cosine > 0;

@@ -78,6 +78,22 @@ void build_alias_table(EmbreeSource::Impl& m, const TriangleAreas& areas) {
         }
 }
 
+namespace {
+
+// The triangle of vertex indices v as a corner and two edges (edges in double, rounded once).
+void corner_and_edges(const EmbreeSource::Impl& m, const std::uint32_t* v, float v0[3], float e1[3],
+                      float e2[3]) {
+    const V3 p0 = m.vertex(v[0]), d1 = m.vertex(v[1]) - p0, d2 = m.vertex(v[2]) - p0;
+    const double ev[2][3] = {{d1.x, d1.y, d1.z}, {d2.x, d2.y, d2.z}};
+    for (int a = 0; a < 3; ++a) {
+        v0[a] = m.positions[3 * std::size_t(v[0]) + std::size_t(a)];
+        e1[a] = float(ev[0][a]);
+        e2[a] = float(ev[1][a]);
+    }
+}
+
+}  // namespace
+
 void build_triangle_records(EmbreeSource::Impl& m) {
     const std::size_t nt = m.triangles;
     m.surface.resize(nt);
@@ -86,18 +102,19 @@ void build_triangle_records(EmbreeSource::Impl& m) {
         const std::uint32_t* v = &m.indices[3 * t];
         EmbreeSource::Impl::SurfaceRecord& sr = m.surface[t];
         EmbreeSource::Impl::HitRecord& hr = m.hit_records[t];
-        const V3 p0 = m.vertex(v[0]), e1 = m.vertex(v[1]) - p0, e2 = m.vertex(v[2]) - p0;
-        const double ev[2][3] = {{e1.x, e1.y, e1.z}, {e2.x, e2.y, e2.z}};
+        corner_and_edges(m, v, sr.v0, sr.e1, sr.e2);
         for (int a = 0; a < 3; ++a) {
-            sr.v0[a] = m.positions[3 * std::size_t(v[0]) + std::size_t(a)];
-            sr.e1[a] = float(ev[0][a]);
-            sr.e2[a] = float(ev[1][a]);
             sr.ng[a] = hr.ng[a] = m.face_normals[3 * t + std::size_t(a)];
             for (int j = 0; j < 3; ++j) hr.n[j][a] = m.normals[3 * std::size_t(v[j]) + std::size_t(a)];
         }
         sr.keep = float(m.alias_prob[t]);
         sr.alias = m.alias_index[t];
         hr.material = m.materials.empty() ? 0 : m.materials[t];
+    }
+    m.cap_records.resize(m.caps.size() / 3);
+    for (std::size_t k = 0; k < m.cap_records.size(); ++k) {
+        EmbreeSource::Impl::CapRecord& c = m.cap_records[k];
+        corner_and_edges(m, &m.caps[3 * k], c.v0, c.e1, c.e2);
     }
 }
 

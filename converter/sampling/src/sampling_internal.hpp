@@ -232,6 +232,12 @@ struct EmbreeSource::Impl {
     };
     std::vector<SurfaceRecord> surface;
     std::vector<HitRecord> hit_records;
+    // The hole caps' triangles as the inside test's exact hits read them (one per cap
+    // triangle, Embree's primID of geometry kCapGeometry): p = v0 + b1 e1 + b2 e2.
+    struct CapRecord {
+        float v0[3], e1[3], e2[3];
+    };
+    std::vector<CapRecord> cap_records;
 
     // Inside/outside classification grid (closed meshes): 0 = crossed by a triangle
     // (decide by votes), 1 = outside, 2 = inside. One byte per cell while building, then
@@ -277,6 +283,7 @@ struct EmbreeSource::Impl {
     };
     RawHit trace_raw(const format::Ray& r) const;
     RawHit exact_hit(const format::Ray& r, const RawHit& h) const;
+    RawHit exact_hit(const format::Ray& r, const RawHit& h, unsigned geometry) const;
     void prefetch_hit(std::uint32_t prim) const;
     void decode(const RawHit& h, samples::Sample& s, SampleExtras* x) const;
     void trace_range(samples::Sample* s, SampleExtras* x, std::size_t n) const;
@@ -407,8 +414,9 @@ void analyze_topology(EmbreeSource::Impl& m);
 // m.device_total, and the error callbacks installed. Returns an error message on failure.
 std::string build_embree_scene(EmbreeSource::Impl& m);
 
-// mesh_data.cpp. Input: m.positions, m.indices, m.normals, m.face_normals, m.materials and
-// the alias table. Output: m.surface and m.hit_records (one each per triangle).
+// mesh_data.cpp. Input: m.positions, m.indices, m.normals, m.face_normals, m.materials, m.caps
+// and the alias table. Output: m.surface and m.hit_records (one each per triangle),
+// m.cap_records (one per cap triangle).
 void build_triangle_records(EmbreeSource::Impl& m);
 
 // inside.cpp. Only when m.parity_ready and m.cfg.classify_resolution > 0. Input: the
