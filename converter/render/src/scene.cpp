@@ -145,10 +145,6 @@ struct ProfileScope {
     ProfileScope& operator=(const ProfileScope&) = delete;
 };
 
-}  // namespace
-
-namespace {
-
 // The reader's share of a trace call: for every LSNIF instance, the rays that reach its box
 // (reach_box within boxes.tmax, which `bound(inst)` sets first) and that `wanted(i)` still
 // keeps, in batches of kBatch, each batch answered by `query(model, transform, rays, n)` (the

@@ -70,6 +70,8 @@ EmbreeSource::Impl::RawHit EmbreeSource::Impl::trace_raw(const format::Ray& r) c
     return {rh.ray.tfar, rh.hit.u, rh.hit.v, rh.hit.primID};
 }
 
+namespace {
+
 // Ray r's hit with triangle h.prim (one Embree reported) computed again from the
 // triangle's stored corner and edges: Möller and Trumbore, "Fast, Minimum Storage
 // Ray/Triangle Intersection" (1997), in double, each operation rounded by IEEE 754 alone.
@@ -78,8 +80,6 @@ EmbreeSource::Impl::RawHit EmbreeSource::Impl::trace_raw(const format::Ray& r) c
 // truth takes only the triangle from Embree. t stays within the ray's [tmin, tmax], which
 // Embree's exact depth test guaranteed. Embree's values are kept where the ray is parallel
 // to the triangle in double or a result is not finite.
-namespace {
-
 template <class Triangle>
 EmbreeSource::Impl::RawHit moeller_trumbore(const Triangle& tri, const format::Ray& r,
                                             const EmbreeSource::Impl::RawHit& h) {
