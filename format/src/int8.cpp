@@ -455,11 +455,6 @@ LSNIF_VNNI_TARGET __m512 lanes_hidden(const Int8Layer& w, const float* bias, Liv
     return m;
 }
 
-// The last hidden layer on a block with the output layer fused into its epilogue: each
-// ReLU'd output goes straight into the output layer's FMAs (per row and output the bias, then
-// one FMA per input in order, as dense_output_avx512), whose dependency chains then overlap
-// the next column block's products. Writes rows [0, rows) of `c`, 16 columns each (those
-// from OUTS on 0).
 // Columns [j0, j0 + N) of the last hidden layer into the output layer's sums `o` (N <= 16,
 // j0 + N <= out_padded): their products, ReLU and FMAs, in column order.
 template <bool Signed, int OUTS, std::size_t N>
@@ -480,7 +475,11 @@ template <bool Signed, int OUTS, std::size_t N>
     }
 }
 
-// The padding columns past out.in (zero weights and bias, and no output-layer weight) are
+// The last hidden layer on a block with the output layer fused into its epilogue: each
+// ReLU'd output goes straight into the output layer's FMAs (per row and output the bias, then
+// one FMA per input in order, as dense_output_avx512), whose dependency chains then overlap
+// the next column block's products. Writes rows [0, rows) of `c`, 16 columns each (those
+// from OUTS on 0). The padding columns past out.in (zero weights and bias, and no output-layer weight) are
 // not computed: the last column group runs on its live columns, rounded up to a multiple of
 // 4 (the code for 4, 8, 12 or 16 columns), up to 7 of 16 columns' products saved per
 // quad.
