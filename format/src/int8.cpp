@@ -418,11 +418,21 @@ template <bool Signed, std::size_t N = 16>
         }
         acc[j] = _mm512_set1_epi32(start);
     }
-    const std::size_t visited = live.head + (live.end - live.tail), skip = live.tail - live.head;
-    for (std::size_t p = 0, i = 0; i < visited; ++i, ++p) {
-        p += i == live.head ? skip : 0;
-        const __m512i a = blk.a[p];
-        const std::uint8_t* bp = b + p * ldb + 4 * j0;
+    // Pointers stepped through A and B, not a quad index: the VPDPBUSDs address their
+    // weights by base and offset, without an index register, and the loop's own work is two
+    // additions and the exit test, which leaves the issue slots to the products.
+    const std::size_t skip = live.tail - live.head;
+    const __m512i* ap = blk.a;
+    const __m512i* const a_head = blk.a + live.head;
+    const __m512i* const a_end = blk.a + live.end;
+    const std::uint8_t* bp = b + 4 * j0;
+    for (; ap != a_end; ++ap, bp += ldb) {
+        if (ap == a_head) {  // jump over the quads [head, tail)
+            ap += skip;
+            bp += skip * ldb;
+            if (ap == a_end) break;
+        }
+        const __m512i a = *ap;
 #pragma GCC unroll 16
         for (std::size_t j = 0; j < N; ++j) acc[j] = dpbusd_broadcast(acc[j], a, bp + 4 * j);
     }
