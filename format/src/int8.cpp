@@ -409,14 +409,19 @@ template <bool Signed, std::size_t N = 16>
     static_assert(N >= 1 && N <= 16);
     const std::size_t np = w.out_padded, ldb = 4 * np;
     const std::uint8_t* b = Signed ? w.w_signed.data() : w.b.data();
+    if constexpr (Signed) {
+        // The 16 columns' weight sums over the visited quads at once (j0 + 16 <= np).
+        const std::int32_t* s = w.quad_prefix.data() + j0;
+        const __m512i visited = _mm512_sub_epi32(
+            _mm512_add_epi32(_mm512_loadu_si512(s + live.head * np), _mm512_loadu_si512(s + live.end * np)),
+            _mm512_loadu_si512(s + live.tail * np));
+        alignas(64) std::int32_t start[16];
+        _mm512_store_si512(start, _mm512_mullo_epi32(visited, _mm512_set1_epi32(-128)));
 #pragma GCC unroll 16
-    for (std::size_t j = 0; j < N; ++j) {
-        std::int32_t start = 0;
-        if constexpr (Signed) {
-            const std::int32_t* s = w.quad_prefix.data() + j0 + j;
-            start = -128 * (s[live.head * np] + s[live.end * np] - s[live.tail * np]);
-        }
-        acc[j] = _mm512_set1_epi32(start);
+        for (std::size_t j = 0; j < N; ++j) acc[j] = _mm512_set1_epi32(start[j]);
+    } else {
+#pragma GCC unroll 16
+        for (std::size_t j = 0; j < N; ++j) acc[j] = _mm512_setzero_si512();
     }
     // Pointers stepped through A and B, not a quad index: the VPDPBUSDs address their
     // weights by base and offset, without an index register, and the loop's own work is two
