@@ -8,6 +8,7 @@
 #include <algorithm>
 #include <cmath>
 #include <cstring>
+#include <limits>
 
 #include "x86.hpp"
 #if LSNIF_HAVE_X86
@@ -525,10 +526,32 @@ LSNIF_VNNI_TARGET void lanes_last(const Int8Layer& w, const float* bias, LiveGro
 // same bytes as quantize_row: scale m / 255 and inverse 255 / m by correctly rounded vector
 // division, max(y * inverse, +0), conversion, unsigned saturation to 255), four columns per
 // dword into blk.a; the new scales into blk.sx.
+//
+// Where every row's inverse is finite (m = 0 gives 0; only a maximum below 255 / FLT_MAX
+// overflows it), y <= m bounds y * inverse to 255 after rounding, so the conversion alone is
+// the same integer as there for every y >= 0 (and +inf * 0 = NaN cannot occur), and every
+// y < 0 converts to an integer <= 0: the packs' saturation to [0, 255] then gives the ReLU's
+// 0. That path packs four columns by VPACKSSDW, VPACKUSWB and one byte shuffle per lane (the
+// packs interleave by 128-bit lanes, four rows each); the general one clamps each column.
 LSNIF_VNNI_TARGET void lanes_quantize(std::size_t np, __m512 m, LanesBlock& blk) {
     const Scales16 scales = scales16(m, _mm512_set1_ps(kUnsigned.hi));
     blk.sx = scales.scale;
     const __m512 inverse = scales.inverse;
+    const __mmask16 overflow =
+        _mm512_cmp_ps_mask(inverse, _mm512_set1_ps(std::numeric_limits<float>::infinity()), _CMP_EQ_OQ);
+    if (!overflow) {
+        // Per 128-bit lane: byte 4 * column + row -> byte 4 * row + column.
+        const __m512i rows_together =
+            _mm512_broadcast_i32x4(_mm_setr_epi8(0, 4, 8, 12, 1, 5, 9, 13, 2, 6, 10, 14, 3, 7, 11, 15));
+        const auto q = [&](std::size_t j)
+                           LSNIF_VNNI_TARGET { return _mm512_cvtps_epi32(_mm512_mul_ps(blk.y[j], inverse)); };
+        for (std::size_t p = 0; p < np / 4; ++p) {
+            const __m512i words01 = _mm512_packs_epi32(q(4 * p), q(4 * p + 1));
+            const __m512i words23 = _mm512_packs_epi32(q(4 * p + 2), q(4 * p + 3));
+            blk.a[p] = _mm512_shuffle_epi8(_mm512_packus_epi16(words01, words23), rows_together);
+        }
+        return;
+    }
     const __m512i byte_max = _mm512_set1_epi32(255);
     for (std::size_t p = 0; p < np / 4; ++p) {
         __m512i word = _mm512_setzero_si512();

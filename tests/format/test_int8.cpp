@@ -240,18 +240,24 @@ TEST_CASE("the network with rows in vector lanes gives the layer-by-layer result
     // -> 128 -> 98 padded to 112 -> the output layer), a third hidden layer whose input stops
     // short of the previous padding, a single hidden layer, unsigned first inputs; last hidden
     // layers whose final column group holds 2, 6, 9, 13 and 16 live columns (the kernel runs
-    // 4, 8, 12 or 16 of them); row counts around the 16-row block.
+    // 4, 8, 12 or 16 of them); row counts around the 16-row block. And a first layer whose
+    // biases are positive denormals, zeros and negatives, every fifth input row zero: those
+    // rows' maximum is a denormal, 255 / maximum overflows, and their block is requantized by
+    // the clamping path instead of the packing one. The later biases are zero there, so the
+    // denormal products reach the outputs and a wrong byte changes them.
     struct Net {
         std::vector<std::size_t> widths;  // inputs, hidden outputs (unpadded), the output layer's 16
         std::size_t tail, rest_start;     // ZeroColumns of the input (0 = none)
         bool signed_input;
+        bool denormal_rows = false;
     };
     std::mt19937 rng(17);
     std::uniform_real_distribution<float> u(-1.f, 1.f);
     for (const Net& net :
          {Net{{143, 128, 98, 16}, 126, 129, true}, Net{{143, 128, 98, 70, 16}, 126, 129, true},
           Net{{143, 128, 73, 16}, 126, 129, true}, Net{{33, 48, 16}, 20, 0, true},
-          Net{{64, 80, 16}, 0, 0, false}, Net{{64, 45, 16}, 0, 0, false}}) {
+          Net{{64, 80, 16}, 0, 0, false}, Net{{64, 45, 16}, 0, 0, false},
+          Net{{33, 48, 40, 16}, 0, 0, true, true}}) {
         const std::size_t hidden_count = net.widths.size() - 2, in = net.widths[0];
         std::vector<Int8Layer> hidden;
         std::vector<std::vector<float>> bias;
@@ -260,14 +266,19 @@ TEST_CASE("the network with rows in vector lanes gives the layer-by-layer result
             std::vector<float> wt(kin * op, 0.0f), b(op, 0.0f);
             for (std::size_t i = 0; i < kin; ++i)
                 for (std::size_t j = 0; j < net.widths[k + 1]; ++j) wt[i * op + j] = u(rng);
-            for (std::size_t j = 0; j < net.widths[k + 1]; ++j) b[j] = 0.2f * u(rng);
+            for (std::size_t j = 0; j < net.widths[k + 1]; ++j)
+                b[j] = !net.denormal_rows ? 0.2f * u(rng)
+                       : k > 0            ? 0.0f
+                       : j % 3 == 0       ? 1e-40f * float(j % 5 + 1)
+                       : j % 3 == 1       ? 0.0f
+                                          : -float(j);
             hidden.push_back(make_int8_layer(wt.data(), kin, op, k == 0 && net.signed_input));
             bias.push_back(b);
         }
         const std::size_t out_in = net.widths[hidden_count];
         std::vector<float> out_wt(out_in * 16), out_bias(16);
         for (float& w : out_wt) w = u(rng);
-        for (float& b : out_bias) b = u(rng);
+        for (float& b : out_bias) b = net.denormal_rows ? 0.0f : u(rng);
         for (const std::size_t m : {std::size_t(1), std::size_t(16), std::size_t(37), std::size_t(256)}) {
             CAPTURE(in);
             CAPTURE(hidden_count);
@@ -283,7 +294,9 @@ TEST_CASE("the network with rows in vector lanes gives the layer-by-layer result
                                                    (net.rest_start && k >= net.rest_start + rest[r]));
                     const float v = u(rng);
                     // Unsigned inputs: a few negatives, which quantization clamps to 0.
-                    x[r * in + k] = zero ? 0.0f : net.signed_input || k % 7 == 0 ? v : std::fabs(v);
+                    x[r * in + k] = zero || (net.denormal_rows && r % 5 == 0) ? 0.0f
+                                    : net.signed_input || k % 7 == 0          ? v
+                                                                              : std::fabs(v);
                 }
             }
             const ZeroColumns zeros{lead.data(), net.tail, net.rest_start ? rest.data() : nullptr,
