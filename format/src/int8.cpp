@@ -350,6 +350,28 @@ struct LanesBlock {
     __m512* y;
 };
 
+// Four columns of 16 rows (one int32 lane per row) as one dword per row holding column i in
+// byte i, the quads' layout, each value saturated to a signed byte (`signed_bytes`) or an
+// unsigned one. The packs narrow by 128-bit lanes (four rows each) and one byte shuffle per
+// lane then gathers each row's four bytes: four instructions for four columns.
+LSNIF_VNNI_TARGET inline __m512i pack_quad(__m512i q0, __m512i q1, __m512i q2, __m512i q3,
+                                           bool signed_bytes) {
+    const __m512i words01 = _mm512_packs_epi32(q0, q1), words23 = _mm512_packs_epi32(q2, q3);
+    const __m512i bytes =
+        signed_bytes ? _mm512_packs_epi16(words01, words23) : _mm512_packus_epi16(words01, words23);
+    // Per lane: byte 4 * column + row -> byte 4 * row + column.
+    const __m512i rows_together =
+        _mm512_broadcast_i32x4(_mm_setr_epi8(0, 4, 8, 12, 1, 5, 9, 13, 2, 6, 10, 14, 3, 7, 11, 15));
+    return _mm512_shuffle_epi8(bytes, rows_together);
+}
+
+// Whether a lane of 16 inverse scales is +inf (scale_for's hi / m overflowed: a maximum
+// below hi / FLT_MAX), where quantizing needs its clamp.
+LSNIF_AVX512_TARGET inline bool any_infinite(__m512 inverse) {
+    return _mm512_cmp_ps_mask(inverse, _mm512_set1_ps(std::numeric_limits<float>::infinity()), _CMP_EQ_OQ) !=
+           0;
+}
+
 // Rows [r0, r0 + rows) of the first layer's fp32 input (`cols` columns, row stride lda;
 // rows <= 16, the others read as zero) quantized straight into lanes, with the bytes and
 // scales quantize_rows_avx512 gives them: the live 16-column chunks transposed into blk.y
@@ -385,14 +407,17 @@ LSNIF_VNNI_TARGET void quantize_to_lanes(const float* x, std::size_t lda, std::s
     blk.sx = scales.scale;
     const __m512 inverse = scales.inverse;
     const __m512i top = _mm512_set1_epi32(signed_input ? std::int32_t(0x80808080u) : 0);
-    const __m512i low_byte = _mm512_set1_epi32(0xff);
+    const bool clamp = any_infinite(inverse);
     const auto quad = [&](std::size_t p) LSNIF_VNNI_TARGET {
-        __m512i word = _mm512_setzero_si512();
-        for (int i = 0; i < 4; ++i) {
-            const __m512i q = quantize16(blk.y[4 * p + i], inverse, lo, hi);
-            word = _mm512_or_si512(word, _mm512_slli_epi32(_mm512_and_si512(q, low_byte), 8 * i));
-        }
-        blk.a[p] = _mm512_xor_si512(word, top);
+        const __m512* y = blk.y + 4 * p;
+        // With finite inverses, |x| <= m bounds x * inverse to hi after rounding (a finite x
+        // cannot make NaN), and an unsigned input's negative x converts to <= 0: the packs'
+        // saturation is the clamp.
+        const auto q = [&](int i) LSNIF_VNNI_TARGET {
+            return clamp ? quantize16(y[i], inverse, lo, hi)
+                         : _mm512_cvtps_epi32(_mm512_mul_ps(y[i], inverse));
+        };
+        blk.a[p] = _mm512_xor_si512(pack_quad(q(0), q(1), q(2), q(3), signed_input), top);
     };
     for (std::size_t p = 0; p < live.head; ++p) quad(p);
     for (std::size_t p = live.tail; p < live.end; ++p) quad(p);
@@ -525,43 +550,22 @@ LSNIF_VNNI_TARGET void lanes_last(const Int8Layer& w, const float* bias, LiveGro
 // The block's np outputs before the ReLU, quantized as the next layer's unsigned input (the
 // same bytes as quantize_row: scale m / 255 and inverse 255 / m by correctly rounded vector
 // division, max(y * inverse, +0), conversion, unsigned saturation to 255), four columns per
-// dword into blk.a; the new scales into blk.sx.
-//
-// Where every row's inverse is finite (m = 0 gives 0; only a maximum below 255 / FLT_MAX
-// overflows it), y <= m bounds y * inverse to 255 after rounding, so the conversion alone is
-// the same integer as there for every y >= 0 (and +inf * 0 = NaN cannot occur), and every
-// y < 0 converts to an integer <= 0: the packs' saturation to [0, 255] then gives the ReLU's
-// 0. That path packs four columns by VPACKSSDW, VPACKUSWB and one byte shuffle per lane (the
-// packs interleave by 128-bit lanes, four rows each); the general one clamps each column.
+// dword into blk.a; the new scales into blk.sx. With finite inverses, y <= m bounds
+// y * inverse to 255 after rounding, so the conversion alone gives that byte for every y >= 0,
+// and every y < 0 converts to <= 0, which the unsigned pack saturates to the ReLU's 0.
 LSNIF_VNNI_TARGET void lanes_quantize(std::size_t np, __m512 m, LanesBlock& blk) {
     const Scales16 scales = scales16(m, _mm512_set1_ps(kUnsigned.hi));
     blk.sx = scales.scale;
     const __m512 inverse = scales.inverse;
-    const __mmask16 overflow =
-        _mm512_cmp_ps_mask(inverse, _mm512_set1_ps(std::numeric_limits<float>::infinity()), _CMP_EQ_OQ);
-    if (!overflow) {
-        // Per 128-bit lane: byte 4 * column + row -> byte 4 * row + column.
-        const __m512i rows_together =
-            _mm512_broadcast_i32x4(_mm_setr_epi8(0, 4, 8, 12, 1, 5, 9, 13, 2, 6, 10, 14, 3, 7, 11, 15));
-        const auto q = [&](std::size_t j)
-                           LSNIF_VNNI_TARGET { return _mm512_cvtps_epi32(_mm512_mul_ps(blk.y[j], inverse)); };
-        for (std::size_t p = 0; p < np / 4; ++p) {
-            const __m512i words01 = _mm512_packs_epi32(q(4 * p), q(4 * p + 1));
-            const __m512i words23 = _mm512_packs_epi32(q(4 * p + 2), q(4 * p + 3));
-            blk.a[p] = _mm512_shuffle_epi8(_mm512_packus_epi16(words01, words23), rows_together);
-        }
-        return;
-    }
+    const bool clamp = any_infinite(inverse);
     const __m512i byte_max = _mm512_set1_epi32(255);
-    for (std::size_t p = 0; p < np / 4; ++p) {
-        __m512i word = _mm512_setzero_si512();
-        for (int i = 0; i < 4; ++i) {
-            const __m512 t = _mm512_max_ps(_mm512_mul_ps(blk.y[4 * p + i], inverse), _mm512_setzero_ps());
-            const __m512i q = _mm512_min_epu32(_mm512_cvtps_epi32(t), byte_max);
-            word = _mm512_or_si512(word, _mm512_slli_epi32(q, 8 * i));
-        }
-        blk.a[p] = word;
-    }
+    const auto q = [&](std::size_t j) LSNIF_VNNI_TARGET {
+        const __m512 t = _mm512_mul_ps(blk.y[j], inverse);
+        return clamp ? _mm512_min_epu32(_mm512_cvtps_epi32(_mm512_max_ps(t, _mm512_setzero_ps())), byte_max)
+                     : _mm512_cvtps_epi32(t);
+    };
+    for (std::size_t p = 0; p < np / 4; ++p)
+        blk.a[p] = pack_quad(q(4 * p), q(4 * p + 1), q(4 * p + 2), q(4 * p + 3), false);
 }
 
 // mlp_int8_in_lanes for an output layer of OUTS columns, with the block's buffers (64-byte

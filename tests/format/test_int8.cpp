@@ -240,11 +240,12 @@ TEST_CASE("the network with rows in vector lanes gives the layer-by-layer result
     // -> 128 -> 98 padded to 112 -> the output layer), a third hidden layer whose input stops
     // short of the previous padding, a single hidden layer, unsigned first inputs; last hidden
     // layers whose final column group holds 2, 6, 9, 13 and 16 live columns (the kernel runs
-    // 4, 8, 12 or 16 of them); row counts around the 16-row block. And a first layer whose
-    // biases are positive denormals, zeros and negatives, every fifth input row zero: those
-    // rows' maximum is a denormal, 255 / maximum overflows, and their block is requantized by
-    // the clamping path instead of the packing one. The later biases are zero there, so the
-    // denormal products reach the outputs and a wrong byte changes them.
+    // 4, 8, 12 or 16 of them); row counts around the 16-row block. And a network whose blocks
+    // take the clamping paths: every fifth input row is denormal (127 / its maximum
+    // overflows) and the next one zero, which leaves that row's first-layer outputs at their
+    // biases, positive denormals, zeros and negatives (255 / maximum overflows). The later
+    // biases are zero there, so the denormal products reach the outputs and a wrong byte
+    // changes them.
     struct Net {
         std::vector<std::size_t> widths;  // inputs, hidden outputs (unpadded), the output layer's 16
         std::size_t tail, rest_start;     // ZeroColumns of the input (0 = none)
@@ -294,7 +295,8 @@ TEST_CASE("the network with rows in vector lanes gives the layer-by-layer result
                                                    (net.rest_start && k >= net.rest_start + rest[r]));
                     const float v = u(rng);
                     // Unsigned inputs: a few negatives, which quantization clamps to 0.
-                    x[r * in + k] = zero || (net.denormal_rows && r % 5 == 0) ? 0.0f
+                    x[r * in + k] = zero || (net.denormal_rows && r % 5 == 1) ? 0.0f
+                                    : net.denormal_rows && r % 5 == 0         ? 1e-40f * v
                                     : net.signed_input || k % 7 == 0          ? v
                                                                               : std::fabs(v);
                 }
