@@ -368,8 +368,8 @@ LSNIF_VNNI_TARGET inline __m512i pack_quad(__m512i q0, __m512i q1, __m512i q2, _
 // Whether a lane of 16 inverse scales is +inf (scale_for's hi / m overflowed: a maximum
 // below hi / FLT_MAX), where quantizing needs its clamp.
 LSNIF_AVX512_TARGET inline bool any_infinite(__m512 inverse) {
-    return _mm512_cmp_ps_mask(inverse, _mm512_set1_ps(std::numeric_limits<float>::infinity()), _CMP_EQ_OQ) !=
-           0;
+    const __m512 inf = _mm512_set1_ps(std::numeric_limits<float>::infinity());
+    return _mm512_cmp_ps_mask(inverse, inf, _CMP_EQ_OQ) != 0;
 }
 
 // Rows [r0, r0 + rows) of the first layer's fp32 input (`cols` columns, row stride lda;
