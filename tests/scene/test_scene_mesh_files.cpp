@@ -482,6 +482,70 @@ TEST_CASE("PLY headers OpenMesh would hang on are errors: no end_header, bad gra
     CHECK_MESSAGE(r.ok(), r.error);
 }
 
+TEST_CASE("PLY lists longer than the rest of the file are errors, not allocations") {
+    const fs::path dir = fresh_dir("ply_lists");
+    const std::string vertices = "element vertex 3\nproperty float x\nproperty float y\nproperty float z\n";
+    const std::string ascii =
+        "ply\nformat ascii 1.0\n" + vertices +
+        "element face 2\nproperty list uchar int vertex_indices\nend_header\n0 0 0\n1 0 0\n0 1 0\n";
+    // Binary: three vertices of 12 bytes, then one face whose list length is `length` (an int).
+    const auto binary = [&](const std::string& endian, const std::string& length) {
+        std::string b = "ply\nformat " + endian + " 1.0\n" + vertices +
+                        "element face 1\nproperty list int int vertex_indices\nend_header\n";
+        b += std::string(36, '\0') + length + std::string(12, '\0');
+        return b;
+    };
+    const std::pair<std::string, std::string> bad[] = {
+        // Found by fuzz_import: OpenMesh reserved a list of the length it read (gigabytes).
+        {ascii + "3 0 2 1\n35555555555555555555555555555555555 0 1 3\n",
+         "element 'face' 1 has a list of '35555555555555555555...' values"},
+        {ascii + "3 0 2 1\n4000000000 0 1 2\n", "list of '4000000000' values"},
+        {ascii + "3 0 2 1\n-1 0 1 2\n", "list of '-1' values"},
+        {ascii + "3 0 2 1\n9 0 1 2\n", "more than the remaining 7 bytes can hold"},
+        {binary("binary_little_endian", std::string("\xff\xff\xff\x7f", 4)), "list of 2147483647 values"},
+        {binary("binary_big_endian", std::string("\x00\x00\x00\x04", 4)), "list of 4 values"},
+        {binary("binary_little_endian", std::string("\xfd\xff\xff\xff", 4)), "a negative number of values"},
+    };
+    int k = 0;
+    for (const auto& [text, expected] : bad) {
+        std::string stem = "l";
+        stem += std::to_string(k++);
+        const fs::path file = dir / (stem + ".ply");
+        write_text(file, text);
+        const sc::ImportResult r = sc::import_scene(file);
+        CAPTURE(expected);
+        REQUIRE_FALSE(r.ok());
+        CHECK(r.error.rfind(file.string(), 0) == 0);
+        CHECK(r.error.find(expected) != std::string::npos);
+    }
+    // The same files with lists that fit import.
+    for (const std::string& text :
+         {ascii + "3 0 2 1\n3 0 1 2\n", binary("binary_big_endian", std::string("\x00\x00\x00\x03", 4)),
+          binary("binary_little_endian", std::string("\x03\x00\x00\x00", 4))}) {
+        const fs::path file = dir / "ok.ply";
+        write_text(file, text);
+        const sc::ImportResult r = sc::import_scene(file);
+        CHECK_MESSAGE(r.ok(), r.error);
+    }
+}
+
+TEST_CASE("binary OFF is refused with an error, not read as garbage counts") {
+    const fs::path dir = fresh_dir("off_binary");
+    // The format's layout: big-endian counts (4 vertices, 1 face), then the vertices.
+    std::string b = "OFF BINARY\n";
+    b += std::string("\0\0\0\x04\0\0\0\x01\0\0\0\0", 12) + std::string(48, '\0');
+    b += std::string("\0\0\0\x03\0\0\0\0\0\0\0\x01\0\0\0\x02\0\0\0\0", 20);
+    // Found by fuzz_import: bytes after the keyword read as a count of 589 million vertices.
+    for (const std::string& text : {b, std::string("OFF BINARY# >tetrc")}) {
+        const fs::path file = dir / "binary.off";
+        write_text(file, text);
+        const sc::ImportResult r = sc::import_scene(file);
+        REQUIRE_FALSE(r.ok());
+        CHECK(r.error.rfind(file.string(), 0) == 0);
+        CHECK(r.error.find("binary OFF ('OFF BINARY') is not supported") != std::string::npos);
+    }
+}
+
 TEST_CASE("OBJ face corners OpenMesh would abort on are errors with the line number") {
     const fs::path dir = fresh_dir("obj_corners");
     const std::string verts = "v 0 0 0\nv 1 0 0\nv 0 1 0\nvn 0 0 1\n";
@@ -494,6 +558,9 @@ TEST_CASE("OBJ face corners OpenMesh would abort on are errors with the line num
         {verts + "f 1/1/1/1 2 3\n", "face corner '1/1/1/1'"},
         {verts + "f 1//0 2 3\n", "face corner '1//0'"},
         {verts + "f\t\n", "face without corners"},
+        // Found by fuzz_import: a form feed or vertical tab separates tokens for OpenMesh too.
+        {verts + "f\f/1 3//1 4//1\n", "line 5: face corner '/1'"},
+        {verts + "f\v\n", "face without corners"},
     };
     int k = 0;
     for (const auto& [text, expected] : bad) {
@@ -526,7 +593,7 @@ TEST_CASE("OBJ: corners with an empty texture or normal index read as the indice
     write_text(reference, plain);
     const sc::ImportResult want = sc::import_scene(reference);
     REQUIRE_MESSAGE(want.ok(), want.error);
-    for (const std::string& faces :
+    for (const char* const faces :
          {"f 1/ 2/ 3/\nf 1/ 2/ 4/\nf 1/ 3/ 4/\n", "f 1// 2// 3//\nf 1// 2// 4//\nf 1// 3// 4//\n",
           "f 1/1/ 2/2/ 3/1/\nf 1/ 2// 4/2/\nf 1 3/ 4//\n"}) {
         const fs::path file = dir / "bed.obj";

@@ -10,10 +10,13 @@
 // the CGAL data set's files (ChineseDragon-10kv.off, armadillo.off) but returns an empty
 // mesh for any OFF file with a '#' comment line, which the format allows and many files
 // (CGAL's own writers included) have; OFF is simple enough that a strict line-based reader
-// with line numbers in its errors is less code than working around that. Binary OFF still
-// goes to OpenMesh. OpenMesh trusts the element counts of OFF and PLY headers and reserves
-// memory for them (a 3.5e9-vertex OFF header makes it allocate tens of GiB), so those
-// headers are checked against the file size first.
+// with line numbers in its errors is less code than working around that. Binary OFF is
+// refused: OpenMesh 9 reads its counts in the host's byte order, where the format's are
+// big-endian, so a file written to the format became tens of millions of garbage faces, and
+// garbage counts made it reserve gigabytes (found by fuzz_import). OpenMesh trusts the
+// element counts of PLY headers and the list lengths of PLY bodies and reserves memory for
+// them (a 3.5e9-vertex header makes it allocate tens of GiB), so those are checked against
+// the file size first.
 #include "scene_internal.hpp"
 
 #include <OpenMesh/Core/IO/IOManager.hh>
@@ -22,6 +25,7 @@
 #include <OpenMesh/Core/System/omstream.hh>
 
 #include <algorithm>
+#include <cctype>
 #include <charconv>
 #include <cmath>
 #include <exception>
@@ -240,9 +244,46 @@ std::string check_off_header(const std::string& head, std::uintmax_t size) {
     return {};
 }
 
+// A PLY property as check_ply_body walks it: a scalar of `bytes`, or a list whose length is
+// an integer of `count_bytes` followed by that many values of `bytes` each.
+struct PlyProperty {
+    bool list = false;
+    int count_bytes = 0, bytes = 0;
+    bool count_signed = false, count_integer = true;
+};
+struct PlyElement {
+    std::string name;
+    unsigned long long count = 0;
+    std::vector<PlyProperty> properties;
+};
+// What a checked PLY header declares: its format, its elements in file order, and where the
+// body starts (the byte after the end_header line).
+struct PlyLayout {
+    std::string format;
+    std::vector<PlyElement> elements;
+    std::size_t body = 0;
+};
+
+// A PLY type's size in bytes, and whether it is an integer and signed; 0 for no PLY type.
+struct PlyType {
+    int bytes = 0;
+    bool integer = false, is_signed = false;
+};
+PlyType ply_type(const std::string& t) {
+    if (t == "char" || t == "int8") return {1, true, true};
+    if (t == "uchar" || t == "uint8") return {1, true, false};
+    if (t == "short" || t == "int16") return {2, true, true};
+    if (t == "ushort" || t == "uint16") return {2, true, false};
+    if (t == "int" || t == "int32") return {4, true, true};
+    if (t == "uint" || t == "uint32") return {4, true, false};
+    if (t == "float" || t == "float32") return {4, false, true};
+    if (t == "double" || t == "float64") return {8, false, true};
+    return {};
+}
+
 // PLY: the header must follow the grammar below, and every "element NAME COUNT" must fit
-// in the file (at least one byte per element). Returns "" or the problem.
-std::string check_ply_header(const std::string& head, std::uintmax_t size) {
+// in the file (at least one byte per element). Fills `layout`. Returns "" or the problem.
+std::string check_ply_header(const std::string& head, std::uintmax_t size, PlyLayout& layout) {
     // The header is checked before OpenMesh sees the file: OpenMesh 9's PLY reader loops
     // forever on a header without end_header (found by fuzz_import), so that and anything
     // else malformed in the lines it parses is rejected here with a message instead.
@@ -250,14 +291,7 @@ std::string check_ply_header(const std::string& head, std::uintmax_t size) {
     //   property TYPE NAME / property list TYPE TYPE NAME / end_header
     // Other lines (comment, obj_info, and the unprefixed notes some exporters write, e.g.
     // Blender's "Created by ...") are skipped, as OpenMesh does; control bytes are not text.
-    static const char* const kTypes[] = {"char",  "uchar",  "short",   "ushort", "int",   "uint",
-                                         "float", "double", "int8",    "uint8",  "int16", "uint16",
-                                         "int32", "uint32", "float32", "float64"};
-    auto is_type = [](const std::string& t) {
-        for (const char* k : kTypes)
-            if (t == k) return true;
-        return false;
-    };
+    auto is_type = [](const std::string& t) { return ply_type(t).bytes != 0; };
     std::size_t pos = 0, line_no = 0;
     bool have_format = false, in_element = false;
     while (true) {
@@ -286,6 +320,7 @@ std::string check_ply_header(const std::string& head, std::uintmax_t size) {
         if (w[0] == "end_header") {
             if (w.size() != 1) return bad("text after end_header");
             if (!have_format) return bad("end_header before any format line");
+            layout.body = pos;
             return {};
         }
         if (w[0] == "format") {
@@ -295,6 +330,7 @@ std::string check_ply_header(const std::string& head, std::uintmax_t size) {
                 return bad("expected 'format ascii|binary_little_endian|binary_big_endian 1.0'");
             if (have_format) return bad("a second format line");
             have_format = true;
+            layout.format = w[1];
             continue;
         }
         if (w[0] == "element") {
@@ -304,6 +340,7 @@ std::string check_ply_header(const std::string& head, std::uintmax_t size) {
                 return "the PLY header declares " + std::to_string(count) + " '" + w[1] +
                        "' elements, more than a file of " + std::to_string(size) + " bytes can hold";
             in_element = true;
+            layout.elements.push_back({w[1], count, {}});
             continue;
         }
         if (w[0] == "property") {
@@ -311,6 +348,14 @@ std::string check_ply_header(const std::string& head, std::uintmax_t size) {
             const bool ok = (w.size() == 3 && is_type(w[1])) ||
                             (w.size() == 5 && w[1] == "list" && is_type(w[2]) && is_type(w[3]));
             if (!ok) return bad("expected 'property TYPE NAME' or 'property list TYPE TYPE NAME'");
+            PlyProperty prop;
+            if (w.size() == 3) {
+                prop.bytes = ply_type(w[1]).bytes;
+            } else {
+                const PlyType count = ply_type(w[2]);
+                prop = {true, count.bytes, ply_type(w[3]).bytes, count.is_signed, count.integer};
+            }
+            layout.elements.back().properties.push_back(prop);
             continue;
         }
         // A skipped line may not name a format: OpenMesh's reader spins on one that does
@@ -319,6 +364,71 @@ std::string check_ply_header(const std::string& head, std::uintmax_t size) {
             if (w[i] == "ascii" || w[i] == "binary_little_endian" || w[i] == "binary_big_endian")
                 return bad("'" + w[i] + "' outside a 'format' line");
     }
+}
+
+// PLY body: every list's length must be a count the rest of the file can hold (ASCII: a
+// run of digits, each value at least two bytes with its separator; binary: a non-negative
+// integer, the values' bytes within the file). OpenMesh reserves and value-initializes a list
+// of the length it reads, so an ASCII length beyond its integer type, or a huge binary one,
+// made it allocate gigabytes (found by fuzz_import). A body that ends early is left to
+// OpenMesh, as before. `text` is the whole file. Returns "" or the problem.
+std::string check_ply_body(const std::string& text, const PlyLayout& layout) {
+    const auto too_long = [&](const PlyElement& e, unsigned long long i, const std::string& length,
+                              std::size_t left) {
+        return "PLY element '" + e.name + "' " + std::to_string(i) + " has a list of " + length +
+               " values, more than the remaining " + std::to_string(left) + " bytes can hold";
+    };
+    std::size_t pos = layout.body;
+    if (layout.format == "ascii") {
+        const auto token = [&](std::string& out) {
+            while (pos < text.size() && std::isspace(static_cast<unsigned char>(text[pos]))) ++pos;
+            const std::size_t begin = pos;
+            while (pos < text.size() && !std::isspace(static_cast<unsigned char>(text[pos]))) ++pos;
+            out.assign(text, begin, pos - begin);
+            return pos > begin;
+        };
+        std::string t;
+        for (const PlyElement& e : layout.elements)
+            for (unsigned long long i = 0; i < e.count; ++i)
+                for (const PlyProperty& p : e.properties) {
+                    if (!token(t)) return {};
+                    if (!p.list) continue;
+                    unsigned long long n = 0;
+                    const std::size_t left = text.size() - pos;
+                    if (!parse_count(t, n) || n > (left + 1) / 2) {
+                        if (t.size() > 24) t = t.substr(0, 20) + "...";
+                        return too_long(e, i, "'" + t + "'", left);
+                    }
+                    for (unsigned long long k = 0; k < n; ++k)
+                        if (!token(t)) return {};
+                }
+        return {};
+    }
+    const bool big_endian = layout.format == "binary_big_endian";
+    for (const PlyElement& e : layout.elements)
+        for (unsigned long long i = 0; i < e.count; ++i)
+            for (const PlyProperty& p : e.properties) {
+                if (!p.list) {
+                    if (text.size() - pos < std::size_t(p.bytes)) return {};
+                    pos += std::size_t(p.bytes);
+                    continue;
+                }
+                if (!p.count_integer)
+                    return "PLY element '" + e.name + "' has a list whose length is not an integer type";
+                if (text.size() - pos < std::size_t(p.count_bytes)) return {};
+                unsigned long long n = 0;
+                for (int b = 0; b < p.count_bytes; ++b) {
+                    const int at = big_endian ? b : p.count_bytes - 1 - b;
+                    n = n << 8 | static_cast<unsigned char>(text[pos + std::size_t(at)]);
+                }
+                pos += std::size_t(p.count_bytes);
+                const bool negative = p.count_signed && (n >> (8 * p.count_bytes - 1)) != 0;
+                const std::size_t left = text.size() - pos;
+                if (negative || n > left / std::size_t(p.bytes))
+                    return too_long(e, i, negative ? "a negative number of" : std::to_string(n), left);
+                pos += std::size_t(n) * std::size_t(p.bytes);
+            }
+    return {};
 }
 
 // One OBJ face corner: a vertex index, then optionally "/" and a texture index and "/" and a
@@ -338,6 +448,12 @@ bool obj_corner(std::string_view corner, const IsIndex& is_index) {
     if (s2 == std::string_view::npos) return true;
     const std::string_view vn = rest.substr(s2 + 1);
     return vn.empty() || is_index(vn);
+}
+
+// Whitespace between tokens within a line, as an istream in the C locale (OpenMesh's
+// readers) sees it.
+bool is_space(char c) {
+    return c == ' ' || c == '\t' || c == '\r' || c == '\v' || c == '\f';
 }
 
 // OBJ: every face ("f") line must be a list of corners (obj_corner). Debian's OpenMesh 9 is
@@ -363,8 +479,8 @@ std::string check_obj_faces(const std::string& text) {
         pos = end + 1;
         ++line_no;
         std::size_t i = 0;
-        while (i < line.size() && (line[i] == ' ' || line[i] == '\t')) ++i;
-        if (line.size() < i + 2 || line[i] != 'f' || (line[i + 1] != ' ' && line[i + 1] != '\t')) continue;
+        while (i < line.size() && is_space(line[i])) ++i;
+        if (line.size() < i + 2 || line[i] != 'f' || !is_space(line[i + 1])) continue;
         line.remove_prefix(i + 2);
         if (!line.empty() && line.back() == '\r') line.remove_suffix(1);
         // A line continued with a backslash is joined by OpenMesh; keep it simple: refuse.
@@ -372,9 +488,9 @@ std::string check_obj_faces(const std::string& text) {
             return "line " + std::to_string(line_no) + ": continued face line";
         std::size_t corners = 0, k = 0;
         while (k < line.size()) {
-            while (k < line.size() && (line[k] == ' ' || line[k] == '\t')) ++k;
+            while (k < line.size() && is_space(line[k])) ++k;
             const std::size_t start = k;
-            while (k < line.size() && line[k] != ' ' && line[k] != '\t') ++k;
+            while (k < line.size() && !is_space(line[k])) ++k;
             if (k == start) break;
             const std::string_view corner = line.substr(start, k - start);
             if (!obj_corner(corner, is_index))
@@ -387,10 +503,6 @@ std::string check_obj_faces(const std::string& text) {
         if (corners == 0) return "line " + std::to_string(line_no) + ": face without corners";
     }
     return {};
-}
-
-bool is_space(char c) {
-    return c == ' ' || c == '\t' || c == '\r' || c == '\v' || c == '\f';
 }
 
 // Splits `line` at whitespace into `out` (views into line).
@@ -691,16 +803,20 @@ std::string check_mesh_file(const std::filesystem::path& path, const std::string
         const std::string text = read_head(path, static_cast<std::size_t>(size));
         if (const std::string problem = check_obj_faces(text); !problem.empty()) return problem;
     }
-    if (ext == ".off" || ext == ".ply") {
-        const std::string head = read_head(path, 1 << 16);
-        return ext == ".off" ? check_off_header(head, size) : check_ply_header(head, size);
+    if (ext == ".off") return check_off_header(read_head(path, 1 << 16), size);
+    if (ext == ".ply") {
+        PlyLayout layout;
+        if (const std::string problem = check_ply_header(read_head(path, 1 << 16), size, layout);
+            !problem.empty())
+            return problem;
+        return check_ply_body(read_head(path, static_cast<std::size_t>(size)), layout);
     }
     return {};
 }
 
 // Reads the checked file `path` (`name` for OpenMesh, which picks its reader by name) of
-// `size` bytes into `soup`: ASCII OFF with read_ascii_off, binary OFF and the other formats
-// with OpenMesh, whose log lines become warnings. Returns "" or the problem.
+// `size` bytes into `soup`: ASCII OFF with read_ascii_off (binary OFF is an error), the other
+// formats with OpenMesh, whose log lines become warnings. Returns "" or the problem.
 std::string read_soup(const std::filesystem::path& path, const std::string& name, const std::string& ext,
                       std::uintmax_t size, PolygonSoup& soup, detail::WarningSink& warnings) {
     if (ext == ".off") {
@@ -711,6 +827,7 @@ std::string read_soup(const std::filesystem::path& path, const std::string& name
         bool binary = false;
         if (const std::string problem = read_ascii_off(text, soup, binary); !problem.empty()) return problem;
         if (!binary) return {};
+        return "binary OFF ('OFF BINARY') is not supported: convert it to ASCII OFF, PLY, OBJ or glTF";
     }
     std::lock_guard<std::mutex> lock(log_mutex());
     LogCapture capture;

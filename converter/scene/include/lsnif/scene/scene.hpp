@@ -153,7 +153,7 @@ ImportResult import_gltf_from_memory(std::span<const std::uint8_t> bytes,
 // into a polygon soup (so non-manifold input is kept, not dropped as OpenMesh's half-edge
 // meshes would); ASCII OFF ([ST][C][N]OFF with '#' comments, as in CGAL's data set) by a
 // reader of our own, because OpenMesh 9 reads an OFF file with a comment line as empty;
-// binary OFF by OpenMesh.
+// binary OFF is an error (OpenMesh 9 misreads the format's big-endian counts).
 //   * One Mesh named after the file stem, one Instance with the identity transform, the
 //     single default material (OBJ materials are not read).
 //   * Polygons are triangulated by ear clipping in their best-fit (Newell) plane, which is
