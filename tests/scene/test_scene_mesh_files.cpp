@@ -498,9 +498,9 @@ TEST_CASE("PLY lists longer than the rest of the file are errors, not allocation
     const std::pair<std::string, std::string> bad[] = {
         // Found by fuzz_import: OpenMesh reserved a list of the length it read (gigabytes).
         {ascii + "3 0 2 1\n35555555555555555555555555555555555 0 1 3\n",
-         "element 'face' 1 has a list of '35555555555555555555...' values"},
-        {ascii + "3 0 2 1\n4000000000 0 1 2\n", "list of '4000000000' values"},
-        {ascii + "3 0 2 1\n-1 0 1 2\n", "list of '-1' values"},
+         "element 'face' 1 has a list length '35555555555555555555...', not a count"},
+        {ascii + "3 0 2 1\n4000000000 0 1 2\n", "list of 4000000000 values, more than the remaining"},
+        {ascii + "3 0 2 1\n-1 0 1 2\n", "list length '-1', not a count"},
         {ascii + "3 0 2 1\n9 0 1 2\n", "more than the remaining 7 bytes can hold"},
         {binary("binary_little_endian", std::string("\xff\xff\xff\x7f", 4)), "list of 2147483647 values"},
         {binary("binary_big_endian", std::string("\x00\x00\x00\x04", 4)), "list of 4 values"},

@@ -395,10 +395,12 @@ std::string check_ply_body(const std::string& text, const PlyLayout& layout) {
                     if (!p.list) continue;
                     unsigned long long n = 0;
                     const std::size_t left = text.size() - pos;
-                    if (!parse_count(t, n) || n > (left + 1) / 2) {
+                    if (!parse_count(t, n)) {
                         if (t.size() > 24) t = t.substr(0, 20) + "...";
-                        return too_long(e, i, "'" + t + "'", left);
+                        return "PLY element '" + e.name + "' " + std::to_string(i) + " has a list length '" +
+                               t + "', not a count";
                     }
+                    if (n > (left + 1) / 2) return too_long(e, i, std::to_string(n), left);
                     for (unsigned long long k = 0; k < n; ++k)
                         if (!token(t)) return {};
                 }
