@@ -3,7 +3,10 @@
 #include "scene_test_util.hpp"
 
 #include <algorithm>
+#include <span>
 #include <sstream>
+#include <string>
+#include <utility>
 
 using namespace scene_test;
 
@@ -58,6 +61,24 @@ const char* kCubeObj =
     "# unit cube, quads, counter-clockwise seen from outside, no normals\n"
     "v -1 -1 -1\nv 1 -1 -1\nv 1 1 -1\nv -1 1 -1\nv -1 -1 1\nv 1 -1 1\nv 1 1 1\nv -1 1 1\n"
     "f 1 4 3 2\nf 5 6 7 8\nf 1 2 6 5\nf 4 8 7 3\nf 1 5 8 4\nf 2 3 7 6\n";
+
+// Writes each case's text to DIR/STEM<i>EXT and checks that importing it fails with an error
+// that names the file and contains the case's expected text.
+void check_rejected(const fs::path& dir, const std::string& stem, const std::string& ext,
+                    std::span<const std::pair<std::string, std::string>> cases) {
+    int k = 0;
+    for (const auto& [text, expected] : cases) {
+        std::string name = stem;
+        name += std::to_string(k++);  // (not stem + to_string(): GCC 12 -Wrestrict false positive)
+        const fs::path file = dir / (name + ext);
+        write_text(file, text);
+        const sc::ImportResult r = sc::import_scene(file);
+        CAPTURE(expected);
+        REQUIRE_FALSE(r.ok());
+        CHECK(r.error.rfind(file.string(), 0) == 0);
+        CHECK(r.error.find(expected) != std::string::npos);
+    }
+}
 
 }  // namespace
 
@@ -459,18 +480,7 @@ TEST_CASE("PLY headers OpenMesh would hang on are errors: no end_header, bad gra
         {"ply\nformatx binary_little_endian\nformat ascii 1.0\n" + props + "end_header\n0 0 0\n1 0 0\n",
          "'binary_little_endian' outside a 'format' line"},
     };
-    int k = 0;
-    for (const auto& [text, expected] : cases) {
-        std::string stem = "h";
-        stem += std::to_string(k++);  // (not "h" + to_string(): GCC 12 -Wrestrict false positive)
-        const fs::path file = dir / (stem + ".ply");
-        write_text(file, text);
-        const sc::ImportResult r = sc::import_scene(file);
-        CAPTURE(expected);
-        REQUIRE_FALSE(r.ok());
-        CHECK(r.error.rfind(file.string(), 0) == 0);
-        CHECK(r.error.find(expected) != std::string::npos);
-    }
+    check_rejected(dir, "h", ".ply", cases);
     // Exporters' unprefixed notes in the header are skipped, as OpenMesh does.
     const fs::path ok = dir / "note.ply";
     write_text(ok,
@@ -506,18 +516,7 @@ TEST_CASE("PLY lists longer than the rest of the file are errors, not allocation
         {binary("binary_big_endian", std::string("\x00\x00\x00\x04", 4)), "list of 4 values"},
         {binary("binary_little_endian", std::string("\xfd\xff\xff\xff", 4)), "a negative number of values"},
     };
-    int k = 0;
-    for (const auto& [text, expected] : bad) {
-        std::string stem = "l";
-        stem += std::to_string(k++);
-        const fs::path file = dir / (stem + ".ply");
-        write_text(file, text);
-        const sc::ImportResult r = sc::import_scene(file);
-        CAPTURE(expected);
-        REQUIRE_FALSE(r.ok());
-        CHECK(r.error.rfind(file.string(), 0) == 0);
-        CHECK(r.error.find(expected) != std::string::npos);
-    }
+    check_rejected(dir, "l", ".ply", bad);
     // The same files with lists that fit import.
     for (const std::string& text :
          {ascii + "3 0 2 1\n3 0 1 2\n", binary("binary_big_endian", std::string("\x00\x00\x00\x03", 4)),
@@ -562,17 +561,7 @@ TEST_CASE("OBJ face corners OpenMesh would abort on are errors with the line num
         {verts + "f\f/1 3//1 4//1\n", "line 5: face corner '/1'"},
         {verts + "f\v\n", "face without corners"},
     };
-    int k = 0;
-    for (const auto& [text, expected] : bad) {
-        std::string stem = "c";
-        stem += std::to_string(k++);
-        const fs::path file = dir / (stem + ".obj");
-        write_text(file, text);
-        const sc::ImportResult r = sc::import_scene(file);
-        CAPTURE(expected);
-        REQUIRE_FALSE(r.ok());
-        CHECK(r.error.find(expected) != std::string::npos);
-    }
+    check_rejected(dir, "c", ".obj", bad);
     for (const std::string& ok : {verts + "f 1 2 3\n", verts + "f 1//1 2//1 3//1\n",
                                   verts + "vt 0 0\nf 1/1 2/1 3/1/1\n", verts + "f -3 -2 -1\n"}) {
         const fs::path file = dir / "ok.obj";
