@@ -807,11 +807,13 @@ std::string check_mesh_file(const std::filesystem::path& path, const std::string
     }
     if (ext == ".off") return check_off_header(read_head(path, 1 << 16), size);
     if (ext == ".ply") {
+        // One read serves both checks; the header check sees the first 64 KiB as its limit.
+        const std::string text = read_head(path, static_cast<std::size_t>(size));
         PlyLayout layout;
-        if (const std::string problem = check_ply_header(read_head(path, 1 << 16), size, layout);
+        if (const std::string problem = check_ply_header(text.substr(0, 1 << 16), size, layout);
             !problem.empty())
             return problem;
-        return check_ply_body(read_head(path, static_cast<std::size_t>(size)), layout);
+        return check_ply_body(text, layout);
     }
     return {};
 }
