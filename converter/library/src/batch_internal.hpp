@@ -1,5 +1,5 @@
-// What `lsnif batch` (batch.cpp) and its plan files (batch_plan.cpp) share. Private to
-// lsnif::library.
+// What `lsnif batch` (batch.cpp), its plan files (batch_plan.cpp) and its Ninja file
+// (batch_ninja.cpp) share. Private to lsnif::library.
 #pragma once
 
 #include <lsnif/library/batch.hpp>
@@ -35,6 +35,10 @@ std::optional<std::vector<PlannedObject>> plan_library(converter::ConvertOptions
 void convert_library(const BatchOptions& options, converter::ConvertOptions c,
                      const converter::ConvertProgress& progress,
                      const std::function<void(const std::string&)>& on_line, BatchResult& r);
+
+// --ninja FILE (batch_ninja.cpp): plans the library r.scenes and writes the Ninja file and
+// its depfile atomically; r.exit and the errors say how it went.
+void plan_ninja(const BatchOptions& options, const converter::ConvertProgress& progress, BatchResult& r);
 
 // --plan FILE and --from-plan FILE (batch_plan.cpp).
 void write_plan(const BatchOptions& options, const converter::ConvertProgress& progress, BatchResult& r);
