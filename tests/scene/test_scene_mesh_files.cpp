@@ -479,6 +479,14 @@ TEST_CASE("PLY headers OpenMesh would hang on are errors: no end_header, bad gra
         // Found by fuzz_import: OpenMesh 9 spins on a skipped line that names a format.
         {"ply\nformatx binary_little_endian\nformat ascii 1.0\n" + props + "end_header\n0 0 0\n1 0 0\n",
          "'binary_little_endian' outside a 'format' line"},
+        // Found by fuzz_import: OpenMesh 9 reads the header word by word, so a 'property' in
+        // a skipped line before any element crashed it.
+        {"ply\nformat ascii 1.0\nelemeXt vertb property float x\n" + props + "end_header\n0 0 0\n1 0 0\n",
+         "'property' inside a line that does not start with it"},
+        {"ply\nformat ascii 1.0\nobj_info element 2\n" + props + "end_header\n0 0 0\n1 0 0\n",
+         "'element' inside a line"},
+        {"ply\nformat ascii 1.0\n" + props + "note end_header\nend_header\n0 0 0\n1 0 0\n",
+         "'end_header' inside a line"},
     };
     check_rejected(dir, "h", ".ply", cases);
     // Exporters' unprefixed notes in the header are skipped, as OpenMesh does.

@@ -291,6 +291,9 @@ std::string check_ply_header(const std::string& head, std::uintmax_t size, PlyLa
     //   property TYPE NAME / property list TYPE TYPE NAME / end_header
     // Other lines (comment, obj_info, and the unprefixed notes some exporters write, e.g.
     // Blender's "Created by ...") are skipped, as OpenMesh does; control bytes are not text.
+    // OpenMesh reads the header word by word, not line by line: past the format line it
+    // takes each word for a keyword, skips the unknown ones singly and the rest of a line
+    // after 'comment'. So a skipped line other than a comment may hold no word it acts on.
     auto is_type = [](const std::string& t) { return ply_type(t).bytes != 0; };
     std::size_t pos = 0, line_no = 0;
     bool have_format = false, in_element = false;
@@ -316,7 +319,7 @@ std::string check_ply_header(const std::string& head, std::uintmax_t size, PlyLa
             if (w.size() != 1 || w[0] != "ply") return bad("the file must start with a line 'ply'");
             continue;
         }
-        if (w.empty() || w[0] == "comment" || w[0] == "obj_info") continue;
+        if (w.empty() || w[0] == "comment") continue;
         if (w[0] == "end_header") {
             if (w.size() != 1) return bad("text after end_header");
             if (!have_format) return bad("end_header before any format line");
@@ -359,10 +362,17 @@ std::string check_ply_header(const std::string& head, std::uintmax_t size, PlyLa
             continue;
         }
         // A skipped line may not name a format: OpenMesh's reader spins on one that does
-        // without being a format line (e.g. "formatx ascii"; found by fuzz_import).
-        for (std::size_t i = 1; i < w.size(); ++i)
+        // without being a format line (e.g. "formatx ascii"; found by fuzz_import). Nor may
+        // it hold 'element', 'property' or 'end_header', which OpenMesh would act on there (a
+        // property before any element crashed it; found by fuzz_import).
+        for (std::size_t i = 1; i < w.size(); ++i) {
             if (w[i] == "ascii" || w[i] == "binary_little_endian" || w[i] == "binary_big_endian")
                 return bad("'" + w[i] + "' outside a 'format' line");
+            if (w[i] == "element" || w[i] == "property" || w[i] == "end_header")
+                return bad("'" + w[i] +
+                           "' inside a line that does not start with it (PLY readers take "
+                           "every word of a header line that is not a comment for a keyword)");
+        }
     }
 }
 
