@@ -477,7 +477,7 @@ TEST_CASE("PLY headers OpenMesh would hang on are errors: no end_header, bad gra
          "control byte"},
         {"plyx\nformat ascii 1.0\nend_header\n", "must start with a line 'ply'"},
         // Found by fuzz_import: OpenMesh 9 spins on a skipped line that names a format.
-        {"ply\nformatx binary_little_endian\nformat ascii 1.0\n" + props + "end_header\n0 0 0\n1 0 0\n",
+        {"ply\nformat ascii 1.0\nformatx binary_little_endian\n" + props + "end_header\n0 0 0\n1 0 0\n",
          "'binary_little_endian' outside a 'format' line"},
         // Found by fuzz_import: OpenMesh 9 reads the header word by word, so a 'property' in
         // a skipped line before any element crashed it.
@@ -487,6 +487,11 @@ TEST_CASE("PLY headers OpenMesh would hang on are errors: no end_header, bad gra
          "'element' inside a line"},
         {"ply\nformat ascii 1.0\n" + props + "note end_header\nend_header\n0 0 0\n1 0 0\n",
          "'end_header' inside a line"},
+        // OpenMesh 9 reads the three words after 'ply' as the format: a comment there whose
+        // third word is no number made it spin.
+        {"ply\ncomment ascii world\nformat ascii 1.0\n" + props + "end_header\n0 0 0\n1 0 0\n",
+         "the line after 'ply' must be the format line"},
+        {"ply\nend_header\n", "the line after 'ply' must be the format line"},
     };
     check_rejected(dir, "h", ".ply", cases);
     // Exporters' unprefixed notes in the header are skipped, as OpenMesh does.

@@ -319,10 +319,13 @@ std::string check_ply_header(const std::string& head, std::uintmax_t size, PlyLa
             if (w.size() != 1 || w[0] != "ply") return bad("the file must start with a line 'ply'");
             continue;
         }
-        if (w.empty() || w[0] == "comment") continue;
+        if (w.empty()) continue;
+        // OpenMesh takes the three words after 'ply' for the format line, whatever they are:
+        // a comment there whose third word is no number made it spin.
+        if (!have_format && w[0] != "format") return bad("the line after 'ply' must be the format line");
+        if (w[0] == "comment") continue;
         if (w[0] == "end_header") {
             if (w.size() != 1) return bad("text after end_header");
-            if (!have_format) return bad("end_header before any format line");
             layout.body = pos;
             return {};
         }
