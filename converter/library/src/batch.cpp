@@ -65,6 +65,21 @@ std::string absolute(const std::string& p) {
     return (ec ? fs::path(p) : a).lexically_normal().string();
 }
 
+void fail(BatchResult& r, const std::string& error, BatchExit exit) {
+    r.convert.errors.push_back(error);
+    r.exit = exit;
+}
+
+void defer_errors(BatchResult& r, const std::string& step) {
+    for (const std::string& e : r.input_errors)
+        r.convert.warnings.push_back(e + " (the " + step + " will fail on it)");
+    for (const std::string& e : r.convert.errors)
+        r.convert.warnings.push_back(e + " (the " + step + " will fail on it)");
+    r.input_errors.clear();
+    r.convert.errors.clear();
+    r.exit = BatchExit::ok;
+}
+
 }  // namespace detail
 
 namespace {

@@ -36,6 +36,12 @@ void convert_library(const BatchOptions& options, converter::ConvertOptions c,
                      const converter::ConvertProgress& progress,
                      const std::function<void(const std::string&)>& on_line, BatchResult& r);
 
+// Records `error` among the conversion's errors and sets the exit code.
+void fail(BatchResult& r, const std::string& error, BatchExit exit = BatchExit::failed);
+// A plan written (--ninja, --plan): the inputs' and the conversion's errors become warnings
+// "(the STEP will fail on it)", since that step is where CI sees them, and the run exits ok.
+void defer_errors(BatchResult& r, const std::string& step);
+
 // --ninja FILE (batch_ninja.cpp): plans the library r.scenes and writes the Ninja file and
 // its depfile atomically; r.exit and the errors say how it went.
 void plan_ninja(const BatchOptions& options, const converter::ConvertProgress& progress, BatchResult& r);

@@ -162,17 +162,9 @@ std::string ninja_problem(const BatchOptions& options) {
 
 // --ninja: plans the library (a dry run) and writes the Ninja file atomically.
 void plan_ninja(const BatchOptions& options, const ConvertProgress& progress, BatchResult& r) {
-    if (std::string why = ninja_problem(options); !why.empty()) {
-        r.convert.errors.push_back(why);
-        r.exit = BatchExit::usage;
-        return;
-    }
+    if (std::string why = ninja_problem(options); !why.empty()) return fail(r, why, BatchExit::usage);
     auto store = cache::Store::open(absolute(options.convert.cache));  // entry paths go in the file
-    if (!store) {
-        r.convert.errors.push_back(store.error().message);
-        r.exit = BatchExit::failed;
-        return;
-    }
+    if (!store) return fail(r, store.error().message);
     const auto objects = plan_library(options.convert, progress, r);
     if (!objects) return;
     const std::string file = absolute(options.ninja_path);
@@ -182,22 +174,12 @@ void plan_ninja(const BatchOptions& options, const ConvertProgress& progress, Ba
     for (const auto& [path, text] :
          {std::pair{file + ".d", depfile_text(file, plan_dependencies(options, r.scenes))},
           std::pair{file, ninja_text(options, *objects, r.scenes, *store)}})
-        if (const format::Error e = format::write_text_atomically(path, text)) {
-            r.convert.errors.push_back(e.message);
-            r.exit = BatchExit::failed;
-            return;
-        }
+        if (const format::Error e = format::write_text_atomically(path, text)) return fail(r, e.message);
     r.lines.push_back("planned  " + std::to_string(objects->size()) +
                       " objects to convert: " + options.ninja_path);
     // Inputs that cannot be read fail in the library step, where CI sees them; failing here
     // would stop Ninja each time it plans again.
-    for (const std::string& e : r.input_errors)
-        r.convert.warnings.push_back(e + " (the library step will fail on it)");
-    for (const std::string& e : r.convert.errors)
-        r.convert.warnings.push_back(e + " (the library step will fail on it)");
-    r.input_errors.clear();
-    r.convert.errors.clear();
-    r.exit = BatchExit::ok;
+    defer_errors(r, "library step");
 }
 
 }  // namespace lsnif::library::detail

@@ -89,11 +89,6 @@ std::optional<std::string> file_sha256(const std::string& path, std::string& err
     return h.hex();
 }
 
-void fail(BatchResult& r, const std::string& error, BatchExit exit = BatchExit::failed) {
-    r.convert.errors.push_back(error);
-    r.exit = exit;
-}
-
 // The plan in `path`, or nothing (r failed) when it cannot be read or is not a plan.
 std::optional<LibraryPlan> read_plan(const std::string& path, BatchResult& r) {
     std::ifstream f(path);
@@ -173,13 +168,7 @@ void write_plan(const BatchOptions& options, const ConvertProgress& progress, Ba
                       std::to_string(plan.tasks.size()) + " - 1) over " + std::to_string(plan.inputs.size()) +
                       " inputs: " + options.plan_path);
     // Inputs that cannot be imported fail in the assembly step, where CI sees them.
-    for (const std::string& e : r.input_errors)
-        r.convert.warnings.push_back(e + " (the assembly will fail on it)");
-    for (const std::string& e : r.convert.errors)
-        r.convert.warnings.push_back(e + " (the assembly will fail on it)");
-    r.input_errors.clear();
-    r.convert.errors.clear();
-    r.exit = BatchExit::ok;
+    defer_errors(r, "assembly");
 }
 
 void run_from_plan(const BatchOptions& options, const ConvertProgress& progress,
