@@ -16,7 +16,8 @@
 // garbage counts made it reserve gigabytes (found by fuzz_import). OpenMesh trusts the
 // element counts of PLY headers and the list lengths of PLY bodies and reserves memory for
 // them (a 3.5e9-vertex header makes it allocate tens of GiB), so those are checked against
-// the file size first.
+// the file size first; and it reads a PLY body under a header written from the checked one
+// (ply_header_for_openmesh), since its own reading of a header diverges from the format's.
 #include "scene_internal.hpp"
 
 #include <OpenMesh/Core/IO/IOManager.hh>
@@ -245,11 +246,13 @@ std::string check_off_header(const std::string& head, std::uintmax_t size) {
 }
 
 // A PLY property as check_ply_body walks it: a scalar of `bytes`, or a list whose length is
-// an integer of `count_bytes` followed by that many values of `bytes` each.
+// an integer of `count_bytes` followed by that many values of `bytes` each. `declaration` is
+// its header line's words joined by single spaces ("property list uchar int vertex_indices").
 struct PlyProperty {
     bool list = false;
     int count_bytes = 0, bytes = 0;
     bool count_signed = false, count_integer = true;
+    std::string declaration;
 };
 struct PlyElement {
     std::string name;
@@ -283,20 +286,16 @@ PlyType ply_type(const std::string& t) {
 
 // PLY: the header must follow the grammar below, and every "element NAME COUNT" must fit
 // in the file (at least one byte per element). Fills `layout`. Returns "" or the problem.
+//   ply / format (ascii|binary_little_endian|binary_big_endian) 1.0 / element NAME COUNT /
+//   property TYPE NAME / property list TYPE TYPE NAME / end_header
+// The format line comes before any element. Other lines (comment, obj_info, and the
+// unprefixed notes some exporters write, e.g. Blender's "Created by ...") are skipped,
+// wherever they are and whatever words they hold: OpenMesh never sees them, it reads the
+// header ply_header_for_openmesh writes from `layout`. Control bytes are not text.
 std::string check_ply_header(const std::string& head, std::uintmax_t size, PlyLayout& layout) {
-    // The header is checked before OpenMesh sees the file: OpenMesh 9's PLY reader loops
-    // forever on a header without end_header (found by fuzz_import), so that and anything
-    // else malformed in the lines it parses is rejected here with a message instead.
-    //   ply / format (ascii|binary_little_endian|binary_big_endian) 1.0 / element NAME COUNT /
-    //   property TYPE NAME / property list TYPE TYPE NAME / end_header
-    // Other lines (comment, obj_info, and the unprefixed notes some exporters write, e.g.
-    // Blender's "Created by ...") are skipped, as OpenMesh does; control bytes are not text.
-    // OpenMesh reads the header word by word, not line by line: past the format line it
-    // takes each word for a keyword, skips the unknown ones singly and the rest of a line
-    // after 'comment'. So a skipped line other than a comment may hold no word it acts on.
     auto is_type = [](const std::string& t) { return ply_type(t).bytes != 0; };
     std::size_t pos = 0, line_no = 0;
-    bool have_format = false, in_element = false;
+    bool have_format = false;
     while (true) {
         const std::size_t nl = head.find('\n', pos);
         if (nl == std::string::npos)
@@ -320,15 +319,9 @@ std::string check_ply_header(const std::string& head, std::uintmax_t size, PlyLa
             continue;
         }
         if (w.empty()) continue;
-        // OpenMesh takes the three words after 'ply' for the format line, whatever they are:
-        // a comment there whose third word is no number made it spin.
-        if (!have_format && w[0] != "format") return bad("the line after 'ply' must be the format line");
-        if (w[0] == "comment") continue;
-        if (w[0] == "end_header") {
-            if (w.size() != 1) return bad("text after end_header");
-            layout.body = pos;
-            return {};
-        }
+        const bool keyword =
+            w[0] == "format" || w[0] == "element" || w[0] == "property" || w[0] == "end_header";
+        if (!keyword) continue;
         if (w[0] == "format") {
             if (w.size() != 3 ||
                 (w[1] != "ascii" && w[1] != "binary_little_endian" && w[1] != "binary_big_endian") ||
@@ -339,44 +332,57 @@ std::string check_ply_header(const std::string& head, std::uintmax_t size, PlyLa
             layout.format = w[1];
             continue;
         }
+        if (!have_format) return bad("'" + w[0] + "' before the format line");
+        if (w[0] == "end_header") {
+            if (w.size() != 1) return bad("text after end_header");
+            layout.body = pos;
+            return {};
+        }
         if (w[0] == "element") {
             unsigned long long count = 0;
             if (w.size() != 3 || !parse_count(w[2], count)) return bad("expected 'element NAME COUNT'");
             if (count > size)
                 return "the PLY header declares " + std::to_string(count) + " '" + w[1] +
                        "' elements, more than a file of " + std::to_string(size) + " bytes can hold";
-            in_element = true;
+            // OpenMesh reads the count as an unsigned int.
+            if (count > 0xffffffffull) return bad("more than 2^32 - 1 '" + w[1] + "' elements");
             layout.elements.push_back({w[1], count, {}});
             continue;
         }
-        if (w[0] == "property") {
-            if (!in_element) return bad("property before any element");
-            const bool ok = (w.size() == 3 && is_type(w[1])) ||
-                            (w.size() == 5 && w[1] == "list" && is_type(w[2]) && is_type(w[3]));
-            if (!ok) return bad("expected 'property TYPE NAME' or 'property list TYPE TYPE NAME'");
-            PlyProperty prop;
-            if (w.size() == 3) {
-                prop.bytes = ply_type(w[1]).bytes;
-            } else {
-                const PlyType count = ply_type(w[2]);
-                prop = {true, count.bytes, ply_type(w[3]).bytes, count.is_signed, count.integer};
-            }
-            layout.elements.back().properties.push_back(prop);
-            continue;
+        if (layout.elements.empty()) return bad("property before any element");
+        const bool ok = (w.size() == 3 && is_type(w[1])) ||
+                        (w.size() == 5 && w[1] == "list" && is_type(w[2]) && is_type(w[3]));
+        if (!ok) return bad("expected 'property TYPE NAME' or 'property list TYPE TYPE NAME'");
+        PlyProperty prop;
+        if (w.size() == 3) {
+            prop.bytes = ply_type(w[1]).bytes;
+        } else {
+            const PlyType count = ply_type(w[2]);
+            prop = {true, count.bytes, ply_type(w[3]).bytes, count.is_signed, count.integer, {}};
         }
-        // A skipped line may not name a format: OpenMesh's reader spins on one that does
-        // without being a format line (e.g. "formatx ascii"; found by fuzz_import). Nor may
-        // it hold 'element', 'property' or 'end_header', which OpenMesh would act on there (a
-        // property before any element crashed it; found by fuzz_import).
-        for (std::size_t i = 1; i < w.size(); ++i) {
-            if (w[i] == "ascii" || w[i] == "binary_little_endian" || w[i] == "binary_big_endian")
-                return bad("'" + w[i] + "' outside a 'format' line");
-            if (w[i] == "element" || w[i] == "property" || w[i] == "end_header")
-                return bad("'" + w[i] +
-                           "' inside a line that does not start with it (PLY readers take "
-                           "every word of a header line that is not a comment for a keyword)");
+        for (const std::string& word : w) {
+            if (!prop.declaration.empty()) prop.declaration += ' ';
+            prop.declaration += word;
         }
+        layout.elements.back().properties.push_back(std::move(prop));
     }
+}
+
+// The header OpenMesh reads in place of the file's: the checked layout only, one statement
+// per line, "\n" line ends, no comments. OpenMesh 9's PLY reader takes the header word by
+// word (every word of a line it does not know is a keyword to it, and the three words after
+// 'ply' are the format line whatever they are), and it finds a binary body 12 bytes (14
+// after "\r\n") past the end of the word before 'end_header': a comment line or trailing
+// blanks before end_header shifted the body it read (garbage vertices, no error). On this
+// header its reading and ours agree. Never longer than the header it replaces (the same
+// words with single blanks, counts without leading zeros).
+std::string ply_header_for_openmesh(const PlyLayout& layout) {
+    std::string h = "ply\nformat " + layout.format + " 1.0\n";
+    for (const PlyElement& e : layout.elements) {
+        h += "element " + e.name + " " + std::to_string(e.count) + "\n";
+        for (const PlyProperty& p : e.properties) h += p.declaration + "\n";
+    }
+    return h + "end_header\n";
 }
 
 // PLY body: every list's length must be a count the rest of the file can hold (ASCII: a
@@ -803,7 +809,8 @@ ImportResult failure(const std::string& file, const std::string& what, detail::W
 
 // The checks made before any reader sees the file `path` of extension `ext`: a supported
 // format, a non-empty readable regular file (its byte count into `size`), and the OBJ face
-// lines or OFF / PLY header that would crash or exhaust OpenMesh. Returns "" or the problem.
+// lines or OFF header that would crash or exhaust OpenMesh (a PLY file's are read_ply's).
+// Returns "" or the problem.
 std::string check_mesh_file(const std::filesystem::path& path, const std::string& ext, std::uintmax_t& size) {
     if (ext != ".obj" && ext != ".ply" && ext != ".off" && ext != ".stl") {
         return "unsupported mesh format '" + ext + "' (supported: .obj .ply .off .stl)";
@@ -819,21 +826,53 @@ std::string check_mesh_file(const std::filesystem::path& path, const std::string
         if (const std::string problem = check_obj_faces(text); !problem.empty()) return problem;
     }
     if (ext == ".off") return check_off_header(read_head(path, 1 << 16), size);
-    if (ext == ".ply") {
-        // One read serves both checks; the header check sees the first 64 KiB as its limit.
-        const std::string text = read_head(path, static_cast<std::size_t>(size));
-        PlyLayout layout;
-        if (const std::string problem = check_ply_header(text.substr(0, 1 << 16), size, layout);
-            !problem.empty())
-            return problem;
-        return check_ply_body(text, layout);
-    }
     return {};
 }
 
+// Runs one OpenMesh read (`read(options)` returns its success) with OpenMesh's log captured:
+// the log lines become warnings, or the error's detail when the read fails. Returns "" or the
+// problem.
+template <class Read>
+std::string read_through_openmesh(const std::string& ext, detail::WarningSink& warnings, const Read& read) {
+    std::lock_guard<std::mutex> lock(log_mutex());
+    LogCapture capture;
+    OpenMesh::IO::Options options = OpenMesh::IO::Options::VertexNormal;
+    const bool read_ok = read(options);
+    std::vector<std::string> log = capture.lines();
+    if (!read_ok) {
+        std::string why;
+        for (std::size_t i = 0; i < log.size() && i < 3; ++i) why += (i ? "; " : "") + log[i];
+        return "OpenMesh could not read it as " + ext.substr(1) +
+               (why.empty() ? std::string() : " (" + why + ")");
+    }
+    for (std::string& line : log) warnings.add("OpenMesh: " + line);
+    return {};
+}
+
+// Reads the PLY file `path` of `size` bytes into `soup`: its header is checked first
+// (check_ply_header on the first 64 KiB), then the whole file's body (check_ply_body), then
+// OpenMesh reads the body under the header ply_header_for_openmesh writes, from memory.
+// Returns "" or the problem.
+std::string read_ply(const std::filesystem::path& path, std::uintmax_t size, PolygonSoup& soup,
+                     detail::WarningSink& warnings) {
+    const std::string head = read_head(path, 1 << 16);
+    PlyLayout layout;
+    if (const std::string problem = check_ply_header(head, size, layout); !problem.empty()) return problem;
+    std::string text = read_head(path, static_cast<std::size_t>(size));
+    if (text.size() != size || text.compare(0, layout.body, head, 0, layout.body) != 0)
+        return "the file changed while it was read";
+    if (const std::string problem = check_ply_body(text, layout); !problem.empty()) return problem;
+    text.replace(0, layout.body, ply_header_for_openmesh(layout));
+    std::istringstream in(std::move(text), std::ios::in | std::ios::binary);
+    return read_through_openmesh(".ply", warnings, [&](OpenMesh::IO::Options& options) {
+        return OpenMesh::IO::IOManager().read(in, "ply", soup, options);
+    });
+}
+
 // Reads the checked file `path` (`name` for OpenMesh, which picks its reader by name) of
-// `size` bytes into `soup`: ASCII OFF with read_ascii_off (binary OFF is an error), the other
-// formats with OpenMesh, whose log lines become warnings. Returns "" or the problem.
+// `size` bytes into `soup`: ASCII OFF with read_ascii_off (binary OFF is an error), PLY with
+// read_ply, OBJ and STL with OpenMesh, whose log lines become warnings. Returns "" or the
+// problem.
 std::string read_soup(const std::filesystem::path& path, const std::string& name, const std::string& ext,
                       std::uintmax_t size, PolygonSoup& soup, detail::WarningSink& warnings) {
     if (ext == ".off") {
@@ -846,19 +885,10 @@ std::string read_soup(const std::filesystem::path& path, const std::string& name
         if (!binary) return {};
         return "binary OFF ('OFF BINARY') is not supported: convert it to ASCII OFF, PLY, OBJ or glTF";
     }
-    std::lock_guard<std::mutex> lock(log_mutex());
-    LogCapture capture;
-    OpenMesh::IO::Options options = OpenMesh::IO::Options::VertexNormal;
-    const bool read_ok = OpenMesh::IO::IOManager().read(name, soup, options);
-    std::vector<std::string> log = capture.lines();
-    if (!read_ok) {
-        std::string why;
-        for (std::size_t i = 0; i < log.size() && i < 3; ++i) why += (i ? "; " : "") + log[i];
-        return "OpenMesh could not read it as " + ext.substr(1) +
-               (why.empty() ? std::string() : " (" + why + ")");
-    }
-    for (std::string& line : log) warnings.add("OpenMesh: " + line);
-    return {};
+    if (ext == ".ply") return read_ply(path, size, soup, warnings);
+    return read_through_openmesh(ext, warnings, [&](OpenMesh::IO::Options& options) {
+        return OpenMesh::IO::IOManager().read(name, soup, options);
+    });
 }
 
 // Checks that `soup` has 1 .. 2^32 - 1 vertices, all finite. Returns "" or the problem.
