@@ -109,6 +109,14 @@ def main():
     ply_bin = ply_head.format("binary_little_endian 1.0").encode() + \
         b"".join(struct.pack("<3f", *p) for p in TET_P) + b"".join(struct.pack("<B3i", 3, *f) for f in TET_F)
     write("ply_binary_tet", "ply", ply_bin)
+    # Header lines the format allows where OpenMesh, reading words, would misread the body.
+    lines = ply_head.format("binary_little_endian 1.0").split("\n")[:-1]
+    lines.insert(1, "comment first")
+    lines.insert(3, "obj_info element 9")
+    lines.insert(-1, "comment last ")
+    ply_crlf_notes = ("\r\n".join(lines) + "\r\n").encode() + \
+        ply_bin[len(ply_head.format("binary_little_endian 1.0")):]
+    write("ply_binary_tet_comments_crlf", "ply", ply_crlf_notes)
 
     off = "OFF\n# tetrahedron\n4 4 0\n" + "".join(f"{x} {y} {z}\n" for x, y, z in TET_P) + \
         "".join(f"3 {a} {b} {c}\n" for a, b, c in TET_F)
