@@ -12,7 +12,10 @@ sed -n '/<!-- lsnif --help-markdown: begin -->/,/<!-- lsnif --help-markdown: end
 grep -q '^### `lsnif batch`' "$work/cli.md" && grep -q -- '--from-plan' "$work/cli.md" \
   || { echo "FAIL: the generated tables miss lsnif batch's options"; exit 1; }
 # Trailing blank lines aside (the README section ends at its marker).
-for f in readme cli; do python3 -c "import sys; p=sys.argv[1]; open(p,'w').write(open(p).read().rstrip('\n') + '\n')" "$work/$f.md"; done
+# (Read before writing: open(p, 'w') empties the file.)
+for f in readme cli; do
+  python3 -c "import sys; p = sys.argv[1]; t = open(p).read(); open(p, 'w').write(t.rstrip('\n') + '\n')" "$work/$f.md"
+done
 if ! diff -u "$work/readme.md" "$work/cli.md" >"$work/diff.txt"; then
   echo "FAIL: README.md's option tables differ from the command line (run scripts/readme-options):"
   head -40 "$work/diff.txt"
