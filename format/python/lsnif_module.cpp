@@ -190,6 +190,17 @@ public:
         check(lsnif_set_arithmetic(model_, a, nullptr), path_ + ": lsnif_set_arithmetic");
     }
 
+    std::uint32_t escape_points() const { return lsnif_get_escape_points(get()); }
+
+    void set_escape_points(std::uint32_t limit) {
+        get();  // a closed model raises
+        if (in_flight_ != 0)
+            throw Error(path_ + ": the escape rule cannot change while another thread traces this model");
+        if (lsnif_set_escape_points(model_, limit) != LSNIF_OK)
+            throw py::value_error("escape_points must be at most the model's max_points, not " +
+                                  std::to_string(limit));
+    }
+
     // The occupancy as bool [V][V][V] (z, y, x).
     py::array occupancy() const {
         const lsnif_array a = array(LSNIF_ARRAY_OCCUPANCY, 0);
@@ -371,6 +382,9 @@ PYBIND11_MODULE(lsnif, m) {
             "arithmetic", &Model::arithmetic, &Model::set_arithmetic,
             "The network's arithmetic in use; set 'auto', 'fp32', 'bf16' or 'int8' (falls back where "
             "the CPU lacks it).")
+        .def_property("escape_points", &Model::escape_points, &Model::set_escape_points,
+                      "The escape rule's limit (lsnif_set_escape_points): rays starting inside an occupied "
+                      "voxel that meet at most this many occupied voxels miss without the network; 0 = off.")
         .def_property_readonly("layer_count", &Model::layer_count)
         .def("occupancy", &Model::occupancy, "bool [V][V][V], indexed [z, y, x].")
         .def("grid_level", &Model::grid_level, py::arg("level"),

@@ -419,6 +419,16 @@ lsnif_status lsnif_set_arithmetic(lsnif_model* model, lsnif_arithmetic requested
     });
 }
 
+lsnif_status lsnif_set_escape_points(lsnif_model* model, uint32_t max_points) {
+    if (!model || max_points > model->runtime.geo.H) return LSNIF_ERR_INVALID_ARGUMENT;
+    model->runtime.escape_points = max_points;
+    return LSNIF_OK;
+}
+
+uint32_t lsnif_get_escape_points(const lsnif_model* model) {
+    return model ? model->runtime.escape_points : 0;
+}
+
 const char* lsnif_arithmetic_string(lsnif_arithmetic arithmetic) {
     switch (arithmetic) {
         case LSNIF_ARITHMETIC_AUTO: return "auto";

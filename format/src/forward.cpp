@@ -1252,6 +1252,7 @@ namespace {
 // of 256 rays. `miss(i)` is called for each ray that never reaches the network (invalid or
 // culled), `finish(i, pts, row)` for each other one with its trace and output row, and
 // returns whether it hit. `outputs`: the leading output columns the caller reads (0 = all).
+// Rays the escape rule answers (escapes()) are misses and never reach the network.
 template <class Miss, class Finish>
 IntersectStats run_pass(const Runtime& rt, std::span<const Ray> rays, std::size_t outputs, Miss&& miss,
                         Finish&& finish) {
@@ -1282,6 +1283,11 @@ IntersectStats run_pass(const Runtime& rt, std::span<const Ray> rays, std::size_
                     ++st.invalid;
                 else
                     ++st.culled;
+                continue;
+            }
+            if (escapes(pts[i], rays[base + i], rt.escape_points)) {
+                miss(base + i);
+                ++st.escaped;
                 continue;
             }
             which[k++] = std::uint32_t(i);

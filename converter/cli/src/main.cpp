@@ -544,6 +544,11 @@ struct EvalCommand {
                         "from the surface (0 = off; docs/model.md)")
             ->check(CLI::Range(0.0f, 4.0f))
             ->type_name("VOXELS");
+        sub->add_option("--escape-points", opt.escape_points,
+                        "Rays that start inside an occupied voxel of an asset and meet at most N of them "
+                        "miss it without the network (0 = off; docs/model.md \"The escape rule\")")
+            ->check(CLI::Range(0u, 64u))
+            ->type_name("N");
         sub->add_option("--repeats", opt.timing_repeats,
                         "Trace each row's secondary rays this many times per tracer, alternating, and keep "
                         "each tracer's fastest for the time ratio (docs/eval.md \"Timing\")")

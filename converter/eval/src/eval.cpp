@@ -58,7 +58,7 @@ bool add_meshes(const LoadedManifest& loaded, const std::vector<scene::Scene>& s
         SceneMesh m{sm.name, sm.positions, sm.indices, sm.normals, {}};
         if (mo.cls() == MeshClass::complex && mo.asset)
             m.asset = (fs::path(opt.outdir) / mo.asset->file).string();
-        if (!builder.add_mesh(m, opt.arithmetic, error)) return false;
+        if (!builder.add_mesh(m, {opt.arithmetic, opt.escape_points}, error)) return false;
     }
     return true;
 }
@@ -235,6 +235,7 @@ EvalResult render_and_compare(const EvalOptions& opt) {
     report.ao_samples = std::max(1u, opt.ao_samples);
     report.ao_radius = opt.ao_radius * view.diag;
     report.surface_tmin_voxels = opt.surface_tmin_voxels;
+    report.escape_points = opt.escape_points;
     report.timing_repeats = std::max(1u, opt.timing_repeats);
     report.camera = view.cam;
     report.light = view.light;
@@ -275,6 +276,7 @@ json eval_report_json(const EvalReport& r) {
     j["ao_samples"] = r.ao_samples;
     j["ao_radius"] = r.ao_radius;
     j["surface_tmin_voxels"] = r.surface_tmin_voxels;
+    j["escape_points"] = r.escape_points;
     j["timing_repeats"] = r.timing_repeats;
     j["camera"] = {{"eye", r.camera.eye},
                    {"target", r.camera.target},

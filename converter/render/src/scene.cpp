@@ -389,7 +389,7 @@ bool SceneBuilder::open(std::string& error) {
     return impl_->open_device(error);
 }
 
-bool SceneBuilder::add_mesh(const SceneMesh& mesh, lsnif_arithmetic arithmetic, std::string& error) {
+bool SceneBuilder::add_mesh(const SceneMesh& mesh, const AssetSettings& settings, std::string& error) {
     EvalScene::Impl::Mesh m;
     m.name = mesh.name;
     m.positions.assign(mesh.positions.begin(), mesh.positions.end());
@@ -405,12 +405,17 @@ bool SceneBuilder::add_mesh(const SceneMesh& mesh, lsnif_arithmetic arithmetic, 
                 err.message + ")";
         return false;
     }
-    if (lsnif_set_arithmetic(added.model, arithmetic, nullptr) != LSNIF_OK) {
-        error = mesh.asset + ": cannot set the arithmetic " + lsnif_arithmetic_string(arithmetic);
+    if (lsnif_set_arithmetic(added.model, settings.arithmetic, nullptr) != LSNIF_OK) {
+        error = mesh.asset + ": cannot set the arithmetic " + lsnif_arithmetic_string(settings.arithmetic);
         return false;
     }
     lsnif_info info{};
     lsnif_get_info(added.model, &info);
+    if (lsnif_set_escape_points(added.model, settings.escape_points) != LSNIF_OK) {
+        error = mesh.asset + ": escape points " + std::to_string(settings.escape_points) +
+                " exceed the asset's " + std::to_string(info.max_points) + " entry points per ray";
+        return false;
+    }
     added.lsnif_bytes = info.decoded_bytes;  // what this scene holds, in the arithmetic it traces with
     return true;
 }

@@ -251,6 +251,39 @@ def test_arithmetic_can_be_chosen(model):
         assert np.mean(model.intersect(origins, directions)["hit"] == fp32) >= 0.995
 
 
+def test_escape_rule_takes_only_rays_that_start_in_the_surface(model):
+    """Rays from outside never escape; rays leaving a hit point (1e-4 of the diagonal off it,
+    a tenth of the diagonal long) that escape become misses, and every other answer stays."""
+    origins, directions = rays_at_box(model, 20_000, seed=6)
+    assert model.escape_points == 0
+    outside = model.intersect(origins, directions)
+    model.escape_points = 2
+    try:
+        assert model.escape_points == 2
+        again = model.intersect(origins, directions)
+        assert all(np.array_equal(again[k], outside[k]) for k in outside)
+        hit = outside["hit"]
+        diag = float(np.linalg.norm(np.array(model.info["box_max"]) - np.array(model.info["box_min"])))
+        normals = outside["normal"][hit]
+        points = origins[hit] + outside["t"][hit, None] * directions[hit]
+        toward = np.sign(np.sum(normals * directions[hit], axis=1))[:, None]
+        leave_dir = -toward * normals  # back along the normal, on the side the ray came from
+        leave_org = (points + leave_dir * 1e-4 * diag).astype(np.float32)
+        leave_dir = leave_dir.astype(np.float32)
+        escaped = model.occluded(leave_org, leave_dir, 0.0, 0.1 * diag)
+        model.escape_points = 0
+        exact = model.occluded(leave_org, leave_dir, 0.0, 0.1 * diag)
+        assert np.all(escaped <= exact)  # the rule only turns answers into misses
+        model.escape_points = model.info["max_points"]  # every ray that starts in the surface escapes
+        everything = model.occluded(leave_org, leave_dir, 0.0, 0.1 * diag)
+        assert np.all(everything <= escaped)
+        assert exact.sum() == 0 or everything.sum() < exact.sum()
+        with pytest.raises(ValueError, match="escape_points"):
+            model.escape_points = model.info["max_points"] + 1
+    finally:
+        model.escape_points = 0
+
+
 def test_threads_trace_in_parallel_with_the_serial_answers(model):
     origins, directions = rays_at_box(model, 200_000, seed=5)
     serial = model.intersect(origins, directions)["t"]

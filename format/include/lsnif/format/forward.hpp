@@ -378,6 +378,11 @@ struct Runtime {
     std::vector<std::vector<std::uint8_t>> grid_u8;  // u8_affine grids
     std::vector<LevelAffine> grid_affine;            // u8_affine grids: per level
     Network net;
+    // The escape rule (lsnif_set_escape_points): a ray whose segment starts inside an
+    // occupied voxel and meets at most this many occupied voxels, that one included, is a
+    // miss without the network. 0 turns it off (FORMAT.md §8 as written). Set it as the
+    // network's arithmetic: not while other threads trace through the runtime.
+    std::uint32_t escape_points = 0;
     std::vector<GridView> grid_views() const;
     // Heap bytes this runtime holds (every array's capacity): what it costs a renderer
     // beyond sizeof(Runtime). Depends on the network's arithmetic (set_mlp_arithmetic).
@@ -400,15 +405,24 @@ std::uint64_t resident_bytes(const ModelData& model);
 
 // Statistics of one batch, for benchmarks and evaluation.
 struct IntersectStats {
-    std::size_t rays = 0, invalid = 0, culled = 0, inferred = 0, hits = 0;
+    // escaped: rays the escape rule (Runtime::escape_points) answered without the network.
+    std::size_t rays = 0, invalid = 0, culled = 0, escaped = 0, inferred = 0, hits = 0;
 };
+
+// Whether the escape rule with limit `escape_points` answers `ray` (traced into `pts`) as a
+// miss: its segment starts inside the first occupied voxel it meets (that voxel's entry is
+// the ray's own tmin, so a ray entering the grid from outside never escapes) and it meets
+// at most `escape_points` occupied voxels. Always false for escape_points = 0.
+inline bool escapes(const RayPoints& pts, const Ray& ray, std::uint32_t escape_points) {
+    return pts.count > 0 && pts.count <= escape_points && pts.t[0] <= ray.tmin;
+}
 
 // Object-space batch. Single-threaded: callers parallelize across batches (renderers
 // bring their own thread pools). Invalid rays (zero direction...) report a miss.
 IntersectStats intersect(const Runtime& rt, std::span<const Ray> rays, std::span<Hit> hits);
 // The any-hit query of the same batch: occluded[i] = hits[i].hit of intersect(), computed
 // without the hit's distance, normal and material (only the visibility output). Same
-// threading rules.
+// threading rules. Both apply the runtime's escape rule.
 IntersectStats occluded(const Runtime& rt, std::span<const Ray> rays, std::span<std::uint8_t> occluded);
 
 }  // namespace lsnif::format

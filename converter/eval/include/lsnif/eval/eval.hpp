@@ -40,6 +40,9 @@ struct EvalOptions : render::RenderOptions {
     // runtime treatment docs/investigations/surface-leaving-rays.md measures; the
     // reference keeps tmin = 0, so the images show what it costs and what it fixes. 0 = off.
     float surface_tmin_voxels = 0.0f;
+    // Both renders: every asset's escape rule (lsnif_set_escape_points; docs/model.md "The
+    // escape rule"). 0 = off.
+    std::uint32_t escape_points = 0;
 };
 
 // Seconds of each trace, summed over threads, each the fastest of the timing repeats.
@@ -57,6 +60,7 @@ struct EvalReport {
     std::uint32_t ao_samples = 0;
     float ao_radius = 0;  // AO ray length, world units
     float surface_tmin_voxels = 0;
+    std::uint32_t escape_points = 0;
     std::uint32_t timing_repeats = 0;
     render::Camera camera;
     render::Vec3 light{};

@@ -96,6 +96,13 @@ struct SceneMesh {
     std::string asset;
 };
 
+// How the scene opens its assets: the network's arithmetic and the escape rule's limit
+// (lsnif_set_escape_points; 0 = off, at most each asset's entry points per ray).
+struct AssetSettings {
+    lsnif_arithmetic arithmetic = LSNIF_ARITHMETIC_AUTO;
+    std::uint32_t escape_points = 0;
+};
+
 // Builds an EvalScene: every mesh first, then the instances, then finish(). Each step
 // returns false with `error` set on failure; the builder is then of no further use.
 class SceneBuilder {
@@ -108,8 +115,8 @@ public:
     // The Embree device, with Embree's default configuration. First.
     bool open(std::string& error);
     // Mesh number mesh_count(): uploaded to an Embree scene of its own (its BVH bytes
-    // measured), its asset opened and set to `arithmetic` when it has one.
-    bool add_mesh(const SceneMesh& mesh, lsnif_arithmetic arithmetic, std::string& error);
+    // measured), its asset opened with `settings` when it has one.
+    bool add_mesh(const SceneMesh& mesh, const AssetSettings& settings, std::string& error);
     std::size_t mesh_count() const;
     // Instance number instance_count() of mesh `mesh` (< mesh_count()), object to world by
     // `transform` (3x4 row-major): an error for a singular or non-finite transform.

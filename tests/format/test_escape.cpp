@@ -1,0 +1,164 @@
+// The escape rule (lsnif_set_escape_points): on real assets, rays leaving the surface that
+// stay within N occupied voxels are misses, every other ray keeps its bits, and rays that
+// enter the grid from outside never escape.
+#include <doctest/doctest.h>
+#include <lsnif/lsnif.h>
+#include <lsnif/format/container.hpp>
+#include <lsnif/format/forward.hpp>
+
+#include <cmath>
+#include <cstring>
+#include <filesystem>
+#include <random>
+#include <string>
+#include <vector>
+
+namespace fs = std::filesystem;
+namespace fmt = lsnif::format;
+
+namespace {
+
+// A model opened through the C API; closed on scope exit.
+struct OpenModel {
+    lsnif_model* model = nullptr;
+    explicit OpenModel(const fs::path& path) {
+        REQUIRE(lsnif_open_file(path.string().c_str(), &model, nullptr) == LSNIF_OK);
+    }
+    ~OpenModel() { lsnif_close(model); }
+    OpenModel(const OpenModel&) = delete;
+    OpenModel& operator=(const OpenModel&) = delete;
+};
+
+// Rays from outside the box towards its middle third, and, from each of their hits, 16
+// ambient-occlusion rays over the hemisphere of the returned normal: 1e-4 of the box
+// diagonal off the surface, a tenth of the diagonal long (as lsnif eval's). `outside` gets
+// the first kind, `leaving` the second.
+void make_rays(lsnif_model* model, std::vector<lsnif_ray>& outside, std::vector<lsnif_ray>& leaving) {
+    lsnif_info info{};
+    REQUIRE(lsnif_get_info(model, &info) == LSNIF_OK);
+    float c[3], d = 0;
+    for (int a = 0; a < 3; ++a) {
+        c[a] = 0.5f * (info.box_min[a] + info.box_max[a]);
+        const float e = info.box_max[a] - info.box_min[a];
+        d += e * e;
+    }
+    d = std::sqrt(d);
+    std::mt19937 rng(5);
+    std::normal_distribution<float> nd;
+    std::uniform_real_distribution<float> ud(-0.5f, 0.5f);
+    const auto unit = [&](float v[3]) {
+        const float l = std::sqrt(v[0] * v[0] + v[1] * v[1] + v[2] * v[2]);
+        for (int a = 0; a < 3; ++a) v[a] /= l;
+    };
+    outside.resize(4096);
+    for (lsnif_ray& r : outside) {
+        float v[3] = {nd(rng), nd(rng), nd(rng)};
+        unit(v);
+        for (int a = 0; a < 3; ++a) {
+            r.org[a] = c[a] + v[a] * d;
+            r.dir[a] = c[a] + ud(rng) * 0.3f * d - r.org[a];
+        }
+        unit(r.dir);
+        r.tmin = 0;
+        r.tmax = INFINITY;
+    }
+    std::vector<lsnif_hit> hits(outside.size());
+    REQUIRE(lsnif_intersect(model, outside.data(), outside.size(), hits.data()) == LSNIF_OK);
+    for (std::size_t i = 0; i < outside.size(); ++i) {
+        if (!hits[i].hit) continue;
+        const float* n = hits[i].normal;
+        const float side =
+            n[0] * outside[i].dir[0] + n[1] * outside[i].dir[1] + n[2] * outside[i].dir[2] > 0 ? -1.f : 1.f;
+        for (int k = 0; k < 16; ++k) {
+            lsnif_ray r{};
+            float v[3] = {nd(rng), nd(rng), nd(rng)};
+            unit(v);
+            if ((v[0] * n[0] + v[1] * n[1] + v[2] * n[2]) * side < 0)
+                for (float& x : v) x = -x;
+            for (int a = 0; a < 3; ++a) {
+                r.dir[a] = v[a];
+                r.org[a] = outside[i].org[a] + hits[i].t * outside[i].dir[a] + side * n[a] * 1e-4f * d;
+            }
+            r.tmin = 0;
+            r.tmax = 0.1f * d;
+            leaving.push_back(r);
+        }
+    }
+}
+
+}  // namespace
+
+TEST_CASE(
+    "the escape rule: rays leaving the surface within N occupied voxels miss, all others keep their bits") {
+    for (const std::string name : {"armadillo_fp16.lsnif", "peterbilt_u8.lsnif"}) {
+        CAPTURE(name);
+        const fs::path path = fs::path(LSNIF_CONFORMANCE_DIR) / name;
+        OpenModel m(path);
+        lsnif_info info{};
+        REQUIRE(lsnif_get_info(m.model, &info) == LSNIF_OK);
+        CHECK(lsnif_get_escape_points(m.model) == 0);  // off as opened
+        std::vector<lsnif_ray> outside, leaving;
+        make_rays(m.model, outside, leaving);
+        REQUIRE(leaving.size() > 1000);
+        // Each ray's trace, from the same file, to know which rays the rule may take.
+        const auto bytes = fmt::read_file_bytes(path.string());
+        REQUIRE(bytes.ok());
+        auto data = fmt::read_model(bytes.value());
+        REQUIRE(data.ok());
+        const fmt::Runtime rt = fmt::make_runtime(std::move(data.value()));
+        const auto traces = [&](const std::vector<lsnif_ray>& rays) {
+            std::vector<fmt::RayPoints> pts(rays.size());
+            std::vector<fmt::TraceStatus> status(rays.size());
+            fmt::trace_points_batch(rt.geo, rt.occupancy,
+                                    {reinterpret_cast<const fmt::Ray*>(rays.data()), rays.size()}, pts.data(),
+                                    status.data());
+            return pts;
+        };
+        const std::vector<fmt::RayPoints> pts_leaving = traces(leaving), pts_outside = traces(outside);
+        for (const auto* set : {&outside, &leaving}) {
+            const std::vector<lsnif_ray>& rays = *set;
+            const std::vector<fmt::RayPoints>& pts = set == &outside ? pts_outside : pts_leaving;
+            const std::string kind = set == &outside ? "rays from outside" : "rays leaving the surface";
+            CAPTURE(kind);
+            REQUIRE(lsnif_set_escape_points(m.model, 0) == LSNIF_OK);
+            std::vector<lsnif_hit> exact(rays.size());
+            REQUIRE(lsnif_intersect(m.model, rays.data(), rays.size(), exact.data()) == LSNIF_OK);
+            for (const std::uint32_t limit : {1u, 2u, 3u}) {
+                CAPTURE(limit);
+                REQUIRE(lsnif_set_escape_points(m.model, limit) == LSNIF_OK);
+                CHECK(lsnif_get_escape_points(m.model) == limit);
+                std::vector<lsnif_hit> hits(rays.size());
+                std::vector<std::uint8_t> occ(rays.size(), 7);
+                REQUIRE(lsnif_intersect(m.model, rays.data(), rays.size(), hits.data()) == LSNIF_OK);
+                REQUIRE(lsnif_occluded(m.model, rays.data(), rays.size(), occ.data()) == LSNIF_OK);
+                std::size_t escaped = 0, changed = 0, wrong = 0;
+                for (std::size_t i = 0; i < rays.size(); ++i) {
+                    const bool escapes =
+                        fmt::escapes(pts[i], reinterpret_cast<const fmt::Ray&>(rays[i]), limit);
+                    escaped += escapes;
+                    if (escapes) {
+                        changed += exact[i].hit;
+                        wrong += hits[i].hit != 0 || occ[i] != 0;
+                    } else {
+                        wrong += std::memcmp(&hits[i], &exact[i], sizeof(lsnif_hit)) != 0 ||
+                                 occ[i] != exact[i].hit;
+                    }
+                }
+                CHECK(wrong == 0);
+                if (set == &outside) {
+                    CHECK(escaped == 0);  // a ray entering the grid from outside never escapes
+                } else {
+                    CHECK(escaped > rays.size() / 20);  // the rule took real work
+                    MESSAGE(name << ", limit " << limit << ": " << escaped << " of " << rays.size()
+                                 << " rays leaving the surface escape; the network called " << changed
+                                 << " of them hits");
+                }
+            }
+        }
+        CHECK(lsnif_set_escape_points(m.model, info.max_points) == LSNIF_OK);
+        CHECK(lsnif_set_escape_points(m.model, info.max_points + 1) == LSNIF_ERR_INVALID_ARGUMENT);
+        CHECK(lsnif_get_escape_points(m.model) == info.max_points);  // unchanged by the refused call
+    }
+    CHECK(lsnif_set_escape_points(nullptr, 1) == LSNIF_ERR_INVALID_ARGUMENT);
+    CHECK(lsnif_get_escape_points(nullptr) == 0);
+}
