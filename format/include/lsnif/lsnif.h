@@ -330,8 +330,9 @@ LSNIF_API lsnif_status lsnif_occluded_instance(const lsnif_model* model, const f
  * is a miss without evaluating the network. 0, what lsnif_open_* set, turns it off: every
  * ray is answered as FORMAT.md §8 specifies. Meant for rays that leave the asset's own
  * surface (shadow, ambient-occlusion and reflection rays from a point the asset returned):
- * the network answers nearly all such rays that stay within one or two occupied voxels
- * "miss" anyway, and skipping it for them saves much of a render's time. A ray entering the
+ * on solid objects the network answers nearly all such rays that stay within one or two
+ * occupied voxels "miss" anyway, and skipping it for them saves much of a render's time; on
+ * objects of thin parts a voxel or two apart it loses real occluders. A ray entering the
  * grid from outside never escapes. docs/model.md "The escape rule" gives the measurements
  * and the trade-off. `max_points` at most the model's entry points per ray (lsnif_info's
  * max_points), else LSNIF_ERR_INVALID_ARGUMENT; `model` must not be NULL. Must not run
