@@ -65,6 +65,7 @@ MeshOutcome full_outcome() {
     h.gate.rays_failed = {"pooled visibility 94.00 % < 95.00 %"};
     h.gate.above_calibrated = true;
     h.flip = lsnif::render::ObjectFlip{0.034, 0.12, 0.0075};
+    h.escape_points = 2;
     CandidateRecord c;
     c.log2_table_size = 17;
     c.grid_resolution = 64;
@@ -234,9 +235,16 @@ TEST_CASE("held-out metrics as an asset's metadata stores them read back strictl
     auto back = held_out_from_json(j);
     REQUIRE(back.ok());
     CHECK(held_out_json(*back) == j);
+    CHECK(back->escape_points == 2);
     json older = j;
     older["families"]["pooled"].erase("geometric_normal_error_median_deg");  // a field this version writes
     CHECK_FALSE(held_out_from_json(older).ok());
+    // Assets written before the escape rule have no escape_points: off.
+    json before_escape = j;
+    before_escape.erase("escape_points");
+    auto off = held_out_from_json(before_escape);
+    REQUIRE(off.ok());
+    CHECK(off->escape_points == 0);
 }
 
 TEST_CASE("inputs and the scene's memory: records and sums") {

@@ -31,6 +31,7 @@
 #include <filesystem>
 #include <memory>
 #include <optional>
+#include <span>
 #include <string>
 #include <vector>
 
@@ -87,6 +88,10 @@ struct Candidate {
 struct MeasureRays {
     std::vector<samples::Sample> validation;
     std::vector<samples::Sample> decision;
+    // The decision rays that leave the surface on its front side (family surface, side +1):
+    // the rays a renderer's shadow, AO and reflection rays are like; choose_escape_points reads
+    // them.
+    std::vector<samples::Sample> decision_front;
     std::vector<samples::Sample> held_out;
     std::vector<std::array<float, 3>> held_out_geometric_normals;
     std::unique_ptr<render::ObjectViews> decision_views;
@@ -140,6 +145,17 @@ struct Sized {
 // when Embree cannot build them (classification built the same mesh: short of memory only).
 std::unique_ptr<render::ObjectViews> object_views(const Run& run, const scene::Mesh& mesh,
                                                   std::uint64_t seed);
+
+// The escape rule's limit for `model` (docs/model.md "The escape rule"): the largest N of
+// 1..kMaxEscapePoints at which the rule raises the false-miss rate of `front` (rays leaving
+// the surface on its front side, with their mesh answers) by at most kEscapeMissRise over the
+// rule off, else 0. The rate only grows with N (each N forces a superset of rays to miss).
+// At most 2: at 3 the renders' ambient occlusion lightens in creases that the rays' rates
+// hardly show.
+inline constexpr std::uint32_t kMaxEscapePoints = 2;
+inline constexpr double kEscapeMissRise = 0.0025;
+std::uint32_t choose_escape_points(const format::ModelData& model, std::span<const samples::Sample> front,
+                                   std::uint32_t threads);
 
 // The validation point of a model at `step`: pooled metrics of `rays` through the reader's
 // forward pass (format::intersect on the fp16 export), as the manifest records it.

@@ -66,6 +66,7 @@ void read_flip(Reader& r, render::ObjectFlip& f);
 
 void read_held_out(Reader& r, HeldOut& h) {
     if (r.has("flip")) r.nested("flip", [&](Reader& f) { read_flip(f, h.flip.emplace()); });
+    if (r.has("escape_points")) r.read("escape_points", h.escape_points);
     r.read("held_out_rays", h.rays);
     r.nested("families", [&](Reader& fr) {
         for (int f = 0; f < samples::kFamilyCount; ++f)
@@ -427,7 +428,10 @@ json held_out_json(const HeldOut& h) {
                                                       : "both";
     if (!h.gate.rays_failed.empty()) gate["rays_failed"] = h.gate.rays_failed;
     if (h.gate.above_calibrated) gate["above_calibrated_gate"] = true;
-    json j = {{"held_out_rays", h.rays}, {"families", families}, {"gate", gate}};
+    json j = {{"held_out_rays", h.rays},
+              {"families", families},
+              {"gate", gate},
+              {"escape_points", h.escape_points}};
     if (h.flip) j["flip"] = object_flip_json(*h.flip);
     return j;
 }

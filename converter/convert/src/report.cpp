@@ -68,6 +68,9 @@ std::string shipped_text(const MeshOutcome& m) {
                       m.held_out_images->combined_object, m.held_out_images->combined_object_p95);
         s += buf;
     }
+    if (const std::uint32_t n = m.held_out->escape_points; n != 0)
+        s += "\n           escape rule " + std::to_string(n) + ": rays leaving its surface within " +
+             std::to_string(n) + " occupied voxels skip the network";
     const GateVerdict& gate = m.held_out->gate;
     if (gate.by == GatePass::images) {
         s += "\n           shipped by its images";

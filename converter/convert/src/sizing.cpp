@@ -147,6 +147,25 @@ ValidationPoint validation_point(std::uint32_t step, const format::ModelData& mo
     return {step, m.pooled.visibility_accuracy, m.pooled.distance_median_pct, m.pooled.normal_median_deg};
 }
 
+std::uint32_t choose_escape_points(const format::ModelData& model, std::span<const samples::Sample> front,
+                                   std::uint32_t threads) {
+    if (front.empty()) return 0;
+    format::Runtime rt = format::make_runtime(model);
+    const auto false_misses = [&](std::uint32_t n) {
+        rt.escape_points = n;
+        return samples::held_out_metrics(rt, front, threads)
+            .family[int(samples::Family::surface)]
+            .false_miss_rate;
+    };
+    const double off = false_misses(0);
+    std::uint32_t chosen = 0;
+    for (std::uint32_t n = 1; n <= std::min(kMaxEscapePoints, model.desc.max_points); ++n) {
+        if (false_misses(n) > off + kEscapeMissRise) break;
+        chosen = n;
+    }
+    return chosen;
+}
+
 MeasureRays draw_measure_rays(const Run& run, const scene::Mesh& mesh, Candidate& c, MeshOutcome& out) {
     const auto t0 = Clock::now();
     run.report({mesh.name, "sample"});
@@ -157,7 +176,10 @@ MeasureRays draw_measure_rays(const Run& run, const scene::Mesh& mesh, Candidate
     for (std::size_t i = 0; i < extras.size(); ++i)
         rays.held_out_geometric_normals[i] = extras[i].geometric_normal;
     c.source->generate(run.opt.seed * 2 + 1 + 0x27d4eb2full, run.preset.validation_rays, rays.validation);
-    c.source->generate(run.opt.seed * 2 + 1 + 0x165667b1ull, run.preset.eval_rays, rays.decision);
+    c.source->generate(run.opt.seed * 2 + 1 + 0x165667b1ull, run.preset.eval_rays, rays.decision, &extras);
+    for (std::size_t i = 0; i < rays.decision.size(); ++i)
+        if (rays.decision[i].family == samples::Family::surface && extras[i].side == 1)
+            rays.decision_front.push_back(rays.decision[i]);
     out.timings.add(Stage::sample, seconds_since(t0));
     if (run.preset.visual_check) {
         const auto tv = Clock::now();
@@ -592,6 +614,7 @@ void convert_candidate(const Run& run, Triaged& p, std::vector<std::string>& err
     if (t.target_met_at) out.stopped_early = StoppedEarly{t.target_met_at, t.config.steps};
     if (!sized.chosen) return below_gate(o.held_out, !t.abandoned.empty(), out);
     out.reasons.push_back(option_summary(o) + ": " + choice_text(o.outcome, sized.options.size()));
+    o.held_out.escape_points = choose_escape_points(o.model, rays.decision_front, run.threads);
     auto bytes = encode_asset(o, asset_metadata(run, source, mesh, c, o, t, key));
     if (!bytes) {
         errors.push_back(source + ": mesh '" + mesh.name + "': " + bytes.error().message);

@@ -58,7 +58,10 @@ bool add_meshes(const LoadedManifest& loaded, const std::vector<scene::Scene>& s
         SceneMesh m{sm.name, sm.positions, sm.indices, sm.normals, {}};
         if (mo.cls() == MeshClass::complex && mo.asset)
             m.asset = (fs::path(opt.outdir) / mo.asset->file).string();
-        if (!builder.add_mesh(m, {opt.arithmetic, opt.escape_points}, error)) return false;
+        // The escape rule: the caller's limit, else the one conversion chose for the asset.
+        const std::uint32_t escape =
+            opt.escape_points.value_or(mo.held_out ? mo.held_out->escape_points : 0u);
+        if (!builder.add_mesh(m, {opt.arithmetic, escape}, error)) return false;
     }
     return true;
 }
@@ -276,7 +279,7 @@ json eval_report_json(const EvalReport& r) {
     j["ao_samples"] = r.ao_samples;
     j["ao_radius"] = r.ao_radius;
     j["surface_tmin_voxels"] = r.surface_tmin_voxels;
-    j["escape_points"] = r.escape_points;
+    j["escape_points"] = r.escape_points ? json(*r.escape_points) : json("asset");
     j["timing_repeats"] = r.timing_repeats;
     j["camera"] = {{"eye", r.camera.eye},
                    {"target", r.camera.target},

@@ -119,6 +119,9 @@ struct HeldOut {
     samples::Metrics metrics;  // per family and pooled
     GateVerdict gate;
     std::optional<render::ObjectFlip> flip;  // absent when the visual check was off
+    // The escape rule's limit chosen for the asset on the decision rays (choose_escape_points;
+    // docs/model.md "The escape rule"); 0 = off. Absent from older records: 0.
+    std::uint32_t escape_points = 0;
 };
 
 // One option of the sizing ladder (the manifest's `candidates[]`).

@@ -41,8 +41,9 @@ struct EvalOptions : render::RenderOptions {
     // reference keeps tmin = 0, so the images show what it costs and what it fixes. 0 = off.
     float surface_tmin_voxels = 0.0f;
     // Both renders: every asset's escape rule (lsnif_set_escape_points; docs/model.md "The
-    // escape rule"). 0 = off.
-    std::uint32_t escape_points = 0;
+    // escape rule"); none = the limit conversion chose for each asset (its manifest's
+    // metrics.escape_points, 0 when absent); 0 = off.
+    std::optional<std::uint32_t> escape_points;
 };
 
 // Seconds of each trace, summed over threads, each the fastest of the timing repeats.
@@ -60,7 +61,7 @@ struct EvalReport {
     std::uint32_t ao_samples = 0;
     float ao_radius = 0;  // AO ray length, world units
     float surface_tmin_voxels = 0;
-    std::uint32_t escape_points = 0;
+    std::optional<std::uint32_t> escape_points;  // as EvalOptions::escape_points
     std::uint32_t timing_repeats = 0;
     render::Camera camera;
     render::Vec3 light{};
