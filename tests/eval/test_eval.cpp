@@ -244,6 +244,26 @@ TEST_CASE("eval renders, compares with FLIP, and camera and light change without
         CHECK(file_bytes(l_dir / "hybrid_ao.png") != file_bytes(a_dir / "hybrid_ao.png"));
     }
 
+    // The escape rule: each asset's own limit (its manifest's) unless forced; forced off, the
+    // reference is the same picture, the report says which, and a limit past the asset's
+    // entry points per ray is an error naming the asset.
+    {
+        CHECK_FALSE(ra.escape_points.has_value());
+        CHECK(eval_report_json(ra)["escape_points"] == "asset");
+        EvalOptions off = o;
+        off.escape_points = 0u;
+        const EvalResult e0 = render_into(off, "eval_images_escape_off");
+        CHECK(eval_report_json(*e0.report)["escape_points"] == 0);
+        CHECK(file_bytes(fs::path(off.images_dir) / "reference_ao.png") ==
+              file_bytes(fs::path(o.images_dir) / "reference_ao.png"));
+        EvalOptions past = o;
+        past.escape_points = 64u;
+        past.images_dir = (fs::path(LSNIF_TEST_WORK_DIR) / "eval_images_escape_past").string();
+        const EvalResult bad = render_and_compare(past);
+        REQUIRE_FALSE(bad.ok());
+        CHECK(bad.errors[0].find(".lsnif: escape points 64 exceed the asset's") != std::string::npos);
+    }
+
     // One trace per row instead of the fastest of three: the same pictures byte for byte (the
     // repeats only time), and the report says how the time was taken.
     {
