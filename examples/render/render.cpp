@@ -14,6 +14,10 @@
 //                      or with packets of --packet rays: what a renderer that already traces
 //                      through Embree changes least to adopt.
 //
+// Every asset is opened with the escape rule its metadata names (metrics.escape_points,
+// lsnif_set_escape_points): shadow rays that leave its surface and stay within that many
+// occupied voxels skip the network. Both routes apply it alike.
+//
 // OUTDIR/scene.gltf is the same scene as a glTF whose converted meshes carry the
 // LSNIF_neural_geometry extension (schema/LSNIF_neural_geometry.md): a renderer that already
 // loads glTF needs only that extension. Read from here on, the manifest route:
@@ -159,6 +163,9 @@ public:
 
     const float* world_box() const { return world_; }
     std::size_t instance_count() const { return instances_.size(); }
+    // The assets opened, and how many of them with the escape rule on.
+    std::size_t asset_count() const { return assets_; }
+    std::size_t escaping_asset_count() const { return escaping_assets_; }
 
     // Closest hit of every ray (all finite) on [tmin, tmax]; the nearest of the meshes' and
     // the assets' hits wins, each asset answering for the ray from tmin on (lsnif_embree.h's
@@ -201,6 +208,7 @@ private:
     std::vector<Mesh> meshes_;
     std::vector<Instance> instances_;
     float world_[6] = {INFINITY, INFINITY, INFINITY, -INFINITY, -INFINITY, -INFINITY};
+    std::size_t assets_ = 0, escaping_assets_ = 0;  // assets opened; of them, with the escape rule on
 };
 
 HybridScene::HybridScene(const fs::path& input, const Tracing& tracing) : tracing_(tracing) {
@@ -341,6 +349,22 @@ void HybridScene::add_mesh(const lsnif::scene::Mesh& src, const fs::path& asset)
         lsnif_error err;
         if (lsnif_open_file(asset.c_str(), &out.model, &err) != LSNIF_OK)
             throw Failure(asset.string() + ": " + err.message);
+        // The escape rule conversion chose for the asset (its metadata's
+        // metrics.escape_points, absent in older assets: off; docs/model.md "The escape
+        // rule"): shadow rays leaving its surface within that many occupied voxels skip the
+        // network. It applies to both routes alike.
+        std::size_t length = 0;
+        const char* text = lsnif_metadata(out.model, &length);
+        const json meta = json::parse(text, text + length, nullptr, false);
+        const json::json_pointer where("/metrics/escape_points");
+        const auto escape = meta.is_object() && meta.contains(where) && meta[where].is_number_unsigned()
+                                ? meta[where].get<std::uint32_t>()
+                                : 0u;
+        if (lsnif_set_escape_points(out.model, escape) != LSNIF_OK)
+            throw Failure(asset.string() + ": metrics.escape_points " + std::to_string(escape) +
+                          " exceeds the asset's entry points per ray");
+        ++assets_;
+        if (escape) ++escaping_assets_;
         // The box the asset answers in (it may reach past the vertices): what Embree is given
         // for its user geometry, and what the batched route culls rays with.
         lsnif_info info;
@@ -675,8 +699,11 @@ int run(const Options& opt) {
         opt.tracing.user_geometry
             ? "Embree user geometry, " + std::to_string(opt.tracing.packet) + "-ray calls"
             : std::string("batched");
-    std::printf("wrote %s (%dx%d, %zu instances; assets traced %s; rendered in %.3f s)\n", opt.image.c_str(),
-                opt.width, opt.height, scene.instance_count(), route.c_str(), seconds);
+    std::printf(
+        "wrote %s (%dx%d, %zu instances; assets traced %s, %zu of %zu with the escape rule; rendered "
+        "in %.3f s)\n",
+        opt.image.c_str(), opt.width, opt.height, scene.instance_count(), route.c_str(),
+        scene.escaping_asset_count(), scene.asset_count(), seconds);
     return 0;
 }
 

@@ -102,8 +102,13 @@ assert all(st[k] > 0 for k in keys), st
 assert st["walk_encode_rays_per_second"] < st["walk_rays_per_second"], st  # encoding adds work
 PY
 
-# The reference renderer: a P6 image of the requested size, not all background.
-"$render" "$out" "$work/r.ppm" 64 48 >/dev/null || bad "render exited $?"
+# The reference renderer: a P6 image of the requested size, not all background, and the
+# asset opened with the escape rule its metadata names (docs/model.md "The escape rule").
+"$render" "$out" "$work/r.ppm" 64 48 >"$work/render.out" || bad "render exited $?"
+escaping=$(python3 -c "import json, sys; m = json.load(open(sys.argv[1]))
+print(sum(1 for x in m['meshes'] if 'lsnif' in x and x['metrics'].get('escape_points', 0) > 0))" "$out/manifest.json")
+grep -q ", $escaping of 1 with the escape rule;" "$work/render.out" ||
+  bad "render: expected $escaping of 1 assets with the escape rule: $(cat "$work/render.out")"
 head -c 13 "$work/r.ppm" | cmp -s - <(printf 'P6\n64 48\n255\n') || bad "render header"
 [[ $(stat -c %s "$work/r.ppm") == $((13 + 64 * 48 * 3)) ]] || bad "render size"
 distinct=$(tail -c $((64 * 48 * 3)) "$work/r.ppm" | od -An -tu1 -v | tr -s ' ' '\n' | sort -u | wc -l)
