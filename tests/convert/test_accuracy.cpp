@@ -348,10 +348,6 @@ void check_walks_agree(const Shipped& s, const std::string& name) {
     CHECK(rows_same == which.size());
 }
 
-// The surface family split by the side its rays leave from: the front
-// of the geometric normal, where a renderer's shadow, AO and reflection rays start on an
-// opaque object, and the back, inside a closed solid. Both halves are measured and must be
-// there; the split is printed so that work on surface rays can see which side errs.
 // The escape rule (docs/model.md) on the held-out rays a renderer shoots from a surface:
 // front-side visibility against the mesh for N = 0 (off) .. 3, printed; returned in percent.
 std::array<double, 4> report_escape_rule(const Shipped& s, const std::string& name) {
@@ -373,6 +369,10 @@ std::array<double, 4> report_escape_rule(const Shipped& s, const std::string& na
     return visibility;
 }
 
+// The surface family split by the side its rays leave from: the front
+// of the geometric normal, where a renderer's shadow, AO and reflection rays start on an
+// opaque object, and the back, inside a closed solid. Both halves are measured and must be
+// there; the split is printed so that work on surface rays can see which side errs.
 void report_surface_sides(const Shipped& s, const std::string& name) {
     using namespace lsnif;
     const format::Runtime rt = format::make_runtime(s.model);
