@@ -164,8 +164,15 @@ public:
     const float* world_box() const { return world_; }
     std::size_t instance_count() const { return instances_.size(); }
     // The assets opened, and how many of them with the escape rule on.
-    std::size_t asset_count() const { return assets_; }
-    std::size_t escaping_asset_count() const { return escaping_assets_; }
+    std::size_t asset_count() const {
+        return std::size_t(
+            std::count_if(meshes_.begin(), meshes_.end(), [](const Mesh& m) { return m.model; }));
+    }
+    std::size_t escaping_asset_count() const {
+        return std::size_t(std::count_if(meshes_.begin(), meshes_.end(), [](const Mesh& m) {
+            return m.model && lsnif_get_escape_points(m.model) != 0;
+        }));
+    }
 
     // Closest hit of every ray (all finite) on [tmin, tmax]; the nearest of the meshes' and
     // the assets' hits wins, each asset answering for the ray from tmin on (lsnif_embree.h's
@@ -208,7 +215,6 @@ private:
     std::vector<Mesh> meshes_;
     std::vector<Instance> instances_;
     float world_[6] = {INFINITY, INFINITY, INFINITY, -INFINITY, -INFINITY, -INFINITY};
-    std::size_t assets_ = 0, escaping_assets_ = 0;  // assets opened; of them, with the escape rule on
 };
 
 HybridScene::HybridScene(const fs::path& input, const Tracing& tracing) : tracing_(tracing) {
@@ -363,8 +369,6 @@ void HybridScene::add_mesh(const lsnif::scene::Mesh& src, const fs::path& asset)
         if (lsnif_set_escape_points(out.model, escape) != LSNIF_OK)
             throw Failure(asset.string() + ": metrics.escape_points " + std::to_string(escape) +
                           " exceeds the asset's entry points per ray");
-        ++assets_;
-        if (escape) ++escaping_assets_;
         // The box the asset answers in (it may reach past the vertices): what Embree is given
         // for its user geometry, and what the batched route culls rays with.
         lsnif_info info;
