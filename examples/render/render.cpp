@@ -15,8 +15,8 @@
 //                      through Embree changes least to adopt.
 //
 // Every asset is opened with the escape rule its metadata names (metrics.escape_points,
-// lsnif_set_escape_points): shadow rays that leave its surface and stay within that many
-// occupied voxels skip the network. Both routes apply it alike.
+// lsnif_set_escape_points): shadow rays that leave its surface and stay within a run of that
+// many occupied voxels skip the network. Both routes apply it alike.
 //
 // OUTDIR/scene.gltf is the same scene as a glTF whose converted meshes carry the
 // LSNIF_neural_geometry extension (schema/LSNIF_neural_geometry.md): a renderer that already

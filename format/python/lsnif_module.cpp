@@ -384,7 +384,8 @@ PYBIND11_MODULE(lsnif, m) {
             "the CPU lacks it).")
         .def_property("escape_points", &Model::escape_points, &Model::set_escape_points,
                       "The escape rule's limit (lsnif_set_escape_points): rays starting inside an occupied "
-                      "voxel that meet at most this many occupied voxels miss without the network; 0 = off.")
+                      "voxel that meet at most this many occupied voxels, each a face neighbour of the one "
+                      "before, miss without the network; 0 = off.")
         .def_property_readonly("layer_count", &Model::layer_count)
         .def("occupancy", &Model::occupancy, "bool [V][V][V], indexed [z, y, x].")
         .def("grid_level", &Model::grid_level, py::arg("level"),

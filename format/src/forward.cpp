@@ -1285,7 +1285,7 @@ IntersectStats run_pass(const Runtime& rt, std::span<const Ray> rays, std::size_
                     ++st.culled;
                 continue;
             }
-            if (escapes(pts[i], rays[base + i], rt.escape_points)) {
+            if (escapes(geo, pts[i], rays[base + i], rt.escape_points)) {
                 miss(base + i);
                 ++st.escaped;
                 continue;

@@ -349,24 +349,41 @@ void check_walks_agree(const Shipped& s, const std::string& name) {
 }
 
 // The escape rule (docs/model.md) on the held-out rays a renderer shoots from a surface:
-// front-side visibility against the mesh for N = 0 (off) .. 3, printed; returned in percent.
-std::array<double, 4> report_escape_rule(const Shipped& s, const std::string& name) {
+// front-side visibility and false misses against the mesh for N = 0 (off) .. 3, printed;
+// returned in percent.
+struct EscapeFigures {
+    std::array<double, 4> visibility, false_misses;
+};
+EscapeFigures report_escape_rule(const Shipped& s, const std::string& name) {
     using namespace lsnif;
     format::Runtime rt = format::make_runtime(s.model);
     std::vector<samples::Sample> front;
     for (std::size_t i = 0; i < s.held.size(); ++i)
         if (s.held[i].family == samples::Family::surface && s.extras[i].side == 1) front.push_back(s.held[i]);
-    std::array<double, 4> visibility{};
-    for (std::uint32_t n = 0; n < visibility.size(); ++n) {
+    EscapeFigures f{};
+    for (std::uint32_t n = 0; n < f.visibility.size(); ++n) {
         rt.escape_points = n;
         const samples::FamilyMetrics m =
             samples::held_out_metrics(rt, front).family[int(samples::Family::surface)];
-        visibility[n] = 100 * m.visibility_accuracy;
-        MESSAGE(name << " front-side surface rays, escape rule N = " << n << ": visibility " << visibility[n]
-                     << " % (false hits " << 100 * m.false_hit_rate << " %, false misses "
-                     << 100 * m.false_miss_rate << " %)");
+        f.visibility[n] = 100 * m.visibility_accuracy;
+        f.false_misses[n] = 100 * m.false_miss_rate;
+        MESSAGE(name << " front-side surface rays, escape rule N = " << n << ": visibility "
+                     << f.visibility[n] << " % (false hits " << 100 * m.false_hit_rate << " %, false misses "
+                     << f.false_misses[n] << " %)");
     }
-    return visibility;
+    return f;
+}
+
+// The limit conversion chose for a solid (the decision rays' false misses rise by at most
+// kEscapeMissRise) holds on the held-out rays: their false misses rise by at most that plus
+// 0.1 point (about two standard deviations of the lost occluders' count on ~11,000 rays),
+// and visibility does not drop by more than 0.1 point.
+void check_escape_choice(const nlohmann::json& mesh, const EscapeFigures& f, std::uint32_t expected) {
+    const std::uint32_t n = mesh["metrics"]["escape_points"].get<std::uint32_t>();
+    CHECK(n == expected);
+    if (n == 0 || n >= f.visibility.size()) return;
+    CHECK(f.visibility[n] >= f.visibility[0] - 0.1);
+    CHECK(f.false_misses[n] <= f.false_misses[0] + 100 * lsnif::converter::stages::kEscapeMissRise + 0.1);
 }
 
 // The surface family split by the side its rays leave from: the front
@@ -477,9 +494,7 @@ TEST_CASE("the default model meets the accuracy targets on CGAL's Chinese dragon
     report_surface_sides(shipped, "ChineseDragon-10kv");
     // On a solid the rule at N = 2 answers as well as the network, and conversion chooses it
     // (docs/model.md "The escape rule").
-    const auto escape = report_escape_rule(shipped, "ChineseDragon-10kv");
-    CHECK(escape[2] >= escape[0] - 0.1);
-    CHECK(mesh["metrics"]["escape_points"] == 2);
+    check_escape_choice(mesh, report_escape_rule(shipped, "ChineseDragon-10kv"), 3);
     check_reduced_inference(shipped, "ChineseDragon-10kv");
 }
 
@@ -492,9 +507,7 @@ TEST_CASE("default preset meets the accuracy targets on CGAL's armadillo") {
     check_fresh_rays(shipped, mesh, "armadillo");
     check_walks_agree(shipped, "armadillo");
     report_surface_sides(shipped, "armadillo");
-    const auto escape = report_escape_rule(shipped, "armadillo");
-    CHECK(escape[2] >= escape[0] - 0.1);
-    CHECK(mesh["metrics"]["escape_points"] == 2);
+    check_escape_choice(mesh, report_escape_rule(shipped, "armadillo"), 3);
     check_reduced_inference(shipped, "armadillo");
 }
 
@@ -519,8 +532,7 @@ TEST_CASE("default preset ships a truck assembly past the gate with a margin") {
     check_walks_agree(shipped, "peterbilt");
     report_surface_sides(shipped, "peterbilt");
     // Thin parts a voxel or two apart: the rule loses real occluders here, so it stays off.
-    report_escape_rule(shipped, "peterbilt");
-    CHECK(mesh["metrics"]["escape_points"] == 0);
+    check_escape_choice(mesh, report_escape_rule(shipped, "peterbilt"), 0);
     check_reduced_inference(shipped, "peterbilt");
 }
 

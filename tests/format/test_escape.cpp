@@ -1,12 +1,14 @@
 // The escape rule (lsnif_set_escape_points): on real assets, rays leaving the surface that
-// stay within N occupied voxels are misses, every other ray keeps its bits, and rays that
-// enter the grid from outside never escape.
+// stay within one face-connected run of at most N occupied voxels are misses, every other ray
+// keeps its bits, and rays that enter the grid from outside never escape.
 #include <doctest/doctest.h>
 #include <lsnif/lsnif.h>
 #include <lsnif/format/container.hpp>
 #include <lsnif/format/forward.hpp>
 
+#include <array>
 #include <cmath>
+#include <cstdlib>
 #include <cstring>
 #include <filesystem>
 #include <random>
@@ -86,7 +88,56 @@ void make_rays(lsnif_model* model, std::vector<lsnif_ray>& outside, std::vector<
     }
 }
 
+// The voxel coordinates of linear index v in a V^3 grid (x fastest).
+std::array<int, 3> voxel_xyz(std::uint32_t v, std::uint32_t V) {
+    return {int(v % V), int((v / V) % V), int(v / (V * V))};
+}
+
+// The rule as docs/model.md states it, from the trace: the ray starts inside its first
+// occupied voxel, meets at most `limit` of them, and each is the previous one's face
+// neighbour (coordinates one apart on one axis).
+bool rule_takes(const fmt::RayPoints& pts, const lsnif_ray& ray, std::uint32_t limit, std::uint32_t V) {
+    if (pts.count == 0 || pts.count > limit || pts.t[0] > ray.tmin) return false;
+    for (std::uint32_t k = 1; k < pts.count; ++k) {
+        const auto a = voxel_xyz(pts.voxel[k - 1], V), b = voxel_xyz(pts.voxel[k], V);
+        if (std::abs(a[0] - b[0]) + std::abs(a[1] - b[1]) + std::abs(a[2] - b[2]) != 1) return false;
+    }
+    return true;
+}
+
 }  // namespace
+
+TEST_CASE("the escape rule takes a ray's occupied voxels only as one run of face neighbours") {
+    fmt::Geometry geo{};
+    geo.V = 64;
+    const auto index = [](std::uint32_t x, std::uint32_t y, std::uint32_t z) {
+        return x + 64 * (y + 64 * z);
+    };
+    fmt::Ray ray{};
+    ray.tmin = 0.25f;
+    const auto trace = [&](std::initializer_list<std::uint32_t> voxels, float t0) {
+        fmt::RayPoints pts;
+        for (const std::uint32_t v : voxels) {
+            pts.t[pts.count] = t0 + float(pts.count);
+            pts.voxel[pts.count++] = v;
+        }
+        return pts;
+    };
+    const fmt::RayPoints run = trace({index(5, 7, 9), index(6, 7, 9), index(6, 7, 8)}, 0.25f);
+    CHECK(fmt::escapes(geo, run, ray, 3));
+    CHECK_FALSE(fmt::escapes(geo, run, ray, 2));  // more voxels than the limit
+    CHECK_FALSE(fmt::escapes(geo, run, ray, 0));  // off
+    CHECK_FALSE(fmt::escapes(geo, trace({index(5, 7, 9), index(6, 7, 9)}, 0.5f), ray, 3));  // starts outside
+    CHECK_FALSE(
+        fmt::escapes(geo, trace({index(5, 7, 9), index(7, 7, 9)}, 0.25f), ray, 3));  // an empty voxel between
+    CHECK_FALSE(
+        fmt::escapes(geo, trace({index(5, 7, 9), index(6, 8, 9)}, 0.25f), ray, 3));  // an edge, not a face
+    // Linear indices one apart across a row's end are not neighbours.
+    CHECK_FALSE(fmt::escapes(geo, trace({index(63, 7, 9), index(0, 8, 9)}, 0.25f), ray, 3));
+    CHECK_FALSE(fmt::escapes(geo, trace({index(0, 63, 9), index(0, 0, 10)}, 0.25f), ray, 3));
+    CHECK(fmt::escapes(geo, trace({index(0, 7, 9), index(0, 7, 10)}, 0.25f), ray, 3));
+    CHECK_FALSE(fmt::escapes(geo, trace({}, 0.25f), ray, 3));  // meets no occupied voxel: culled, not escaped
+}
 
 TEST_CASE(
     "the escape rule: rays leaving the surface within N occupied voxels miss, all others keep their bits") {
@@ -131,11 +182,12 @@ TEST_CASE(
                 std::vector<std::uint8_t> occ(rays.size(), 7);
                 REQUIRE(lsnif_intersect(m.model, rays.data(), rays.size(), hits.data()) == LSNIF_OK);
                 REQUIRE(lsnif_occluded(m.model, rays.data(), rays.size(), occ.data()) == LSNIF_OK);
-                std::size_t escaped = 0, changed = 0, wrong = 0;
+                std::size_t escaped = 0, changed = 0, wrong = 0, gapped = 0;
                 for (std::size_t i = 0; i < rays.size(); ++i) {
-                    const bool escapes =
-                        fmt::escapes(pts[i], reinterpret_cast<const fmt::Ray&>(rays[i]), limit);
+                    const bool escapes = rule_takes(pts[i], rays[i], limit, info.grid_resolution);
                     escaped += escapes;
+                    gapped +=
+                        !escapes && pts[i].count > 1 && pts[i].count <= limit && pts[i].t[0] <= rays[i].tmin;
                     if (escapes) {
                         changed += exact[i].hit;
                         wrong += hits[i].hit != 0 || occ[i] != 0;
@@ -149,9 +201,12 @@ TEST_CASE(
                     CHECK(escaped == 0);  // a ray entering the grid from outside never escapes
                 } else {
                     CHECK(escaped > rays.size() / 20);  // the rule took real work
+                    if (limit > 1) CHECK(gapped > 0);   // and left rays that meet a second surface
                     MESSAGE(name << ", limit " << limit << ": " << escaped << " of " << rays.size()
-                                 << " rays leaving the surface escape; the network called " << changed
-                                 << " of them hits");
+                                 << " rays leaving the surface escape (" << gapped
+                                 << " more within the limit meet occupied voxels again after a gap); the "
+                                    "network called "
+                                 << changed << " of them hits");
                 }
             }
         }

@@ -150,9 +150,9 @@ std::unique_ptr<render::ObjectViews> object_views(const Run& run, const scene::M
 // 1..kMaxEscapePoints at which the rule raises the false-miss rate of `front` (rays leaving
 // the surface on its front side, with their mesh answers) by at most kEscapeMissRise over the
 // rule off, else 0. The rate only grows with N (each N forces a superset of rays to miss).
-// At most 2: at 3 the renders' ambient occlusion lightens in creases that the rays' rates
+// At most 3: at 4 the renders' ambient occlusion lightens in creases that the rays' rates
 // hardly show.
-inline constexpr std::uint32_t kMaxEscapePoints = 2;
+inline constexpr std::uint32_t kMaxEscapePoints = 3;
 inline constexpr double kEscapeMissRise = 0.0025;
 std::uint32_t choose_escape_points(const format::ModelData& model, std::span<const samples::Sample> front,
                                    std::uint32_t threads);

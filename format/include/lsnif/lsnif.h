@@ -326,17 +326,19 @@ LSNIF_API lsnif_status lsnif_occluded_instance(const lsnif_model* model, const f
 
 /* Sets the escape rule of later lsnif_intersect* and lsnif_occluded* calls on `model`: a ray
  * whose segment starts inside an occupied voxel (its tmin point lies in the first occupied
- * voxel it meets) and that meets at most `max_points` occupied voxels, that one included,
- * is a miss without evaluating the network. 0, what lsnif_open_* set, turns it off: every
- * ray is answered as FORMAT.md §8 specifies. Meant for rays that leave the asset's own
- * surface (shadow, ambient-occlusion and reflection rays from a point the asset returned):
- * on solid objects the network answers nearly all such rays that stay within one or two
- * occupied voxels "miss" anyway, and skipping it for them saves much of a render's time; on
- * objects of thin parts a voxel or two apart it loses real occluders. A ray entering the
- * grid from outside never escapes. docs/model.md "The escape rule" gives the measurements
- * and the trade-off. `max_points` at most the model's entry points per ray (lsnif_info's
- * max_points), else LSNIF_ERR_INVALID_ARGUMENT; `model` must not be NULL. Must not run
- * concurrently with intersections on the same model. */
+ * voxel it meets), that meets at most `max_points` occupied voxels, that one included, and
+ * whose occupied voxels are one run in which each shares a face with the one before it (no
+ * empty voxel between them), is a miss without evaluating the network. 0, what
+ * lsnif_open_* set, turns it off: every ray is answered as FORMAT.md §8 specifies. Meant for
+ * rays that leave the asset's own surface (shadow, ambient-occlusion and reflection rays
+ * from a point the asset returned): up to its tmax such a ray meets only the voxels around
+ * the surface it leaves, and on solid objects the network answers nearly all of them "miss"
+ * anyway; skipping it for them saves much of a render's time. On objects of thin parts a voxel or
+ * two apart it loses real occluders. A ray entering the grid from outside never escapes.
+ * docs/model.md "The escape rule" gives the measurements and the trade-off. `max_points` at
+ * most the model's entry points per ray (lsnif_info's max_points), else
+ * LSNIF_ERR_INVALID_ARGUMENT; `model` must not be NULL. Must not run concurrently with
+ * intersections on the same model. */
 LSNIF_API lsnif_status lsnif_set_escape_points(lsnif_model* model, uint32_t max_points);
 /* The escape rule's limit in use (0: off); 0 for a NULL model. */
 LSNIF_API uint32_t lsnif_get_escape_points(const lsnif_model* model);

@@ -274,10 +274,16 @@ def test_escape_rule_takes_only_rays_that_start_in_the_surface(model):
         model.escape_points = 0
         exact = model.occluded(leave_org, leave_dir, 0.0, 0.1 * diag)
         assert np.all(escaped <= exact)  # the rule only turns answers into misses
-        model.escape_points = model.info["max_points"]  # every ray that starts in the surface escapes
+        # At the largest limit every ray whose occupied voxels are one run of face neighbours
+        # from its start escapes: a superset of those at 2.
+        model.escape_points = model.info["max_points"]
         everything = model.occluded(leave_org, leave_dir, 0.0, 0.1 * diag)
         assert np.all(everything <= escaped)
-        assert exact.sum() == 0 or everything.sum() < exact.sum()
+        if not model.path.endswith("v1_default.lsnif"):
+            # On a converted mesh the network calls some of those rays hits (along the surface).
+            # v1_default is the test generator's shell of voxels under random weights: where
+            # its hits lie, and so whether any of its answers changes, is arbitrary.
+            assert everything.sum() < exact.sum()
         with pytest.raises(ValueError, match="escape_points"):
             model.escape_points = model.info["max_points"] + 1
     finally:

@@ -409,12 +409,28 @@ struct IntersectStats {
     std::size_t rays = 0, invalid = 0, culled = 0, escaped = 0, inferred = 0, hits = 0;
 };
 
-// Whether the escape rule with limit `escape_points` answers `ray` (traced into `pts`) as a
-// miss: its segment starts inside the first occupied voxel it meets (that voxel's entry is
-// the ray's own tmin, so a ray entering the grid from outside never escapes) and it meets
-// at most `escape_points` occupied voxels. Always false for escape_points = 0.
-inline bool escapes(const RayPoints& pts, const Ray& ray, std::uint32_t escape_points) {
-    return pts.count > 0 && pts.count <= escape_points && pts.t[0] <= ray.tmin;
+// Whether voxels `a` and `b` (linear indices x + V * (y + V * z) of a V^3 grid) share a
+// face: they differ by one along exactly one axis.
+inline bool face_neighbours(std::uint32_t a, std::uint32_t b, std::uint32_t V) {
+    const std::uint32_t ax = a % V, ay = a / V % V, az = a / V / V;
+    const std::uint32_t bx = b % V, by = b / V % V, bz = b / V / V;
+    const auto apart = [](std::uint32_t u, std::uint32_t v) { return u > v ? u - v : v - u; };
+    return apart(ax, bx) + apart(ay, by) + apart(az, bz) == 1;
+}
+
+// Whether the escape rule with limit `escape_points` answers `ray` (traced into `pts` on
+// the grid of `geo`) as a miss: its segment starts inside the first occupied voxel it meets
+// (that voxel's entry is the ray's own tmin, so a ray entering the grid from outside never
+// escapes), it meets at most `escape_points` occupied voxels, and each of them shares a face
+// with the one before it: one run of occupied voxels from the start, the shell of the
+// surface the ray leaves, with no empty voxel between (a ray that crosses empty space and
+// meets occupied voxels again approaches another surface and goes to the network).
+// Always false for escape_points = 0.
+inline bool escapes(const Geometry& geo, const RayPoints& pts, const Ray& ray, std::uint32_t escape_points) {
+    if (pts.count == 0 || pts.count > escape_points || !(pts.t[0] <= ray.tmin)) return false;
+    for (std::uint32_t k = 1; k < pts.count; ++k)
+        if (!face_neighbours(pts.voxel[k - 1], pts.voxel[k], geo.V)) return false;
+    return true;
 }
 
 // Object-space batch. Single-threaded: callers parallelize across batches (renderers
