@@ -137,6 +137,14 @@ TEST_CASE("the escape rule takes a ray's occupied voxels only as one run of face
     CHECK_FALSE(fmt::escapes(geo, trace({index(0, 63, 9), index(0, 0, 10)}, 0.25f), ray, 3));
     CHECK(fmt::escapes(geo, trace({index(0, 7, 9), index(0, 7, 10)}, 0.25f), ray, 3));
     CHECK_FALSE(fmt::escapes(geo, trace({}, 0.25f), ray, 3));  // meets no occupied voxel: culled, not escaped
+    // A grid side that is not a power of two.
+    geo.V = 48;
+    const auto at48 = [](std::uint32_t x, std::uint32_t y, std::uint32_t z) { return x + 48 * (y + 48 * z); };
+    CHECK(fmt::escapes(geo, trace({at48(46, 7, 9), at48(47, 7, 9), at48(47, 8, 9), at48(47, 8, 10)}, 0.25f),
+                       ray, 4));
+    CHECK_FALSE(fmt::escapes(geo, trace({at48(47, 7, 9), at48(0, 8, 9)}, 0.25f), ray, 3));
+    CHECK_FALSE(fmt::escapes(geo, trace({at48(3, 47, 9), at48(3, 0, 10)}, 0.25f), ray, 3));
+    CHECK_FALSE(fmt::escapes(geo, trace({at48(3, 7, 9), at48(3, 9, 9)}, 0.25f), ray, 3));
 }
 
 TEST_CASE(
