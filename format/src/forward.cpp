@@ -1116,12 +1116,14 @@ const float* mlp_forward(const Network& net, const float* input, std::size_t n, 
             // its output already quantized, and the last writes fp32 for the output layer.
             const Int8Layer& layer = net.wt_int8[k];
             Int8Rows &in8 = rows8[k % 2], &out8 = rows8[(k + 1) % 2];
-            if (k == 0) {
+            // Rows in lanes need a block of 16 rows to pay: with fewer, most of each
+            // instruction's lanes are empty and the layer-by-layer path (the same bits) does
+            // less work.
+            if (k == 0 && n >= 16)
                 if (const float* c =
                         mlp_int8_forward_in_lanes(net, src, lda, n, zeros, outputs, scratch.data()))
                     return c;
-                quantize_rows(src, n, net.in[k], lda, layer.signed_input, in8);
-            }
+            if (k == 0) quantize_rows(src, n, net.in[k], lda, layer.signed_input, in8);
             if (k + 2 < layers)
                 gemm_int8_relu_quantized(n, in8, layer, net.bias[k].data(), out8, unfused, zeros);
             else

@@ -850,7 +850,11 @@ LSNIF_AVX512 void trace_batch_avx512(const Geometry& geo, const OccupancyGrid& o
 void trace_points_batch(const Geometry& geo, const OccupancyGrid& occ, std::span<const Ray> rays,
                         RayPoints* out, TraceStatus* status) {
 #if LSNIF_HAVE_X86
-    if (cpu_features().avx512 && geo.V == occ.V) return trace_batch_avx512(geo, occ, rays, out, status);
+    // A lone ray walks alone: the 16-lane step costs as much for one busy lane as for
+    // sixteen, and is slower than the scalar step (a renderer's single-ray calls, the Embree
+    // user geometry's 1-ray callbacks). From two rays on the lanes pay.
+    if (cpu_features().avx512 && geo.V == occ.V && rays.size() >= 2)
+        return trace_batch_avx512(geo, occ, rays, out, status);
 #endif
     for (std::size_t i = 0; i < rays.size(); ++i) status[i] = trace_points(geo, occ, rays[i], out[i]);
 }
