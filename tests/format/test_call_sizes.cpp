@@ -21,7 +21,8 @@ TEST_CASE("hits and occlusion are the same bits whatever the number of rays per 
         lsnif_test::OpenModel m(fs::path(LSNIF_CONFORMANCE_DIR) / name);
         std::vector<lsnif_ray> rays, leaving;
         lsnif_test::make_rays(m.model, rays, leaving);
-        rays.insert(rays.end(), leaving.begin(), leaving.begin() + std::min<std::size_t>(leaving.size(), 4096));
+        rays.insert(rays.end(), leaving.begin(),
+                    leaving.begin() + std::min<std::size_t>(leaving.size(), 4096));
         std::vector<lsnif_hit> whole(rays.size());
         std::vector<std::uint8_t> whole_occ(rays.size());
         REQUIRE(lsnif_intersect(m.model, rays.data(), rays.size(), whole.data()) == LSNIF_OK);

@@ -547,8 +547,7 @@ struct EvalCommand {
         sub->add_option("--escape-points", opt.escape_points,
                         "Rays that start inside an occupied voxel of an asset and meet at most N of them, "
                         "one run of face neighbours, miss it without the network (0 = off; default: the "
-                        "limit conversion chose for "
-                        "each asset; docs/model.md \"The escape rule\")")
+                        "limit conversion chose for each asset; docs/model.md \"The escape rule\")")
             ->check(CLI::Range(0u, 64u))
             ->type_name("N");
         sub->add_option("--repeats", opt.timing_repeats,

@@ -332,9 +332,10 @@ LSNIF_API lsnif_status lsnif_occluded_instance(const lsnif_model* model, const f
  * lsnif_open_* set, turns it off: every ray is answered as FORMAT.md §8 specifies. Meant for
  * rays that leave the asset's own surface (shadow, ambient-occlusion and reflection rays
  * from a point the asset returned): up to its tmax such a ray meets only the voxels around
- * the surface it leaves, and on solid objects the network answers nearly all of them "miss"
- * anyway; skipping it for them saves much of a render's time. On objects of thin parts a voxel or
- * two apart it loses real occluders. A ray entering the grid from outside never escapes.
+ * the surface it leaves, and on solid objects the network answers nearly all of them
+ * "miss" anyway; skipping it for them saves much of a render's time. On objects of thin
+ * parts a voxel or two apart it loses real occluders. A ray entering the grid from outside
+ * never escapes.
  * docs/model.md "The escape rule" gives the measurements and the trade-off. `max_points` at
  * most the model's entry points per ray (lsnif_info's max_points), else
  * LSNIF_ERR_INVALID_ARGUMENT; `model` must not be NULL. Must not run concurrently with
