@@ -101,6 +101,7 @@ void check_scene_gltf(const fs::path& out, const json& manifest, const std::vect
         CHECK(ext["byteLength"] == fs::file_size(out / ext["uri"].get<std::string>()));
         CHECK(ext["geometryHash"] == m["geometry_hash"]);
         CHECK(ext["manifestMesh"] == m["id"]);
+        CHECK(ext["escapePoints"] == m["metrics"]["escape_points"]);
     }
     for (std::size_t i = 0; i < instances.size(); ++i) {
         CHECK(back.scene.instances[i].mesh == instances[i].mesh);

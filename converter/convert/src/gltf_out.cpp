@@ -230,7 +230,8 @@ void tag_meshes(json& doc, const MeshIndex& index, const std::vector<MeshOutcome
             {"byteLength", m.asset->bytes},
             {"geometryHash", m.geometry_hash},
             {"manifestMesh", m.id},
-            {"heldOutVisibility", m.held_out->metrics.pooled.visibility_accuracy}};
+            {"heldOutVisibility", m.held_out->metrics.pooled.visibility_accuracy},
+            {"escapePoints", m.held_out->escape_points}};
         any = true;
     }
     if (!any) return;
