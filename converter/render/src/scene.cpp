@@ -153,32 +153,39 @@ struct ProfileScope {
 template <class Bound, class Wanted, class Query, class Take>
 void through_assets(const EvalScene::Impl& im, std::span<const lsnif_ray> rays, BoxTests& boxes,
                     TraceProfile& profile, Bound&& bound, Wanted&& wanted, Query&& query, Take&& take) {
-    std::vector<lsnif_ray> batch;
-    std::vector<std::uint32_t> idx;
-    batch.reserve(kBatch);
-    idx.reserve(kBatch);
+    thread_local std::vector<lsnif_ray> gathered;
+    thread_local std::vector<std::uint32_t> idx;
+    gathered.resize(kBatch);
+    idx.resize(kBatch);
     for (const std::uint32_t inst : im.lsnif_instances) {
         const EvalScene::Impl::Instance& in = im.instances[inst];
         const lsnif_model* model = im.meshes[in.mesh].model;
+        std::size_t n = 0;
+        // The batch idx[0..n): where its indices are one run (every ray of a stretch reaches
+        // the box, as the rays leaving an asset's own surface do) the caller's rays are
+        // passed as they are, else copied together.
         const auto flush = [&] {
-            if (batch.empty()) return;
+            if (!n) return;
+            const lsnif_ray* batch = rays.data() + idx[0];
+            if (idx[n - 1] - idx[0] + 1 != n) {
+                for (std::size_t k = 0; k < n; ++k) gathered[k] = rays[idx[k]];
+                batch = gathered.data();
+            }
             const auto t0 = base::Clock::now();
-            const lsnif_status st = query(model, in.transform.data(), batch.data(), batch.size());
+            const lsnif_status st = query(model, in.transform.data(), batch, n);
             profile.reader_seconds += base::seconds_since(t0);
             ++profile.reader_calls;
-            profile.box_hits += batch.size();
+            profile.box_hits += n;
             if (st == LSNIF_OK)
-                for (std::size_t k = 0; k < batch.size(); ++k) profile.reader_hits += take(inst, k, idx[k]);
-            batch.clear();
-            idx.clear();
+                for (std::size_t k = 0; k < n; ++k) profile.reader_hits += take(inst, k, idx[k]);
+            n = 0;
         };
         bound(inst);
         reach_box(boxes.slabs, in.box, boxes.tmax.data(), boxes.reach.data(), rays.size());
         for (std::size_t i = 0; i < rays.size(); ++i) {
             if (!boxes.reach[i] || !wanted(i)) continue;
-            batch.push_back(rays[i]);
-            idx.push_back(std::uint32_t(i));
-            if (batch.size() == kBatch) flush();
+            idx[n++] = std::uint32_t(i);
+            if (n == kBatch) flush();
         }
         flush();
     }
