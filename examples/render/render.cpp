@@ -357,8 +357,8 @@ void HybridScene::add_mesh(const lsnif::scene::Mesh& src, const fs::path& asset)
             throw Failure(asset.string() + ": " + err.message);
         // The escape rule conversion chose for the asset (its metadata's
         // metrics.escape_points, absent in older assets: off; docs/model.md "The escape
-        // rule"): shadow rays leaving its surface within that many occupied voxels skip the
-        // network. It applies to both routes alike.
+        // rule"): shadow rays leaving its surface within a run of that many occupied voxels
+        // skip the network. It applies to both routes alike.
         std::size_t length = 0;
         const char* text = lsnif_metadata(out.model, &length);
         const json meta = json::parse(text, text + length, nullptr, false);
