@@ -35,9 +35,20 @@ import json, sys
 r = json.load(open(sys.argv[1]))
 assert r["lsnif_instances"] == 1, r
 assert r["timing_repeats"] == 2, r
+assert r["embree_route"] == "packets16", r
 for e in ("shadow", "ao", "reflection"):
     assert 0.0 <= r["images"][e]["flip_mean"] <= 1.0
 PY
+# Embree one ray per call: the same reference picture; an unknown route is a usage error.
+"$lsnif" eval "$out" --width 32 --height 24 --ao-samples 1 --repeats 2 --images "$work/img6" --embree-route single \
+  --json >"$work/single.json" || bad "--embree-route single exited $?"
+python3 -c "import json,sys; assert json.load(open(sys.argv[1]))['embree_route'] == 'single'" "$work/single.json" \
+  || bad "--embree-route single not reported"
+cmp -s "$work/img2/reference_ao.png" "$work/img6/reference_ao.png" || bad "single rays changed the reference AO image"
+"$lsnif" eval "$out" --embree-route wide --images "$work/img7" 2>"$work/err"; rc=$?
+[[ $rc == 2 ]] || bad "--embree-route wide exit $rc"
+grep -q "^error: --embree-route" "$work/err" || bad "--embree-route wide message: $(cat "$work/err")"
+[[ ! -e $work/img7 ]] || bad "--embree-route wide still rendered"
 # No timing at all is a usage error (exit 2), nothing rendered.
 "$lsnif" eval "$out" --repeats 0 --images "$work/img4" 2>"$work/err"; rc=$?
 [[ $rc == 2 ]] || bad "--repeats 0 exit $rc"

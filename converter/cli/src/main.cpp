@@ -550,6 +550,15 @@ struct EvalCommand {
                         "limit conversion chose for each asset; docs/model.md \"The escape rule\")")
             ->check(CLI::Range(0u, 64u))
             ->type_name("N");
+        sub->add_option(
+               "--embree-route", opt.embree_route,
+               "How both tracers' Embree part traces: packets16 (16 consecutive rays per "
+               "rtcIntersect16/rtcOccluded16 call) or single (one ray per call; docs/eval.md \"Timing\")")
+            ->transform(CLI::CheckedTransformer(std::map<std::string, lsnif::render::EmbreeRoute>{
+                {"packets16", lsnif::render::EmbreeRoute::packets16},
+                {"single", lsnif::render::EmbreeRoute::single}}))
+            ->type_name("packets16|single")
+            ->default_str("packets16");
         sub->add_option("--repeats", opt.timing_repeats,
                         "Trace each row's secondary rays this many times per tracer, alternating, and keep "
                         "each tracer's fastest for the time ratio (docs/eval.md \"Timing\")")

@@ -101,7 +101,8 @@ std::unique_ptr<EvalScene> load_scene(const EvalOptions& opt, std::string& error
     std::vector<scene::Scene> scenes;
     if (!import_sources(loaded, scenes, error)) return nullptr;
     SceneBuilder builder;
-    if (!builder.open(error) || !add_meshes(loaded, scenes, opt, builder, error)) return nullptr;
+    if (!builder.open(error, opt.embree_route) || !add_meshes(loaded, scenes, opt, builder, error))
+        return nullptr;
     const json& insts = loaded.doc["instances"];
     for (std::size_t i = 0; i < insts.size(); ++i)
         if (!add_instance(i, insts[i], opt, manifest_path, builder, error)) return nullptr;
@@ -239,6 +240,7 @@ EvalResult render_and_compare(const EvalOptions& opt) {
     report.ao_radius = opt.ao_radius * view.diag;
     report.surface_tmin_voxels = opt.surface_tmin_voxels;
     report.escape_points = opt.escape_points;
+    report.embree_route = opt.embree_route;
     report.timing_repeats = std::max(1u, opt.timing_repeats);
     report.camera = view.cam;
     report.light = view.light;
@@ -281,6 +283,7 @@ json eval_report_json(const EvalReport& r) {
     j["surface_tmin_voxels"] = r.surface_tmin_voxels;
     j["escape_points"] = r.escape_points ? json(*r.escape_points) : json("asset");
     j["timing_repeats"] = r.timing_repeats;
+    j["embree_route"] = render::embree_route_name(r.embree_route);
     j["camera"] = {{"eye", r.camera.eye},
                    {"target", r.camera.target},
                    {"up", r.camera.up},
@@ -334,8 +337,9 @@ std::string eval_report_text(const EvalReport& r) {
     }
     out += base::printed(
         "  overall    FLIP mean %.4f (shadow, ao, reflection); %zu LSNIF pixels; secondary-ray time "
-        "hybrid/reference %.2f\n",
-        r.hybrid.flip_mean, r.lsnif_pixels, r.secondary_time_ratio());
+        "hybrid/reference %.2f (Embree route %s)\n",
+        r.hybrid.flip_mean, r.lsnif_pixels, r.secondary_time_ratio(),
+        render::embree_route_name(r.embree_route));
     const EffectComparison& nc = r.neural.effect[kCombined];
     out += base::printed(
         "  all-neural (primary rays through the assets too): combined FLIP %.4f over the frame, %s over "

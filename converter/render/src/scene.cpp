@@ -46,6 +46,90 @@ void init_rayhit(const lsnif_ray& r, RTCRayHit& rh) {
     rh.hit.instID[0] = RTC_INVALID_GEOMETRY_ID;
 }
 
+// Lane k of a 16-wide packet: ray r, as init_rayhit sets a single one.
+void set_lane(RTCRay16& p, std::size_t k, const lsnif_ray& r) {
+    p.org_x[k] = r.org[0];
+    p.org_y[k] = r.org[1];
+    p.org_z[k] = r.org[2];
+    p.dir_x[k] = r.dir[0];
+    p.dir_y[k] = r.dir[1];
+    p.dir_z[k] = r.dir[2];
+    p.tnear[k] = r.tmin;
+    p.tfar[k] = r.tmax;
+    p.time[k] = 0.0f;
+    p.mask[k] = 0xFFFFFFFFu;
+    p.id[k] = 0;
+    p.flags[k] = 0;
+}
+
+// Embree's answers for `rays` (the tracer's top-level scene `top`) by `route`: closest hits
+// into `hits` (decoded by im.embree_hit), or whether each ray is occluded into `occ`.
+// Packets hold 16 consecutive rays; the last one's missing lanes are switched off.
+void embree_closest(const EvalScene::Impl& im, RTCScene top, EmbreeRoute route,
+                    std::span<const lsnif_ray> rays, std::span<TraceHit> hits) {
+    RTCIntersectContext ctx;
+    rtcInitIntersectContext(&ctx);
+    if (route == EmbreeRoute::single) {
+        for (std::size_t i = 0; i < rays.size(); ++i) {
+            RTCRayHit rh;
+            init_rayhit(rays[i], rh);
+            rtcIntersect1(top, &ctx, &rh);
+            hits[i] = im.embree_hit(rh);
+        }
+        return;
+    }
+    alignas(64) RTCRayHit16 p;
+    alignas(64) int valid[16];
+    for (std::size_t b = 0; b < rays.size(); b += 16) {
+        const std::size_t n = std::min<std::size_t>(16, rays.size() - b);
+        for (std::size_t k = 0; k < 16; ++k) {
+            valid[k] = k < n ? -1 : 0;
+            set_lane(p.ray, k, rays[b + (k < n ? k : 0)]);
+            p.hit.geomID[k] = RTC_INVALID_GEOMETRY_ID;
+            p.hit.primID[k] = RTC_INVALID_GEOMETRY_ID;
+            p.hit.instID[0][k] = RTC_INVALID_GEOMETRY_ID;
+        }
+        rtcIntersect16(valid, top, &ctx, &p);
+        for (std::size_t k = 0; k < n; ++k) {
+            RTCRayHit rh;
+            rh.ray.tfar = p.ray.tfar[k];
+            rh.hit.geomID = p.hit.geomID[k];
+            rh.hit.primID = p.hit.primID[k];
+            rh.hit.instID[0] = p.hit.instID[0][k];
+            rh.hit.u = p.hit.u[k];
+            rh.hit.v = p.hit.v[k];
+            hits[b + k] = im.embree_hit(rh);
+        }
+    }
+}
+
+void embree_occluded(RTCScene top, EmbreeRoute route, std::span<const lsnif_ray> rays,
+                     std::span<std::uint8_t> occ) {
+    RTCIntersectContext ctx;
+    rtcInitIntersectContext(&ctx);
+    // Embree marks an occluded ray with tfar = -inf.
+    if (route == EmbreeRoute::single) {
+        for (std::size_t i = 0; i < rays.size(); ++i) {
+            RTCRayHit rh;
+            init_rayhit(rays[i], rh);
+            rtcOccluded1(top, &ctx, &rh.ray);
+            occ[i] = rh.ray.tfar < 0.0f;
+        }
+        return;
+    }
+    alignas(64) RTCRay16 p;
+    alignas(64) int valid[16];
+    for (std::size_t b = 0; b < rays.size(); b += 16) {
+        const std::size_t n = std::min<std::size_t>(16, rays.size() - b);
+        for (std::size_t k = 0; k < 16; ++k) {
+            valid[k] = k < n ? -1 : 0;
+            set_lane(p, k, rays[b + (k < n ? k : 0)]);
+        }
+        rtcOccluded16(valid, top, &ctx, &p);
+        for (std::size_t k = 0; k < n; ++k) occ[b + k] = p.tfar[k] < 0.0f;
+    }
+}
+
 // One trace call's rays as the box tests read them: origins, reciprocal directions and tmin,
 // one array each, so that a test of every ray against one box is a loop the compiler
 // vectorizes, and the three divisions are paid once per ray, not once per ray and box.
@@ -197,16 +281,10 @@ void EvalScene::closest(bool hybrid, std::span<const lsnif_ray> rays, std::span<
                         TraceProfile* profile) const {
     const Impl& im = *impl_;
     ProfileScope prof(profile, rays.size());
-    RTCIntersectContext ctx;
-    for (std::size_t i = 0; i < rays.size(); ++i) {
-        hits[i] = TraceHit{};
-        if (hybrid && !im.hybrid_has_geometry) continue;
-        rtcInitIntersectContext(&ctx);
-        RTCRayHit rh;
-        init_rayhit(rays[i], rh);
-        rtcIntersect1(hybrid ? im.hybrid : im.reference, &ctx, &rh);
-        hits[i] = im.embree_hit(rh);
-    }
+    if (hybrid && !im.hybrid_has_geometry)
+        std::fill(hits.begin(), hits.end(), TraceHit{});
+    else
+        embree_closest(im, hybrid ? im.hybrid : im.reference, im.embree_route, rays, hits);
     prof.embree_done = base::Clock::now();
     if (!hybrid) return;
     std::vector<lsnif_hit> out(kBatch);
@@ -239,20 +317,14 @@ void EvalScene::occluded(bool hybrid, std::span<const lsnif_ray> rays, std::span
                          TraceProfile* profile) const {
     const Impl& im = *impl_;
     ProfileScope prof(profile, rays.size());
-    RTCIntersectContext ctx;
-    for (std::size_t i = 0; i < rays.size(); ++i) {
-        occ[i] = 0;
-        if (hybrid && !im.hybrid_has_geometry) continue;
-        rtcInitIntersectContext(&ctx);
-        RTCRayHit rh;
-        init_rayhit(rays[i], rh);
-        rtcOccluded1(hybrid ? im.hybrid : im.reference, &ctx, &rh.ray);
-        occ[i] = rh.ray.tfar < 0.0f;  // Embree marks an occluded ray with tfar = -inf
-    }
+    if (hybrid && !im.hybrid_has_geometry)
+        std::fill(occ.begin(), occ.end(), std::uint8_t{0});
+    else
+        embree_occluded(hybrid ? im.hybrid : im.reference, im.embree_route, rays, occ);
     prof.embree_done = base::Clock::now();
     if (!hybrid) return;
     std::vector<std::uint8_t> out(kBatch);
-    // The any-hit query: a hit within the ray's [tmin, tmax] (lsnif.h), as rtcOccluded1; a ray
+    // The any-hit query: a hit within the ray's [tmin, tmax] (lsnif.h), as Embree's; a ray
     // already occluded is not traced again.
     const auto query = [&](const lsnif_model* model, const float* transform, const lsnif_ray* batch,
                            std::size_t n) {
@@ -392,7 +464,12 @@ bool EvalScene::Impl::commit(std::string& error) {
 SceneBuilder::SceneBuilder() : impl_(std::make_unique<EvalScene::Impl>()) {}
 SceneBuilder::~SceneBuilder() = default;
 
-bool SceneBuilder::open(std::string& error) {
+const char* embree_route_name(EmbreeRoute route) {
+    return route == EmbreeRoute::single ? "single" : "packets16";
+}
+
+bool SceneBuilder::open(std::string& error, EmbreeRoute route) {
+    impl_->embree_route = route;
     return impl_->open_device(error);
 }
 

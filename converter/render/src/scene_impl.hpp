@@ -79,6 +79,9 @@ struct EvalScene::Impl {
     RTCDevice device = nullptr;
     RTCScene reference = nullptr, hybrid = nullptr;
     bool hybrid_has_geometry = false;
+    // Single rays unless SceneBuilder::open asks for packets: a conversion's visual check
+    // (ObjectViews) keeps the single-ray route its decisions were made with.
+    EmbreeRoute embree_route = EmbreeRoute::single;
     std::vector<Mesh> meshes;
     std::vector<Instance> instances;
     std::vector<std::uint32_t> lsnif_instances;  // indices into instances

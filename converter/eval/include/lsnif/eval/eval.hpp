@@ -44,6 +44,8 @@ struct EvalOptions : render::RenderOptions {
     // escape rule"); none = the limit conversion chose for each asset (its manifest's
     // metrics.escape_points, 0 when absent); 0 = off.
     std::optional<std::uint32_t> escape_points;
+    // Both tracers: how Embree traces its part (render::EmbreeRoute; docs/eval.md "Timing").
+    render::EmbreeRoute embree_route = render::EmbreeRoute::packets16;
 };
 
 // Seconds of each trace, summed over threads, each the fastest of the timing repeats.
@@ -61,7 +63,8 @@ struct EvalReport {
     std::uint32_t ao_samples = 0;
     float ao_radius = 0;  // AO ray length, world units
     float surface_tmin_voxels = 0;
-    std::optional<std::uint32_t> escape_points;  // as EvalOptions::escape_points
+    std::optional<std::uint32_t> escape_points;                         // as EvalOptions::escape_points
+    render::EmbreeRoute embree_route = render::EmbreeRoute::packets16;  // as EvalOptions::embree_route
     std::uint32_t timing_repeats = 0;
     render::Camera camera;
     render::Vec3 light{};

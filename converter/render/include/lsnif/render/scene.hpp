@@ -103,6 +103,14 @@ struct AssetSettings {
     std::uint32_t escape_points = 0;
 };
 
+// How Embree traces its part of a trace call (every mesh in the reference, the meshes without
+// an asset in the hybrid): `packets16` in 16-wide packets of consecutive rays
+// (rtcIntersect16, rtcOccluded16), which a renderer tracing a pixel's ambient-occlusion rays
+// or a row's shadow rays together gets; `single` one ray per call (rtcIntersect1,
+// rtcOccluded1). Same hits either way within Embree's packet/single-ray rounding.
+enum class EmbreeRoute { packets16, single };
+const char* embree_route_name(EmbreeRoute route);  // "packets16", "single"
+
 // Builds an EvalScene: every mesh first, then the instances, then finish(). Each step
 // returns false with `error` set on failure; the builder is then of no further use.
 class SceneBuilder {
@@ -112,8 +120,9 @@ public:
     SceneBuilder(const SceneBuilder&) = delete;
     SceneBuilder& operator=(const SceneBuilder&) = delete;
 
-    // The Embree device, with Embree's default configuration. First.
-    bool open(std::string& error);
+    // The Embree device, with Embree's default configuration, and the route both tracers'
+    // Embree part takes. First.
+    bool open(std::string& error, EmbreeRoute route = EmbreeRoute::packets16);
     // Mesh number mesh_count(): uploaded to an Embree scene of its own (its BVH bytes
     // measured), its asset opened with `settings` when it has one.
     bool add_mesh(const SceneMesh& mesh, const AssetSettings& settings, std::string& error);
