@@ -107,7 +107,8 @@ struct AssetSettings {
 // an asset in the hybrid): `packets16` in 16-wide packets of consecutive rays
 // (rtcIntersect16, rtcOccluded16), which a renderer tracing a pixel's ambient-occlusion rays
 // or a row's shadow rays together gets; `single` one ray per call (rtcIntersect1,
-// rtcOccluded1). Same hits either way within Embree's packet/single-ray rounding.
+// rtcOccluded1). The same hits but for the rare ray Embree's packet and single-ray kernels
+// decide differently.
 enum class EmbreeRoute { packets16, single };
 const char* embree_route_name(EmbreeRoute route);  // "packets16", "single"
 
