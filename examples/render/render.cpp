@@ -6,9 +6,10 @@
 //                [--user-geometry [--packet 1|4|8|16]]
 //
 // Two ways to trace the assets, the same image from both:
-//   batched (default)  Embree traces the simple meshes, then the reader answers each asset
-//                      instance's rays a row at a time (lsnif_intersect_instance,
-//                      lsnif_occluded_instance): what the reader is fastest at.
+//   batched (default)  Embree traces the simple meshes in packets of 16 rays, then the reader
+//                      answers each asset instance's rays a row at a time
+//                      (lsnif_intersect_instance, lsnif_occluded_instance): what each is
+//                      fastest at.
 //   --user-geometry    every asset instance is an Embree user geometry (lsnif_embree.h) in the
 //                      same scene as the meshes, and Embree alone is called, with single rays
 //                      or with packets of --packet rays: what a renderer that already traces
@@ -540,7 +541,7 @@ void HybridScene::occluded(const std::vector<lsnif_ray>& rays, std::vector<char>
 
 void HybridScene::trace_batched(const std::vector<lsnif_ray>& rays, std::vector<lsnif_hit>& hits) const {
     std::vector<EmbreeHit> eh;
-    embree_closest<1>(top_, rays, eh);
+    embree_closest<16>(top_, rays, eh);
     hits.assign(rays.size(), lsnif_hit{INFINITY, {0, 0, 0}, 0, 0});
     for (std::size_t i = 0; i < rays.size(); ++i) {
         if (eh[i].geom == RTC_INVALID_GEOMETRY_ID) continue;
@@ -570,7 +571,7 @@ void HybridScene::trace_batched(const std::vector<lsnif_ray>& rays, std::vector<
 }
 
 void HybridScene::occluded_batched(const std::vector<lsnif_ray>& rays, std::vector<char>& occluded) const {
-    embree_occluded<1>(top_, rays, occluded);
+    embree_occluded<16>(top_, rays, occluded);
     std::vector<lsnif_ray> batch;
     std::vector<std::size_t> index;
     std::vector<std::uint8_t> out;
