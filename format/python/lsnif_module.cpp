@@ -201,6 +201,15 @@ public:
                                   std::to_string(limit));
     }
 
+    bool enclosed_rule() const { return lsnif_get_enclosed_rule(get()) != 0; }
+
+    void set_enclosed_rule(bool on) {
+        get();  // a closed model raises
+        if (in_flight_ != 0)
+            throw Error(path_ + ": the enclosed rule cannot change while another thread traces this model");
+        check(lsnif_set_enclosed_rule(model_, on ? 1 : 0), path_ + ": lsnif_set_enclosed_rule");
+    }
+
     // The occupancy as bool [V][V][V] (z, y, x).
     py::array occupancy() const {
         const lsnif_array a = array(LSNIF_ARRAY_OCCUPANCY, 0);
@@ -386,6 +395,11 @@ PYBIND11_MODULE(lsnif, m) {
                       "The escape rule's limit (lsnif_set_escape_points): rays starting inside an occupied "
                       "voxel that meet at most this many occupied voxels, each a face neighbour of the one "
                       "before, miss without the network; 0 = off.")
+        .def_property(
+            "enclosed_rule", &Model::enclosed_rule, &Model::set_enclosed_rule,
+            "The enclosed rule (lsnif_set_enclosed_rule): occlusion rays that pass from an occupied "
+            "voxel into the empty space the occupied voxels shut in are occluded without the "
+            "network; False = off.")
         .def_property_readonly("layer_count", &Model::layer_count)
         .def("occupancy", &Model::occupancy, "bool [V][V][V], indexed [z, y, x].")
         .def("grid_level", &Model::grid_level, py::arg("level"),

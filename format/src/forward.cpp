@@ -13,6 +13,7 @@
 #include <cmath>
 #include <cstring>
 #include <limits>
+#include <type_traits>
 
 #include "heap_bytes.hpp"
 #include "x86.hpp"
@@ -60,7 +61,10 @@ Geometry make_geometry(const ModelDesc& d) {
     g.point_width = d.point_feature_width();
     g.direction_width = d.direction_width();
     g.offset_width = d.offset_width();
-    for (int a = 0; a < 3; ++a) g.cell[a] = (d.box_max[a] - d.box_min[a]) / float(d.grid_resolution);
+    for (int a = 0; a < 3; ++a) {
+        g.cell[a] = (d.box_max[a] - d.box_min[a]) / float(d.grid_resolution);
+        g.inv_cell[a] = 1.0f / g.cell[a];
+    }
     g.input_width = d.input_width();
     g.output_count = d.output_count();
     g.material_count = d.material_count;
@@ -1224,8 +1228,8 @@ std::vector<GridView> Runtime::grid_views() const {
 
 std::uint64_t Runtime::heap_bytes() const {
     using detail::heap_bytes;
-    std::uint64_t n = heap_bytes(geo.levels) + heap_bytes(occupancy.blocks) + heap_bytes(grid) +
-                      heap_bytes(grid_u8) + heap_bytes(grid_affine);
+    std::uint64_t n = heap_bytes(geo.levels) + heap_bytes(occupancy.blocks) + heap_bytes(enclosed) +
+                      heap_bytes(grid) + heap_bytes(grid_u8) + heap_bytes(grid_affine);
     n += heap_bytes(net.in) + heap_bytes(net.out) + heap_bytes(net.out_padded) + heap_bytes(net.wt) +
          heap_bytes(net.wt_f16) + heap_bytes(net.bias) + heap_bytes(net.wt_vnni) + heap_bytes(net.wt_int8);
     for (const Int8Layer& l : net.wt_int8)
@@ -1254,10 +1258,14 @@ namespace {
 // of 256 rays. `miss(i)` is called for each ray that never reaches the network (invalid or
 // culled), `finish(i, pts, row)` for each other one with its trace and output row, and
 // returns whether it hit. `outputs`: the leading output columns the caller reads (0 = all).
-// Rays the escape rule answers (escapes()) are misses and never reach the network.
-template <class Miss, class Finish>
+// Rays the escape rule answers (escapes()) are misses and never reach the network. With
+// `occluded_hit` (the any-hit query) and the enclosed rule on, the other rays
+// enters_enclosed() takes are passed to occluded_hit(i) instead.
+template <class Miss, class Finish, class Hit = std::nullptr_t>
 IntersectStats run_pass(const Runtime& rt, std::span<const Ray> rays, std::size_t outputs, Miss&& miss,
-                        Finish&& finish) {
+                        Finish&& finish, Hit&& occluded_hit = nullptr) {
+    constexpr bool any_hit = !std::is_same_v<std::decay_t<Hit>, std::nullptr_t>;
+    const std::uint64_t* enclosed = rt.enclosed.empty() ? nullptr : rt.enclosed.data();
     constexpr std::size_t kChunk = 256;
     thread_local std::vector<RayPoints> pts;
     thread_local std::vector<TraceStatus> status;
@@ -1292,6 +1300,13 @@ IntersectStats run_pass(const Runtime& rt, std::span<const Ray> rays, std::size_
                 ++st.escaped;
                 continue;
             }
+            if constexpr (any_hit)
+                if (enclosed && enters_enclosed(geo, enclosed, pts[i], rays[base + i])) {
+                    occluded_hit(base + i);
+                    ++st.enclosed;
+                    ++st.hits;
+                    continue;
+                }
             which[k++] = std::uint32_t(i);
         }
         if (!k) continue;
@@ -1335,7 +1350,8 @@ IntersectStats occluded(const Runtime& rt, std::span<const Ray> rays, std::span<
         [&](std::size_t i, const RayPoints& p, const float* row) {
             occluded[i] = hit_decision(p, row) ? 1 : 0;
             return occluded[i] != 0;
-        });
+        },
+        [&](std::size_t i) { occluded[i] = 1; });
 }
 
 }  // namespace lsnif::format

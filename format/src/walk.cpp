@@ -266,6 +266,116 @@ OccupancyGrid::OccupancyGrid(std::uint32_t V, const std::vector<std::uint8_t>& b
             }
 }
 
+std::vector<std::uint64_t> enclosed_voxels(const OccupancyGrid& occ) {
+    const std::uint32_t V = occ.V;
+    const std::uint64_t n = std::uint64_t(V) * V * V;
+    // Flood the empty voxels from the boundary's; what stays unreached is enclosed.
+    std::vector<std::uint64_t> reached((n + 63) / 64, 0), enclosed((n + 63) / 64, 0);
+    std::vector<std::uint32_t> todo;
+    const auto reach = [&](std::uint32_t x, std::uint32_t y, std::uint32_t z) {
+        const std::uint32_t i = x + V * (y + V * z);
+        if (voxel_bit(reached.data(), i) || occ.occupied(x, y, z)) return;
+        reached[i >> 6] |= std::uint64_t(1) << (i & 63u);
+        todo.push_back(i);
+    };
+    for (std::uint32_t z = 0; z < V; ++z)
+        for (std::uint32_t y = 0; y < V; ++y)
+            for (std::uint32_t x = 0; x < V; ++x)
+                if (x == 0 || y == 0 || z == 0 || x == V - 1 || y == V - 1 || z == V - 1) reach(x, y, z);
+    while (!todo.empty()) {
+        const std::uint32_t i = todo.back();
+        todo.pop_back();
+        const std::uint32_t x = i % V, y = i / V % V, z = i / V / V;
+        if (x > 0) reach(x - 1, y, z);
+        if (x + 1 < V) reach(x + 1, y, z);
+        if (y > 0) reach(x, y - 1, z);
+        if (y + 1 < V) reach(x, y + 1, z);
+        if (z > 0) reach(x, y, z - 1);
+        if (z + 1 < V) reach(x, y, z + 1);
+    }
+    for (std::uint32_t z = 0; z < V; ++z)
+        for (std::uint32_t y = 0; y < V; ++y)
+            for (std::uint32_t x = 0; x < V; ++x) {
+                const std::uint32_t i = x + V * (y + V * z);
+                if (!occ.occupied(x, y, z) && !voxel_bit(reached.data(), i))
+                    enclosed[i >> 6] |= std::uint64_t(1) << (i & 63u);
+            }
+    return enclosed;
+}
+
+bool enters_enclosed(const Geometry& geo, const std::uint64_t* enclosed, const RayPoints& pts,
+                     const Ray& ray) {
+    if (pts.count == 0) return false;
+    const std::uint32_t V = geo.V;
+    const std::uint32_t stride[3] = {1, V, V * V};
+    // The ray in grid coordinates, as make_ray_grid has it up to rounding: it only locates
+    // the segment's first voxel and chooses the face the last recorded voxel is left through.
+    float go[3], gd[3];
+    for (int a = 0; a < 3; ++a) {
+        go[a] = (ray.org[a] - geo.box_min[a]) * geo.inv_cell[a];
+        gd[a] = ray.dir[a] * geo.inv_cell[a];
+    }
+    // Voxel coordinates by shifts where V is a power of two (every preset's grid): divisions
+    // would cost more than the rest of the check.
+    const bool pow2 = std::has_single_bit(V);
+    const std::uint32_t shift = std::uint32_t(std::countr_zero(V)), mask = V - 1;
+    const auto coordinates = [=](std::uint32_t voxel, std::uint32_t c[3]) {
+        c[0] = pow2 ? voxel & mask : voxel % V;
+        c[1] = pow2 ? (voxel >> shift) & mask : voxel / V % V;
+        c[2] = pow2 ? voxel >> (2 * shift) : voxel / V / V;
+    };
+    if (!(pts.t[0] <= pts.t_near)) {
+        // The segment starts in an empty voxel: it must not be an enclosed one (a ray from
+        // inside a closed surface may stay inside it).
+        std::uint32_t s[3];
+        for (int a = 0; a < 3; ++a)
+            s[a] =
+                std::uint32_t(std::clamp(int(std::floor(std::fma(pts.t_near, gd[a], go[a]))), 0, int(V) - 1));
+        if (voxel_bit(enclosed, s[0] + V * (s[1] + V * s[2]))) return false;
+    }
+    // A gap: the next recorded voxel is no face neighbour, so empty voxels lie between. The
+    // one just before it is its neighbour across the face it is entered through, which its
+    // entry point lies on exactly (entry_coordinate): an integer coordinate. (Where the ray
+    // enters through an edge or a corner, the neighbour checked touches the ray there.)
+    // Branch-free: where there is no gap, voxel k itself (occupied, never enclosed) is read.
+    // A coordinate clamped onto the cell's side by rounding can pass for the entry face; the
+    // plane's own range keeps the neighbour inside the grid.
+    std::uint64_t found = 0;
+    const float last_plane = float(V - 1);
+    for (std::uint32_t k = 1; k < pts.count; ++k) {
+        const std::uint32_t v = pts.voxel[k], u = pts.voxel[k - 1];
+        const std::uint32_t d = v > u ? v - u : u - v;
+        const bool gap = d != 1 && d != V && d != V * V;  // (a wrap-around only skips a check)
+        std::uint32_t before = v;
+        for (int a = 0; a < 3; ++a) {
+            const float g = pts.g[k][a];
+            const bool up = ray.dir[a] > 0.0f;
+            const bool entered =
+                gap & (ray.dir[a] != 0.0f) & (g == std::floor(g)) & (up ? g >= 1.0f : g <= last_plane);
+            const std::uint32_t back = up ? v - stride[a] : v + stride[a];
+            before = entered && back < stride[2] * V ? back : before;
+        }
+        found |= enclosed[before >> 6] >> (before & 63u);
+    }
+    if (found & 1u) return true;
+    // After the last recorded voxel: its neighbour across the face the ray leaves it through,
+    // if the segment goes on past it. The face is the axis whose plane comes first: the
+    // smallest (plane - go) / gd, compared as products to leave the divisions out.
+    std::uint32_t c[3];
+    coordinates(pts.voxel[pts.count - 1], c);
+    float num = 1.0f, den = 0.0f;  // the exit parameter num / den, den > 0 (none yet: inf)
+    int axis = -1;
+    for (int a = 0; a < 3; ++a) {
+        if (gd[a] == 0.0f) continue;
+        const float n = std::fabs(float(gd[a] > 0.0f ? c[a] + 1 : c[a]) - go[a]), g = std::fabs(gd[a]);
+        if (axis < 0 || n * den < num * g) num = n, den = g, axis = a;
+    }
+    if (axis < 0 || num > pts.t_far * den) return false;                  // the segment ends in it
+    if (gd[axis] > 0.0f ? c[axis] + 1 >= V : c[axis] == 0) return false;  // it leaves the grid
+    c[axis] = gd[axis] > 0.0f ? c[axis] + 1 : c[axis] - 1;
+    return voxel_bit(enclosed, c[0] + V * (c[1] + V * c[2]));
+}
+
 std::vector<std::uint8_t> OccupancyGrid::voxel_bits() const {
     std::vector<std::uint8_t> bits((std::uint64_t(V) * V * V + 7) / 8, 0);
     for (std::uint32_t z = 0; z < V; ++z)

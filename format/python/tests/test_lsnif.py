@@ -290,6 +290,25 @@ def test_escape_rule_takes_only_rays_that_start_in_the_surface(model):
         model.escape_points = 0
 
 
+def test_enclosed_rule_only_turns_occlusion_answers_into_hits(model):
+    """With the rule on, intersections keep every bit and occlusion answers only turn from miss
+    to hit; off again, every answer is the network's."""
+    origins, directions = rays_at_box(model, 20_000, seed=7)
+    assert model.enclosed_rule is False
+    exact = model.occluded(origins, directions)
+    closest = model.intersect(origins, directions)
+    model.enclosed_rule = True
+    try:
+        assert model.enclosed_rule is True
+        ruled = model.occluded(origins, directions)
+        again = model.intersect(origins, directions)
+        assert all(np.array_equal(again[k], closest[k]) for k in closest)
+        assert np.all(ruled >= exact)
+    finally:
+        model.enclosed_rule = False
+    assert np.array_equal(model.occluded(origins, directions), exact)
+
+
 def test_threads_trace_in_parallel_with_the_serial_answers(model):
     origins, directions = rays_at_box(model, 200_000, seed=5)
     serial = model.intersect(origins, directions)["t"]

@@ -57,7 +57,8 @@ struct Geometry {
     // MLP input: point_width = H * L * F point features, then direction_width (0 or 3),
     // then offset_width (0 or H) values (FORMAT.md §8).
     std::uint32_t point_width, direction_width, offset_width;
-    float cell[3];  // voxel edge per axis, (box_max - box_min) / V in f32 (entry offsets)
+    float cell[3];      // voxel edge per axis, (box_max - box_min) / V in f32 (entry offsets)
+    float inv_cell[3];  // 1 / cell (enters_enclosed)
     std::uint32_t input_width, output_count, material_count;
 };
 Geometry make_geometry(const ModelDesc& desc);
@@ -383,9 +384,14 @@ struct Runtime {
     // miss without the network. 0 turns it off (FORMAT.md §8 as written). Set it as the
     // network's arithmetic: not while other threads trace through the runtime.
     std::uint32_t escape_points = 0;
+    // The enclosed rule (lsnif_set_enclosed_rule): enclosed_voxels(occupancy) while it is on,
+    // empty while it is off. occluded() answers a ray enters_enclosed() takes as occluded.
+    // Set as escape_points.
+    std::vector<std::uint64_t> enclosed;
     std::vector<GridView> grid_views() const;
     // Heap bytes this runtime holds (every array's capacity): what it costs a renderer
-    // beyond sizeof(Runtime). Depends on the network's arithmetic (set_mlp_arithmetic).
+    // beyond sizeof(Runtime). Depends on the network's arithmetic (set_mlp_arithmetic) and
+    // on whether the enclosed rule is on.
     std::uint64_t heap_bytes() const;
 };
 // The network starts in `arithmetic` (set_mlp_arithmetic(rt.net, ...) changes it later;
@@ -405,8 +411,9 @@ std::uint64_t resident_bytes(const ModelData& model);
 
 // Statistics of one batch, for benchmarks and evaluation.
 struct IntersectStats {
-    // escaped: rays the escape rule (Runtime::escape_points) answered without the network.
-    std::size_t rays = 0, invalid = 0, culled = 0, escaped = 0, inferred = 0, hits = 0;
+    // escaped: rays the escape rule (Runtime::escape_points) answered without the network;
+    // enclosed: rays the enclosed rule (Runtime::enclosed) answered occluded without it.
+    std::size_t rays = 0, invalid = 0, culled = 0, escaped = 0, enclosed = 0, inferred = 0, hits = 0;
 };
 
 // Whether voxels `a` and `b` (linear indices x + V * (y + V * z) of a V^3 grid) share a
@@ -433,12 +440,34 @@ inline bool escapes(const Geometry& geo, const RayPoints& pts, const Ray& ray, s
     return true;
 }
 
+// The empty voxels of `occ` that no path of empty face neighbours joins to the grid's
+// boundary: the space a closed shell of occupied voxels shuts in, the inside of a closed
+// surface. One bit per voxel, bit i of word i / 64 for voxel i = x + V * (y + V * z).
+std::vector<std::uint64_t> enclosed_voxels(const OccupancyGrid& occ);
+
+inline bool voxel_bit(const std::uint64_t* bits, std::uint32_t voxel) {
+    return (bits[voxel >> 6] >> (voxel & 63u)) & 1u;
+}
+
+// Whether the enclosed rule answers `ray` (traced into `pts` on the grid of `geo`) as
+// occluded: the ray starts outside every enclosed voxel (in an occupied voxel, or in an empty
+// one joined to the boundary) and, within its segment, leaves one of its recorded occupied
+// voxels into an enclosed one. Such a ray has crossed the occupied shell into the space it
+// shuts in, so on a closed surface whose every voxel is occupied it has crossed the surface:
+// a hit within [tmin, tmax]. Checked at the gaps of pts (a recorded voxel whose next one is
+// not a face neighbour, and the last one): a run of empty voxels along a ray is one
+// component, so its first voxel decides it. Only the first geo.H occupied voxels are seen.
+// `enclosed`: enclosed_voxels() of the grid `pts` was traced on.
+bool enters_enclosed(const Geometry& geo, const std::uint64_t* enclosed, const RayPoints& pts,
+                     const Ray& ray);
+
 // Object-space batch. Single-threaded: callers parallelize across batches (renderers
 // bring their own thread pools). Invalid rays (zero direction...) report a miss.
 IntersectStats intersect(const Runtime& rt, std::span<const Ray> rays, std::span<Hit> hits);
 // The any-hit query of the same batch: occluded[i] = hits[i].hit of intersect(), computed
 // without the hit's distance, normal and material (only the visibility output). Same
-// threading rules. Both apply the runtime's escape rule.
+// threading rules. Both apply the runtime's escape rule; occluded() then also its enclosed
+// rule (a ray both would take is a miss).
 IntersectStats occluded(const Runtime& rt, std::span<const Ray> rays, std::span<std::uint8_t> occluded);
 
 }  // namespace lsnif::format
