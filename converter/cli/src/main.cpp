@@ -551,6 +551,14 @@ struct EvalCommand {
             ->check(CLI::Range(0u, 64u))
             ->type_name("N");
         sub->add_option(
+               "--enclosed-rule", opt.enclosed_rule,
+               "Occlusion rays that pass from an asset's occupied voxels into the space they shut in "
+               "are occluded without the network: on (default) or off (docs/model.md \"The enclosed "
+               "rule\")")
+            ->transform(CLI::CheckedTransformer(std::map<std::string, bool>{{"on", true}, {"off", false}}))
+            ->type_name("on|off")
+            ->default_str("on");
+        sub->add_option(
                "--embree-route", opt.embree_route,
                "How both tracers' Embree part traces: packets16 (16 consecutive rays per "
                "rtcIntersect16/rtcOccluded16 call) or single (one ray per call; docs/eval.md \"Timing\")")

@@ -61,7 +61,7 @@ bool add_meshes(const LoadedManifest& loaded, const std::vector<scene::Scene>& s
         // The escape rule: the caller's limit, else the one conversion chose for the asset.
         const std::uint32_t escape =
             opt.escape_points.value_or(mo.held_out ? mo.held_out->escape_points : 0u);
-        if (!builder.add_mesh(m, {opt.arithmetic, escape}, error)) return false;
+        if (!builder.add_mesh(m, {opt.arithmetic, escape, opt.enclosed_rule}, error)) return false;
     }
     return true;
 }
@@ -241,6 +241,7 @@ EvalResult render_and_compare(const EvalOptions& opt) {
     report.surface_tmin_voxels = opt.surface_tmin_voxels;
     report.escape_points = opt.escape_points;
     report.embree_route = opt.embree_route;
+    report.enclosed_rule = opt.enclosed_rule;
     report.timing_repeats = std::max(1u, opt.timing_repeats);
     report.camera = view.cam;
     report.light = view.light;
@@ -284,6 +285,7 @@ json eval_report_json(const EvalReport& r) {
     j["escape_points"] = r.escape_points ? json(*r.escape_points) : json("asset");
     j["timing_repeats"] = r.timing_repeats;
     j["embree_route"] = render::embree_route_name(r.embree_route);
+    j["enclosed_rule"] = r.enclosed_rule;
     j["camera"] = {{"eye", r.camera.eye},
                    {"target", r.camera.target},
                    {"up", r.camera.up},

@@ -500,6 +500,11 @@ bool SceneBuilder::add_mesh(const SceneMesh& mesh, const AssetSettings& settings
                 " exceed the asset's " + std::to_string(info.max_points) + " entry points per ray";
         return false;
     }
+    if (lsnif_set_enclosed_rule(added.model, settings.enclosed_rule) != LSNIF_OK) {
+        error = mesh.asset + ": cannot hold the enclosed rule's voxels";
+        return false;
+    }
+    lsnif_get_info(added.model, &info);
     added.lsnif_bytes = info.decoded_bytes;  // what this scene holds, in the arithmetic it traces with
     return true;
 }

@@ -44,6 +44,9 @@ struct EvalOptions : render::RenderOptions {
     // escape rule"); none = the limit conversion chose for each asset (its manifest's
     // metrics.escape_points, 0 when absent); 0 = off.
     std::optional<std::uint32_t> escape_points;
+    // Hybrid render only: every asset's enclosed rule (lsnif_set_enclosed_rule; docs/model.md
+    // "The enclosed rule").
+    bool enclosed_rule = true;
     // Both tracers: how Embree traces its part (render::EmbreeRoute; docs/eval.md "Timing").
     render::EmbreeRoute embree_route = render::EmbreeRoute::packets16;
 };
@@ -64,6 +67,7 @@ struct EvalReport {
     float ao_radius = 0;  // AO ray length, world units
     float surface_tmin_voxels = 0;
     std::optional<std::uint32_t> escape_points;                         // as EvalOptions::escape_points
+    bool enclosed_rule = true;                                          // as EvalOptions::enclosed_rule
     render::EmbreeRoute embree_route = render::EmbreeRoute::packets16;  // as EvalOptions::embree_route
     std::uint32_t timing_repeats = 0;
     render::Camera camera;

@@ -96,11 +96,13 @@ struct SceneMesh {
     std::string asset;
 };
 
-// How the scene opens its assets: the network's arithmetic and the escape rule's limit
-// (lsnif_set_escape_points; 0 = off, at most each asset's entry points per ray).
+// How the scene opens its assets: the network's arithmetic, the escape rule's limit
+// (lsnif_set_escape_points; 0 = off, at most each asset's entry points per ray) and the
+// enclosed rule (lsnif_set_enclosed_rule).
 struct AssetSettings {
     lsnif_arithmetic arithmetic = LSNIF_ARITHMETIC_AUTO;
     std::uint32_t escape_points = 0;
+    bool enclosed_rule = false;  // lsnif_set_enclosed_rule: occlusion queries only
 };
 
 // How Embree traces its part of a trace call (every mesh in the reference, the meshes without
