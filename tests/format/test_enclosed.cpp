@@ -22,7 +22,8 @@ namespace {
 
 // An OCCU bit array of a V^3 grid whose occupied voxels are the surface of the cube [lo, hi]^3
 // (the voxels with a coordinate on lo or hi), less the voxel `hole` (none: V^3).
-std::vector<std::uint8_t> cube_shell(std::uint32_t V, std::uint32_t lo, std::uint32_t hi, std::uint64_t hole) {
+std::vector<std::uint8_t> cube_shell(std::uint32_t V, std::uint32_t lo, std::uint32_t hi,
+                                     std::uint64_t hole) {
     std::vector<std::uint8_t> bits((std::uint64_t(V) * V * V + 7) / 8, 0);
     for (std::uint32_t z = lo; z <= hi; ++z)
         for (std::uint32_t y = lo; y <= hi; ++y)
@@ -96,17 +97,20 @@ TEST_CASE("enclosed voxels are the empty ones a closed shell shuts in, and none 
             if (fmt::trace_points(geo, closed, ray, pts) != fmt::TraceStatus::ok) return false;
             return fmt::enters_enclosed(geo, inside.data(), pts, ray);
         };
-        CHECK(takes(-1.0f, INFINITY));                    // from outside: through the shell into it
-        CHECK_FALSE(takes(-1.0f, float(lo) + 1.5f));      // the segment ends in the shell voxel
+        CHECK(takes(-1.0f, INFINITY));                     // from outside: through the shell into it
+        CHECK_FALSE(takes(-1.0f, float(lo) + 1.5f));       // the segment ends in the shell voxel
         CHECK_FALSE(takes(float(lo + hi) / 2, INFINITY));  // from inside: it may stay inside
         CHECK(takes(float(lo) + 0.5f, INFINITY));          // from the shell voxel itself
         // One shell voxel less: the inside joins the outside through it.
-        const std::uint64_t hole = lo + std::uint64_t(V) * ((lo + hi) / 2 + std::uint64_t(V) * ((lo + hi) / 2));
+        const std::uint64_t hole =
+            lo + std::uint64_t(V) * ((lo + hi) / 2 + std::uint64_t(V) * ((lo + hi) / 2));
         CHECK(count_bits(fmt::enclosed_voxels(fmt::OccupancyGrid(V, cube_shell(V, lo, hi, hole)))) == 0);
     }
 }
 
-TEST_CASE("the enclosed rule: occlusion rays that cross into shut-in voxels are occluded, the rest keep their bits") {
+TEST_CASE(
+    "the enclosed rule: occlusion rays that cross into shut-in voxels are occluded, the rest keep their "
+    "bits") {
     for (const std::string name : {"armadillo_fp16.lsnif", "peterbilt_u8.lsnif"}) {
         CAPTURE(name);
         const fs::path path = fs::path(LSNIF_CONFORMANCE_DIR) / name;
@@ -145,11 +149,12 @@ TEST_CASE("the enclosed rule: occlusion rays that cross into shut-in voxels are 
             std::size_t taken = 0, disagree = 0, wrong = 0, turned = 0;
             for (std::size_t i = 0; i < rays.size(); ++i) {
                 const fmt::Ray& ray = reinterpret_cast<const fmt::Ray*>(rays.data())[i];
-                const bool rule =
-                    status[i] == fmt::TraceStatus::ok && fmt::enters_enclosed(rt.geo, enclosed.data(), pts[i], ray);
+                const bool rule = status[i] == fmt::TraceStatus::ok &&
+                                  fmt::enters_enclosed(rt.geo, enclosed.data(), pts[i], ray);
                 taken += rule;
                 disagree += rule != crosses_into_enclosed(rt, enclosed, ray);
-                wrong += std::memcmp(&hits[i], &exact[i], sizeof(lsnif_hit)) != 0;  // intersections never change
+                wrong +=
+                    std::memcmp(&hits[i], &exact[i], sizeof(lsnif_hit)) != 0;  // intersections never change
                 wrong += occ[i] != (rule ? 1 : exact_occ[i]);
                 turned += rule && !exact_occ[i];
             }
