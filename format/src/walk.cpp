@@ -303,79 +303,6 @@ std::vector<std::uint64_t> enclosed_voxels(const OccupancyGrid& occ) {
     return enclosed;
 }
 
-bool enters_enclosed(const Geometry& geo, const std::uint64_t* enclosed, const RayPoints& pts,
-                     const Ray& ray) {
-    if (pts.count == 0) return false;
-    const std::uint32_t V = geo.V;
-    const std::uint32_t stride[3] = {1, V, V * V};
-    // The ray in grid coordinates, as make_ray_grid has it up to rounding: it only locates
-    // the segment's first voxel and chooses the face the last recorded voxel is left through.
-    float go[3], gd[3];
-    for (int a = 0; a < 3; ++a) {
-        go[a] = (ray.org[a] - geo.box_min[a]) * geo.inv_cell[a];
-        gd[a] = ray.dir[a] * geo.inv_cell[a];
-    }
-    // Voxel coordinates by shifts where V is a power of two (every preset's grid): divisions
-    // would cost more than the rest of the check.
-    const bool pow2 = std::has_single_bit(V);
-    const std::uint32_t shift = std::uint32_t(std::countr_zero(V)), mask = V - 1;
-    const auto coordinates = [=](std::uint32_t voxel, std::uint32_t c[3]) {
-        c[0] = pow2 ? voxel & mask : voxel % V;
-        c[1] = pow2 ? (voxel >> shift) & mask : voxel / V % V;
-        c[2] = pow2 ? voxel >> (2 * shift) : voxel / V / V;
-    };
-    if (!(pts.t[0] <= pts.t_near)) {
-        // The segment starts in an empty voxel: it must not be an enclosed one (a ray from
-        // inside a closed surface may stay inside it).
-        std::uint32_t s[3];
-        for (int a = 0; a < 3; ++a)
-            s[a] =
-                std::uint32_t(std::clamp(int(std::floor(std::fma(pts.t_near, gd[a], go[a]))), 0, int(V) - 1));
-        if (voxel_bit(enclosed, s[0] + V * (s[1] + V * s[2]))) return false;
-    }
-    // A gap: the next recorded voxel is no face neighbour, so empty voxels lie between. The
-    // one just before it is its neighbour across the face it is entered through, which its
-    // entry point lies on exactly (entry_coordinate): an integer coordinate. (Where the ray
-    // enters through an edge or a corner, the neighbour checked touches the ray there.)
-    // Branch-free: where there is no gap, voxel k itself (occupied, never enclosed) is read.
-    // A coordinate clamped onto the cell's side by rounding can pass for the entry face; the
-    // plane's own range keeps the neighbour inside the grid.
-    std::uint64_t found = 0;
-    const float last_plane = float(V - 1);
-    for (std::uint32_t k = 1; k < pts.count; ++k) {
-        const std::uint32_t v = pts.voxel[k], u = pts.voxel[k - 1];
-        const std::uint32_t d = v > u ? v - u : u - v;
-        const bool gap = d != 1 && d != V && d != V * V;  // (a wrap-around only skips a check)
-        std::uint32_t before = v;
-        for (int a = 0; a < 3; ++a) {
-            const float g = pts.g[k][a];
-            const bool up = ray.dir[a] > 0.0f;
-            const bool entered =
-                gap & (ray.dir[a] != 0.0f) & (g == std::floor(g)) & (up ? g >= 1.0f : g <= last_plane);
-            const std::uint32_t back = up ? v - stride[a] : v + stride[a];
-            before = entered && back < stride[2] * V ? back : before;
-        }
-        found |= enclosed[before >> 6] >> (before & 63u);
-    }
-    if (found & 1u) return true;
-    // After the last recorded voxel: its neighbour across the face the ray leaves it through,
-    // if the segment goes on past it. The face is the axis whose plane comes first: the
-    // smallest (plane - go) / gd, compared as products to leave the divisions out.
-    std::uint32_t c[3];
-    coordinates(pts.voxel[pts.count - 1], c);
-    float num = 1.0f, den = 0.0f;  // the exit parameter num / den, den > 0 (none yet: inf)
-    int axis = -1;
-    for (int a = 0; a < 3; ++a) {
-        if (gd[a] == 0.0f) continue;
-        const float n = std::fabs(float(gd[a] > 0.0f ? c[a] + 1 : c[a]) - go[a]), g = std::fabs(gd[a]);
-        if (axis < 0 || n * den < num * g) num = n, den = g, axis = a;
-    }
-    if (axis < 0 || num > pts.t_far * den) return false;                  // the segment ends in it
-    if (gd[axis] > 0.0f ? c[axis] + 1 >= V : c[axis] == 0) return false;  // it leaves the grid
-    c[axis] = gd[axis] > 0.0f ? c[axis] + 1 : c[axis] - 1;
-    return voxel_bit(enclosed, c[0] + V * (c[1] + V * c[2]));
-}
-
 std::vector<std::uint8_t> OccupancyGrid::voxel_bits() const {
     std::vector<std::uint8_t> bits((std::uint64_t(V) * V * V + 7) / 8, 0);
     for (std::uint32_t z = 0; z < V; ++z)
@@ -951,6 +878,51 @@ LSNIF_AVX512 void trace_batch_avx512(const Geometry& geo, const OccupancyGrid& o
         if (status[i] == TraceStatus::ok && out[i].count == 0) status[i] = TraceStatus::miss;
 }
 
+// enclosed_gap for a trace of at most 16 voxels, one voxel per lane: the same comparisons on
+// the same values, so the same answer.
+LSNIF_AVX512 bool enclosed_gap16(const Geometry& geo, const std::uint64_t* enclosed, const RayPoints& pts,
+                                 const Ray& ray) {
+    static_assert(kMaxPoints >= 16);
+    const std::uint32_t V = geo.V;
+    const __m512i lane = _mm512_setr_epi32(0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 11, 12, 13, 14, 15);
+    const __mmask16 recorded = _mm512_cmplt_epu32_mask(lane, _mm512_set1_epi32(int(pts.count)));
+    const __mmask16 later = recorded & __mmask16(~1u);  // lanes k >= 1
+    const __m512i v = _mm512_maskz_loadu_epi32(recorded, pts.voxel);
+    const __m512i u = _mm512_permutexvar_epi32(
+        _mm512_max_epi32(_mm512_sub_epi32(lane, _mm512_set1_epi32(1)), _mm512_setzero_si512()), v);
+    const __m512i d = _mm512_abs_epi32(_mm512_sub_epi32(v, u));
+    const __mmask16 gap = later & _mm512_cmpneq_epi32_mask(d, _mm512_set1_epi32(1)) &
+                          _mm512_cmpneq_epi32_mask(d, _mm512_set1_epi32(int(V))) &
+                          _mm512_cmpneq_epi32_mask(d, _mm512_set1_epi32(int(V * V)));
+    // Point k's coordinate on axis a is float 3k + a of pts.g (as entry_offsets16 reads it).
+    const float* g = &pts.g[0][0];
+    const __m512 g0 = _mm512_loadu_ps(g), g1 = _mm512_loadu_ps(g + 16), g2 = _mm512_loadu_ps(g + 32);
+    const __m512i three_k = _mm512_setr_epi32(0, 3, 6, 9, 12, 15, 18, 21, 24, 27, 30, 33, 36, 39, 42, 45);
+    const std::uint32_t stride[3] = {1, V, V * V};
+    const __m512i total = _mm512_set1_epi32(int(V * V * V));
+    __m512i before = v;
+    for (int a = 0; a < 3; ++a) {
+        if (ray.dir[a] == 0.0f) continue;
+        const bool up = ray.dir[a] > 0.0f;
+        const __m512i at = _mm512_add_epi32(three_k, _mm512_set1_epi32(a));
+        const __mmask16 third = _mm512_cmpge_epi32_mask(at, _mm512_set1_epi32(32));
+        const __m512 x = _mm512_mask_permutexvar_ps(_mm512_permutex2var_ps(g0, at, g1), third, at, g2);
+        const __mmask16 on_plane = _mm512_cmp_ps_mask(
+            x, _mm512_roundscale_ps(x, _MM_FROUND_TO_NEG_INF | _MM_FROUND_NO_EXC), _CMP_EQ_OQ);
+        const __mmask16 in_range = up ? _mm512_cmp_ps_mask(x, _mm512_set1_ps(1.0f), _CMP_GE_OQ)
+                                      : _mm512_cmp_ps_mask(x, _mm512_set1_ps(float(V - 1)), _CMP_LE_OQ);
+        const __m512i s = _mm512_set1_epi32(int(stride[a]));
+        const __m512i back = up ? _mm512_sub_epi32(v, s) : _mm512_add_epi32(v, s);
+        const __mmask16 inside = _mm512_cmplt_epu32_mask(back, total);
+        before = _mm512_mask_mov_epi32(before, gap & on_plane & in_range & inside, back);
+    }
+    // Bit i of the 64-bit words is bit i & 31 of 32-bit word i >> 5 (little-endian).
+    const __m512i words = _mm512_mask_i32gather_epi32(_mm512_setzero_si512(), recorded,
+                                                      _mm512_srli_epi32(before, 5), enclosed, 4);
+    const __m512i bits = _mm512_srlv_epi32(words, _mm512_and_si512(before, _mm512_set1_epi32(31)));
+    return _mm512_mask_test_epi32_mask(recorded, bits, _mm512_set1_epi32(1)) != 0;
+}
+
 #undef LSNIF_AVX512
 
 #endif
@@ -967,6 +939,97 @@ void trace_points_batch(const Geometry& geo, const OccupancyGrid& occ, std::span
         return trace_batch_avx512(geo, occ, rays, out, status);
 #endif
     for (std::size_t i = 0; i < rays.size(); ++i) status[i] = trace_points(geo, occ, rays[i], out[i]);
+}
+
+namespace {
+
+// Whether a gap of pts (a recorded voxel k >= 1 that is no face neighbour of voxel k - 1, so
+// empty voxels lie between) opens with an enclosed voxel: the one just before voxel k, its
+// neighbour across the face it is entered through, on which its entry point lies exactly
+// (entry_coordinate: an integer coordinate). Where the ray enters through an edge or a
+// corner, the neighbour checked touches the ray there; a coordinate clamped onto the
+// cell's side by rounding can pass for the entry face, and the plane's own range keeps the
+// neighbour inside the grid. Branch-free: where there is no gap, voxel k itself (occupied,
+// never enclosed) is read.
+bool enclosed_gap(const Geometry& geo, const std::uint64_t* enclosed, const RayPoints& pts, const Ray& ray) {
+    const std::uint32_t V = geo.V;
+    const std::uint32_t stride[3] = {1, V, V * V};
+    const float last_plane = float(V - 1);
+    std::uint64_t found = 0;
+    for (std::uint32_t k = 1; k < pts.count; ++k) {
+        const std::uint32_t v = pts.voxel[k], u = pts.voxel[k - 1];
+        const std::uint32_t d = v > u ? v - u : u - v;
+        const bool gap = d != 1 && d != V && d != V * V;  // (a wrap-around only skips a check)
+        std::uint32_t before = v;
+        for (int a = 0; a < 3; ++a) {
+            const float g = pts.g[k][a];
+            const bool up = ray.dir[a] > 0.0f;
+            const bool entered =
+                gap & (ray.dir[a] != 0.0f) & (g == std::floor(g)) & (up ? g >= 1.0f : g <= last_plane);
+            const std::uint32_t back = up ? v - stride[a] : v + stride[a];
+            before = entered && back < stride[2] * V ? back : before;
+        }
+        found |= enclosed[before >> 6] >> (before & 63u);
+    }
+    return (found & 1u) != 0;
+}
+
+}  // namespace
+
+bool enters_enclosed(const Geometry& geo, const std::uint64_t* enclosed, const RayPoints& pts,
+                     const Ray& ray) {
+    if (pts.count == 0) return false;
+    const std::uint32_t V = geo.V;
+    // The ray in grid coordinates, as make_ray_grid has it up to rounding: it only locates
+    // the segment's first voxel and chooses the face the last recorded voxel is left through.
+    float go[3], gd[3];
+    for (int a = 0; a < 3; ++a) {
+        go[a] = (ray.org[a] - geo.box_min[a]) * geo.inv_cell[a];
+        gd[a] = ray.dir[a] * geo.inv_cell[a];
+    }
+    // Voxel coordinates by shifts where V is a power of two (every preset's grid): divisions
+    // would cost more than the rest of the check.
+    const bool pow2 = std::has_single_bit(V);
+    const std::uint32_t shift = std::uint32_t(std::countr_zero(V)), mask = V - 1;
+    const auto coordinates = [=](std::uint32_t voxel, std::uint32_t c[3]) {
+        c[0] = pow2 ? voxel & mask : voxel % V;
+        c[1] = pow2 ? (voxel >> shift) & mask : voxel / V % V;
+        c[2] = pow2 ? voxel >> (2 * shift) : voxel / V / V;
+    };
+    if (!(pts.t[0] <= pts.t_near)) {
+        // The segment starts in an empty voxel: it must not be an enclosed one (a ray from
+        // inside a closed surface may stay inside it).
+        std::uint32_t s[3];
+        for (int a = 0; a < 3; ++a)
+            s[a] =
+                std::uint32_t(std::clamp(int(std::floor(std::fma(pts.t_near, gd[a], go[a]))), 0, int(V) - 1));
+        if (voxel_bit(enclosed, s[0] + V * (s[1] + V * s[2]))) return false;
+    }
+    // The gaps between recorded voxels (enclosed_gap), 16 at a time where the CPU has AVX-512.
+#if LSNIF_HAVE_X86
+    const bool gap_enclosed = cpu_features().avx512 && pts.count <= 16
+                                  ? enclosed_gap16(geo, enclosed, pts, ray)
+                                  : enclosed_gap(geo, enclosed, pts, ray);
+#else
+    const bool gap_enclosed = enclosed_gap(geo, enclosed, pts, ray);
+#endif
+    if (gap_enclosed) return true;
+    // After the last recorded voxel: its neighbour across the face the ray leaves it through,
+    // if the segment goes on past it. The face is the axis whose plane comes first: the
+    // smallest (plane - go) / gd, compared as products to leave the divisions out.
+    std::uint32_t c[3];
+    coordinates(pts.voxel[pts.count - 1], c);
+    float num = 1.0f, den = 0.0f;  // the exit parameter num / den, den > 0 (none yet: inf)
+    int axis = -1;
+    for (int a = 0; a < 3; ++a) {
+        if (gd[a] == 0.0f) continue;
+        const float n = std::fabs(float(gd[a] > 0.0f ? c[a] + 1 : c[a]) - go[a]), g = std::fabs(gd[a]);
+        if (axis < 0 || n * den < num * g) num = n, den = g, axis = a;
+    }
+    if (axis < 0 || num > pts.t_far * den) return false;                  // the segment ends in it
+    if (gd[axis] > 0.0f ? c[axis] + 1 >= V : c[axis] == 0) return false;  // it leaves the grid
+    c[axis] = gd[axis] > 0.0f ? c[axis] + 1 : c[axis] - 1;
+    return voxel_bit(enclosed, c[0] + V * (c[1] + V * c[2]));
 }
 
 }  // namespace lsnif::format
