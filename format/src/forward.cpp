@@ -618,19 +618,13 @@ const std::vector<SharedPoint>& shared_first_points(const Geometry& geo, const R
 // slot (each correctly rounded at any width), so the same bits. A scalar square root and
 // division per slot cost more than a ray's encoding of a level on some cores.
 LSNIF_AVX512 void entry_offsets16(const Geometry& geo, const RayPoints& pts, float* out) {
-    // Slot k's coordinate on axis a is float 3k + a of pts.g: the first 16 slots' 48 floats
-    // as three vectors, each axis picked out by permutations.
+    // The first 16 slots' coordinates, one vector per axis.
     static_assert(kMaxPoints >= 16);
     const float* g = &pts.g[0][0];
-    const __m512 v0 = _mm512_loadu_ps(g), v1 = _mm512_loadu_ps(g + 16), v2 = _mm512_loadu_ps(g + 32);
-    const __m512i three_k = _mm512_setr_epi32(0, 3, 6, 9, 12, 15, 18, 21, 24, 27, 30, 33, 36, 39, 42, 45);
-    __m512 d[3];
-    for (int a = 0; a < 3; ++a) {
-        const __m512i at = _mm512_add_epi32(three_k, _mm512_set1_epi32(a));
-        const __mmask16 third = _mm512_cmpge_epi32_mask(at, _mm512_set1_epi32(32));
-        const __m512 x = _mm512_mask_permutexvar_ps(_mm512_permutex2var_ps(v0, at, v1), third, at, v2);
-        d[a] = _mm512_mul_ps(_mm512_sub_ps(x, _mm512_set1_ps(g[a])), _mm512_set1_ps(geo.cell[a]));
-    }
+    __m512 x[3], d[3];
+    detail::point_axes16(g, x);
+    for (int a = 0; a < 3; ++a)
+        d[a] = _mm512_mul_ps(_mm512_sub_ps(x[a], _mm512_set1_ps(g[a])), _mm512_set1_ps(geo.cell[a]));
     const __m512 squared =
         _mm512_fmadd_ps(d[2], d[2], _mm512_fmadd_ps(d[1], d[1], _mm512_mul_ps(d[0], d[0])));
     const __m512 offset = _mm512_div_ps(_mm512_sqrt_ps(squared), _mm512_set1_ps(geo.diagonal));

@@ -894,19 +894,15 @@ LSNIF_AVX512 bool enclosed_gap16(const Geometry& geo, const std::uint64_t* enclo
     const __mmask16 gap = later & _mm512_cmpneq_epi32_mask(d, _mm512_set1_epi32(1)) &
                           _mm512_cmpneq_epi32_mask(d, _mm512_set1_epi32(int(V))) &
                           _mm512_cmpneq_epi32_mask(d, _mm512_set1_epi32(int(V * V)));
-    // Point k's coordinate on axis a is float 3k + a of pts.g (as entry_offsets16 reads it).
-    const float* g = &pts.g[0][0];
-    const __m512 g0 = _mm512_loadu_ps(g), g1 = _mm512_loadu_ps(g + 16), g2 = _mm512_loadu_ps(g + 32);
-    const __m512i three_k = _mm512_setr_epi32(0, 3, 6, 9, 12, 15, 18, 21, 24, 27, 30, 33, 36, 39, 42, 45);
+    __m512 xyz[3];
+    detail::point_axes16(&pts.g[0][0], xyz);
     const std::uint32_t stride[3] = {1, V, V * V};
     const __m512i total = _mm512_set1_epi32(int(V * V * V));
     __m512i before = v;
     for (int a = 0; a < 3; ++a) {
         if (ray.dir[a] == 0.0f) continue;
         const bool up = ray.dir[a] > 0.0f;
-        const __m512i at = _mm512_add_epi32(three_k, _mm512_set1_epi32(a));
-        const __mmask16 third = _mm512_cmpge_epi32_mask(at, _mm512_set1_epi32(32));
-        const __m512 x = _mm512_mask_permutexvar_ps(_mm512_permutex2var_ps(g0, at, g1), third, at, g2);
+        const __m512 x = xyz[a];
         const __mmask16 on_plane = _mm512_cmp_ps_mask(
             x, _mm512_roundscale_ps(x, _MM_FROUND_TO_NEG_INF | _MM_FROUND_NO_EXC), _CMP_EQ_OQ);
         const __mmask16 in_range = up ? _mm512_cmp_ps_mask(x, _mm512_set1_ps(1.0f), _CMP_GE_OQ)

@@ -46,25 +46,32 @@ void init_rayhit(const lsnif_ray& r, RTCRayHit& rh) {
     rh.hit.instID[0] = RTC_INVALID_GEOMETRY_ID;
 }
 
-// Lane k of a 16-wide packet: ray r, as init_rayhit sets a single one.
-void set_lane(RTCRay16& p, std::size_t k, const lsnif_ray& r) {
-    p.org_x[k] = r.org[0];
-    p.org_y[k] = r.org[1];
-    p.org_z[k] = r.org[2];
-    p.dir_x[k] = r.dir[0];
-    p.dir_y[k] = r.dir[1];
-    p.dir_z[k] = r.dir[2];
-    p.tnear[k] = r.tmin;
-    p.tfar[k] = r.tmax;
-    p.time[k] = 0.0f;
-    p.mask[k] = 0xFFFFFFFFu;
-    p.id[k] = 0;
-    p.flags[k] = 0;
+// Packet `p` of rays b, b + 1, ... (at most 16; each lane as init_rayhit sets a single ray)
+// with `valid` switching off the lanes past the end of `rays`; returns how many are on.
+std::size_t load_packet(RTCRay16& p, int (&valid)[16], std::span<const lsnif_ray> rays, std::size_t b) {
+    const std::size_t n = std::min<std::size_t>(16, rays.size() - b);
+    for (std::size_t k = 0; k < 16; ++k) {
+        const lsnif_ray& r = rays[b + (k < n ? k : 0)];
+        valid[k] = k < n ? -1 : 0;
+        p.org_x[k] = r.org[0];
+        p.org_y[k] = r.org[1];
+        p.org_z[k] = r.org[2];
+        p.dir_x[k] = r.dir[0];
+        p.dir_y[k] = r.dir[1];
+        p.dir_z[k] = r.dir[2];
+        p.tnear[k] = r.tmin;
+        p.tfar[k] = r.tmax;
+        p.time[k] = 0.0f;
+        p.mask[k] = 0xFFFFFFFFu;
+        p.id[k] = 0;
+        p.flags[k] = 0;
+    }
+    return n;
 }
 
 // Embree's answers for `rays` (the tracer's top-level scene `top`) by `route`: closest hits
 // into `hits` (decoded by im.embree_hit), or whether each ray is occluded into `occ`.
-// Packets hold 16 consecutive rays; the last one's missing lanes are switched off.
+// Packets hold 16 consecutive rays (load_packet).
 void embree_closest(const EvalScene::Impl& im, RTCScene top, EmbreeRoute route,
                     std::span<const lsnif_ray> rays, std::span<TraceHit> hits) {
     RTCIntersectContext ctx;
@@ -81,10 +88,8 @@ void embree_closest(const EvalScene::Impl& im, RTCScene top, EmbreeRoute route,
     alignas(64) RTCRayHit16 p;
     alignas(64) int valid[16];
     for (std::size_t b = 0; b < rays.size(); b += 16) {
-        const std::size_t n = std::min<std::size_t>(16, rays.size() - b);
+        const std::size_t n = load_packet(p.ray, valid, rays, b);
         for (std::size_t k = 0; k < 16; ++k) {
-            valid[k] = k < n ? -1 : 0;
-            set_lane(p.ray, k, rays[b + (k < n ? k : 0)]);
             p.hit.geomID[k] = RTC_INVALID_GEOMETRY_ID;
             p.hit.primID[k] = RTC_INVALID_GEOMETRY_ID;
             p.hit.instID[0][k] = RTC_INVALID_GEOMETRY_ID;
@@ -120,11 +125,7 @@ void embree_occluded(RTCScene top, EmbreeRoute route, std::span<const lsnif_ray>
     alignas(64) RTCRay16 p;
     alignas(64) int valid[16];
     for (std::size_t b = 0; b < rays.size(); b += 16) {
-        const std::size_t n = std::min<std::size_t>(16, rays.size() - b);
-        for (std::size_t k = 0; k < 16; ++k) {
-            valid[k] = k < n ? -1 : 0;
-            set_lane(p, k, rays[b + (k < n ? k : 0)]);
-        }
+        const std::size_t n = load_packet(p, valid, rays, b);
         rtcOccluded16(valid, top, &ctx, &p);
         for (std::size_t k = 0; k < n; ++k) occ[b + k] = p.tfar[k] < 0.0f;
     }
