@@ -431,19 +431,17 @@ uint32_t lsnif_get_escape_points(const lsnif_model* model) {
 
 lsnif_status lsnif_set_enclosed_rule(lsnif_model* model, int on) {
     if (!model) return LSNIF_ERR_INVALID_ARGUMENT;
-    if (!on) {
-        std::vector<std::uint64_t>().swap(model->runtime.enclosed);
-        return LSNIF_OK;
-    }
-    if (!model->runtime.enclosed.empty()) return LSNIF_OK;
+    lsnif::format::Runtime& rt = model->runtime;
+    if (rt.enclosed_rule == (on != 0)) return LSNIF_OK;
     return guarded(nullptr, [&] {
-        model->runtime.enclosed = lsnif::format::enclosed_voxels(model->runtime.occupancy);
+        rt.occupancy.mark_enclosed(on != 0);
+        rt.enclosed_rule = on != 0;
         return LSNIF_OK;
     });
 }
 
 int lsnif_get_enclosed_rule(const lsnif_model* model) {
-    return model && !model->runtime.enclosed.empty() ? 1 : 0;
+    return model && model->runtime.enclosed_rule ? 1 : 0;
 }
 
 const char* lsnif_arithmetic_string(lsnif_arithmetic arithmetic) {

@@ -63,7 +63,6 @@ Geometry make_geometry(const ModelDesc& d) {
     g.offset_width = d.offset_width();
     for (int a = 0; a < 3; ++a) {
         g.cell[a] = (d.box_max[a] - d.box_min[a]) / float(d.grid_resolution);
-        g.inv_cell[a] = 1.0f / g.cell[a];
     }
     g.input_width = d.input_width();
     g.output_count = d.output_count();
@@ -1222,7 +1221,7 @@ std::vector<GridView> Runtime::grid_views() const {
 
 std::uint64_t Runtime::heap_bytes() const {
     using detail::heap_bytes;
-    std::uint64_t n = heap_bytes(geo.levels) + heap_bytes(occupancy.blocks) + heap_bytes(enclosed) +
+    std::uint64_t n = heap_bytes(geo.levels) + heap_bytes(occupancy.blocks) +
                       heap_bytes(grid) + heap_bytes(grid_u8) + heap_bytes(grid_affine);
     n += heap_bytes(net.in) + heap_bytes(net.out) + heap_bytes(net.out_padded) + heap_bytes(net.wt) +
          heap_bytes(net.wt_f16) + heap_bytes(net.bias) + heap_bytes(net.wt_vnni) + heap_bytes(net.wt_int8);
@@ -1253,13 +1252,13 @@ namespace {
 // culled), `finish(i, pts, row)` for each other one with its trace and output row, and
 // returns whether it hit. `outputs`: the leading output columns the caller reads (0 = all).
 // Rays the escape rule answers (escapes()) are misses and never reach the network. With
-// `occluded_hit` (the any-hit query) and the enclosed rule on, the other rays
-// enters_enclosed() takes are passed to occluded_hit(i) instead.
+// `occluded_hit` (the any-hit query) and the enclosed rule on, the rays whose walk stops in
+// an enclosed voxel (TraceStatus::enclosed) are passed to occluded_hit(i) instead, first.
 template <class Miss, class Finish, class Hit = std::nullptr_t>
 IntersectStats run_pass(const Runtime& rt, std::span<const Ray> rays, std::size_t outputs, Miss&& miss,
                         Finish&& finish, Hit&& occluded_hit = nullptr) {
     constexpr bool any_hit = !std::is_same_v<std::decay_t<Hit>, std::nullptr_t>;
-    const std::uint64_t* enclosed = rt.enclosed.empty() ? nullptr : rt.enclosed.data();
+    const bool stop_at_enclosed = any_hit && rt.enclosed_rule;
     constexpr std::size_t kChunk = 256;
     thread_local std::vector<RayPoints> pts;
     thread_local std::vector<TraceStatus> status;
@@ -1278,9 +1277,16 @@ IntersectStats run_pass(const Runtime& rt, std::span<const Ray> rays, std::size_
     st.rays = rays.size();
     for (std::size_t base = 0; base < rays.size(); base += kChunk) {
         const std::size_t n = std::min(kChunk, rays.size() - base);
-        trace_points_batch(geo, rt.occupancy, rays.subspan(base, n), pts.data(), status.data());
+        trace_points_batch(geo, rt.occupancy, rays.subspan(base, n), pts.data(), status.data(), stop_at_enclosed);
         std::size_t k = 0;
         for (std::size_t i = 0; i < n; ++i) {
+            if constexpr (any_hit)
+                if (status[i] == TraceStatus::enclosed) {
+                    occluded_hit(base + i);
+                    ++st.enclosed;
+                    ++st.hits;
+                    continue;
+                }
             if (status[i] != TraceStatus::ok) {
                 miss(base + i);
                 if (status[i] == TraceStatus::invalid)
@@ -1294,13 +1300,6 @@ IntersectStats run_pass(const Runtime& rt, std::span<const Ray> rays, std::size_
                 ++st.escaped;
                 continue;
             }
-            if constexpr (any_hit)
-                if (enclosed && enters_enclosed(geo, enclosed, pts[i], rays[base + i])) {
-                    occluded_hit(base + i);
-                    ++st.enclosed;
-                    ++st.hits;
-                    continue;
-                }
             which[k++] = std::uint32_t(i);
         }
         if (!k) continue;

@@ -120,15 +120,17 @@ inline float entry_coordinate(const WalkState& w, int a, float lo) {
 }
 
 // Walks the crossed voxels in order, calling visit(voxel_index, entry_t, g_entry) for
-// each voxel that `want(voxel_index, cell)` accepts (cell: its x, y, z); visit returns
-// false to stop early.
+// each voxel that `want(voxel_index, cell)` accepts (cell: its x, y, z) and pass(cell) for
+// each other crossed voxel the walk steps into; visit and pass return false to stop early.
 // Implements exactly the definition in forward.hpp. With `blocks` (OccupancyGrid), whole
 // empty blocks are skipped: the walk jumps to the block's exit parameter and resumes in
 // the cell the plain walk would be in at that parameter, so every accepted (occupied)
-// voxel is still reported with the same entry.
+// voxel is still reported with the same entry; of a skipped block pass() sees the cell the
+// walk enters it by.
 // `w` is a state start_walk returned ok for; the walk consumes it.
-template <class Want, class Visit>
-void walk(const Geometry& geo, WalkState& w, const OccupancyGrid* blocks, Want&& want, Visit&& visit) {
+template <class Want, class Visit, class Pass>
+void walk(const Geometry& geo, WalkState& w, const OccupancyGrid* blocks, Want&& want, Visit&& visit,
+          Pass&& pass) {
     const RayGrid& rg = w.rg;
     const int V = int(geo.V);
     int* cell = w.cell;
@@ -139,8 +141,13 @@ void walk(const Geometry& geo, WalkState& w, const OccupancyGrid* blocks, Want&&
     while (true) {
         const std::uint32_t idx =
             std::uint32_t(cell[0]) + geo.V * (std::uint32_t(cell[1]) + geo.V * std::uint32_t(cell[2]));
+        const float enter = std::max(enter_a[0], std::max(enter_a[1], enter_a[2]));
+        const float exit = std::min(exit_a[0], std::min(exit_a[1], exit_a[2]));
+        const float lo = std::max(w.t_near, enter);
+        const bool crossed = lo <= w.t_far && lo < exit;
         if (blocks &&
             !blocks->block_occupied(std::uint32_t(cell[0]), std::uint32_t(cell[1]), std::uint32_t(cell[2]))) {
+            if (crossed && !pass(cell)) return;
             // Leave the empty block: its exit is the first of its boundary planes reached.
             float block_exit = kInf;
             for (int a = 0; a < 3; ++a) {
@@ -162,13 +169,14 @@ void walk(const Geometry& geo, WalkState& w, const OccupancyGrid* blocks, Want&&
             }
             continue;
         }
-        const float enter = std::max(enter_a[0], std::max(enter_a[1], enter_a[2]));
-        const float exit = std::min(exit_a[0], std::min(exit_a[1], exit_a[2]));
-        const float lo = std::max(w.t_near, enter);
-        if (lo <= w.t_far && lo < exit && want(idx, cell)) {
-            const float g[3] = {entry_coordinate(w, 0, lo), entry_coordinate(w, 1, lo),
-                                entry_coordinate(w, 2, lo)};
-            if (!visit(idx, lo, g)) return;
+        if (crossed) {
+            if (want(idx, cell)) {
+                const float g[3] = {entry_coordinate(w, 0, lo), entry_coordinate(w, 1, lo),
+                                    entry_coordinate(w, 2, lo)};
+                if (!visit(idx, lo, g)) return;
+            } else if (!pass(cell)) {
+                return;
+            }
         }
         if (exit > w.t_far) return;
         // Step every axis whose boundary is reached at `exit` (edges and corners at once).
@@ -182,9 +190,10 @@ void walk(const Geometry& geo, WalkState& w, const OccupancyGrid* blocks, Want&&
     }
 }
 
-template <class Want>
+// The walk of trace_points() into `out`; pass(cell) as in walk().
+template <class Want, class Pass>
 TraceStatus trace_points_impl(const Geometry& geo, const OccupancyGrid* blocks, const Ray& ray,
-                              RayPoints& out, Want&& want) {
+                              RayPoints& out, Want&& want, Pass&& pass) {
     out.count = 0;
     WalkState w;
     const TraceStatus st = start_walk(geo, ray, w);
@@ -194,17 +203,22 @@ TraceStatus trace_points_impl(const Geometry& geo, const OccupancyGrid* blocks, 
         unit_direction(ray, out.dir);
     }
     if (st != TraceStatus::ok) return st;
-    walk(geo, w, blocks, want, [&](std::uint32_t idx, float t, const float g[3]) {
-        const std::uint32_t k = out.count++;
-        out.t[k] = t;
-        out.g[k][0] = g[0];
-        out.g[k][1] = g[1];
-        out.g[k][2] = g[2];
-        out.voxel[k] = idx;
-        return out.count < geo.H;
-    });
+    walk(
+        geo, w, blocks, want,
+        [&](std::uint32_t idx, float t, const float g[3]) {
+            const std::uint32_t k = out.count++;
+            out.t[k] = t;
+            out.g[k][0] = g[0];
+            out.g[k][1] = g[1];
+            out.g[k][2] = g[2];
+            out.voxel[k] = idx;
+            return out.count < geo.H;
+        },
+        pass);
     return out.count ? TraceStatus::ok : TraceStatus::miss;
 }
+
+constexpr auto kPassAll = [](const int*) { return true; };
 
 }  // namespace
 
@@ -226,15 +240,26 @@ void unit_direction(const Ray& ray, float out[3]) {
 }
 
 TraceStatus trace_points(const Geometry& geo, const std::uint8_t* occupancy, const Ray& ray, RayPoints& out) {
-    return trace_points_impl(geo, nullptr, ray, out, [&](std::uint32_t idx, const int*) {
-        return ((occupancy[idx >> 3] >> (idx & 7)) & 1u) != 0;
-    });
+    return trace_points_impl(
+        geo, nullptr, ray, out,
+        [&](std::uint32_t idx, const int*) { return ((occupancy[idx >> 3] >> (idx & 7)) & 1u) != 0; },
+        kPassAll);
 }
 
-TraceStatus trace_points(const Geometry& geo, const OccupancyGrid& occ, const Ray& ray, RayPoints& out) {
-    return trace_points_impl(geo, &occ, ray, out, [&](std::uint32_t, const int* cell) {
+TraceStatus trace_points(const Geometry& geo, const OccupancyGrid& occ, const Ray& ray, RayPoints& out,
+                         bool stop_at_enclosed) {
+    const auto occupied = [&](std::uint32_t, const int* cell) {
         return occ.occupied(std::uint32_t(cell[0]), std::uint32_t(cell[1]), std::uint32_t(cell[2]));
+    };
+    if (!stop_at_enclosed) return trace_points_impl(geo, &occ, ray, out, occupied, kPassAll);
+    bool unarmed = false, stopped = false;  // crossed an enclosed voxel before any occupied one
+    const TraceStatus st = trace_points_impl(geo, &occ, ray, out, occupied, [&](const int* cell) {
+        if (!occ.enclosed(std::uint32_t(cell[0]), std::uint32_t(cell[1]), std::uint32_t(cell[2]))) return true;
+        unarmed |= out.count == 0;
+        stopped = !unarmed;
+        return unarmed;
     });
+    return stopped ? TraceStatus::enclosed : st;
 }
 
 OccupancyGrid::OccupancyGrid(std::uint32_t V, const std::vector<std::uint8_t>& bits)
@@ -303,6 +328,25 @@ std::vector<std::uint64_t> enclosed_voxels(const OccupancyGrid& occ) {
     return enclosed;
 }
 
+void OccupancyGrid::mark_enclosed(bool on) {
+    const std::uint16_t bit = std::uint16_t(1u << kEnclosedBit);
+    for (std::uint16_t& e : blocks) e &= std::uint16_t(~bit);
+    if (!on) return;
+    // A block is marked when it has an empty voxel and no empty voxel of it is unenclosed.
+    const std::vector<std::uint64_t> inside = enclosed_voxels(*this);
+    std::vector<std::uint8_t> empty(blocks.size(), 0), open(blocks.size(), 0);
+    for (std::uint32_t z = 0; z < V; ++z)
+        for (std::uint32_t y = 0; y < V; ++y)
+            for (std::uint32_t x = 0; x < V; ++x) {
+                if (occupied(x, y, z)) continue;
+                const std::uint32_t b = sub_block(x, y, z);
+                empty[b] = 1;
+                open[b] |= !voxel_bit(inside.data(), x + V * (y + V * z));
+            }
+    for (std::size_t b = 0; b + 1 < blocks.size(); ++b)
+        if (empty[b] && !open[b]) blocks[b] |= bit;
+}
+
 std::vector<std::uint8_t> OccupancyGrid::voxel_bits() const {
     std::vector<std::uint8_t> bits((std::uint64_t(V) * V * V + 7) / 8, 0);
     for (std::uint32_t z = 0; z < V; ++z)
@@ -333,7 +377,8 @@ TraceStatus trace_all_voxels(const Geometry& geo, const Ray& ray, std::vector<st
             voxels.push_back(idx);
             entry_t.push_back(t);
             return true;
-        });
+        },
+        kPassAll);
     return TraceStatus::ok;
 }
 
@@ -357,6 +402,9 @@ struct Lanes {
     alignas(64) std::int32_t cell[3][kLanes], step[3][kLanes];
     alignas(64) std::uint32_t ray[kLanes];
     alignas(64) std::uint32_t count[kLanes];  // the points the lane's walk has recorded
+    // Nonzero once the walk crossed an enclosed voxel before its first occupied one: the
+    // enclosed rule never stops it (trace_points).
+    alignas(64) std::uint32_t unarmed[kLanes];
 };
 
 // The n <= 16 rays' eight floats (org, tmin, dir, tmax) as eight vectors, field k of ray j
@@ -488,6 +536,7 @@ LSNIF_AVX512 std::uint32_t start_walks(const Geometry& geo, const Ray* rays, int
         status[j] = (miss & (1u << j)) ? TraceStatus::miss : TraceStatus::ok;
         Q.ray[j] = first + std::uint32_t(j);
         Q.count[j] = 0;
+        Q.unarmed[j] = 0;
     }
     if (!live) return 0;
     // The first cell: the largest x whose entry plane is at or before t_near (forward), the
@@ -566,6 +615,7 @@ LSNIF_AVX512 inline void move_lanes(Lanes& L, __mmask16 to, const Lanes& Q, __mm
     move(L.t_far, Q.t_far);
     move(L.ray, Q.ray);
     move(L.count, Q.count);
+    move(L.unarmed, Q.unarmed);
 }
 
 // Walks started 16 rays at a time (start_walks), handed to lanes as they free up.
@@ -662,16 +712,18 @@ void flush(Recorded& r, RayPoints* out) {
 // The scalar walk's visit of an occupied voxel for the lanes in `occupied` (their cell is
 // an occupied voxel): record the entry point where the ray crosses the cell inside its
 // segment (lo <= t_far, lo < exit) in slot `count` of the lane's ray (`ray`), appended to
-// `r`, which has room for 16 more. Returns the lanes that have recorded their H points
-// (their walk is over).
-LSNIF_AVX512 inline __mmask16 record_entries(const Axis (&ax)[3], __mmask16 occupied, __m512i idx,
-                                             __m512 t_near, __m512 t_far, __m512i ray, __m512i& count,
-                                             std::uint32_t H, Recorded& r) {
+// `r`, which has room for 16 more. Sets `crossed` to the lanes of `live` whose ray crosses
+// its cell so. Returns the lanes that have recorded their H points (their walk is over).
+LSNIF_AVX512 inline __mmask16 record_entries(const Axis (&ax)[3], __mmask16 live, __mmask16 occupied,
+                                             __m512i idx, __m512 t_near, __m512 t_far, __m512i ray,
+                                             __m512i& count, std::uint32_t H, Recorded& r,
+                                             __mmask16& crossed) {
     const __m512 enter = _mm512_max_ps(_mm512_max_ps(ax[2].enter, ax[1].enter), ax[0].enter);
     const __m512 exit = _mm512_min_ps(_mm512_min_ps(ax[2].exit, ax[1].exit), ax[0].exit);
     const __m512 lo = _mm512_max_ps(enter, t_near);
-    __mmask16 rec = _mm512_mask_cmp_ps_mask(occupied, lo, t_far, _CMP_LE_OQ);
-    rec = _mm512_mask_cmp_ps_mask(rec, lo, exit, _CMP_LT_OQ);
+    crossed = _mm512_mask_cmp_ps_mask(live, lo, t_far, _CMP_LE_OQ);
+    crossed = _mm512_mask_cmp_ps_mask(crossed, lo, exit, _CMP_LT_OQ);
+    const __mmask16 rec = crossed & occupied;
     const std::size_t n = r.n;
 #pragma GCC unroll 3
     for (int a = 0; a < 3; ++a) {  // entry_coordinate()
@@ -810,9 +862,13 @@ LSNIF_AVX512 inline void store_axes(const Axis (&ax)[3], Lanes& L) {
 // records the occupied voxels' entries, then moves every lane out of a box: the cell in an
 // occupied kSubBlock^3 block, else the largest empty block around it. The scalar walk's two
 // branches (voxel, empty block) are one move here, so a step costs one pass whatever mix
-// of the two its lanes need.
+// of the two its lanes need. With StopAtEnclosed, a lane whose cell is an enclosed voxel
+// (OccupancyGrid::enclosed) stops as trace_points says; the cell of an empty box stands for
+// the whole box, as in the scalar walk.
+template <bool StopAtEnclosed>
 LSNIF_AVX512 void trace_batch_avx512(const Geometry& geo, const OccupancyGrid& occ, std::span<const Ray> rays,
                                      RayPoints* out, TraceStatus* status) {
+    static_assert(sizeof(TraceStatus) == sizeof(std::int32_t));
     Lanes L;
     std::size_t next = 0;
     StartQueue q;
@@ -830,6 +886,7 @@ LSNIF_AVX512 void trace_batch_avx512(const Geometry& geo, const OccupancyGrid& o
         const __m512 t_far = _mm512_load_ps(L.t_far);
         const __m512i ray = _mm512_load_si512(L.ray);
         __m512i count = _mm512_load_si512(L.count);
+        __mmask16 unarmed = _mm512_test_epi32_mask(_mm512_load_si512(L.unarmed), _mm512_load_si512(L.unarmed));
         // Lanes whose walk is over leave `live`; the walks stay in registers until a quarter
         // of the lanes are free (or no rays are left to refill them with).
         const bool draining = next == rays.size() && !q.ready;
@@ -856,7 +913,20 @@ LSNIF_AVX512 void trace_batch_avx512(const Geometry& geo, const OccupancyGrid& o
                             super_occupied = _mm512_test_epi32_mask(
                                 word, _mm512_set1_epi32(1 << OccupancyGrid::kSuperBlockBit));
             const __mmask16 occupied = __mmask16(live) & voxel_occupied;
-            __mmask16 over = record_entries(ax, occupied, idx, t_near, t_far, ray, count, geo.H, recorded);
+            __mmask16 crossed;
+            __mmask16 over =
+                record_entries(ax, __mmask16(live), occupied, idx, t_near, t_far, ray, count, geo.H, recorded, crossed);
+            if constexpr (StopAtEnclosed) {
+                const __mmask16 enclosed =
+                    crossed & ~voxel_occupied &
+                    _mm512_test_epi32_mask(word, _mm512_set1_epi32(1 << OccupancyGrid::kEnclosedBit));
+                unarmed |= enclosed & ~_mm512_test_epi32_mask(count, count);
+                const __mmask16 stop = enclosed & ~unarmed;
+                if (stop) {
+                    _mm512_mask_i32scatter_epi32(status, stop, ray, _mm512_set1_epi32(int(TraceStatus::enclosed)), 4);
+                    over |= stop;
+                }
+            }
             // The box to leave: the cell in an occupied 2^3 block, else the largest empty
             // block, 8^3 (shift 3), 4^3 (2) or 2^3 (1).
             const __m512i shift = _mm512_mask_mov_epi32(
@@ -869,6 +939,7 @@ LSNIF_AVX512 void trace_batch_avx512(const Geometry& geo, const OccupancyGrid& o
         } while (live && (draining || std::popcount(live) > kLanes * 3 / 4));
         store_axes(ax, L);
         _mm512_store_si512(L.count, count);
+        _mm512_store_si512(L.unarmed, _mm512_maskz_set1_epi32(unarmed, 1));
         live = refill(geo, rays, next, out, status, q, L, live);
     }
     flush(recorded, out);
@@ -878,47 +949,6 @@ LSNIF_AVX512 void trace_batch_avx512(const Geometry& geo, const OccupancyGrid& o
         if (status[i] == TraceStatus::ok && out[i].count == 0) status[i] = TraceStatus::miss;
 }
 
-// enclosed_gap for a trace of at most 16 voxels, one voxel per lane: the same comparisons on
-// the same values, so the same answer.
-LSNIF_AVX512 bool enclosed_gap16(const Geometry& geo, const std::uint64_t* enclosed, const RayPoints& pts,
-                                 const Ray& ray) {
-    static_assert(kMaxPoints >= 16);
-    const std::uint32_t V = geo.V;
-    const __m512i lane = _mm512_setr_epi32(0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 11, 12, 13, 14, 15);
-    const __mmask16 recorded = _mm512_cmplt_epu32_mask(lane, _mm512_set1_epi32(int(pts.count)));
-    const __mmask16 later = recorded & __mmask16(~1u);  // lanes k >= 1
-    const __m512i v = _mm512_maskz_loadu_epi32(recorded, pts.voxel);
-    const __m512i u = _mm512_permutexvar_epi32(
-        _mm512_max_epi32(_mm512_sub_epi32(lane, _mm512_set1_epi32(1)), _mm512_setzero_si512()), v);
-    const __m512i d = _mm512_abs_epi32(_mm512_sub_epi32(v, u));
-    const __mmask16 gap = later & _mm512_cmpneq_epi32_mask(d, _mm512_set1_epi32(1)) &
-                          _mm512_cmpneq_epi32_mask(d, _mm512_set1_epi32(int(V))) &
-                          _mm512_cmpneq_epi32_mask(d, _mm512_set1_epi32(int(V * V)));
-    __m512 xyz[3];
-    detail::point_axes16(&pts.g[0][0], xyz);
-    const std::uint32_t stride[3] = {1, V, V * V};
-    const __m512i total = _mm512_set1_epi32(int(V * V * V));
-    __m512i before = v;
-    for (int a = 0; a < 3; ++a) {
-        if (ray.dir[a] == 0.0f) continue;
-        const bool up = ray.dir[a] > 0.0f;
-        const __m512 x = xyz[a];
-        const __mmask16 on_plane = _mm512_cmp_ps_mask(
-            x, _mm512_roundscale_ps(x, _MM_FROUND_TO_NEG_INF | _MM_FROUND_NO_EXC), _CMP_EQ_OQ);
-        const __mmask16 in_range = up ? _mm512_cmp_ps_mask(x, _mm512_set1_ps(1.0f), _CMP_GE_OQ)
-                                      : _mm512_cmp_ps_mask(x, _mm512_set1_ps(float(V - 1)), _CMP_LE_OQ);
-        const __m512i s = _mm512_set1_epi32(int(stride[a]));
-        const __m512i back = up ? _mm512_sub_epi32(v, s) : _mm512_add_epi32(v, s);
-        const __mmask16 inside = _mm512_cmplt_epu32_mask(back, total);
-        before = _mm512_mask_mov_epi32(before, gap & on_plane & in_range & inside, back);
-    }
-    // Bit i of the 64-bit words is bit i & 31 of 32-bit word i >> 5 (little-endian).
-    const __m512i words = _mm512_mask_i32gather_epi32(_mm512_setzero_si512(), recorded,
-                                                      _mm512_srli_epi32(before, 5), enclosed, 4);
-    const __m512i bits = _mm512_srlv_epi32(words, _mm512_and_si512(before, _mm512_set1_epi32(31)));
-    return _mm512_mask_test_epi32_mask(recorded, bits, _mm512_set1_epi32(1)) != 0;
-}
-
 #undef LSNIF_AVX512
 
 #endif
@@ -926,106 +956,17 @@ LSNIF_AVX512 bool enclosed_gap16(const Geometry& geo, const std::uint64_t* enclo
 }  // namespace
 
 void trace_points_batch(const Geometry& geo, const OccupancyGrid& occ, std::span<const Ray> rays,
-                        RayPoints* out, TraceStatus* status) {
+                        RayPoints* out, TraceStatus* status, bool stop_at_enclosed) {
 #if LSNIF_HAVE_X86
     // A lone ray walks alone: the 16-lane step costs as much for one busy lane as for
     // sixteen, and is slower than the scalar step (a renderer's single-ray calls, the Embree
     // user geometry's 1-ray callbacks). From two rays on the lanes pay.
     if (cpu_features().avx512 && geo.V == occ.V && rays.size() >= 2)
-        return trace_batch_avx512(geo, occ, rays, out, status);
+        return stop_at_enclosed ? trace_batch_avx512<true>(geo, occ, rays, out, status)
+                                : trace_batch_avx512<false>(geo, occ, rays, out, status);
 #endif
-    for (std::size_t i = 0; i < rays.size(); ++i) status[i] = trace_points(geo, occ, rays[i], out[i]);
-}
-
-namespace {
-
-// Whether a gap of pts (a recorded voxel k >= 1 that is no face neighbour of voxel k - 1, so
-// empty voxels lie between) opens with an enclosed voxel: the one just before voxel k, its
-// neighbour across the face it is entered through, on which its entry point lies exactly
-// (entry_coordinate: an integer coordinate). Where the ray enters through an edge or a
-// corner, the neighbour checked touches the ray there; a coordinate clamped onto the
-// cell's side by rounding can pass for the entry face, and the plane's own range keeps the
-// neighbour inside the grid. Branch-free: where there is no gap, voxel k itself (occupied,
-// never enclosed) is read.
-bool enclosed_gap(const Geometry& geo, const std::uint64_t* enclosed, const RayPoints& pts, const Ray& ray) {
-    const std::uint32_t V = geo.V;
-    const std::uint32_t stride[3] = {1, V, V * V};
-    const float last_plane = float(V - 1);
-    std::uint64_t found = 0;
-    for (std::uint32_t k = 1; k < pts.count; ++k) {
-        const std::uint32_t v = pts.voxel[k], u = pts.voxel[k - 1];
-        const std::uint32_t d = v > u ? v - u : u - v;
-        const bool gap = d != 1 && d != V && d != V * V;  // (a wrap-around only skips a check)
-        std::uint32_t before = v;
-        for (int a = 0; a < 3; ++a) {
-            const float g = pts.g[k][a];
-            const bool up = ray.dir[a] > 0.0f;
-            const bool entered =
-                gap & (ray.dir[a] != 0.0f) & (g == std::floor(g)) & (up ? g >= 1.0f : g <= last_plane);
-            const std::uint32_t back = up ? v - stride[a] : v + stride[a];
-            before = entered && back < stride[2] * V ? back : before;
-        }
-        found |= enclosed[before >> 6] >> (before & 63u);
-    }
-    return (found & 1u) != 0;
-}
-
-}  // namespace
-
-bool enters_enclosed(const Geometry& geo, const std::uint64_t* enclosed, const RayPoints& pts,
-                     const Ray& ray) {
-    if (pts.count == 0) return false;
-    const std::uint32_t V = geo.V;
-    // The ray in grid coordinates, as make_ray_grid has it up to rounding: it only locates
-    // the segment's first voxel and chooses the face the last recorded voxel is left through.
-    float go[3], gd[3];
-    for (int a = 0; a < 3; ++a) {
-        go[a] = (ray.org[a] - geo.box_min[a]) * geo.inv_cell[a];
-        gd[a] = ray.dir[a] * geo.inv_cell[a];
-    }
-    // Voxel coordinates by shifts where V is a power of two (every preset's grid): divisions
-    // would cost more than the rest of the check.
-    const bool pow2 = std::has_single_bit(V);
-    const std::uint32_t shift = std::uint32_t(std::countr_zero(V)), mask = V - 1;
-    const auto coordinates = [=](std::uint32_t voxel, std::uint32_t c[3]) {
-        c[0] = pow2 ? voxel & mask : voxel % V;
-        c[1] = pow2 ? (voxel >> shift) & mask : voxel / V % V;
-        c[2] = pow2 ? voxel >> (2 * shift) : voxel / V / V;
-    };
-    if (!(pts.t[0] <= pts.t_near)) {
-        // The segment starts in an empty voxel: it must not be an enclosed one (a ray from
-        // inside a closed surface may stay inside it).
-        std::uint32_t s[3];
-        for (int a = 0; a < 3; ++a)
-            s[a] =
-                std::uint32_t(std::clamp(int(std::floor(std::fma(pts.t_near, gd[a], go[a]))), 0, int(V) - 1));
-        if (voxel_bit(enclosed, s[0] + V * (s[1] + V * s[2]))) return false;
-    }
-    // The gaps between recorded voxels (enclosed_gap), 16 at a time where the CPU has AVX-512.
-#if LSNIF_HAVE_X86
-    const bool gap_enclosed = cpu_features().avx512 && pts.count <= 16
-                                  ? enclosed_gap16(geo, enclosed, pts, ray)
-                                  : enclosed_gap(geo, enclosed, pts, ray);
-#else
-    const bool gap_enclosed = enclosed_gap(geo, enclosed, pts, ray);
-#endif
-    if (gap_enclosed) return true;
-    // After the last recorded voxel: its neighbour across the face the ray leaves it through,
-    // if the segment goes on past it. The face is the axis whose plane comes first: the
-    // smallest (plane - go) / gd, compared as products to leave the divisions out.
-    std::uint32_t c[3];
-    coordinates(pts.voxel[pts.count - 1], c);
-    float num = 1.0f, den = 0.0f;  // the exit parameter num / den, den > 0 (none yet: inf)
-    int axis = -1;
-    for (int a = 0; a < 3; ++a) {
-        if (gd[a] == 0.0f) continue;
-        const float n = std::fabs(float(gd[a] > 0.0f ? c[a] + 1 : c[a]) - go[a]), g = std::fabs(gd[a]);
-        if (axis < 0 || n * den < num * g) num = n, den = g, axis = a;
-    }
-    if (axis < 0 || num > pts.t_far * den) return false;                  // the segment ends in it
-    if (gd[axis] > 0.0f ? c[axis] + 1 >= V : c[axis] == 0) return false;  // it leaves the grid
-    c[axis] = gd[axis] > 0.0f ? c[axis] + 1 : c[axis] - 1;
-    return voxel_bit(enclosed, c[0] + V * (c[1] + V * c[2]));
+    for (std::size_t i = 0; i < rays.size(); ++i)
+        status[i] = trace_points(geo, occ, rays[i], out[i], stop_at_enclosed);
 }
 
 }  // namespace lsnif::format

@@ -57,8 +57,7 @@ struct Geometry {
     // MLP input: point_width = H * L * F point features, then direction_width (0 or 3),
     // then offset_width (0 or H) values (FORMAT.md §8).
     std::uint32_t point_width, direction_width, offset_width;
-    float cell[3];      // voxel edge per axis, (box_max - box_min) / V in f32 (entry offsets)
-    float inv_cell[3];  // 1 / cell (enters_enclosed)
+    float cell[3];  // voxel edge per axis, (box_max - box_min) / V in f32 (entry offsets)
     std::uint32_t input_width, output_count, material_count;
 };
 Geometry make_geometry(const ModelDesc& desc);
@@ -87,7 +86,10 @@ struct RayPoints {
     float dir[3];
 };
 
-enum class TraceStatus { ok, miss, invalid };
+// enclosed: the walk stopped in an enclosed voxel (OccupancyGrid::enclosed) after an occupied
+// one; only where the caller asked for it (stop_at_enclosed), and the points are those
+// recorded before it (at least one).
+enum class TraceStatus { ok, miss, invalid, enclosed };
 
 // Plane parameter helper shared by the DDA and its reference test, so both compare
 // bit-identical values: t at which the ray reaches grid plane `k` on `axis`.
@@ -130,12 +132,15 @@ struct OccupancyGrid {
     static constexpr std::uint32_t kSubBlock = 2;    // the 16-lane walk's finer empty blocks
     static constexpr std::uint32_t kSuperBlock = 8;  // and its coarser ones
     static constexpr std::uint32_t kBlockBit = 8, kSuperBlockBit = 9;  // bits of a `blocks` entry
+    static constexpr std::uint32_t kEnclosedBit = 10;
     std::uint32_t V = 0;
     std::uint32_t S = 0;  // kSubBlock^3 blocks per axis: ceil(V / 2)
     // One entry per kSubBlock^3 block, x fastest (sub_block()), then a zero entry so that
     // any entry can be read as the low half of 32 bits (the 16-lane walk gathers one per
     // step): bits 0-7 the block's voxels (sub_voxel()), bit kBlockBit its kBlock^3 block has
-    // an occupied voxel, bit kSuperBlockBit its kSuperBlock^3 block does.
+    // an occupied voxel, bit kSuperBlockBit its kSuperBlock^3 block does, bit kEnclosedBit
+    // (set by mark_enclosed only) the block has an empty voxel and each of its empty voxels is
+    // enclosed (enclosed_voxels()).
     std::vector<std::uint16_t> blocks;
     OccupancyGrid() = default;
     // From an OCCU bit array of a V^3 grid (FORMAT.md §6.3).
@@ -152,6 +157,16 @@ struct OccupancyGrid {
     bool block_occupied(std::uint32_t x, std::uint32_t y, std::uint32_t z) const {
         return (blocks[sub_block(x, y, z)] >> kBlockBit) & 1u;
     }
+    // An empty voxel whose kSubBlock^3 block has kEnclosedBit: what the enclosed rule stops
+    // at. Every voxel of an empty aligned block shares a face-connected component, so a walk
+    // that skips the block reads its answer at the cell it enters by.
+    bool enclosed(std::uint32_t x, std::uint32_t y, std::uint32_t z) const {
+        const std::uint16_t e = blocks[sub_block(x, y, z)];
+        return ((e >> kEnclosedBit) & 1u) && !((e >> sub_voxel(x, y, z)) & 1u);
+    }
+    // Sets kEnclosedBit from enclosed_voxels() (on) or clears it (off). Allocates V^3 / 8
+    // bytes for the duration of the call (may throw std::bad_alloc).
+    void mark_enclosed(bool on);
     // The OCCU bit array this grid was made from, and its number of set bits.
     std::vector<std::uint8_t> voxel_bits() const;
     std::uint64_t occupied_voxels() const;
@@ -160,14 +175,19 @@ struct OccupancyGrid {
 // Fills `out` with up to geo.H occupied entry points. `occupancy` is the OCCU bit array.
 // The OccupancyGrid overload skips empty blocks and returns exactly the same points.
 TraceStatus trace_points(const Geometry& geo, const std::uint8_t* occupancy, const Ray& ray, RayPoints& out);
-TraceStatus trace_points(const Geometry& geo, const OccupancyGrid& occupancy, const Ray& ray, RayPoints& out);
+// With stop_at_enclosed (the enclosed rule of occlusion queries, docs/model.md): a walk
+// that crosses a voxel OccupancyGrid::enclosed() reports after it has recorded a point stops
+// there with TraceStatus::enclosed, unless it crossed one before its first occupied voxel
+// (it started inside).
+TraceStatus trace_points(const Geometry& geo, const OccupancyGrid& occupancy, const Ray& ray, RayPoints& out,
+                         bool stop_at_enclosed = false);
 
-// trace_points(geo, occ, rays[i], out[i]) for every i, with status[i] its return value:
-// bit-identical results, computed 16 rays at a time with AVX-512 where the CPU has it
-// (cpu_features().avx512; the vector corner computation of level_corners needs the same).
-// out and status hold rays.size() elements.
+// trace_points(geo, occ, rays[i], out[i], stop_at_enclosed) for every i, with status[i] its
+// return value: bit-identical results, computed 16 rays at a time with AVX-512 where the CPU
+// has it (cpu_features().avx512; the vector corner computation of level_corners needs the
+// same). out and status hold rays.size() elements.
 void trace_points_batch(const Geometry& geo, const OccupancyGrid& occ, std::span<const Ray> rays,
-                        RayPoints* out, TraceStatus* status);
+                        RayPoints* out, TraceStatus* status, bool stop_at_enclosed = false);
 
 // Every voxel crossed (occupied or not), in order, with entry t: for tests and tools.
 TraceStatus trace_all_voxels(const Geometry& geo, const Ray& ray, std::vector<std::uint32_t>& voxels,
@@ -384,14 +404,13 @@ struct Runtime {
     // miss without the network. 0 turns it off (FORMAT.md §8 as written). Set it as the
     // network's arithmetic: not while other threads trace through the runtime.
     std::uint32_t escape_points = 0;
-    // The enclosed rule (lsnif_set_enclosed_rule): enclosed_voxels(occupancy) while it is on,
-    // empty while it is off. occluded() answers a ray enters_enclosed() takes as occluded.
-    // Set as escape_points.
-    std::vector<std::uint64_t> enclosed;
+    // The enclosed rule (lsnif_set_enclosed_rule): while it is on, occupancy's kEnclosedBit
+    // is marked (OccupancyGrid::mark_enclosed) and occluded() answers a ray whose walk stops
+    // in an enclosed voxel (TraceStatus::enclosed) as occluded. Set as escape_points.
+    bool enclosed_rule = false;
     std::vector<GridView> grid_views() const;
     // Heap bytes this runtime holds (every array's capacity): what it costs a renderer
-    // beyond sizeof(Runtime). Depends on the network's arithmetic (set_mlp_arithmetic) and
-    // on whether the enclosed rule is on.
+    // beyond sizeof(Runtime). Depends on the network's arithmetic (set_mlp_arithmetic).
     std::uint64_t heap_bytes() const;
 };
 // The network starts in `arithmetic` (set_mlp_arithmetic(rt.net, ...) changes it later;
@@ -412,7 +431,7 @@ std::uint64_t resident_bytes(const ModelData& model);
 // Statistics of one batch, for benchmarks and evaluation.
 struct IntersectStats {
     // escaped: rays the escape rule (Runtime::escape_points) answered without the network;
-    // enclosed: rays the enclosed rule (Runtime::enclosed) answered occluded without it.
+    // enclosed: rays the enclosed rule (Runtime::enclosed_rule) answered occluded without it.
     std::size_t rays = 0, invalid = 0, culled = 0, escaped = 0, enclosed = 0, inferred = 0, hits = 0;
 };
 
@@ -449,25 +468,14 @@ inline bool voxel_bit(const std::uint64_t* bits, std::uint32_t voxel) {
     return (bits[voxel >> 6] >> (voxel & 63u)) & 1u;
 }
 
-// Whether the enclosed rule answers `ray` (traced into `pts` on the grid of `geo`) as
-// occluded: the ray starts outside every enclosed voxel (in an occupied voxel, or in an empty
-// one joined to the boundary) and, within its segment, leaves one of its recorded occupied
-// voxels into an enclosed one. Such a ray has crossed the occupied shell into the space it
-// shuts in, so on a closed surface whose every voxel is occupied it has crossed the surface:
-// a hit within [tmin, tmax]. Checked at the gaps of pts (a recorded voxel whose next one is
-// not a face neighbour, and the last one): a run of empty voxels along a ray is one
-// component, so its first voxel decides it. Only the first geo.H occupied voxels are seen.
-// `enclosed`: enclosed_voxels() of the grid `pts` was traced on.
-bool enters_enclosed(const Geometry& geo, const std::uint64_t* enclosed, const RayPoints& pts,
-                     const Ray& ray);
 
 // Object-space batch. Single-threaded: callers parallelize across batches (renderers
 // bring their own thread pools). Invalid rays (zero direction...) report a miss.
 IntersectStats intersect(const Runtime& rt, std::span<const Ray> rays, std::span<Hit> hits);
 // The any-hit query of the same batch: occluded[i] = hits[i].hit of intersect(), computed
 // without the hit's distance, normal and material (only the visibility output). Same
-// threading rules. Both apply the runtime's escape rule; occluded() then also its enclosed
-// rule (a ray both would take is a miss).
+// threading rules. Both apply the runtime's escape rule; occluded() also its enclosed rule,
+// first (a ray both would take is occluded).
 IntersectStats occluded(const Runtime& rt, std::span<const Ray> rays, std::span<std::uint8_t> occluded);
 
 }  // namespace lsnif::format
