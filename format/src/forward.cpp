@@ -1221,8 +1221,8 @@ std::vector<GridView> Runtime::grid_views() const {
 
 std::uint64_t Runtime::heap_bytes() const {
     using detail::heap_bytes;
-    std::uint64_t n = heap_bytes(geo.levels) + heap_bytes(occupancy.blocks) +
-                      heap_bytes(grid) + heap_bytes(grid_u8) + heap_bytes(grid_affine);
+    std::uint64_t n = heap_bytes(geo.levels) + heap_bytes(occupancy.blocks) + heap_bytes(grid) +
+                      heap_bytes(grid_u8) + heap_bytes(grid_affine);
     n += heap_bytes(net.in) + heap_bytes(net.out) + heap_bytes(net.out_padded) + heap_bytes(net.wt) +
          heap_bytes(net.wt_f16) + heap_bytes(net.bias) + heap_bytes(net.wt_vnni) + heap_bytes(net.wt_int8);
     for (const Int8Layer& l : net.wt_int8)
@@ -1277,7 +1277,8 @@ IntersectStats run_pass(const Runtime& rt, std::span<const Ray> rays, std::size_
     st.rays = rays.size();
     for (std::size_t base = 0; base < rays.size(); base += kChunk) {
         const std::size_t n = std::min(kChunk, rays.size() - base);
-        trace_points_batch(geo, rt.occupancy, rays.subspan(base, n), pts.data(), status.data(), stop_at_enclosed);
+        trace_points_batch(geo, rt.occupancy, rays.subspan(base, n), pts.data(), status.data(),
+                           stop_at_enclosed);
         std::size_t k = 0;
         for (std::size_t i = 0; i < n; ++i) {
             if constexpr (any_hit)

@@ -254,7 +254,8 @@ TraceStatus trace_points(const Geometry& geo, const OccupancyGrid& occ, const Ra
     if (!stop_at_enclosed) return trace_points_impl(geo, &occ, ray, out, occupied, kPassAll);
     bool unarmed = false, stopped = false;  // crossed an enclosed voxel before any occupied one
     const TraceStatus st = trace_points_impl(geo, &occ, ray, out, occupied, [&](const int* cell) {
-        if (!occ.enclosed(std::uint32_t(cell[0]), std::uint32_t(cell[1]), std::uint32_t(cell[2]))) return true;
+        if (!occ.enclosed(std::uint32_t(cell[0]), std::uint32_t(cell[1]), std::uint32_t(cell[2])))
+            return true;
         unarmed |= out.count == 0;
         stopped = !unarmed;
         return unarmed;
@@ -886,7 +887,8 @@ LSNIF_AVX512 void trace_batch_avx512(const Geometry& geo, const OccupancyGrid& o
         const __m512 t_far = _mm512_load_ps(L.t_far);
         const __m512i ray = _mm512_load_si512(L.ray);
         __m512i count = _mm512_load_si512(L.count);
-        __mmask16 unarmed = _mm512_test_epi32_mask(_mm512_load_si512(L.unarmed), _mm512_load_si512(L.unarmed));
+        __mmask16 unarmed =
+            _mm512_test_epi32_mask(_mm512_load_si512(L.unarmed), _mm512_load_si512(L.unarmed));
         // Lanes whose walk is over leave `live`; the walks stay in registers until a quarter
         // of the lanes are free (or no rays are left to refill them with).
         const bool draining = next == rays.size() && !q.ready;
@@ -914,8 +916,8 @@ LSNIF_AVX512 void trace_batch_avx512(const Geometry& geo, const OccupancyGrid& o
                                 word, _mm512_set1_epi32(1 << OccupancyGrid::kSuperBlockBit));
             const __mmask16 occupied = __mmask16(live) & voxel_occupied;
             __mmask16 crossed;
-            __mmask16 over =
-                record_entries(ax, __mmask16(live), occupied, idx, t_near, t_far, ray, count, geo.H, recorded, crossed);
+            __mmask16 over = record_entries(ax, __mmask16(live), occupied, idx, t_near, t_far, ray, count,
+                                            geo.H, recorded, crossed);
             if constexpr (StopAtEnclosed) {
                 const __mmask16 enclosed =
                     crossed & ~voxel_occupied &
@@ -923,7 +925,8 @@ LSNIF_AVX512 void trace_batch_avx512(const Geometry& geo, const OccupancyGrid& o
                 unarmed |= enclosed & ~_mm512_test_epi32_mask(count, count);
                 const __mmask16 stop = enclosed & ~unarmed;
                 if (stop) {
-                    _mm512_mask_i32scatter_epi32(status, stop, ray, _mm512_set1_epi32(int(TraceStatus::enclosed)), 4);
+                    _mm512_mask_i32scatter_epi32(status, stop, ray,
+                                                 _mm512_set1_epi32(int(TraceStatus::enclosed)), 4);
                     over |= stop;
                 }
             }

@@ -93,7 +93,8 @@ TEST_CASE("enclosed voxels are the empty ones a closed shell shuts in, and none 
         CHECK(marked_voxels(closed) == 0);  // until the rule marks them
         closed.mark_enclosed(true);
         CHECK(marked_voxels(closed) == std::uint64_t(n) * n * n);
-        CHECK(closed.occupied_voxels() == fmt::OccupancyGrid(V, cube_shell(V, lo, hi, V * V * V)).occupied_voxels());
+        CHECK(closed.occupied_voxels() ==
+              fmt::OccupancyGrid(V, cube_shell(V, lo, hi, V * V * V)).occupied_voxels());
         // Rays along x through the shell's middle, on a grid of unit voxels from the origin.
         fmt::Geometry geo{};
         geo.V = V;
@@ -153,7 +154,8 @@ TEST_CASE(
         for (const auto* set : {&outside, &leaving}) {
             const std::vector<lsnif_ray>& rays = *set;
             CAPTURE((set == &outside ? "rays from outside" : "rays leaving the surface"));
-            const std::span<const fmt::Ray> object_rays(reinterpret_cast<const fmt::Ray*>(rays.data()), rays.size());
+            const std::span<const fmt::Ray> object_rays(reinterpret_cast<const fmt::Ray*>(rays.data()),
+                                                        rays.size());
             std::vector<fmt::RayPoints> pts(rays.size());
             std::vector<fmt::TraceStatus> status(rays.size());
             fmt::trace_points_batch(rt.geo, rt.occupancy, object_rays, pts.data(), status.data(), true);
@@ -174,7 +176,8 @@ TEST_CASE(
                 taken += rule;
                 disagree += rule != crosses_into_enclosed(rt.geo, rt.occupancy, object_rays[i]);
                 fmt::RayPoints one;
-                const fmt::TraceStatus st = fmt::trace_points(rt.geo, rt.occupancy, object_rays[i], one, true);
+                const fmt::TraceStatus st =
+                    fmt::trace_points(rt.geo, rt.occupancy, object_rays[i], one, true);
                 scalar_differs += st != status[i] || one.count != pts[i].count;
                 wrong +=
                     std::memcmp(&hits[i], &exact[i], sizeof(lsnif_hit)) != 0;  // intersections never change

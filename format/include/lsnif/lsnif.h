@@ -349,20 +349,22 @@ LSNIF_API uint32_t lsnif_get_escape_points(const lsnif_model* model);
 /* Turns the enclosed rule of later lsnif_occluded* calls on `model` on (`on` nonzero) or off
  * (0, what lsnif_open_* set: every ray is answered as FORMAT.md §8 specifies). The enclosed
  * voxels are the empty voxels of the occupancy grid that no path of empty face neighbours
- * joins to the grid's boundary: the space a closed shell of occupied voxels shuts in. A ray
- * that starts outside them and, within [tmin, tmax], passes from an occupied voxel into an
- * enclosed one has crossed the shell into the inside of the surface, and is answered
+ * joins to the grid's boundary: the space a closed shell of occupied voxels shuts in (the
+ * rule reads them per 2x2x2 block of voxels: an empty voxel counts where every empty voxel
+ * of its block is enclosed). A ray that, within [tmin, tmax] and before its H-th occupied
+ * voxel, crosses from an occupied voxel into an enclosed one (and met none before its first
+ * occupied voxel) has crossed the shell into the inside of the surface, and is answered
  * occluded without evaluating the network (lsnif_intersect* are not affected: they need
  * the hit's distance). On closed surfaces this answers truly what the network sometimes
  * misses, and saves its evaluation; space that voxels of nearby parts close off from the
  * outside without a surface around it is answered occluded too, and so is a ray that starts
  * just inside the surface (leaving its back side into the solid) and ends before leaving
  * the solid: the rule is meant for occlusion rays that leave a surface on the side it is
- * seen from, and for rays from elsewhere. The escape rule applies first: a ray it takes
- * stays a miss. docs/model.md "The enclosed rule" gives the measurements.
- * Turning it on computes one bit per voxel (V^3 / 8 bytes, counted in lsnif_info's
- * decoded_bytes) and may return LSNIF_ERR_OUT_OF_MEMORY; `model` must not be NULL. Must
- * not run concurrently with intersections on the same model. */
+ * seen from, and for rays from elsewhere. It applies before the escape rule: a ray both
+ * would take is occluded. docs/model.md "The enclosed rule" gives the measurements.
+ * Turning it on marks spare bits of the occupancy grid (no memory is kept; the call needs
+ * V^3 / 8 bytes while it runs and may return LSNIF_ERR_OUT_OF_MEMORY); `model` must not be
+ * NULL. Must not run concurrently with intersections on the same model. */
 LSNIF_API lsnif_status lsnif_set_enclosed_rule(lsnif_model* model, int on);
 /* Whether the enclosed rule is on (1) or off (0); 0 for a NULL model. */
 LSNIF_API int lsnif_get_enclosed_rule(const lsnif_model* model);

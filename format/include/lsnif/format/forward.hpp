@@ -468,7 +468,6 @@ inline bool voxel_bit(const std::uint64_t* bits, std::uint32_t voxel) {
     return (bits[voxel >> 6] >> (voxel & 63u)) & 1u;
 }
 
-
 // Object-space batch. Single-threaded: callers parallelize across batches (renderers
 // bring their own thread pools). Invalid rays (zero direction...) report a miss.
 IntersectStats intersect(const Runtime& rt, std::span<const Ray> rays, std::span<Hit> hits);
