@@ -301,7 +301,7 @@ std::vector<std::uint64_t> enclosed_voxels(const OccupancyGrid& occ) {
     const auto reach = [&](std::uint32_t x, std::uint32_t y, std::uint32_t z) {
         const std::uint32_t i = x + V * (y + V * z);
         if (voxel_bit(reached.data(), i) || occ.occupied(x, y, z)) return;
-        reached[i >> 6] |= std::uint64_t(1) << (i & 63u);
+        set_voxel_bit(reached.data(), i);
         todo.push_back(i);
     };
     for (std::uint32_t z = 0; z < V; ++z)
@@ -324,7 +324,7 @@ std::vector<std::uint64_t> enclosed_voxels(const OccupancyGrid& occ) {
             for (std::uint32_t x = 0; x < V; ++x) {
                 const std::uint32_t i = x + V * (y + V * z);
                 if (!occ.occupied(x, y, z) && !voxel_bit(reached.data(), i))
-                    enclosed[i >> 6] |= std::uint64_t(1) << (i & 63u);
+                    set_voxel_bit(enclosed.data(), i);
             }
     return enclosed;
 }

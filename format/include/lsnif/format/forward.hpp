@@ -464,8 +464,12 @@ inline bool escapes(const Geometry& geo, const RayPoints& pts, const Ray& ray, s
 // surface. One bit per voxel, bit i of word i / 64 for voxel i = x + V * (y + V * z).
 std::vector<std::uint64_t> enclosed_voxels(const OccupancyGrid& occ);
 
+// Bit `voxel` of a bit array laid out as enclosed_voxels() returns it.
 inline bool voxel_bit(const std::uint64_t* bits, std::uint32_t voxel) {
     return (bits[voxel >> 6] >> (voxel & 63u)) & 1u;
+}
+inline void set_voxel_bit(std::uint64_t* bits, std::uint32_t voxel) {
+    bits[voxel >> 6] |= std::uint64_t(1) << (voxel & 63u);
 }
 
 // Object-space batch. Single-threaded: callers parallelize across batches (renderers
