@@ -1,6 +1,7 @@
 // The Embree user geometry of lsnif_embree.h: Embree's bounds, intersect and occluded
-// callbacks answered by the reader's C API (lsnif_intersect / lsnif_intersect_instance),
-// one call per Embree call with that call's active lanes.
+// callbacks answered by the reader's C API (lsnif_intersect / lsnif_intersect_instance, and
+// lsnif_occluded / lsnif_occluded_instance under the enclosed rule), one call per Embree call
+// with that call's active lanes.
 #include <lsnif/lsnif_embree.h>
 
 #include <lsnif/base/affine.hpp>
@@ -152,10 +153,29 @@ void intersect_packet(const RTCIntersectFunctionNArguments* args, const Placemen
     }
 }
 
+// An occluded call under the model's enclosed rule: lsnif_occluded(_instance) decides, the
+// rule included, and an occluded ray is marked without the filters (lsnif_embree.h): a ray
+// the rule takes has no distance or normal to show them.
+void occluded_by_rule(const RTCOccludedFunctionNArguments* args, const Placement& p) {
+    const unsigned N = args->N;
+    RTCRayN* rays = args->ray;
+    LaneRays lr;
+    gather(args->valid, rays, N, false, lr);
+    if (lr.count == 0) return;
+    std::uint8_t occluded[kLanes];
+    const lsnif_status s =
+        p.has_transform ? lsnif_occluded_instance(p.model, p.object_to_world, lr.ray, lr.count, occluded)
+                        : lsnif_occluded(p.model, lr.ray, lr.count, occluded);
+    if (s != LSNIF_OK) return;
+    for (unsigned k = 0; k < lr.count; ++k)
+        if (occluded[k]) RTCRayN_tfar(rays, N, lr.lane[k]) = -std::numeric_limits<float>::infinity();
+}
+
 // An occluded call: the reader's hit decision on [tnear, tfar] (lsnif_intersect decides as
 // lsnif_occluded does, bit for bit, and also gives the filters a distance, normal and
 // material); an accepted hit marks the ray occluded (tfar = -infinity, Embree's convention).
 void occluded_packet(const RTCOccludedFunctionNArguments* args, const Placement& p) {
+    if (lsnif_get_enclosed_rule(p.model)) return occluded_by_rule(args, p);
     const unsigned N = args->N;
     RTCRayN* rays = args->ray;
     LaneRays lr;

@@ -17,7 +17,10 @@
 //
 // Every asset is opened with the escape rule its metadata names (metrics.escape_points,
 // lsnif_set_escape_points): shadow rays that leave its surface and stay within a run of that
-// many occupied voxels skip the network. Both routes apply it alike.
+// many occupied voxels skip the network. And with the enclosed rule (lsnif_set_enclosed_rule):
+// shadow rays that cross into the space its shell of voxels shuts in are occluded without
+// the network. Both routes apply them alike (the user geometry's occluded callback then
+// calls no occlusion filter; this renderer sets none).
 //
 // OUTDIR/scene.gltf is the same scene as a glTF whose converted meshes carry the
 // LSNIF_neural_geometry extension (schema/LSNIF_neural_geometry.md): a renderer that already
@@ -370,6 +373,10 @@ void HybridScene::add_mesh(const lsnif::scene::Mesh& src, const fs::path& asset)
         if (lsnif_set_escape_points(out.model, escape) != LSNIF_OK)
             throw Failure(asset.string() + ": metrics.escape_points " + std::to_string(escape) +
                           " exceeds the asset's entry points per ray");
+        // The enclosed rule (docs/model.md "The enclosed rule"): shadow rays that cross the
+        // asset's shell into the inside are occluded without the network, on both routes.
+        if (lsnif_set_enclosed_rule(out.model, 1) != LSNIF_OK)
+            throw Failure(asset.string() + ": out of memory turning the enclosed rule on");
         // The box the asset answers in (it may reach past the vertices): what Embree is given
         // for its user geometry, and what the batched route culls rays with.
         lsnif_info info;

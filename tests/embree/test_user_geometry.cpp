@@ -2,14 +2,18 @@
 // asset trained on CGAL's Chinese dragon (the embree_asset fixture): the same hits from
 // rtcIntersect1/4/8/16 and rtcOccluded1/4/8/16 as from lsnif_intersect_instance and
 // lsnif_occluded_instance on the same rays, in object space and under a rotation with a
-// non-uniform scale, next to a triangle mesh, through filter functions and inside an
-// Embree instance.
+// non-uniform scale, next to a triangle mesh, through filter functions, with the model's
+// enclosed rule and inside an Embree instance.
 #include <doctest/doctest.h>
 
 #include <lsnif/lsnif_embree.h>
 #include <lsnif/base/random.hpp>
 
+#include "../format/asset_rays.hpp"
+
+#include <algorithm>
 #include <array>
+#include <atomic>
 #include <cmath>
 #include <cstring>
 #include <filesystem>
@@ -322,6 +326,54 @@ TEST_CASE(
         expect_same_occlusion(embree_occluded<8>(s.scene, rays), want);
         expect_same_occlusion(embree_occluded<16>(s.scene, rays), want);
     }
+}
+
+namespace {
+
+// Calls of the occlusion filter below, which accepts every candidate.
+std::atomic<std::size_t> occlusion_filter_calls{0};
+extern "C" void count_occlusion_filter(const RTCFilterFunctionNArguments*) {
+    ++occlusion_filter_calls;
+}
+
+}  // namespace
+
+TEST_CASE(
+    "with the model's enclosed rule on, the occluded callback decides as lsnif_occluded_instance under the "
+    "rule, without occlusion filters") {
+    const Model model;
+    const Device dev;
+    std::vector<lsnif_ray> outside, leaving;
+    lsnif_test::make_rays(model.m, outside, leaving);
+    leaving.resize(std::min<std::size_t>(leaving.size(), 8000));
+    const std::vector<std::uint8_t> off = batched_occluded(model, nullptr, leaving);
+    REQUIRE(lsnif_set_enclosed_rule(model.m, 1) == LSNIF_OK);
+    const std::vector<std::uint8_t> on = batched_occluded(model, nullptr, leaving);
+    std::size_t turned = 0;
+    for (std::size_t i = 0; i < leaving.size(); ++i) turned += on[i] != off[i];
+    CHECK(turned > 0);  // the rule answers some of these rays otherwise: the comparison sees it
+    const AssetScene s(dev, model, nullptr);
+    expect_same_occlusion(embree_occluded<1>(s.scene, leaving), on);
+    expect_same_occlusion(embree_occluded<4>(s.scene, leaving), on);
+    expect_same_occlusion(embree_occluded<8>(s.scene, leaving), on);
+    expect_same_occlusion(embree_occluded<16>(s.scene, leaving), on);
+    const std::array<float, 12> xf = rotated_scaled();
+    const AssetScene placed(dev, model, xf.data());
+    const std::vector<lsnif_ray> segments = rays_at(model.info, xf.data(), 3000, true);
+    expect_same_occlusion(embree_occluded<16>(placed.scene, segments),
+                          batched_occluded(model, xf.data(), segments));
+
+    // An occlusion filter on the geometry is not called while the rule is on, and is again
+    // once it is off.
+    rtcSetGeometryOccludedFilterFunction(s.geometry, count_occlusion_filter);
+    rtcCommitGeometry(s.geometry);
+    rtcCommitScene(s.scene);
+    occlusion_filter_calls = 0;
+    CHECK(embree_occluded<16>(s.scene, leaving) == on);
+    CHECK(occlusion_filter_calls == 0);
+    REQUIRE(lsnif_set_enclosed_rule(model.m, 0) == LSNIF_OK);
+    CHECK(embree_occluded<16>(s.scene, leaving) == off);
+    CHECK(occlusion_filter_calls > 0);
 }
 
 namespace {

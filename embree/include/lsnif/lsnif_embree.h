@@ -21,6 +21,11 @@
  *              reports for the same ray, bit for bit; a hit is offered to the occlusion
  *              filter functions (rtcFilterOcclusion) with its distance, normal and material,
  *              and an accepted one sets tfar to -infinity, as Embree's own geometries do.
+ *              With the model's enclosed rule on (lsnif_set_enclosed_rule), the decision
+ *              is lsnif_occluded_instance's under the rule, and an occluded ray's tfar is
+ *              set to -infinity without the occlusion filter functions: the rule decides
+ *              some rays without a distance or normal to show them. A renderer that
+ *              needs occlusion filters on an asset's geometry leaves the rule off.
  * A hit writes: tfar = the ray parameter of the hit; Ng = the asset's unit shading normal,
  * in the space of the rays the geometry receives (the scene's, or the instance's local
  * space when the geometry sits in a scene instanced by Embree, like a triangle's Ng);
