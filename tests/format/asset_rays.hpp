@@ -3,10 +3,13 @@
 #pragma once
 #include <doctest/doctest.h>
 #include <lsnif/lsnif.h>
+#include <lsnif/format/container.hpp>
+#include <lsnif/format/forward.hpp>
 
 #include <cmath>
 #include <filesystem>
 #include <random>
+#include <utility>
 #include <vector>
 
 namespace lsnif_test {
@@ -21,6 +24,16 @@ struct OpenModel {
     OpenModel(const OpenModel&) = delete;
     OpenModel& operator=(const OpenModel&) = delete;
 };
+
+// The asset's runtime read from its file by the format library directly: what the reader
+// holds behind the C API, for tests that trace or inspect it themselves.
+inline lsnif::format::Runtime runtime_of(const std::filesystem::path& path) {
+    const auto bytes = lsnif::format::read_file_bytes(path.string());
+    REQUIRE(bytes.ok());
+    auto data = lsnif::format::read_model(bytes.value());
+    REQUIRE(data.ok());
+    return lsnif::format::make_runtime(std::move(data.value()));
+}
 
 // Rays from outside the box towards its middle third, and, from each of their hits, 16
 // ambient-occlusion rays over the hemisphere of the returned normal: 1e-4 of the box

@@ -145,11 +145,7 @@ TEST_CASE(
         REQUIRE(lsnif_get_info(m.model, &off_info) == LSNIF_OK);
         std::vector<lsnif_ray> outside, leaving;
         make_rays(m.model, outside, leaving);
-        const auto bytes = fmt::read_file_bytes(path.string());
-        REQUIRE(bytes.ok());
-        auto data = fmt::read_model(bytes.value());
-        REQUIRE(data.ok());
-        fmt::Runtime rt = fmt::make_runtime(std::move(data.value()));
+        fmt::Runtime rt = lsnif_test::runtime_of(path);
         rt.occupancy.mark_enclosed(true);
         for (const auto* set : {&outside, &leaving}) {
             const std::vector<lsnif_ray>& rays = *set;

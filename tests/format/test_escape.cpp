@@ -96,11 +96,7 @@ TEST_CASE(
         make_rays(m.model, outside, leaving);
         REQUIRE(leaving.size() > 1000);
         // Each ray's trace, from the same file, to know which rays the rule may take.
-        const auto bytes = fmt::read_file_bytes(path.string());
-        REQUIRE(bytes.ok());
-        auto data = fmt::read_model(bytes.value());
-        REQUIRE(data.ok());
-        const fmt::Runtime rt = fmt::make_runtime(std::move(data.value()));
+        const fmt::Runtime rt = lsnif_test::runtime_of(path);
         const auto traces = [&](const std::vector<lsnif_ray>& rays) {
             std::vector<fmt::RayPoints> pts(rays.size());
             std::vector<fmt::TraceStatus> status(rays.size());
