@@ -431,11 +431,9 @@ uint32_t lsnif_get_escape_points(const lsnif_model* model) {
 
 lsnif_status lsnif_set_enclosed_rule(lsnif_model* model, int on) {
     if (!model) return LSNIF_ERR_INVALID_ARGUMENT;
-    lsnif::format::Runtime& rt = model->runtime;
-    if (rt.enclosed_rule == (on != 0)) return LSNIF_OK;
+    if (model->runtime.enclosed_rule == (on != 0)) return LSNIF_OK;
     return guarded(nullptr, [&] {
-        rt.occupancy.mark_enclosed(on != 0);
-        rt.enclosed_rule = on != 0;
+        lsnif::format::set_enclosed_rule(model->runtime, on != 0);
         return LSNIF_OK;
     });
 }

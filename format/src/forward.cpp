@@ -61,9 +61,7 @@ Geometry make_geometry(const ModelDesc& d) {
     g.point_width = d.point_feature_width();
     g.direction_width = d.direction_width();
     g.offset_width = d.offset_width();
-    for (int a = 0; a < 3; ++a) {
-        g.cell[a] = (d.box_max[a] - d.box_min[a]) / float(d.grid_resolution);
-    }
+    for (int a = 0; a < 3; ++a) g.cell[a] = (d.box_max[a] - d.box_min[a]) / float(d.grid_resolution);
     g.input_width = d.input_width();
     g.output_count = d.output_count();
     g.material_count = d.material_count;
@@ -1325,6 +1323,12 @@ IntersectStats run_pass(const Runtime& rt, std::span<const Ray> rays, std::size_
 }
 
 }  // namespace
+
+void set_enclosed_rule(Runtime& rt, bool on) {
+    rt.enclosed_rule = false;
+    rt.occupancy.mark_enclosed(on);
+    rt.enclosed_rule = on;
+}
 
 IntersectStats intersect(const Runtime& rt, std::span<const Ray> rays, std::span<Hit> hits) {
     return run_pass(

@@ -389,8 +389,7 @@ void check_enclosed_rule(const Shipped& s, const nlohmann::json& mesh, const std
     for (const samples::Sample& x : s.held) rays.push_back(x.ray);
     std::vector<std::uint8_t> off(rays.size()), on(rays.size());
     format::occluded(rt, rays, off);
-    rt.occupancy.mark_enclosed(true);
-    rt.enclosed_rule = true;
+    format::set_enclosed_rule(rt, true);
     format::occluded(rt, rays, on);
     for (int f = 0; f < samples::kFamilyCount + 2; ++f) {
         std::size_t n = 0, wrong_off = 0, wrong_on = 0, taken = 0;

@@ -502,10 +502,9 @@ bool SceneBuilder::add_mesh(const SceneMesh& mesh, const AssetSettings& settings
         return false;
     }
     if (lsnif_set_enclosed_rule(added.model, settings.enclosed_rule) != LSNIF_OK) {
-        error = mesh.asset + ": cannot hold the enclosed rule's voxels";
+        error = mesh.asset + ": out of memory turning the enclosed rule on";
         return false;
     }
-    lsnif_get_info(added.model, &info);
     added.lsnif_bytes = info.decoded_bytes;  // what this scene holds, in the arithmetic it traces with
     return true;
 }

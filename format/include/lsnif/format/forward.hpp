@@ -406,7 +406,8 @@ struct Runtime {
     std::uint32_t escape_points = 0;
     // The enclosed rule (lsnif_set_enclosed_rule): while it is on, occupancy's kEnclosedBit
     // is marked (OccupancyGrid::mark_enclosed) and occluded() answers a ray whose walk stops
-    // in an enclosed voxel (TraceStatus::enclosed) as occluded. Set as escape_points.
+    // in an enclosed voxel (TraceStatus::enclosed) as occluded. Change it with
+    // set_enclosed_rule(), which keeps the two together, as escape_points.
     bool enclosed_rule = false;
     std::vector<GridView> grid_views() const;
     // Heap bytes this runtime holds (every array's capacity): what it costs a renderer
@@ -463,6 +464,10 @@ inline bool escapes(const Geometry& geo, const RayPoints& pts, const Ray& ray, s
 // boundary: the space a closed shell of occupied voxels shuts in, the inside of a closed
 // surface. One bit per voxel, bit i of word i / 64 for voxel i = x + V * (y + V * z).
 std::vector<std::uint64_t> enclosed_voxels(const OccupancyGrid& occ);
+
+// Turns the enclosed rule of `rt` on or off: the occupancy's marks and Runtime::enclosed_rule
+// together. May throw std::bad_alloc (OccupancyGrid::mark_enclosed); the rule is then off.
+void set_enclosed_rule(Runtime& rt, bool on);
 
 // Bit `voxel` of a bit array laid out as enclosed_voxels() returns it.
 inline bool voxel_bit(const std::uint64_t* bits, std::uint32_t voxel) {
