@@ -81,7 +81,7 @@ void embree_closest(const EvalScene::Impl& im, RTCScene top, EmbreeRoute route,
             RTCRayHit rh;
             init_rayhit(rays[i], rh);
             rtcIntersect1(top, &ctx, &rh);
-            hits[i] = im.embree_hit(rh);
+            hits[i] = im.embree_hit(rh, rays[i]);
         }
         return;
     }
@@ -103,7 +103,7 @@ void embree_closest(const EvalScene::Impl& im, RTCScene top, EmbreeRoute route,
             rh.hit.instID[0] = p.hit.instID[0][k];
             rh.hit.u = p.hit.u[k];
             rh.hit.v = p.hit.v[k];
-            hits[b + k] = im.embree_hit(rh);
+            hits[b + k] = im.embree_hit(rh, rays[b + k]);
         }
     }
 }

@@ -3,10 +3,12 @@
 // include directory of any other target).
 #pragma once
 
+#include <lsnif/base/vec3.hpp>
 #include <lsnif/render/scene.hpp>
 
 #include <embree3/rtcore.h>
 
+#include <algorithm>
 #include <array>
 #include <atomic>
 #include <cmath>
@@ -82,6 +84,10 @@ struct EvalScene::Impl {
     // Single rays unless SceneBuilder::open asks for packets: a conversion's visual check
     // (ObjectViews) keeps the single-ray route its decisions were made with.
     EmbreeRoute embree_route = EmbreeRoute::single;
+    // Embree's hits decoded with t, u and v computed again (exact_hit), for images that must
+    // be the same on every CPU (ObjectViews: they decide what ships); otherwise Embree's own,
+    // whose bits are the CPU's, at no cost to the renders `lsnif eval` times.
+    bool exact_hits = false;
     std::vector<Mesh> meshes;
     std::vector<Instance> instances;
     std::vector<std::uint32_t> lsnif_instances;  // indices into instances
@@ -121,22 +127,50 @@ struct EvalScene::Impl {
         return true;
     }
 
-    TraceHit embree_hit(const RTCRayHit& rh) const {
+    // Ray r's hit as Embree reported it in `rh` (r's closest hit, or none).
+    TraceHit embree_hit(const RTCRayHit& rh, const lsnif_ray& r) const {
         TraceHit h;
         if (rh.hit.geomID == RTC_INVALID_GEOMETRY_ID) return h;
         const std::uint32_t inst = rh.hit.instID[0];
         const Instance& in = instances[inst];
         const Mesh& m = meshes[in.mesh];
         const std::uint32_t* tri = &m.indices[std::size_t(rh.hit.primID) * 3];
-        const float u = rh.hit.u, v = rh.hit.v, w = 1.0f - u - v;
+        float t = rh.ray.tfar, u = rh.hit.u, v = rh.hit.v;
+        if (exact_hits) exact_hit(in, tri, r, t, u, v);
+        const float w = 1.0f - u - v;
         Vec3 n{};
         for (int a = 0; a < 3; ++a)
             n[a] =
                 w * m.normals[tri[0] * 3 + a] + u * m.normals[tri[1] * 3 + a] + v * m.normals[tri[2] * 3 + a];
-        h.t = rh.ray.tfar;
+        h.t = t;
         h.normal = apply_normal(in.nmat, n);
         h.instance = std::int32_t(inst);
         return h;
+    }
+
+    // Ray r's hit with triangle `tri` (corner indices) of instance `in`, which Embree reported
+    // with t, u and v: the three computed again in world space (base::triangle_hit, the same
+    // bits on every CPU), t kept within [tmin, tmax] as Embree's exact depth test left it.
+    // Embree's values stay where triangle_hit has none.
+    void exact_hit(const Instance& in, const std::uint32_t* tri, const lsnif_ray& r, float& t, float& u,
+                   float& v) const {
+        using base::Vec3d;
+        const std::vector<float>& p = meshes[in.mesh].positions;
+        Vec3d c[3];
+        for (int k = 0; k < 3; ++k) {
+            const float* q = &p[std::size_t(tri[k]) * 3];
+            const Affine& a = in.transform;
+            c[k] = {double(a[0]) * q[0] + double(a[1]) * q[1] + double(a[2]) * q[2] + a[3],
+                    double(a[4]) * q[0] + double(a[5]) * q[1] + double(a[6]) * q[2] + a[7],
+                    double(a[8]) * q[0] + double(a[9]) * q[1] + double(a[10]) * q[2] + a[11]};
+        }
+        base::TriangleHit x;
+        if (!base::triangle_hit({r.org[0], r.org[1], r.org[2]}, {r.dir[0], r.dir[1], r.dir[2]}, c[0],
+                                c[1] - c[0], c[2] - c[0], x))
+            return;
+        t = std::clamp(float(x.t), r.tmin, r.tmax);
+        u = float(x.u);
+        v = float(x.v);
     }
 };
 

@@ -73,24 +73,20 @@ EmbreeSource::Impl::RawHit EmbreeSource::Impl::trace_raw(const format::Ray& r) c
 namespace {
 
 // Ray r's hit with triangle h.prim (one Embree reported) computed again from the
-// triangle's stored corner and edges: Möller and Trumbore, "Fast, Minimum Storage
-// Ray/Triangle Intersection" (1997), in double, each operation rounded by IEEE 754 alone.
-// Embree scales its t, u and v by an approximate reciprocal whose bits are the CPU's own
-// (Intel and AMD differ; docs/pipeline.md "The same bytes everywhere"), so the ground
-// truth takes only the triangle from Embree. t stays within the ray's [tmin, tmax], which
-// Embree's exact depth test guaranteed. Embree's values are kept where the ray is parallel
-// to the triangle in double or a result is not finite.
+// triangle's stored corner and edges (base::triangle_hit: the same bits on every CPU, where
+// Embree's t, u and v are the CPU's own; docs/pipeline.md "The same bytes everywhere"), so
+// the ground truth takes only the triangle from Embree. t stays within the ray's [tmin,
+// tmax], which Embree's exact depth test guaranteed. Embree's values are kept where
+// triangle_hit has none.
 template <class Triangle>
 EmbreeSource::Impl::RawHit moeller_trumbore(const Triangle& tri, const format::Ray& r,
                                             const EmbreeSource::Impl::RawHit& h) {
-    const V3 e1{tri.e1[0], tri.e1[1], tri.e1[2]}, e2{tri.e2[0], tri.e2[1], tri.e2[2]};
-    const V3 dir{r.dir[0], r.dir[1], r.dir[2]};
-    const V3 from_v0 = V3{r.org[0], r.org[1], r.org[2]} - V3{tri.v0[0], tri.v0[1], tri.v0[2]};
-    const V3 p = cross(dir, e2), q = cross(from_v0, e1);
-    const double det = dot(e1, p);
-    const double t = dot(e2, q) / det, u = dot(from_v0, p) / det, v = dot(dir, q) / det;
-    if (det == 0 || !std::isfinite(t) || !std::isfinite(u) || !std::isfinite(v)) return h;
-    return {std::clamp(float(t), r.tmin, r.tmax), float(u), float(v), h.prim};
+    base::TriangleHit x;
+    if (!base::triangle_hit(V3{r.org[0], r.org[1], r.org[2]}, V3{r.dir[0], r.dir[1], r.dir[2]},
+                            V3{tri.v0[0], tri.v0[1], tri.v0[2]}, V3{tri.e1[0], tri.e1[1], tri.e1[2]},
+                            V3{tri.e2[0], tri.e2[1], tri.e2[2]}, x))
+        return h;
+    return {std::clamp(float(x.t), r.tmin, r.tmax), float(x.u), float(x.v), h.prim};
 }
 
 }  // namespace

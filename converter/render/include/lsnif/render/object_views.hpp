@@ -27,6 +27,10 @@ struct ObjectViewOptions {
     std::uint32_t ao_samples = 8;
     std::uint32_t threads = 0;  // 0 = hardware threads; the images do not depend on it
     std::uint64_t seed = 1;     // draws the cameras, the lights and the AO directions
+    // Embree's instruction set (its device's `isa=`): AVX2, the floor of the CPUs conversion
+    // runs on, as sampling::SamplingConfig::embree_isa; tests set others ("sse4.2",
+    // "avx512") to show the images do not depend on Embree's kernels.
+    std::string embree_isa = "avx2";
 };
 
 // FLIP (LDR-FLIP, lsnif::image) of a candidate's combined renders (AO, shadowed light, mirror
