@@ -220,6 +220,74 @@ TEST_CASE("the ground truth is the same from Embree's SSE4.2, AVX2 and AVX-512 k
     }
 }
 
+TEST_CASE("rays through the dragon's vertices and edges get the same triangle from every Embree kernel") {
+    // A ray through a vertex or an edge meets every triangle there at one point, and which of
+    // them Embree reports follows from its approximate distances, whose bits differ per
+    // kernel (and per CPU vendor). The ground truth chooses among them itself (tied_hit), so
+    // rays aimed at each vertex and at the midpoint of one edge of every other triangle, from
+    // random points around the dragon, get the same triangle and normal bits from every
+    // kernel. Where a kernel's float tests let the ray slip between the triangles at that
+    // point (Embree's test is not watertight) its hit lies elsewhere, at another distance:
+    // such rays are set aside, and must stay a small minority. With Embree's choice, 2,170
+    // (SSE4.2) and 193 (AVX-512) of the 19,997 rays met another triangle at the same distance.
+    const TriMesh& m = dragon();
+    const Box box = padded_box(m);
+    std::vector<std::array<float, 3>> targets;
+    for (std::size_t v = 0; v < m.vertex_count(); ++v)
+        targets.push_back({m.positions[3 * v], m.positions[3 * v + 1], m.positions[3 * v + 2]});
+    for (std::size_t t = 0; t < m.triangle_count(); t += 2) {
+        const float* a = &m.positions[3 * std::size_t(m.indices[3 * t])];
+        const float* b = &m.positions[3 * std::size_t(m.indices[3 * t + 1])];
+        targets.push_back({0.5f * (a[0] + b[0]), 0.5f * (a[1] + b[1]), 0.5f * (a[2] + b[2])});
+    }
+    float c[3], r = 0;
+    for (std::size_t a = 0; a < 3; ++a) {
+        c[a] = 0.5f * (box.min[a] + box.max[a]);
+        r += box.max[a] - box.min[a];
+    }
+    std::uint64_t state = 12345;
+    const auto uniform = [&state] {
+        state = state * 6364136223846793005ull + 1442695040888963407ull;
+        return double(state >> 11) * 0x1.0p-53;
+    };
+    std::vector<Sample> rays(targets.size());
+    for (std::size_t i = 0; i < targets.size(); ++i) {
+        const double z = 2.0 * uniform() - 1.0, phi = 6.283185307179586 * uniform(),
+                     s = std::sqrt(1.0 - z * z);
+        const double o[3] = {r * s * std::cos(phi), r * s * std::sin(phi), r * z};
+        rays[i] = {};
+        for (std::size_t a = 0; a < 3; ++a) {
+            rays[i].ray.org[a] = c[a] + float(o[a]);
+            rays[i].ray.dir[a] = targets[i][a] - rays[i].ray.org[a];
+        }
+        rays[i].ray.tmax = INFINITY;
+    }
+    std::vector<std::vector<Sample>> traced;
+    std::vector<std::vector<SampleExtras>> extras;
+    for (const std::string& isa : embree_kernels()) {
+        SamplingConfig cfg;
+        cfg.embree_isa = isa;
+        auto src = make(m, 2, cfg);
+        traced.push_back(rays);
+        extras.emplace_back(rays.size());
+        src->trace(traced.back(), extras.back());
+    }
+    std::size_t hits = 0;
+    for (const Sample& s : traced[0]) hits += s.hit;
+    CHECK(hits > rays.size() / 2);
+    for (std::size_t k = 1; k < traced.size(); ++k) {
+        CAPTURE(embree_kernels()[k]);
+        std::size_t compared = 0, same = 0;
+        for (std::size_t i = 0; i < rays.size(); ++i) {
+            if (traced[k][i].hit != traced[0][i].hit || traced[k][i].t != traced[0][i].t) continue;
+            ++compared;
+            same += bit_equal(traced[k][i], traced[0][i]) && extras[k][i].primitive == extras[0][i].primitive;
+        }
+        CHECK(compared > rays.size() * 95 / 100);
+        CHECK(same == compared);
+    }
+}
+
 TEST_CASE("the inside test's votes are the same from every Embree kernel, on the mesh and its hole caps") {
     // Interior rays exist only where the inside test says "outside": its first-hit and parity
     // votes read hit distances and barycentrics too, on the mesh and on the caps over the

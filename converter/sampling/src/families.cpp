@@ -5,7 +5,8 @@
 // for caller-made rays through rtcIntersect1. Both tracing paths decode hits with the
 // same code, which is why they must round identically (-ffp-contract=off) and why the
 // tests can compare them bit for bit. A hit's t, u and v are lsnif's own (exact_hit):
-// Embree only says which triangle.
+// Embree only says which triangle, and where several meet the ray at one point lsnif
+// chooses (tied_hit).
 #include "sampling_internal.hpp"
 
 #include <algorithm>
@@ -95,6 +96,59 @@ EmbreeSource::Impl::RawHit EmbreeSource::Impl::exact_hit(const format::Ray& r, c
     return moeller_trumbore(surface[h.prim], r, h);
 }
 
+namespace {
+
+// How far the point of barycentrics (u of v1, v of v2) lies inside triangle v0 + u e1 + v e2,
+// in distance: the least of each barycentric times the height over its edge (negative
+// outside). Degenerate triangles give NaN, which compares false.
+double inside_distance(V3 e1, V3 e2, double u, double v) {
+    const double area2 = length(cross(e1, e2));
+    return std::min(
+        {u * area2 / length(e2), v * area2 / length(e1), (1.0 - u - v) * area2 / length(e2 - e1)});
+}
+
+}  // namespace
+
+// A ray that meets an edge or a vertex meets every triangle there at one point, and which
+// of them Embree reports follows from its approximate distances, whose bits are the CPU's:
+// one ray in a million of the 1.28 M-triangle dragon's training rays took another triangle
+// (other shading normal bits) on another CPU, and training went elsewhere from there. So a
+// hit within tie_margin of its triangle's border is decided among the triangles around the
+// triangle's corners: of those the ray meets within tie_margin of their own borders, the
+// nearest in double (base::triangle_hit), the lowest index among equals. Whichever of the
+// tied triangles Embree reported, the set holds the others (they share an edge or a vertex
+// with it), so every CPU picks the same one. The margin is a distance (a barycentric one
+// would differ between a small triangle and its large neighbour at the same point), about a
+// millionth of the mesh's extent: ten times what Embree's float edge tests can be off by,
+// far below a triangle's size. Hits clear of it are exact_hit's.
+EmbreeSource::Impl::RawHit EmbreeSource::Impl::tied_hit(const format::Ray& r, const RawHit& h) const {
+    const RawHit exact = exact_hit(r, h);
+    const SurfaceRecord& own = surface[h.prim];
+    const V3 own_e1{own.e1[0], own.e1[1], own.e1[2]}, own_e2{own.e2[0], own.e2[1], own.e2[2]};
+    if (!(inside_distance(own_e1, own_e2, exact.u, exact.v) < tie_margin)) return exact;
+    const V3 org{r.org[0], r.org[1], r.org[2]}, dir{r.dir[0], r.dir[1], r.dir[2]};
+    bool found = false;
+    std::uint32_t best = h.prim;
+    base::TriangleHit best_hit;
+    for (const std::uint32_t corner : hit_records[h.prim].corner)
+        for (std::uint32_t k = vertex_first[corner]; k < vertex_first[corner + 1]; ++k) {
+            const std::uint32_t c = vertex_triangles[k];
+            const SurfaceRecord& tri = surface[c];
+            const V3 e1{tri.e1[0], tri.e1[1], tri.e1[2]}, e2{tri.e2[0], tri.e2[1], tri.e2[2]};
+            base::TriangleHit x;
+            if (!base::triangle_hit(org, dir, V3{tri.v0[0], tri.v0[1], tri.v0[2]}, e1, e2, x)) continue;
+            const bool meets =
+                x.t >= r.tmin && x.t <= r.tmax && inside_distance(e1, e2, x.u, x.v) >= -tie_margin;
+            if (meets && (!found || x.t < best_hit.t || (x.t == best_hit.t && c < best))) {
+                found = true;
+                best = c;
+                best_hit = x;
+            }
+        }
+    if (!found) return exact;
+    return {std::clamp(float(best_hit.t), r.tmin, r.tmax), float(best_hit.u), float(best_hit.v), best};
+}
+
 // The same for a hit on either geometry of the inside test's rays: the mesh's triangles or
 // the hole caps'.
 EmbreeSource::Impl::RawHit EmbreeSource::Impl::exact_hit(const format::Ray& r, const RawHit& h,
@@ -114,7 +168,7 @@ void EmbreeSource::Impl::decode(const RawHit& embree, Sample& s, SampleExtras* x
     // Hits and misses take the same path (a miss reads record 0 and its results are
     // replaced by zeros): whether a ray hits is a coin flip to the branch predictor.
     const bool hit = embree.prim != kNoPrimitive;
-    const RawHit h = hit ? exact_hit(s.ray, embree) : embree;
+    const RawHit h = hit ? tied_hit(s.ray, embree) : embree;
     const HitRecord& rec = hit_records[hit ? h.prim : 0];
     // Embree's (u, v) are the barycentrics of v1 and v2: P = (1-u-v) v0 + u v1 + v v2.
     const float u = hit ? h.u : 0.0f, v = hit ? h.v : 0.0f, w = 1.0f - u - v;

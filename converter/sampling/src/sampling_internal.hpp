@@ -229,9 +229,16 @@ struct EmbreeSource::Impl {
         float n[3][3];  // vertex shading normals
         float ng[3];    // unit geometric normal (zero if degenerate)
         std::uint32_t material;
+        std::uint32_t corner[3];  // vertex indices (tied_hit's neighbours)
     };
     std::vector<SurfaceRecord> surface;
     std::vector<HitRecord> hit_records;
+    // The triangles around each vertex: those of vertex k are
+    // vertex_triangles[vertex_first[k] .. vertex_first[k + 1]), in index order.
+    std::vector<std::uint32_t> vertex_first, vertex_triangles;
+    // tied_hit's margin: a millionth of the mesh's extent (largest box coordinate plus
+    // diagonal), in object units.
+    double tie_margin = 0;
     // The hole caps' triangles as the inside test's exact hits read them (one per cap
     // triangle, Embree's primID of geometry kCapGeometry): p = v0 + b1 e1 + b2 e2.
     struct CapRecord {
@@ -283,6 +290,9 @@ struct EmbreeSource::Impl {
     };
     RawHit trace_raw(const format::Ray& r) const;
     RawHit exact_hit(const format::Ray& r, const RawHit& h) const;
+    // exact_hit, with the triangle chosen the same way on every CPU where the ray meets
+    // several at one point (an edge or a vertex they share).
+    RawHit tied_hit(const format::Ray& r, const RawHit& h) const;
     RawHit exact_hit(const format::Ray& r, const RawHit& h, unsigned geometry) const;
     void prefetch_hit(std::uint32_t prim) const;
     void decode(const RawHit& h, samples::Sample& s, SampleExtras* x) const;
@@ -416,7 +426,7 @@ std::string build_embree_scene(EmbreeSource::Impl& m);
 
 // mesh_data.cpp. Input: m.positions, m.indices, m.normals, m.face_normals, m.materials, m.caps
 // and the alias table. Output: m.surface and m.hit_records (one each per triangle),
-// m.cap_records (one per cap triangle).
+// m.cap_records (one per cap triangle), m.vertex_first and m.vertex_triangles.
 void build_triangle_records(EmbreeSource::Impl& m);
 
 // inside.cpp. Only when m.parity_ready and m.cfg.classify_resolution > 0. Input: the
