@@ -110,17 +110,17 @@ double inside_distance(V3 e1, V3 e2, double u, double v) {
 }  // namespace
 
 // A ray that meets an edge or a vertex meets every triangle there at one point, and which
-// of them Embree reports follows from its approximate distances, whose bits are the CPU's:
-// one ray in a million of the 1.28 M-triangle dragon's training rays took another triangle
-// (other shading normal bits) on another CPU, and training went elsewhere from there. So a
-// hit within tie_margin of its triangle's border is decided among the triangles around the
-// triangle's corners: of those the ray meets within tie_margin of their own borders, the
-// nearest in double (base::triangle_hit), the lowest index among equals. Whichever of the
-// tied triangles Embree reported, the set holds the others (they share an edge or a vertex
-// with it), so every CPU picks the same one. The margin is a distance (a barycentric one
-// would differ between a small triangle and its large neighbour at the same point), about a
-// millionth of the mesh's extent: ten times what Embree's float edge tests can be off by,
-// far below a triangle's size. Hits clear of it are exact_hit's.
+// of them Embree reports follows from its approximate distances, whose bits are the CPU's
+// (and its kernel's); a training target with other normal bits sends training elsewhere
+// (docs/pipeline.md "The same bytes everywhere"). So a hit within tie_margin of its
+// triangle's border is decided among the triangles around the triangle's corners: of those
+// the ray meets within tie_margin of their own borders, the nearest in double
+// (base::triangle_hit), the lowest index among equals. Whichever of the tied triangles
+// Embree reported, the set holds the others (they share an edge or a vertex with it), so
+// every CPU picks the same one. The margin is a distance (a barycentric one would differ
+// between a small triangle and its large neighbour at the same point): about a millionth of
+// the mesh's extent, a few ulps of its largest coordinate, which is what Embree's float edge
+// tests can be off by, and far below a triangle's size. Hits clear of it are exact_hit's.
 EmbreeSource::Impl::RawHit EmbreeSource::Impl::tied_hit(const format::Ray& r, const RawHit& h) const {
     const RawHit exact = exact_hit(r, h);
     const SurfaceRecord& own = surface[h.prim];
