@@ -419,13 +419,17 @@ void check_enclosed_rule(const Shipped& s, const nlohmann::json& mesh, const std
     }
 }
 
-// The limit conversion chose for a solid (the decision rays' false misses rise by at most
-// kEscapeMissRise) holds on the held-out rays: their false misses rise by at most that plus
-// 0.1 point (about two standard deviations of the lost occluders' count on ~11,000 rays),
-// and visibility does not drop by more than 0.1 point.
-void check_escape_choice(const nlohmann::json& mesh, const EscapeFigures& f, std::uint32_t expected) {
+// The limit conversion chose (the decision rays' false misses rise by at most
+// kEscapeMissRise) lies in [lowest, highest], and holds on the held-out rays: their false
+// misses rise by at most that plus 0.1 point (about two standard deviations of the lost
+// occluders' count on ~11,000 rays), and visibility does not drop by more than 0.1 point.
+// Which N a solid's model allows moves with its training (2 or 3 on these meshes); that the
+// rule is on for a solid and off for thin parts does not.
+void check_escape_choice(const nlohmann::json& mesh, const EscapeFigures& f, std::uint32_t lowest,
+                         std::uint32_t highest) {
     const std::uint32_t n = mesh["metrics"]["escape_points"].get<std::uint32_t>();
-    CHECK(n == expected);
+    CHECK(n >= lowest);
+    CHECK(n <= highest);
     if (n == 0 || n >= f.visibility.size()) return;
     CHECK(f.visibility[n] >= f.visibility[0] - 0.1);
     CHECK(f.false_misses[n] <= f.false_misses[0] + 100 * lsnif::converter::stages::kEscapeMissRise + 0.1);
@@ -537,9 +541,9 @@ TEST_CASE("the default model meets the accuracy targets on CGAL's Chinese dragon
     check_fresh_rays(shipped, mesh, "ChineseDragon-10kv");
     check_walks_agree(shipped, "ChineseDragon-10kv");
     report_surface_sides(shipped, "ChineseDragon-10kv");
-    // On a solid the rule at N = 2 answers as well as the network, and conversion chooses it
-    // (docs/model.md "The escape rule").
-    check_escape_choice(mesh, report_escape_rule(shipped, "ChineseDragon-10kv"), 3);
+    // On a solid the rule at N = 2 or 3 answers about as well as the network, and conversion
+    // chooses it (docs/model.md "The escape rule").
+    check_escape_choice(mesh, report_escape_rule(shipped, "ChineseDragon-10kv"), 2, 3);
     check_enclosed_rule(shipped, mesh, "ChineseDragon-10kv");
     check_reduced_inference(shipped, "ChineseDragon-10kv");
 }
@@ -553,7 +557,7 @@ TEST_CASE("default preset meets the accuracy targets on CGAL's armadillo") {
     check_fresh_rays(shipped, mesh, "armadillo");
     check_walks_agree(shipped, "armadillo");
     report_surface_sides(shipped, "armadillo");
-    check_escape_choice(mesh, report_escape_rule(shipped, "armadillo"), 3);
+    check_escape_choice(mesh, report_escape_rule(shipped, "armadillo"), 2, 3);
     check_enclosed_rule(shipped, mesh, "armadillo");
     check_reduced_inference(shipped, "armadillo");
 }
@@ -579,7 +583,7 @@ TEST_CASE("default preset ships a truck assembly past the gate with a margin") {
     check_walks_agree(shipped, "peterbilt");
     report_surface_sides(shipped, "peterbilt");
     // Thin parts a voxel or two apart: the rule loses real occluders here, so it stays off.
-    check_escape_choice(mesh, report_escape_rule(shipped, "peterbilt"), 0);
+    check_escape_choice(mesh, report_escape_rule(shipped, "peterbilt"), 0, 0);
     check_enclosed_rule(shipped, mesh, "peterbilt");
     check_reduced_inference(shipped, "peterbilt");
 }
