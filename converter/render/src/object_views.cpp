@@ -123,8 +123,9 @@ std::unique_ptr<ObjectViews> ObjectViews::create(std::span<const float> position
     }
     // The same images on every x86-64-v3 CPU and for any thread count, since they decide what
     // ships: Embree's AVX2 kernels and one BVH build thread, as the conversion's ground truth
-    // (sampling::SamplingConfig::embree_isa), Embree's hits with t, u and v of lsnif's own
-    // (Impl::exact_hit), and the asset traced in fp32 (compare()).
+    // (sampling::SamplingConfig::embree_isa), Embree's hits with t, u and v of lsnif's own and
+    // ties between triangles decided by lsnif (Impl::exact_hit), and the asset traced in fp32
+    // (compare()).
     if (!format::detected_cpu_features().avx2_fma) {
         error = "object views: this CPU has no AVX2 and FMA (x86-64-v3 is the floor)";
         return nullptr;
@@ -133,7 +134,7 @@ std::unique_ptr<ObjectViews> ObjectViews::create(std::span<const float> position
     EvalScene::Impl& im = *impl;
     const std::string config = "threads=1,isa=" + o.embree_isa;
     if (!im.open_device(error, config.c_str())) return nullptr;
-    im.exact_hits = true;
+    im.exact_hits = true;  // before upload(): the meshes then keep their neighbourhoods
     EvalScene::Impl::Mesh object;
     object.name = "object";
     object.positions.assign(positions.begin(), positions.end());

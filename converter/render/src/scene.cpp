@@ -410,6 +410,7 @@ bool EvalScene::Impl::upload(Mesh m, std::string& error) {
     rtcReleaseGeometry(g);
     rtcCommitScene(m.scene);
     m.bvh_bytes = memory - before;
+    if (exact_hits) m.around = base::VertexTriangles(m.indices, m.positions.size() / 3);
     meshes.push_back(std::move(m));
     return true;
 }

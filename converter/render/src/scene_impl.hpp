@@ -3,7 +3,7 @@
 // include directory of any other target).
 #pragma once
 
-#include <lsnif/base/vec3.hpp>
+#include <lsnif/base/triangle_hit.hpp>
 #include <lsnif/render/scene.hpp>
 
 #include <embree3/rtcore.h>
@@ -71,6 +71,7 @@ struct EvalScene::Impl {
         std::uint64_t bvh_bytes = 0;
         std::uint64_t lsnif_bytes = 0;  // the opened asset's resident bytes (lsnif_info.decoded_bytes)
         std::array<float, 6> box{};     // object-space bounds
+        base::VertexTriangles around;   // with exact_hits only: exact_hit's neighbourhoods
     };
     struct Instance {
         std::uint32_t mesh = 0;
@@ -134,9 +135,10 @@ struct EvalScene::Impl {
         const std::uint32_t inst = rh.hit.instID[0];
         const Instance& in = instances[inst];
         const Mesh& m = meshes[in.mesh];
-        const std::uint32_t* tri = &m.indices[std::size_t(rh.hit.primID) * 3];
+        std::uint32_t prim = rh.hit.primID;
         float t = rh.ray.tfar, u = rh.hit.u, v = rh.hit.v;
-        if (exact_hits) exact_hit(in, tri, r, t, u, v);
+        if (exact_hits) prim = exact_hit(in, r, prim, t, u, v);
+        const std::uint32_t* tri = &m.indices[std::size_t(prim) * 3];
         const float w = 1.0f - u - v;
         Vec3 n{};
         for (int a = 0; a < 3; ++a)
@@ -148,29 +150,42 @@ struct EvalScene::Impl {
         return h;
     }
 
-    // Ray r's hit with triangle `tri` (corner indices) of instance `in`, which Embree reported
-    // with t, u and v: the three computed again in world space (base::triangle_hit, the same
-    // bits on every CPU), t kept within [tmin, tmax] as Embree's exact depth test left it.
-    // Embree's values stay where triangle_hit has none.
-    void exact_hit(const Instance& in, const std::uint32_t* tri, const lsnif_ray& r, float& t, float& u,
-                   float& v) const {
+    // Ray r's hit with triangle `prim` of instance `in`, which Embree reported with t, u and
+    // v: the three computed again in world space (base::triangle_hit, the same bits on every
+    // CPU), on the triangle base::tied_triangle chooses where others meet the ray at the same
+    // point, t kept within [tmin, tmax] as Embree's exact depth test left it. Embree's values
+    // stay where triangle_hit has none. Returns the triangle.
+    std::uint32_t exact_hit(const Instance& in, const lsnif_ray& r, std::uint32_t prim, float& t, float& u,
+                            float& v) const {
         using base::Vec3d;
-        const std::vector<float>& p = meshes[in.mesh].positions;
-        Vec3d c[3];
-        for (int k = 0; k < 3; ++k) {
-            const float* q = &p[std::size_t(tri[k]) * 3];
-            const Affine& a = in.transform;
-            c[k] = {double(a[0]) * q[0] + double(a[1]) * q[1] + double(a[2]) * q[2] + a[3],
-                    double(a[4]) * q[0] + double(a[5]) * q[1] + double(a[6]) * q[2] + a[7],
-                    double(a[8]) * q[0] + double(a[9]) * q[1] + double(a[10]) * q[2] + a[11]};
-        }
+        const Mesh& m = meshes[in.mesh];
+        const Affine& a = in.transform;
+        const auto triangle = [&](std::uint32_t c, Vec3d& v0, Vec3d& e1, Vec3d& e2) {
+            Vec3d p[3];
+            for (int k = 0; k < 3; ++k) {
+                const float* q = &m.positions[std::size_t(m.indices[3 * std::size_t(c) + k]) * 3];
+                p[k] = {double(a[0]) * q[0] + double(a[1]) * q[1] + double(a[2]) * q[2] + a[3],
+                        double(a[4]) * q[0] + double(a[5]) * q[1] + double(a[6]) * q[2] + a[7],
+                        double(a[8]) * q[0] + double(a[9]) * q[1] + double(a[10]) * q[2] + a[11]};
+            }
+            v0 = p[0];
+            e1 = p[1] - p[0];
+            e2 = p[2] - p[0];
+        };
+        const Vec3d org{r.org[0], r.org[1], r.org[2]}, dir{r.dir[0], r.dir[1], r.dir[2]};
+        Vec3d v0, e1, e2;
+        triangle(prim, v0, e1, e2);
         base::TriangleHit x;
-        if (!base::triangle_hit({r.org[0], r.org[1], r.org[2]}, {r.dir[0], r.dir[1], r.dir[2]}, c[0],
-                                c[1] - c[0], c[2] - c[0], x))
-            return;
+        if (!base::triangle_hit(org, dir, v0, e1, e2, x)) return prim;
+        const double lo[3] = {in.box[0], in.box[1], in.box[2]}, hi[3] = {in.box[3], in.box[4], in.box[5]};
+        const std::uint32_t* c = &m.indices[3 * std::size_t(prim)];
+        const std::uint32_t corners[3] = {c[0], c[1], c[2]};
+        prim = base::tied_triangle(org, dir, r.tmin, r.tmax, base::tie_margin(lo, hi), prim, corners,
+                                   m.around, triangle, x);
         t = std::clamp(float(x.t), r.tmin, r.tmax);
         u = float(x.u);
         v = float(x.v);
+        return prim;
     }
 };
 

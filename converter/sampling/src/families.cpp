@@ -96,57 +96,26 @@ EmbreeSource::Impl::RawHit EmbreeSource::Impl::exact_hit(const format::Ray& r, c
     return moeller_trumbore(surface[h.prim], r, h);
 }
 
-namespace {
-
-// How far the point of barycentrics (u of v1, v of v2) lies inside triangle v0 + u e1 + v e2,
-// in distance: the least of each barycentric times the height over its edge (negative
-// outside). Degenerate triangles give NaN, which compares false.
-double inside_distance(V3 e1, V3 e2, double u, double v) {
-    const double area2 = length(cross(e1, e2));
-    return std::min(
-        {u * area2 / length(e2), v * area2 / length(e1), (1.0 - u - v) * area2 / length(e2 - e1)});
-}
-
-}  // namespace
-
-// A ray that meets an edge or a vertex meets every triangle there at one point, and which
-// of them Embree reports follows from its approximate distances, whose bits are the CPU's
-// (and its kernel's); a training target with other normal bits sends training elsewhere
-// (docs/pipeline.md "The same bytes everywhere"). So a hit within tie_margin of its
-// triangle's border is decided among the triangles around the triangle's corners: of those
-// the ray meets within tie_margin of their own borders, the nearest in double
-// (base::triangle_hit), the lowest index among equals. Whichever of the tied triangles
-// Embree reported, the set holds the others (they share an edge or a vertex with it), so
-// every CPU picks the same one. The margin is a distance (a barycentric one would differ
-// between a small triangle and its large neighbour at the same point): about a millionth of
-// the mesh's extent, a few ulps of its largest coordinate, which is what Embree's float edge
-// tests can be off by, and far below a triangle's size. Hits clear of it are exact_hit's.
+// Ray r's hit with triangle h.prim, and which triangle it is on where several meet the ray at
+// one point: base::tied_triangle among the triangles around h.prim's corners. Embree puts
+// first whichever its approximate distances say, whose bits are the CPU's (and its
+// kernel's), and a training target with other normal bits sends training elsewhere
+// (docs/pipeline.md "The same bytes everywhere"). Hits clear of the border are exact_hit's.
 EmbreeSource::Impl::RawHit EmbreeSource::Impl::tied_hit(const format::Ray& r, const RawHit& h) const {
-    const RawHit exact = exact_hit(r, h);
-    const SurfaceRecord& own = surface[h.prim];
-    const V3 own_e1{own.e1[0], own.e1[1], own.e1[2]}, own_e2{own.e2[0], own.e2[1], own.e2[2]};
-    if (!(inside_distance(own_e1, own_e2, exact.u, exact.v) < tie_margin)) return exact;
+    const auto triangle = [this](std::uint32_t c, V3& v0, V3& e1, V3& e2) {
+        const SurfaceRecord& s = surface[c];
+        v0 = {s.v0[0], s.v0[1], s.v0[2]};
+        e1 = {s.e1[0], s.e1[1], s.e1[2]};
+        e2 = {s.e2[0], s.e2[1], s.e2[2]};
+    };
     const V3 org{r.org[0], r.org[1], r.org[2]}, dir{r.dir[0], r.dir[1], r.dir[2]};
-    bool found = false;
-    std::uint32_t best = h.prim;
-    base::TriangleHit best_hit;
-    for (const std::uint32_t corner : hit_records[h.prim].corner)
-        for (std::uint32_t k = vertex_first[corner]; k < vertex_first[corner + 1]; ++k) {
-            const std::uint32_t c = vertex_triangles[k];
-            const SurfaceRecord& tri = surface[c];
-            const V3 e1{tri.e1[0], tri.e1[1], tri.e1[2]}, e2{tri.e2[0], tri.e2[1], tri.e2[2]};
-            base::TriangleHit x;
-            if (!base::triangle_hit(org, dir, V3{tri.v0[0], tri.v0[1], tri.v0[2]}, e1, e2, x)) continue;
-            const bool meets =
-                x.t >= r.tmin && x.t <= r.tmax && inside_distance(e1, e2, x.u, x.v) >= -tie_margin;
-            if (meets && (!found || x.t < best_hit.t || (x.t == best_hit.t && c < best))) {
-                found = true;
-                best = c;
-                best_hit = x;
-            }
-        }
-    if (!found) return exact;
-    return {std::clamp(float(best_hit.t), r.tmin, r.tmax), float(best_hit.u), float(best_hit.v), best};
+    V3 v0, e1, e2;
+    triangle(h.prim, v0, e1, e2);
+    base::TriangleHit x;
+    if (!base::triangle_hit(org, dir, v0, e1, e2, x)) return h;
+    const std::uint32_t prim = base::tied_triangle(org, dir, r.tmin, r.tmax, tie_margin, h.prim,
+                                                   hit_records[h.prim].corner, around, triangle, x);
+    return {std::clamp(float(x.t), r.tmin, r.tmax), float(x.u), float(x.v), prim};
 }
 
 // The same for a hit on either geometry of the inside test's rays: the mesh's triangles or

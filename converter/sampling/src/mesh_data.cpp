@@ -112,18 +112,8 @@ void build_triangle_records(EmbreeSource::Impl& m) {
         hr.material = m.materials.empty() ? 0 : m.materials[t];
         for (int j = 0; j < 3; ++j) hr.corner[j] = v[j];
     }
-    double extent = m.diag;
-    for (int a = 0; a < 3; ++a)
-        extent = std::max({extent, std::abs(m.lo[a]) + m.diag, std::abs(m.hi[a]) + m.diag});
-    m.tie_margin = 1e-6 * extent;
-    // Vertex -> triangles, counted then filled in triangle order (a counting sort).
-    const std::size_t nv = m.positions.size() / 3;
-    m.vertex_first.assign(nv + 1, 0);
-    for (std::size_t k = 0; k < 3 * nt; ++k) ++m.vertex_first[m.indices[k] + 1];
-    for (std::size_t k = 0; k < nv; ++k) m.vertex_first[k + 1] += m.vertex_first[k];
-    m.vertex_triangles.resize(3 * nt);
-    std::vector<std::uint32_t> fill(m.vertex_first.begin(), m.vertex_first.end() - 1);
-    for (std::size_t k = 0; k < 3 * nt; ++k) m.vertex_triangles[fill[m.indices[k]]++] = std::uint32_t(k / 3);
+    m.around = base::VertexTriangles(m.indices, m.positions.size() / 3);
+    m.tie_margin = base::tie_margin(m.lo, m.hi);
     m.cap_records.resize(m.caps.size() / 3);
     for (std::size_t k = 0; k < m.cap_records.size(); ++k) {
         EmbreeSource::Impl::CapRecord& c = m.cap_records[k];

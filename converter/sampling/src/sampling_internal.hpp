@@ -10,6 +10,7 @@
 
 #include <lsnif/base/parallel.hpp>
 #include <lsnif/base/random.hpp>
+#include <lsnif/base/triangle_hit.hpp>
 #include <lsnif/base/vec3.hpp>
 #include <lsnif/sampling/sampling.hpp>
 
@@ -229,15 +230,13 @@ struct EmbreeSource::Impl {
         float n[3][3];  // vertex shading normals
         float ng[3];    // unit geometric normal (zero if degenerate)
         std::uint32_t material;
-        std::uint32_t corner[3];  // vertex indices (tied_hit's neighbours)
+        std::uint32_t corner[3];  // vertex indices (tied_hit's neighbourhood)
     };
     std::vector<SurfaceRecord> surface;
     std::vector<HitRecord> hit_records;
-    // The triangles around each vertex: those of vertex k are
-    // vertex_triangles[vertex_first[k] .. vertex_first[k + 1]), in index order.
-    std::vector<std::uint32_t> vertex_first, vertex_triangles;
-    // tied_hit's margin: a millionth of the mesh's extent (largest box coordinate plus
-    // diagonal), in object units.
+    // tied_hit's neighbourhoods (the triangles around each vertex) and margin
+    // (base::tie_margin of the box).
+    base::VertexTriangles around;
     double tie_margin = 0;
     // The hole caps' triangles as the inside test's exact hits read them (one per cap
     // triangle, Embree's primID of geometry kCapGeometry): p = v0 + b1 e1 + b2 e2.
