@@ -425,7 +425,7 @@ std::string build_embree_scene(EmbreeSource::Impl& m);
 
 // mesh_data.cpp. Input: m.positions, m.indices, m.normals, m.face_normals, m.materials, m.caps
 // and the alias table. Output: m.surface and m.hit_records (one each per triangle),
-// m.cap_records (one per cap triangle), m.vertex_first and m.vertex_triangles.
+// m.cap_records (one per cap triangle), m.around and m.tie_margin.
 void build_triangle_records(EmbreeSource::Impl& m);
 
 // inside.cpp. Only when m.parity_ready and m.cfg.classify_resolution > 0. Input: the
