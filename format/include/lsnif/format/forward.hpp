@@ -15,6 +15,7 @@
 
 #include <algorithm>
 #include <array>
+#include <bit>
 #include <cstddef>
 #include <cstdint>
 #include <span>
@@ -437,11 +438,18 @@ struct IntersectStats {
 };
 
 // Whether voxels `a` and `b` (linear indices x + V * (y + V * z) of a V^3 grid) share a
-// face: they differ by one along exactly one axis.
+// face: they differ by one along exactly one axis. Called per point of every ray the escape
+// rule looks at (escapes()): for a power-of-two V (every preset's grid) the coordinates come
+// from shifts and masks instead of divisions by a V known only at run time.
 inline bool face_neighbours(std::uint32_t a, std::uint32_t b, std::uint32_t V) {
+    const auto apart = [](std::uint32_t u, std::uint32_t v) { return u > v ? u - v : v - u; };
+    if (std::has_single_bit(V)) {
+        const int s = std::countr_zero(V);
+        const std::uint32_t m = V - 1;
+        return apart(a & m, b & m) + apart((a >> s) & m, (b >> s) & m) + apart(a >> 2 * s, b >> 2 * s) == 1;
+    }
     const std::uint32_t ax = a % V, ay = a / V % V, az = a / V / V;
     const std::uint32_t bx = b % V, by = b / V % V, bz = b / V / V;
-    const auto apart = [](std::uint32_t u, std::uint32_t v) { return u > v ? u - v : v - u; };
     return apart(ax, bx) + apart(ay, by) + apart(az, bz) == 1;
 }
 
