@@ -306,7 +306,7 @@ TEST_CASE("a conversion's object views give the same FLIP from Embree's SSE4.2, 
     // differ per kernel here and per CPU vendor elsewhere (an Intel and an AMD host wrote
     // different assets from one command); the views take only the triangle from Embree and
     // compute the rest themselves (ties between triangles at an edge or vertex decided by
-    // base::tied_triangle, tested with the ground truth in tests/sampling), so three kernels
+    // base::exact_tied_hit, tested with the ground truth in tests/sampling), so three kernels
     // give the same figures to the last bit.
     const fs::path dir = converted_dragon();
     const json manifest = json::parse(file_bytes(dir / "manifest.json"));

@@ -152,7 +152,7 @@ struct EvalScene::Impl {
 
     // Ray r's hit with triangle `prim` of instance `in`, which Embree reported with t, u and
     // v: the three computed again in world space (base::triangle_hit, the same bits on every
-    // CPU), on the triangle base::tied_triangle chooses where others meet the ray at the same
+    // CPU), on the triangle base::exact_tied_hit chooses where others meet the ray at the same
     // point, t kept within [tmin, tmax] as Embree's exact depth test left it. Embree's values
     // stay where triangle_hit has none. Returns the triangle.
     std::uint32_t exact_hit(const Instance& in, const lsnif_ray& r, std::uint32_t prim, float& t, float& u,
@@ -173,19 +173,16 @@ struct EvalScene::Impl {
             e2 = p[2] - p[0];
         };
         const Vec3d org{r.org[0], r.org[1], r.org[2]}, dir{r.dir[0], r.dir[1], r.dir[2]};
-        Vec3d v0, e1, e2;
-        triangle(prim, v0, e1, e2);
-        base::TriangleHit x;
-        if (!base::triangle_hit(org, dir, v0, e1, e2, x)) return prim;
         const double lo[3] = {in.box[0], in.box[1], in.box[2]}, hi[3] = {in.box[3], in.box[4], in.box[5]};
         const std::uint32_t* c = &m.indices[3 * std::size_t(prim)];
         const std::uint32_t corners[3] = {c[0], c[1], c[2]};
-        prim = base::tied_triangle(org, dir, r.tmin, r.tmax, base::tie_margin(lo, hi), prim, corners,
-                                   m.around, triangle, x);
-        t = std::clamp(float(x.t), r.tmin, r.tmax);
-        u = float(x.u);
-        v = float(x.v);
-        return prim;
+        const std::optional<base::ChosenHit> chosen = base::exact_tied_hit(
+            org, dir, r.tmin, r.tmax, base::tie_margin(lo, hi), prim, corners, m.around, triangle);
+        if (!chosen) return prim;
+        t = std::clamp(float(chosen->hit.t), r.tmin, r.tmax);
+        u = float(chosen->hit.u);
+        v = float(chosen->hit.v);
+        return chosen->triangle;
     }
 };
 

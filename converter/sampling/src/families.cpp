@@ -97,7 +97,7 @@ EmbreeSource::Impl::RawHit EmbreeSource::Impl::exact_hit(const format::Ray& r, c
 }
 
 // Ray r's hit with triangle h.prim, and which triangle it is on where several meet the ray at
-// one point: base::tied_triangle among the triangles around h.prim's corners. Embree puts
+// one point: base::exact_tied_hit among the triangles around h.prim's corners. Embree puts
 // first whichever its approximate distances say, whose bits are the CPU's (and its
 // kernel's), and a training target with other normal bits sends training elsewhere
 // (docs/pipeline.md "The same bytes everywhere"). Hits clear of the border are exact_hit's.
@@ -109,13 +109,11 @@ EmbreeSource::Impl::RawHit EmbreeSource::Impl::tied_hit(const format::Ray& r, co
         e2 = {s.e2[0], s.e2[1], s.e2[2]};
     };
     const V3 org{r.org[0], r.org[1], r.org[2]}, dir{r.dir[0], r.dir[1], r.dir[2]};
-    V3 v0, e1, e2;
-    triangle(h.prim, v0, e1, e2);
-    base::TriangleHit x;
-    if (!base::triangle_hit(org, dir, v0, e1, e2, x)) return h;
-    const std::uint32_t prim = base::tied_triangle(org, dir, r.tmin, r.tmax, tie_margin, h.prim,
-                                                   hit_records[h.prim].corner, around, triangle, x);
-    return {std::clamp(float(x.t), r.tmin, r.tmax), float(x.u), float(x.v), prim};
+    const std::optional<base::ChosenHit> chosen = base::exact_tied_hit(
+        org, dir, r.tmin, r.tmax, tie_margin, h.prim, hit_records[h.prim].corner, around, triangle);
+    if (!chosen) return h;
+    const base::TriangleHit& x = chosen->hit;
+    return {std::clamp(float(x.t), r.tmin, r.tmax), float(x.u), float(x.v), chosen->triangle};
 }
 
 // The same for a hit on either geometry of the inside test's rays: the mesh's triangles or

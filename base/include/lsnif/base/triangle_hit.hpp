@@ -13,6 +13,7 @@
 #include <cmath>
 #include <cstddef>
 #include <cstdint>
+#include <optional>
 #include <span>
 #include <vector>
 
@@ -72,25 +73,32 @@ struct VertexTriangles {
     }
 };
 
-// A ray meets every triangle at an edge or vertex they share at one point. Given the triangle
-// a tracer reported (`reported`, corners `corners`) and its exact hit (u, v; triangle_hit),
-// decides which of them the hit is on, the same way whichever of them was reported: when the
-// hit lies within `margin` of the reported triangle's border, among the triangles around its
-// corners that the ray meets in [tmin, tmax] within `margin` of their own borders, the
-// nearest (t in double), the lowest index among equals; otherwise the reported one. The tied
-// triangles share an edge or a vertex with each other, so each one's neighbourhood holds the
-// others. `triangle(c, v0, e1, e2)` gives triangle c's corner and edges (the same values
-// triangle_hit got for the reported one). Returns the chosen triangle; `hit` is its hit.
+// A triangle and the ray's exact hit with it.
+struct ChosenHit {
+    std::uint32_t triangle = 0;
+    TriangleHit hit;
+};
+
+// The exact hit (triangle_hit) of the ray with the triangle a tracer reported (`reported`,
+// corners `corners`), on the triangle it is on where several meet the ray at one point: a
+// ray meets every triangle at an edge or vertex they share at one point, and this decides
+// among them the same way whichever of them was reported. When the reported triangle's hit
+// lies within `margin` of its border: among the triangles around its corners that the ray
+// meets in [tmin, tmax] within `margin` of their own borders, the nearest (t in double), the
+// lowest index among equals; otherwise the reported one. The tied triangles share an edge or
+// a vertex with each other, so each one's neighbourhood holds the others.
+// `triangle(c, v0, e1, e2)` gives triangle c's corner and edges. Empty when triangle_hit has
+// no hit with the reported triangle.
 template <class Triangle>
-std::uint32_t tied_triangle(Vec3d org, Vec3d dir, double tmin, double tmax, double margin,
-                            std::uint32_t reported, const std::uint32_t (&corners)[3],
-                            const VertexTriangles& around, Triangle&& triangle, TriangleHit& hit) {
+std::optional<ChosenHit> exact_tied_hit(Vec3d org, Vec3d dir, double tmin, double tmax, double margin,
+                                        std::uint32_t reported, const std::uint32_t (&corners)[3],
+                                        const VertexTriangles& around, Triangle&& triangle) {
     Vec3d v0, e1, e2;
     triangle(reported, v0, e1, e2);
-    if (!(inside_distance(e1, e2, hit.u, hit.v) < margin)) return reported;
-    bool found = false;
-    std::uint32_t best = reported;
-    TriangleHit best_hit;
+    ChosenHit own{reported, {}};
+    if (!triangle_hit(org, dir, v0, e1, e2, own.hit)) return std::nullopt;
+    if (!(inside_distance(e1, e2, own.hit.u, own.hit.v) < margin)) return own;
+    std::optional<ChosenHit> best;
     for (const std::uint32_t corner : corners)
         for (std::uint32_t k = around.first[corner]; k < around.first[corner + 1]; ++k) {
             const std::uint32_t c = around.triangles[k];
@@ -98,14 +106,10 @@ std::uint32_t tied_triangle(Vec3d org, Vec3d dir, double tmin, double tmax, doub
             TriangleHit x;
             if (!triangle_hit(org, dir, v0, e1, e2, x)) continue;
             if (!(x.t >= tmin && x.t <= tmax && inside_distance(e1, e2, x.u, x.v) >= -margin)) continue;
-            if (!found || x.t < best_hit.t || (x.t == best_hit.t && c < best)) {
-                found = true;
-                best = c;
-                best_hit = x;
-            }
+            if (!best || x.t < best->hit.t || (x.t == best->hit.t && c < best->triangle))
+                best = ChosenHit{c, x};
         }
-    if (found) hit = best_hit;
-    return best;
+    return best ? best : own;
 }
 
 }  // namespace lsnif::base
